@@ -1,0 +1,153 @@
+"""DVGO-style expert: a dense density grid and a dense feature grid over the scene box.
+
+density(x) = softplus(interp(V_density, x) + shift) / unit            (post-activation, per world unit)
+color(x,d) = sigmoid(MLP([interp(V_feat, x), PE(d)]))                 (or sigmoid(interp) with no MLP)
+
+`shift = log(1/(1 - alpha_init) - 1)` makes every voxel start with opacity `alpha_init` over one
+`unit` of length; `unit` is the voxel size of the final grid and stays fixed while the grid grows
+(progressive upscaling), so the meaning of the density does not change when the grid is resampled.
+Outside its box the expert is empty (density 0), so experts with different boxes can be mixed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from boostnerf_cli.fields import grid as G
+
+
+@dataclass
+class DVGOConfig:
+    """Architecture of a DVGO-style expert. `res`: the final grid has res^3 voxels."""
+
+    res: int = 128
+    feat_dim: int = 12
+    hidden: int = 128  # width of the colour MLP; 0 = no MLP, colour = sigmoid of 3 grid channels
+    layers: int = 2  # hidden layers of the colour MLP
+    view_pe: int = 4  # frequencies of the view-direction encoding
+    alpha_init: float = 1e-2
+
+
+def direction_encoding(dirs: Tensor, n_freq: int) -> Tensor:
+    """(N, 3) -> (N, 3 + 6 n_freq): d, sin(2^k d), cos(2^k d)."""
+    if n_freq == 0:
+        return dirs
+    freqs = 2.0 ** torch.arange(n_freq, device=dirs.device, dtype=dirs.dtype)
+    x = (dirs[:, None, :] * freqs[:, None]).reshape(dirs.shape[0], -1)
+    return torch.cat([dirs, torch.sin(x), torch.cos(x)], dim=-1)
+
+
+def color_mlp(in_dim: int, hidden: int, layers: int) -> nn.Sequential:
+    mods: list[nn.Module] = []
+    d = in_dim
+    for _ in range(layers):
+        mods += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
+        d = hidden
+    last = nn.Linear(d, 3)
+    nn.init.zeros_(last.bias)
+    return nn.Sequential(*mods, last)
+
+
+class DVGOExpert(nn.Module):
+    """Dense-grid radiance field; satisfies the Field protocol."""
+
+    family = "dvgo"
+
+    def __init__(self, cfg: DVGOConfig, bbox: Tensor, unit: float | None = None,
+                 shape: tuple[int, int, int] | None = None):
+        super().__init__()
+        self.cfg = cfg
+        self.register_buffer("bbox", bbox.detach().clone().float())
+        final_shape = G.lattice_shape(self.bbox, cfg.res ** 3)
+        self.unit = float(unit) if unit is not None else self._spacing(final_shape)
+        self.shape = tuple(shape) if shape is not None else final_shape
+        n = math.prod(self.shape)
+        channels = cfg.feat_dim if cfg.hidden > 0 else 3
+        self.density_table = nn.Parameter(torch.zeros(n, 1))
+        self.feature_table = nn.Parameter(torch.zeros(n, channels))
+        self.shift = math.log(1.0 / (1.0 - cfg.alpha_init) - 1.0)
+        self.rgbnet = (
+            color_mlp(cfg.feat_dim + 3 + 6 * cfg.view_pe, cfg.hidden, cfg.layers) if cfg.hidden > 0 else None
+        )
+
+    def _spacing(self, shape: tuple[int, int, int]) -> float:
+        size = self.bbox[1] - self.bbox[0]
+        return float((size / (torch.tensor(shape, device=size.device) - 1)).mean())
+
+    @property
+    def voxel_size(self) -> float:
+        return self._spacing(self.shape)
+
+    # --- the Field contract -------------------------------------------------------------------
+    def _inside(self, xyz: Tensor) -> Tensor:
+        return ((xyz >= self.bbox[0]) & (xyz <= self.bbox[1])).all(dim=-1)
+
+    def _sigma(self, xyz: Tensor, idx: Tensor, w: Tensor) -> Tensor:
+        raw = G.lookup(self.density_table, idx, w)[:, 0]
+        return F.softplus(raw + self.shift) / self.unit * self._inside(xyz)
+
+    def _rgb(self, idx: Tensor, w: Tensor, dirs: Tensor) -> Tensor:
+        feat = G.lookup(self.feature_table, idx, w)
+        if self.rgbnet is None:
+            return torch.sigmoid(feat)
+        return torch.sigmoid(self.rgbnet(torch.cat([feat, direction_encoding(dirs, self.cfg.view_pe)], -1)))
+
+    def density(self, xyz: Tensor) -> Tensor:
+        idx, w = G.corners(xyz, self.bbox, self.shape)
+        return self._sigma(xyz, idx, w)
+
+    def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
+        idx, w = G.corners(xyz, self.bbox, self.shape)
+        return self._rgb(idx, w, dirs)
+
+    def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
+        idx, w = G.corners(xyz, self.bbox, self.shape)
+        return self._sigma(xyz, idx, w), self._rgb(idx, w, dirs)
+
+    # --- growth and persistence ---------------------------------------------------------------
+    @torch.no_grad()
+    def regrid(self, n_voxels: int, bbox: Tensor | None = None) -> None:
+        """Resample both grids onto about `n_voxels` voxels over `bbox` (default: the same box)."""
+        new_bbox = self.bbox if bbox is None else bbox.to(self.bbox)
+        new_shape = G.lattice_shape(new_bbox, n_voxels)
+        for name in ("density_table", "feature_table"):
+            table = getattr(self, name)
+            setattr(self, name, nn.Parameter(G.resample(table, self.shape, self.bbox, new_shape, new_bbox)))
+        self.bbox.copy_(new_bbox)
+        self.shape = new_shape
+
+    @torch.no_grad()
+    def init_density(self, density) -> None:
+        """Set the density grid so that it reproduces `density(xyz) -> sigma` at the lattice vertices."""
+        axes = [torch.linspace(float(self.bbox[0, a]), float(self.bbox[1, a]), self.shape[a], device=self.bbox.device)
+                for a in range(3)]
+        pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+        sigma = torch.cat([density(pts[i : i + (1 << 18)]) for i in range(0, pts.shape[0], 1 << 18)])
+        y = (sigma * self.unit).clamp_min(1e-8)
+        raw = torch.where(y > 20, y, torch.log(torch.expm1(y))) - self.shift
+        self.density_table.copy_(raw[:, None])
+
+    def resize_to(self, shape: tuple[int, int, int]) -> None:
+        """Reallocate both grids for a lattice `shape` (values are then loaded from a state dict)."""
+        n = math.prod(shape)
+        self.density_table = nn.Parameter(self.density_table.new_zeros(n, 1))
+        self.feature_table = nn.Parameter(self.feature_table.new_zeros(n, self.feature_table.shape[1]))
+        self.shape = tuple(shape)
+
+    def param_groups(self, lr_grid: float, lr_mlp: float) -> list[dict]:
+        groups = [{"params": [self.density_table, self.feature_table], "lr": lr_grid}]
+        if self.rgbnet is not None:
+            groups.append({"params": list(self.rgbnet.parameters()), "lr": lr_mlp})
+        return groups
+
+    def config_dict(self) -> dict:
+        return {"family": self.family, "config": asdict(self.cfg), "unit": self.unit, "shape": list(self.shape)}
+
+    @classmethod
+    def from_config(cls, meta: dict, bbox: Tensor) -> "DVGOExpert":
+        return cls(DVGOConfig(**meta["config"]), bbox, unit=meta["unit"], shape=tuple(meta["shape"]))

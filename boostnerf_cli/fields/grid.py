@@ -1,0 +1,84 @@
+"""Dense voxel grids with trilinear interpolation, channels-last, as gathered lookups.
+
+A grid of shape (X, Y, Z) with C channels is stored as a table (X*Y*Z, C); values sit on lattice
+vertices that span the box exactly (vertex 0 at the min corner, vertex X-1 at the max corner, like
+`grid_sample(align_corners=True)`). A point's value is the trilinear blend of its 8 surrounding
+vertices: `corners` gives their table rows and weights, `lookup` blends. The lookup is an
+`embedding_bag` forward with a scatter-add backward into the table (measured faster on CPU than
+`grid_sample`'s backward, and it never touches the position gradient, which training never needs).
+Points outside the box are clamped to it.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def lattice_shape(bbox: Tensor, n_voxels: int) -> tuple[int, int, int]:
+    """Grid sides with about `n_voxels` vertices and isotropic spacing over the box (DVGO's rule)."""
+    size = (bbox[1] - bbox[0]).double()
+    voxel = (size.prod() / n_voxels) ** (1.0 / 3.0)
+    sides = torch.clamp((size / voxel).round().long(), min=2)
+    return tuple(int(v) for v in sides)  # type: ignore[return-value]
+
+
+def corners(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
+    """Trilinear support of points: (N, 3) -> row indices (N, 8) int64, weights (N, 8)."""
+    res = torch.tensor(shape, device=xyz.device, dtype=xyz.dtype)
+    p = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * (res - 1)
+    p = torch.minimum(p.clamp_min(0), res - 1)
+    p0 = torch.minimum(p.floor(), res - 2)
+    f = p - p0
+    i0 = p0.long()
+    sy, sz = shape[1] * shape[2], shape[2]
+    base = i0[:, 0] * sy + i0[:, 1] * sz + i0[:, 2]
+    # corner k = dx*4 + dy*2 + dz; weights built from contiguous (N,) vectors (fast on CPU)
+    offs = torch.tensor([0, 1, sz, sz + 1, sy, sy + 1, sy + sz, sy + sz + 1], device=xyz.device)
+    fx, fy, fz = f.unbind(-1)
+    gx, gy, gz = 1 - fx, 1 - fy, 1 - fz
+    xy = (gx * gy, gx * fy, fx * gy, fx * fy)
+    w = torch.stack([c for pair in xy for c in (pair * gz, pair * fz)], dim=1)
+    return base[:, None] + offs, w
+
+
+class _Lookup(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, table: Tensor, idx: Tensor, w: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(idx, w)
+        ctx.rows = table.shape[0]
+        return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        # Channels-first scatter-add: one pass per channel plane keeps the random writes in cache
+        # (measured 3-4x faster than a channels-last index_add for 3-12 channels on CPU).
+        idx, w = ctx.saved_tensors
+        channels = grad.shape[1]
+        src = (grad.T[:, :, None] * w[None, :, :]).reshape(channels, -1)
+        grad_table = torch.zeros(channels, ctx.rows, dtype=grad.dtype, device=grad.device)
+        grad_table.index_add_(1, idx.reshape(-1), src)
+        return grad_table.T, None, None
+
+
+def lookup(table: Tensor, idx: Tensor, w: Tensor) -> Tensor:
+    """Blend table rows: table (V, C), idx (N, 8), w (N, 8) -> (N, C)."""
+    if idx.shape[0] == 0:
+        return table.new_zeros(0, table.shape[1])
+    if table.requires_grad and torch.is_grad_enabled():
+        return _Lookup.apply(table, idx, w)
+    return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")
+
+
+def resample(table: Tensor, old_shape: tuple[int, int, int], old_bbox: Tensor,
+             new_shape: tuple[int, int, int], new_bbox: Tensor) -> Tensor:
+    """Trilinearly resample a grid's values onto a new lattice and box: -> (prod(new_shape), C)."""
+    axes = [torch.linspace(float(new_bbox[0, a]), float(new_bbox[1, a]), new_shape[a], device=table.device)
+            for a in range(3)]
+    pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+    out = []
+    for i in range(0, pts.shape[0], 1 << 20):
+        idx, w = corners(pts[i : i + (1 << 20)], old_bbox, old_shape)
+        out.append(F.embedding_bag(idx, table.detach(), per_sample_weights=w, mode="sum"))
+    return torch.cat(out)

@@ -1,0 +1,129 @@
+"""Occupancy grids: a boolean lattice over a box that says where a field may be non-empty.
+
+Samples in unoccupied cells are dropped before any field, gate or MLP runs. A grid is built from a
+density function by taking, per cell, the maximum opacity over a few points in the cell and
+dilating the result by one cell so that trilinear support at cell borders is never cut.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+class OccupancyGrid:
+    """Boolean occupancy over an axis-aligned box; cells index as [x, y, z]."""
+
+    def __init__(self, occupied: Tensor, bbox: Tensor):
+        self.occupied = occupied.bool()
+        self.bbox = bbox.float()
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.occupied.shape)  # type: ignore[return-value]
+
+    def to(self, device: torch.device | str) -> "OccupancyGrid":
+        return OccupancyGrid(self.occupied.to(device), self.bbox.to(device))
+
+    def __call__(self, xyz: Tensor) -> Tensor:
+        """(N, 3) -> (N,) bool: inside the box and in an occupied cell."""
+        lo, hi = self.bbox[0], self.bbox[1]
+        res = torch.tensor(self.shape, device=xyz.device)
+        rel = (xyz - lo) / (hi - lo)
+        inside = ((rel >= 0) & (rel <= 1)).all(dim=-1)
+        cell = (rel * res).long().clamp_min(0)
+        cell = torch.minimum(cell, res - 1)
+        flat = (cell[:, 0] * res[1] + cell[:, 1]) * res[2] + cell[:, 2]
+        return inside & self.occupied.reshape(-1)[flat]
+
+    def cell_centers(self) -> Tensor:
+        """World coordinates of every cell centre, (X*Y*Z, 3) in [x, y, z] cell order."""
+        res = torch.tensor(self.shape, device=self.bbox.device)
+        idx = torch.stack(
+            torch.meshgrid(*(torch.arange(n, device=self.bbox.device) for n in self.shape), indexing="ij"), dim=-1
+        ).reshape(-1, 3)
+        return self.bbox[0] + (idx + 0.5) * (self.bbox[1] - self.bbox[0]) / res
+
+    def sample_cells(self, other: "OccupancyGrid") -> Tensor:
+        """This grid's occupancy at the cell centres of `other`: bool of `other`'s shape."""
+        return self(other.cell_centers()).reshape(other.shape)
+
+    def fraction(self) -> float:
+        return float(self.occupied.float().mean())
+
+    def occupied_bbox(self, margin_cells: int = 1) -> Tensor:
+        """Tight box (2, 3) around the occupied cells, grown by `margin_cells`, clipped to the box."""
+        if not self.occupied.any():
+            return self.bbox.clone()
+        res = torch.tensor(self.shape, dtype=torch.float32, device=self.bbox.device)
+        cell = (self.bbox[1] - self.bbox[0]) / res
+        idx = self.occupied.nonzero().float()
+        lo = self.bbox[0] + (idx.min(dim=0).values - margin_cells) * cell
+        hi = self.bbox[0] + (idx.max(dim=0).values + 1 + margin_cells) * cell
+        return torch.stack([torch.maximum(lo, self.bbox[0]), torch.minimum(hi, self.bbox[1])])
+
+    @staticmethod
+    @torch.no_grad()
+    def from_density(
+        density: Callable[[Tensor], Tensor],
+        bbox: Tensor,
+        shape: tuple[int, int, int],
+        step: float,
+        alpha_threshold: float,
+        points_per_cell: int = 2,
+        chunk: int = 1 << 18,
+    ) -> "OccupancyGrid":
+        """Cells whose maximum alpha over a step (over `points_per_cell`^3 points) exceeds the threshold."""
+        device = bbox.device
+        res = torch.tensor(shape, device=device)
+        cell = (bbox[1] - bbox[0]) / res
+        k = points_per_cell
+        sub = (torch.arange(k, device=device, dtype=torch.float32) + 0.5) / k
+        offs = torch.stack(torch.meshgrid(sub, sub, sub, indexing="ij"), dim=-1).reshape(-1, 3)
+        idx = torch.stack(
+            torch.meshgrid(*(torch.arange(n, device=device) for n in shape), indexing="ij"), dim=-1
+        ).reshape(-1, 3).float()
+        best = torch.zeros(idx.shape[0], device=device)
+        for o in offs:
+            pts = bbox[0] + (idx + o) * cell
+            sig = torch.cat([density(pts[i : i + chunk]) for i in range(0, pts.shape[0], chunk)])
+            best = torch.maximum(best, -torch.expm1(-sig * step))
+        occ = (best > alpha_threshold).reshape(shape)
+        occ = F.max_pool3d(occ.float()[None, None], kernel_size=3, stride=1, padding=1)[0, 0] > 0
+        return OccupancyGrid(occ, bbox)
+
+
+@torch.no_grad()
+def max_weight_grid(
+    density: Callable[[Tensor], Tensor],
+    origins: Tensor,
+    dirs: Tensor,
+    sample: Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor, float]],
+    bbox: Tensor,
+    shape: tuple[int, int, int],
+    chunk: int = 4096,
+) -> Tensor:
+    """Per cell, the largest rendering weight any of the given rays puts in it: (X, Y, Z) float.
+
+    `sample(origins, dirs)` -> t (R, S), valid (R, S), xyz (R, S, 3), step, as the renderer samples.
+    Cells that no ray sees (outside every view, or hidden behind surfaces) get 0. A visibility-
+    weighted criterion: unlike raw opacity it ignores density that no training view can see.
+    """
+    from boostnerf_cli.render.volrend import render_weights
+
+    res = torch.tensor(shape, device=bbox.device)
+    best = torch.zeros(int(res.prod()), device=bbox.device)
+    for i in range(0, origins.shape[0], chunk):
+        t, valid, xyz, step = sample(origins[i : i + chunk], dirs[i : i + chunk])
+        sigma = torch.zeros(t.shape, device=bbox.device)
+        sigma[valid] = density(xyz[valid])
+        w, _, _ = render_weights(sigma, torch.full_like(sigma, step))
+        pts, wv = xyz[valid], w[valid]
+        cell = ((pts - bbox[0]) / (bbox[1] - bbox[0]) * res).long()
+        cell = torch.minimum(cell.clamp_min(0), res - 1)
+        flat = (cell[:, 0] * res[1] + cell[:, 1]) * res[2] + cell[:, 2]
+        best.scatter_reduce_(0, flat, wv, reduce="amax")
+    return best.reshape(shape)

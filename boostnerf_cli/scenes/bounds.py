@@ -1,0 +1,115 @@
+"""Scene bounds derived from the cameras alone (no hard-coded boxes)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+
+def frustum_corners(poses: Tensor, intrinsics: Tensor, height: int, width: int, near: float, far: float) -> Tensor:
+    """World positions of every camera's 4 image corners at depth `near` and at depth `far`.
+
+    poses (N, 4, 4) camera-to-world, intrinsics (N, 4) fx, fy, cx, cy -> (N, 8, 3).
+    """
+    fx, fy, cx, cy = intrinsics.float().unbind(-1)  # each (N,)
+    u = torch.tensor([0.0, width, 0.0, width])
+    v = torch.tensor([0.0, 0.0, height, height])
+    x = (u[None] - cx[:, None]) / fx[:, None]  # (N, 4), camera space at z = -1
+    y = -(v[None] - cy[:, None]) / fy[:, None]
+    dirs = torch.stack([x, y, -torch.ones_like(x)], dim=-1)  # (N, 4, 3)
+    depths = torch.tensor([near] * 4 + [far] * 4).view(1, 8, 1)
+    pts_cam = torch.cat([dirs, dirs], dim=1) * depths  # (N, 8, 3), depth along -z
+    rot, trans = poses[:, :3, :3].float(), poses[:, :3, 3].float()
+    return pts_cam @ rot.transpose(1, 2) + trans[:, None]
+
+
+def frustum_planes(poses: Tensor, intrinsics: Tensor, height: int, width: int, near: float, far: float) -> Tensor:
+    """Each camera's viewing frustum as 6 world-space half-spaces n . p + d >= 0.
+
+    poses (N, 4, 4), intrinsics (N, 4) -> (N, 6, 4) rows (n_x, n_y, n_z, d). A point is inside
+    when it projects (as in `render.rays.project_points`) into [0, W] x [0, H] with depth along -z
+    in [near, far]; the image bounds are tested as u * depth in [0, W * depth] (no division).
+    """
+    fx, fy, cx, cy = intrinsics.float().unbind(-1)  # each (N,)
+    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
+    # camera-space normals a (N, 6, 3) and offsets b (N, 6): a . q + b >= 0, depth = -q_z
+    a = torch.stack([
+        torch.stack([zero, zero, -one], -1),  # depth >= near
+        torch.stack([zero, zero, one], -1),  # depth <= far
+        torch.stack([fx, zero, -cx], -1),  # u >= 0
+        torch.stack([-fx, zero, -(width - cx)], -1),  # u <= W
+        torch.stack([zero, -fy, -cy], -1),  # v >= 0
+        torch.stack([zero, fy, -(height - cy)], -1),  # v <= H
+    ], dim=1)
+    b = torch.stack([-near * one, far * one, zero, zero, zero, zero], dim=1)
+    rot, trans = poses[:, :3, :3].float(), poses[:, :3, 3].float()
+    n = a @ rot.transpose(1, 2)  # world normal R a, as rows
+    d = b - (n * trans[:, None]).sum(-1)
+    return torch.cat([n, d[..., None]], dim=-1)
+
+
+def lattice_visible_counts(axes: tuple[Tensor, Tensor, Tensor], planes: Tensor) -> Tensor:
+    """How many frusta contain each point of the lattice axes[0] x axes[1] x axes[2].
+
+    axes: three increasing, evenly spaced 1-D tensors (Gx,), (Gy,), (Gz,); planes (N, 6, 4) from
+    `frustum_planes` -> (Gx, Gy, Gz) int64 counts. Exact and cheap: along each z column a frustum
+    (an intersection of half-spaces) is one interval of lattice indices, so it is enough to find
+    that interval per column and camera and add it to a difference array.
+    """
+    x, y, z = (a.double() for a in axes)
+    n, d = planes[..., :3].double(), planes[..., 3].double()  # (N, 6, 3), (N, 6)
+    step = float(z[1] - z[0]) if len(z) > 1 else 1.0
+    # plane test along a column: a * k >= r, k the lattice index along z
+    a = n[..., 2] * step  # (N, 6)
+    r = -(x[:, None, None, None] * n[..., 0] + y[None, :, None, None] * n[..., 1] + d + n[..., 2] * z[0])
+    ratio = r / torch.where(a == 0, torch.ones_like(a), a)  # (Gx, Gy, N, 6)
+    inf = torch.full_like(ratio, math.inf)
+    lower = torch.where(a > 0, ratio.ceil(), torch.where((a == 0) & (r > 0), inf, -inf)).amax(-1)
+    upper = torch.where(a < 0, ratio.floor(), inf).amin(-1)  # (Gx, Gy, N)
+    lo = lower.clamp(0, len(z)).long()
+    hi = upper.clamp(-1, len(z) - 1).long()
+    ones = (lo <= hi).long()
+    diff = torch.zeros(len(x), len(y), len(z) + 1, dtype=torch.long)
+    diff.scatter_add_(-1, lo.clamp_max(len(z)), ones).scatter_add_(-1, hi + 1, -ones)
+    return diff.cumsum(-1)[..., : len(z)]
+
+
+def frustum_overlap_bbox(
+    poses: Tensor,
+    intrinsics: Tensor,
+    height: int,
+    width: int,
+    near: float,
+    far: float,
+    min_fraction: float = 0.9,
+    grid: int = 64,
+    margin: float = 0.1,
+) -> Tensor:
+    """Axis-aligned box of the region that most cameras see, -> (2, 3) min corner, max corner.
+
+    poses (N, 4, 4) camera-to-world, intrinsics (N, 4) fx, fy, cx, cy for images of height x width.
+
+    Heuristic (object-centric captures, where the cameras look inwards at the subject):
+    1. take the box spanned by all frustum corner points at depth `near` and `far`;
+    2. sample a `grid`^3 lattice of cell centres in that box;
+    3. keep the points that project inside the image with a depth in [near, far] for at least
+       `min_fraction` of the cameras (the "frustum overlap");
+    4. return the box of the kept points, grown by half a lattice cell (so a single kept point
+       still gives a non-empty box) and then by `margin` times its size on every side.
+    If no point qualifies, the full frustum box of step 1 is returned.
+    """
+    corners = frustum_corners(poses, intrinsics, height, width, near, far).reshape(-1, 3)
+    lo, hi = corners.amin(0), corners.amax(0)
+    step = (hi - lo) / grid
+    axes = tuple(lo[i] + step[i] * (torch.arange(grid, dtype=torch.float32) + 0.5) for i in range(3))
+    counts = lattice_visible_counts(axes, frustum_planes(poses, intrinsics, height, width, near, far))
+    keep = counts >= math.ceil(min_fraction * len(poses) - 1e-9)
+    if not bool(keep.any()):
+        return torch.stack([lo, hi])
+    index = keep.nonzero()  # (K, 3) lattice indices
+    box_lo = torch.stack([axes[i][index[:, i].min()] for i in range(3)]) - step / 2
+    box_hi = torch.stack([axes[i][index[:, i].max()] for i in range(3)]) + step / 2
+    pad = margin * (box_hi - box_lo)
+    return torch.stack([box_lo - pad, box_hi + pad])

@@ -1,0 +1,105 @@
+"""The one scene type every loader produces and every stage consumes.
+
+Conventions (the same for every dataset format):
+- poses are camera-to-world 4x4 matrices in the OpenGL / Blender convention: the camera looks
+  down its -z axis, +y is up in the image, +x is right;
+- intrinsics are per view, `(fx, fy, cx, cy)` in pixels of the stored (possibly downscaled)
+  images, with pixel centres at integer + 0.5;
+- images are float32 RGB in [0, 1], already composited on `background` when they had alpha.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from boostnerf_cli.errors import BoostNerfError
+
+
+@dataclass(frozen=True)
+class Split:
+    """One split of a scene: N views of the same size."""
+
+    images: Tensor  # (N, H, W, 3) float32 in [0, 1]
+    poses: Tensor  # (N, 4, 4) float32 camera-to-world
+    intrinsics: Tensor  # (N, 4) float32: fx, fy, cx, cy in pixels
+    names: tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        n = self.images.shape[0]
+        if self.images.ndim != 4 or self.images.shape[-1] != 3:
+            raise BoostNerfError(f"split images must be (N, H, W, 3), got {tuple(self.images.shape)}")
+        if self.poses.shape != (n, 4, 4):
+            raise BoostNerfError(f"expected {n} poses of shape 4x4, got {tuple(self.poses.shape)}")
+        if self.intrinsics.shape != (n, 4):
+            raise BoostNerfError(f"expected {n} intrinsics (fx, fy, cx, cy), got {tuple(self.intrinsics.shape)}")
+        if len(self.names) != n:
+            raise BoostNerfError(f"expected {n} view names, got {len(self.names)}")
+        if not torch.isfinite(self.poses).all():
+            raise BoostNerfError("camera poses contain NaN or infinite values: fix the dataset's pose file")
+        if not torch.isfinite(self.intrinsics).all() or (self.intrinsics[:, :2] <= 0).any():
+            raise BoostNerfError("camera intrinsics must be finite with positive focal lengths")
+
+    def __len__(self) -> int:
+        return self.images.shape[0]
+
+    @property
+    def height(self) -> int:
+        return int(self.images.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.images.shape[2])
+
+    def subset(self, index: list[int]) -> "Split":
+        idx = torch.as_tensor(index, dtype=torch.long)
+        return Split(self.images[idx], self.poses[idx], self.intrinsics[idx], tuple(self.names[i] for i in index))
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A posed image collection with the bounds a renderer needs."""
+
+    name: str
+    splits: dict[str, Split]
+    near: float
+    far: float
+    bbox: Tensor  # (2, 3): min corner, max corner, world units
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    source: str = ""
+    format: str = ""
+    holdout: str = ""  # how the held-out split was made, e.g. "every 8th train view"
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if "train" not in self.splits or len(self.splits["train"]) == 0:
+            raise BoostNerfError(f"scene {self.name!r} has no training views")
+        if not (0 <= self.near < self.far):
+            raise BoostNerfError(f"scene {self.name!r}: need 0 <= near < far, got near={self.near} far={self.far}")
+        if self.bbox.shape != (2, 3) or not bool((self.bbox[1] > self.bbox[0]).all()):
+            raise BoostNerfError(f"scene {self.name!r}: bounding box must be (2, 3) with max > min")
+
+    def split(self, name: str) -> Split:
+        """The named split; `test` falls back to `val` when a dataset has no test split."""
+        for candidate in {"test": ("test", "val")}.get(name, (name,)):
+            if candidate in self.splits:
+                return self.splits[candidate]
+        raise BoostNerfError(
+            f"scene {self.name!r} has no {name!r} split (it has: {', '.join(sorted(self.splits))})"
+        )
+
+    def describe(self) -> dict:
+        """A JSON-able summary, recorded in the workspace manifest."""
+        return {
+            "name": self.name,
+            "source": self.source,
+            "format": self.format,
+            "holdout": self.holdout,
+            "near": self.near,
+            "far": self.far,
+            "bbox": self.bbox.tolist(),
+            "background": list(self.background),
+            "splits": {k: {"views": len(v), "height": v.height, "width": v.width} for k, v in self.splits.items()},
+        }

@@ -1,0 +1,200 @@
+"""`boostnerf pretrain`: train M experts independently, one per resolution.
+
+1. Geometry (once per workspace): a small DVGO-style grid with direct colour (no MLP) is trained on
+   the whole camera-derived box; its opacity gives an occupancy mask and the occupied box, saved as
+   `experts/geometry.safetensors`. Every expert starts from it, so they all share one scene box.
+2. Each expert trains inside that box with progressive grid growth, skipping samples in empty
+   cells (the mask, refreshed from the expert's own density) and computing colour only for samples
+   whose rendering weight is above a threshold.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from typing import Callable
+
+import torch
+from torch import Tensor, nn
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields import build_expert, count_params, load_expert, save_expert
+from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.metrics import mse_to_psnr
+from boostnerf_cli.recipe import GeometryRecipe, PretrainRecipe, TrainRecipe
+from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.render.renderer import RenderSettings, render_image, render_rays
+from boostnerf_cli.scenes.scene import Scene, Split
+from boostnerf_cli.train import RayData, Schedule, train
+from boostnerf_cli.workspace import Workspace, write_json
+
+
+def photometric_loss(bundle, rgb: Tensor, tcfg: TrainRecipe) -> tuple[Tensor, dict[str, float]]:
+    """MSE + DVGO's per-sample colour loss and background entropy loss."""
+    mse = torch.mean((bundle.color - rgb) ** 2)
+    loss = mse
+    if tcfg.weight_rgbper > 0:
+        w, c = bundle.extras["weights"], bundle.extras["rgb"]
+        loss = loss + tcfg.weight_rgbper * (w * ((c - rgb[:, None, :]) ** 2).sum(-1)).sum(-1).mean()
+    if tcfg.weight_entropy > 0:
+        acc = bundle.acc.clamp(1e-6, 1 - 1e-6)
+        loss = loss + tcfg.weight_entropy * -(acc * torch.log(acc) + (1 - acc) * torch.log(1 - acc)).mean()
+    return loss, {"loss": float(loss.detach()), "psnr": mse_to_psnr(float(mse.detach()))}
+
+
+@dataclass
+class FieldTask:
+    """Train one expert-like field: growth schedule, occupancy refresh, photometric loss."""
+
+    model: nn.Module
+    settings: RenderSettings
+    tcfg: TrainRecipe
+    iters: int
+    skip: OccupancyGrid | None
+    base_mask: OccupancyGrid | None  # skips never reopen cells outside it
+    growth_steps: tuple[int, ...] = ()
+    final_voxels: int = 0
+    lr_grid: float = 0.1
+
+    def param_groups(self) -> list[dict]:
+        return self.model.param_groups(self.lr_grid, self.tcfg.lr_mlp)
+
+    def before_step(self, step: int) -> bool:
+        changed = False
+        if step in self.growth_steps:
+            k = len(self.growth_steps) - (self.growth_steps.index(step) + 1)
+            self.model.regrid(self.final_voxels // (2 ** k))
+            changed = True
+        every = self.tcfg.occupancy_every
+        if every > 0 and step > 0 and (step % every == 0 or step in self.growth_steps):
+            self.refresh_occupancy()
+        return changed
+
+    def refresh_occupancy(self) -> None:
+        grid = OccupancyGrid.from_density(
+            self.model.density, self.model.bbox, occupancy_shape(self.model), self.settings.step,
+            self.tcfg.occupancy_threshold,
+        )
+        if self.base_mask is not None:
+            grid = OccupancyGrid(grid.occupied & self.base_mask.sample_cells(grid), grid.bbox)
+        self.skip = grid
+
+    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):
+        bundle = render_rays(self.model, origins, dirs, self.settings, self.skip, jitter=True)
+        loss, logs = photometric_loss(bundle, rgb, self.tcfg)
+        logs["samples"] = bundle.n_samples / origins.shape[0]
+        logs["colored"] = bundle.n_color / origins.shape[0]
+        return loss, logs
+
+    def state(self) -> dict:
+        return {
+            "meta": self.model.config_dict(),
+            "model": self.model.state_dict(),
+            "skip": None if self.skip is None else self.skip.occupied,
+        }
+
+    def load_state(self, state: dict) -> None:
+        self.model.resize_to(tuple(state["meta"]["shape"]))
+        self.model.load_state_dict(state["model"])
+        if state["skip"] is not None:
+            self.skip = OccupancyGrid(state["skip"], self.model.bbox)
+
+
+def occupancy_shape(model: nn.Module) -> tuple[int, int, int]:
+    """Occupancy cells: the model's lattice, capped at 128 per side."""
+    s = model.shape
+    f = max(1.0, max(s) / 128)
+    return tuple(max(2, int(math.ceil(v / f))) for v in s)  # type: ignore[return-value]
+
+
+def growth_schedule(iters: int, fractions: list[float]) -> tuple[int, ...]:
+    return tuple(sorted({max(1, int(round(f * iters))) for f in fractions if 0 < f < 1}))
+
+
+def _test_psnr(model: nn.Module, split: Split, settings: RenderSettings, skip, device, max_views: int = 1000) -> float:
+    psnrs = []
+    for i in range(min(len(split), max_views)):
+        out = render_image(model, split.poses[i], split.intrinsics[i], split.height, split.width, settings, skip,
+                           device=device)
+        mse = float(torch.mean((out["rgb"] - split.images[i]) ** 2))
+        psnrs.append(mse_to_psnr(mse))
+    return sum(psnrs) / max(1, len(psnrs))
+
+
+# ----------------------------------------------------------------------------------------------
+def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int, device: str,
+                    log: Callable[[str], None]) -> tuple[Tensor, OccupancyGrid, nn.Module]:
+    """The shared occupied box, occupancy mask and coarse density (trained once per workspace).
+
+    -> (box (2, 3), occupancy over the camera box, the coarse model: a DVGO grid with direct colour)
+    """
+    if ws.geometry_path.exists():
+        model, occ, meta = load_expert(ws.geometry_path, device)
+        return torch.tensor(meta["fine_bbox"], device=device), occ, model
+    log(f"geometry: training a {rec.res}^3 coarse grid for {rec.iters} steps to find the occupied box")
+    bbox = scene.bbox.to(device)
+    model = DVGOExpert(DVGOConfig(res=rec.res, hidden=0, alpha_init=rec.alpha_init), bbox).to(device)
+    step = 0.5 * model.voxel_size
+    settings = RenderSettings(step=step, near=scene.near, far=scene.far, bbox=bbox, background=scene.background)
+    tcfg = TrainRecipe(lr_grid=rec.lr, weight_rgbper=0.0, weight_entropy=rec.weight_entropy, occupancy_every=0)
+    task = FieldTask(model, settings, tcfg, rec.iters, skip=None, base_mask=None, lr_grid=rec.lr)
+    rays = RayData.from_split(scene.splits["train"], bbox, scene.near, scene.far).to(device)
+    t0 = time.perf_counter()
+    train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5)), seed, "geometry")
+    model.eval()
+    occ = OccupancyGrid.from_density(model.density, bbox, model.shape, step, rec.alpha_threshold)
+    box = occ.occupied_bbox(margin_cells=1)
+    seconds = round(time.perf_counter() - t0, 2)
+    save_expert(ws.geometry_path, model, occ, {"name": "geometry", "fine_bbox": box.tolist(), "iters": rec.iters,
+                                               "seconds": seconds, "occupied_fraction": occ.fraction()})
+    log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {[round(v, 3) for v in box.flatten().tolist()]} "
+        f"({seconds:.1f}s)")
+    return box, occ, model
+
+
+def expert_name(model: str, res: int) -> str:
+    return f"{model}-{res}"
+
+
+def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, box: Tensor, geom: OccupancyGrid,
+                    prior: nn.Module, device: str, log: Callable[[str], None]) -> dict:
+    """Train one expert at `res` and write its safetensors file and JSON report."""
+    name = expert_name(rec.model, res)
+    tcfg = rec.train
+    model = build_expert(rec.model, {**rec.dvgo, "res": res}, box).to(device)
+    final_voxels = res ** 3
+    growth = growth_schedule(rec.iters, tcfg.growth)
+    if growth:
+        model.regrid(final_voxels // (2 ** len(growth)))
+    model.init_density(prior.density)  # warm start: colour is then computed near surfaces only
+    settings = RenderSettings(step=tcfg.step_ratio * model.unit, near=scene.near, far=scene.far, bbox=box,
+                              background=scene.background, color_threshold=tcfg.color_threshold)
+    task = FieldTask(model, settings, tcfg, rec.iters, skip=geom, base_mask=geom, growth_steps=growth,
+                     final_voxels=final_voxels, lr_grid=tcfg.lr_grid)
+    rays = RayData.from_split(scene.splits["train"], box, scene.near, scene.far).to(device)
+    sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
+    ckpt = ws.checkpoint_path(name)
+    result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt)
+    model.eval()
+    task.refresh_occupancy()
+    report = {
+        "name": name,
+        "model": rec.model,
+        "res": res,
+        "iterations": result.iterations,
+        "seconds": round(result.seconds, 2),
+        "skipped_steps": result.skipped_steps,
+        "params": count_params(model),
+        "grid_shape": list(model.shape),
+        "occupied_fraction": task.skip.fraction() if task.skip is not None else 1.0,
+        "train_psnr": result.history[-1]["psnr"] if result.history else None,
+        "history": result.history,
+    }
+    test = scene.split("test") if any(k in scene.splits for k in ("test", "val")) else None
+    if test is not None:
+        report["test_psnr"] = round(_test_psnr(model, test, settings, task.skip, device), 3)
+    save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step})
+    write_json(ws.expert_report_path(name), report)
+    ckpt.unlink(missing_ok=True)
+    return report

@@ -1,0 +1,209 @@
+"""One training loop for every stage that trains (pretrain, finetune, baseline).
+
+The loop owns batching, the optimiser and its schedule, the NaN guard, progress output and
+resumable checkpoints. What is trained, how rays are rendered and what the loss is are passed in
+(`TrainTask`), so the loop knows nothing of experts or mixtures.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Protocol
+
+import torch
+from torch import Tensor, nn
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.render.rays import image_rays, intersect_box
+from boostnerf_cli.scenes.scene import Split
+from boostnerf_cli.workspace import atomic_path
+
+
+@dataclass
+class RayData:
+    """All training rays of a split that hit the box: origins, dirs, rgb, each (N, 3)."""
+
+    origins: Tensor
+    dirs: Tensor
+    rgb: Tensor
+
+    @staticmethod
+    def from_split(split: Split, bbox: Tensor, near: float, far: float) -> "RayData":
+        os_, ds, cs = [], [], []
+        for i in range(len(split)):
+            o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width)
+            os_.append(o)
+            ds.append(d)
+            cs.append(split.images[i].reshape(-1, 3))
+        o, d, c = torch.cat(os_), torch.cat(ds), torch.cat(cs)
+        _, _, hit = intersect_box(o, d, bbox, near, far)
+        # A ray that misses the box renders the background exactly: nothing to learn from it.
+        return RayData(o[hit], d[hit], c[hit])
+
+    def to(self, device: torch.device | str) -> "RayData":
+        return RayData(self.origins.to(device), self.dirs.to(device), self.rgb.to(device))
+
+    def __len__(self) -> int:
+        return self.origins.shape[0]
+
+
+@dataclass
+class Schedule:
+    """Optimiser settings shared by all stages."""
+
+    iters: int
+    batch_rays: int = 4096
+    lr_decay: float = 0.1  # learning rates fall exponentially to this fraction at the last step
+    log_every: int = 100
+    checkpoint_every: int = 500
+    max_bad_steps: int = 20  # consecutive non-finite steps before the run stops
+
+
+class TrainTask(Protocol):
+    """What one stage trains: its parameters, how a batch of rays becomes a loss, its growth events."""
+
+    def param_groups(self) -> list[dict]: ...
+
+    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int) -> tuple[Tensor, dict[str, float]]: ...
+
+    def before_step(self, step: int) -> bool:
+        """Called before each step; True when the parameters changed (the optimiser is rebuilt)."""
+        ...
+
+    def state(self) -> dict: ...
+
+    def load_state(self, state: dict) -> None: ...
+
+
+@dataclass
+class TrainResult:
+    iterations: int
+    seconds: float
+    skipped_steps: int
+    history: list[dict] = field(default_factory=list)
+
+
+class Progress:
+    """A rich progress bar on a terminal, plain periodic log lines otherwise."""
+
+    def __init__(self, title: str, total: int, start: int, log_every: int):
+        self.title, self.total, self.log_every = title, total, log_every
+        self.bar = None
+        if sys.stderr.isatty():
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress as RichProgress, TextColumn, TimeElapsedColumn
+
+            self.bar = RichProgress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                    TimeElapsedColumn(), TextColumn("{task.fields[info]}"), transient=False)
+            self.bar.start()
+            self.task = self.bar.add_task(title, total=total, completed=start, info="")
+
+    def update(self, step: int, logs: dict[str, float]) -> None:
+        info = " ".join(f"{k}={v:.4g}" for k, v in logs.items())
+        if self.bar is not None:
+            self.bar.update(self.task, completed=step, info=info)
+        elif step % self.log_every == 0 or step == self.total:
+            print(f"[{self.title}] step {step}/{self.total} {info}", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+
+def make_optimizer(task: TrainTask) -> torch.optim.Optimizer:
+    groups = task.param_groups()
+    for g in groups:
+        g.setdefault("initial_lr", g["lr"])
+    return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
+
+
+def _set_lr(opt: torch.optim.Optimizer, step: int, sched: Schedule) -> None:
+    factor = sched.lr_decay ** (step / max(1, sched.iters))
+    for g in opt.param_groups:
+        g["lr"] = g["initial_lr"] * factor
+
+
+def _all_finite(params: list[Tensor]) -> bool:
+    return all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params)
+
+
+def train(
+    task: TrainTask,
+    rays: RayData,
+    sched: Schedule,
+    seed: int,
+    title: str,
+    checkpoint: Path | None = None,
+    on_log: Callable[[int, dict], None] | None = None,
+) -> TrainResult:
+    """Run `sched.iters` steps of `task` on random batches of `rays`, resuming from `checkpoint`."""
+    gen = torch.Generator(device="cpu").manual_seed(seed)
+    torch.manual_seed(seed)
+    start, elapsed, skipped, history = 0, 0.0, 0, []
+    opt: torch.optim.Optimizer | None = None
+    if checkpoint is not None and checkpoint.exists():
+        try:
+            state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        except Exception as e:  # a damaged checkpoint: say so, do not train from a wrong state
+            raise BoostNerfError(f"training checkpoint {checkpoint} is damaged ({type(e).__name__}); delete it to restart this model") from None
+        task.load_state(state["task"])
+        opt = make_optimizer(task)
+        opt.load_state_dict(state["optim"])
+        start, elapsed, skipped, history = state["step"], state["seconds"], state["skipped"], state["history"]
+        gen.set_state(state["gen"])
+        torch.set_rng_state(state["rng"])
+    progress = Progress(title, sched.iters, start, sched.log_every)
+    bad_run = 0
+    t0 = time.perf_counter() - elapsed
+    try:
+        for step in range(start, sched.iters):
+            if task.before_step(step) or opt is None:
+                opt = make_optimizer(task)
+            _set_lr(opt, step, sched)
+            idx = torch.randint(0, len(rays), (sched.batch_rays,), generator=gen).to(rays.origins.device)
+            loss, logs = task.loss(rays.origins[idx], rays.dirs[idx], rays.rgb[idx], step)
+            opt.zero_grad(set_to_none=True)
+            params = [p for g in opt.param_groups for p in g["params"]]
+            if torch.isfinite(loss):
+                loss.backward()
+            if not torch.isfinite(loss) or not _all_finite(params):
+                skipped += 1
+                bad_run += 1
+                if bad_run >= sched.max_bad_steps:
+                    raise BoostNerfError(
+                        f"training diverged: {bad_run} consecutive steps had a non-finite loss or gradient "
+                        f"(last at step {step}); lower the learning rates in the recipe or check the data"
+                    )
+                continue
+            bad_run = 0
+            opt.step()
+            done = step + 1
+            if done % sched.log_every == 0 or done == sched.iters:
+                entry = {"step": done, "seconds": round(time.perf_counter() - t0, 2), **logs}
+                history.append(entry)
+                if on_log is not None:
+                    on_log(done, entry)
+            progress.update(done, logs)
+            if checkpoint is not None and done % sched.checkpoint_every == 0 and done < sched.iters:
+                _save_checkpoint(checkpoint, task, opt, done, time.perf_counter() - t0, skipped, history, gen)
+    finally:
+        progress.close()
+    return TrainResult(sched.iters, time.perf_counter() - t0, skipped, history)
+
+
+def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, step: int, seconds: float,
+                     skipped: int, history: list, gen: torch.Generator) -> None:
+    state = {
+        "task": task.state(),
+        "optim": opt.state_dict(),
+        "step": step,
+        "seconds": seconds,
+        "skipped": skipped,
+        "history": history,
+        "gen": gen.get_state(),
+        "rng": torch.get_rng_state(),
+    }
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)

@@ -1,0 +1,174 @@
+"""The on-disk contract of a workspace: paths, manifest, atomic writes, a writer lock.
+
+WS/manifest.json                  scene, recipe, and what each stage produced from what
+WS/experts/<model>-<res>.safetensors  expert weights (config as JSON in the metadata)
+WS/experts/<model>-<res>.json     its training report
+WS/experts/geometry.safetensors   the shared coarse geometry (box + occupancy) all experts start from
+WS/moe/<name>.safetensors         mixtures (untrained `init`, finetuned `top1`, `top2`, `ens`), `baseline`
+WS/checkpoints/<name>.pt          resumable training state, removed when the stage finishes
+WS/renders/<model>/<split>/...    images, depth, per-expert views, gate maps
+WS/reports/eval.json, count-params.json
+
+Every file appears only when complete: it is written to a temporary name in the same folder, then
+renamed over the target (atomic on POSIX), so a crash never leaves a half-written artifact and never
+destroys the previous version.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from boostnerf_cli.errors import BoostNerfError
+
+FORMAT_VERSION = "1"
+
+
+@contextmanager
+def atomic_path(target: Path) -> Iterator[Path]:
+    """Yield a temporary path next to `target`; rename it over `target` only if the block succeeds."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, target)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def write_json(path: Path, data: Any) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
+
+
+def read_json(path: Path, what: str = "file") -> Any:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise BoostNerfError(f"{what} {path} does not exist") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise BoostNerfError(f"{what} {path} is not valid JSON ({e}); delete it and rerun the stage") from None
+
+
+def save_tensors(path: Path, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
+    """Safetensors file with `meta` stored as JSON under the metadata key `boostnerf`."""
+    for name, t in tensors.items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise BoostNerfError(f"refusing to write {path.name}: tensor {name!r} has non-finite values")
+    clean = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
+    header = {"boostnerf": json.dumps({**meta, "format_version": FORMAT_VERSION})}
+    with atomic_path(path) as tmp:
+        save_file(clean, str(tmp), metadata=header)
+
+
+def load_tensors(path: Path, device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """-> (tensors, meta) from a file written by `save_tensors`; one clear error when it is damaged."""
+    if not path.exists():
+        raise BoostNerfError(f"checkpoint {path} does not exist")
+    try:
+        tensors = load_file(str(path), device=str(device))
+        from safetensors import safe_open
+
+        with safe_open(str(path), framework="pt") as f:
+            header = f.metadata() or {}
+        meta = json.loads(header["boostnerf"])
+    except (SafetensorError, OSError, KeyError, ValueError, json.JSONDecodeError) as e:
+        raise BoostNerfError(
+            f"checkpoint {path} is damaged or not a boostnerf file ({type(e).__name__}); "
+            "delete it and rerun the stage that writes it"
+        ) from None
+    return tensors, meta
+
+
+class Workspace:
+    """Paths and manifest of one workspace directory."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+
+    # paths
+    @property
+    def manifest_path(self) -> Path:
+        return self.root / "manifest.json"
+
+    @property
+    def experts_dir(self) -> Path:
+        return self.root / "experts"
+
+    @property
+    def moe_dir(self) -> Path:
+        return self.root / "moe"
+
+    @property
+    def reports_dir(self) -> Path:
+        return self.root / "reports"
+
+    @property
+    def checkpoints_dir(self) -> Path:
+        return self.root / "checkpoints"
+
+    def expert_path(self, name: str) -> Path:
+        return self.experts_dir / f"{name}.safetensors"
+
+    def expert_report_path(self, name: str) -> Path:
+        return self.experts_dir / f"{name}.json"
+
+    @property
+    def geometry_path(self) -> Path:
+        return self.experts_dir / "geometry.safetensors"
+
+    def model_path(self, name: str) -> Path:
+        return self.moe_dir / f"{name}.safetensors"
+
+    def checkpoint_path(self, name: str) -> Path:
+        return self.checkpoints_dir / f"{name}.pt"
+
+    def renders_dir(self, model: str, split: str) -> Path:
+        return self.root / "renders" / model / split
+
+    # manifest
+    def manifest(self) -> dict:
+        if not self.manifest_path.exists():
+            return {}
+        return read_json(self.manifest_path, "workspace manifest")
+
+    def require_manifest(self) -> dict:
+        m = self.manifest()
+        if not m:
+            raise BoostNerfError(
+                f"{self.root} is not a boostnerf workspace (no manifest.json): run `boostnerf pretrain --workspace {self.root} ...` first"
+            )
+        return m
+
+    def update_manifest(self, **sections: Any) -> dict:
+        m = self.manifest()
+        for key, value in sections.items():
+            if isinstance(value, dict) and isinstance(m.get(key), dict):
+                m[key] = {**m[key], **value}
+            else:
+                m[key] = value
+        write_json(self.manifest_path, m)
+        return m
+
+    def expert_names(self) -> list[str]:
+        """Finished experts, smallest first (by parameter count from their reports)."""
+        names = []
+        for p in sorted(self.experts_dir.glob("*.safetensors")):
+            if p.stem != "geometry" and self.expert_report_path(p.stem).exists():
+                names.append(p.stem)
+        params = {n: read_json(self.expert_report_path(n), "expert report").get("params", 0) for n in names}
+        return sorted(names, key=lambda n: (params[n], n))
+
+    def model_names(self) -> list[str]:
+        return sorted(p.stem for p in self.moe_dir.glob("*.safetensors")) if self.moe_dir.exists() else []

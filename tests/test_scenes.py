@@ -1,0 +1,285 @@
+"""Scene loading (Blender format), the procedural scene generator and camera-derived bounds."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.render.rays import image_rays, project_points
+from boostnerf_cli.scenes import Scene, load_blender, load_scene, make_scene
+from boostnerf_cli.scenes.blender import _area_matrix, area_downscale
+from boostnerf_cli.scenes.bounds import frustum_overlap_bbox, frustum_planes, lattice_visible_counts
+from boostnerf_cli.scenes.procedural import CAMERA_ANGLE_X, camera_poses, scene_objects
+
+SIZE, N_TRAIN, N_TEST = 32, 6, 3
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory) -> Path:
+    return make_scene(tmp_path_factory.mktemp("gen") / "scene", size=SIZE, n_train=N_TRAIN, n_test=N_TEST, seed=0)
+
+
+def write_blender(folder: Path, splits: dict[str, list[np.ndarray]], **meta) -> Path:
+    """A tiny Blender-format dataset: uint8 images per split, cameras from the procedural spiral."""
+    folder.mkdir(parents=True, exist_ok=True)
+    meta.setdefault("camera_angle_x", CAMERA_ANGLE_X)
+    for split, images in splits.items():
+        poses, _ = camera_poses(len(images), 0)
+        (folder / split).mkdir(exist_ok=True)
+        frames = []
+        for i, (img, pose) in enumerate(zip(images, poses)):
+            iio.imwrite(folder / split / f"r_{i}.png", img)
+            frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": pose.tolist()})
+        (folder / f"transforms_{split}.json").write_text(json.dumps({**meta, "frames": frames}))
+    return folder
+
+
+def rgba(h: int, w: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (h, w, 4), dtype=np.uint8)
+
+
+def raises_one_line(match: str, fn, *args, **kwargs) -> str:
+    with pytest.raises(BoostNerfError, match=match) as info:
+        fn(*args, **kwargs)
+    assert "\n" not in str(info.value)
+    return str(info.value)
+
+
+# ----------------------------------------------------------------------------- generated scene
+
+
+def test_generated_scene_loads(generated):
+    scene = load_scene(generated)
+    assert isinstance(scene, Scene) and scene.format == "blender" and scene.holdout == ""
+    assert set(scene.splits) == {"train", "test"}
+    train, test = scene.split("train"), scene.split("test")
+    assert train.images.shape == (N_TRAIN, SIZE, SIZE, 3) and test.images.shape == (N_TEST, SIZE, SIZE, 3)
+    assert train.images.dtype == torch.float32 and 0 <= float(train.images.min()) <= float(train.images.max()) <= 1
+    focal = 0.5 * SIZE / math.tan(0.5 * CAMERA_ANGLE_X)
+    assert torch.allclose(train.intrinsics[0], torch.tensor([focal, focal, SIZE / 2, SIZE / 2]))
+    assert (scene.near, scene.far) == (2.0, 6.0)
+    assert train.names[0] == "train/r_0"
+    # test cameras are not train cameras
+    dist = torch.cdist(test.poses[:, :3, 3], train.poses[:, :3, 3])
+    assert float(dist.min()) > 0.1
+    assert (generated / "README.txt").read_text().startswith("Procedurally generated")
+
+
+def test_generation_is_deterministic(tmp_path):
+    kwargs = dict(size=16, n_train=3, n_test=1)
+    a = make_scene(tmp_path / "a", seed=3, **kwargs)
+    b = make_scene(tmp_path / "b", seed=3, **kwargs)
+    c = make_scene(tmp_path / "c", seed=4, **kwargs)
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
+    assert all((a / f).read_bytes() == (b / f).read_bytes() for f in files)
+    pngs = [f for f in files if f.suffix == ".png"]
+    assert any((a / f).read_bytes() != (c / f).read_bytes() for f in pngs)
+
+
+def test_analytic_render_hits_known_geometry(generated):
+    objects = scene_objects(0)
+    spheres = [o for o in objects if o["kind"] == "sphere"]
+    reach = max(np.linalg.norm(o["centre"]) + max(o.get("radius", 0), np.linalg.norm(o.get("half", 0))) for o in objects)
+    meta = json.loads((generated / "transforms_train.json").read_text())
+    focal = 0.5 * SIZE / math.tan(0.5 * meta["camera_angle_x"])
+    k = torch.tensor([focal, focal, SIZE / 2, SIZE / 2])
+    far_from_objects = 0
+    for frame in meta["frames"]:
+        alpha = iio.imread(generated / f"{frame['file_path']}.png")[..., 3]
+        pose = torch.tensor(frame["transform_matrix"])
+        uv, depth = project_points(torch.tensor([s["centre"] for s in spheres]), pose, k)
+        assert (depth > 0).all()
+        for u, v in uv.floor().long().tolist():
+            assert alpha[v, u] == 255  # the ray through a sphere's centre pixel hits something opaque
+        o, d = image_rays(pose, k, SIZE, SIZE)
+        miss = (torch.linalg.cross(o, d).norm(dim=-1) > reach + 0.1).reshape(SIZE, SIZE).numpy()
+        assert (alpha[miss] == 0).all()  # rays passing far from every object are transparent
+        far_from_objects += int(miss.sum())
+    assert far_from_objects > 0
+
+
+def test_bbox_contains_generated_objects(generated):
+    scene = load_scene(generated)
+    lo, hi = scene.bbox[0].numpy(), scene.bbox[1].numpy()
+    for o in scene_objects(0):
+        c = np.array(o["centre"])
+        if o["kind"] == "box":
+            ext = np.array([math.hypot(*o["half"][:2])] * 2 + [o["half"][2]])
+        elif o["kind"] == "disc":
+            ext = np.array([o["radius"], o["radius"], 0.0])
+        else:
+            ext = np.full(3, o["radius"])
+        assert (c - ext >= lo).all() and (c + ext <= hi).all(), o["kind"]
+
+
+def test_lattice_counts_match_projection():
+    poses = torch.tensor(camera_poses(7, 0)[0]).float()
+    k = torch.tensor([[30.0, 28.0, 15.0, 13.0]]).repeat(7, 1)
+    axes = tuple(torch.linspace(-1.9, 2.1, n) + 0.0123 for n in (9, 10, 11))
+    counts = lattice_visible_counts(axes, frustum_planes(poses, k, 26, 30, 2.0, 6.0))
+    pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    expected = torch.zeros(len(pts), dtype=torch.long)
+    for pose, kk in zip(poses, k):
+        uv, depth = project_points(pts, pose, kk)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] <= 30) & (uv[:, 1] >= 0) & (uv[:, 1] <= 26)
+        expected += (inside & (depth >= 2) & (depth <= 6)).long()
+    assert torch.equal(counts.reshape(-1), expected)
+    assert 0 < int(expected.sum()) < 7 * len(pts)
+
+
+def test_bbox_falls_back_to_frustum_box():
+    poses = torch.tensor(camera_poses(2, 0)[0]).float()
+    poses[1, :3, 3] *= -1  # second camera looks away from the first one's view
+    poses[1, :3, :3] *= -1
+    k = torch.tensor([[10.0, 10.0, 5.0, 5.0]]).repeat(2, 1)
+    box = frustum_overlap_bbox(poses, k, 10, 10, 2.0, 6.0, min_fraction=1.0, grid=16)
+    assert box.shape == (2, 3) and (box[1] > box[0]).all()
+
+
+# ----------------------------------------------------------------------------- downscaling
+
+
+def test_area_downscale_is_block_mean_after_premultiplying(tmp_path):
+    img = rgba(8, 8)
+    bg = (0.2, 0.4, 0.6)
+    scene = load_blender(write_blender(tmp_path / "d", {"train": [img, rgba(8, 8, 1)]}), image_size=4,
+                         holdout_every=0, background=bg)
+    x = img.astype(np.float64) / 255
+    premult = np.concatenate([x[..., :3] * x[..., 3:], x[..., 3:]], -1)
+    expected = np.zeros((4, 4, 3))
+    for i in range(4):
+        for j in range(4):
+            block = premult[2 * i : 2 * i + 2, 2 * j : 2 * j + 2].reshape(4, 4).mean(0)
+            expected[i, j] = block[:3] + (1 - block[3]) * np.array(bg)
+    got = scene.split("train").images[0].double().numpy()
+    assert np.allclose(got, expected, atol=1e-5)
+    # the wrong order (average straight colour, then composite) gives a different answer
+    straight = x.reshape(4, 2, 4, 2, 4).mean((1, 3))
+    wrong = straight[..., :3] * straight[..., 3:] + (1 - straight[..., 3:]) * np.array(bg)
+    assert not np.allclose(wrong, expected, atol=1e-3)
+
+
+def test_area_weights_non_integer_factor():
+    w = _area_matrix(3, 2).double()  # output pixels cover [0, 1.5) and [1.5, 3)
+    assert torch.allclose(w, torch.tensor([[2 / 3, 1 / 3, 0], [0, 1 / 3, 2 / 3]], dtype=torch.float64))
+    img = torch.rand(6, 8, 3)
+    assert torch.allclose(area_downscale(img, 3, 4), img.reshape(3, 2, 4, 2, 3).mean((1, 3)))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(2, 17), st.integers(2, 17), st.data())
+def test_area_downscale_preserves_mean(h, w, data):
+    nh, nw = data.draw(st.integers(1, h)), data.draw(st.integers(1, w))
+    img = torch.rand(h, w, 2, generator=torch.Generator().manual_seed(h * 31 + w))
+    out = area_downscale(img, nh, nw)
+    assert out.shape == (nh, nw, 2)
+    assert torch.allclose(out.mean((0, 1)), img.mean((0, 1)), atol=1e-5)
+    assert torch.allclose(area_downscale(torch.full((h, w, 1), 0.3), nh, nw), torch.tensor(0.3), atol=1e-6)
+
+
+def test_intrinsics_scale_per_axis(tmp_path):
+    imgs = [rgba(6, 8, i) for i in range(2)]
+    folder = write_blender(tmp_path / "k", {"train": imgs}, fl_x=10.0, fl_y=12.0, cx=3.0, cy=2.5)
+    scene = load_blender(folder, image_size=4, holdout_every=0)
+    train = scene.split("train")
+    assert (train.height, train.width) == (3, 4)
+    assert torch.allclose(train.intrinsics[0], torch.tensor([5.0, 6.0, 1.5, 1.25]))
+    native = load_blender(folder, holdout_every=0).split("train")
+    assert torch.allclose(native.intrinsics[0], torch.tensor([10.0, 12.0, 3.0, 2.5]))
+    raises_one_line("never upscaled", load_blender, folder, image_size=16)
+
+
+def test_rgb_images_and_near_far_keys(tmp_path):
+    folder = write_blender(tmp_path / "rgb", {"train": [rgba(4, 4)[..., :3]] * 2}, near=0.5, far=3.0)
+    scene = load_blender(folder, holdout_every=0)
+    assert (scene.near, scene.far) == (0.5, 3.0)
+    assert torch.allclose(scene.split("train").images[0], torch.from_numpy(rgba(4, 4)[..., :3] / 255).float())
+
+
+# ----------------------------------------------------------------------------- splits
+
+
+def test_holdout_every_8th(tmp_path):
+    folder = write_blender(tmp_path / "h", {"train": [rgba(4, 4, i) for i in range(17)]})
+    scene = load_scene(folder)
+    assert scene.split("test").names == ("train/r_0", "train/r_8", "train/r_16")
+    assert len(scene.split("train")) == 14 and "train/r_8" not in scene.split("train").names
+    assert "every 8th" in scene.holdout and "(3 of 17)" in scene.holdout
+    off = load_scene(folder, holdout_every=0)
+    assert set(off.splits) == {"train"} and off.holdout == ""
+
+
+def test_own_test_split_is_used(tmp_path):
+    folder = write_blender(tmp_path / "t", {"train": [rgba(4, 4, i) for i in range(9)], "test": [rgba(4, 4)] * 2})
+    scene = load_scene(folder)
+    assert len(scene.split("train")) == 9 and len(scene.split("test")) == 2 and scene.holdout == ""
+
+
+# ----------------------------------------------------------------------------- errors
+
+
+def test_error_missing_folder(tmp_path):
+    raises_one_line("does not exist", load_scene, tmp_path / "nope")
+    raises_one_line("does not exist", load_blender, tmp_path / "nope")
+
+
+def test_error_unknown_layout(tmp_path):
+    msg = raises_one_line("cannot tell the dataset format", load_scene, tmp_path)
+    assert "transforms_" in msg
+    raises_one_line("no transforms_", load_blender, tmp_path)
+    raises_one_line("unknown scene format", load_scene, tmp_path, format="colmap2000")
+
+
+def test_error_missing_image(tmp_path):
+    folder = write_blender(tmp_path / "m", {"train": [rgba(4, 4)] * 2})
+    (folder / "train" / "r_1.png").unlink()
+    raises_one_line(r"frame 1.*r_1.*not found", load_scene, folder)
+
+
+def test_error_corrupt_png(tmp_path):
+    folder = write_blender(tmp_path / "c", {"train": [rgba(4, 4)] * 2})
+    (folder / "train" / "r_1.png").write_bytes(b"\x89PNG garbage, not an image")
+    raises_one_line(r"cannot read image .*r_1\.png", load_scene, folder)
+
+
+def test_error_mixed_sizes(tmp_path):
+    folder = write_blender(tmp_path / "s", {"train": [rgba(4, 4), rgba(4, 6)]})
+    raises_one_line(r"r_1\.png is 6x4 .* same size", load_scene, folder)
+
+
+def test_error_bad_poses(tmp_path):
+    folder = write_blender(tmp_path / "p", {"train": [rgba(4, 4)] * 2})
+    meta_path = folder / "transforms_train.json"
+    meta = json.loads(meta_path.read_text())
+    meta["frames"][1]["transform_matrix"][0][3] = float("nan")
+    meta_path.write_text(json.dumps(meta))  # json writes NaN, which Python reads back
+    raises_one_line(r"transforms_train\.json frame 1.*NaN", load_scene, folder)
+    meta["frames"][1]["transform_matrix"] = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]
+    meta_path.write_text(json.dumps(meta))
+    raises_one_line(r"frame 1.*4x4", load_scene, folder)
+
+
+def test_error_bad_json_and_missing_focal(tmp_path):
+    folder = write_blender(tmp_path / "j", {"train": [rgba(4, 4)] * 2})
+    meta_path = folder / "transforms_train.json"
+    meta = json.loads(meta_path.read_text())
+    meta_path.write_text(json.dumps({"frames": meta["frames"]}))
+    raises_one_line("no camera_angle_x and no fl_x", load_scene, folder)
+    meta_path.write_text("{ not json")
+    raises_one_line(r"cannot parse .*transforms_train\.json", load_scene, folder)
+
+
+def test_error_bad_holdout(tmp_path):
+    folder = write_blender(tmp_path / "o", {"train": [rgba(4, 4)]})
+    raises_one_line("holdout_every=0", load_scene, folder)
+    raises_one_line("at least 2", load_scene, folder, holdout_every=1)
