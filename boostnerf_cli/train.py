@@ -166,19 +166,20 @@ def train(
             loss, logs = task.loss(rays.origins[idx], rays.dirs[idx], rays.rgb[idx], step)
             opt.zero_grad(set_to_none=True)
             params = [p for g in opt.param_groups for p in g["params"]]
-            if torch.isfinite(loss):
-                loss.backward()
-            if not torch.isfinite(loss) or not _all_finite(params):
-                skipped += 1
-                bad_run += 1
-                if bad_run >= sched.max_bad_steps:
-                    raise BoostNerfError(
-                        f"training diverged: {bad_run} consecutive steps had a non-finite loss or gradient "
-                        f"(last at step {step}); lower the learning rates in the recipe or check the data"
-                    )
-                continue
-            bad_run = 0
-            opt.step()
+            if loss.requires_grad:  # False when every sample of the batch was skipped: nothing to learn
+                if torch.isfinite(loss):
+                    loss.backward()
+                if torch.isfinite(loss) and _all_finite(params):
+                    bad_run = 0
+                    opt.step()
+                else:
+                    skipped += 1
+                    bad_run += 1
+                    if bad_run >= sched.max_bad_steps:
+                        raise BoostNerfError(
+                            f"training diverged: {bad_run} consecutive steps had a non-finite loss or gradient "
+                            f"(last at step {step}); lower the learning rates in the recipe or check the data"
+                        )
             done = step + 1
             if done % sched.log_every == 0 or done == sched.iters:
                 entry = {"step": done, "seconds": round(time.perf_counter() - t0, 2), **logs}

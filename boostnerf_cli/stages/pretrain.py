@@ -19,15 +19,17 @@ import torch
 from torch import Tensor, nn
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields import build_expert, count_params, load_expert, save_expert
+from pathlib import Path
+
+from boostnerf_cli.fields import FAMILIES, build_expert, count_params, load_expert, save_expert
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.metrics import mse_to_psnr
-from boostnerf_cli.recipe import GeometryRecipe, PretrainRecipe, TrainRecipe
+from boostnerf_cli.recipe import GeometryRecipe, PretrainRecipe, Recipe, TrainRecipe, recipe_dict
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_image, render_rays
-from boostnerf_cli.scenes.scene import Scene, Split
+from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.train import RayData, Schedule, train
-from boostnerf_cli.workspace import Workspace, write_json
+from boostnerf_cli.workspace import Workspace, read_json, write_json
 
 
 def photometric_loss(bundle, rgb: Tensor, tcfg: TrainRecipe) -> tuple[Tensor, dict[str, float]]:
@@ -144,6 +146,10 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5)), seed, "geometry")
     model.eval()
     occ = OccupancyGrid.from_density(model.density, bbox, model.shape, step, rec.alpha_threshold)
+    if not occ.occupied.any():
+        log("geometry: warning: the coarse stage found no occupied space (too few geometry.iters?); "
+            "experts will train on the whole camera box without skipping")
+        occ = OccupancyGrid(torch.ones_like(occ.occupied), bbox)
     box = occ.occupied_bbox(margin_cells=1)
     seconds = round(time.perf_counter() - t0, 2)
     save_expert(ws.geometry_path, model, occ, {"name": "geometry", "fine_bbox": box.tolist(), "iters": rec.iters,
@@ -198,3 +204,53 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     write_json(ws.expert_report_path(name), report)
     ckpt.unlink(missing_ok=True)
     return report
+
+
+def scene_inputs(data: Path, rec: Recipe) -> dict:
+    """What identifies the scene a workspace is trained on (recorded in the manifest)."""
+    return {"path": str(data.resolve()), "image_size": rec.data.image_size,
+            "holdout_every": rec.data.holdout_every, "format": rec.data.format}
+
+
+def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
+        log: Callable[[str], None]) -> list[dict]:
+    """Train every expert of the recipe that is not finished yet; -> their reports."""
+    if data is None:
+        data = ws.root / "scene"
+        if not (data / "transforms_train.json").exists():
+            log(f"no --data given: generating the default procedural scene in {data}")
+            make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)
+    inputs = scene_inputs(Path(data), rec)
+    previous = ws.manifest().get("data")
+    if previous and previous != inputs:
+        if not force:
+            raise BoostNerfError(
+                f"workspace {ws.root} was made for another scene or image size ({previous['path']}, "
+                f"image_size={previous['image_size']}): use a new --workspace, or --force to retrain everything"
+            )
+        for p in list(ws.experts_dir.glob("*")) if ws.experts_dir.exists() else []:
+            p.unlink()
+    scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
+                       format=rec.data.format)
+    if rec.pretrain.model not in FAMILIES:
+        raise BoostNerfError(f"unknown model family {rec.pretrain.model!r}: choose one of {', '.join(FAMILIES)}")
+    ws.update_manifest(data=inputs, scene=scene.describe(), recipe=recipe_dict(rec))
+    log(f"scene {scene.name}: {len(scene.splits['train'])} train views "
+        f"{scene.splits['train'].width}x{scene.splits['train'].height}"
+        + (f", {scene.holdout}" if scene.holdout else ""))
+    box, geom, prior = ensure_geometry(ws, scene, rec.pretrain.geometry, rec.pretrain.seed, device, log)
+    reports = []
+    for res in sorted(rec.pretrain.res):
+        name = expert_name(rec.pretrain.model, res)
+        if ws.expert_path(name).exists() and ws.expert_report_path(name).exists() and not force:
+            log(f"{name}: already trained, skipping (use --force to retrain)")
+            reports.append(read_json(ws.expert_report_path(name), "expert report"))
+            continue
+        if force:
+            ws.checkpoint_path(name).unlink(missing_ok=True)
+        report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, log)
+        log(f"{name}: {report['iterations']} steps in {report['seconds']:.0f}s, train PSNR {report['train_psnr']:.2f}"
+            + (f", held-out PSNR {report['test_psnr']:.2f}" if "test_psnr" in report else ""))
+        reports.append(report)
+    ws.update_manifest(experts={r["name"]: {"res": r["res"], "params": r["params"]} for r in reports})
+    return reports

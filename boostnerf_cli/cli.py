@@ -1,0 +1,156 @@
+"""Thin Typer commands: parse options, load the recipe, call one stage, print.
+
+A `BoostNerfError` becomes one line on stderr and exit code 2, with no traceback.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from boostnerf_cli.errors import BoostNerfError
+
+app = typer.Typer(
+    name="boostnerf",
+    help="Boost Your NeRF: train Fast-NeRF experts, mix them with a gate, render and measure.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+err = Console(stderr=True, highlight=False, soft_wrap=True)
+out = Console(highlight=False)
+
+WorkspaceOpt = Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory (created if missing).")]
+DeviceOpt = Annotated[str, typer.Option("--device", help="auto (CUDA when available), cpu or cuda.")]
+RecipeOpt = Annotated[Optional[Path], typer.Option("--recipe", help="YAML recipe supplying defaults; flags override it.")]
+SplitOpt = Annotated[str, typer.Option("--split", help="Split to use: test (falls back to val), val or train.")]
+ModelsOpt = Annotated[Optional[list[str]], typer.Option("--model", help="Model name(s); default: every model of the workspace.")]
+NoSkipOpt = Annotated[bool, typer.Option("--no-skip", help="Turn every skip off: dense sampling, every sample evaluated.")]
+ViewsOpt = Annotated[Optional[int], typer.Option("--views", min=1, help="Only the first N views of the split.")]
+
+
+def log(msg: str) -> None:
+    err.print(msg)
+
+
+def _int_list(text: str, what: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.replace(" ", "").split(",") if v]
+    except ValueError:
+        raise BoostNerfError(f"{what} must be comma-separated whole numbers, e.g. 160,200,256 (got {text!r})") from None
+    if not values or any(v < 2 for v in values):
+        raise BoostNerfError(f"{what} needs at least one value, each >= 2 (got {text!r})")
+    return values
+
+
+@app.command("make-scene")
+def make_scene_cmd(
+    out_dir: Annotated[Path, typer.Argument(help="Folder to write the Blender-format scene to.")],
+    size: Annotated[int, typer.Option(help="Image side in pixels.", min=16)] = 64,
+    n_train: Annotated[int, typer.Option("--train-views", min=1)] = 24,
+    n_test: Annotated[int, typer.Option("--test-views", min=0)] = 8,
+    seed: Annotated[int, typer.Option()] = 0,
+) -> None:
+    """Write a small procedural scene (exact analytic ray casting) in the Blender format."""
+    from boostnerf_cli.scenes import make_scene
+
+    path = make_scene(out_dir, size=size, n_train=n_train, n_test=n_test, seed=seed)
+    log(f"wrote a {size}x{size} scene with {n_train} train and {n_test} test views to {path}")
+
+
+@app.command()
+def pretrain(
+    workspace: WorkspaceOpt,
+    data: Annotated[Optional[Path], typer.Option("--data", help="Scene folder. Default: generate the procedural demo scene in WS/scene.")] = None,
+    recipe: RecipeOpt = None,
+    model: Annotated[Optional[str], typer.Option("--model", help="Expert family: dvgo.")] = None,
+    res: Annotated[Optional[str], typer.Option("--res", help="Comma-separated resolutions, one expert each. For dvgo, --res 160 means a grid of 160^3 voxels (isotropic voxels over the scene box).")] = None,
+    iters: Annotated[Optional[int], typer.Option("--iters", min=1, help="Training steps per expert.")] = None,
+    image_size: Annotated[Optional[int], typer.Option("--image-size", min=8, help="Longer image side in pixels after area downscaling.")] = None,
+    holdout_every: Annotated[Optional[int], typer.Option("--holdout-every", min=0, help="Datasets with no test split: hold out every N-th train view (0: none).")] = None,
+    seed: Annotated[Optional[int], typer.Option("--seed")] = None,
+    device: DeviceOpt = "auto",
+    force: Annotated[bool, typer.Option("--force", help="Retrain experts that are already finished.")] = False,
+) -> None:
+    """Train one expert per resolution, independently (stage 1 of the paper)."""
+    from boostnerf_cli.recipe import load_recipe
+    from boostnerf_cli.stages import pretrain as stage
+    from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.workspace import Workspace
+
+    rec = load_recipe(recipe)
+    if model is not None:
+        rec.pretrain.model = model
+    if res is not None:
+        rec.pretrain.res = _int_list(res, "--res")
+    if iters is not None:
+        rec.pretrain.iters = iters
+    if image_size is not None:
+        rec.data.image_size = image_size
+    if holdout_every is not None:
+        rec.data.holdout_every = holdout_every
+    if seed is not None:
+        rec.pretrain.seed = seed
+    reports = stage.run(Workspace(workspace), data, rec, resolve_device(device), force, log)
+    table = Table("expert", "params", "steps", "seconds", "train PSNR", "held-out PSNR")
+    for r in reports:
+        table.add_row(r["name"], f"{r['params']:,}", str(r["iterations"]), f"{r['seconds']:.0f}",
+                      f"{r['train_psnr']:.2f}", f"{r['test_psnr']:.2f}" if r.get("test_psnr") is not None else "-")
+    out.print(table)
+
+
+@app.command()
+def render(
+    workspace: WorkspaceOpt,
+    model: ModelsOpt = None,
+    split: SplitOpt = "test",
+    views: ViewsOpt = None,
+    no_skip: NoSkipOpt = False,
+    device: DeviceOpt = "auto",
+) -> None:
+    """Render a split of the scene with each model: PNG colour and 16-bit depth under WS/renders/."""
+    from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.stages.evaluate import run_render
+    from boostnerf_cli.workspace import Workspace
+
+    run_render(Workspace(workspace), model, split, resolve_device(device), not no_skip, views, log)
+
+
+@app.command("eval")
+def eval_cmd(
+    workspace: WorkspaceOpt,
+    model: ModelsOpt = None,
+    split: SplitOpt = "test",
+    views: ViewsOpt = None,
+    no_skip: NoSkipOpt = False,
+    report: Annotated[bool, typer.Option("--report", help="Write WS/reports/eval.json.")] = False,
+    device: DeviceOpt = "auto",
+) -> None:
+    """PSNR, SSIM, LPIPS (when its weights are on disk) and seconds per image for every model."""
+    from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.stages.evaluate import run_eval
+    from boostnerf_cli.workspace import Workspace
+
+    result = run_eval(Workspace(workspace), model, split, resolve_device(device), not no_skip, views, report, log)
+    table = Table("model", "PSNR", "SSIM", "LPIPS", "s/image", "params")
+    for r in result["models"]:
+        table.add_row(r["name"], f"{r['psnr']:.3f}", f"{r['ssim']:.4f}",
+                      "n/a" if r["lpips"] is None else f"{r['lpips']:.4f}", f"{r['seconds_per_image']:.3f}",
+                      f"{r['params']:,}")
+    out.print(table)
+
+
+def main() -> None:
+    try:
+        app()
+    except BoostNerfError as e:
+        err.print(f"error: {e}", markup=False)
+        sys.exit(e.exit_code)
+    except KeyboardInterrupt:
+        err.print("interrupted: finished files are kept; rerun the same command to resume", markup=False)
+        sys.exit(130)

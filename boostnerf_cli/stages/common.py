@@ -1,0 +1,83 @@
+"""What several stages share: devices, loading the workspace's scene, and loading any model by name."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import torch
+from torch import Tensor, nn
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields import count_params, load_expert
+from boostnerf_cli.render.renderer import RenderSettings
+from boostnerf_cli.scenes import Scene, load_scene
+from boostnerf_cli.workspace import Workspace, read_json
+
+
+def resolve_device(name: str) -> str:
+    """`auto` -> cuda when available, else cpu; `cuda` without a GPU is an error."""
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise BoostNerfError("--device cuda was asked for but torch sees no CUDA GPU: use --device cpu or auto")
+    if name not in ("cpu", "cuda"):
+        raise BoostNerfError(f"unknown device {name!r}: use auto, cpu or cuda")
+    return name
+
+
+def workspace_scene(ws: Workspace) -> Scene:
+    """Reload the scene a workspace was trained on, exactly as `pretrain` loaded it."""
+    m = ws.require_manifest()
+    data = m.get("data")
+    if not data:
+        raise BoostNerfError(f"{ws.manifest_path} records no scene: rerun `boostnerf pretrain --workspace {ws.root}`")
+    path = Path(data["path"])
+    if not path.exists():
+        raise BoostNerfError(f"the workspace's scene {path} is gone: restore it or rerun pretrain in a new workspace")
+    return load_scene(path, image_size=data.get("image_size"), holdout_every=data.get("holdout_every", 8),
+                      format=data.get("format", "auto"))
+
+
+@dataclass
+class LoadedModel:
+    """A field ready to render, with what rendering it needs."""
+
+    name: str
+    kind: str  # "expert" or "mixture"
+    field: nn.Module
+    skip: Callable[[Tensor], Tensor] | None
+    step: float
+    bbox: Tensor
+    params: int
+
+    def settings(self, scene: Scene, color_threshold: float = 1e-4) -> RenderSettings:
+        return RenderSettings(step=self.step, near=scene.near, far=scene.far, bbox=self.bbox,
+                              background=scene.background, color_threshold=color_threshold)
+
+
+def load_model(ws: Workspace, name: str, device: str) -> LoadedModel:
+    """An expert (`dvgo-64`) or a mixture (`top1`, `top2`, `ens`, `baseline`) of the workspace."""
+    if ws.expert_path(name).exists():
+        model, occ, meta = load_expert(ws.expert_path(name), device)
+        return LoadedModel(name, "expert", model, occ.to(device) if occ is not None else None, meta["step"],
+                           model.bbox, count_params(model))
+    if ws.model_path(name).exists():
+        from boostnerf_cli.moe.mixture import load_mixture
+
+        mix, meta = load_mixture(ws.model_path(name), device)
+        return LoadedModel(name, "mixture", mix, mix.skip, meta["step"], mix.bbox, count_params(mix))
+    known = ", ".join(all_model_names(ws)) or "none yet"
+    raise BoostNerfError(f"no model named {name!r} in {ws.root} (models: {known})")
+
+
+def all_model_names(ws: Workspace) -> list[str]:
+    """Experts smallest first, then mixtures in the paper's order."""
+    order = {"baseline": 0, "top1": 1, "top2": 2, "ens": 9}
+    mixtures = sorted((n for n in ws.model_names() if n != "init"), key=lambda n: (order.get(n, 5), n))
+    return ws.expert_names() + mixtures
+
+
+def expert_report(ws: Workspace, name: str) -> dict:
+    return read_json(ws.expert_report_path(name), "expert report")

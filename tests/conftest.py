@@ -1,0 +1,61 @@
+"""Shared fixtures: tiny generated scenes and a tiny trained workspace (made once per session)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+torch.set_num_threads(min(2, os.cpu_count() or 1))
+
+TINY_RECIPE = """
+data: {image_size: 32, holdout_every: 8}
+pretrain:
+  model: dvgo
+  res: [12, 16]
+  iters: 30
+  geometry: {res: 12, iters: 100, batch_rays: 256, alpha_init: 0.01}
+  train: {batch_rays: 256, log_every: 10, checkpoint_every: 10, occupancy_every: 10}
+  dvgo: {hidden: 16, layers: 1}
+moe:
+  gate_res: 8
+  iters: 20
+  train: {batch_rays: 256, log_every: 10, checkpoint_every: 10}
+"""
+
+
+def run_cli(*args: str, cwd: Path | None = None, check: bool = False) -> subprocess.CompletedProcess:
+    """Run the real CLI in a subprocess (`python -m boostnerf_cli ...`)."""
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    proc = subprocess.run([sys.executable, "-m", "boostnerf_cli", *args], capture_output=True, text=True, cwd=cwd,
+                          env=env, timeout=600)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"boostnerf {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    return proc
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory) -> Path:
+    from boostnerf_cli.scenes import make_scene
+
+    return make_scene(tmp_path_factory.mktemp("scene") / "tiny", size=32, n_train=12, n_test=3, seed=0)
+
+
+@pytest.fixture(scope="session")
+def tiny_recipe(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("recipe") / "tiny.yaml"
+    path.write_text(TINY_RECIPE)
+    return path
+
+
+@pytest.fixture(scope="session")
+def trained_ws(tmp_path_factory, tiny_scene, tiny_recipe) -> Path:
+    """A workspace with two tiny pretrained experts (through the real CLI)."""
+    ws = tmp_path_factory.mktemp("ws") / "ws"
+    run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws),
+            "--device", "cpu", check=True)
+    return ws

@@ -1,0 +1,127 @@
+"""The staged pipeline through the real CLI: artifacts, reports, resumable stages, bad input."""
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from safetensors import safe_open
+
+from conftest import run_cli
+
+
+def _no_temp_files(ws: Path) -> bool:
+    return not [p for p in ws.rglob("*") if p.name.endswith(".tmp")]
+
+
+def test_pretrain_writes_experts_reports_and_manifest(trained_ws):
+    for name in ("dvgo-12", "dvgo-16"):
+        path = trained_ws / "experts" / f"{name}.safetensors"
+        with safe_open(str(path), framework="pt") as f:
+            meta = json.loads(f.metadata()["boostnerf"])
+        assert meta["family"] == "dvgo" and meta["config"]["res"] == int(name.split("-")[1])
+        report = json.loads((trained_ws / "experts" / f"{name}.json").read_text())
+        assert report["name"] == name and report["iterations"] == 30
+        assert report["seconds"] > 0 and report["params"] > 0 and report["test_psnr"] > 10
+    manifest = json.loads((trained_ws / "manifest.json").read_text())
+    assert manifest["scene"]["splits"]["train"]["views"] == 12
+    assert manifest["recipe"]["pretrain"]["res"] == [12, 16]
+    assert not (trained_ws / "checkpoints").exists() or not list((trained_ws / "checkpoints").iterdir())
+    assert _no_temp_files(trained_ws)
+
+
+def test_pretrain_skips_finished_experts(trained_ws, tiny_scene, tiny_recipe):
+    before = (trained_ws / "experts" / "dvgo-12.safetensors").stat().st_mtime_ns
+    proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace",
+                   str(trained_ws), "--device", "cpu", "--res", "12", check=True)
+    assert "already trained" in proc.stderr
+    assert (trained_ws / "experts" / "dvgo-12.safetensors").stat().st_mtime_ns == before
+
+
+def test_eval_report_schema_and_render_outputs(trained_ws):
+    run_cli("eval", "--workspace", str(trained_ws), "--split", "test", "--report", "--device", "cpu", check=True)
+    report = json.loads((trained_ws / "reports" / "eval.json").read_text())
+    assert report["split"] == "test"
+    names = [m["name"] for m in report["models"]]
+    assert names == ["dvgo-12", "dvgo-16"]
+    for m in report["models"]:
+        assert set(m) >= {"name", "psnr", "ssim", "lpips", "seconds_per_image"}
+        assert 0 < m["ssim"] <= 1 and m["psnr"] > 10 and m["seconds_per_image"] > 0
+        assert m["lpips"] is None or m["lpips"] >= 0
+    assert report["lpips_note"] is None or "LPIPS" in report["lpips_note"]
+
+    run_cli("render", "--workspace", str(trained_ws), "--model", "dvgo-16", "--views", "2", "--device", "cpu", check=True)
+    import imageio.v3 as iio
+
+    pngs = sorted((trained_ws / "renders" / "dvgo-16" / "test").glob("*.png"))
+    assert len(pngs) == 4  # 2 colour + 2 depth
+    rgb = iio.imread([p for p in pngs if "depth" not in p.name][0])
+    depth = iio.imread([p for p in pngs if "depth" in p.name][0])
+    assert rgb.shape == (32, 32, 3) and depth.dtype.name == "uint16"
+
+
+def _assert_clean_failure(proc, *needles):
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) >= 1 and lines[-1].startswith("error:"), proc.stderr
+    for n in needles:
+        assert n in lines[-1], lines[-1]
+
+
+def test_missing_data_path(tmp_path):
+    proc = run_cli("pretrain", "--data", str(tmp_path / "nope"), "--workspace", str(tmp_path / "ws"))
+    _assert_clean_failure(proc, "does not exist")
+    assert not (tmp_path / "ws" / "experts").exists()
+
+
+def test_transforms_naming_a_missing_image(tmp_path, tiny_scene, tiny_recipe):
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    victim = sorted((scene / "train").glob("*.png"))[0]
+    victim.unlink()
+    proc = run_cli("pretrain", "--data", str(scene), "--recipe", str(tiny_recipe), "--workspace", str(tmp_path / "ws"))
+    _assert_clean_failure(proc, "not found", victim.stem)
+    assert not (tmp_path / "ws" / "experts").exists() and _no_temp_files(tmp_path)
+
+
+def test_corrupt_png(tmp_path, tiny_scene, tiny_recipe):
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    victim = sorted((scene / "train").glob("*.png"))[3]
+    victim.write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)
+    proc = run_cli("pretrain", "--data", str(scene), "--recipe", str(tiny_recipe), "--workspace", str(tmp_path / "ws"))
+    _assert_clean_failure(proc, victim.name)
+    assert not (tmp_path / "ws" / "experts").exists()
+
+
+def test_unknown_recipe_key(tmp_path, tiny_scene):
+    recipe = tmp_path / "bad.yaml"
+    recipe.write_text("pretrain:\n  iters: 5\n  learning_rate: 3\n")
+    proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--workspace", str(tmp_path / "ws"))
+    _assert_clean_failure(proc, "pretrain.learning_rate")
+    assert not (tmp_path / "ws").exists()
+
+
+def test_truncated_checkpoint_is_refused_and_kept(tmp_path, trained_ws):
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    path = ws / "experts" / "dvgo-12.safetensors"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    proc = run_cli("eval", "--workspace", str(ws), "--model", "dvgo-12", "--device", "cpu")
+    _assert_clean_failure(proc, "dvgo-12.safetensors", "damaged")
+    assert path.stat().st_size == len(data) // 2  # not silently replaced
+    assert _no_temp_files(ws)
+
+
+def test_bad_res_flag_and_unknown_model(tmp_path, trained_ws):
+    proc = run_cli("pretrain", "--workspace", str(tmp_path / "ws"), "--res", "64,abc")
+    _assert_clean_failure(proc, "--res")
+    proc = run_cli("eval", "--workspace", str(trained_ws), "--model", "top7", "--device", "cpu")
+    _assert_clean_failure(proc, "top7", "dvgo-12")
+
+
+def test_eval_on_an_empty_folder_says_what_to_run(tmp_path):
+    proc = run_cli("eval", "--workspace", str(tmp_path), "--device", "cpu")
+    _assert_clean_failure(proc, "boostnerf pretrain")

@@ -1,0 +1,107 @@
+"""Trilinear grids against grid_sample in float64; rays, projection and box clipping."""
+
+import torch
+import torch.nn.functional as F
+
+from boostnerf_cli.fields import grid as G
+from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.render.rays import image_rays, intersect_box, pixel_directions, project_points
+
+BOX = torch.tensor([[-1.0, -0.5, -2.0], [1.0, 1.5, 0.0]], dtype=torch.float64)
+
+
+def _grid_sample_ref(table, shape, xyz, bbox):
+    """Reference: grid_sample(align_corners=True) on the same lattice, float64."""
+    vol = table.T.reshape(1, -1, *shape)  # (1, C, X, Y, Z) -> grid_sample wants (N, C, D, H, W) = (z?..)
+    vol = vol.permute(0, 1, 4, 3, 2)  # (1, C, Z, Y, X): W <-> x, H <-> y, D <-> z
+    rel = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * 2 - 1
+    out = F.grid_sample(vol, rel.view(1, 1, 1, -1, 3), mode="bilinear", align_corners=True)
+    return out.view(table.shape[1], -1).T
+
+
+def test_lookup_matches_grid_sample_forward_and_backward():
+    g = torch.Generator().manual_seed(0)
+    shape = (5, 7, 4)
+    table = torch.randn(5 * 7 * 4, 3, dtype=torch.float64, generator=g, requires_grad=True)
+    xyz = BOX[0] + torch.rand(200, 3, dtype=torch.float64, generator=g) * (BOX[1] - BOX[0])
+    idx, w = G.corners(xyz, BOX, shape)
+    ours = G._Lookup.apply(table, idx, w)
+    ref = _grid_sample_ref(table, shape, xyz, BOX)
+    assert torch.allclose(ours, ref, atol=1e-12)
+    up = torch.randn_like(ours)
+    (ga,) = torch.autograd.grad((ours * up).sum(), table)
+    (gb,) = torch.autograd.grad((ref * up).sum(), table)
+    assert torch.allclose(ga, gb, atol=1e-12)
+
+
+def test_weights_are_a_partition_of_unity_and_vertices_are_exact():
+    shape = (4, 4, 4)
+    table = torch.arange(64, dtype=torch.float64)[:, None]
+    verts = torch.stack(torch.meshgrid(*[torch.linspace(float(BOX[0, a]), float(BOX[1, a]), 4, dtype=torch.float64)
+                                         for a in range(3)], indexing="ij"), -1).reshape(-1, 3)
+    idx, w = G.corners(verts, BOX, shape)
+    assert torch.allclose(w.sum(-1), torch.ones(64, dtype=torch.float64))
+    assert torch.allclose(G.lookup(table, idx, w)[:, 0], table[:, 0])
+
+
+def test_points_outside_are_clamped_to_the_border():
+    shape = (3, 3, 3)
+    table = torch.randn(27, 2, dtype=torch.float64)
+    far = torch.tensor([[5.0, 5.0, 5.0], [-9.0, -9.0, -9.0]], dtype=torch.float64)
+    idx, w = G.corners(far, BOX, shape)
+    out = G.lookup(table, idx, w)
+    assert torch.allclose(out[0], table[26]) and torch.allclose(out[1], table[0])
+
+
+def test_resample_reproduces_a_linear_function():
+    shape, new_shape = (4, 5, 6), (7, 3, 9)
+    verts = lambda s, b: torch.stack(torch.meshgrid(*[torch.linspace(float(b[0, a]), float(b[1, a]), s[a],  # noqa: E731
+                                                       dtype=torch.float64) for a in range(3)], indexing="ij"), -1).reshape(-1, 3)
+    f = lambda p: (p @ torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64))[:, None] + 0.3  # noqa: E731
+    inner = torch.tensor([[-0.5, 0.0, -1.5], [0.5, 1.0, -0.5]], dtype=torch.float64)
+    out = G.resample(f(verts(shape, BOX)), shape, BOX, new_shape, inner)
+    assert torch.allclose(out, f(verts(new_shape, inner)), atol=1e-10)
+
+
+def test_lattice_shape_has_about_n_voxels_and_isotropic_spacing():
+    box = torch.tensor([[0.0, 0.0, 0.0], [2.0, 1.0, 1.0]])
+    shape = G.lattice_shape(box, 16000)
+    assert abs(shape[0] * shape[1] * shape[2] - 16000) / 16000 < 0.1
+    assert abs(shape[0] / shape[1] - 2.0) < 0.1
+
+
+def test_rays_and_projection_are_inverse():
+    pose = torch.eye(4)
+    pose[:3, 3] = torch.tensor([0.3, -0.2, 4.0])
+    intr = torch.tensor([50.0, 55.0, 16.0, 12.0])
+    o, d = image_rays(pose, intr, 24, 32)
+    assert o.shape == (24 * 32, 3) and torch.allclose(d.norm(dim=-1), torch.ones(24 * 32))
+    pts = o + 3.0 * d
+    uv, depth = project_points(pts, pose, intr)
+    v, u = torch.meshgrid(torch.arange(24) + 0.5, torch.arange(32) + 0.5, indexing="ij")
+    assert torch.allclose(uv, torch.stack([u.reshape(-1), v.reshape(-1)], -1), atol=1e-3)
+    assert (depth > 0).all()
+    centre = pixel_directions(24, 32, intr)[12, 16]
+    assert torch.allclose(centre, torch.tensor([0.5 / 50.0, -0.5 / 55.0, -1.0]))
+
+
+def test_intersect_box_handles_misses_parallel_rays_and_near_far():
+    box = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    o = torch.tensor([[0.0, 0.0, 5.0], [3.0, 3.0, 5.0], [0.5, 0.0, 5.0], [0.0, 0.0, 0.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    t0, t1, hit = intersect_box(o, d, box, near=0.0, far=100.0)
+    assert hit.tolist() == [True, False, True, True]
+    assert torch.allclose(t0[0], torch.tensor(4.0)) and torch.allclose(t1[0], torch.tensor(6.0))
+    assert torch.allclose(t0[3], torch.tensor(0.0)) and torch.allclose(t1[3], torch.tensor(1.0))
+    assert torch.isfinite(t0[hit]).all() and torch.isfinite(t1[hit]).all()
+    _, _, hit = intersect_box(o, d, box, near=0.0, far=3.0)
+    assert not hit[0]
+
+
+def test_occupancy_grid_lookup_and_bbox():
+    occ = torch.zeros(4, 4, 4, dtype=torch.bool)
+    occ[1, 2, 3] = True
+    grid = OccupancyGrid(occ, torch.tensor([[0.0, 0.0, 0.0], [4.0, 4.0, 4.0]]))
+    pts = torch.tensor([[1.5, 2.5, 3.5], [0.5, 0.5, 0.5], [9.0, 2.5, 3.5]])
+    assert grid(pts).tolist() == [True, False, False]
+    assert torch.allclose(grid.occupied_bbox(margin_cells=0), torch.tensor([[1.0, 2.0, 3.0], [2.0, 3.0, 4.0]]))
