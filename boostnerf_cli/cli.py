@@ -104,6 +104,71 @@ def pretrain(
     out.print(table)
 
 
+def _moe_recipe(workspace: Path, recipe: Optional[Path]):
+    """The recipe given, else the one recorded by pretrain in the workspace, else defaults."""
+    from boostnerf_cli.recipe import Recipe, load_recipe, recipe_from_dict
+    from boostnerf_cli.workspace import Workspace
+
+    if recipe is not None:
+        return load_recipe(recipe)
+    recorded = Workspace(workspace).manifest().get("recipe")
+    return recipe_from_dict(recorded) if recorded else Recipe()
+
+
+@app.command("build-moe")
+def build_moe(
+    workspace: WorkspaceOpt,
+    experts: Annotated[Optional[str], typer.Option("--experts", help="Comma-separated expert names (default: all).")] = None,
+    recipe: RecipeOpt = None,
+    gate_res: Annotated[Optional[int], typer.Option("--gate-res", min=2, help="Gate grid resolution (gate_res^3 voxels; 128 in the paper).")] = None,
+    gate_type: Annotated[Optional[str], typer.Option("--gate-type", help="grid (paper), linear or switch.")] = None,
+    threshold: Annotated[Optional[float], typer.Option("--threshold", min=0.0, help="T: samples whose density-volume opacity per step is below T are filtered.")] = None,
+    device: DeviceOpt = "auto",
+) -> None:
+    """Assemble the pretrained experts, the density volume V_D and an untrained gate."""
+    from boostnerf_cli.stages import build_moe as stage
+    from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.workspace import Workspace
+
+    rec = _moe_recipe(workspace, recipe)
+    if gate_res is not None:
+        rec.moe.gate_res = gate_res
+    if gate_type is not None:
+        rec.moe.gate_type = gate_type
+    if threshold is not None:
+        rec.moe.density_threshold = threshold
+    names = [n for n in experts.split(",") if n] if experts else None
+    stage.build(Workspace(workspace), names, rec.moe, resolve_device(device), log)
+
+
+@app.command()
+def finetune(
+    workspace: WorkspaceOpt,
+    topk: Annotated[Optional[int], typer.Option("--topk", min=1, help="Route each sample to its top-k experts (model topK).")] = None,
+    ensemble: Annotated[bool, typer.Option("--ensemble", help="All experts, equal weights (model ens).")] = False,
+    baseline: Annotated[bool, typer.Option("--baseline", help="The largest expert alone for the same iterations (model baseline).")] = False,
+    recipe: RecipeOpt = None,
+    iters: Annotated[Optional[int], typer.Option("--iters", min=1)] = None,
+    lam: Annotated[Optional[float], typer.Option("--lambda", min=0.0, help="Weight of the resolution-weighted auxiliary loss (1e-3 in the paper).")] = None,
+    penalty: Annotated[Optional[str], typer.Option("--penalty", help="geometric (paper), linear, quadratic or none.")] = None,
+    renormalize: Annotated[Optional[bool], typer.Option("--renormalize/--no-renormalize", help="Renormalise the top-k probabilities to sum to 1.")] = None,
+    seed: Annotated[Optional[int], typer.Option("--seed")] = None,
+    device: DeviceOpt = "auto",
+    force: Annotated[bool, typer.Option("--force", help="Redo a model that is already finetuned.")] = False,
+) -> None:
+    """Train gate and experts jointly (Algorithm 1), or the ensemble / baseline comparison models."""
+    from boostnerf_cli.stages import finetune as stage
+    from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.workspace import Workspace
+
+    rec = _moe_recipe(workspace, recipe)
+    name = stage.model_name(topk, ensemble, baseline)
+    for key, value in (("iters", iters), ("lam", lam), ("penalty", penalty), ("renormalize", renormalize), ("seed", seed)):
+        if value is not None:
+            setattr(rec.moe, key, value)
+    stage.run(Workspace(workspace), name, topk, rec.moe, resolve_device(device), force, log)
+
+
 @app.command()
 def render(
     workspace: WorkspaceOpt,

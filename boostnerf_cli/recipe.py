@@ -66,14 +66,20 @@ class PretrainRecipe:
     dvgo: dict = field(default_factory=dict)  # DVGOConfig fields other than res
 
 
+def _finetune_train() -> TrainRecipe:
+    """Finetuning continues from trained experts: lower learning rates, no growth."""
+    return TrainRecipe(lr_grid=0.03, lr_mlp=5e-4, growth=[], occupancy_every=0)
+
+
 @dataclass
 class MoERecipe:
-    gate_res: int = 32
+    gate_type: str = "grid"  # grid | linear | switch
+    gate_res: int = 32  # the gate grid has gate_res^3 voxels (128 in the paper)
     gate_channels: int = 8
     gate_hidden: int = 64
     gate_layers: int = 2
-    gate_type: str = "grid"  # grid | linear | switch
-    density_threshold: float = 1e-3  # T: samples where the density volume's alpha is below it are filtered
+    vd_res: int = 64  # density volume V_D, initialised from the smallest expert
+    density_threshold: float = 1e-3  # T: samples whose V_D opacity over one step is below it are filtered
     topk: int = 2
     lam: float = 1e-3
     penalty: str = "geometric"  # geometric | linear | quadratic | none
@@ -82,7 +88,7 @@ class MoERecipe:
     lr_gate: float = 1e-2
     lr_gate_mlp: float = 1e-3
     seed: int = 0
-    train: TrainRecipe = field(default_factory=TrainRecipe)
+    train: TrainRecipe = field(default_factory=_finetune_train)
 
 
 @dataclass
@@ -154,3 +160,8 @@ def load_recipe(path: Path | None) -> Recipe:
 
 def recipe_dict(recipe: Recipe) -> dict:
     return dataclasses.asdict(recipe)
+
+
+def recipe_from_dict(data: dict) -> Recipe:
+    """A recipe recorded in a workspace manifest (validated like a YAML file)."""
+    return _build(Recipe, data, "")

@@ -79,17 +79,27 @@ def save_tensors(path: Path, tensors: dict[str, torch.Tensor], meta: dict[str, A
         save_file(clean, str(tmp), metadata=header)
 
 
+def read_meta(path: Path) -> dict[str, Any]:
+    """Only the metadata of a file written by `save_tensors` (cheap: reads the header)."""
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return json.loads((f.metadata() or {})["boostnerf"])
+    except (SafetensorError, OSError, KeyError, ValueError) as e:
+        raise BoostNerfError(
+            f"checkpoint {path} is damaged or not a boostnerf file ({type(e).__name__}); "
+            "delete it and rerun the stage that writes it"
+        ) from None
+
+
 def load_tensors(path: Path, device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     """-> (tensors, meta) from a file written by `save_tensors`; one clear error when it is damaged."""
     if not path.exists():
         raise BoostNerfError(f"checkpoint {path} does not exist")
+    meta = read_meta(path)
     try:
         tensors = load_file(str(path), device=str(device))
-        from safetensors import safe_open
-
-        with safe_open(str(path), framework="pt") as f:
-            header = f.metadata() or {}
-        meta = json.loads(header["boostnerf"])
     except (SafetensorError, OSError, KeyError, ValueError, json.JSONDecodeError) as e:
         raise BoostNerfError(
             f"checkpoint {path} is damaged or not a boostnerf file ({type(e).__name__}); "

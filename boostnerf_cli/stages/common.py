@@ -13,7 +13,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import count_params, load_expert
 from boostnerf_cli.render.renderer import RenderSettings
 from boostnerf_cli.scenes import Scene, load_scene
-from boostnerf_cli.workspace import Workspace, read_json
+from boostnerf_cli.workspace import Workspace, read_json, read_meta
 
 
 def resolve_device(name: str) -> str:
@@ -58,18 +58,19 @@ class LoadedModel:
 
 
 def load_model(ws: Workspace, name: str, device: str) -> LoadedModel:
-    """An expert (`dvgo-64`) or a mixture (`top1`, `top2`, `ens`, `baseline`) of the workspace."""
-    if ws.expert_path(name).exists():
-        model, occ, meta = load_expert(ws.expert_path(name), device)
-        return LoadedModel(name, "expert", model, occ.to(device) if occ is not None else None, meta["step"],
-                           model.bbox, count_params(model))
-    if ws.model_path(name).exists():
+    """An expert (`dvgo-64`), a mixture (`top1`, `top2`, `ens`) or the finetuned `baseline` of the workspace."""
+    path = ws.expert_path(name) if ws.expert_path(name).exists() else ws.model_path(name)
+    if not path.exists() or name == "geometry":
+        known = ", ".join(all_model_names(ws)) or "none yet"
+        raise BoostNerfError(f"no model named {name!r} in {ws.root} (models: {known})")
+    if read_meta(path).get("family") == "mixture":
         from boostnerf_cli.moe.mixture import load_mixture
 
-        mix, meta = load_mixture(ws.model_path(name), device)
+        mix, meta = load_mixture(path, device)
         return LoadedModel(name, "mixture", mix, mix.skip, meta["step"], mix.bbox, count_params(mix))
-    known = ", ".join(all_model_names(ws)) or "none yet"
-    raise BoostNerfError(f"no model named {name!r} in {ws.root} (models: {known})")
+    model, occ, meta = load_expert(path, device)
+    return LoadedModel(name, "expert", model, occ.to(device) if occ is not None else None, meta["step"],
+                       model.bbox, count_params(model))
 
 
 def all_model_names(ws: Workspace) -> list[str]:

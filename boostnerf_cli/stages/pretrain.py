@@ -10,6 +10,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -164,7 +166,7 @@ def expert_name(model: str, res: int) -> str:
 
 
 def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, box: Tensor, geom: OccupancyGrid,
-                    prior: nn.Module, device: str, log: Callable[[str], None]) -> dict:
+                    prior: nn.Module, device: str, scene_tag: str = "") -> dict:
     """Train one expert at `res` and write its safetensors file and JSON report."""
     name = expert_name(rec.model, res)
     tcfg = rec.train
@@ -200,7 +202,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     test = scene.split("test") if any(k in scene.splits for k in ("test", "val")) else None
     if test is not None:
         report["test_psnr"] = round(_test_psnr(model, test, settings, task.skip, device), 3)
-    save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step})
+    save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step, "scene": scene_tag})
     write_json(ws.expert_report_path(name), report)
     ckpt.unlink(missing_ok=True)
     return report
@@ -210,6 +212,11 @@ def scene_inputs(data: Path, rec: Recipe) -> dict:
     """What identifies the scene a workspace is trained on (recorded in the manifest)."""
     return {"path": str(data.resolve()), "image_size": rec.data.image_size,
             "holdout_every": rec.data.holdout_every, "format": rec.data.format}
+
+
+def scene_id(inputs: dict) -> str:
+    """A short fingerprint of the scene inputs, stored in every expert so mixtures can check them."""
+    return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
@@ -234,7 +241,7 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
                        format=rec.data.format)
     if rec.pretrain.model not in FAMILIES:
         raise BoostNerfError(f"unknown model family {rec.pretrain.model!r}: choose one of {', '.join(FAMILIES)}")
-    ws.update_manifest(data=inputs, scene=scene.describe(), recipe=recipe_dict(rec))
+    ws.update_manifest(data=inputs, scene_id=scene_id(inputs), scene=scene.describe(), recipe=recipe_dict(rec))
     log(f"scene {scene.name}: {len(scene.splits['train'])} train views "
         f"{scene.splits['train'].width}x{scene.splits['train'].height}"
         + (f", {scene.holdout}" if scene.holdout else ""))
@@ -248,7 +255,7 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
             continue
         if force:
             ws.checkpoint_path(name).unlink(missing_ok=True)
-        report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, log)
+        report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, scene_id(inputs))
         log(f"{name}: {report['iterations']} steps in {report['seconds']:.0f}s, train PSNR {report['train_psnr']:.2f}"
             + (f", held-out PSNR {report['test_psnr']:.2f}" if "test_psnr" in report else ""))
         reports.append(report)

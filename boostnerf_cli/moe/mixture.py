@@ -1,0 +1,220 @@
+"""The mixture of experts is itself a Field (the paper's Sec. 3 and Algorithm 1).
+
+    skip(x)   = alpha_D(x) > T      V_D: a density volume initialised from the smallest expert
+    G(x)      = gate probabilities over the M experts
+    K         = top-k(G(x))
+    sigma_f   = sum_{i in K} g_i sigma_i(x),   c_f = sum_{i in K} g_i c_i(x, d)
+
+with g = G(x)_K, renormalised over K when `renormalize` (then the k weights sum to 1). Experts
+are black boxes behind the Field protocol; each runs only on the samples routed to it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields import FAMILIES
+from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.moe.gate import Gate, GateConfig
+from boostnerf_cli.moe.router import aux_loss, dispatch, penalty_weights, top_k
+from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.workspace import load_tensors, save_tensors
+
+
+@dataclass
+class MixtureConfig:
+    topk: int = 2
+    renormalize: bool = True
+    threshold: float = 1e-3  # T: alpha of V_D over one render step below which a sample is filtered
+    penalty: str = "geometric"
+    vd_res: int = 64  # density volume resolution (voxels^(1/3))
+    step: float = 0.01  # render step (world units)
+    expert_names: list[str] = field(default_factory=list)
+
+
+@dataclass
+class RoutingStats:
+    """Explicit per-step record of the density pass's routing, for the auxiliary loss and load logs."""
+
+    probs: list[Tensor] = field(default_factory=list)
+    idx: list[Tensor] = field(default_factory=list)
+
+    def aux(self, weights: Tensor) -> Tensor:
+        if not self.probs:
+            return torch.zeros((), device=weights.device)
+        return aux_loss(torch.cat(self.probs), torch.cat(self.idx), weights)
+
+    def load(self, m: int) -> list[float]:
+        """Fraction of routed samples that each expert received (sums to k)."""
+        if not self.idx:
+            return [0.0] * m
+        idx = torch.cat(self.idx)
+        return (torch.bincount(idx.reshape(-1), minlength=m).float() / max(1, idx.shape[0])).tolist()
+
+
+class Mixture(nn.Module):
+    """Sparse mixture of experts; satisfies the Field protocol."""
+
+    family = "mixture"
+
+    def __init__(self, experts: list[nn.Module], gate: Gate, vd: DVGOExpert, occupancy: OccupancyGrid | None,
+                 cfg: MixtureConfig):
+        super().__init__()
+        if cfg.topk < 1 or cfg.topk > len(experts):
+            raise BoostNerfError(f"--topk must be between 1 and the number of experts ({len(experts)}), got {cfg.topk}")
+        self.experts = nn.ModuleList(experts)
+        self.gate = gate
+        self.vd = vd
+        for p in self.vd.parameters():
+            p.requires_grad_(False)
+        self.occupancy = occupancy
+        self.cfg = cfg
+        self.register_buffer("penalty", penalty_weights(len(experts), cfg.penalty))
+
+    @property
+    def m(self) -> int:
+        return len(self.experts)
+
+    @property
+    def bbox(self) -> Tensor:
+        return self.vd.bbox
+
+    # --- filtering ------------------------------------------------------------------------------
+    def skip(self, xyz: Tensor) -> Tensor:
+        """(N, 3) -> keep mask: occupied cell and V_D opacity over one step above T."""
+        keep = self.occupancy(xyz) if self.occupancy is not None else torch.ones(xyz.shape[0], dtype=torch.bool,
+                                                                                 device=xyz.device)
+        if keep.any():
+            with torch.no_grad():
+                alpha = -torch.expm1(-self.vd.density(xyz[keep]) * self.cfg.step)
+            keep = keep.clone()
+            keep[keep.clone()] = alpha > self.cfg.threshold
+        return keep
+
+    # --- routing --------------------------------------------------------------------------------
+    def route(self, xyz: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """-> probabilities (N, M), weights (N, k), expert indices (N, k)."""
+        probs = self.gate.probs(xyz)
+        if self.gate.cfg.kind == "uniform":  # the ensemble: every expert, equal weights
+            idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
+            return probs, probs, idx
+        vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
+        return probs, vals, idx
+
+    def density_routed(self, xyz: Tensor, stats: RoutingStats | None) -> Tensor:
+        probs, vals, idx = self.route(xyz)
+        if stats is not None:
+            stats.probs.append(probs)
+            stats.idx.append(idx)
+        out, _ = dispatch(xyz.shape[0], idx, vals, self.m, lambda e, r: self.experts[e].density(xyz[r])[:, None], 1, xyz)
+        return out[:, 0]
+
+    # --- the Field contract ---------------------------------------------------------------------
+    def density(self, xyz: Tensor) -> Tensor:
+        return self.density_routed(xyz, None)
+
+    def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
+        _, vals, idx = self.route(xyz)
+        out, _ = dispatch(xyz.shape[0], idx, vals, self.m, lambda e, r: self.experts[e].color(xyz[r], dirs[r]), 3, xyz)
+        return out
+
+    def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
+        return self.density(xyz), self.color(xyz, dirs)
+
+    def with_stats(self, stats: RoutingStats) -> "RoutedMixture":
+        return RoutedMixture(self, stats)
+
+    def expert_only(self, e: int) -> "SingleExpertView":
+        return SingleExpertView(self, e)
+
+    def param_groups(self, lr_grid: float, lr_mlp: float, lr_gate: float, lr_gate_mlp: float) -> list[dict]:
+        groups = []
+        for ex in self.experts:
+            groups += ex.param_groups(lr_grid, lr_mlp)
+        if self.gate.table is not None:
+            groups.append({"params": [self.gate.table], "lr": lr_gate})
+        if self.gate.mlp is not None:
+            groups.append({"params": list(self.gate.mlp.parameters()), "lr": lr_gate_mlp})
+        return groups
+
+
+class RoutedMixture:
+    """A Field view of a mixture that records the density pass's routing in an explicit stats object."""
+
+    def __init__(self, mixture: Mixture, stats: RoutingStats):
+        self.mixture, self.stats = mixture, stats
+
+    def density(self, xyz: Tensor) -> Tensor:
+        return self.mixture.density_routed(xyz, self.stats)
+
+    def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
+        return self.mixture.color(xyz, dirs)
+
+    def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
+        return self.density(xyz), self.color(xyz, dirs)
+
+
+class SingleExpertView:
+    """Expert e's contribution to the mixture: its own density and colour, times its routed weight."""
+
+    def __init__(self, mixture: Mixture, e: int):
+        self.mixture, self.e = mixture, e
+
+    def _weight(self, xyz: Tensor) -> Tensor:
+        _, vals, idx = self.mixture.route(xyz)
+        return (vals * (idx == self.e)).sum(-1)
+
+    def density(self, xyz: Tensor) -> Tensor:
+        return self._weight(xyz) * self.mixture.experts[self.e].density(xyz)
+
+    def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
+        return self.mixture.experts[self.e].color(xyz, dirs)
+
+    def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
+        return self.density(xyz), self.color(xyz, dirs)
+
+
+# --- persistence ------------------------------------------------------------------------------
+def save_mixture(path: Path, mix: Mixture, extra: dict | None = None) -> None:
+    tensors = {k: v for k, v in mix.state_dict().items()}
+    if mix.occupancy is not None:
+        tensors["occupancy"] = mix.occupancy.occupied.to(torch.uint8)
+        tensors["occupancy_bbox"] = mix.occupancy.bbox.clone()
+    meta = {
+        "family": "mixture",
+        "mixture": asdict(mix.cfg),
+        "gate": mix.gate.config_dict(),
+        "vd": mix.vd.config_dict(),
+        "experts": [ex.config_dict() for ex in mix.experts],
+        "step": mix.cfg.step,
+        **(extra or {}),
+    }
+    save_tensors(path, tensors, meta)
+
+
+def load_mixture(path: Path, device: str | torch.device = "cpu") -> tuple[Mixture, dict]:
+    tensors, meta = load_tensors(path, device)
+    if meta.get("family") != "mixture":
+        raise BoostNerfError(f"{path} is not a mixture of experts file")
+    experts = []
+    for i, em in enumerate(meta["experts"]):
+        if em["family"] not in FAMILIES:
+            raise BoostNerfError(f"{path}: expert {i} has unknown family {em['family']!r}")
+        experts.append(FAMILIES[em["family"]].from_config(em, tensors[f"experts.{i}.bbox"]))
+    gm = meta["gate"]
+    gate = Gate(GateConfig(**gm["config"]), gm["experts"], tensors["gate.bbox"], tuple(gm["shape"]))
+    vd = DVGOExpert.from_config(meta["vd"], tensors["vd.bbox"])
+    occ = None
+    if "occupancy" in tensors:
+        occ = OccupancyGrid(tensors.pop("occupancy").bool(), tensors.pop("occupancy_bbox"))
+    mix = Mixture(experts, gate, vd, occ, MixtureConfig(**meta["mixture"]))
+    try:
+        mix.load_state_dict(tensors)
+    except RuntimeError as e:
+        raise BoostNerfError(f"{path} does not match its own config ({str(e).splitlines()[0]}); rerun build-moe") from None
+    return mix.to(device).eval(), meta

@@ -1,0 +1,105 @@
+"""Top-k routing, sparse dispatch and the resolution-weighted auxiliary loss (pure functions).
+
+Shapes: N samples, M experts, k chosen experts per sample.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+PENALTIES = ("geometric", "linear", "quadratic", "none")
+
+
+def penalty_weights(m: int, kind: str, device=None) -> Tensor:
+    """Per-expert weights w_i, i = 0..M-1 (experts ordered by size, smallest first).
+
+    geometric: w_i = exp(ln M / (M - 1))^i = M^(i/(M-1))   (paper, default; w_0 = 1, w_{M-1} = M)
+    linear:    w_{i+1} = w_i + 1, w_0 = 1
+    quadratic: w_{i+1} = 2 w_i,   w_0 = 1   (the supplementary's name for a doubling progression)
+    none:      w_i = 1
+    With M = 1 every scheme gives w = [1].
+    """
+    i = torch.arange(m, dtype=torch.float32, device=device)
+    if kind not in PENALTIES:
+        raise ValueError(f"unknown penalty {kind!r}")
+    if m == 1 or kind == "none":
+        return torch.ones(m, device=device)
+    if kind == "geometric":
+        return torch.exp(i * math.log(m) / (m - 1))
+    if kind == "linear":
+        return 1.0 + i
+    return 2.0**i
+
+
+def top_k(probs: Tensor, k: int, renormalize: bool) -> tuple[Tensor, Tensor]:
+    """probs (N, M) -> weights (N, k), expert indices (N, k); weights sum to 1 when renormalised."""
+    vals, idx = torch.topk(probs, k, dim=-1)
+    if renormalize:
+        vals = vals / vals.sum(-1, keepdim=True).clamp_min(1e-12)
+    return vals, idx
+
+
+def expert_counts(idx: Tensor, m: int) -> Tensor:
+    """c_i: how many samples are dispatched to each expert, (M,) float (no gradient)."""
+    return torch.bincount(idx.reshape(-1), minlength=m).to(torch.float32)
+
+
+def aux_loss(probs: Tensor, idx: Tensor, weights: Tensor) -> Tensor:
+    """L_rw-aux = M / |B|^2 * sum_i c_i m_i w_i, m_i = sum over the batch of G(x)_i.
+
+    probs (N, M) gate probabilities, idx (N, k) chosen experts, weights (M,). An empty batch gives 0.
+    """
+    n, m = probs.shape
+    if n == 0:
+        return probs.sum() * 0.0
+    c = expert_counts(idx, m).to(probs.device)
+    mass = probs.sum(dim=0)
+    return m / float(n) ** 2 * (c * mass * weights.to(probs)).sum()
+
+
+def dispatch(
+    n: int,
+    idx: Tensor,
+    vals: Tensor,
+    m: int,
+    run: Callable[[int, Tensor], Tensor],
+    out_dim: int,
+    like: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """Sparse mixture: out[s] = sum_j vals[s, j] * run(idx[s, j], rows)[s], each expert run once.
+
+    `run(e, rows)` evaluates expert e on sample rows `rows` (1-D LongTensor) -> (len(rows), out_dim).
+    Samples are grouped per expert by one stable sort, so every expert sees only the samples routed
+    to it (no mask over all samples, no loop over samples). -> (out (n, out_dim), load (M,) counts).
+    """
+    k = idx.shape[1]
+    flat_e = idx.reshape(-1)
+    order = torch.argsort(flat_e, stable=True)
+    rows = torch.div(order, k, rounding_mode="floor")
+    counts = torch.bincount(flat_e, minlength=m)
+    w = vals.reshape(-1)[order]
+    out = like.new_zeros(n, out_dim)
+    start = 0
+    for e, c in enumerate(counts.tolist()):
+        if c == 0:
+            continue
+        r = rows[start : start + c]
+        y = run(e, r).reshape(c, out_dim)
+        out = out.index_add(0, r, y * w[start : start + c, None])
+        start += c
+    return out, counts
+
+
+def dispatch_dense_reference(
+    x_rows: int, idx: Tensor, vals: Tensor, m: int, run_all: Callable[[int], Tensor], out_dim: int, like: Tensor
+) -> Tensor:
+    """The obvious version, for tests: every expert on every sample, masked by the routing."""
+    out = like.new_zeros(x_rows, out_dim)
+    for e in range(m):
+        weight = (vals * (idx == e)).sum(-1)  # (N,)
+        out = out + weight[:, None] * run_all(e).reshape(x_rows, out_dim)
+    return out

@@ -1,0 +1,78 @@
+"""`boostnerf build-moe`: assemble pretrained experts, the density volume V_D and an untrained gate.
+
+Writes `moe/init.safetensors` (+ `moe/init.json`), the starting point of every `finetune`.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields import count_params, load_expert
+from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.moe.gate import GATE_TYPES, Gate, GateConfig
+from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, save_mixture
+from boostnerf_cli.moe.router import PENALTIES
+from boostnerf_cli.recipe import MoERecipe
+from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.workspace import Workspace, read_json, write_json
+
+
+def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, log: Callable[[str], None]) -> dict:
+    manifest = ws.require_manifest()
+    available = ws.expert_names()
+    if not available:
+        raise BoostNerfError(f"{ws.root} has no pretrained experts: run `boostnerf pretrain --workspace {ws.root}` first")
+    names = names or available
+    missing = [n for n in names if n not in available]
+    if missing:
+        raise BoostNerfError(f"no pretrained expert {missing[0]!r} in {ws.root} (experts: {', '.join(available)})")
+    if rec.gate_type not in GATE_TYPES or rec.gate_type == "uniform":
+        raise BoostNerfError(f"unknown gate type {rec.gate_type!r}: use grid, linear or switch")
+    if rec.penalty not in PENALTIES:
+        raise BoostNerfError(f"unknown penalty {rec.penalty!r}: use {', '.join(PENALTIES)}")
+    experts, steps, scenes = [], [], set()
+    for n in names:
+        model, occ, meta = load_expert(ws.expert_path(n), device)
+        experts.append((count_params(model), n, model, occ))
+        steps.append(meta["step"])
+        scenes.add(meta.get("scene"))
+    if len(scenes) > 1 or (manifest.get("scene_id") and scenes != {manifest["scene_id"]}):
+        raise BoostNerfError(
+            "the experts were trained on different scenes or image sizes: retrain them in one workspace with "
+            "`boostnerf pretrain --force`, or pass --experts with experts of one scene"
+        )
+    experts.sort(key=lambda e: (e[0], e[1]))
+    smallest = experts[0][2]
+    bbox = smallest.bbox
+    step = min(steps)
+    vd = DVGOExpert(DVGOConfig(res=rec.vd_res, hidden=0), bbox).to(device)
+    vd.init_density(smallest.density)
+    occ = OccupancyGrid.from_density(vd.density, bbox, vd.shape, step, rec.density_threshold)
+    gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=rec.gate_channels, hidden=rec.gate_hidden,
+                           layers=rec.gate_layers), len(experts), bbox).to(device)
+    cfg = MixtureConfig(topk=min(rec.topk, len(experts)), renormalize=rec.renormalize, threshold=rec.density_threshold,
+                        penalty=rec.penalty, vd_res=rec.vd_res, step=step, expert_names=[e[1] for e in experts])
+    mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
+    save_mixture(ws.model_path("init"), mix, {"name": "init"})
+    report = {
+        "name": "init",
+        "experts": cfg.expert_names,
+        "expert_params": [e[0] for e in experts],
+        "gate": gate.config_dict(),
+        "gate_params": count_params(gate),
+        "density_volume": {"res": rec.vd_res, "threshold": rec.density_threshold, "from": cfg.expert_names[0],
+                           "occupied_fraction": occ.fraction()},
+        "step": step,
+    }
+    write_json(ws.moe_dir / "init.json", report)
+    ws.update_manifest(moe={"init": {"experts": cfg.expert_names, "gate": rec.gate_type}})
+    log(f"built a mixture of {len(experts)} experts ({', '.join(cfg.expert_names)}), gate {rec.gate_type} "
+        f"{'x'.join(map(str, gate.shape))}, V_D from {cfg.expert_names[0]} keeps {100 * occ.fraction():.1f}% of cells")
+    return report
+
+
+def init_report(ws: Workspace) -> dict:
+    return read_json(ws.moe_dir / "init.json", "mixture report")

@@ -1,0 +1,165 @@
+"""`boostnerf finetune`: train gate and experts jointly (Algorithm 1), or the comparison models.
+
+--topk k     -> moe/top{k}: sparse mixture, loss = photometric + lambda * L_rw-aux
+--ensemble   -> moe/ens:    every expert, equal weights, jointly finetuned (the paper's Ens)
+--baseline   -> moe/baseline: the largest expert trained alone for the same finetuning iterations
+All three start from the same pretrained experts and use the same photometric loss and schedule.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields import count_params, load_expert, save_expert
+from boostnerf_cli.moe.gate import Gate, GateConfig
+from boostnerf_cli.moe.mixture import Mixture, RoutingStats, load_mixture, save_mixture
+from boostnerf_cli.moe.router import PENALTIES, penalty_weights
+from boostnerf_cli.recipe import MoERecipe, TrainRecipe
+from boostnerf_cli.render.renderer import RenderSettings, render_rays
+from boostnerf_cli.scenes import Scene
+from boostnerf_cli.stages.common import workspace_scene
+from boostnerf_cli.stages.pretrain import FieldTask, photometric_loss
+from boostnerf_cli.train import RayData, Schedule, train
+from boostnerf_cli.workspace import Workspace, read_json, write_json
+
+
+@dataclass
+class MixtureTask:
+    """One finetuning step of a mixture: render with routing stats, photometric + lambda * aux loss."""
+
+    mix: Mixture
+    settings: RenderSettings
+    tcfg: TrainRecipe
+    rec: MoERecipe
+
+    def param_groups(self) -> list[dict]:
+        return self.mix.param_groups(self.tcfg.lr_grid, self.tcfg.lr_mlp, self.rec.lr_gate, self.rec.lr_gate_mlp)
+
+    def before_step(self, step: int) -> bool:
+        return False
+
+    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):
+        stats = RoutingStats()
+        bundle = render_rays(self.mix.with_stats(stats), origins, dirs, self.settings, self.mix.skip, jitter=True)
+        loss, logs = photometric_loss(bundle, rgb, self.tcfg)
+        if self.rec.lam > 0 and self.mix.gate.cfg.kind != "uniform":
+            aux = stats.aux(self.mix.penalty)
+            loss = loss + self.rec.lam * aux
+            logs["aux"] = float(aux.detach())
+        for i, f in enumerate(stats.load(self.mix.m)):
+            logs[f"load{i}"] = f
+        logs["samples"] = bundle.n_samples / origins.shape[0]
+        return loss, logs
+
+    def state(self) -> dict:
+        return {"model": self.mix.state_dict()}
+
+    def load_state(self, state: dict) -> None:
+        self.mix.load_state_dict(state["model"])
+
+
+def model_name(topk: int | None, ensemble: bool, baseline: bool) -> str:
+    chosen = sum([topk is not None, ensemble, baseline])
+    if chosen != 1:
+        raise BoostNerfError("finetune needs exactly one of --topk K, --ensemble or --baseline")
+    return "ens" if ensemble else "baseline" if baseline else f"top{topk}"
+
+
+def _train_rays(scene: Scene, bbox: Tensor, device: str) -> RayData:
+    return RayData.from_split(scene.splits["train"], bbox.cpu(), scene.near, scene.far).to(device)
+
+
+def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str, force: bool,
+        log: Callable[[str], None]) -> dict:
+    init = ws.model_path("init")
+    if not init.exists():
+        raise BoostNerfError(f"no mixture to finetune in {ws.root}: run `boostnerf build-moe --workspace {ws.root}` first")
+    if ws.model_path(name).exists() and (ws.moe_dir / f"{name}.json").exists() and not force:
+        log(f"{name}: already finetuned, skipping (use --force to redo it)")
+        return read_json(ws.moe_dir / f"{name}.json", "finetune report")
+    if rec.penalty not in PENALTIES:
+        raise BoostNerfError(f"unknown penalty {rec.penalty!r}: use {', '.join(PENALTIES)}")
+    if force:
+        ws.checkpoint_path(name).unlink(missing_ok=True)
+    scene = workspace_scene(ws)
+    mix, meta = load_mixture(init, device)
+    mix.train()
+    sched = Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every, rec.train.checkpoint_every)
+    if name == "baseline":
+        return _baseline(ws, scene, mix, rec, sched, device, log)
+    if name == "ens":
+        mix.gate = Gate(GateConfig(kind="uniform"), mix.m, mix.bbox).to(device)
+        mix.cfg = dataclasses.replace(mix.cfg, topk=mix.m)
+    else:
+        if not 1 <= topk <= mix.m:
+            raise BoostNerfError(f"--topk must be between 1 and the number of experts ({mix.m}), got {topk}")
+        mix.cfg = dataclasses.replace(mix.cfg, topk=topk, renormalize=rec.renormalize, penalty=rec.penalty)
+        mix.penalty = penalty_weights(mix.m, rec.penalty, device=mix.penalty.device)
+    settings = RenderSettings(step=mix.cfg.step, near=scene.near, far=scene.far, bbox=mix.bbox,
+                              background=scene.background, color_threshold=rec.train.color_threshold)
+    task = MixtureTask(mix, settings, rec.train, rec)
+    result = train(task, _train_rays(scene, mix.bbox, device), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name))
+    mix.eval()
+    final = result.history[-1] if result.history else {}
+    report = {
+        "name": name,
+        "kind": "mixture",
+        "topk": mix.cfg.topk,
+        "renormalize": mix.cfg.renormalize,
+        "lambda": rec.lam,
+        "penalty": mix.cfg.penalty,
+        "gate": mix.gate.cfg.kind,
+        "experts": mix.cfg.expert_names,
+        "iterations": result.iterations,
+        "seconds": round(result.seconds, 2),
+        "skipped_steps": result.skipped_steps,
+        "params": count_params(mix),
+        "load": [final.get(f"load{i}", 0.0) for i in range(mix.m)],
+        "train_psnr": final.get("psnr"),
+        "history": result.history,
+    }
+    save_mixture(ws.model_path(name), mix, {"name": name})
+    write_json(ws.moe_dir / f"{name}.json", report)
+    ws.checkpoint_path(name).unlink(missing_ok=True)
+    ws.update_manifest(moe={name: {"from": "init", "iterations": rec.iters}})
+    log(f"{name}: {result.iterations} steps in {result.seconds:.0f}s, train PSNR {report['train_psnr']:.2f}, "
+        f"load per expert {[round(v, 3) for v in report['load']]}")
+    return report
+
+
+def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: Schedule, device: str,
+              log: Callable[[str], None]) -> dict:
+    """The largest expert alone, trained for the same finetuning iterations and schedule."""
+    largest = mix.cfg.expert_names[-1]
+    model, occ, meta = load_expert(ws.expert_path(largest), device)
+    model.train()
+    settings = RenderSettings(step=meta["step"], near=scene.near, far=scene.far, bbox=model.bbox,
+                              background=scene.background, color_threshold=rec.train.color_threshold)
+    task = FieldTask(model, settings, rec.train, rec.iters, skip=occ, base_mask=occ, lr_grid=rec.train.lr_grid)
+    result = train(task, _train_rays(scene, model.bbox, device), sched, rec.seed, "baseline",
+                   checkpoint=ws.checkpoint_path("baseline"))
+    model.eval()
+    final = result.history[-1] if result.history else {}
+    report = {
+        "name": "baseline",
+        "kind": "expert",
+        "from": largest,
+        "iterations": result.iterations,
+        "seconds": round(result.seconds, 2),
+        "skipped_steps": result.skipped_steps,
+        "params": count_params(model),
+        "train_psnr": final.get("psnr"),
+        "history": result.history,
+    }
+    save_expert(ws.model_path("baseline"), model, task.skip, {**meta, "name": "baseline"})
+    write_json(ws.moe_dir / "baseline.json", report)
+    ws.checkpoint_path("baseline").unlink(missing_ok=True)
+    ws.update_manifest(moe={"baseline": {"from": largest, "iterations": rec.iters}})
+    log(f"baseline ({largest}): {result.iterations} steps in {result.seconds:.0f}s, train PSNR {report['train_psnr']:.2f}")
+    return report
