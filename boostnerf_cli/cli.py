@@ -194,6 +194,7 @@ def eval_cmd(
     views: ViewsOpt = None,
     no_skip: NoSkipOpt = False,
     report: Annotated[bool, typer.Option("--report", help="Write WS/reports/eval.json.")] = False,
+    no_costs: Annotated[bool, typer.Option("--no-costs", help="Skip ||w||_0 and GFLOPs (they need an extra pass).")] = False,
     device: DeviceOpt = "auto",
 ) -> None:
     """PSNR, SSIM, LPIPS (when its weights are on disk) and seconds per image for every model."""
@@ -201,12 +202,34 @@ def eval_cmd(
     from boostnerf_cli.stages.evaluate import run_eval
     from boostnerf_cli.workspace import Workspace
 
-    result = run_eval(Workspace(workspace), model, split, resolve_device(device), not no_skip, views, report, log)
-    table = Table("model", "PSNR", "SSIM", "LPIPS", "s/image", "params")
+    result = run_eval(Workspace(workspace), model, split, resolve_device(device), not no_skip, views, report, log,
+                      costs=not no_costs)
+    table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")
     for r in result["models"]:
         table.add_row(r["name"], f"{r['psnr']:.3f}", f"{r['ssim']:.4f}",
-                      "n/a" if r["lpips"] is None else f"{r['lpips']:.4f}", f"{r['seconds_per_image']:.3f}",
-                      f"{r['params']:,}")
+                      "n/a" if r["lpips"] is None else f"{r['lpips']:.4f}",
+                      f"{r['w0']:,}" if "w0" in r else "-", f"{r['gflops_per_image']:.3f}" if "w0" in r else "-",
+                      f"{r['seconds_per_image']:.3f}", f"{r['params']:,}")
+    out.print(table)
+
+
+@app.command("count-params")
+def count_params_cmd(
+    workspace: WorkspaceOpt,
+    model: ModelsOpt = None,
+    split: SplitOpt = "test",
+    views: ViewsOpt = None,
+    device: DeviceOpt = "auto",
+) -> None:
+    """Parameters, ||w||_0 (non-zero gradients of the test-set loss) and GFLOPs per image -> WS/reports/count-params.json."""
+    from boostnerf_cli.stages import count_params as stage
+    from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.workspace import Workspace
+
+    result = stage.run(Workspace(workspace), model, split, resolve_device(device), views, log)
+    table = Table("model", "params", "||w||_0", "GFLOPs/image")
+    for r in result["models"]:
+        table.add_row(r["name"], f"{r['params']:,}", f"{r['w0']:,}", f"{r['gflops_per_image']:.3f}")
     out.print(table)
 
 

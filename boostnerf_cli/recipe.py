@@ -78,8 +78,9 @@ class MoERecipe:
     gate_channels: int = 8
     gate_hidden: int = 64
     gate_layers: int = 2
-    vd_res: int = 64  # density volume V_D, initialised from the smallest expert
+    vd_res: int | None = None  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
     density_threshold: float = 1e-3  # T: samples whose V_D opacity over one step is below it are filtered
+    step_from: str = "smallest"  # render step of the mixture: the smallest expert's (coarsest) or the largest's
     topk: int = 2
     lam: float = 1e-3
     penalty: str = "geometric"  # geometric | linear | quadratic | none

@@ -116,7 +116,7 @@ def make_optimizer(task: TrainTask) -> torch.optim.Optimizer:
     groups = task.param_groups()
     for g in groups:
         g.setdefault("initial_lr", g["lr"])
-    return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
+    return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, fused=True)
 
 
 def _set_lr(opt: torch.optim.Optimizer, step: int, sched: Schedule) -> None:

@@ -51,9 +51,11 @@ def load_expert(path: Path, device: str | torch.device = "cpu") -> tuple[nn.Modu
     occ = None
     if "occupancy" in tensors:
         occ = OccupancyGrid(tensors.pop("occupancy").bool(), tensors.pop("occupancy_bbox"))
-    model = FAMILIES[family].from_config(meta, tensors["bbox"])
     try:
+        model = FAMILIES[family].from_config(meta, tensors["bbox"])
         model.load_state_dict(tensors)
+    except (KeyError, TypeError) as e:
+        raise BoostNerfError(f"{path} lacks {e} (written by another boostnerf version?): rerun the stage that wrote it") from None
     except RuntimeError as e:
         raise BoostNerfError(f"{path} does not match its own config ({str(e).splitlines()[0]}); delete it and rerun") from None
     return model.to(device).eval(), occ, meta

@@ -42,6 +42,12 @@ def direction_encoding(dirs: Tensor, n_freq: int) -> Tensor:
     return torch.cat([dirs, torch.sin(x), torch.cos(x)], dim=-1)
 
 
+def raw_from_sigma(sigma: Tensor, unit: float, shift: float) -> Tensor:
+    """Inverse of sigma = softplus(raw + shift) / unit (sigma clamped to a tiny positive floor)."""
+    y = (sigma * unit).clamp_min(1e-8)
+    return torch.where(y > 20, y, torch.log(torch.expm1(y))) - shift
+
+
 def color_mlp(in_dim: int, hidden: int, layers: int) -> nn.Sequential:
     mods: list[nn.Module] = []
     d = in_dim
@@ -124,13 +130,9 @@ class DVGOExpert(nn.Module):
     @torch.no_grad()
     def init_density(self, density) -> None:
         """Set the density grid so that it reproduces `density(xyz) -> sigma` at the lattice vertices."""
-        axes = [torch.linspace(float(self.bbox[0, a]), float(self.bbox[1, a]), self.shape[a], device=self.bbox.device)
-                for a in range(3)]
-        pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+        pts = G.lattice_points(self.bbox, self.shape)
         sigma = torch.cat([density(pts[i : i + (1 << 18)]) for i in range(0, pts.shape[0], 1 << 18)])
-        y = (sigma * self.unit).clamp_min(1e-8)
-        raw = torch.where(y > 20, y, torch.log(torch.expm1(y))) - self.shift
-        self.density_table.copy_(raw[:, None])
+        self.density_table.copy_(raw_from_sigma(sigma, self.unit, self.shift)[:, None])
 
     def resize_to(self, shape: tuple[int, int, int]) -> None:
         """Reallocate both grids for a lattice `shape` (values are then loaded from a state dict)."""

@@ -15,6 +15,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from boostnerf_cli import flops
+
 
 def lattice_shape(bbox: Tensor, n_voxels: int) -> tuple[int, int, int]:
     """Grid sides with about `n_voxels` vertices and isotropic spacing over the box (DVGO's rule)."""
@@ -26,6 +28,7 @@ def lattice_shape(bbox: Tensor, n_voxels: int) -> tuple[int, int, int]:
 
 def corners(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
     """Trilinear support of points: (N, 3) -> row indices (N, 8) int64, weights (N, 8)."""
+    flops.add("interp", flops.CORNER_FLOPS * xyz.shape[0])
     res = torch.tensor(shape, device=xyz.device, dtype=xyz.dtype)
     p = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * (res - 1)
     p = torch.minimum(p.clamp_min(0), res - 1)
@@ -66,17 +69,22 @@ def lookup(table: Tensor, idx: Tensor, w: Tensor) -> Tensor:
     """Blend table rows: table (V, C), idx (N, 8), w (N, 8) -> (N, C)."""
     if idx.shape[0] == 0:
         return table.new_zeros(0, table.shape[1])
+    flops.add("interp", 16 * table.shape[1] * idx.shape[0])
     if table.requires_grad and torch.is_grad_enabled():
         return _Lookup.apply(table, idx, w)
     return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")
 
 
+def lattice_points(bbox: Tensor, shape: tuple[int, int, int]) -> Tensor:
+    """World positions of every lattice vertex, (prod(shape), 3), in table row order."""
+    axes = [torch.linspace(float(bbox[0, a]), float(bbox[1, a]), shape[a], device=bbox.device) for a in range(3)]
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+
+
 def resample(table: Tensor, old_shape: tuple[int, int, int], old_bbox: Tensor,
              new_shape: tuple[int, int, int], new_bbox: Tensor) -> Tensor:
     """Trilinearly resample a grid's values onto a new lattice and box: -> (prod(new_shape), C)."""
-    axes = [torch.linspace(float(new_bbox[0, a]), float(new_bbox[1, a]), new_shape[a], device=table.device)
-            for a in range(3)]
-    pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+    pts = lattice_points(new_bbox.to(table.device), new_shape)
     out = []
     for i in range(0, pts.shape[0], 1 << 20):
         idx, w = corners(pts[i : i + (1 << 20)], old_bbox, old_shape)

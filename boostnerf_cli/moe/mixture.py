@@ -17,9 +17,10 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from boostnerf_cli import flops
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import FAMILIES
-from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.router import aux_loss, dispatch, penalty_weights, top_k
 from boostnerf_cli.render.occupancy import OccupancyGrid
@@ -32,7 +33,7 @@ class MixtureConfig:
     renormalize: bool = True
     threshold: float = 1e-3  # T: alpha of V_D over one render step below which a sample is filtered
     penalty: str = "geometric"
-    vd_res: int = 64  # density volume resolution (voxels^(1/3))
+    vd_res: int = 64  # density volume: vd_res^3 voxels
     step: float = 0.01  # render step (world units)
     expert_names: list[str] = field(default_factory=list)
 
@@ -62,7 +63,7 @@ class Mixture(nn.Module):
 
     family = "mixture"
 
-    def __init__(self, experts: list[nn.Module], gate: Gate, vd: DVGOExpert, occupancy: OccupancyGrid | None,
+    def __init__(self, experts: list[nn.Module], gate: Gate, vd: DensityVolume, occupancy: OccupancyGrid | None,
                  cfg: MixtureConfig):
         super().__init__()
         if cfg.topk < 1 or cfg.topk > len(experts):
@@ -70,8 +71,6 @@ class Mixture(nn.Module):
         self.experts = nn.ModuleList(experts)
         self.gate = gate
         self.vd = vd
-        for p in self.vd.parameters():
-            p.requires_grad_(False)
         self.occupancy = occupancy
         self.cfg = cfg
         self.register_buffer("penalty", penalty_weights(len(experts), cfg.penalty))
@@ -100,6 +99,7 @@ class Mixture(nn.Module):
     def route(self, xyz: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """-> probabilities (N, M), weights (N, k), expert indices (N, k)."""
         probs = self.gate.probs(xyz)
+        flops.add("routing", 4 * self.m * xyz.shape[0])
         if self.gate.cfg.kind == "uniform":  # the ensemble: every expert, equal weights
             idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
             return probs, probs, idx
@@ -201,6 +201,13 @@ def load_mixture(path: Path, device: str | torch.device = "cpu") -> tuple[Mixtur
     tensors, meta = load_tensors(path, device)
     if meta.get("family") != "mixture":
         raise BoostNerfError(f"{path} is not a mixture of experts file")
+    try:
+        return _build_mixture(path, tensors, meta, device)
+    except (KeyError, TypeError) as e:
+        raise BoostNerfError(f"{path} lacks {e} (written by another boostnerf version?): rerun build-moe and finetune") from None
+
+
+def _build_mixture(path: Path, tensors: dict, meta: dict, device) -> tuple[Mixture, dict]:
     experts = []
     for i, em in enumerate(meta["experts"]):
         if em["family"] not in FAMILIES:
@@ -208,7 +215,7 @@ def load_mixture(path: Path, device: str | torch.device = "cpu") -> tuple[Mixtur
         experts.append(FAMILIES[em["family"]].from_config(em, tensors[f"experts.{i}.bbox"]))
     gm = meta["gate"]
     gate = Gate(GateConfig(**gm["config"]), gm["experts"], tensors["gate.bbox"], tuple(gm["shape"]))
-    vd = DVGOExpert.from_config(meta["vd"], tensors["vd.bbox"])
+    vd = DensityVolume.from_config(meta["vd"], tensors["vd.bbox"])
     occ = None
     if "occupancy" in tensors:
         occ = OccupancyGrid(tensors.pop("occupancy").bool(), tensors.pop("occupancy_bbox"))

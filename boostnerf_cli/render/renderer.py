@@ -17,6 +17,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from boostnerf_cli import flops
 from boostnerf_cli.fields.base import Field
 from boostnerf_cli.render.rays import image_rays, intersect_box
 from boostnerf_cli.render.volrend import composite, render_weights
@@ -103,6 +104,7 @@ def render_rays(
         rgb = rgb.index_put((cflat,), field.color(pts[sel], dirs[ray_of]))
     rgb = rgb.reshape(r, s, 3)
     color, depth, acc = composite(weights, rgb, t, settings.background)
+    flops.add("composite", flops.COMPOSITE_FLOPS * r * s)
     return RayBundle(color, depth, acc, int(flat.numel()), int(cflat.numel()), {"weights": weights, "t": t, "rgb": rgb})
 
 

@@ -11,7 +11,7 @@ import torch
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import count_params, load_expert
-from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import GATE_TYPES, Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, save_mixture
 from boostnerf_cli.moe.router import PENALTIES
@@ -31,13 +31,14 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
         raise BoostNerfError(f"no pretrained expert {missing[0]!r} in {ws.root} (experts: {', '.join(available)})")
     if rec.gate_type not in GATE_TYPES or rec.gate_type == "uniform":
         raise BoostNerfError(f"unknown gate type {rec.gate_type!r}: use grid, linear or switch")
+    if rec.step_from not in ("smallest", "largest"):
+        raise BoostNerfError(f"moe.step_from must be smallest or largest, got {rec.step_from!r}")
     if rec.penalty not in PENALTIES:
         raise BoostNerfError(f"unknown penalty {rec.penalty!r}: use {', '.join(PENALTIES)}")
-    experts, steps, scenes = [], [], set()
+    experts, scenes = [], set()
     for n in names:
         model, occ, meta = load_expert(ws.expert_path(n), device)
-        experts.append((count_params(model), n, model, occ))
-        steps.append(meta["step"])
+        experts.append((count_params(model), n, model, meta["step"]))
         scenes.add(meta.get("scene"))
     if len(scenes) > 1 or (manifest.get("scene_id") and scenes != {manifest["scene_id"]}):
         raise BoostNerfError(
@@ -47,14 +48,15 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     experts.sort(key=lambda e: (e[0], e[1]))
     smallest = experts[0][2]
     bbox = smallest.bbox
-    step = min(steps)
-    vd = DVGOExpert(DVGOConfig(res=rec.vd_res, hidden=0), bbox).to(device)
-    vd.init_density(smallest.density)
+    step = experts[0][3] if rec.step_from == "smallest" else experts[-1][3]
+    vd_res = rec.vd_res or getattr(getattr(smallest, "cfg", None), "res", 64)
+    vd = DensityVolume(bbox, vd_res).to(device)
+    vd.init_from(smallest.density)
     occ = OccupancyGrid.from_density(vd.density, bbox, vd.shape, step, rec.density_threshold)
     gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=rec.gate_channels, hidden=rec.gate_hidden,
                            layers=rec.gate_layers), len(experts), bbox).to(device)
     cfg = MixtureConfig(topk=min(rec.topk, len(experts)), renormalize=rec.renormalize, threshold=rec.density_threshold,
-                        penalty=rec.penalty, vd_res=rec.vd_res, step=step, expert_names=[e[1] for e in experts])
+                        penalty=rec.penalty, vd_res=vd_res, step=step, expert_names=[e[1] for e in experts])
     mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
     save_mixture(ws.model_path("init"), mix, {"name": "init"})
     report = {
@@ -63,7 +65,7 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
         "expert_params": [e[0] for e in experts],
         "gate": gate.config_dict(),
         "gate_params": count_params(gate),
-        "density_volume": {"res": rec.vd_res, "threshold": rec.density_threshold, "from": cfg.expert_names[0],
+        "density_volume": {"res": vd_res, "threshold": rec.density_threshold, "from": cfg.expert_names[0],
                            "occupied_fraction": occ.fraction()},
         "step": step,
     }

@@ -3,7 +3,7 @@
 reports/eval.json schema (documented in docs/reports.md):
 {"split": str, "views": int, "lpips_note": str | null,
  "models": [{"name", "kind", "psnr", "ssim", "lpips" (null when unavailable), "seconds_per_image",
-             "samples_per_image", "colored_per_image", "params"}, ...]}
+             "samples_per_image", "colored_per_image", "params", "w0", "gflops_per_image"}, ...]}
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, 
 
 
 def run_eval(ws: Workspace, names: list[str] | None, split_name: str, device: str, skip: bool, views: int | None,
-             report: bool, log: Callable[[str], None]) -> dict:
+             report: bool, log: Callable[[str], None], costs: bool = True) -> dict:
     scene = workspace_scene(ws)
     split = scene.split(split_name)
     names = names or all_model_names(ws)
@@ -103,7 +103,13 @@ def run_eval(ws: Workspace, names: list[str] | None, split_name: str, device: st
         log(lpips_note)
     rows = []
     for name in names:
-        row = evaluate_model(load_model(ws, name, device), scene, split, device, lpips_model, skip, views)
+        model = load_model(ws, name, device)
+        row = evaluate_model(model, scene, split, device, lpips_model, skip, views)
+        if costs:
+            from boostnerf_cli.stages.count_params import model_costs
+
+            c = model_costs(model, scene, split, device, views)
+            row.update(w0=c["w0"], gflops_per_image=c["gflops_per_image"])
         log(f"{name}: PSNR {row['psnr']:.3f}  SSIM {row['ssim']:.4f}  {row['seconds_per_image']:.3f}s/image")
         rows.append(row)
     result = {"split": split_name, "views": min(views or len(split), len(split)), "skip": skip,

@@ -1,0 +1,83 @@
+"""The mixture-of-experts stages through the real CLI, on the tiny workspace."""
+
+import json
+import shutil
+
+import pytest
+
+from conftest import run_cli
+from test_cli import _assert_clean_failure, _no_temp_files
+
+
+@pytest.fixture(scope="module")
+def moe_ws(trained_ws, tmp_path_factory):
+    ws = tmp_path_factory.mktemp("moe") / "ws"
+    shutil.copytree(trained_ws, ws)
+    run_cli("build-moe", "--workspace", str(ws), "--device", "cpu", check=True)
+    for flag in (["--topk", "1"], ["--topk", "2"], ["--ensemble"], ["--baseline"]):
+        run_cli("finetune", "--workspace", str(ws), *flag, "--device", "cpu", check=True)
+    return ws
+
+
+def test_build_moe_writes_an_untrained_mixture(moe_ws):
+    report = json.loads((moe_ws / "moe" / "init.json").read_text())
+    assert report["experts"] == ["dvgo-12", "dvgo-16"]  # ordered by size
+    assert report["density_volume"]["from"] == "dvgo-12"
+    assert (moe_ws / "moe" / "init.safetensors").exists()
+
+
+def test_finetune_adds_every_comparison_model_with_load_reports(moe_ws):
+    for name in ("top1", "top2", "ens", "baseline"):
+        report = json.loads((moe_ws / "moe" / f"{name}.json").read_text())
+        assert report["name"] == name and report["iterations"] == 20 and report["seconds"] > 0
+    top1 = json.loads((moe_ws / "moe" / "top1.json").read_text())
+    assert abs(sum(top1["load"]) - 1.0) < 1e-6  # top-1: loads are fractions of samples summing to 1
+    top2 = json.loads((moe_ws / "moe" / "top2.json").read_text())
+    assert abs(sum(top2["load"]) - 2.0) < 1e-6
+    assert any("load0" in h for h in top2["history"])
+    assert json.loads((moe_ws / "moe" / "baseline.json").read_text())["from"] == "dvgo-16"
+    assert _no_temp_files(moe_ws) and not list((moe_ws / "checkpoints").glob("*"))
+
+
+def test_eval_and_count_params_list_every_model(moe_ws):
+    run_cli("eval", "--workspace", str(moe_ws), "--report", "--device", "cpu", "--views", "2", check=True)
+    report = json.loads((moe_ws / "reports" / "eval.json").read_text())
+    names = [m["name"] for m in report["models"]]
+    assert names == ["dvgo-12", "dvgo-16", "baseline", "top1", "top2", "ens"]
+    for m in report["models"]:
+        assert m["w0"] > 0 and m["gflops_per_image"] > 0 and m["w0"] <= m["params"]
+    run_cli("count-params", "--workspace", str(moe_ws), "--device", "cpu", "--views", "1", check=True)
+    counts = json.loads((moe_ws / "reports" / "count-params.json").read_text())
+    rows = {m["name"]: m for m in counts["models"]}
+    assert set(rows) == set(names)
+    for m in rows.values():
+        assert {"name", "params", "w0", "gflops_per_image"} <= set(m)
+    top1 = rows["top1"]
+    assert len(top1["experts"]) == 2 and sum(e["w0"] for e in top1["experts"]) + top1["gate"]["w0"] == top1["w0"]
+
+
+def test_finetune_before_build_moe_says_what_to_run(trained_ws, tmp_path):
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--device", "cpu")
+    _assert_clean_failure(proc, "boostnerf build-moe")
+
+
+def test_finetune_flag_misuse(moe_ws):
+    proc = run_cli("finetune", "--workspace", str(moe_ws), "--topk", "1", "--ensemble")
+    _assert_clean_failure(proc, "exactly one")
+    proc = run_cli("finetune", "--workspace", str(moe_ws), "--topk", "5", "--device", "cpu", "--force")
+    _assert_clean_failure(proc, "--topk")
+
+
+def test_build_moe_refuses_experts_of_different_scenes(trained_ws, tmp_path, tiny_scene, tiny_recipe):
+    other = tmp_path / "other"
+    run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(other),
+            "--image-size", "24", "--res", "12", "--device", "cpu", check=True)
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    shutil.copy(other / "experts" / "dvgo-12.safetensors", ws / "experts" / "dvgo-12.safetensors")
+    proc = run_cli("build-moe", "--workspace", str(ws), "--device", "cpu")
+    _assert_clean_failure(proc, "different scenes")
+    proc = run_cli("build-moe", "--workspace", str(ws), "--experts", "dvgo-99", "--device", "cpu")
+    _assert_clean_failure(proc, "dvgo-99")

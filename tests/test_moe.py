@@ -1,0 +1,195 @@
+"""The mixture of experts: aux loss, sparse dispatch vs a dense reference, edge cases, persistence."""
+
+import math
+
+import pytest
+import torch
+
+from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.moe.density_volume import DensityVolume
+from boostnerf_cli.moe.gate import Gate, GateConfig
+from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, RoutingStats, load_mixture, save_mixture
+from boostnerf_cli.moe.router import aux_loss, dispatch, dispatch_dense_reference, penalty_weights, top_k
+from boostnerf_cli.render.renderer import RenderSettings, render_rays
+
+BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+
+def _experts(m, seed=0):
+    torch.manual_seed(seed)
+    out = []
+    for i in range(m):
+        e = DVGOExpert(DVGOConfig(res=6 + 2 * i, hidden=8, layers=1), BOX)
+        with torch.no_grad():
+            e.density_table.normal_(0, 2)
+            e.feature_table.normal_()
+            for p in e.rgbnet.parameters():
+                p.normal_(0, 0.3)
+        out.append(e)
+    return out
+
+
+def _mixture(m=3, k=2, kind="grid", renormalize=True, seed=0):
+    experts = _experts(m, seed)
+    gate = Gate(GateConfig(kind=kind, res=4, channels=4, hidden=8, layers=2), m, BOX)
+    with torch.no_grad():
+        for p in gate.parameters():
+            p.normal_(0, 0.5)
+    vd = DensityVolume(BOX, 6)
+    vd.init_from(experts[0].density)
+    return Mixture(experts, gate, vd, None, MixtureConfig(topk=k, renormalize=renormalize, step=0.05,
+                                                          expert_names=[f"e{i}" for i in range(m)]))
+
+
+def _points(n, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    xyz = torch.rand(n, 3, generator=g) * 1.8 - 0.9
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    return xyz, d
+
+
+def test_penalty_weights():
+    assert torch.allclose(penalty_weights(3, "geometric"), torch.tensor([1.0, math.sqrt(3.0), 3.0]))
+    assert torch.allclose(penalty_weights(5, "geometric")[-1], torch.tensor(5.0))
+    assert penalty_weights(3, "linear").tolist() == [1.0, 2.0, 3.0]
+    assert penalty_weights(3, "quadratic").tolist() == [1.0, 2.0, 4.0]
+    assert penalty_weights(3, "none").tolist() == [1.0, 1.0, 1.0]
+    for kind in ("geometric", "linear", "quadratic", "none"):
+        assert penalty_weights(1, kind).tolist() == [1.0]
+
+
+def test_aux_loss_equals_a_float64_hand_computation():
+    g = torch.Generator().manual_seed(0)
+    probs = torch.softmax(torch.randn(37, 4, generator=g, dtype=torch.float64), -1)
+    _, idx = top_k(probs, 2, renormalize=True)
+    w = penalty_weights(4, "geometric").double()
+    n, m = probs.shape
+    total = 0.0
+    for i in range(m):
+        c_i = sum(1 for s in range(n) for j in range(2) if int(idx[s, j]) == i)
+        m_i = sum(float(probs[s, i]) for s in range(n))
+        total += c_i * m_i * float(w[i])
+    expected = m / n**2 * total
+    assert abs(float(aux_loss(probs, idx, w)) - expected) < 1e-12
+    # balanced and fully imbalanced limits from the paper: 1 and M (with w = 1, top-1)
+    uniform = torch.full((8, 4), 0.25, dtype=torch.float64)
+    bal_idx = torch.arange(8).remainder(4)[:, None]
+    assert abs(float(aux_loss(uniform, bal_idx, torch.ones(4, dtype=torch.float64))) - 1.0) < 1e-12
+    one_hot = torch.zeros(8, 4, dtype=torch.float64)
+    one_hot[:, 0] = 1
+    assert abs(float(aux_loss(one_hot, torch.zeros(8, 1, dtype=torch.long), torch.ones(4, dtype=torch.float64))) - 4.0) < 1e-12
+
+
+def test_aux_loss_empty_batch_is_zero_with_a_gradient_path():
+    probs = torch.zeros(0, 3, requires_grad=True)
+    loss = aux_loss(probs, torch.zeros(0, 2, dtype=torch.long), torch.ones(3))
+    assert float(loss) == 0.0
+    loss.backward()
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_sparse_dispatch_matches_dense_reference_in_values_and_gradients(k):
+    mix = _mixture(m=3, k=k)
+    xyz, d = _points(300)
+    probs, vals, idx = mix.route(xyz)
+
+    def sparse():
+        s, _ = dispatch(300, idx, vals, 3, lambda e, r: mix.experts[e].density(xyz[r])[:, None], 1, xyz)
+        c, _ = dispatch(300, idx, vals, 3, lambda e, r: mix.experts[e].color(xyz[r], d[r]), 3, xyz)
+        return s, c
+
+    def dense():
+        s = dispatch_dense_reference(300, idx, vals, 3, lambda e: mix.experts[e].density(xyz)[:, None], 1, xyz)
+        c = dispatch_dense_reference(300, idx, vals, 3, lambda e: mix.experts[e].color(xyz, d), 3, xyz)
+        return s, c
+
+    params = list(mix.parameters())
+    up_s, up_c = torch.randn(300, 1), torch.randn(300, 3)
+    outs = []
+    for fn in (sparse, dense):
+        probs, vals, idx = mix.route(xyz)  # fresh graph each time
+        s, c = fn()
+        grads = torch.autograd.grad((s * up_s).sum() + (c * up_c).sum(), params, allow_unused=True)
+        outs.append((s, c, grads))
+    (s1, c1, g1), (s2, c2, g2) = outs
+    assert torch.allclose(s1, s2, atol=1e-5) and torch.allclose(c1, c2, atol=1e-6)
+    for a, b in zip(g1, g2):
+        if a is None or b is None:
+            assert (a is None or a.abs().max() == 0) and (b is None or b.abs().max() == 0)
+        else:
+            assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_mixture_density_matches_the_papers_formula():
+    mix = _mixture(m=3, k=2, renormalize=False)
+    xyz, d = _points(50)
+    probs = mix.gate.probs(xyz)
+    vals, idx = torch.topk(probs, 2, dim=-1)
+    sig = torch.stack([e.density(xyz) for e in mix.experts], -1)
+    expected = (vals * sig.gather(1, idx)).sum(-1)
+    assert torch.allclose(mix.density(xyz), expected, atol=1e-5)
+
+
+def test_ensemble_is_the_plain_average():
+    mix = _mixture(m=3, k=3, kind="uniform")
+    xyz, d = _points(40)
+    expected = torch.stack([e.color(xyz, d) for e in mix.experts]).mean(0)
+    assert torch.allclose(mix.color(xyz, d), expected, atol=1e-6)
+
+
+def test_an_expert_with_no_samples_and_extreme_gate_logits_stay_finite():
+    mix = _mixture(m=3, k=1)
+    with torch.no_grad():
+        last = mix.gate.mlp[-1]
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor([1e4, -1e4, 0.0]))
+    xyz, d = _points(100)
+    stats = RoutingStats()
+    view = mix.with_stats(stats)
+    sigma = view.density(xyz)
+    rgb = view.color(xyz, d)
+    aux = stats.aux(mix.penalty)
+    (sigma.sum() + rgb.sum() + aux).backward()
+    assert stats.load(3) == [1.0, 0.0, 0.0]
+    for t in (sigma, rgb, aux):
+        assert torch.isfinite(t).all()
+    for p in mix.parameters():
+        assert p.grad is None or torch.isfinite(p.grad).all()
+
+
+def test_every_sample_filtered_gives_background_and_no_nan():
+    mix = _mixture(m=2, k=1)
+    o = torch.tensor([[0.0, 0.0, 3.0]]).repeat(8, 1)
+    d = torch.tensor([[0.0, 0.0, -1.0]]).repeat(8, 1)
+    s = RenderSettings(step=0.05, near=0.1, far=6.0, bbox=BOX, background=(1.0, 0.5, 0.0))
+    stats = RoutingStats()
+    b = render_rays(mix.with_stats(stats), o, d, s, skip=lambda x: torch.zeros(x.shape[0], dtype=torch.bool))
+    assert b.n_samples == 0 and torch.allclose(b.color, torch.tensor([[1.0, 0.5, 0.0]]).repeat(8, 1))
+    assert float(stats.aux(mix.penalty)) == 0.0 and torch.isfinite(b.depth).all()
+
+
+def test_a_single_expert_mixture_equals_the_expert():
+    mix = _mixture(m=1, k=1)
+    xyz, d = _points(60)
+    e = mix.experts[0]
+    assert torch.allclose(mix.density(xyz), e.density(xyz), atol=1e-6)
+    assert torch.allclose(mix.color(xyz, d), e.color(xyz, d), atol=1e-6)
+
+
+def test_topk_larger_than_m_is_refused():
+    from boostnerf_cli.errors import BoostNerfError
+
+    with pytest.raises(BoostNerfError, match="--topk"):
+        _mixture(m=2, k=3)
+
+
+@pytest.mark.parametrize("kind", ["grid", "linear", "switch"])
+def test_save_load_round_trip(tmp_path, kind):
+    mix = _mixture(m=3, k=2, kind=kind)
+    save_mixture(tmp_path / "m.safetensors", mix)
+    mix2, meta = load_mixture(tmp_path / "m.safetensors")
+    xyz, d = _points(30)
+    assert torch.equal(mix.density(xyz), mix2.density(xyz))
+    assert torch.equal(mix.color(xyz, d), mix2.color(xyz, d))
+    assert torch.equal(mix.skip(xyz), mix2.skip(xyz))
+    assert meta["mixture"]["topk"] == 2 and meta["gate"]["config"]["kind"] == kind
