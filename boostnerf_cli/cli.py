@@ -38,6 +38,16 @@ def log(msg: str) -> None:
     err.print(msg)
 
 
+def _writer(workspace: Path, must_exist: bool = True):
+    """The workspace, locked against a second writer (and checked to be one, unless it is being made)."""
+    from boostnerf_cli.workspace import Workspace
+
+    ws = Workspace(workspace)
+    if must_exist:
+        ws.require_manifest()
+    return ws, ws.lock()
+
+
 def _int_list(text: str, what: str) -> list[int]:
     try:
         values = [int(v) for v in text.replace(" ", "").split(",") if v]
@@ -81,7 +91,6 @@ def pretrain(
     from boostnerf_cli.recipe import load_recipe
     from boostnerf_cli.stages import pretrain as stage
     from boostnerf_cli.stages.common import resolve_device
-    from boostnerf_cli.workspace import Workspace
 
     rec = load_recipe(recipe)
     if model is not None:
@@ -96,7 +105,9 @@ def pretrain(
         rec.data.holdout_every = holdout_every
     if seed is not None:
         rec.pretrain.seed = seed
-    reports = stage.run(Workspace(workspace), data, rec, resolve_device(device), force, log)
+    ws, lock = _writer(workspace, must_exist=False)
+    with lock:
+        reports = stage.run(ws, data, rec, resolve_device(device), force, log)
     table = Table("expert", "params", "steps", "seconds", "train PSNR", "held-out PSNR")
     for r in reports:
         table.add_row(r["name"], f"{r['params']:,}", str(r["iterations"]), f"{r['seconds']:.0f}",
@@ -128,7 +139,6 @@ def build_moe(
     """Assemble the pretrained experts, the density volume V_D and an untrained gate."""
     from boostnerf_cli.stages import build_moe as stage
     from boostnerf_cli.stages.common import resolve_device
-    from boostnerf_cli.workspace import Workspace
 
     rec = _moe_recipe(workspace, recipe)
     if gate_res is not None:
@@ -138,7 +148,9 @@ def build_moe(
     if threshold is not None:
         rec.moe.density_threshold = threshold
     names = [n for n in experts.split(",") if n] if experts else None
-    stage.build(Workspace(workspace), names, rec.moe, resolve_device(device), log)
+    ws, lock = _writer(workspace)
+    with lock:
+        stage.build(ws, names, rec.moe, resolve_device(device), log)
 
 
 @app.command()
@@ -159,14 +171,15 @@ def finetune(
     """Train gate and experts jointly (Algorithm 1), or the ensemble / baseline comparison models."""
     from boostnerf_cli.stages import finetune as stage
     from boostnerf_cli.stages.common import resolve_device
-    from boostnerf_cli.workspace import Workspace
 
     rec = _moe_recipe(workspace, recipe)
     name = stage.model_name(topk, ensemble, baseline)
     for key, value in (("iters", iters), ("lam", lam), ("penalty", penalty), ("renormalize", renormalize), ("seed", seed)):
         if value is not None:
             setattr(rec.moe, key, value)
-    stage.run(Workspace(workspace), name, topk, rec.moe, resolve_device(device), force, log)
+    ws, lock = _writer(workspace)
+    with lock:
+        stage.run(ws, name, topk, rec.moe, resolve_device(device), force, log)
 
 
 @app.command()
@@ -181,9 +194,10 @@ def render(
     """Render a split of the scene with each model: PNG colour and 16-bit depth under WS/renders/."""
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.stages.evaluate import run_render
-    from boostnerf_cli.workspace import Workspace
 
-    run_render(Workspace(workspace), model, split, resolve_device(device), not no_skip, views, log)
+    ws, lock = _writer(workspace)
+    with lock:
+        run_render(ws, model, split, resolve_device(device), not no_skip, views, log)
 
 
 @app.command("eval")
@@ -200,10 +214,10 @@ def eval_cmd(
     """PSNR, SSIM, LPIPS (when its weights are on disk) and seconds per image for every model."""
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.stages.evaluate import run_eval
-    from boostnerf_cli.workspace import Workspace
 
-    result = run_eval(Workspace(workspace), model, split, resolve_device(device), not no_skip, views, report, log,
-                      costs=not no_costs)
+    ws, lock = _writer(workspace)
+    with lock:
+        result = run_eval(ws, model, split, resolve_device(device), not no_skip, views, report, log, costs=not no_costs)
     table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")
     for r in result["models"]:
         table.add_row(r["name"], f"{r['psnr']:.3f}", f"{r['ssim']:.4f}",
@@ -224,9 +238,10 @@ def count_params_cmd(
     """Parameters, ||w||_0 (non-zero gradients of the test-set loss) and GFLOPs per image -> WS/reports/count-params.json."""
     from boostnerf_cli.stages import count_params as stage
     from boostnerf_cli.stages.common import resolve_device
-    from boostnerf_cli.workspace import Workspace
 
-    result = stage.run(Workspace(workspace), model, split, resolve_device(device), views, log)
+    ws, lock = _writer(workspace)
+    with lock:
+        result = stage.run(ws, model, split, resolve_device(device), views, log)
     table = Table("model", "params", "||w||_0", "GFLOPs/image")
     for r in result["models"]:
         table.add_row(r["name"], f"{r['params']:,}", f"{r['w0']:,}", f"{r['gflops_per_image']:.3f}")

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Callable, Protocol
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import image_rays, intersect_box

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -108,11 +109,49 @@ def load_tensors(path: Path, device: str | torch.device = "cpu") -> tuple[dict[s
     return tensors, meta
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 class Workspace:
     """Paths and manifest of one workspace directory."""
 
     def __init__(self, root: Path):
         self.root = Path(root)
+
+    @contextmanager
+    def lock(self) -> Iterator[None]:
+        """Exclusive writer lock (WS/.lock holding host and pid); a stale lock of a dead process is taken over."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        path = self.root / ".lock"
+        me = f"{socket.gethostname()} {os.getpid()}"
+        for _ in range(2):
+            try:
+                fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                holder = path.read_text().strip() if path.exists() else ""
+                host, _, pid = holder.partition(" ")
+                if host == socket.gethostname() and pid.isdigit() and not _pid_alive(int(pid)):
+                    path.unlink(missing_ok=True)  # stale: its process is gone
+                    continue
+                raise BoostNerfError(
+                    f"workspace {self.root} is in use by another boostnerf process ({holder or 'unknown'}): "
+                    f"wait for it to finish, or delete {path} if that process is gone"
+                ) from None
+            with os.fdopen(fd, "w") as f:
+                f.write(me)
+            break
+        try:
+            yield
+        finally:
+            if path.exists() and path.read_text().strip() == me:
+                path.unlink()
 
     # paths
     @property

@@ -4,7 +4,6 @@ import json
 import shutil
 from pathlib import Path
 
-import pytest
 from safetensors import safe_open
 
 from conftest import run_cli

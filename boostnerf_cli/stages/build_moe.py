@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from typing import Callable
 
-import torch
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import count_params, load_expert

@@ -12,7 +12,6 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Callable
 
-import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError

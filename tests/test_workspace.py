@@ -1,0 +1,79 @@
+"""Workspace safety: atomic writes keep the previous artifact, one writer at a time, recipes strict."""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.recipe import load_recipe
+from boostnerf_cli.workspace import Workspace, atomic_path, load_tensors, save_tensors, write_json
+
+RECIPES = sorted((Path(__file__).parent.parent / "recipes").glob("*.yaml"))
+
+
+def test_failed_write_keeps_the_previous_file(tmp_path):
+    target = tmp_path / "r.json"
+    write_json(target, {"v": 1})
+    with pytest.raises(OSError):
+        with atomic_path(target) as tmp:
+            tmp.write_text('{"v": 2')  # half written, then the disk "fills up"
+            raise OSError("No space left on device")
+    assert json.loads(target.read_text()) == {"v": 1}
+    assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
+
+
+def test_non_finite_tensors_are_never_written(tmp_path):
+    with pytest.raises(BoostNerfError, match="non-finite"):
+        save_tensors(tmp_path / "x.safetensors", {"a": torch.tensor([1.0, float("nan")])}, {})
+    assert not list(tmp_path.iterdir())
+    save_tensors(tmp_path / "x.safetensors", {"a": torch.ones(3)}, {"k": 1})
+    tensors, meta = load_tensors(tmp_path / "x.safetensors")
+    assert meta["k"] == 1 and torch.equal(tensors["a"], torch.ones(3))
+
+
+def test_second_writer_is_refused_and_the_lock_is_released(tmp_path):
+    ws = Workspace(tmp_path / "ws")
+    with ws.lock():
+        with pytest.raises(BoostNerfError, match="in use by another boostnerf process"):
+            with ws.lock():
+                pass
+    assert not (tmp_path / "ws" / ".lock").exists()
+    with ws.lock():
+        pass
+
+
+def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    (tmp_path / ".lock").write_text(f"{socket.gethostname()} {int(dead.stdout)}")
+    with Workspace(tmp_path).lock():
+        assert (tmp_path / ".lock").read_text() == f"{socket.gethostname()} {os.getpid()}"
+
+
+@pytest.mark.parametrize("path", RECIPES, ids=[p.name for p in RECIPES])
+def test_every_recipe_loads(path):
+    rec = load_recipe(path)
+    assert rec.pretrain.res and rec.pretrain.iters > 0
+
+
+def test_recipes_follow_the_naming_contract():
+    names = {p.stem for p in RECIPES}
+    assert {"blender-dvgo-cpu", "blender-dvgo-paper"} <= names
+    for n in names:
+        dataset, model, size = n.rsplit("-", 2)
+        assert size in ("cpu", "paper") and model in ("dvgo",)
+
+
+def test_recipe_type_errors_are_one_clear_line(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("pretrain:\n  iters: ten\n")
+    with pytest.raises(BoostNerfError, match="pretrain.iters must be int"):
+        load_recipe(bad)
+    bad.write_text("pretrain: [1, 2\n")
+    with pytest.raises(BoostNerfError, match="not valid YAML"):
+        load_recipe(bad)
