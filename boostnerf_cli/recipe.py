@@ -84,7 +84,7 @@ class MoERecipe:
     topk: int = 2
     lam: float = 1e-3
     penalty: str = "geometric"  # geometric | linear | quadratic | none
-    renormalize: bool = True
+    renormalize: bool | None = None  # None: renormalise for k >= 2, raw probabilities for k = 1 (docs/results.md)
     iters: int = 1000
     lr_gate: float = 1e-2
     lr_gate_mlp: float = 1e-3

@@ -23,8 +23,7 @@ def _task(scene, iters):
     model.regrid(12**3 // 2)
     tcfg = TrainRecipe(batch_rays=128, occupancy_every=7, growth=[0.2])
     settings = RenderSettings(step=0.5 * model.unit, near=scene.near, far=scene.far, bbox=scene.bbox)
-    return FieldTask(model, settings, tcfg, iters, skip=None, base_mask=None, growth_steps=growth,
-                     final_voxels=12**3, lr_grid=0.1)
+    return FieldTask(model, settings, tcfg, skip=None, base_mask=None, growth_steps=growth, final_voxels=12**3)
 
 
 def test_resume_after_a_crash_matches_an_uninterrupted_run(tiny_scene, tmp_path):

@@ -98,7 +98,8 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     else:
         if not 1 <= topk <= mix.m:
             raise BoostNerfError(f"--topk must be between 1 and the number of experts ({mix.m}), got {topk}")
-        mix.cfg = dataclasses.replace(mix.cfg, topk=topk, renormalize=rec.renormalize, penalty=rec.penalty)
+        renorm = rec.renormalize if rec.renormalize is not None else topk >= 2
+        mix.cfg = dataclasses.replace(mix.cfg, topk=topk, renormalize=renorm, penalty=rec.penalty)
         mix.penalty = penalty_weights(mix.m, rec.penalty, device=mix.penalty.device)
     settings = RenderSettings(step=mix.cfg.step, near=scene.near, far=scene.far, bbox=mix.bbox,
                               background=scene.background, color_threshold=rec.train.color_threshold)
@@ -140,7 +141,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
     model.train()
     settings = RenderSettings(step=meta["step"], near=scene.near, far=scene.far, bbox=model.bbox,
                               background=scene.background, color_threshold=rec.train.color_threshold)
-    task = FieldTask(model, settings, rec.train, rec.iters, skip=occ, base_mask=occ, lr_grid=rec.train.lr_grid)
+    task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
     result = train(task, _train_rays(scene, model.bbox, device), sched, rec.seed, "baseline",
                    checkpoint=ws.checkpoint_path("baseline"))
     model.eval()

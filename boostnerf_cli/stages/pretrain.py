@@ -54,15 +54,13 @@ class FieldTask:
     model: nn.Module
     settings: RenderSettings
     tcfg: TrainRecipe
-    iters: int
     skip: OccupancyGrid | None
     base_mask: OccupancyGrid | None  # skips never reopen cells outside it
     growth_steps: tuple[int, ...] = ()
     final_voxels: int = 0
-    lr_grid: float = 0.1
 
     def param_groups(self) -> list[dict]:
-        return self.model.param_groups(self.lr_grid, self.tcfg.lr_mlp)
+        return self.model.param_groups(self.tcfg.lr_grid, self.tcfg.lr_mlp)
 
     def before_step(self, step: int) -> bool:
         changed = False
@@ -142,7 +140,7 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     step = 0.5 * model.voxel_size
     settings = RenderSettings(step=step, near=scene.near, far=scene.far, bbox=bbox, background=scene.background)
     tcfg = TrainRecipe(lr_grid=rec.lr, weight_rgbper=0.0, weight_entropy=rec.weight_entropy, occupancy_every=0)
-    task = FieldTask(model, settings, tcfg, rec.iters, skip=None, base_mask=None, lr_grid=rec.lr)
+    task = FieldTask(model, settings, tcfg, skip=None, base_mask=None)
     rays = RayData.from_split(scene.splits["train"], bbox, scene.near, scene.far).to(device)
     t0 = time.perf_counter()
     train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5)), seed, "geometry")
@@ -178,8 +176,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     model.init_density(prior.density)  # warm start: colour is then computed near surfaces only
     settings = RenderSettings(step=tcfg.step_ratio * model.unit, near=scene.near, far=scene.far, bbox=box,
                               background=scene.background, color_threshold=tcfg.color_threshold)
-    task = FieldTask(model, settings, tcfg, rec.iters, skip=geom, base_mask=geom, growth_steps=growth,
-                     final_voxels=final_voxels, lr_grid=tcfg.lr_grid)
+    task = FieldTask(model, settings, tcfg, skip=geom, base_mask=geom, growth_steps=growth, final_voxels=final_voxels)
     rays = RayData.from_split(scene.splits["train"], box, scene.near, scene.far).to(device)
     sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
