@@ -189,6 +189,7 @@ def render(
     split: SplitOpt = "test",
     views: ViewsOpt = None,
     no_skip: NoSkipOpt = False,
+    per_expert: Annotated[bool, typer.Option("--per-expert", help="Mixtures: also each expert's contribution and the gate's probability map per expert.")] = False,
     device: DeviceOpt = "auto",
 ) -> None:
     """Render a split of the scene with each model: PNG colour and 16-bit depth under WS/renders/."""
@@ -197,7 +198,7 @@ def render(
 
     ws, lock = _writer(workspace)
     with lock:
-        run_render(ws, model, split, resolve_device(device), not no_skip, views, log)
+        run_render(ws, model, split, resolve_device(device), not no_skip, views, log, per_expert=per_expert)
 
 
 @app.command("eval")

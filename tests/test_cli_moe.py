@@ -81,3 +81,21 @@ def test_build_moe_refuses_experts_of_different_scenes(trained_ws, tmp_path, tin
     _assert_clean_failure(proc, "different scenes")
     proc = run_cli("build-moe", "--workspace", str(ws), "--experts", "dvgo-99", "--device", "cpu")
     _assert_clean_failure(proc, "dvgo-99")
+
+
+def test_render_per_expert_and_gate_maps(moe_ws):
+    import imageio.v3 as iio
+
+    run_cli("render", "--workspace", str(moe_ws), "--model", "top2", "--views", "1", "--per-expert",
+            "--device", "cpu", check=True)
+    folder = moe_ws / "renders" / "top2" / "test"
+    names = sorted(p.name for p in folder.glob("*.png"))
+    stem = names[0].split(".")[0]
+    for expected in (f"{stem}_expert0-dvgo-12.png", f"{stem}_expert1-dvgo-16.png", f"{stem}_gate0-dvgo-12.png",
+                     f"{stem}_gate1-dvgo-16.png"):
+        assert expected in names
+    g0 = iio.imread(folder / f"{stem}_gate0-dvgo-12.png").astype(int)
+    g1 = iio.imread(folder / f"{stem}_gate1-dvgo-16.png").astype(int)
+    assert g0.shape == (32, 32, 3) and (g0[..., 0] == g0[..., 1]).all()  # greyscale
+    acc_like = g0[..., 0] + g1[..., 0]  # probabilities sum to the pixel's opacity (<= 255 up to rounding)
+    assert acc_like.max() <= 256

@@ -179,6 +179,23 @@ class SingleExpertView:
         return self.density(xyz), self.color(xyz, dirs)
 
 
+class GateView:
+    """The gate as a picture: the mixture's density with colour G(x)_e (grey), so a rendered pixel is
+    the rendering-weighted probability that its samples go to expert e (composite on black)."""
+
+    def __init__(self, mixture: Mixture, e: int):
+        self.mixture, self.e = mixture, e
+
+    def density(self, xyz: Tensor) -> Tensor:
+        return self.mixture.density(xyz)
+
+    def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
+        return self.mixture.gate.probs(xyz)[:, self.e : self.e + 1].expand(-1, 3)
+
+    def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
+        return self.density(xyz), self.color(xyz, dirs)
+
+
 # --- persistence ------------------------------------------------------------------------------
 def save_mixture(path: Path, mix: Mixture, extra: dict | None = None) -> None:
     tensors = {k: v for k, v in mix.state_dict().items()}
