@@ -46,6 +46,8 @@ def test_eval_and_count_params_list_every_model(moe_ws):
     assert names == ["dvgo-12", "dvgo-16", "baseline", "top1", "top2", "ens"]
     for m in report["models"]:
         assert m["w0"] > 0 and m["gflops_per_image"] > 0 and m["w0"] <= m["params"]
+    table = (moe_ws / "reports" / "eval.md").read_text().splitlines()
+    assert sum(1 for line in table if line.startswith("| top")) == 2
     run_cli("count-params", "--workspace", str(moe_ws), "--device", "cpu", "--views", "1", check=True)
     counts = json.loads((moe_ws / "reports" / "count-params.json").read_text())
     rows = {m["name"]: m for m in counts["models"]}

@@ -141,4 +141,27 @@ def run_eval(ws: Workspace, names: list[str] | None, split_name: str, device: st
               "lpips_note": lpips_note or None, "models": rows}
     if report:
         write_json(ws.reports_dir / "eval.json", result)
+        with atomic_path(ws.reports_dir / "eval.md") as tmp:
+            tmp.write_text(markdown_table(result))
     return result
+
+
+def markdown_table(result: dict) -> str:
+    """The eval report as a Markdown table, in the paper's Table 1 columns."""
+    def num(v, fmt):
+        return "n/a" if v is None else format(v, fmt)
+
+    lines = [
+        f"Split `{result['split']}`, {result['views']} views, skips {'on' if result['skip'] else 'off'}.",
+        "",
+        "| model | PSNR | SSIM | LPIPS | params | ‖w‖₀ | GFLOPs/image | s/image |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in result["models"]:
+        lines.append(
+            f"| {r['name']} | {r['psnr']:.3f} | {r['ssim']:.4f} | {num(r['lpips'], '.4f')} | {r['params']:,} | "
+            f"{num(r.get('w0'), ',')} | {num(r.get('gflops_per_image'), '.3f')} | {r['seconds_per_image']:.3f} |"
+        )
+    if result.get("lpips_note"):
+        lines += ["", f"LPIPS: {result['lpips_note']}"]
+    return "\n".join(lines) + "\n"
