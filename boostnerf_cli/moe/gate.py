@@ -43,8 +43,10 @@ def _mlp(d_in: int, hidden: int, layers: int, d_out: int) -> nn.Sequential:
         mods += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
         d = hidden
     last = nn.Linear(d, d_out)
-    nn.init.zeros_(last.weight)
-    nn.init.zeros_(last.bias)  # every gate starts uniform
+    # Small random logits, not zeros: with exactly uniform probabilities top-k breaks every tie the
+    # same way (experts 0..k-1), and the largest experts would never receive a sample to learn from.
+    nn.init.normal_(last.weight, std=0.5 / math.sqrt(d))
+    nn.init.zeros_(last.bias)
     mods.append(last)
     return nn.Sequential(*mods)
 
@@ -62,10 +64,20 @@ class Gate(nn.Module):
         self.table = None
         self.mlp = None
         if cfg.kind in ("grid", "linear"):
-            self.table = nn.Parameter(torch.randn(math.prod(self.shape), cfg.channels) * 0.1)
+            self.table = nn.Parameter(torch.randn(math.prod(self.shape), cfg.channels))
             self.mlp = _mlp(cfg.channels, cfg.hidden, cfg.layers if cfg.kind == "grid" else 0, n_experts)
         elif cfg.kind == "switch":
             self.mlp = _mlp(3 + 6 * cfg.pe, 128, 4, n_experts)
+        if self.mlp is not None:
+            self._center_logits()
+
+    @torch.no_grad()
+    def _center_logits(self, n: int = 4096) -> None:
+        """Start with logits of mean 0 over the box: balanced, spatially varied initial routing
+        (an uncentred ReLU MLP would route almost every point to the same experts)."""
+        g = torch.Generator().manual_seed(0)
+        xyz = self.bbox[0] + torch.rand(n, 3, generator=g).to(self.bbox) * (self.bbox[1] - self.bbox[0])
+        self.mlp[-1].bias -= self.logits(xyz).mean(0)
 
     def logits(self, xyz: Tensor) -> Tensor:
         if self.cfg.kind == "uniform":
