@@ -7,11 +7,20 @@ dilating the result by one cell so that trilinear support at cell borders is nev
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+
+def cell_points(bbox: Tensor, shape: tuple[int, int, int], offset: Tensor) -> Tensor:
+    """One point per cell at `offset` (3,) in [0, 1) of the cell: (X*Y*Z, 3) in [x, y, z] cell order."""
+    idx = torch.stack(
+        torch.meshgrid(*(torch.arange(n, device=bbox.device) for n in shape), indexing="ij"), dim=-1
+    ).reshape(-1, 3)
+    return bbox[0] + (idx + offset) * (bbox[1] - bbox[0]) / torch.tensor(shape, device=bbox.device)
 
 
 class OccupancyGrid:
@@ -41,11 +50,7 @@ class OccupancyGrid:
 
     def cell_centers(self) -> Tensor:
         """World coordinates of every cell centre, (X*Y*Z, 3) in [x, y, z] cell order."""
-        res = torch.tensor(self.shape, device=self.bbox.device)
-        idx = torch.stack(
-            torch.meshgrid(*(torch.arange(n, device=self.bbox.device) for n in self.shape), indexing="ij"), dim=-1
-        ).reshape(-1, 3)
-        return self.bbox[0] + (idx + 0.5) * (self.bbox[1] - self.bbox[0]) / res
+        return cell_points(self.bbox, self.shape, torch.full((3,), 0.5, device=self.bbox.device))
 
     def sample_cells(self, other: "OccupancyGrid") -> Tensor:
         """This grid's occupancy at the cell centres of `other`: bool of `other`'s shape."""
@@ -77,53 +82,14 @@ class OccupancyGrid:
         chunk: int = 1 << 18,
     ) -> "OccupancyGrid":
         """Cells whose maximum alpha over a step (over `points_per_cell`^3 points) exceeds the threshold."""
-        device = bbox.device
-        res = torch.tensor(shape, device=device)
-        cell = (bbox[1] - bbox[0]) / res
         k = points_per_cell
-        sub = (torch.arange(k, device=device, dtype=torch.float32) + 0.5) / k
+        sub = (torch.arange(k, device=bbox.device, dtype=torch.float32) + 0.5) / k
         offs = torch.stack(torch.meshgrid(sub, sub, sub, indexing="ij"), dim=-1).reshape(-1, 3)
-        idx = torch.stack(
-            torch.meshgrid(*(torch.arange(n, device=device) for n in shape), indexing="ij"), dim=-1
-        ).reshape(-1, 3).float()
-        best = torch.zeros(idx.shape[0], device=device)
+        best = torch.zeros(math.prod(shape), device=bbox.device)
         for o in offs:
-            pts = bbox[0] + (idx + o) * cell
+            pts = cell_points(bbox, shape, o)
             sig = torch.cat([density(pts[i : i + chunk]) for i in range(0, pts.shape[0], chunk)])
             best = torch.maximum(best, -torch.expm1(-sig * step))
         occ = (best > alpha_threshold).reshape(shape)
         occ = F.max_pool3d(occ.float()[None, None], kernel_size=3, stride=1, padding=1)[0, 0] > 0
         return OccupancyGrid(occ, bbox)
-
-
-@torch.no_grad()
-def max_weight_grid(
-    density: Callable[[Tensor], Tensor],
-    origins: Tensor,
-    dirs: Tensor,
-    sample: Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor, float]],
-    bbox: Tensor,
-    shape: tuple[int, int, int],
-    chunk: int = 4096,
-) -> Tensor:
-    """Per cell, the largest rendering weight any of the given rays puts in it: (X, Y, Z) float.
-
-    `sample(origins, dirs)` -> t (R, S), valid (R, S), xyz (R, S, 3), step, as the renderer samples.
-    Cells that no ray sees (outside every view, or hidden behind surfaces) get 0. A visibility-
-    weighted criterion: unlike raw opacity it ignores density that no training view can see.
-    """
-    from boostnerf_cli.render.volrend import render_weights
-
-    res = torch.tensor(shape, device=bbox.device)
-    best = torch.zeros(int(res.prod()), device=bbox.device)
-    for i in range(0, origins.shape[0], chunk):
-        t, valid, xyz, step = sample(origins[i : i + chunk], dirs[i : i + chunk])
-        sigma = torch.zeros(t.shape, device=bbox.device)
-        sigma[valid] = density(xyz[valid])
-        w, _, _ = render_weights(sigma, torch.full_like(sigma, step))
-        pts, wv = xyz[valid], w[valid]
-        cell = ((pts - bbox[0]) / (bbox[1] - bbox[0]) * res).long()
-        cell = torch.minimum(cell.clamp_min(0), res - 1)
-        flat = (cell[:, 0] * res[1] + cell[:, 1]) * res[2] + cell[:, 2]
-        best.scatter_reduce_(0, flat, wv, reduce="amax")
-    return best.reshape(shape)
