@@ -163,7 +163,7 @@ def finetune(
     iters: Annotated[Optional[int], typer.Option("--iters", min=1)] = None,
     lam: Annotated[Optional[float], typer.Option("--lambda", min=0.0, help="Weight of the resolution-weighted auxiliary loss (1e-3 in the paper).")] = None,
     penalty: Annotated[Optional[str], typer.Option("--penalty", help="geometric (paper), linear, quadratic or none.")] = None,
-    renormalize: Annotated[Optional[bool], typer.Option("--renormalize/--no-renormalize", help="Renormalise the top-k probabilities to sum to 1 (default: on for k >= 2, off for k = 1).")] = None,
+    renormalize: Annotated[Optional[bool], typer.Option("--renormalize/--no-renormalize", help="Renormalise the top-k weights to sum to 1 (default; for k = 1 a straight-through 1). Off: raw gate probabilities.")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
     force: Annotated[bool, typer.Option("--force", help="Redo a model that is already finetuned.")] = False,

@@ -80,11 +80,11 @@ class MoERecipe:
     gate_layers: int = 2
     vd_res: int | None = None  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
     density_threshold: float = 1e-3  # T: samples whose V_D opacity over one step is below it are filtered
-    step_from: str = "smallest"  # render step of the mixture: the smallest expert's (coarsest) or the largest's
+    step_from: str = "largest"  # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
     topk: int = 2
     lam: float = 1e-3
     penalty: str = "geometric"  # geometric | linear | quadratic | none
-    renormalize: bool | None = None  # None: renormalise for k >= 2, raw probabilities for k = 1 (docs/results.md)
+    renormalize: bool = True  # top-k weights sum to 1 (k = 1: straight-through 1); False: raw probabilities (docs/results.md)
     iters: int = 1000
     lr_gate: float = 1e-2
     lr_gate_mlp: float = 1e-3

@@ -4,9 +4,8 @@ import json
 import shutil
 from pathlib import Path
 
-from safetensors import safe_open
-
 from conftest import run_cli
+from safetensors import safe_open
 
 
 def _no_temp_files(ws: Path) -> bool:

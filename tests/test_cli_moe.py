@@ -4,7 +4,6 @@ import json
 import shutil
 
 import pytest
-
 from conftest import run_cli
 from test_cli import _assert_clean_failure, _no_temp_files
 

@@ -193,3 +193,59 @@ def test_save_load_round_trip(tmp_path, kind):
     assert torch.equal(mix.color(xyz, d), mix2.color(xyz, d))
     assert torch.equal(mix.skip(xyz), mix2.skip(xyz))
     assert meta["mixture"]["topk"] == 2 and meta["gate"]["config"]["kind"] == kind
+
+
+def test_top1_renormalised_is_a_straight_through_one():
+    logits = torch.randn(20, 3, dtype=torch.float64, requires_grad=True)
+    probs = torch.softmax(logits, -1)
+    vals, idx = top_k(probs, 1, renormalize=True)
+    assert torch.equal(vals.detach(), torch.ones(20, 1, dtype=torch.float64))
+    raw, raw_idx = top_k(probs, 1, renormalize=False)
+    assert torch.equal(idx, raw_idx)
+    g = torch.randn(20, 1, dtype=torch.float64)
+    (grad_st,) = torch.autograd.grad((vals * g).sum(), logits, retain_graph=True)
+    (grad_raw,) = torch.autograd.grad((raw * g).sum(), logits)
+    assert torch.allclose(grad_st, grad_raw, atol=1e-15)  # the gate still learns from the photometric loss
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_renderer_routes_each_sample_once_and_matches_the_plain_mixture(k, monkeypatch):
+    """The routed view reuses the density pass's routing for colour: same image and gradients, one gate call."""
+    mix = _mixture(k=k)
+    g = torch.Generator().manual_seed(3)
+    origins = torch.tensor([0.0, 0.0, -3.0]).expand(16, 3).clone()
+    dirs = torch.nn.functional.normalize(torch.randn(16, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    settings = RenderSettings(step=0.05, near=0.1, far=6.0, bbox=BOX, color_threshold=1e-4)
+
+    def render(routed: bool):
+        mix.zero_grad()
+        field = mix if routed else _PlainField(mix)
+        b = render_rays(field, origins, dirs, settings, mix.skip)
+        b.color.sum().backward()
+        return b.color.detach(), [p.grad.clone() if p.grad is not None else None for p in mix.parameters()]
+
+    calls = []
+    real_probs = mix.gate.probs
+    monkeypatch.setattr(mix.gate, "probs", lambda x: calls.append(x.shape[0]) or real_probs(x))
+    color_routed, grads_routed = render(routed=True)
+    assert len(calls) == 1  # the gate ran once, on the density pass
+    color_plain, grads_plain = render(routed=False)
+    assert len(calls) == 3  # the plain field runs it again for the colour pass
+    assert torch.allclose(color_routed, color_plain, atol=1e-6)
+    for a, b in zip(grads_routed, grads_plain):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert torch.allclose(a, b, atol=1e-5)
+
+
+class _PlainField:
+    """The mixture through the bare Field protocol (no routed view)."""
+
+    def __init__(self, mix):
+        self.mix = mix
+
+    def density(self, xyz):
+        return self.mix.density(xyz)
+
+    def color(self, xyz, dirs):
+        return self.mix.color(xyz, dirs)

@@ -1,7 +1,8 @@
 """Numerical stress: extreme logits, densities, steps and coordinates stay finite and close to float64."""
 
 import torch
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from boostnerf_cli.fields import grid as G
 from boostnerf_cli.moe.router import aux_loss, penalty_weights, top_k

@@ -106,25 +106,29 @@ class Mixture(nn.Module):
         vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
         return probs, vals, idx
 
-    def density_routed(self, xyz: Tensor, stats: RoutingStats | None) -> Tensor:
-        probs, vals, idx = self.route(xyz)
-        if stats is not None:
-            stats.probs.append(probs)
-            stats.idx.append(idx)
-        out, _ = dispatch(xyz.shape[0], idx, vals, self.m, lambda e, r: self.experts[e].density(xyz[r])[:, None], 1, xyz)
-        return out[:, 0]
-
-    # --- the Field contract ---------------------------------------------------------------------
-    def density(self, xyz: Tensor) -> Tensor:
-        return self.density_routed(xyz, None)
-
-    def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
-        _, vals, idx = self.route(xyz)
+    def _mix(self, xyz: Tensor, dirs: Tensor | None, vals: Tensor, idx: Tensor) -> Tensor:
+        """Run each expert on its routed samples only: density (dirs None) -> (N,), colour -> (N, 3)."""
+        if dirs is None:
+            out, _ = dispatch(xyz.shape[0], idx, vals, self.m, lambda e, r: self.experts[e].density(xyz[r])[:, None], 1, xyz)
+            return out[:, 0]
         out, _ = dispatch(xyz.shape[0], idx, vals, self.m, lambda e, r: self.experts[e].color(xyz[r], dirs[r]), 3, xyz)
         return out
 
+    # --- the Field contract ---------------------------------------------------------------------
+    def density(self, xyz: Tensor) -> Tensor:
+        _, vals, idx = self.route(xyz)
+        return self._mix(xyz, None, vals, idx)
+
+    def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
+        _, vals, idx = self.route(xyz)
+        return self._mix(xyz, dirs, vals, idx)
+
     def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
         return self.density(xyz), self.color(xyz, dirs)
+
+    def routed(self) -> "RoutedMixture":
+        """A per-batch view for the renderer: the gate runs once per sample (see RoutedMixture)."""
+        return RoutedMixture(self, None)
 
     def with_stats(self, stats: RoutingStats) -> "RoutedMixture":
         return RoutedMixture(self, stats)
@@ -144,13 +148,32 @@ class Mixture(nn.Module):
 
 
 class RoutedMixture:
-    """A Field view of a mixture that records the density pass's routing in an explicit stats object."""
+    """A per-batch Field view of a mixture that routes each sample once.
 
-    def __init__(self, mixture: Mixture, stats: RoutingStats):
+    `density(xyz)` runs the gate and remembers the routing of those samples; the renderer's colour
+    pass then calls `color_rows(rows, dirs)` for a subset `rows` of them, which reuses that routing
+    instead of running the gate again. When `stats` is given, the density pass's probabilities and
+    choices are also recorded there (for the auxiliary loss and the load logs).
+    """
+
+    def __init__(self, mixture: Mixture, stats: RoutingStats | None):
         self.mixture, self.stats = mixture, stats
+        self._last: tuple[Tensor, Tensor, Tensor] | None = None
 
     def density(self, xyz: Tensor) -> Tensor:
-        return self.mixture.density_routed(xyz, self.stats)
+        probs, vals, idx = self.mixture.route(xyz)
+        if self.stats is not None:
+            self.stats.probs.append(probs)
+            self.stats.idx.append(idx)
+        self._last = (xyz, vals, idx)
+        return self.mixture._mix(xyz, None, vals, idx)
+
+    def color_rows(self, rows: Tensor, dirs: Tensor) -> Tensor:
+        """Colour of the samples `rows` of the last `density` call, seen from `dirs` (len(rows), 3)."""
+        if self._last is None:
+            raise RuntimeError("color_rows needs a density pass first")
+        xyz, vals, idx = self._last
+        return self.mixture._mix(xyz[rows], dirs, vals[rows], idx[rows])
 
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
         return self.mixture.color(xyz, dirs)

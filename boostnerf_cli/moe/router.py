@@ -36,10 +36,19 @@ def penalty_weights(m: int, kind: str, device=None) -> Tensor:
 
 
 def top_k(probs: Tensor, k: int, renormalize: bool) -> tuple[Tensor, Tensor]:
-    """probs (N, M) -> weights (N, k), expert indices (N, k); weights sum to 1 when renormalised."""
+    """probs (N, M) -> weights (N, k), expert indices (N, k); weights sum to 1 when renormalised.
+
+    Renormalising one weight would make it the constant 1 and cut the gate off from the photometric
+    loss, so for k = 1 the renormalised weight is a straight-through 1: its value is 1 (the chosen
+    expert's output is used as is, not dimmed by a probability below 1) and its gradient is that of
+    the raw probability, d w / d p = 1 (the paper's Algorithm 1 multiplies by the raw p).
+    """
     vals, idx = torch.topk(probs, k, dim=-1)
     if renormalize:
-        vals = vals / vals.sum(-1, keepdim=True).clamp_min(1e-12)
+        if k == 1:
+            vals = vals - vals.detach() + 1.0
+        else:
+            vals = vals / vals.sum(-1, keepdim=True).clamp_min(1e-12)
     return vals, idx
 
 

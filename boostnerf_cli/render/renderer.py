@@ -81,6 +81,8 @@ def render_rays(
     """Render a batch of rays (R, 3), (R, 3) through `field`; differentiable w.r.t. the field."""
     t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter)
     r, s = t.shape
+    if hasattr(field, "routed"):  # a mixture: route each sample once for both passes
+        field = field.routed()
     if skip is not None and valid.any():
         keep = valid.clone()
         keep[valid] = skip(xyz[valid])
@@ -101,7 +103,11 @@ def render_rays(
     rgb = torch.zeros(r * s, 3, device=origins.device, dtype=origins.dtype)
     if cflat.numel():
         ray_of = cflat // s
-        rgb = rgb.index_put((cflat,), field.color(pts[sel], dirs[ray_of]))
+        if hasattr(field, "color_rows"):  # reuses the density pass's work (a mixture's routing)
+            colors = field.color_rows(sel.nonzero().squeeze(-1), dirs[ray_of])
+        else:
+            colors = field.color(pts[sel], dirs[ray_of])
+        rgb = rgb.index_put((cflat,), colors)
     rgb = rgb.reshape(r, s, 3)
     color, depth, acc = composite(weights, rgb, t, settings.background)
     flops.add("composite", flops.COMPOSITE_FLOPS * r * s)

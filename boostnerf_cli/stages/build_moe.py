@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from typing import Callable
 
-
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import count_params, load_expert
 from boostnerf_cli.moe.density_volume import DensityVolume
@@ -54,7 +53,7 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     occ = OccupancyGrid.from_density(vd.density, bbox, vd.shape, step, rec.density_threshold)
     gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=rec.gate_channels, hidden=rec.gate_hidden,
                            layers=rec.gate_layers), len(experts), bbox).to(device)
-    cfg = MixtureConfig(topk=min(rec.topk, len(experts)), renormalize=rec.renormalize is not False, threshold=rec.density_threshold,
+    cfg = MixtureConfig(topk=min(rec.topk, len(experts)), renormalize=rec.renormalize, threshold=rec.density_threshold,
                         penalty=rec.penalty, vd_res=vd_res, step=step, expert_names=[e[1] for e in experts])
     mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
     save_mixture(ws.model_path("init"), mix, {"name": "init"})

@@ -16,11 +16,11 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
+from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.metrics import image_metrics, load_lpips
 from boostnerf_cli.render.renderer import render_image
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import LoadedModel, all_model_names, load_model, workspace_scene
-from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.workspace import Workspace, atomic_path, write_json
 
 

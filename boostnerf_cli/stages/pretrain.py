@@ -15,14 +15,13 @@ import json
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import torch
 from torch import Tensor, nn
 
 from boostnerf_cli.errors import BoostNerfError
-from pathlib import Path
-
 from boostnerf_cli.fields import FAMILIES, build_expert, count_params, load_expert, save_expert
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.metrics import mse_to_psnr
