@@ -31,6 +31,7 @@ RecipeOpt = Annotated[Optional[Path], typer.Option("--recipe", help="YAML recipe
 SplitOpt = Annotated[str, typer.Option("--split", help="Split to use: test (falls back to val), val or train.")]
 ModelsOpt = Annotated[Optional[list[str]], typer.Option("--model", help="Model name(s); default: every model of the workspace.")]
 NoSkipOpt = Annotated[bool, typer.Option("--no-skip", help="Turn every skip off: dense sampling, every sample evaluated.")]
+ExactGateOpt = Annotated[bool, typer.Option("--exact-gate", help="Mixtures: run the gate's grid + MLP on every sample instead of its baked logits (moe.bake_res).")]
 ViewsOpt = Annotated[Optional[int], typer.Option("--views", min=1, help="Only the first N views of the split.")]
 
 
@@ -190,6 +191,7 @@ def render(
     views: ViewsOpt = None,
     no_skip: NoSkipOpt = False,
     per_expert: Annotated[bool, typer.Option("--per-expert", help="Mixtures: also each expert's contribution and the gate's probability map per expert.")] = False,
+    exact_gate: ExactGateOpt = False,
     device: DeviceOpt = "auto",
 ) -> None:
     """Render a split of the scene with each model: PNG colour and 16-bit depth under WS/renders/."""
@@ -198,7 +200,8 @@ def render(
 
     ws, lock = _writer(workspace)
     with lock:
-        run_render(ws, model, split, resolve_device(device), not no_skip, views, log, per_expert=per_expert)
+        run_render(ws, model, split, resolve_device(device), not no_skip, views, log, per_expert=per_expert,
+                   exact_gate=exact_gate)
 
 
 @app.command("eval")
@@ -210,6 +213,7 @@ def eval_cmd(
     no_skip: NoSkipOpt = False,
     report: Annotated[bool, typer.Option("--report", help="Write WS/reports/eval.json.")] = False,
     no_costs: Annotated[bool, typer.Option("--no-costs", help="Skip ||w||_0 and GFLOPs (they need an extra pass).")] = False,
+    exact_gate: ExactGateOpt = False,
     device: DeviceOpt = "auto",
 ) -> None:
     """PSNR, SSIM, LPIPS (when its weights are on disk) and seconds per image for every model."""
@@ -218,7 +222,8 @@ def eval_cmd(
 
     ws, lock = _writer(workspace)
     with lock:
-        result = run_eval(ws, model, split, resolve_device(device), not no_skip, views, report, log, costs=not no_costs)
+        result = run_eval(ws, model, split, resolve_device(device), not no_skip, views, report, log, costs=not no_costs,
+                          exact_gate=exact_gate)
     table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")
     for r in result["models"]:
         table.add_row(r["name"], f"{r['psnr']:.3f}", f"{r['ssim']:.4f}",

@@ -85,6 +85,7 @@ class MoERecipe:
     lam: float = 1e-3
     penalty: str = "geometric"  # geometric | linear | quadratic | none
     renormalize: bool = True  # top-k weights sum to 1 (k = 1: straight-through 1); False: raw probabilities (docs/results.md)
+    bake_res: int = 128  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
     iters: int = 1000
     lr_gate: float = 1e-2
     lr_gate_mlp: float = 1e-3

@@ -249,3 +249,33 @@ class _PlainField:
 
     def color(self, xyz, dirs):
         return self.mix.color(xyz, dirs)
+
+
+def test_baked_gate_equals_the_gate_at_its_lattice_and_has_nothing_to_train():
+    from boostnerf_cli.fields import grid as G
+
+    mix = _mixture()
+    baked = mix.gate.baked(9)
+    pts = G.lattice_points(baked.bbox, baked.shape)
+    assert torch.allclose(baked.logits(pts), mix.gate.logits(pts), atol=1e-5)
+    assert list(baked.parameters()) == []
+    # between vertices it interpolates the logits: close to the gate, closer with a finer lattice
+    xyz, _ = _points(500)
+    with torch.no_grad():
+        err = [float((mix.gate.probs(xyz) - mix.gate.baked(r).probs(xyz)).abs().max()) for r in (5, 17, 65)]
+    assert err[2] < err[0] and err[2] < 0.05
+
+
+def test_rendering_a_mixture_uses_the_baked_gate_unless_asked_for_the_exact_one():
+    import dataclasses
+
+    mix = _mixture(k=1)
+    mix.cfg = dataclasses.replace(mix.cfg, bake_res=0)
+    assert mix.for_rendering().gate.cfg.kind == "grid"
+    mix.cfg = dataclasses.replace(mix.cfg, bake_res=33)
+    assert mix.for_rendering(exact_gate=True).gate.cfg.kind == "grid"
+    exact = mix.gate
+    assert mix.for_rendering().gate.cfg.kind == "baked"
+    xyz, _ = _points(300)
+    agree = (exact.probs(xyz).argmax(-1) == mix.gate.probs(xyz).argmax(-1)).float().mean()
+    assert agree > 0.9  # top-1 routing changes only next to the gate's decision boundaries

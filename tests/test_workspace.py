@@ -77,3 +77,14 @@ def test_recipe_type_errors_are_one_clear_line(tmp_path):
     bad.write_text("pretrain: [1, 2\n")
     with pytest.raises(BoostNerfError, match="not valid YAML"):
         load_recipe(bad)
+
+
+def test_family_options_may_be_given_per_expert():
+    from boostnerf_cli.recipe import PretrainRecipe
+    from boostnerf_cli.stages.pretrain import expert_options
+
+    rec = PretrainRecipe(res=[96, 32, 64], dvgo={"hidden": [16, 32, 64], "feat_dim": 6})
+    assert expert_options(rec, 32) == {"hidden": 16, "feat_dim": 6, "res": 32}
+    assert expert_options(rec, 96)["hidden"] == 64  # lists follow the sorted resolutions
+    with pytest.raises(BoostNerfError, match="lists 2 values for 3 experts"):
+        expert_options(PretrainRecipe(res=[32, 64, 96], dvgo={"hidden": [16, 32]}), 32)

@@ -5,6 +5,9 @@ grid    (paper): G(x) = softmax(MLP(interp(V_G, x))), V_G a low-resolution dense
 linear  : softmax(W interp(V_G, x) + b)              (the paper's "linear" ablation)
 switch  : softmax(MLP_4x128(PE(x)))                  (Switch-NeRF-style, no grid)
 uniform : G(x)_i = 1/M                               (the ensemble; no parameters)
+baked   : softmax(interp(L, x)), L the logits of a trained gate sampled at the vertices of a
+          `res`^3 lattice (`Gate.baked`): what rendering uses, so the gate MLP does not run on
+          every sample of every image (its error is measured in docs/results.md)
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from torch import Tensor, nn
 
 from boostnerf_cli.fields import grid as G
 
-GATE_TYPES = ("grid", "linear", "switch", "uniform")
+GATE_TYPES = ("grid", "linear", "switch", "uniform", "baked")
 
 
 @dataclass
@@ -68,6 +71,8 @@ class Gate(nn.Module):
             self.mlp = _mlp(cfg.channels, cfg.hidden, cfg.layers if cfg.kind == "grid" else 0, n_experts)
         elif cfg.kind == "switch":
             self.mlp = _mlp(3 + 6 * cfg.pe, 128, 4, n_experts)
+        elif cfg.kind == "baked":
+            self.register_buffer("logit_table", torch.zeros(math.prod(self.shape), n_experts))
         if self.mlp is not None:
             self._center_logits()
 
@@ -86,10 +91,23 @@ class Gate(nn.Module):
             rel = (xyz - self.bbox[0]) / (self.bbox[1] - self.bbox[0]) * 2 - 1
             return self.mlp(positional_encoding(rel, self.cfg.pe))
         idx, w = G.corners(xyz, self.bbox, self.shape)
+        if self.cfg.kind == "baked":
+            return G.lookup(self.logit_table, idx, w)
         return self.mlp(G.lookup(self.table, idx, w))
 
     def probs(self, xyz: Tensor) -> Tensor:
         return torch.softmax(self.logits(xyz), dim=-1)
+
+    @torch.no_grad()
+    def baked(self, res: int) -> "Gate":
+        """A frozen copy whose logits are this gate's, sampled at the vertices of a res^3 lattice and
+        interpolated trilinearly: one M-channel lookup per sample instead of the grid + MLP."""
+        if self.cfg.kind in ("uniform", "baked"):
+            return self
+        out = Gate(GateConfig(kind="baked", res=res, channels=self.m, hidden=0, layers=0), self.m, self.bbox)
+        pts = G.lattice_points(out.bbox, out.shape)
+        out.logit_table.copy_(torch.cat([self.logits(pts[i : i + (1 << 16)]) for i in range(0, pts.shape[0], 1 << 16)]))
+        return out.to(self.bbox.device).eval()
 
     def config_dict(self) -> dict:
         return {"config": asdict(self.cfg), "shape": list(self.shape), "experts": self.m}

@@ -35,6 +35,7 @@ class MixtureConfig:
     penalty: str = "geometric"
     vd_res: int = 64  # density volume: vd_res^3 voxels
     step: float = 0.01  # render step (world units)
+    bake_res: int = 0  # > 0: rendering uses the gate baked on a bake_res^3 lattice (Gate.baked)
     expert_names: list[str] = field(default_factory=list)
 
 
@@ -125,6 +126,12 @@ class Mixture(nn.Module):
 
     def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
         return self.density(xyz), self.color(xyz, dirs)
+
+    def for_rendering(self, exact_gate: bool = False) -> "Mixture":
+        """Ready to render a trained mixture: the gate baked when `cfg.bake_res` > 0 (unless exact_gate)."""
+        if self.cfg.bake_res > 0 and not exact_gate:
+            self.gate = self.gate.baked(self.cfg.bake_res)
+        return self
 
     def routed(self) -> "RoutedMixture":
         """A per-batch view for the renderer: the gate runs once per sample (see RoutedMixture)."""

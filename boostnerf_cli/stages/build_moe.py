@@ -54,7 +54,7 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=rec.gate_channels, hidden=rec.gate_hidden,
                            layers=rec.gate_layers), len(experts), bbox).to(device)
     cfg = MixtureConfig(topk=min(rec.topk, len(experts)), renormalize=rec.renormalize, threshold=rec.density_threshold,
-                        penalty=rec.penalty, vd_res=vd_res, step=step, expert_names=[e[1] for e in experts])
+                        penalty=rec.penalty, vd_res=vd_res, step=step, bake_res=rec.bake_res, expert_names=[e[1] for e in experts])
     mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
     save_mixture(ws.model_path("init"), mix, {"name": "init"})
     report = {

@@ -57,8 +57,11 @@ class LoadedModel:
                               background=scene.background, color_threshold=color_threshold)
 
 
-def load_model(ws: Workspace, name: str, device: str) -> LoadedModel:
-    """An expert (`dvgo-64`), a mixture (`top1`, `top2`, `ens`) or the finetuned `baseline` of the workspace."""
+def load_model(ws: Workspace, name: str, device: str, exact_gate: bool = False) -> LoadedModel:
+    """An expert (`dvgo-64`), a mixture (`top1`, `top2`, `ens`) or the finetuned `baseline` of the workspace.
+
+    A mixture is returned ready to render: its gate baked (`Mixture.for_rendering`) unless `exact_gate`.
+    """
     path = ws.expert_path(name) if ws.expert_path(name).exists() else ws.model_path(name)
     if not path.exists() or name == "geometry":
         known = ", ".join(all_model_names(ws)) or "none yet"
@@ -67,7 +70,9 @@ def load_model(ws: Workspace, name: str, device: str) -> LoadedModel:
         from boostnerf_cli.moe.mixture import load_mixture
 
         mix, meta = load_mixture(path, device)
-        return LoadedModel(name, "mixture", mix, mix.skip, meta["step"], mix.bbox, count_params(mix))
+        params = count_params(mix)  # the trained model's, before baking
+        mix = mix.for_rendering(exact_gate)
+        return LoadedModel(name, "mixture", mix, mix.skip, meta["step"], mix.bbox, params)
     model, occ, meta = load_expert(path, device)
     return LoadedModel(name, "expert", model, occ.to(device) if occ is not None else None, meta["step"],
                        model.bbox, count_params(model))

@@ -63,14 +63,17 @@ def gflops_per_image(model: LoadedModel, scene: Scene, split: Split, device: str
     return total / max(1, n) / 1e9
 
 
-def model_costs(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None) -> dict:
+def model_costs(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None,
+                render_model: LoadedModel | None = None) -> dict:
+    """||w||_0 of `model` (a mixture with its exact, trainable gate); GFLOPs of `render_model`
+    (what render and eval run: the mixture with its baked gate), `model` itself when None."""
     active = active_parameters(model, scene, split, device, views)
     row = {
         "name": model.name,
         "kind": model.kind,
         "params": model.params,
         "w0": active["w0"],
-        "gflops_per_image": round(gflops_per_image(model, scene, split, device, views), 4),
+        "gflops_per_image": round(gflops_per_image(render_model or model, scene, split, device, views), 4),
     }
     if model.kind == "mixture":
         mix = model.field
@@ -92,7 +95,8 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, vi
         raise BoostNerfError(f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
     rows = []
     for name in names:
-        row = model_costs(load_model(ws, name, device), scene, split, device, views)
+        row = model_costs(load_model(ws, name, device, exact_gate=True), scene, split, device, views,
+                          render_model=load_model(ws, name, device))
         log(f"{name}: {row['params']:,} parameters, ||w||_0 {row['w0']:,}, {row['gflops_per_image']:.3f} GFLOPs/image")
         rows.append(row)
     result = {"split": split_name, "views": min(views or len(split), len(split)), "models": rows}

@@ -53,12 +53,12 @@ def render_split(model: LoadedModel, scene: Scene, split: Split, device: str, sk
 
 
 def run_render(ws: Workspace, names: list[str] | None, split_name: str, device: str, skip: bool, views: int | None,
-               log: Callable[[str], None], per_expert: bool = False) -> list[Path]:
+               log: Callable[[str], None], per_expert: bool = False, exact_gate: bool = False) -> list[Path]:
     scene = workspace_scene(ws)
     split = scene.split(split_name)
     written = []
     for name in names or all_model_names(ws):
-        model = load_model(ws, name, device)
+        model = load_model(ws, name, device, exact_gate)
         folder = ws.renders_dir(name, split_name)
         for i, r in enumerate(render_split(model, scene, split, device, skip, views)):
             stem = Path(split.names[i]).name
@@ -117,7 +117,7 @@ def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, 
 
 
 def run_eval(ws: Workspace, names: list[str] | None, split_name: str, device: str, skip: bool, views: int | None,
-             report: bool, log: Callable[[str], None], costs: bool = True) -> dict:
+             report: bool, log: Callable[[str], None], costs: bool = True, exact_gate: bool = False) -> dict:
     scene = workspace_scene(ws)
     split = scene.split(split_name)
     names = names or all_model_names(ws)
@@ -128,12 +128,13 @@ def run_eval(ws: Workspace, names: list[str] | None, split_name: str, device: st
         log(lpips_note)
     rows = []
     for name in names:
-        model = load_model(ws, name, device)
+        model = load_model(ws, name, device, exact_gate)
         row = evaluate_model(model, scene, split, device, lpips_model, skip, views)
         if costs:
             from boostnerf_cli.stages.count_params import model_costs
 
-            c = model_costs(model, scene, split, device, views)
+            trained = load_model(ws, name, device, exact_gate=True) if model.kind == "mixture" else model
+            c = model_costs(trained, scene, split, device, views, render_model=model)
             row.update(w0=c["w0"], gflops_per_image=c["gflops_per_image"])
         log(f"{name}: PSNR {row['psnr']:.3f}  SSIM {row['ssim']:.4f}  {row['seconds_per_image']:.3f}s/image")
         rows.append(row)

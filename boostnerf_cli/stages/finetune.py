@@ -98,7 +98,8 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     else:
         if not 1 <= topk <= mix.m:
             raise BoostNerfError(f"--topk must be between 1 and the number of experts ({mix.m}), got {topk}")
-        mix.cfg = dataclasses.replace(mix.cfg, topk=topk, renormalize=rec.renormalize, penalty=rec.penalty)
+        mix.cfg = dataclasses.replace(mix.cfg, topk=topk, renormalize=rec.renormalize, penalty=rec.penalty,
+                                      bake_res=rec.bake_res)
         mix.penalty = penalty_weights(mix.m, rec.penalty, device=mix.penalty.device)
     settings = RenderSettings(step=mix.cfg.step, near=scene.near, far=scene.far, bbox=mix.bbox,
                               background=scene.background, color_threshold=rec.train.color_threshold)

@@ -162,12 +162,27 @@ def expert_name(model: str, res: int) -> str:
     return f"{model}-{res}"
 
 
+def expert_options(rec: PretrainRecipe, res: int) -> dict:
+    """The family options of the expert at `res`: a list value gives one entry per expert, in the
+    order of the sorted resolutions (e.g. `hidden: [64, 96, 128]` widens the MLP with the grid)."""
+    order = sorted(rec.res)
+    opts = {}
+    for key, value in rec.dvgo.items():
+        if isinstance(value, list):
+            if len(value) != len(order):
+                raise BoostNerfError(f"recipe key pretrain.dvgo.{key} lists {len(value)} values for {len(order)} "
+                                     f"experts (res {order}): give one value, or one per expert")
+            value = value[order.index(res)]
+        opts[key] = value
+    return {**opts, "res": res}
+
+
 def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, box: Tensor, geom: OccupancyGrid,
                     prior: nn.Module, device: str, scene_tag: str = "") -> dict:
     """Train one expert at `res` and write its safetensors file and JSON report."""
     name = expert_name(rec.model, res)
     tcfg = rec.train
-    model = build_expert(rec.model, {**rec.dvgo, "res": res}, box).to(device)
+    model = build_expert(rec.model, expert_options(rec, res), box).to(device)
     final_voxels = res ** 3
     growth = growth_schedule(rec.iters, tcfg.growth)
     if growth:
@@ -237,6 +252,8 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
                        format=rec.data.format)
     if rec.pretrain.model not in FAMILIES:
         raise BoostNerfError(f"unknown model family {rec.pretrain.model!r}: choose one of {', '.join(FAMILIES)}")
+    for res in rec.pretrain.res:  # per-expert options are checked before anything trains
+        expert_options(rec.pretrain, res)
     ws.update_manifest(data=inputs, scene_id=scene_id(inputs), scene=scene.describe(), recipe=recipe_dict(rec))
     log(f"scene {scene.name}: {len(scene.splits['train'])} train views "
         f"{scene.splits['train'].width}x{scene.splits['train'].height}"
