@@ -83,8 +83,9 @@ def test_family_options_may_be_given_per_expert():
     from boostnerf_cli.recipe import PretrainRecipe
     from boostnerf_cli.stages.pretrain import expert_options
 
-    rec = PretrainRecipe(res=[96, 32, 64], dvgo={"hidden": [16, 32, 64], "feat_dim": 6})
+    rec = PretrainRecipe(res=[96, 32, 64], dvgo={"hidden": {32: 16, 64: 32, 96: 64}, "feat_dim": 6})
     assert expert_options(rec, 32) == {"hidden": 16, "feat_dim": 6, "res": 32}
-    assert expert_options(rec, 96)["hidden"] == 64  # lists follow the sorted resolutions
-    with pytest.raises(BoostNerfError, match="lists 2 values for 3 experts"):
-        expert_options(PretrainRecipe(res=[32, 64, 96], dvgo={"hidden": [16, 32]}), 32)
+    assert expert_options(rec, 96)["hidden"] == 64
+    assert expert_options(PretrainRecipe(res=[32], dvgo={"hidden": {"32": 8}}), 32)["hidden"] == 8  # from JSON
+    with pytest.raises(BoostNerfError, match="has no value for res 128"):
+        expert_options(PretrainRecipe(res=[32, 128], dvgo={"hidden": {32: 16, 64: 32}}), 128)

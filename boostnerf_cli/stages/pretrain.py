@@ -163,16 +163,20 @@ def expert_name(model: str, res: int) -> str:
 
 
 def expert_options(rec: PretrainRecipe, res: int) -> dict:
-    """The family options of the expert at `res`: a list value gives one entry per expert, in the
-    order of the sorted resolutions (e.g. `hidden: [64, 96, 128]` widens the MLP with the grid)."""
-    order = sorted(rec.res)
+    """The family options of the expert at `res`. A mapping from resolution to value sets an option
+    per expert (e.g. `hidden: {64: 64, 80: 96, 96: 128}` widens the colour MLP with the grid)."""
     opts = {}
     for key, value in rec.dvgo.items():
-        if isinstance(value, list):
-            if len(value) != len(order):
-                raise BoostNerfError(f"recipe key pretrain.dvgo.{key} lists {len(value)} values for {len(order)} "
-                                     f"experts (res {order}): give one value, or one per expert")
-            value = value[order.index(res)]
+        if isinstance(value, dict):
+            try:  # JSON (the manifest) turns the keys into strings
+                value = {int(k): v for k, v in value.items()}
+            except ValueError:
+                raise BoostNerfError(f"recipe key pretrain.dvgo.{key}: the keys of a per-expert mapping must be "
+                                     f"resolutions (integers), got {list(value)}") from None
+            if res not in value:
+                raise BoostNerfError(f"recipe key pretrain.dvgo.{key} has no value for res {res} "
+                                     f"(it has {', '.join(map(str, value))}): add one, or give a single value")
+            value = value[res]
         opts[key] = value
     return {**opts, "res": res}
 
