@@ -254,6 +254,29 @@ def count_params_cmd(
     out.print(table)
 
 
+@app.command()
+def prune(
+    workspace: WorkspaceOpt,
+    model: Annotated[str, typer.Option("--model", help="The model to prune (e.g. top1); writes model NAME-pruned.")],
+    split: Annotated[str, typer.Option("--split", help="Views whose photometric-loss gradient decides what is kept.")] = "train",
+    views: ViewsOpt = None,
+    device: DeviceOpt = "auto",
+    force: Annotated[bool, typer.Option("--force", help="Redo a model that is already pruned.")] = False,
+) -> None:
+    """Drop the grid entries no training view uses (zero gradient): -> WS/moe/NAME-pruned.safetensors + .json."""
+    from boostnerf_cli.stages import prune as stage
+    from boostnerf_cli.stages.common import resolve_device
+
+    ws, lock = _writer(workspace)
+    with lock:
+        r = stage.run(ws, model, split, resolve_device(device), views, force, log)
+    table = Table("model", "params", "file MB", "test PSNR", "train views max |diff|")
+    table.add_row(r["from"], f"{r['params_before']:,}", f"{r['file_bytes_before'] / 1e6:.2f}", f"{r['test_psnr_before']:.3f}", "")
+    table.add_row(r["name"], f"{r['params_after']:,}", f"{r['file_bytes_after'] / 1e6:.2f}", f"{r['test_psnr_after']:.3f}",
+                  f"{r['train_max_abs_diff']:.1e}")
+    out.print(table)
+
+
 def main() -> None:
     try:
         app()
