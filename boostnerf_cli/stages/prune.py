@@ -151,7 +151,7 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
         kept = int(keep.sum())
         dropped += (table.shape[0] - kept) * table.shape[1]
         tables.append({"name": tname, "rows": table.shape[0], "kept_rows": kept, "channels": table.shape[1],
-                       "fill": [round(v, 6) for v in fill]})
+                       "fill": fill})
     params_before = before.params
     meta = {k: v for k, v in meta.items() if k != "format_version"}
     save_tensors(out_path, tensors, {**meta, "name": out_name, "pruned_from": name, "packed": packed,
