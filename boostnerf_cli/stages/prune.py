@@ -61,15 +61,17 @@ def _rows_used(grad: Tensor | None, rows: int, device) -> Tensor:
 
 
 def usage_masks(ws: Workspace, name: str, scene: Scene, split: Split, device: str,
-                views: int | None = None) -> dict[str, Tensor]:
-    """-> {table name: (rows,) bool}, True for the rows whose gradient is non-zero on the split."""
+                views: int | None = None, render: LoadedModel | None = None) -> dict[str, Tensor]:
+    """-> {table name: (rows,) bool}, True for the rows whose gradient is non-zero on the split.
+
+    `render`: the model as `load_model(ws, name, device)` gives it (loaded here when None)."""
     exact = load_model(ws, name, device, exact_gate=True)
     tables = grid_tables(exact.field)
     grads = photometric_grads(exact.field, exact.skip, exact.settings(scene), split, device, views)
     masks = {n: _rows_used(grads[n], t.shape[0], t.device) for n, t in tables.items()}
     if exact.kind != "mixture":
         return masks
-    render = load_model(ws, name, device)  # what render and eval run: the gate baked
+    render = render or load_model(ws, name, device)  # what render and eval run: the gate baked
     baked = render.field.gate
     if baked.cfg.kind != "baked":
         return masks
@@ -137,7 +139,7 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
     scene = workspace_scene(ws)
     split = scene.split(split_name)
     t0 = time.perf_counter()
-    masks = usage_masks(ws, name, scene, split, device, views)
+    masks = usage_masks(ws, name, scene, split, device, views, render=before)
     tensors, meta = load_tensors(src)
     if meta.get("packed"):
         raise BoostNerfError(f"{src} is already a pruned model")
