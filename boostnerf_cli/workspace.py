@@ -5,6 +5,7 @@ WS/experts/<model>-<res>.safetensors  expert weights (config as JSON in the meta
 WS/experts/<model>-<res>.json     its training report
 WS/experts/geometry.safetensors   the shared coarse geometry (box + occupancy) all experts start from
 WS/moe/<name>.safetensors         mixtures (untrained `init`, finetuned `top1`, `top2`, `ens`), `baseline`
+WS/moe/<name>-pruned.safetensors  a model with its unused grid rows dropped (`prune`; packed tables, below)
 WS/checkpoints/<name>.pt          resumable training state, removed when the stage finishes
 WS/renders/<model>/<split>/...    images, depth, per-expert views, gate maps
 WS/reports/eval.json, count-params.json
