@@ -254,6 +254,68 @@ def count_params_cmd(
     out.print(table)
 
 
+@app.command()
+def prune(
+    workspace: WorkspaceOpt,
+    model: Annotated[str, typer.Option("--model", help="The model to prune (e.g. top1); writes model NAME-pruned.")],
+    split: Annotated[str, typer.Option("--split", help="Views whose photometric-loss gradient decides what is kept.")] = "train",
+    views: ViewsOpt = None,
+    device: DeviceOpt = "auto",
+    force: Annotated[bool, typer.Option("--force", help="Redo a model that is already pruned.")] = False,
+) -> None:
+    """Drop the grid entries no training view uses (zero gradient): -> WS/moe/NAME-pruned.safetensors + .json."""
+    from boostnerf_cli.stages import prune as stage
+    from boostnerf_cli.stages.common import resolve_device
+
+    ws, lock = _writer(workspace)
+    with lock:
+        r = stage.run(ws, model, split, resolve_device(device), views, force, log)
+    table = Table("model", "params", "file MB", "test PSNR", "train views max |diff|")
+    table.add_row(r["from"], f"{r['params_before']:,}", f"{r['file_bytes_before'] / 1e6:.2f}", f"{r['test_psnr_before']:.3f}", "")
+    table.add_row(r["name"], f"{r['params_after']:,}", f"{r['file_bytes_after'] / 1e6:.2f}", f"{r['test_psnr_after']:.3f}",
+                  f"{r['train_max_abs_diff']:.1e}")
+    out.print(table)
+
+
+@app.command()
+def bench(
+    workspace: Annotated[Path, typer.Option("--workspace", "-w", help="Bench folder: one workspace per variant under WS/variants, the table under WS/reports.")],
+    data: Annotated[Optional[Path], typer.Option("--data", help="Scene folder. Default: generate the procedural demo scene in WS/scene.")] = None,
+    recipe: RecipeOpt = None,
+    suite: Annotated[str, typer.Option("--suite", help="quick (experts, baseline, top1, top2, ens, naive alternatives) or full (+ ablations).")] = "quick",
+    only: Annotated[Optional[str], typer.Option("--only", help="Comma-separated row or group names of the suite to run (see --list).")] = None,
+    list_rows: Annotated[bool, typer.Option("--list", help="Print the suite's rows and whether each is finished; run nothing.")] = False,
+    views: Annotated[Optional[int], typer.Option("--views", min=1, help="Evaluate on the first N test views only.")] = None,
+    device: DeviceOpt = "auto",
+) -> None:
+    """Run time against error on one scene: train, evaluate and tabulate every variant (resumable)."""
+    from boostnerf_cli.recipe import load_recipe
+    from boostnerf_cli.stages import bench as stage
+    from boostnerf_cli.stages.common import resolve_device
+
+    rec = load_recipe(recipe)
+    names = [n for n in only.replace(" ", "").split(",") if n] if only else None
+    if list_rows:
+        _, rows = stage.catalogue(rec, suite)
+        table = Table("row", "group", "workspace", "model", "finished")
+        for r in stage.select(rows, names, suite):
+            done = (workspace / "rows" / f"{r.name}.json").exists()
+            table.add_row(r.name, r.group, f"variants/{r.setup}", r.model, "yes" if done else "no")
+        out.print(table)
+        return
+    from boostnerf_cli.workspace import Workspace
+
+    with Workspace(workspace).lock():
+        result = stage.run(workspace, data, rec, suite, names, resolve_device(device), views, log)
+    table = Table(*stage.COLUMNS)
+    for r in result["rows"]:
+        table.add_row(r["name"], r["group"], f"{r['psnr']:.3f}", f"{r['ssim']:.4f}", f"{r['train_seconds']:.0f}",
+                      f"{r['seconds_per_image']:.3f}", f"{r['gflops_per_image']:.3f}", f"{r['params']:,}", f"{r['w0']:,}")
+    out.print(table)
+    log(f"wrote {workspace / 'reports' / 'bench.json'} and bench.csv"
+        + (f" and {len(result['plots'])} plots" if result["plots"] else ""))
+
+
 def main() -> None:
     try:
         app()

@@ -5,6 +5,7 @@ WS/experts/<model>-<res>.safetensors  expert weights (config as JSON in the meta
 WS/experts/<model>-<res>.json     its training report
 WS/experts/geometry.safetensors   the shared coarse geometry (box + occupancy) all experts start from
 WS/moe/<name>.safetensors         mixtures (untrained `init`, finetuned `top1`, `top2`, `ens`), `baseline`
+WS/moe/<name>-pruned.safetensors  a model with its unused grid rows dropped (`prune`; packed tables, below)
 WS/checkpoints/<name>.pt          resumable training state, removed when the stage finishes
 WS/renders/<model>/<split>/...    images, depth, per-expert views, gate maps
 WS/reports/eval.json, count-params.json
@@ -106,7 +107,48 @@ def load_tensors(path: Path, device: str | torch.device = "cpu") -> tuple[dict[s
             f"checkpoint {path} is damaged or not a boostnerf file ({type(e).__name__}); "
             "delete it and rerun the stage that writes it"
         ) from None
+    if meta.get("packed"):
+        tensors = _unpack_tensors(tensors, meta["packed"], path)
     return tensors, meta
+
+
+# --- pruned (packed) tables ---------------------------------------------------------------------
+# A pruned model stores some 2-D tables (V rows x C channels) as only their kept rows: `<name>@values`
+# (n_kept, C) and `<name>@mask` (ceil(V / 8) bytes, one bit per row, numpy's big-endian bit order),
+# listed in the metadata under "packed": {name: {"rows": V, "fill": [C values for dropped rows]}}.
+# `load_tensors` rebuilds the dense table, so every loader reads a pruned file like any other.
+
+def pack_rows(table: torch.Tensor, keep: torch.Tensor) -> dict[str, torch.Tensor]:
+    """(V, C) table, (V,) bool -> {"values": (n_kept, C), "mask": packed bits (uint8)}."""
+    import numpy as np
+
+    keep = keep.detach().bool().cpu()
+    bits = np.packbits(keep.numpy().astype(np.uint8))
+    return {"values": table.detach().cpu()[keep].contiguous(), "mask": torch.from_numpy(bits)}
+
+
+def unpack_rows(values: torch.Tensor, mask: torch.Tensor, rows: int, fill: list[float]) -> torch.Tensor:
+    """Inverse of `pack_rows`: the dense (rows, C) table, dropped rows set to `fill`."""
+    import numpy as np
+
+    keep = torch.from_numpy(np.unpackbits(mask.cpu().numpy(), count=rows).astype(bool))
+    if int(keep.sum()) != values.shape[0] or len(fill) != values.shape[1]:
+        raise ValueError("packed table does not match its mask")
+    dense = torch.tensor(fill, dtype=values.dtype).expand(rows, values.shape[1]).clone()
+    dense[keep] = values.cpu()
+    return dense
+
+
+def _unpack_tensors(tensors: dict[str, torch.Tensor], packed: dict, path: Path) -> dict[str, torch.Tensor]:
+    out = {k: v for k, v in tensors.items() if "@" not in k}
+    for name, info in packed.items():
+        try:
+            dense = unpack_rows(tensors[f"{name}@values"], tensors[f"{name}@mask"], int(info["rows"]), info["fill"])
+        except (KeyError, ValueError, TypeError):
+            raise BoostNerfError(f"checkpoint {path} is damaged: its packed table {name!r} is incomplete; "
+                                 "delete it and rerun `boostnerf prune`") from None
+        out[name] = dense.to(tensors[f"{name}@values"].device)
+    return out
 
 
 def _pid_alive(pid: int) -> bool:

@@ -70,12 +70,12 @@ def load_model(ws: Workspace, name: str, device: str, exact_gate: bool = False) 
         from boostnerf_cli.moe.mixture import load_mixture
 
         mix, meta = load_mixture(path, device)
-        params = count_params(mix)  # the trained model's, before baking
+        params = meta.get("stored_params", count_params(mix))  # the trained model's, before baking (pruned: stored)
         mix = mix.for_rendering(exact_gate)
         return LoadedModel(name, "mixture", mix, mix.skip, meta["step"], mix.bbox, params)
     model, occ, meta = load_expert(path, device)
     return LoadedModel(name, "expert", model, occ.to(device) if occ is not None else None, meta["step"],
-                       model.bbox, count_params(model))
+                       model.bbox, meta.get("stored_params", count_params(model)))
 
 
 def all_model_names(ws: Workspace) -> list[str]:

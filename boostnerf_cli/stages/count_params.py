@@ -22,14 +22,17 @@ from boostnerf_cli.stages.common import LoadedModel, all_model_names, load_model
 from boostnerf_cli.workspace import Workspace, write_json
 
 
-def active_parameters(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None) -> dict:
-    """-> {"w0": int, "per_module": {name: w0}} from the gradient of the photometric loss."""
-    field = model.field
-    params = dict(field.named_parameters())
-    for p in params.values():
-        p.grad = None
-        p.requires_grad_(True)
-    settings = model.settings(scene)
+def photometric_grads(field, skip, settings, split: Split, device: str, views: int | None = None,
+                      extra: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor | None]:
+    """Backpropagate the photometric loss of the first `views` views of `split` through a frozen field.
+
+    -> {parameter name: its gradient (None when nothing reached it)}, also for the `extra` tensors
+    (e.g. a buffer made to require a gradient); the gradients are taken off the tensors afterwards.
+    """
+    tensors = {**dict(field.named_parameters()), **(extra or {})}
+    for t in tensors.values():
+        t.grad = None
+        t.requires_grad_(True)
     n = len(split) if views is None else min(views, len(split))
     total_pixels = n * split.height * split.width
     for i in range(n):
@@ -37,16 +40,25 @@ def active_parameters(model: LoadedModel, scene: Scene, split: Split, device: st
         gt = split.images[i].reshape(-1, 3).to(device)
         o, d = o.to(device), d.to(device)
         for j in range(0, o.shape[0], settings.chunk):
-            b = render_rays(field, o[j : j + settings.chunk], d[j : j + settings.chunk], settings, model.skip)
+            b = render_rays(field, o[j : j + settings.chunk], d[j : j + settings.chunk], settings, skip)
             loss = ((b.color - gt[j : j + settings.chunk]) ** 2).sum() / total_pixels
             if loss.requires_grad:
                 loss.backward()
+    grads = {}
+    for name, t in tensors.items():
+        grads[name] = t.grad
+        t.grad = None
+    return grads
+
+
+def active_parameters(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None) -> dict:
+    """-> {"w0": int, "per_module": {name: w0}} from the gradient of the photometric loss."""
+    grads = photometric_grads(model.field, model.skip, model.settings(scene), split, device, views)
     per_module: dict[str, int] = {}
-    for name, p in params.items():
-        nz = int((p.grad != 0).sum()) if p.grad is not None else 0
+    for name, g in grads.items():
+        nz = int((g != 0).sum()) if g is not None else 0
         top = ".".join(name.split(".")[:2]) if name.startswith("experts.") else name.split(".")[0]
         per_module[top] = per_module.get(top, 0) + nz
-        p.grad = None
     return {"w0": sum(per_module.values()), "per_module": per_module}
 
 

@@ -1,0 +1,370 @@
+"""`boostnerf bench`: run time against error on one scene, every variant in one table.
+
+WS (the bench folder) holds one workspace per variant family under `WS/variants/<name>/`, one
+finished row per variant under `WS/rows/<row>.json` (a rerun skips them: the bench resumes), and the
+table of every finished row of the suite: `WS/reports/bench.json`, `bench.csv` and, with matplotlib
+(the `plots` extra), `bench-psnr-gflops.png` and `bench-psnr-time.png`.
+
+Workspaces (experts are trained once and hard-linked between workspaces, never retrained):
+  main            the recipe's experts; rows: each expert alone, baseline, top1, top2, ens
+  naive-res       one expert at 1.25x the largest resolution      } the paper's naive alternatives
+  naive-step      the largest expert with half the sampling step  } (Fig. 1), each trained from scratch
+  naive-wide      the largest expert with a 2x wider colour MLP   } for pretrain.iters + moe.iters steps
+  m3, m4, m5      M experts evenly spaced from the smallest to the largest resolution; top1..topM
+                  (the M of the recipe is `main`, whose top1/top2 rows are not repeated)
+  gate-res-R      gate grid of R^3 (half and twice the recipe's), top-k of the recipe
+  gate-linear, gate-switch   the other gate types (switch with top-1, as Switch-NeRF)
+  penalty-P       the other auxiliary-loss penalties, from main's untrained mixture, top1 and top2
+The quick suite is main + naive; the full suite adds the ablations.
+
+train_seconds: the training wall time of everything a model needs, the shared geometry stage
+excluded (it is the same for every variant): an expert's pretraining; for a mixture the sum of
+its experts' pretraining plus its finetuning; for the baseline the largest expert's pretraining
+plus its finetuning. The other columns come from `eval` on the test split (skips on).
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import io
+import math
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.moe.router import PENALTIES
+from boostnerf_cli.recipe import Recipe, recipe_dict
+from boostnerf_cli.workspace import Workspace, atomic_path, read_json, write_json
+
+SUITES = ("quick", "full")
+COLUMNS = ("name", "group", "psnr", "ssim", "train_seconds", "seconds_per_image", "gflops_per_image", "params", "w0")
+
+
+@dataclass
+class Setup:
+    """How one variant workspace is made."""
+
+    name: str
+    kind: str  # main | naive (trains its own expert) | ladder (trains the experts main lacks) | link (main's experts)
+    recipe: Recipe
+    link_init: bool = False  # start from main's untrained mixture (same gate initialisation)
+
+
+@dataclass
+class Row:
+    name: str
+    group: str
+    setup: str
+    model: str
+    train: str | None = None  # None (pretrained expert), "baseline", "ens" or "topK"
+    experts: int | None = None
+    topk: int | None = None
+    extra: dict = field(default_factory=dict)
+
+
+def _nearest(mapping: dict, res: int):
+    keys = sorted(int(k) for k in mapping)
+    best = min(keys, key=lambda k: (abs(k - res), k))
+    return mapping[best] if best in mapping else mapping[str(best)]
+
+
+def _options_for(rec: Recipe, resolutions: list[int]) -> dict:
+    """The recipe's per-expert family options for other resolutions: a per-resolution mapping takes the
+    value of the nearest resolution it has."""
+    out = {}
+    for key, value in rec.pretrain.dvgo.items():
+        out[key] = {r: _nearest(value, r) for r in resolutions} if isinstance(value, dict) else value
+    return out
+
+
+def _variant(rec: Recipe, res: list[int], **train) -> Recipe:
+    r = copy.deepcopy(rec)
+    r.pretrain.dvgo = _options_for(rec, res)
+    r.pretrain.res = list(res)
+    for k, v in train.items():
+        setattr(r.pretrain.train, k, v)
+    return r
+
+
+def ladder(lo: int, hi: int, m: int) -> list[int]:
+    """M resolutions evenly spaced from lo to hi (both included), rounded; fewer when they collide."""
+    return sorted({round(lo + (hi - lo) * i / (m - 1)) for i in range(m)})
+
+
+def catalogue(rec: Recipe, suite: str) -> tuple[dict[str, Setup], list[Row]]:
+    """Every workspace and row of a suite, in table order."""
+    if suite not in SUITES:
+        raise BoostNerfError(f"unknown suite {suite!r}: use quick or full")
+    res = sorted(rec.pretrain.res)
+    family, largest, m0 = rec.pretrain.model, res[-1], len(res)
+    k0 = max(1, min(rec.moe.topk, m0))
+    setups = {"main": Setup("main", "main", _variant(rec, res))}
+    rows = [Row(f"{family}-{r}", "expert", "main", f"{family}-{r}") for r in res]
+    rows.append(Row("baseline", "baseline", "main", "baseline", "baseline"))
+    rows += [Row(f"top{k}", "moe", "main", f"top{k}", f"top{k}", m0, k) for k in (1, 2) if k <= m0]
+    if m0 >= 2:
+        rows.append(Row("ens", "moe", "main", "ens", "ens", m0, m0))
+
+    # the paper's naive alternatives: one bigger expert each, trained for the mixture's total steps
+    total = rec.pretrain.iters + rec.moe.iters
+    big = max(largest + 1, round(1.25 * largest))
+    wide = _options_for(rec, [largest])
+    hidden = wide.get("hidden", 128)
+    wide["hidden"] = {largest: 2 * (hidden[largest] if isinstance(hidden, dict) else hidden)}
+    naive = {
+        "naive-res": (_variant(rec, [big]), big),
+        "naive-step": (_variant(rec, [largest], step_ratio=rec.pretrain.train.step_ratio / 2), largest),
+        "naive-wide": (_variant(rec, [largest]), largest),
+    }
+    naive["naive-wide"][0].pretrain.dvgo = wide
+    for name, (r, size) in naive.items():
+        r.pretrain.iters = total
+        setups[name] = Setup(name, "naive", r)
+        rows.append(Row(name, "naive", name, f"{family}-{size}"))
+    if suite == "quick":
+        return setups, rows
+
+    for m in (3, 4, 5):  # number of experts x top-k
+        experts = res if m == m0 else ladder(res[0], largest, m)
+        if len(experts) != m:
+            continue
+        name = "main" if m == m0 else f"m{m}"
+        if name != "main":
+            setups[name] = Setup(name, "ladder", _variant(rec, experts))
+        for k in range(1, m + 1):
+            if name == "main" and k <= 2:
+                continue  # the main rows top1, top2
+            rows.append(Row(f"M{m}-top{k}", "topk", name, f"top{k}", f"top{k}", m, k, {"res": experts}))
+    for gr in sorted({max(2, rec.moe.gate_res // 2), rec.moe.gate_res * 2} - {rec.moe.gate_res}):
+        r = copy.deepcopy(setups["main"].recipe)
+        r.moe.gate_res = gr
+        setups[f"gate-res-{gr}"] = Setup(f"gate-res-{gr}", "link", r)
+        rows.append(Row(f"gate-res-{gr}", "gate-res", f"gate-res-{gr}", f"top{k0}", f"top{k0}", m0, k0))
+    for gt, k in (("linear", k0), ("switch", 1)):
+        if gt == rec.moe.gate_type:
+            continue
+        r = copy.deepcopy(setups["main"].recipe)
+        r.moe.gate_type = gt
+        setups[f"gate-{gt}"] = Setup(f"gate-{gt}", "link", r)
+        rows.append(Row(f"gate-{gt}", "gate-type", f"gate-{gt}", f"top{k}", f"top{k}", m0, k))
+    for p in PENALTIES:
+        if p == rec.moe.penalty:
+            continue
+        r = copy.deepcopy(setups["main"].recipe)
+        r.moe.penalty = p
+        setups[f"penalty-{p}"] = Setup(f"penalty-{p}", "link", r, link_init=True)
+        for k in (1, 2):
+            if k <= m0:
+                rows.append(Row(f"penalty-{p}-top{k}", "penalty", f"penalty-{p}", f"top{k}", f"top{k}", m0, k))
+    return setups, rows
+
+
+def select(rows: list[Row], only: list[str] | None, suite: str) -> list[Row]:
+    """Rows named in `only` (row names or group names); all rows when None."""
+    if not only:
+        return rows
+    known = {r.name for r in rows} | {r.group for r in rows}
+    unknown = [n for n in only if n not in known]
+    if unknown:
+        raise BoostNerfError(f"--only: no row or group {unknown[0]!r} in the {suite} suite "
+                             f"(rows: {', '.join(r.name for r in rows)}; groups: "
+                             f"{', '.join(dict.fromkeys(r.group for r in rows))})")
+    return [r for r in rows if r.name in only or r.group in only]
+
+
+# --- running -----------------------------------------------------------------------------------
+def _link(src: Path, dst: Path) -> None:
+    """Hard-link a finished artifact into another workspace (copy across file systems)."""
+    if dst.exists() or not src.exists():
+        return
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+class Bench:
+    def __init__(self, root: Path, data: Path, setups: dict[str, Setup], device: str, views: int | None,
+                 log: Callable[[str], None]):
+        self.root, self.data, self.setups, self.device, self.views, self.log = root, data, setups, device, views, log
+        self.ready: set[str] = set()
+
+    def ws(self, name: str) -> Workspace:
+        return Workspace(self.root / "variants" / name)
+
+    def row_path(self, name: str) -> Path:
+        return self.root / "rows" / f"{name}.json"
+
+    def prepare(self, setup: Setup) -> Workspace:
+        """Make a variant workspace ready: its experts trained or linked, its mixture built."""
+        from boostnerf_cli.stages import pretrain
+
+        ws = self.ws(setup.name)
+        if setup.name in self.ready:
+            return ws
+        main = self.ws("main")
+        if setup.kind == "main":
+            pretrain.run(ws, self.data, setup.recipe, self.device, False, self.log)
+        else:
+            self.prepare(self.setups["main"])
+            _link(main.geometry_path, ws.geometry_path)
+            wanted = {pretrain.expert_name(setup.recipe.pretrain.model, r) for r in setup.recipe.pretrain.res}
+            for name in main.expert_names():
+                if setup.kind == "link" or (setup.kind == "ladder" and name in wanted):
+                    _link(main.expert_path(name), ws.expert_path(name))
+                    _link(main.expert_report_path(name), ws.expert_report_path(name))
+            if setup.kind == "link":
+                if not ws.manifest_path.exists():
+                    write_json(ws.manifest_path, {**main.manifest(), "recipe": recipe_dict(setup.recipe)})
+            else:
+                pretrain.run(ws, self.data, setup.recipe, self.device, False, self.log)
+            if setup.link_init:
+                self.build(main, self.setups["main"])
+                _link(main.model_path("init"), ws.model_path("init"))
+                _link(main.moe_dir / "init.json", ws.moe_dir / "init.json")
+        self.ready.add(setup.name)
+        return ws
+
+    def build(self, ws: Workspace, setup: Setup) -> None:
+        from boostnerf_cli.stages import build_moe
+
+        if not ws.model_path("init").exists():
+            build_moe.build(ws, None, setup.recipe.moe, self.device, self.log)
+
+    def run_row(self, row: Row) -> dict:
+        from boostnerf_cli.stages import finetune
+        from boostnerf_cli.stages.evaluate import run_eval
+
+        setup = self.setups[row.setup]
+        ws = self.prepare(setup)
+        if row.train is not None:
+            self.build(ws, setup)
+            topk = int(row.train[3:]) if row.train.startswith("top") else None
+            finetune.run(ws, row.train, topk, setup.recipe.moe, self.device, False, self.log)
+        result = run_eval(ws, [row.model], "test", self.device, True, self.views, False, self.log, costs=True)
+        ev = result["models"][0]
+        out = {
+            "name": row.name,
+            "group": row.group,
+            "psnr": ev["psnr"],
+            "ssim": ev["ssim"],
+            "train_seconds": round(self.train_seconds(ws, row), 2),
+            "seconds_per_image": ev["seconds_per_image"],
+            "gflops_per_image": ev["gflops_per_image"],
+            "params": ev["params"],
+            "w0": ev["w0"],
+            "workspace": str(Path("variants") / row.setup),
+            "model": row.model,
+            "experts": row.experts,
+            "topk": row.topk,
+            "views": result["views"],
+            "samples_per_image": ev["samples_per_image"],
+            **row.extra,
+        }
+        write_json(self.row_path(row.name), out)
+        return out
+
+    def train_seconds(self, ws: Workspace, row: Row) -> float:
+        def expert_seconds(name: str) -> float:
+            return float(read_json(ws.expert_report_path(name), "expert report")["seconds"])
+
+        if row.train is None:
+            return expert_seconds(row.model)
+        report = read_json(ws.moe_dir / f"{row.train}.json", "finetune report")
+        if row.train == "baseline":
+            return expert_seconds(report["from"]) + float(report["seconds"])
+        return sum(expert_seconds(n) for n in report["experts"]) + float(report["seconds"])
+
+
+def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] | None, device: str,
+        views: int | None, log: Callable[[str], None]) -> dict:
+    setups, rows = catalogue(rec, suite)
+    chosen = select(rows, only, suite)
+    if data is None:
+        from boostnerf_cli.scenes import make_scene
+
+        data = root / "scene"
+        if not (data / "transforms_train.json").exists():
+            log(f"no --data given: generating the default procedural scene in {data}")
+            make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)
+    if not Path(data).exists():
+        raise BoostNerfError(f"--data {data} does not exist")
+    config = {"data": str(Path(data).resolve()), "views": views, "recipe": recipe_dict(rec)}
+    config_path = root / "bench-config.json"
+    if config_path.exists():
+        previous = read_json(config_path, "bench config")
+        if previous != config:
+            changed = next(k for k in config if previous.get(k) != config[k])
+            raise BoostNerfError(f"{root} holds a bench of another {changed} ({config_path}): "
+                                 "use a new --workspace, or delete it to start over")
+    else:
+        write_json(config_path, config)
+    bench = Bench(root, Path(data), setups, device, views, log)
+    for i, row in enumerate(chosen, 1):
+        if bench.row_path(row.name).exists():
+            log(f"bench [{i}/{len(chosen)}] {row.name}: finished, skipping")
+            continue
+        log(f"bench [{i}/{len(chosen)}] {row.name} ({row.group}, workspace variants/{row.setup})")
+        r = bench.run_row(row)
+        log(f"bench [{i}/{len(chosen)}] {row.name}: PSNR {r['psnr']:.3f}, {r['gflops_per_image']:.3f} GFLOPs/image, "
+            f"{r['seconds_per_image']:.3f} s/image, trained in {r['train_seconds']:.0f}s")
+    return write_table(root, suite, rows, log)
+
+
+def write_table(root: Path, suite: str, rows: list[Row], log: Callable[[str], None]) -> dict:
+    """bench.json / bench.csv / plots of every finished row of the suite, in catalogue order."""
+    done = [read_json(root / "rows" / f"{r.name}.json", "bench row") for r in rows
+            if (root / "rows" / f"{r.name}.json").exists()]
+    reports = root / "reports"
+    table = {"suite": suite, "rows": done, "missing": [r.name for r in rows if not (root / "rows" / f"{r.name}.json").exists()]}
+    write_json(reports / "bench.json", table)
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(COLUMNS)
+    for r in done:
+        writer.writerow([r[c] for c in COLUMNS])
+    with atomic_path(reports / "bench.csv") as tmp:
+        tmp.write_text(buf.getvalue())
+    table["plots"] = plot(done, reports, log)
+    return table
+
+
+GROUP_STYLE = {"expert": "o", "baseline": "s", "moe": "*", "naive": "^", "topk": "D", "gate-res": "v",
+               "gate-type": "P", "penalty": "X"}
+
+
+def plot(rows: list[dict], folder: Path, log: Callable[[str], None]) -> list[str]:
+    """PSNR against GFLOPs per image and against seconds per image; [] without matplotlib."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        log("matplotlib is not installed (pip install 'boostnerf[plots]'): the table is written, the plots are skipped")
+        return []
+    written = []
+    for key, label, stem in (("gflops_per_image", "GFLOPs per image", "bench-psnr-gflops"),
+                             ("seconds_per_image", "seconds per image (render)", "bench-psnr-time")):
+        fig, ax = plt.subplots(figsize=(7, 5), dpi=120)
+        for group in dict.fromkeys(r["group"] for r in rows):
+            pts = [r for r in rows if r["group"] == group and math.isfinite(r[key]) and math.isfinite(r["psnr"])]
+            ax.scatter([r[key] for r in pts], [r["psnr"] for r in pts], marker=GROUP_STYLE.get(group, "o"),
+                       s=60 if group == "moe" else 36, label=group)
+            for r in pts:
+                ax.annotate(r["name"], (r[key], r["psnr"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set_xlabel(label)
+        ax.set_ylabel("PSNR (dB), test split")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        with atomic_path(folder / f"{stem}.png") as tmp:
+            fig.savefig(tmp, format="png")
+        plt.close(fig)
+        written.append(str(folder / f"{stem}.png"))
+    return written

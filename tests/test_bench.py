@@ -1,0 +1,143 @@
+"""`boostnerf bench`: the suites' rows, and the quick suite end to end on a tiny generated scene."""
+
+import csv
+import json
+import math
+
+import pytest
+from conftest import TINY_RECIPE, run_cli
+from test_cli import _assert_clean_failure
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.recipe import Recipe, load_recipe
+from boostnerf_cli.stages import bench
+
+# TINY_RECIPE with fewer steps: the bench trains 5 experts and 4 mixtures.
+BENCH_RECIPE = (TINY_RECIPE.replace("iters: 30", "iters: 16").replace("iters: 20", "iters: 8")
+                .replace("geometry: {res: 12, iters: 100", "geometry: {res: 12, iters: 60"))
+
+
+@pytest.fixture(scope="module")
+def bench_recipe(tmp_path_factory):
+    path = tmp_path_factory.mktemp("bench-recipe") / "bench.yaml"
+    path.write_text(BENCH_RECIPE)
+    return path
+
+
+def test_ladder_and_suites():
+    assert bench.ladder(16, 32, 5) == [16, 20, 24, 28, 32]
+    assert bench.ladder(64, 96, 4) == [64, 75, 85, 96]
+    rec = Recipe()
+    rec.pretrain.res = [64, 80, 96]
+    rec.pretrain.dvgo = {"hidden": {64: 64, 80: 96, 96: 128}, "layers": 2}
+    setups, quick = bench.catalogue(rec, "quick")
+    assert [r.name for r in quick] == ["dvgo-64", "dvgo-80", "dvgo-96", "baseline", "top1", "top2", "ens",
+                                       "naive-res", "naive-step", "naive-wide"]
+    assert setups["naive-res"].recipe.pretrain.res == [120]
+    assert setups["naive-res"].recipe.pretrain.iters == rec.pretrain.iters + rec.moe.iters
+    assert setups["naive-step"].recipe.pretrain.train.step_ratio == rec.pretrain.train.step_ratio / 2
+    assert setups["naive-wide"].recipe.pretrain.dvgo["hidden"] == {96: 256}
+    setups, full = bench.catalogue(rec, "full")
+    names = [r.name for r in full]
+    assert len(names) == len(set(names)) and names[: len(quick)] == [r.name for r in quick]
+    assert all(r.setup in setups for r in full)
+    assert [r.name for r in full if r.group == "topk"] == (
+        ["M3-top3"] + [f"M4-top{k}" for k in range(1, 5)] + [f"M5-top{k}" for k in range(1, 6)])
+    assert setups["m4"].recipe.pretrain.res == [64, 75, 85, 96]
+    assert setups["m4"].recipe.pretrain.dvgo["hidden"] == {64: 64, 75: 96, 85: 96, 96: 128}  # nearest
+    assert {r.name for r in full if r.group == "gate-res"} == {"gate-res-16", "gate-res-64"}
+    switch = next(r for r in full if r.name == "gate-switch")
+    assert switch.topk == 1 and setups["gate-switch"].recipe.moe.gate_type == "switch"
+    penalties = {r.name for r in full if r.group == "penalty"}
+    assert penalties == {f"penalty-{p}-top{k}" for p in ("linear", "quadratic", "none") for k in (1, 2)}
+    assert setups["penalty-none"].link_init
+    assert [r.name for r in bench.select(full, ["naive", "top1"], "full")] == ["top1", "naive-res", "naive-step",
+                                                                                 "naive-wide"]
+    with pytest.raises(BoostNerfError, match="no row or group 'nope'"):
+        bench.select(quick, ["nope"], "quick")
+    with pytest.raises(BoostNerfError, match="unknown suite"):
+        bench.catalogue(rec, "medium")
+
+
+def test_bench_recipe_is_a_valid_recipe(bench_recipe):
+    rec = load_recipe(bench_recipe)
+    assert rec.pretrain.iters == 16 and rec.moe.iters == 8 and rec.pretrain.geometry.iters == 60
+
+
+@pytest.fixture(scope="module")
+def quick_bench(tiny_scene, bench_recipe, tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench") / "b"
+    proc = run_cli("bench", "--data", str(tiny_scene), "--recipe", str(bench_recipe), "--workspace", str(root),
+                   "--device", "cpu", check=True)
+    return root, proc
+
+
+def test_quick_suite_writes_a_finite_table(quick_bench):
+    root, proc = quick_bench
+    with open(root / "reports" / "bench.csv") as f:
+        rows = list(csv.reader(f))
+    assert tuple(rows[0]) == bench.COLUMNS
+    names = [r[0] for r in rows[1:]]
+    assert names == ["dvgo-12", "dvgo-16", "baseline", "top1", "top2", "ens", "naive-res", "naive-step", "naive-wide"]
+    for r in rows[1:]:
+        values = [float(v) for v in r[2:]]
+        assert all(math.isfinite(v) for v in values), r
+        psnr, ssim, train_s, s_img, gflops, params, w0 = values
+        assert psnr > 5 and 0 < ssim <= 1 and train_s > 0 and s_img > 0 and gflops > 0 and 0 < w0 <= params
+    table = json.loads((root / "reports" / "bench.json").read_text())
+    assert table["suite"] == "quick" and table["missing"] == [] and len(table["rows"]) == 9
+    by_name = {r["name"]: r for r in table["rows"]}
+    assert by_name["top2"]["experts"] == 2 and by_name["top2"]["topk"] == 2
+    experts = {n: json.loads((root / "variants" / "main" / "experts" / f"{n}.json").read_text())["seconds"]
+               for n in ("dvgo-12", "dvgo-16")}
+    finetune = json.loads((root / "variants" / "main" / "moe" / "top1.json").read_text())["seconds"]
+    assert by_name["top1"]["train_seconds"] == pytest.approx(sum(experts.values()) + finetune, abs=0.02)
+    naive = json.loads((root / "variants" / "naive-res" / "experts" / "dvgo-20.json").read_text())
+    assert naive["iterations"] == 16 + 8  # the mixture's total steps
+    geometry = [(root / "variants" / v / "experts" / "geometry.safetensors").stat().st_ino
+                for v in ("main", "naive-res", "naive-step", "naive-wide")]
+    assert len(set(geometry)) == 1  # trained once, hard-linked
+    plots = sorted(p.name for p in (root / "reports").glob("*.png"))
+    try:
+        import matplotlib  # noqa: F401
+
+        assert plots == ["bench-psnr-gflops.png", "bench-psnr-time.png"]
+    except ImportError:
+        assert plots == [] and "matplotlib is not installed" in proc.stderr
+
+
+def test_bench_resumes_and_reuses_experts_for_ablations(quick_bench, tiny_scene, bench_recipe):
+    root, _ = quick_bench
+    stamp = (root / "rows" / "top1.json").stat().st_mtime_ns
+    proc = run_cli("bench", "--data", str(tiny_scene), "--recipe", str(bench_recipe), "--workspace", str(root),
+                   "--device", "cpu", check=True)
+    assert proc.stderr.count("finished, skipping") == 9
+    assert (root / "rows" / "top1.json").stat().st_mtime_ns == stamp
+    proc = run_cli("bench", "--data", str(tiny_scene), "--recipe", str(bench_recipe), "--workspace", str(root),
+                   "--suite", "full", "--only", "M3-top1,penalty-none-top1", "--device", "cpu", check=True)
+    main = root / "variants" / "main"
+    m3 = root / "variants" / "m3" / "experts"
+    assert sorted(p.name for p in m3.glob("dvgo-*.safetensors")) == ["dvgo-12.safetensors", "dvgo-14.safetensors",
+                                                                   "dvgo-16.safetensors"]
+    assert (m3 / "dvgo-16.safetensors").stat().st_ino == (main / "experts" / "dvgo-16.safetensors").stat().st_ino
+    penalty = root / "variants" / "penalty-none" / "moe"
+    assert (penalty / "init.safetensors").stat().st_ino == (main / "moe" / "init.safetensors").stat().st_ino
+    assert json.loads((penalty / "top1.json").read_text())["penalty"] == "none"
+    table = json.loads((root / "reports" / "bench.json").read_text())
+    assert table["suite"] == "full" and {"M3-top1", "penalty-none-top1", "top1"} <= {r["name"] for r in table["rows"]}
+    assert "M3-top2" in table["missing"]
+
+
+def test_bench_refuses_bad_input(quick_bench, tiny_scene, bench_recipe, tmp_path):
+    root, _ = quick_bench
+    proc = run_cli("bench", "--data", str(tiny_scene), "--recipe", str(bench_recipe), "--workspace", str(root),
+                   "--views", "1", "--device", "cpu")
+    _assert_clean_failure(proc, "another views")
+    proc = run_cli("bench", "--data", str(tiny_scene), "--workspace", str(tmp_path / "b"), "--only", "top9")
+    _assert_clean_failure(proc, "no row or group 'top9'")
+    proc = run_cli("bench", "--data", str(tmp_path / "missing"), "--workspace", str(tmp_path / "c"))
+    _assert_clean_failure(proc, "does not exist")
+    proc = run_cli("bench", "--workspace", str(tmp_path / "d"), "--suite", "huge")
+    _assert_clean_failure(proc, "unknown suite")
+    proc = run_cli("bench", "--workspace", str(root), "--recipe", str(bench_recipe), "--list", "--only", "naive")
+    assert proc.returncode == 0 and "naive-step" in proc.stdout and "top1" not in proc.stdout

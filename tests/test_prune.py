@@ -1,0 +1,131 @@
+"""`boostnerf prune`: packed tables round-trip, pruned models render the training views unchanged."""
+
+import json
+import shutil
+
+import pytest
+import torch
+from conftest import run_cli
+from test_cli import _assert_clean_failure, _no_temp_files
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.workspace import load_tensors, pack_rows, save_tensors, unpack_rows
+
+
+@pytest.mark.parametrize("rows", [1, 7, 8, 9, 1000])
+def test_pack_rows_round_trip(rows):
+    g = torch.Generator().manual_seed(rows)
+    table = torch.randn(rows, 3, generator=g)
+    keep = torch.rand(rows, generator=g) > 0.4
+    parts = pack_rows(table, keep)
+    assert parts["mask"].dtype == torch.uint8 and parts["mask"].numel() == (rows + 7) // 8
+    assert parts["values"].shape == (int(keep.sum()), 3)
+    dense = unpack_rows(parts["values"], parts["mask"], rows, [-5.0, 0.0, 2.0])
+    assert torch.equal(dense[keep], table[keep])
+    assert torch.equal(dense[~keep], torch.tensor([-5.0, 0.0, 2.0]).expand(int((~keep).sum()), 3))
+
+
+def test_packed_file_loads_dense_and_a_damaged_one_fails_clearly(tmp_path):
+    table = torch.arange(20.0).reshape(10, 2)
+    keep = torch.tensor([1, 0, 1, 1, 0, 0, 1, 0, 0, 1], dtype=torch.bool)
+    parts = pack_rows(table, keep)
+    meta = {"family": "x", "packed": {"t": {"rows": 10, "fill": [0.0, -1.0]}}}
+    save_tensors(tmp_path / "a.safetensors", {"t@values": parts["values"], "t@mask": parts["mask"], "b": table}, meta)
+    tensors, _ = load_tensors(tmp_path / "a.safetensors")
+    assert set(tensors) == {"t", "b"}
+    assert torch.equal(tensors["t"][keep], table[keep]) and (tensors["t"][~keep] == torch.tensor([0.0, -1.0])).all()
+    save_tensors(tmp_path / "b.safetensors", {"t@values": parts["values"][:2], "t@mask": parts["mask"]}, meta)
+    with pytest.raises(BoostNerfError, match="packed table"):
+        load_tensors(tmp_path / "b.safetensors")
+
+
+def test_baked_gate_is_the_gate_at_its_lattice_vertices():
+    """prune carries the baked logits' gradient back through exactly this relation."""
+    from boostnerf_cli.fields import grid as G
+    from boostnerf_cli.moe.gate import Gate, GateConfig
+
+    bbox = torch.tensor([[-1.0, -0.5, -1.0], [1.0, 1.0, 0.5]])
+    gate = Gate(GateConfig(kind="grid", res=6), 3, bbox)
+    baked = gate.baked(5)
+    with torch.no_grad():
+        ref = gate.logits(G.lattice_points(baked.bbox, baked.shape))
+    assert torch.allclose(baked.logit_table, ref, atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def pruned_ws(trained_ws, tmp_path_factory):
+    ws = tmp_path_factory.mktemp("prune") / "ws"
+    shutil.copytree(trained_ws, ws)
+    run_cli("build-moe", "--workspace", str(ws), "--device", "cpu", check=True)
+    run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--device", "cpu", check=True)
+    run_cli("prune", "--workspace", str(ws), "--model", "top1", "--device", "cpu", check=True)
+    return ws
+
+
+def test_prune_writes_a_smaller_model_and_its_report(pruned_ws):
+    report = json.loads((pruned_ws / "moe" / "top1-pruned.json").read_text())
+    assert report["from"] == "top1" and report["split"] == "train" and report["views"] == 12
+    assert report["params_after"] < report["params_before"]
+    assert report["file_bytes_after"] < report["file_bytes_before"]
+    assert report["file_bytes_after"] == (pruned_ws / "moe" / "top1-pruned.safetensors").stat().st_size
+    names = {t["name"] for t in report["tables"]}
+    assert {"experts.0.density_table", "experts.1.feature_table", "gate.table"} <= names
+    assert report["train_max_abs_diff"] <= 1e-5
+    assert abs(report["test_psnr_after"] - report["test_psnr_before"]) < 0.5
+    assert _no_temp_files(pruned_ws)
+
+
+def test_pruned_model_matches_the_original_on_kept_rows_and_renders_the_train_views_alike(pruned_ws):
+    from boostnerf_cli.render.renderer import render_image
+    from boostnerf_cli.stages.common import load_model, workspace_scene
+    from boostnerf_cli.workspace import Workspace
+
+    ws = Workspace(pruned_ws)
+    dense, _ = load_tensors(ws.model_path("top1"))
+    pruned, meta = load_tensors(ws.model_path("top1-pruned"))
+    assert set(dense) == set(pruned)
+    report = json.loads((pruned_ws / "moe" / "top1-pruned.json").read_text())
+    for t in report["tables"]:
+        a, b = dense[t["name"]], pruned[t["name"]]
+        same = (a == b).all(dim=1)
+        assert int(same.sum()) >= t["kept_rows"]  # kept rows are exact (a dropped row may equal its fill)
+        dropped = ~same
+        assert (b[dropped] == torch.tensor(t["fill"])).all()
+    for k in dense:  # everything else (MLPs, occupancy, V_D) is stored as is
+        if k not in meta["packed"]:
+            assert torch.equal(dense[k], pruned[k]), k
+    scene = workspace_scene(ws)
+    train = scene.split("train")
+    for exact in (False, True):  # baked gate (what render/eval use) and the exact gate
+        b, a = load_model(ws, "top1", "cpu", exact), load_model(ws, "top1-pruned", "cpu", exact)
+        assert a.params == report["params_after"] and b.params == report["params_before"]
+        for i in range(0, len(train), 2):
+            rb = render_image(b.field, train.poses[i], train.intrinsics[i], train.height, train.width,
+                              b.settings(scene), b.skip)
+            ra = render_image(a.field, train.poses[i], train.intrinsics[i], train.height, train.width,
+                              a.settings(scene), a.skip)
+            assert torch.allclose(ra["rgb"], rb["rgb"], atol=1e-5, rtol=0), (exact, i)
+
+
+def test_pruned_model_evaluates_by_name_and_experts_prune_too(pruned_ws):
+    run_cli("eval", "--workspace", str(pruned_ws), "--model", "top1-pruned", "--views", "1", "--no-costs",
+            "--report", "--device", "cpu", check=True)
+    row = json.loads((pruned_ws / "reports" / "eval.json").read_text())["models"][0]
+    assert row["name"] == "top1-pruned" and row["psnr"] > 10
+    run_cli("prune", "--workspace", str(pruned_ws), "--model", "dvgo-16", "--device", "cpu", check=True)
+    report = json.loads((pruned_ws / "moe" / "dvgo-16-pruned.json").read_text())
+    assert report["kind"] == "expert" and report["train_max_abs_diff"] <= 1e-5
+    assert {t["name"] for t in report["tables"]} == {"density_table", "feature_table"}
+
+
+def test_prune_skips_finished_work_and_refuses_bad_input(pruned_ws, tmp_path):
+    path = pruned_ws / "moe" / "top1-pruned.safetensors"
+    before = path.stat().st_mtime_ns
+    proc = run_cli("prune", "--workspace", str(pruned_ws), "--model", "top1", "--device", "cpu", check=True)
+    assert "already pruned" in proc.stderr and path.stat().st_mtime_ns == before
+    _assert_clean_failure(run_cli("prune", "--workspace", str(pruned_ws), "--model", "top1-pruned", "--device", "cpu"),
+                          "already pruned")
+    _assert_clean_failure(run_cli("prune", "--workspace", str(pruned_ws), "--model", "nope", "--device", "cpu"),
+                          "no model named 'nope'")
+    _assert_clean_failure(run_cli("prune", "--workspace", str(tmp_path / "empty"), "--model", "top1"),
+                          "boostnerf pretrain")
