@@ -66,7 +66,7 @@ def make_scene_cmd(
     n_test: Annotated[int, typer.Option("--test-views", min=0)] = 8,
     seed: Annotated[int, typer.Option()] = 0,
     layout: Annotated[str, typer.Option("--format", help="Layout to write: blender, nsvf, tanks, llff or nerfstudio.")] = "blender",
-    rig: Annotated[Optional[str], typer.Option("--rig", help="Cameras: sphere (around the scene) or forward (forward-facing). Default: forward for llff, sphere otherwise.")] = None,
+    rig: Annotated[str | None, typer.Option("--rig", help="Cameras: sphere (around the scene) or forward (forward-facing). Default: forward for llff, sphere otherwise.")] = None,
 ) -> None:
     """Write a small procedural scene (exact analytic ray casting) in any dataset layout boostnerf reads."""
     from boostnerf_cli.scenes import make_scene
@@ -85,7 +85,7 @@ def pretrain(
     iters: Annotated[Optional[int], typer.Option("--iters", min=1, help="Training steps per expert.")] = None,
     image_size: Annotated[Optional[int], typer.Option("--image-size", min=8, help="Longer image side in pixels after area downscaling.")] = None,
     holdout_every: Annotated[Optional[int], typer.Option("--holdout-every", min=0, help="Datasets with no test split: hold out every N-th train view (0: none).")] = None,
-    data_format: Annotated[Optional[str], typer.Option("--format", help="Dataset format: auto (detect), blender, nsvf, tanks, llff or nerfstudio.")] = None,
+    data_format: Annotated[str | None, typer.Option("--format", help="Dataset format: auto (detect), blender, nsvf, tanks, llff or nerfstudio.")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
     force: Annotated[bool, typer.Option("--force", help="Retrain experts that are already finished.")] = False,

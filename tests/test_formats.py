@@ -253,22 +253,36 @@ MALFORMED = [
 ]
 
 
+def _cli_in_process(monkeypatch, capsys, *args: str) -> tuple[int, str]:
+    """Run the CLI entry point (`boostnerf_cli.cli.main`, what the `boostnerf` script calls) in this
+    process -> (exit code, stderr). Same code path as a subprocess, without paying torch's import again."""
+    from boostnerf_cli.cli import main
+
+    monkeypatch.setattr("sys.argv", ["boostnerf", *args])
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    return exit_info.value.code, capsys.readouterr().err
+
+
 @pytest.mark.parametrize("layout,breaker,message", MALFORMED, ids=[m[1].__name__[7:] for m in MALFORMED])
-def test_malformed_input_is_one_clear_line_through_the_cli(forward, tmp_path, layout, breaker, message):
+def test_malformed_input_is_one_clear_line_through_the_cli(forward, tmp_path, monkeypatch, capsys, layout, breaker,
+                                                           message):
     folder = _copy(forward[layout], tmp_path / layout)
     breaker(folder)
-    proc = run_cli("pretrain", "--data", str(folder), "--workspace", str(tmp_path / "ws"), "--device", "cpu")
-    assert proc.returncode == 2, proc.stderr
-    lines = [line for line in proc.stderr.splitlines() if line.strip()]
-    assert lines[-1].startswith("error: ") and message in lines[-1], proc.stderr
-    assert "Traceback" not in proc.stderr
+    code, stderr = _cli_in_process(monkeypatch, capsys, "pretrain", "--data", str(folder), "--workspace",
+                                   str(tmp_path / "ws"), "--device", "cpu")
+    assert code == 2, stderr
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], stderr
 
 
-def test_unknown_layout_through_the_cli(tmp_path):
+def test_unknown_layout_through_the_cli(tmp_path, monkeypatch, capsys):
     (tmp_path / "empty").mkdir()
-    proc = run_cli("pretrain", "--data", str(tmp_path / "empty"), "--workspace", str(tmp_path / "ws"), "--device", "cpu")
-    assert proc.returncode == 2
-    line = proc.stderr.strip().splitlines()[-1]
+    code, stderr = _cli_in_process(monkeypatch, capsys, "pretrain", "--data", str(tmp_path / "empty"),
+                                   "--workspace", str(tmp_path / "ws"), "--device", "cpu")
+    assert code == 2
+    (line,) = stderr.strip().splitlines()
     assert line.startswith("error: cannot tell the dataset format") and "llff: poses_bounds.npy" in line
 
 
@@ -283,7 +297,10 @@ def test_llff_pretrain_and_render_end_to_end(tmp_path, tiny_recipe):
                    "--res", "12", "--image-size", "24", "--device", "cpu", check=True)
     assert "format: llff (found poses_bounds.npy and images/, images_2/)" in proc.stderr
     report = json.loads((ws / "experts" / "dvgo-12.json").read_text())
-    assert report["test_psnr"] > 10
+    scene = load_scene(folder, image_size=24)
+    test = scene.splits["test"].images
+    mean_colour = -10 * math.log10(float(((test - scene.splits["train"].images.mean((0, 1, 2))) ** 2).mean()))
+    assert report["test_psnr"] > mean_colour + 2.5  # 30 steps: measured 14.7 dB against 11.3 dB for the mean colour
     manifest = json.loads((ws / "manifest.json").read_text())
     assert manifest["scene"]["format"] == "llff" and manifest["scene"]["ndc"]["near"] == 1.0
     run_cli("render", "--workspace", str(ws), "--device", "cpu", check=True)

@@ -60,7 +60,7 @@ def _image_size(path: Path) -> tuple[int, int]:
     try:
         with Image.open(path) as im:
             return im.height, im.width
-    except Exception as err:
+    except (OSError, ValueError) as err:
         raise BoostNerfError(f"cannot read image {path} (corrupt or not an image: {_one_line(err)})") from None
 
 
@@ -89,7 +89,7 @@ def read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """-> poses (N, 3, 4) in LLFF axis order, hwf (N, 3), bounds (N, 2), all checked."""
     try:
         arr = np.load(path, allow_pickle=False)
-    except Exception as err:
+    except (OSError, ValueError, EOFError) as err:
         raise BoostNerfError(f"cannot read {path}: {_one_line(err)}; fix or regenerate the file") from None
     if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] == 0:
         raise BoostNerfError(f"{path} has shape {arr.shape}: expected (N, 17), a 3x5 pose and 2 bounds per image")

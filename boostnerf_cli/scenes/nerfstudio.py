@@ -21,8 +21,16 @@ import numpy as np
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.scenes.blender import (CAMERA_KEYS, _Frame, _holdout, _load_all, _parse_pose, _read_json,
-                                          _resolve_image, frame_intrinsics)
+from boostnerf_cli.scenes.blender import (
+    CAMERA_KEYS,
+    _Frame,
+    _holdout,
+    _load_all,
+    _parse_pose,
+    _read_json,
+    _resolve_image,
+    frame_intrinsics,
+)
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.scene import Scene, Split
 

@@ -28,7 +28,11 @@ from PIL import Image
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.blender import _Frame, _holdout, _load_all, _one_line
-from boostnerf_cli.scenes.bounds import box_near_far, camera_near_far, frustum_overlap_bbox
+from boostnerf_cli.scenes.bounds import (
+    box_near_far,
+    camera_near_far,
+    frustum_overlap_bbox,
+)
 from boostnerf_cli.scenes.scene import Scene, Split
 
 PREFIXES = {"0": "train", "1": "val", "2": "test"}
@@ -47,7 +51,7 @@ def _has_alpha(path: Path) -> bool:
     try:
         with Image.open(path) as im:
             return im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
-    except Exception:
+    except (OSError, ValueError):  # unreadable: let the loader report it
         return False
 
 
