@@ -160,7 +160,7 @@ def _read_json(path: Path) -> dict:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise BoostNerfError(f"cannot parse {path}: {_one_line(err)}; fix or regenerate the file") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
-        raise BoostNerfError(f"{path} has no 'frames' list: expected a Blender transforms file")
+        raise BoostNerfError(f"{path} has no 'frames' list: expected a transforms file with one entry per view")
     return meta
 
 
