@@ -61,17 +61,19 @@ def _int_list(text: str, what: str) -> list[int]:
 
 @app.command("make-scene")
 def make_scene_cmd(
-    out_dir: Annotated[Path, typer.Argument(help="Folder to write the Blender-format scene to.")],
+    out_dir: Annotated[Path, typer.Argument(help="Folder to write the scene to.")],
     size: Annotated[int, typer.Option(help="Image side in pixels.", min=16)] = 64,
     n_train: Annotated[int, typer.Option("--train-views", min=1)] = 24,
     n_test: Annotated[int, typer.Option("--test-views", min=0)] = 8,
     seed: Annotated[int, typer.Option()] = 0,
+    layout: Annotated[str, typer.Option("--format", help="Layout to write: blender, nsvf, tanks, llff or nerfstudio.")] = "blender",
+    rig: Annotated[str | None, typer.Option("--rig", help="Cameras: sphere (around the scene) or forward (forward-facing). Default: forward for llff, sphere otherwise.")] = None,
 ) -> None:
-    """Write a small procedural scene (exact analytic ray casting) in the Blender format."""
+    """Write a small procedural scene (exact analytic ray casting) in any dataset layout boostnerf reads."""
     from boostnerf_cli.scenes import make_scene
 
-    path = make_scene(out_dir, size=size, n_train=n_train, n_test=n_test, seed=seed)
-    log(f"wrote a {size}x{size} scene with {n_train} train and {n_test} test views to {path}")
+    path = make_scene(out_dir, size=size, n_train=n_train, n_test=n_test, seed=seed, layout=layout, rig=rig)
+    log(f"wrote a {size}x{size} {layout} scene with {n_train} train and {n_test} test views to {path}")
 
 
 @app.command()
@@ -84,6 +86,7 @@ def pretrain(
     iters: Annotated[Optional[int], typer.Option("--iters", min=1, help="Training steps per expert.")] = None,
     image_size: Annotated[Optional[int], typer.Option("--image-size", min=8, help="Longer image side in pixels after area downscaling.")] = None,
     holdout_every: Annotated[Optional[int], typer.Option("--holdout-every", min=0, help="Datasets with no test split: hold out every N-th train view (0: none).")] = None,
+    data_format: Annotated[str | None, typer.Option("--format", help="Dataset format: auto (detect), blender, nsvf, tanks, llff or nerfstudio.")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
     force: Annotated[bool, typer.Option("--force", help="Retrain experts that are already finished.")] = False,
@@ -104,6 +107,8 @@ def pretrain(
         rec.data.image_size = image_size
     if holdout_every is not None:
         rec.data.holdout_every = holdout_every
+    if data_format is not None:
+        rec.data.format = data_format
     if seed is not None:
         rec.pretrain.seed = seed
     ws, lock = _writer(workspace, must_exist=False)

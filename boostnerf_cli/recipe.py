@@ -22,7 +22,7 @@ from boostnerf_cli.errors import BoostNerfError
 class DataRecipe:
     image_size: int | None = None  # longer side in pixels after area downscaling; None = native
     holdout_every: int = 8  # for datasets without a test split: every N-th train view is held out
-    format: str = "auto"
+    format: str = "auto"  # auto | blender | nsvf | tanks | llff | nerfstudio (docs/datasets.md)
 
 
 @dataclass

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.render.rays import image_rays, intersect_box
+from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
 from boostnerf_cli.workspace import atomic_path
 
@@ -31,10 +31,10 @@ class RayData:
     rgb: Tensor
 
     @staticmethod
-    def from_split(split: Split, bbox: Tensor, near: float, far: float) -> "RayData":
+    def from_split(split: Split, bbox: Tensor, near: float, far: float, ndc: NDC | None = None) -> "RayData":
         os_, ds, cs = [], [], []
         for i in range(len(split)):
-            o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width)
+            o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, ndc)
             os_.append(o)
             ds.append(d)
             cs.append(split.images[i].reshape(-1, 3))

@@ -6,8 +6,58 @@ down -z, +y is up. Pixel (u, v) has its centre at (u + 0.5, v + 0.5); v grows do
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
+
+
+@dataclass(frozen=True)
+class NDC:
+    """Normalized device coordinates of one reference camera, for forward-facing scenes (LLFF).
+
+    The reference camera sits at the world origin looking down -z with focal lengths fx, fy for an
+    image of W x H pixels (centred principal point). A world point p with depth -p_z >= `near` maps to
+
+        ndc(p) = (-sx * p_x / p_z,  -sy * p_y / p_z,  1 + 2 * near / p_z),   sx = 2 fx / W, sy = 2 fy / H,
+
+    so the whole half-space in front of the near plane, out to infinity, lands in z in [-1, 1)
+    and the reference view's frustum in x, y in [-1, 1]. Straight lines stay straight lines (the
+    map is projective), so a world ray becomes an NDC ray and the renderer samples it uniformly in
+    NDC, i.e. uniformly in inverse depth (docs/datasets.md).
+    """
+
+    sx: float
+    sy: float
+    near: float = 1.0
+
+    def points(self, xyz: Tensor) -> Tensor:
+        """World points (..., 3) in front of the near plane -> NDC points (..., 3)."""
+        x, y, z = xyz.unbind(-1)
+        return torch.stack([-self.sx * x / z, -self.sy * y / z, 1 + 2 * self.near / z], dim=-1)
+
+    def rays(self, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
+        """World rays (R, 3), (R, 3) -> NDC rays: origins on the NDC near plane z = -1, unit directions.
+
+        Each ray is first moved along itself to the world near plane z = -near; the NDC segment from
+        there to infinity is origin + s * dir for s in [0, |end - origin|], end at z = 1. Rays must
+        point away from the camera (d_z < 0, true for every ray of a forward-facing capture); a
+        d_z >= 0 is clamped to a tiny negative value instead of producing NaN.
+        """
+        dz = torch.minimum(dirs[:, 2], torch.full_like(dirs[:, 2], -1e-6))
+        d = torch.cat([dirs[:, :2], dz[:, None]], dim=-1)
+        o = origins + (-(self.near + origins[:, 2]) / dz)[:, None] * d
+        o_ndc = self.points(o)
+        ox, oy, oz = o.unbind(-1)
+        d_ndc = torch.stack([
+            -self.sx * (d[:, 0] / dz - ox / oz),
+            -self.sy * (d[:, 1] / dz - oy / oz),
+            -2 * self.near / oz,
+        ], dim=-1)
+        return o_ndc, d_ndc / torch.linalg.norm(d_ndc, dim=-1, keepdim=True)
+
+    def to_dict(self) -> dict:
+        return {"sx": self.sx, "sy": self.sy, "near": self.near}
 
 
 def pixel_directions(height: int, width: int, intrinsics: Tensor) -> Tensor:
@@ -35,10 +85,15 @@ def camera_rays(pose: Tensor, dirs_cam: Tensor) -> tuple[Tensor, Tensor]:
     return trans.expand_as(d), d
 
 
-def image_rays(pose: Tensor, intrinsics: Tensor, height: int, width: int) -> tuple[Tensor, Tensor]:
-    """All rays of one image, flattened row-major: origins (H*W, 3), unit directions (H*W, 3)."""
+def image_rays(pose: Tensor, intrinsics: Tensor, height: int, width: int,
+               ndc: NDC | None = None) -> tuple[Tensor, Tensor]:
+    """All rays of one image, flattened row-major: origins (H*W, 3), unit directions (H*W, 3).
+
+    With `ndc` (forward-facing scenes) the rays are returned in normalized device coordinates.
+    """
     o, d = camera_rays(pose, pixel_directions(height, width, intrinsics))
-    return o.reshape(-1, 3), d.reshape(-1, 3)
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+    return ndc.rays(o, d) if ndc is not None else (o, d)
 
 
 def project_points(points: Tensor, pose: Tensor, intrinsics: Tensor) -> tuple[Tensor, Tensor]:

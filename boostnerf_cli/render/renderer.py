@@ -19,7 +19,7 @@ from torch import Tensor
 
 from boostnerf_cli import flops
 from boostnerf_cli.fields.base import Field
-from boostnerf_cli.render.rays import image_rays, intersect_box
+from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.render.volrend import composite, render_weights
 
 
@@ -35,6 +35,7 @@ class RenderSettings:
     color_threshold: float = 1e-4  # weight below which a sample's colour is not computed
     max_samples: int = 1024  # per ray; the step grows if a ray would need more
     chunk: int = 8192  # rays per chunk when rendering whole images
+    ndc: NDC | None = None  # forward-facing scenes: camera rays are warped to NDC (step, near, far, bbox in NDC)
 
 
 @dataclass
@@ -130,7 +131,7 @@ def render_image(
 
     -> {"rgb": (H, W, 3), "depth": (H, W), "acc": (H, W), "n_samples": int, "n_color": int}
     """
-    origins, dirs = image_rays(pose, intrinsics, height, width)
+    origins, dirs = image_rays(pose, intrinsics, height, width, settings.ndc)
     origins, dirs = origins.to(device), dirs.to(device)
     parts = []
     n_samples = n_color = 0

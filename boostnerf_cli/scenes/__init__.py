@@ -1,7 +1,8 @@
 """Scene loading: every dataset format becomes one `Scene` (see `scene.py` for the conventions).
 
 To add a format, write `load_<format>(path, image_size, holdout_every) -> Scene` and a detector
-`is_<format>(path) -> bool`, and add one entry to `FORMATS`. "auto" tries detectors in order.
+`is_<format>(path) -> str` (what it found, "" when the folder is not in that format), and add one
+entry to `FORMATS`. "auto" tries the detectors in order; docs/datasets.md describes every format.
 """
 
 from __future__ import annotations
@@ -11,28 +12,51 @@ from typing import Callable
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.blender import is_blender, load_blender
-from boostnerf_cli.scenes.procedural import make_scene
+from boostnerf_cli.scenes.llff import is_llff, load_llff
+from boostnerf_cli.scenes.nerfstudio import is_nerfstudio, load_nerfstudio
+from boostnerf_cli.scenes.nsvf import is_nsvf, is_tanks, load_nsvf, load_tanks
+from boostnerf_cli.scenes.procedural import LAYOUTS, make_scene
 from boostnerf_cli.scenes.scene import Scene, Split
 
 # name -> (detector, loader, what the detector looks for)
-FORMATS: dict[str, tuple[Callable[[Path], bool], Callable[..., Scene], str]] = {
+FORMATS: dict[str, tuple[Callable[[Path], str], Callable[..., Scene], str]] = {
     "blender": (is_blender, load_blender, "transforms_{train,val,test}.json"),
+    "nsvf": (is_nsvf, load_nsvf, "rgb/ with RGBA 0_*.png and pose/ (plus intrinsics.txt)"),
+    "tanks": (is_tanks, load_tanks, "rgb/ with RGB 0_*.png and pose/ (plus intrinsics.txt)"),
+    "llff": (is_llff, load_llff, "poses_bounds.npy (plus images/ or images_N/)"),
+    "nerfstudio": (is_nerfstudio, load_nerfstudio, "transforms.json"),
 }
 
 
+def detect_format(folder: Path) -> tuple[str, str]:
+    """-> (format name, what was found) for the first detector that recognises `folder`."""
+    for name, (detect, _, _) in FORMATS.items():
+        found = detect(folder)
+        if found:
+            return name, found
+    wanted = "; ".join(f"{name}: {what}" for name, (_, _, what) in FORMATS.items())
+    raise BoostNerfError(f"cannot tell the dataset format of {folder}: looked for {wanted}")
+
+
 def load_scene(path, image_size: int | None = None, holdout_every: int = 8, format: str = "auto") -> Scene:
-    """Load the scene at `path`; `format` is "auto" or a key of `FORMATS`."""
+    """Load the scene at `path`; `format` is "auto" or a key of `FORMATS`.
+
+    With "auto", `scene.extra["detected"]` says which format was recognised from which files.
+    """
     folder = Path(path)
     if not folder.is_dir():
         raise BoostNerfError(f"scene folder {folder} does not exist: check the path")
+    detected = ""
     if format == "auto":
-        format = next((name for name, (detect, _, _) in FORMATS.items() if detect(folder)), "")
-        if not format:
-            wanted = "; ".join(f"{name}: {what}" for name, (_, _, what) in FORMATS.items())
-            raise BoostNerfError(f"cannot tell the dataset format of {folder}: looked for {wanted}")
+        format, found = detect_format(folder)
+        detected = f"{format} (found {found})"
     if format not in FORMATS:
         raise BoostNerfError(f"unknown scene format {format!r}: use auto or one of {', '.join(FORMATS)}")
-    return FORMATS[format][1](folder, image_size=image_size, holdout_every=holdout_every)
+    scene = FORMATS[format][1](folder, image_size=image_size, holdout_every=holdout_every)
+    if detected:
+        scene.extra["detected"] = detected
+    return scene
 
 
-__all__ = ["FORMATS", "Scene", "Split", "load_blender", "load_scene", "make_scene"]
+__all__ = ["FORMATS", "LAYOUTS", "Scene", "Split", "detect_format", "load_blender", "load_llff", "load_nerfstudio",
+           "load_nsvf", "load_scene", "load_tanks", "make_scene"]

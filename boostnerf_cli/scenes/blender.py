@@ -43,9 +43,10 @@ class _Frame:
     source: str  # "transforms_train.json frame 3", for error messages
 
 
-def is_blender(path: Path) -> bool:
-    """True when `path` is a folder holding at least one `transforms_<split>.json`."""
-    return any((Path(path) / f"transforms_{s}.json").is_file() for s in SPLITS)
+def is_blender(path: Path) -> str:
+    """What was found when `path` is a folder holding `transforms_<split>.json` files, else ""."""
+    found = [f"transforms_{s}.json" for s in SPLITS if (Path(path) / f"transforms_{s}.json").is_file()]
+    return ", ".join(found)
 
 
 # ----------------------------------------------------------------------------- resampling
@@ -159,7 +160,7 @@ def _read_json(path: Path) -> dict:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise BoostNerfError(f"cannot parse {path}: {_one_line(err)}; fix or regenerate the file") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
-        raise BoostNerfError(f"{path} has no 'frames' list: expected a Blender transforms file")
+        raise BoostNerfError(f"{path} has no 'frames' list: expected a transforms file with one entry per view")
     return meta
 
 

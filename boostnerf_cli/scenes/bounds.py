@@ -113,3 +113,40 @@ def frustum_overlap_bbox(
     box_hi = torch.stack([axes[i][index[:, i].max()] for i in range(3)]) + step / 2
     pad = margin * (box_hi - box_lo)
     return torch.stack([box_lo - pad, box_hi + pad])
+
+
+def camera_near_far(poses: Tensor) -> tuple[float, float]:
+    """near / far for object-centric captures that record none, from the cameras alone.
+
+    The subject is taken to sit at the point closest (least squares) to every camera's optical axis
+    (the -z axis of each camera-to-world pose); with r the median camera distance to it,
+    near = 0.1 r and far = 2 r. When the axes are (nearly) parallel there is no such point and
+    the camera centroid plus r along the mean viewing direction is used, r the camera spread (or 1).
+    """
+    p = poses.double()
+    o, d = p[:, :3, 3], -p[:, :3, 2]
+    d = d / d.norm(dim=-1, keepdim=True)
+    proj = torch.eye(3, dtype=torch.float64) - d[:, :, None] * d[:, None, :]  # (N, 3, 3)
+    a, b = proj.sum(0), (proj @ o[:, :, None]).sum(0)[:, 0]
+    eig = torch.linalg.eigvalsh(a)
+    if len(poses) > 1 and float(eig[0]) > 1e-3 * float(eig[-1]):
+        centre = torch.linalg.solve(a, b)
+    else:
+        spread = float((o - o.mean(0)).norm(dim=-1).max()) if len(poses) > 1 else 0.0
+        mean_dir = d.mean(0)
+        centre = o.mean(0) + max(spread, 1.0) * mean_dir / mean_dir.norm().clamp_min(1e-12)
+    r = float((o - centre).norm(dim=-1).median())
+    r = r if r > 1e-9 else 1.0
+    return 0.1 * r, 2.0 * r
+
+
+def box_near_far(poses: Tensor, bbox: Tensor) -> tuple[float, float]:
+    """near / far that cover a known box from every camera: the smallest distance from a camera
+    centre to the box (0 when a camera is inside it) and the largest distance to a box corner."""
+    o = poses[:, :3, 3].double()
+    lo, hi = bbox[0].double(), bbox[1].double()
+    nearest = torch.maximum(torch.minimum(o, hi), lo)
+    near = float((o - nearest).norm(dim=-1).min())
+    corners = torch.stack([torch.stack([(lo, hi)[(k >> i) & 1][i] for i in range(3)]) for k in range(8)])
+    far = float((o[:, None] - corners[None]).norm(dim=-1).max())
+    return 0.9 * near, far

@@ -1,4 +1,4 @@
-"""A small generated Blender-format scene, rendered by exact analytic ray casting.
+"""A small generated scene, rendered by exact analytic ray casting, written in any dataset layout.
 
 The scene (inside roughly [-1, 1]^2 x [-0.5, 0.3], z up) is a floor disc and four solids
 placed and coloured by the seed:
@@ -11,6 +11,11 @@ Shading is Lambertian under one fixed directional light plus ambient; no shadows
 is transparent. Each pixel averages `supersample`^2 sub-pixel rays (premultiplied colour), so the
 silhouettes and texture edges are antialiased; the fine textures are near the Nyquist limit at
 64-128 px, so low- and high-resolution grids differ in what they can represent.
+
+The same rendered views can be written in every layout a loader reads (`LAYOUTS`: Blender, NSVF,
+masked Tanks and Temples, LLFF, nerfstudio), with cameras on the upper hemisphere looking at the
+scene (`rig="sphere"`) or a forward-facing capture (`rig="forward"`, the default for LLFF), so
+the tests can check that every loader recovers the same cameras and images.
 """
 
 from __future__ import annotations
@@ -157,6 +162,27 @@ def look_at(position: np.ndarray) -> np.ndarray:
     return pose
 
 
+def _split_test(poses: np.ndarray, n_test: int) -> tuple[np.ndarray, np.ndarray]:
+    n = len(poses)
+    test = np.round(np.linspace(0, n - 1, n_test)).astype(int) if n_test else np.zeros(0, int)
+    return poses[np.setdiff1d(np.arange(n), test)], poses[test]
+
+
+def forward_poses(n_train: int, n_test: int, radius: float = RADIUS) -> tuple[np.ndarray, np.ndarray]:
+    """A forward-facing capture (as LLFF): n_train + n_test cameras spread over a disc of radius
+    0.6 facing the scene from elevation 30 deg, each looking at the origin; test cameras are evenly
+    spaced members of the sequence. -> train (n_train, 4, 4), test (n_test, 4, 4)."""
+    n = n_train + n_test
+    el = math.radians(30)
+    base = radius * np.array([0.0, -math.cos(el), math.sin(el)])
+    frame = look_at(base)
+    i = np.arange(n)
+    r = 0.6 * np.sqrt((i + 0.5) / n)
+    a = i * math.pi * (3 - math.sqrt(5))
+    pos = base + (r * np.cos(a))[:, None] * frame[:3, 0] + (r * np.sin(a))[:, None] * frame[:3, 1]
+    return _split_test(np.stack([look_at(p) for p in pos]), n_test)
+
+
 def camera_poses(n_train: int, n_test: int, radius: float = RADIUS) -> tuple[np.ndarray, np.ndarray]:
     """Fibonacci spiral of n_train + n_test cameras, elevations 10-70 deg (equal-area), radius `radius`.
 
@@ -169,29 +195,53 @@ def camera_poses(n_train: int, n_test: int, radius: float = RADIUS) -> tuple[np.
     z = lo + (hi - lo) * (i + 0.5) / n
     az = i * math.pi * (3 - math.sqrt(5))  # golden angle
     pos = radius * np.stack([np.sqrt(1 - z**2) * np.cos(az), np.sqrt(1 - z**2) * np.sin(az), z], axis=1)
-    poses = np.stack([look_at(p) for p in pos])
-    test = np.round(np.linspace(0, n - 1, n_test)).astype(int) if n_test else np.zeros(0, int)
-    train = np.setdiff1d(i, test)
-    return poses[train], poses[test]
+    return _split_test(np.stack([look_at(p) for p in pos]), n_test)
 
 
 # ----------------------------------------------------------------------------- writing
 
+LAYOUTS = ("blender", "nsvf", "tanks", "llff", "nerfstudio")
+RIGS = ("sphere", "forward")
+CONTENT_BOX = [[-1.1, -1.1, -0.6], [1.1, 1.1, 0.4]]  # holds every object of every seed (bbox.txt)
+CONTENT_RADIUS = 1.25  # every object lies within this distance of the origin (LLFF depth bounds)
+
+LAYOUT_TEXT = {
+    "blender": "Blender / nerf_synthetic layout: transforms_train.json and transforms_test.json, train/r_*.png and "
+               "test/r_*.png RGBA 8-bit with a transparent background, camera_angle_x, OpenGL camera-to-world matrices.",
+    "nsvf": "NSVF layout: rgb/0_*.png (train) and rgb/2_*.png (test) RGBA 8-bit with a transparent background, "
+            "pose/<same name>.txt OpenCV camera-to-world 4x4 matrices, intrinsics.txt ('f cx cy 0' first line), "
+            "bbox.txt (xmin ymin zmin xmax ymax zmax voxel_size).",
+    "tanks": "Masked Tanks and Temples in the NSVF layout: rgb/0_*.png (train) and rgb/1_*.png (the val split, used "
+             "as test) RGB 8-bit on a white background, pose/<same name>.txt OpenCV camera-to-world 4x4 matrices, "
+             "intrinsics.txt (4x4 matrix K), bbox.txt.",
+    "llff": "LLFF layout: poses_bounds.npy (3x5 [R|t|hwf] per image in LLFF axis order down/right/backwards, then "
+            "near and far depth bounds), images/ and images_2/ (2x area-downscaled) RGB 8-bit PNGs on a white "
+            "background, the train views first, then the test views (the loader holds out every 8th).",
+    "nerfstudio": "nerfstudio layout: transforms.json (camera_model OPENCV, fl_x fl_y cx cy w h, zero distortion, "
+                  "OpenGL camera-to-world matrices), images/frame_*.png RGBA 8-bit, the train views first, then "
+                  "the test views (the loader holds out every 8th).",
+}
 
 README = """Procedurally generated test scene (boostnerf make-scene), seed {seed}.
 
 Not captured data: every image is rendered by exact analytic ray casting (ray/sphere, ray/box,
 ray/plane intersections) of the objects listed in objects.json, with {ss}x{ss} supersampling per
-pixel. Blender / nerf_synthetic layout: transforms_train.json ({n_train} views) and
-transforms_test.json ({n_test} views), {size}x{size} RGBA 8-bit PNGs, transparent background,
-camera_angle_x {angle}, cameras at radius {radius} on the upper hemisphere (elevation 10-70 deg,
-Fibonacci spiral) looking at the origin, OpenGL camera-to-world matrices, world z up.
+pixel. {n_train} train and {n_test} test views, {size}x{size} pixels, camera_angle_x {angle}.
+Cameras: {rig_text} World z up.
+
+{layout_text}
 
 Content (inside about [-1, 1]^2 x [-0.5, 0.3]): a floor disc with a fine checkerboard (cell 0.05),
 a sphere with a smooth colour gradient, a sphere with thin stripes (period 0.06), a rotated box with a
 fine 3-D checkerboard (cell 0.04) and a box with a smooth gradient; Lambertian shading under a fixed
 directional light, no shadows. Free to use for any purpose.
 """
+
+RIG_TEXT = {
+    "sphere": "radius {radius} on the upper hemisphere (elevation 10-70 deg, Fibonacci spiral) looking at the origin.",
+    "forward": "forward-facing, spread over a disc of radius 0.6 at distance {radius} and elevation 30 deg, each "
+               "looking at the origin.",
+}
 
 
 @contextmanager
@@ -206,24 +256,97 @@ def _single_thread():
         torch.set_num_threads(old)
 
 
-def _write_split(out_dir: Path, split: str, poses: np.ndarray, objects: list[dict], size: int, ss: int) -> None:
-    focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
-    k = torch.tensor([focal, focal, size / 2, size / 2])
-    (out_dir / split).mkdir(parents=True, exist_ok=True)
+def _to8(x: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(x, 0, 1) * 255).astype(np.uint8)
+
+
+def _on_white(rgba: np.ndarray) -> np.ndarray:
+    """Straight RGBA (h, w, 4) float -> RGB composited on white, 8-bit."""
+    return _to8(rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:]))
+
+
+def _write_blender(out: Path, views: dict, focal: float, size: int) -> None:
+    for split, (poses, rgbas) in views.items():
+        (out / split).mkdir(parents=True, exist_ok=True)
+        frames = []
+        for i, (pose, rgba) in enumerate(zip(poses, rgbas)):
+            iio.imwrite(out / split / f"r_{i}.png", _to8(rgba))
+            frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": pose.tolist()})
+        meta = {"camera_angle_x": CAMERA_ANGLE_X, "frames": frames}
+        (out / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))
+
+
+def _write_nsvf(out: Path, views: dict, focal: float, size: int, masked: bool) -> None:
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    (out / "pose").mkdir(parents=True, exist_ok=True)
+    prefix = {"train": "0", "test": "1" if masked else "2"}
+    opencv = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenGL <-> OpenCV camera axes (an involution)
+    for split, (poses, rgbas) in views.items():
+        for i, (pose, rgba) in enumerate(zip(poses, rgbas)):
+            stem = f"{prefix[split]}_{split}_{i:04d}"
+            iio.imwrite(out / "rgb" / f"{stem}.png", _on_white(rgba) if masked else _to8(rgba))
+            np.savetxt(out / "pose" / f"{stem}.txt", pose @ opencv, fmt="%.17g")
+    c = size / 2
+    if masked:
+        k = np.array([[focal, 0, c, 0], [0, focal, c, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+        np.savetxt(out / "intrinsics.txt", k, fmt="%.17g")
+    else:
+        (out / "intrinsics.txt").write_text(f"{focal!r} {c!r} {c!r} 0.\n0. 0. 0.\n1.\n{size} {size}\n")
+    box = CONTENT_BOX
+    (out / "bbox.txt").write_text(" ".join(repr(float(v)) for v in box[0] + box[1]) + " 0.05\n")
+
+
+def _all_views(views: dict) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Train views then test views, as one sequence (layouts without splits)."""
+    poses = np.concatenate([views[s][0] for s in views])
+    return poses, [r for s in views for r in views[s][1]]
+
+
+def _write_llff(out: Path, views: dict, focal: float, size: int) -> None:
+    poses, rgbas = _all_views(views)
+    for folder, factor in (("images", 1), ("images_2", 2)):
+        (out / folder).mkdir(parents=True, exist_ok=True)
+        for i, rgba in enumerate(rgbas):
+            rgb = _on_white(rgba if factor == 1 else _premultiplied_mean(rgba, factor))
+            iio.imwrite(out / folder / f"image{i:03d}.png", rgb)
+    rows = []
+    for pose in poses:
+        llff = np.stack([-pose[:3, 1], pose[:3, 0], pose[:3, 2], pose[:3, 3]], axis=1)  # down, right, back, t
+        depth = float(np.linalg.norm(pose[:3, 3]))  # the cameras look at the origin
+        near, far = max(0.05, depth - CONTENT_RADIUS), depth + CONTENT_RADIUS
+        hwf = np.array([[size], [size], [focal]], dtype=np.float64)
+        rows.append(np.concatenate([np.concatenate([llff, hwf], axis=1).ravel(), [near, far]]))
+    np.save(out / "poses_bounds.npy", np.stack(rows))
+
+
+def _premultiplied_mean(rgba: np.ndarray, factor: int) -> np.ndarray:
+    """Box-downscale straight RGBA by `factor` (premultiplied average), back to straight RGBA."""
+    h, w = rgba.shape[0] // factor, rgba.shape[1] // factor
+    pre = np.concatenate([rgba[..., :3] * rgba[..., 3:], rgba[..., 3:]], axis=-1)[: h * factor, : w * factor]
+    pre = pre.reshape(h, factor, w, factor, 4).mean(axis=(1, 3))
+    return np.concatenate([pre[..., :3] / np.maximum(pre[..., 3:], 1e-12), pre[..., 3:]], axis=-1)
+
+
+def _write_nerfstudio(out: Path, views: dict, focal: float, size: int) -> None:
+    poses, rgbas = _all_views(views)
+    (out / "images").mkdir(parents=True, exist_ok=True)
     frames = []
-    for i, pose in enumerate(poses):
-        rgba = render_view(objects, torch.from_numpy(pose).float(), k, size, ss)
-        iio.imwrite(out_dir / split / f"r_{i}.png", np.round(rgba * 255).astype(np.uint8))
-        frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": pose.tolist()})
-    meta = {"camera_angle_x": CAMERA_ANGLE_X, "frames": frames}
-    (out_dir / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))
+    for i, (pose, rgba) in enumerate(zip(poses, rgbas)):
+        iio.imwrite(out / "images" / f"frame_{i + 1:05d}.png", _to8(rgba))
+        frames.append({"file_path": f"images/frame_{i + 1:05d}.png", "transform_matrix": pose.tolist()})
+    meta = {"camera_model": "OPENCV", "fl_x": focal, "fl_y": focal, "cx": size / 2, "cy": size / 2, "w": size,
+            "h": size, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames}
+    (out / "transforms.json").write_text(json.dumps(meta, indent=2))
 
 
-def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8, seed: int = 0, supersample: int = 2) -> Path:
-    """Render the seeded procedural scene into `out_dir` (Blender layout) and return `out_dir`.
+def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8, seed: int = 0, supersample: int = 2,
+               layout: str = "blender", rig: str | None = None) -> Path:
+    """Render the seeded procedural scene into `out_dir` in `layout` (one of `LAYOUTS`) and return `out_dir`.
 
-    Writes transforms_train.json, transforms_test.json (omitted when n_test = 0), train/r_*.png,
-    test/r_*.png ((size, size) RGBA 8-bit), objects.json (the exact geometry) and README.txt.
+    rig: "sphere" (cameras on the upper hemisphere) or "forward" (forward-facing); default forward
+    for llff, sphere otherwise. Every layout gets the same views for the same arguments. Blender:
+    transforms_train.json, transforms_test.json (omitted when n_test = 0), train/r_*.png, test/r_*.png;
+    the other layouts as `LAYOUT_TEXT` says. Always objects.json (the exact geometry) and README.txt.
     Deterministic: the same arguments give byte-identical files.
     """
     if size < 4 or n_train < 1 or n_test < 0 or supersample < 1:
@@ -231,16 +354,33 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
             f"make-scene needs size >= 4, n_train >= 1, n_test >= 0, supersample >= 1 "
             f"(got size={size}, n_train={n_train}, n_test={n_test}, supersample={supersample})"
         )
+    if layout not in LAYOUTS:
+        raise BoostNerfError(f"unknown scene layout {layout!r}: use one of {', '.join(LAYOUTS)}")
+    rig = rig or ("forward" if layout == "llff" else "sphere")
+    if rig not in RIGS:
+        raise BoostNerfError(f"unknown camera rig {rig!r}: use one of {', '.join(RIGS)}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     objects = scene_objects(seed)
-    train, test = camera_poses(n_train, n_test)
+    train, test = (forward_poses if rig == "forward" else camera_poses)(n_train, n_test)
+    focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
+    k = torch.tensor([focal, focal, size / 2, size / 2])
+    views = {}
     with _single_thread():
-        _write_split(out_dir, "train", train, objects, size, supersample)
-        if n_test:
-            _write_split(out_dir, "test", test, objects, size, supersample)
+        for split, poses in (("train", train), ("test", test)):
+            if len(poses):
+                views[split] = (poses, [render_view(objects, torch.from_numpy(p).float(), k, size, supersample)
+                                        for p in poses])
+    if layout == "blender":
+        _write_blender(out_dir, views, focal, size)
+    elif layout in ("nsvf", "tanks"):
+        _write_nsvf(out_dir, views, focal, size, masked=layout == "tanks")
+    elif layout == "llff":
+        _write_llff(out_dir, views, focal, size)
+    else:
+        _write_nerfstudio(out_dir, views, focal, size)
     (out_dir / "objects.json").write_text(json.dumps({"seed": seed, "objects": objects}, indent=2))
-    text = README.format(seed=seed, ss=supersample, n_train=n_train, n_test=n_test, size=size,
-                         angle=CAMERA_ANGLE_X, radius=RADIUS)
+    text = README.format(seed=seed, ss=supersample, n_train=n_train, n_test=n_test, size=size, angle=CAMERA_ANGLE_X,
+                         rig_text=RIG_TEXT[rig].format(radius=RADIUS), layout_text=LAYOUT_TEXT[layout])
     (out_dir / "README.txt").write_text(text)
     return out_dir

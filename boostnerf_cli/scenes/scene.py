@@ -5,7 +5,10 @@ Conventions (the same for every dataset format):
   down its -z axis, +y is up in the image, +x is right;
 - intrinsics are per view, `(fx, fy, cx, cy)` in pixels of the stored (possibly downscaled)
   images, with pixel centres at integer + 0.5;
-- images are float32 RGB in [0, 1], already composited on `background` when they had alpha.
+- images are float32 RGB in [0, 1], already composited on `background` when they had alpha;
+- `bbox`, `near` and `far` are where the renderer samples. For forward-facing scenes (`ndc` set,
+  LLFF) they are in normalized device coordinates: every camera ray is warped by `ndc` first
+  (render/rays.py `NDC`), while `poses` stay world cameras.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.render.rays import NDC
 
 
 @dataclass(frozen=True)
@@ -72,6 +76,7 @@ class Scene:
     format: str = ""
     holdout: str = ""  # how the held-out split was made, e.g. "every 8th train view"
     extra: dict = field(default_factory=dict)
+    ndc: NDC | None = None  # forward-facing scenes: rays are sampled in these NDC (bbox/near/far too)
 
     def __post_init__(self) -> None:
         if "train" not in self.splits or len(self.splits["train"]) == 0:
@@ -101,5 +106,6 @@ class Scene:
             "far": self.far,
             "bbox": self.bbox.tolist(),
             "background": list(self.background),
+            "ndc": self.ndc.to_dict() if self.ndc is not None else None,
             "splits": {k: {"views": len(v), "height": v.height, "width": v.width} for k, v in self.splits.items()},
         }

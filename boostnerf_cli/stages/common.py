@@ -54,7 +54,7 @@ class LoadedModel:
 
     def settings(self, scene: Scene, color_threshold: float = 1e-4) -> RenderSettings:
         return RenderSettings(step=self.step, near=scene.near, far=scene.far, bbox=self.bbox,
-                              background=scene.background, color_threshold=color_threshold)
+                              background=scene.background, color_threshold=color_threshold, ndc=scene.ndc)
 
 
 def load_model(ws: Workspace, name: str, device: str, exact_gate: bool = False) -> LoadedModel:

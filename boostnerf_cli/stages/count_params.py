@@ -36,7 +36,7 @@ def photometric_grads(field, skip, settings, split: Split, device: str, views: i
     n = len(split) if views is None else min(views, len(split))
     total_pixels = n * split.height * split.width
     for i in range(n):
-        o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width)
+        o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, settings.ndc)
         gt = split.images[i].reshape(-1, 3).to(device)
         o, d = o.to(device), d.to(device)
         for j in range(0, o.shape[0], settings.chunk):

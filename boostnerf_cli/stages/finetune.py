@@ -71,7 +71,7 @@ def model_name(topk: int | None, ensemble: bool, baseline: bool) -> str:
 
 
 def _train_rays(scene: Scene, bbox: Tensor, device: str) -> RayData:
-    return RayData.from_split(scene.splits["train"], bbox.cpu(), scene.near, scene.far).to(device)
+    return RayData.from_split(scene.splits["train"], bbox.cpu(), scene.near, scene.far, scene.ndc).to(device)
 
 
 def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str, force: bool,
@@ -102,7 +102,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
                                       bake_res=rec.bake_res)
         mix.penalty = penalty_weights(mix.m, rec.penalty, device=mix.penalty.device)
     settings = RenderSettings(step=mix.cfg.step, near=scene.near, far=scene.far, bbox=mix.bbox,
-                              background=scene.background, color_threshold=rec.train.color_threshold)
+                              background=scene.background, color_threshold=rec.train.color_threshold, ndc=scene.ndc)
     task = MixtureTask(mix, settings, rec.train, rec)
     result = train(task, _train_rays(scene, mix.bbox, device), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name))
     mix.eval()
@@ -140,7 +140,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
     model, occ, meta = load_expert(ws.expert_path(largest), device)
     model.train()
     settings = RenderSettings(step=meta["step"], near=scene.near, far=scene.far, bbox=model.bbox,
-                              background=scene.background, color_threshold=rec.train.color_threshold)
+                              background=scene.background, color_threshold=rec.train.color_threshold, ndc=scene.ndc)
     task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
     result = train(task, _train_rays(scene, model.bbox, device), sched, rec.seed, "baseline",
                    checkpoint=ws.checkpoint_path("baseline"))

@@ -137,10 +137,11 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     bbox = scene.bbox.to(device)
     model = DVGOExpert(DVGOConfig(res=rec.res, hidden=0, alpha_init=rec.alpha_init), bbox).to(device)
     step = 0.5 * model.voxel_size
-    settings = RenderSettings(step=step, near=scene.near, far=scene.far, bbox=bbox, background=scene.background)
+    settings = RenderSettings(step=step, near=scene.near, far=scene.far, bbox=bbox, background=scene.background,
+                              ndc=scene.ndc)
     tcfg = TrainRecipe(lr_grid=rec.lr, weight_rgbper=0.0, weight_entropy=rec.weight_entropy, occupancy_every=0)
     task = FieldTask(model, settings, tcfg, skip=None, base_mask=None)
-    rays = RayData.from_split(scene.splits["train"], bbox, scene.near, scene.far).to(device)
+    rays = RayData.from_split(scene.splits["train"], bbox, scene.near, scene.far, scene.ndc).to(device)
     t0 = time.perf_counter()
     train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5)), seed, "geometry")
     model.eval()
@@ -193,9 +194,9 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
         model.regrid(final_voxels // (2 ** len(growth)))
     model.init_density(prior.density)  # warm start: colour is then computed near surfaces only
     settings = RenderSettings(step=tcfg.step_ratio * model.unit, near=scene.near, far=scene.far, bbox=box,
-                              background=scene.background, color_threshold=tcfg.color_threshold)
+                              background=scene.background, color_threshold=tcfg.color_threshold, ndc=scene.ndc)
     task = FieldTask(model, settings, tcfg, skip=geom, base_mask=geom, growth_steps=growth, final_voxels=final_voxels)
-    rays = RayData.from_split(scene.splits["train"], box, scene.near, scene.far).to(device)
+    rays = RayData.from_split(scene.splits["train"], box, scene.near, scene.far, scene.ndc).to(device)
     sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
     result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt)
@@ -259,6 +260,8 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
     for res in rec.pretrain.res:  # per-expert options are checked before anything trains
         expert_options(rec.pretrain, res)
     ws.update_manifest(data=inputs, scene_id=scene_id(inputs), scene=scene.describe(), recipe=recipe_dict(rec))
+    if "detected" in scene.extra:
+        log(f"format: {scene.extra['detected']}")
     log(f"scene {scene.name}: {len(scene.splits['train'])} train views "
         f"{scene.splits['train'].width}x{scene.splits['train'].height}"
         + (f", {scene.holdout}" if scene.holdout else ""))

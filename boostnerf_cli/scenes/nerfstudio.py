@@ -1,0 +1,127 @@
+"""Loader for nerfstudio's `transforms.json` (one file for all views, as `ns-process-data` writes it).
+
+Layout: `transforms.json` with `frames`, each with a `file_path` (relative to the folder) and a
+4x4 camera-to-world `transform_matrix` in the OpenGL convention (as Blender). Intrinsics
+`fl_x`, `fl_y`, `cx`, `cy`, `w`, `h` are global (top level) or per frame (a frame's value wins);
+`fl_y` defaults to `fl_x`, `cx`/`cy` to the image centre, `w`/`h` to the image size. Only pinhole
+cameras are rendered: the distortion parameters `k1 k2 k3 k4 p1 p2` must be absent or zero, and
+`camera_model` must be `OPENCV` or `PINHOLE` (undistort the images first otherwise).
+
+There are no splits: every `holdout_every`-th view (in file order) is held out as `test`. nerfstudio
+records no near / far or scene box; they are derived from the cameras (`camera_near_far`,
+`frustum_overlap_bbox`), which assumes an object-centric capture.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.scenes.blender import (
+    CAMERA_KEYS,
+    _Frame,
+    _holdout,
+    _load_all,
+    _parse_pose,
+    _read_json,
+    _resolve_image,
+    frame_intrinsics,
+)
+from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
+from boostnerf_cli.scenes.scene import Scene, Split
+
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
+
+
+def is_nerfstudio(path: Path) -> str:
+    """What was found when `path` holds a nerfstudio `transforms.json`, else ""."""
+    return "transforms.json" if (Path(path) / "transforms.json").is_file() else ""
+
+
+def _check_pinhole(entry: dict, source: str) -> None:
+    model = entry.get("camera_model")
+    if model is not None and str(model).upper() not in PINHOLE_MODELS:
+        raise BoostNerfError(
+            f"{source}: camera_model {model} is not a pinhole camera; boostnerf renders pinhole cameras only: "
+            f"undistort the images and write camera_model OPENCV with zero distortion"
+        )
+    for key in DISTORTION_KEYS:
+        value = entry.get(key)
+        try:
+            nonzero = value is not None and float(value) != 0.0
+        except (TypeError, ValueError):
+            raise BoostNerfError(f"{source}: distortion {key} must be a number, got {value!r}") from None
+        if nonzero:
+            raise BoostNerfError(
+                f"{source}: distortion {key}={value} is not zero; boostnerf renders pinhole cameras only: "
+                f"undistort the images first (e.g. ns-process-data, or COLMAP image_undistorter) and set it to 0"
+            )
+
+
+def load_nerfstudio(
+    path: Path,
+    image_size: int | None = None,
+    holdout_every: int = 8,
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0),
+) -> Scene:
+    """Load a nerfstudio folder into a `Scene` (image_size / holdout_every as in `load_blender`)."""
+    folder = Path(path)
+    if not folder.is_dir():
+        raise BoostNerfError(f"scene folder {folder} does not exist: check the path")
+    path = folder / "transforms.json"
+    if not path.is_file():
+        raise BoostNerfError(f"no transforms.json in {folder}: not a nerfstudio scene")
+    meta = _read_json(path)
+    _check_pinhole(meta, str(path))
+    frames = []
+    for i, frame in enumerate(meta["frames"]):
+        source = f"{path} frame {i}"
+        if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
+            raise BoostNerfError(f"{source}: needs 'file_path' and 'transform_matrix'")
+        _check_pinhole(frame, source)
+        image = _resolve_image(folder, str(frame["file_path"]), source)
+        camera = {k: frame.get(k, meta.get(k)) for k in CAMERA_KEYS}
+        if camera["fl_x"] is None and camera["camera_angle_x"] is None:
+            raise BoostNerfError(f"{source}: no fl_x, neither in the frame nor at the top level; add the intrinsics")
+        name = str(image.relative_to(folder).with_suffix("")) if image.is_relative_to(folder) else image.stem
+        frames.append(_Frame(image, name, _parse_pose(frame["transform_matrix"], source), camera, source))
+    bg = torch.tensor(background, dtype=torch.float32)
+    images, native = _load_all(frames, image_size, bg)
+    size = tuple(images.shape[1:3])
+    k = torch.tensor([_intrinsics(f, native, size) for f in frames], dtype=torch.float32)
+    poses = torch.tensor(np.stack([f.pose for f in frames]), dtype=torch.float32)
+    splits = {"train": Split(images, poses, k, tuple(f.name for f in frames))}
+    holdout = ""
+    if holdout_every:
+        splits["train"], splits["test"], holdout = _holdout(splits["train"], holdout_every)
+    train = splits["train"]
+    near, far = camera_near_far(train.poses)
+    bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
+    return Scene(
+        name=folder.resolve().name,
+        splits=splits,
+        near=near,
+        far=far,
+        bbox=bbox,
+        background=tuple(float(c) for c in background),
+        source=str(folder.resolve()),
+        format="nerfstudio",
+        holdout=holdout,
+        extra={"native_size": list(native), "image_size": list(size)},
+    )
+
+
+def _intrinsics(frame: _Frame, native: tuple[int, int], size: tuple[int, int]) -> list[float]:
+    """`frame_intrinsics`, after checking that the frame's w / h (when given) have the image's aspect."""
+    w, h = frame.camera["w"], frame.camera["h"]
+    if w is not None and h is not None and not math.isclose(float(w) / float(h), native[1] / native[0], rel_tol=0.02):
+        raise BoostNerfError(
+            f"{frame.source}: w x h = {w} x {h} does not match the image's {native[1]} x {native[0]} aspect; "
+            f"fix w and h or the image"
+        )
+    return frame_intrinsics(frame.camera, native, size, frame.source)

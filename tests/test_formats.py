@@ -1,0 +1,310 @@
+"""Every dataset format on generated scenes: same cameras and images, known projections, NDC, errors."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.render.rays import NDC, image_rays, project_points
+from boostnerf_cli.scenes import LAYOUTS, detect_format, load_scene, make_scene
+from boostnerf_cli.scenes.procedural import CAMERA_ANGLE_X, camera_poses, forward_poses
+from tests.conftest import run_cli
+
+SIZE, N_TRAIN, N_TEST = 16, 9, 3
+# layouts that store 8-bit RGBA (compared exactly) vs RGB composited on white before quantising
+COMPOSITED = {"tanks", "llff"}
+
+
+@pytest.fixture(scope="module")
+def forward(tmp_path_factory):
+    """The same forward-facing views written in every layout."""
+    root = tmp_path_factory.mktemp("formats")
+    return {lay: make_scene(root / lay, size=SIZE, n_train=N_TRAIN, n_test=N_TEST, layout=lay, rig="forward")
+            for lay in LAYOUTS}
+
+
+def _all_views(scene):
+    """Every view of a scene loaded with holdout_every=0, in written order (train, then val/test)."""
+    splits = [scene.splits[s] for s in ("train", "val", "test") if s in scene.splits]
+    return (torch.cat([s.images for s in splits]), torch.cat([s.poses for s in splits]).double(),
+            torch.cat([s.intrinsics for s in splits]))
+
+
+def _to_data(scene, poses):
+    """Scene poses (N, 4, 4) -> the dataset's world (undo LLFF rescaling + recentring)."""
+    if "world_from_data" not in scene.extra:
+        return poses
+    t = torch.tensor(scene.extra["world_from_data"], dtype=torch.float64)
+    s = float(torch.linalg.det(t[:3, :3])) ** (1 / 3)
+    inv = torch.linalg.inv(t)
+    out = poses.clone()
+    out[:, :3, :3] = inv[:3, :3] @ poses[:, :3, :3] * s
+    out[:, :3, 3] = poses[:, :3, 3] @ inv[:3, :3].T + inv[:3, 3]
+    return out
+
+
+@pytest.mark.parametrize("layout", [lay for lay in LAYOUTS if lay != "blender"])
+def test_every_format_loads_the_same_cameras_and_images(forward, layout):
+    ref = load_scene(forward["blender"], holdout_every=0)
+    scene = load_scene(forward[layout], holdout_every=0)
+    assert scene.format == layout
+    assert scene.extra["detected"].startswith(layout)
+    images, poses, k = _all_views(scene)
+    ref_images, ref_poses, ref_k = _all_views(ref)
+    atol = 2.0 / 255 if layout in COMPOSITED else 1e-6
+    torch.testing.assert_close(images, ref_images, atol=atol, rtol=0)
+    torch.testing.assert_close(k, ref_k, atol=1e-4, rtol=1e-6)
+    torch.testing.assert_close(_to_data(scene, poses), ref_poses, atol=1e-5, rtol=0)
+
+
+def _known_pixel(layout):
+    """A world point on the ray through the centre of pixel (5, 7) of view 0 of the generating camera,
+    at depth 3.3 (computed here from the generator's camera definition, not from any loader)."""
+    train, _ = (forward_poses if layout == "llff" else camera_poses)(N_TRAIN, N_TEST)
+    pose = train[0]
+    f = 0.5 * SIZE / math.tan(0.5 * CAMERA_ANGLE_X)
+    u, v = 5.5, 7.5
+    d_cam = np.array([(u - SIZE / 2) / f, -(v - SIZE / 2) / f, -1.0])
+    point = pose[:3, 3] + 3.3 * (pose[:3, :3] @ d_cam)
+    return point, (u, v)
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_known_point_projects_to_the_expected_pixel(tmp_path, layout):
+    folder = make_scene(tmp_path / layout, size=SIZE, n_train=N_TRAIN, n_test=N_TEST, layout=layout)
+    scene = load_scene(folder, holdout_every=0, format=layout)
+    point, (u, v) = _known_pixel(layout)
+    p = torch.tensor(point, dtype=torch.float64)
+    if "world_from_data" in scene.extra:
+        t = torch.tensor(scene.extra["world_from_data"], dtype=torch.float64)
+        p = t[:3, :3] @ p + t[:3, 3]
+    pose, k = scene.splits["train"].poses[0], scene.splits["train"].intrinsics[0]
+    uv, depth = project_points(p[None].float(), pose, k)
+    torch.testing.assert_close(uv[0], torch.tensor([u, v]), atol=2e-3, rtol=0)
+    assert float(depth[0]) > 0
+    # the loaded camera's ray through that pixel passes through the point (in NDC for LLFF)
+    o, d = image_rays(pose, k, SIZE, SIZE, scene.ndc)
+    o, d = o[7 * SIZE + 5].double(), d[7 * SIZE + 5].double()
+    q = scene.ndc.points(p[None])[0] if scene.ndc is not None else p
+    off = (q - o) - torch.dot(q - o, d) * d
+    assert float(off.norm()) < 1e-4 * max(1.0, float((q - o).norm()))
+    if scene.ndc is not None:  # the NDC box holds the point's NDC image
+        assert bool(((q >= scene.bbox[0].double()) & (q <= scene.bbox[1].double())).all())
+
+
+def test_auto_detection_names_what_it_found_and_what_it_looked_for(forward, tmp_path):
+    assert detect_format(forward["llff"]) == ("llff", "poses_bounds.npy and images/, images_2/")
+    assert detect_format(forward["tanks"])[0] == "tanks"
+    assert detect_format(forward["nsvf"])[0] == "nsvf"
+    assert detect_format(forward["nerfstudio"]) == ("nerfstudio", "transforms.json")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(BoostNerfError) as e:
+        detect_format(tmp_path / "empty")
+    for name in LAYOUTS:
+        assert name in str(e.value)
+    assert "poses_bounds.npy" in str(e.value) and "transforms.json" in str(e.value)
+
+
+# ----------------------------------------------------------------------------- NDC
+
+
+def test_ndc_maps_world_rays_onto_ndc_rays():
+    ndc = NDC(sx=2.3, sy=1.7, near=1.0)
+    g = torch.Generator().manual_seed(0)
+    o = torch.randn(64, 3, generator=g, dtype=torch.float64) * 0.3
+    d = torch.randn(64, 3, generator=g, dtype=torch.float64) * 0.3 + torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    d = d / d.norm(dim=-1, keepdim=True)
+    on, dn = ndc.rays(o, d)
+    torch.testing.assert_close(on[:, 2], torch.full((64,), -1.0, dtype=torch.float64))  # on the NDC near plane
+    torch.testing.assert_close(dn.norm(dim=-1), torch.ones(64, dtype=torch.float64))
+    for depth in (1.5, 3.0, 50.0):  # world points on each ray map onto its NDC ray, in order
+        t = (depth + o[:, 2]) / -d[:, 2]
+        q = ndc.points(o + t[:, None] * d)
+        s = ((q - on) * dn).sum(-1)
+        torch.testing.assert_close(on + s[:, None] * dn, q, atol=1e-9, rtol=0)
+        assert bool((s > 0).all())
+    far = ndc.points(torch.tensor([[0.2, -0.1, -1e9]], dtype=torch.float64))
+    assert abs(float(far[0, 2]) - 1.0) < 1e-8
+
+
+def test_llff_ndc_box_holds_every_training_ray(forward):
+    scene = load_scene(forward["llff"], holdout_every=8)
+    train = scene.splits["train"]
+    for i in range(len(train)):
+        o, d = image_rays(train.poses[i], train.intrinsics[i], train.height, train.width, scene.ndc)
+        end = o + ((1 - o[:, 2]) / d[:, 2])[:, None] * d
+        for pts in (o, end):
+            assert bool(((pts >= scene.bbox[0] - 1e-4) & (pts <= scene.bbox[1] + 1e-4)).all())
+    assert scene.near == 0 and scene.far >= float((scene.bbox[1] - scene.bbox[0]).norm()) - 1e-6
+    assert scene.holdout.startswith("every 8th")
+    assert scene.splits["test"].names == ("image000", "image008")
+
+
+def test_llff_axis_convention_bounds_and_recentring(forward):
+    scene = load_scene(forward["llff"], holdout_every=0)
+    poses = scene.splits["train"].poses.double()
+    # recentred: the mean camera centre is the origin and the mean viewing direction is -z
+    torch.testing.assert_close(poses[:, :3, 3].mean(0), torch.zeros(3, dtype=torch.float64), atol=1e-5, rtol=0)
+    view = -poses[:, :3, 2].sum(0)
+    assert float(view[2] / view.norm()) < -1 + 1e-6
+    # rescaled: the smallest near bound is 1 / 0.75
+    assert abs(min(b[0] for b in scene.extra["bounds"]) - 1 / 0.75) < 1e-9
+    assert all(abs(float(torch.linalg.det(p[:3, :3])) - 1) < 1e-5 for p in poses)
+
+
+def test_llff_image_folder_choice(forward):
+    half = load_scene(forward["llff"], image_size=SIZE // 2, holdout_every=0)
+    full = load_scene(forward["llff"], image_size=None, holdout_every=0)
+    assert half.extra["images_folder"] == "images_2" and full.extra["images_folder"] == "images"
+    torch.testing.assert_close(half.splits["train"].intrinsics * 2, full.splits["train"].intrinsics)
+    with pytest.raises(BoostNerfError, match="never upscaled"):
+        load_scene(forward["llff"], image_size=SIZE * 2)
+
+
+def test_nerfstudio_per_frame_intrinsics(forward, tmp_path):
+    import shutil
+
+    folder = tmp_path / "ns"
+    shutil.copytree(forward["nerfstudio"], folder)
+    meta = json.loads((folder / "transforms.json").read_text())
+    glob = {k: meta.pop(k) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")}
+    for i, frame in enumerate(meta["frames"]):
+        frame.update(glob)
+        if i == 1:
+            frame.update(fl_x=glob["fl_x"] * 1.5, cy=glob["cy"] + 2)
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    k = load_scene(folder, holdout_every=0).splits["train"].intrinsics
+    assert abs(float(k[0, 0]) - glob["fl_x"]) < 1e-4 and abs(float(k[1, 0]) - 1.5 * glob["fl_x"]) < 1e-3
+    assert abs(float(k[1, 3]) - (glob["cy"] + 2)) < 1e-4 and abs(float(k[1, 1]) - glob["fl_y"]) < 1e-4
+
+
+# ----------------------------------------------------------------------------- malformed inputs, through the CLI
+
+
+def _copy(src, dst):
+    import shutil
+
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _break_llff_count(f):
+    (f / "images" / "image005.png").unlink()
+    (f / "images_2" / "image005.png").unlink()
+
+
+def _break_llff_nan(f):
+    arr = np.load(f / "poses_bounds.npy")
+    arr[3, 3] = np.nan
+    np.save(f / "poses_bounds.npy", arr)
+
+
+def _break_llff_sizes(f):
+    iio.imwrite(f / "images" / "image004.png", np.zeros((SIZE + 2, SIZE, 3), np.uint8))
+
+
+def _break_nsvf_intrinsics(f):
+    (f / "intrinsics.txt").unlink()
+
+
+def _break_nsvf_nan(f):
+    path = sorted((f / "pose").glob("0_*.txt"))[2]
+    pose = np.loadtxt(path)
+    pose[1, 3] = np.nan
+    np.savetxt(path, pose)
+
+
+def _break_tanks_count(f):
+    (f / "pose" / "0_train_0099.txt").write_text(" ".join(["1", "0", "0", "0"] * 4))
+
+
+def _break_ns_intrinsics(f):
+    meta = json.loads((f / "transforms.json").read_text())
+    del meta["fl_x"], meta["fl_y"]
+    (f / "transforms.json").write_text(json.dumps(meta))
+
+
+def _break_ns_distortion(f):
+    meta = json.loads((f / "transforms.json").read_text())
+    meta["frames"][2]["k1"] = 0.05
+    (f / "transforms.json").write_text(json.dumps(meta))
+
+
+def _break_ns_sizes(f):
+    iio.imwrite(f / "images" / "frame_00003.png", np.zeros((SIZE, SIZE + 4, 4), np.uint8))
+
+
+MALFORMED = [
+    ("llff", _break_llff_count, "has 12 poses but images/ holds 11 images"),
+    ("llff", _break_llff_nan, "row 3 (image 3) contains NaN"),
+    ("llff", _break_llff_sizes, "all views must have the same size"),
+    ("nsvf", _break_nsvf_intrinsics, "has no intrinsics.txt"),
+    ("nsvf", _break_nsvf_nan, "contains NaN or infinite values"),
+    ("tanks", _break_tanks_count, "has 9 images but 10 poses"),
+    ("nerfstudio", _break_ns_intrinsics, "no fl_x"),
+    ("nerfstudio", _break_ns_distortion, "distortion k1=0.05 is not zero"),
+    ("nerfstudio", _break_ns_sizes, "all views must have the same size"),
+]
+
+
+def _cli_in_process(monkeypatch, capsys, *args: str) -> tuple[int, str]:
+    """Run the CLI entry point (`boostnerf_cli.cli.main`, what the `boostnerf` script calls) in this
+    process -> (exit code, stderr). Same code path as a subprocess, without paying torch's import again."""
+    from boostnerf_cli.cli import main
+
+    monkeypatch.setattr("sys.argv", ["boostnerf", *args])
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    return exit_info.value.code, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("layout,breaker,message", MALFORMED, ids=[m[1].__name__[7:] for m in MALFORMED])
+def test_malformed_input_is_one_clear_line_through_the_cli(forward, tmp_path, monkeypatch, capsys, layout, breaker,
+                                                           message):
+    folder = _copy(forward[layout], tmp_path / layout)
+    breaker(folder)
+    code, stderr = _cli_in_process(monkeypatch, capsys, "pretrain", "--data", str(folder), "--workspace",
+                                   str(tmp_path / "ws"), "--device", "cpu")
+    assert code == 2, stderr
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], stderr
+
+
+def test_unknown_layout_through_the_cli(tmp_path, monkeypatch, capsys):
+    (tmp_path / "empty").mkdir()
+    code, stderr = _cli_in_process(monkeypatch, capsys, "pretrain", "--data", str(tmp_path / "empty"),
+                                   "--workspace", str(tmp_path / "ws"), "--device", "cpu")
+    assert code == 2
+    (line,) = stderr.strip().splitlines()
+    assert line.startswith("error: cannot tell the dataset format") and "llff: poses_bounds.npy" in line
+
+
+# ----------------------------------------------------------------------------- end to end
+
+
+def test_llff_pretrain_and_render_end_to_end(tmp_path, tiny_recipe):
+    """A forward-facing scene in the LLFF layout trains in NDC and renders through the real CLI."""
+    folder = make_scene(tmp_path / "llff", size=24, n_train=10, n_test=2, layout="llff")
+    ws = tmp_path / "ws"
+    proc = run_cli("pretrain", "--data", str(folder), "--recipe", str(tiny_recipe), "--workspace", str(ws),
+                   "--res", "12", "--image-size", "24", "--device", "cpu", check=True)
+    assert "format: llff (found poses_bounds.npy and images/, images_2/)" in proc.stderr
+    report = json.loads((ws / "experts" / "dvgo-12.json").read_text())
+    scene = load_scene(folder, image_size=24)
+    test = scene.splits["test"].images
+    mean_colour = -10 * math.log10(float(((test - scene.splits["train"].images.mean((0, 1, 2))) ** 2).mean()))
+    assert report["test_psnr"] > mean_colour + 2.5  # 30 steps: measured 14.7 dB against 11.3 dB for the mean colour
+    manifest = json.loads((ws / "manifest.json").read_text())
+    assert manifest["scene"]["format"] == "llff" and manifest["scene"]["ndc"]["near"] == 1.0
+    run_cli("render", "--workspace", str(ws), "--device", "cpu", check=True)
+    out = sorted((ws / "renders" / "dvgo-12" / "test").glob("image*.png"))
+    assert [p.name for p in out] == ["image000.png", "image000_depth.png", "image008.png", "image008_depth.png"]
+    img = iio.imread(out[0])
+    assert img.shape == (24, 24, 3) and img.std() > 5
