@@ -85,6 +85,9 @@ class FieldTask:
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):
         bundle = render_rays(self.model, origins, dirs, self.settings, self.skip, jitter=True)
         loss, logs = photometric_loss(bundle, rgb, self.tcfg)
+        reg = self.model.regularization()
+        if reg is not None:
+            loss = loss + reg
         logs["samples"] = bundle.n_samples / origins.shape[0]
         logs["colored"] = bundle.n_color / origins.shape[0]
         return loss, logs
@@ -168,9 +171,9 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     """Train one expert at `res` and write its safetensors file and JSON report."""
     name = expert_name(rec.model, res)
     tcfg = rec.train
-    model = build_expert(rec.model, {**rec.dvgo, "res": res}, box).to(device)
+    model = build_expert(rec.model, {**rec.family_config(), "res": res}, box).to(device)
     final_voxels = res ** 3
-    growth = growth_schedule(rec.iters, tcfg.growth)
+    growth = growth_schedule(rec.iters, tcfg.growth) if model.grows else ()
     if growth:
         model.regrid(final_voxels // (2 ** len(growth)))
     model.init_density(prior.density)  # warm start: colour is then computed near surfaces only
