@@ -34,11 +34,11 @@ class DVGOConfig:
 
 
 def direction_encoding(dirs: Tensor, n_freq: int) -> Tensor:
-    """(N, 3) -> (N, 3 + 6 n_freq): d, sin(2^k d), cos(2^k d)."""
+    """(N, C) -> (N, C (1 + 2 n_freq)): d, sin(2^k d), cos(2^k d) (directions, C = 3, or features)."""
     if n_freq == 0:
         return dirs
     freqs = 2.0 ** torch.arange(n_freq, device=dirs.device, dtype=dirs.dtype)
-    x = (dirs[:, None, :] * freqs[:, None]).reshape(dirs.shape[0], -1)
+    x = (dirs[:, None, :] * freqs[:, None]).reshape(dirs.shape[0], dirs.shape[1] * n_freq)
     return torch.cat([dirs, torch.sin(x), torch.cos(x)], dim=-1)
 
 

@@ -27,7 +27,7 @@ from torch import Tensor, nn
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.hashgrid import HashEncoding
-from boostnerf_cli.fields.warmstart import fit_density
+from boostnerf_cli.fields.warmstart import fit_batch, fit_density
 
 
 @dataclass
@@ -113,7 +113,8 @@ class NGPExpert(nn.Module):
     def init_density(self, density) -> None:
         """Fit the encoding and the density MLP to `density(xyz) -> sigma` (see fields/warmstart.py)."""
         params = [self.encoding.table] + list(self.sigma_net.parameters())
-        fit_density(self.raw_density, params, density, self.bbox, self.unit, self.shift, steps=self.cfg.fit_steps)
+        fit_density(self.raw_density, params, density, self.bbox, self.unit, self.shift, steps=self.cfg.fit_steps,
+                    batch=fit_batch(self.shape))
 
     def resize_to(self, shape: tuple[int, int, int]) -> None:
         if tuple(shape) != tuple(self.shape):

@@ -24,7 +24,7 @@ from torch import Tensor, nn
 from boostnerf_cli.fields import grid as G
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.vm import VMGrid
-from boostnerf_cli.fields.warmstart import fit_density
+from boostnerf_cli.fields.warmstart import fit_batch, fit_density
 
 
 @dataclass
@@ -111,7 +111,8 @@ class TensoRFExpert(nn.Module):
     def init_density(self, density) -> None:
         """Fit the density planes and lines to `density(xyz) -> sigma` (see fields/warmstart.py)."""
         fit_density(self.raw_density, list(self.density_vm.parameters()), density, self.bbox, self.unit,
-                    self.shift, steps=self.cfg.fit_steps)
+                    self.shift, steps=self.cfg.fit_steps,
+                    batch=fit_batch(self.shape))
 
     def resize_to(self, shape: tuple[int, int, int]) -> None:
         self.density_vm.resize_to(shape)

@@ -21,7 +21,8 @@ RAW_CLAMP = 10.0
 def fit_density(raw: Callable[[Tensor], Tensor], params: list[Tensor], density: Callable[[Tensor], Tensor],
                 bbox: Tensor, unit: float, shift: float, steps: int = 200, batch: int = 1 << 14,
                 lr: float = 0.02, seed: int = 0) -> float:
-    """Fit `raw(xyz)` (pre-activation, (N,)) so that softplus(raw + shift) / unit matches `density`.
+    """Fit `raw(xyz)` (pre-activation, (N,)) so that softplus(raw + shift) / unit matches `density`,
+    on `batch` uniform random points of the box per step.
 
     -> the final mean squared error of the pre-activation.
     """
@@ -41,3 +42,8 @@ def fit_density(raw: Callable[[Tensor], Tensor], params: list[Tensor], density: 
     for p in params:
         p.grad = None
     return err
+
+
+def fit_batch(shape: tuple[int, int, int]) -> int:
+    """Points per warm-start step: twice the lattice's vertex count, between 1024 and 16384."""
+    return int(min(1 << 14, max(1 << 10, 2 * shape[0] * shape[1] * shape[2])))
