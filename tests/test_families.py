@@ -9,8 +9,20 @@ import torch
 import torch.nn.functional as F
 
 from boostnerf_cli import flops
-from boostnerf_cli.fields import Expert, Field, build_expert, count_params, load_expert, save_expert
-from boostnerf_cli.fields.hashgrid import PRIMES, HashEncoding, level_resolutions, reference_encoding
+from boostnerf_cli.fields import (
+    Expert,
+    Field,
+    build_expert,
+    count_params,
+    load_expert,
+    save_expert,
+)
+from boostnerf_cli.fields.hashgrid import (
+    PRIMES,
+    HashEncoding,
+    level_resolutions,
+    reference_encoding,
+)
 from boostnerf_cli.fields.vm import LINE_AXIS, PLANE_AXES, VMGrid
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
