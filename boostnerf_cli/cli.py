@@ -81,8 +81,8 @@ def pretrain(
     workspace: WorkspaceOpt,
     data: Annotated[Optional[Path], typer.Option("--data", help="Scene folder. Default: generate the procedural demo scene in WS/scene.")] = None,
     recipe: RecipeOpt = None,
-    model: Annotated[Optional[str], typer.Option("--model", help="Expert family: dvgo.")] = None,
-    res: Annotated[Optional[str], typer.Option("--res", help="Comma-separated resolutions, one expert each. For dvgo, --res 160 means a grid of 160^3 voxels (isotropic voxels over the scene box).")] = None,
+    model: Annotated[Optional[str], typer.Option("--model", help="Expert family: dvgo (dense grids), tensorf (VM-factorised grids) or ngp (multi-resolution hash grid).")] = None,
+    res: Annotated[Optional[str], typer.Option("--res", help="Comma-separated resolutions, one expert each. For dvgo and tensorf, --res 160 means a final grid of 160^3 voxels (isotropic voxels over the scene box); for ngp, --res 16 means L = 16 hash-grid levels (the paper's 6, 8, 10, 16, 24).")] = None,
     iters: Annotated[Optional[int], typer.Option("--iters", min=1, help="Training steps per expert.")] = None,
     image_size: Annotated[Optional[int], typer.Option("--image-size", min=8, help="Longer image side in pixels after area downscaling.")] = None,
     holdout_every: Annotated[Optional[int], typer.Option("--holdout-every", min=0, help="Datasets with no test split: hold out every N-th train view (0: none).")] = None,
@@ -139,6 +139,7 @@ def build_moe(
     recipe: RecipeOpt = None,
     gate_res: Annotated[Optional[int], typer.Option("--gate-res", min=2, help="Gate grid resolution (gate_res^3 voxels; 128 in the paper).")] = None,
     gate_type: Annotated[Optional[str], typer.Option("--gate-type", help="grid (paper), linear or switch.")] = None,
+    gate_grid: Annotated[Optional[str], typer.Option("--gate-grid", help="Feature grid of the gate: dense, tensorf (VM-factorised), hash (6-level hash grid), or auto: the experts' family (dvgo dense, tensorf tensorf, ngp hash; dense for mixed families).")] = None,
     threshold: Annotated[Optional[float], typer.Option("--threshold", min=0.0, help="T: samples whose density-volume opacity per step is below T are filtered.")] = None,
     device: DeviceOpt = "auto",
 ) -> None:
@@ -151,6 +152,8 @@ def build_moe(
         rec.moe.gate_res = gate_res
     if gate_type is not None:
         rec.moe.gate_type = gate_type
+    if gate_grid is not None:
+        rec.moe.gate_grid = gate_grid
     if threshold is not None:
         rec.moe.density_threshold = threshold
     names = [n for n in experts.split(",") if n] if experts else None

@@ -64,6 +64,12 @@ class PretrainRecipe:
     geometry: GeometryRecipe = field(default_factory=GeometryRecipe)
     train: TrainRecipe = field(default_factory=TrainRecipe)
     dvgo: dict = field(default_factory=dict)  # DVGOConfig fields other than res
+    tensorf: dict = field(default_factory=dict)  # TensoRFConfig fields other than res
+    ngp: dict = field(default_factory=dict)  # NGPConfig fields other than res (res = levels L)
+
+    def family_config(self) -> dict:
+        """The architecture settings of the chosen family (`dvgo`, `tensorf` or `ngp` section)."""
+        return dict({"dvgo": self.dvgo, "tensorf": self.tensorf, "ngp": self.ngp}.get(self.model, {}))
 
 
 def _finetune_train() -> TrainRecipe:
@@ -74,6 +80,7 @@ def _finetune_train() -> TrainRecipe:
 @dataclass
 class MoERecipe:
     gate_type: str = "grid"  # grid | linear | switch
+    gate_grid: str = "auto"  # dense | tensorf | hash | auto (the experts' family: dvgo dense, tensorf VM, ngp hash)
     gate_res: int = 32  # the gate grid has gate_res^3 voxels (128 in the paper)
     gate_channels: int = 8
     gate_hidden: int = 64

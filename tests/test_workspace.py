@@ -57,16 +57,21 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
 
 @pytest.mark.parametrize("path", RECIPES, ids=[p.name for p in RECIPES])
 def test_every_recipe_loads(path):
+    from boostnerf_cli.fields import CONFIGS
+
     rec = load_recipe(path)
     assert rec.pretrain.res and rec.pretrain.iters > 0
+    CONFIGS[rec.pretrain.model](**{**rec.pretrain.family_config(), "res": rec.pretrain.res[0]})  # known keys only
 
 
 def test_recipes_follow_the_naming_contract():
     names = {p.stem for p in RECIPES}
-    assert {"blender-dvgo-cpu", "blender-dvgo-paper"} <= names
+    families = ("dvgo", "tensorf", "ngp")
+    assert {f"blender-{f}-{size}" for f in families for size in ("cpu", "paper")} <= names
     for n in names:
         dataset, model, size = n.rsplit("-", 2)
-        assert size in ("cpu", "paper") and model in ("dvgo",)
+        assert size in ("cpu", "paper") and model in families
+        assert load_recipe(RECIPES[0].parent / f"{n}.yaml").pretrain.model == model
 
 
 def test_recipe_type_errors_are_one_clear_line(tmp_path):

@@ -8,15 +8,17 @@ import torch
 from torch import nn
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields.base import Field
+from boostnerf_cli.fields.base import Expert, Field
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.fields.ngp import NGPConfig, NGPExpert
+from boostnerf_cli.fields.tensorf import TensoRFConfig, TensoRFExpert
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.workspace import load_tensors, save_tensors
 
-FAMILIES: dict[str, type] = {"dvgo": DVGOExpert}
-CONFIGS: dict[str, type] = {"dvgo": DVGOConfig}
+FAMILIES: dict[str, type] = {"dvgo": DVGOExpert, "tensorf": TensoRFExpert, "ngp": NGPExpert}
+CONFIGS: dict[str, type] = {"dvgo": DVGOConfig, "tensorf": TensoRFConfig, "ngp": NGPConfig}
 
-__all__ = ["Field", "FAMILIES", "CONFIGS", "build_expert", "save_expert", "load_expert", "count_params"]
+__all__ = ["CONFIGS", "FAMILIES", "Expert", "Field", "build_expert", "count_params", "load_expert", "save_expert"]
 
 
 def build_expert(family: str, config: dict, bbox: torch.Tensor) -> nn.Module:

@@ -1,6 +1,7 @@
-"""The Field contract: everything that answers "what is at point x, seen from direction d?".
+"""The Field contract: everything that answers "what is at point x, seen from direction d?";
+and the Expert contract: what an expert family adds so that the stages can train and save it.
 
-Every expert family and the mixture of experts satisfy it; the renderer knows nothing else.
+Every expert family and the mixture of experts satisfy the Field contract; the renderer knows nothing else.
 Shapes: N points; xyz (N, 3) world coordinates; dirs (N, 3) unit view directions (pointing from
 the camera into the scene). Density sigma (N,) is non-negative, per world unit; rgb (N, 3) in [0, 1].
 
@@ -30,4 +31,47 @@ class Field(Protocol):
 
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
         """(N, 3), (N, 3) -> rgb (N, 3) only: called on the samples that survive the density pass."""
+        ...
+
+
+@runtime_checkable
+class Expert(Field, Protocol):
+    """What the stages need of an expert family beyond the Field contract (dvgo, tensorf, ngp).
+
+    `bbox` (2, 3) is a buffer in the state dict; outside it the expert is empty. `unit` is the fixed
+    length density is measured in (sigma = softplus(raw + shift) / unit) and sets the render step;
+    `shape` is the expert's lattice (its occupancy grid follows it); `spatial_res` its final lattice
+    side (the default resolution of a mixture's density volume when it is the smallest expert).
+    """
+
+    family: str
+    grows: bool  # False: `regrid` is never called (fixed-size tables)
+    unit: float
+
+    @property
+    def shape(self) -> tuple[int, int, int]: ...
+
+    @property
+    def spatial_res(self) -> int: ...
+
+    def regrid(self, n_voxels: int) -> None:
+        """Grow (resample) onto a lattice of about `n_voxels` voxels over the same box."""
+        ...
+
+    def resize_to(self, shape: tuple[int, int, int]) -> None:
+        """Reallocate for a lattice `shape` before loading a checkpoint's state dict."""
+        ...
+
+    def init_density(self, density) -> None:
+        """Warm start: make the expert's density follow `density(xyz) -> sigma` (the coarse geometry)."""
+        ...
+
+    def param_groups(self, lr_grid: float, lr_mlp: float) -> list[dict]: ...
+
+    def regularization(self) -> Tensor | None:
+        """A family-specific term added to the training loss (already weighted), or None."""
+        ...
+
+    def config_dict(self) -> dict:
+        """JSON metadata with `family`, `config`, `unit`, `shape`; `from_config(meta, bbox)` inverts it."""
         ...

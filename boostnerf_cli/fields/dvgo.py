@@ -34,11 +34,11 @@ class DVGOConfig:
 
 
 def direction_encoding(dirs: Tensor, n_freq: int) -> Tensor:
-    """(N, 3) -> (N, 3 + 6 n_freq): d, sin(2^k d), cos(2^k d)."""
+    """(N, C) -> (N, C (1 + 2 n_freq)): d, sin(2^k d), cos(2^k d) (directions, C = 3, or features)."""
     if n_freq == 0:
         return dirs
     freqs = 2.0 ** torch.arange(n_freq, device=dirs.device, dtype=dirs.dtype)
-    x = (dirs[:, None, :] * freqs[:, None]).reshape(dirs.shape[0], -1)
+    x = (dirs[:, None, :] * freqs[:, None]).reshape(dirs.shape[0], dirs.shape[1] * n_freq)
     return torch.cat([dirs, torch.sin(x), torch.cos(x)], dim=-1)
 
 
@@ -63,6 +63,7 @@ class DVGOExpert(nn.Module):
     """Dense-grid radiance field; satisfies the Field protocol."""
 
     family = "dvgo"
+    grows = True
 
     def __init__(self, cfg: DVGOConfig, bbox: Tensor, unit: float | None = None,
                  shape: tuple[int, int, int] | None = None):
@@ -89,6 +90,11 @@ class DVGOExpert(nn.Module):
     def voxel_size(self) -> float:
         return self._spacing(self.shape)
 
+    @property
+    def spatial_res(self) -> int:
+        """Voxels per side of the final lattice (the density volume's default resolution)."""
+        return self.cfg.res
+
     # --- the Field contract -------------------------------------------------------------------
     def _inside(self, xyz: Tensor) -> Tensor:
         return ((xyz >= self.bbox[0]) & (xyz <= self.bbox[1])).all(dim=-1)
@@ -114,6 +120,9 @@ class DVGOExpert(nn.Module):
     def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
         idx, w = G.corners(xyz, self.bbox, self.shape)
         return self._sigma(xyz, idx, w), self._rgb(idx, w, dirs)
+
+    def regularization(self) -> None:
+        return None
 
     # --- growth and persistence ---------------------------------------------------------------
     @torch.no_grad()

@@ -66,10 +66,10 @@ class _Lookup(torch.autograd.Function):
 
 
 def lookup(table: Tensor, idx: Tensor, w: Tensor) -> Tensor:
-    """Blend table rows: table (V, C), idx (N, 8), w (N, 8) -> (N, C)."""
+    """Blend table rows: table (V, C), idx (N, K), w (N, K) -> (N, C) (K = 8 trilinear, 4 bilinear, 2 linear)."""
     if idx.shape[0] == 0:
         return table.new_zeros(0, table.shape[1])
-    flops.add("interp", 16 * table.shape[1] * idx.shape[0])
+    flops.add("interp", 2 * idx.shape[1] * table.shape[1] * idx.shape[0])  # K corners x C multiply-adds
     if table.requires_grad and torch.is_grad_enabled():
         return _Lookup.apply(table, idx, w)
     return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")

@@ -1,8 +1,13 @@
 """Gates: a probability field G(x) over the M experts.
 
-grid    (paper): G(x) = softmax(MLP(interp(V_G, x))), V_G a low-resolution dense feature grid,
+grid    (paper): G(x) = softmax(MLP(interp(V_G, x))), V_G a low-resolution feature grid,
         MLP with `layers` hidden ReLU layers of `hidden` units (2 x 64 in the paper)
 linear  : softmax(W interp(V_G, x) + b)              (the paper's "linear" ablation)
+The feature grid V_G follows the experts' family, as in the paper (`grid`):
+  dense   a res^3 lattice of `channels` features (DVGO)
+  tensorf a VM-factorised res^3 lattice, `channels` components per mode -> 3 x channels (TensoRF)
+  hash    a small multi-resolution hash grid: `levels` levels (6 in the paper) from res/8 to res
+          cells, 2 features each, tables of at most 2^`log2_table` rows (Instant-NGP)
 switch  : softmax(MLP_4x128(PE(x)))                  (Switch-NeRF-style, no grid)
 uniform : G(x)_i = 1/M                               (the ensemble; no parameters)
 baked   : softmax(interp(L, x)), L the logits of a trained gate sampled at the vertices of a
@@ -19,8 +24,11 @@ import torch
 from torch import Tensor, nn
 
 from boostnerf_cli.fields import grid as G
+from boostnerf_cli.fields.hashgrid import HashEncoding
+from boostnerf_cli.fields.vm import VMGrid
 
 GATE_TYPES = ("grid", "linear", "switch", "uniform", "baked")
+GATE_GRIDS = ("dense", "tensorf", "hash")
 
 
 @dataclass
@@ -31,6 +39,9 @@ class GateConfig:
     hidden: int = 64
     layers: int = 2
     pe: int = 6  # positional-encoding frequencies of the switch gate
+    grid: str = "dense"  # the feature grid of grid / linear gates: dense | tensorf | hash
+    levels: int = 6  # hash grid levels
+    log2_table: int = 15  # hash grid: at most 2^log2_table rows per level
 
 
 def positional_encoding(x: Tensor, n_freq: int) -> Tensor:
@@ -61,14 +72,28 @@ class Gate(nn.Module):
         super().__init__()
         if cfg.kind not in GATE_TYPES:
             raise ValueError(f"unknown gate type {cfg.kind!r}")
+        if cfg.grid not in GATE_GRIDS:
+            raise ValueError(f"unknown gate grid {cfg.grid!r}")
         self.cfg, self.m = cfg, n_experts
         self.register_buffer("bbox", bbox.detach().clone().float())
         self.shape = tuple(shape) if shape is not None else G.lattice_shape(self.bbox, cfg.res ** 3)
         self.table = None
+        self.vm = None
+        self.hash = None
         self.mlp = None
         if cfg.kind in ("grid", "linear"):
-            self.table = nn.Parameter(torch.randn(math.prod(self.shape), cfg.channels))
-            self.mlp = _mlp(cfg.channels, cfg.hidden, cfg.layers if cfg.kind == "grid" else 0, n_experts)
+            # unit-scale random features: the initial routing varies over space (see _center_logits)
+            if cfg.grid == "dense":
+                self.table = nn.Parameter(torch.randn(math.prod(self.shape), cfg.channels))
+                d_feat = cfg.channels
+            elif cfg.grid == "tensorf":
+                self.vm = VMGrid(self.shape, cfg.channels, init_std=1.0)
+                d_feat = self.vm.out_dim
+            else:
+                self.hash = HashEncoding(self.bbox, cfg.levels, cfg.log2_table, 2, max(2, cfg.res // 8), cfg.res,
+                                         init_std=1.0)
+                d_feat = self.hash.out_dim
+            self.mlp = _mlp(d_feat, cfg.hidden, cfg.layers if cfg.kind == "grid" else 0, n_experts)
         elif cfg.kind == "switch":
             self.mlp = _mlp(3 + 6 * cfg.pe, 128, 4, n_experts)
         elif cfg.kind == "baked":
@@ -90,10 +115,24 @@ class Gate(nn.Module):
         if self.cfg.kind == "switch":
             rel = (xyz - self.bbox[0]) / (self.bbox[1] - self.bbox[0]) * 2 - 1
             return self.mlp(positional_encoding(rel, self.cfg.pe))
+        if self.vm is not None:
+            return self.mlp(self.vm(xyz, self.bbox))
+        if self.hash is not None:
+            return self.mlp(self.hash(xyz))
         idx, w = G.corners(xyz, self.bbox, self.shape)
         if self.cfg.kind == "baked":
             return G.lookup(self.logit_table, idx, w)
         return self.mlp(G.lookup(self.table, idx, w))
+
+    def grid_parameters(self) -> list[Tensor]:
+        """The feature grid's parameters (trained at the gate's grid learning rate)."""
+        if self.table is not None:
+            return [self.table]
+        if self.vm is not None:
+            return list(self.vm.parameters())
+        if self.hash is not None:
+            return [self.hash.table]
+        return []
 
     def probs(self, xyz: Tensor) -> Tensor:
         return torch.softmax(self.logits(xyz), dim=-1)

@@ -147,8 +147,8 @@ class Mixture(nn.Module):
         groups = []
         for ex in self.experts:
             groups += ex.param_groups(lr_grid, lr_mlp)
-        if self.gate.table is not None:
-            groups.append({"params": [self.gate.table], "lr": lr_gate})
+        if self.gate.grid_parameters():
+            groups.append({"params": self.gate.grid_parameters(), "lr": lr_gate})
         if self.gate.mlp is not None:
             groups.append({"params": list(self.gate.mlp.parameters()), "lr": lr_gate_mlp})
         return groups

@@ -10,7 +10,7 @@ from typing import Callable
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import count_params, load_expert
 from boostnerf_cli.moe.density_volume import DensityVolume
-from boostnerf_cli.moe.gate import GATE_TYPES, Gate, GateConfig
+from boostnerf_cli.moe.gate import GATE_GRIDS, GATE_TYPES, Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, save_mixture
 from boostnerf_cli.moe.router import PENALTIES
 from boostnerf_cli.recipe import MoERecipe
@@ -29,6 +29,8 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
         raise BoostNerfError(f"no pretrained expert {missing[0]!r} in {ws.root} (experts: {', '.join(available)})")
     if rec.gate_type not in GATE_TYPES or rec.gate_type == "uniform":
         raise BoostNerfError(f"unknown gate type {rec.gate_type!r}: use grid, linear or switch")
+    if rec.gate_grid not in GATE_GRIDS + ("auto",):
+        raise BoostNerfError(f"unknown gate grid {rec.gate_grid!r}: use auto, {', '.join(GATE_GRIDS)}")
     if rec.step_from not in ("smallest", "largest"):
         raise BoostNerfError(f"moe.step_from must be smallest or largest, got {rec.step_from!r}")
     if rec.penalty not in PENALTIES:
@@ -47,14 +49,16 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     smallest = experts[0][2]
     bbox = smallest.bbox
     step = experts[0][3] if rec.step_from == "smallest" else experts[-1][3]
-    vd_res = rec.vd_res or getattr(getattr(smallest, "cfg", None), "res", 64)
+    vd_res = rec.vd_res or smallest.spatial_res
     vd = DensityVolume(bbox, vd_res).to(device)
     vd.init_from(smallest.density)
     occ = OccupancyGrid.from_density(vd.density, bbox, vd.shape, step, rec.density_threshold)
+    gate_grid = resolve_gate_grid(rec.gate_grid, [e[2].family for e in experts])
     gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=rec.gate_channels, hidden=rec.gate_hidden,
-                           layers=rec.gate_layers), len(experts), bbox).to(device)
+                           layers=rec.gate_layers, grid=gate_grid), len(experts), bbox).to(device)
     cfg = MixtureConfig(topk=min(rec.topk, len(experts)), renormalize=rec.renormalize, threshold=rec.density_threshold,
-                        penalty=rec.penalty, vd_res=vd_res, step=step, bake_res=rec.bake_res, expert_names=[e[1] for e in experts])
+                        penalty=rec.penalty, vd_res=vd_res, step=step, bake_res=rec.bake_res,
+                        expert_names=[e[1] for e in experts])
     mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
     save_mixture(ws.model_path("init"), mix, {"name": "init"})
     report = {
@@ -68,10 +72,22 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
         "step": step,
     }
     write_json(ws.moe_dir / "init.json", report)
-    ws.update_manifest(moe={"init": {"experts": cfg.expert_names, "gate": rec.gate_type}})
-    log(f"built a mixture of {len(experts)} experts ({', '.join(cfg.expert_names)}), gate {rec.gate_type} "
+    ws.update_manifest(moe={"init": {"experts": cfg.expert_names, "gate": rec.gate_type, "gate_grid": gate_grid}})
+    grid_text = f" ({gate_grid} features)" if rec.gate_type in ("grid", "linear") else ""
+    log(f"built a mixture of {len(experts)} experts ({', '.join(cfg.expert_names)}), gate {rec.gate_type}{grid_text} "
         f"{'x'.join(map(str, gate.shape))}, V_D from {cfg.expert_names[0]} keeps {100 * occ.fraction():.1f}% of cells")
     return report
+
+
+FAMILY_GATE_GRID = {"dvgo": "dense", "tensorf": "tensorf", "ngp": "hash"}
+
+
+def resolve_gate_grid(choice: str, families: list[str]) -> str:
+    """`auto`: the gate grid of the experts' family as in the paper; dense when families are mixed."""
+    if choice != "auto":
+        return choice
+    kinds = {FAMILY_GATE_GRID.get(f, "dense") for f in families}
+    return kinds.pop() if len(kinds) == 1 else "dense"
 
 
 def init_report(ws: Workspace) -> dict:

@@ -47,6 +47,10 @@ class MixtureTask:
         stats = RoutingStats()
         bundle = render_rays(self.mix.with_stats(stats), origins, dirs, self.settings, self.mix.skip, jitter=True)
         loss, logs = photometric_loss(bundle, rgb, self.tcfg)
+        for ex in self.mix.experts:  # family-specific terms (TensoRF's L1), as in pretraining
+            reg = ex.regularization()
+            if reg is not None:
+                loss = loss + reg
         if self.rec.lam > 0 and self.mix.gate.cfg.kind != "uniform":
             aux = stats.aux(self.mix.penalty)
             loss = loss + self.rec.lam * aux

@@ -84,6 +84,9 @@ class FieldTask:
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):
         bundle = render_rays(self.model, origins, dirs, self.settings, self.skip, jitter=True)
         loss, logs = photometric_loss(bundle, rgb, self.tcfg)
+        reg = self.model.regularization()
+        if reg is not None:
+            loss = loss + reg
         logs["samples"] = bundle.n_samples / origins.shape[0]
         logs["colored"] = bundle.n_color / origins.shape[0]
         return loss, logs
@@ -167,15 +170,15 @@ def expert_options(rec: PretrainRecipe, res: int) -> dict:
     """The family options of the expert at `res`. A mapping from resolution to value sets an option
     per expert (e.g. `hidden: {64: 64, 80: 96, 96: 128}` widens the colour MLP with the grid)."""
     opts = {}
-    for key, value in rec.dvgo.items():
+    for key, value in rec.family_config().items():
         if isinstance(value, dict):
             try:  # JSON (the manifest) turns the keys into strings
                 value = {int(k): v for k, v in value.items()}
             except ValueError:
-                raise BoostNerfError(f"recipe key pretrain.dvgo.{key}: the keys of a per-expert mapping must be "
+                raise BoostNerfError(f"recipe key pretrain.{rec.model}.{key}: the keys of a per-expert mapping must be "
                                      f"resolutions (integers), got {list(value)}") from None
             if res not in value:
-                raise BoostNerfError(f"recipe key pretrain.dvgo.{key} has no value for res {res} "
+                raise BoostNerfError(f"recipe key pretrain.{rec.model}.{key} has no value for res {res} "
                                      f"(it has {', '.join(map(str, value))}): add one, or give a single value")
             value = value[res]
         opts[key] = value
@@ -189,7 +192,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     tcfg = rec.train
     model = build_expert(rec.model, expert_options(rec, res), box).to(device)
     final_voxels = res ** 3
-    growth = growth_schedule(rec.iters, tcfg.growth)
+    growth = growth_schedule(rec.iters, tcfg.growth) if model.grows else ()
     if growth:
         model.regrid(final_voxels // (2 ** len(growth)))
     model.init_density(prior.density)  # warm start: colour is then computed near surfaces only

@@ -1,0 +1,135 @@
+"""Instant-NGP-style expert: a multi-resolution hash encoding and two small MLPs.
+
+    h          = HashEncoding(x)                         (L levels x F features, fields/hashgrid.py)
+    raw, g     = density MLP(h)                          (1 + geo_feat outputs, `hidden` units)
+    density(x) = softplus(raw + shift) / unit
+    color(x,d) = sigmoid(colour MLP([g, PE(d)]))
+
+`res` is the number of levels L (the paper varies L = 6, 8, 10, 16, 24), with the table size 2^T,
+F features per level and the per-level growth factor b = exp(ln(N_max / N_min) / (L - 1)), so more
+levels means more, and more finely spaced, tables between the same coarsest and finest
+resolutions. The hash tables have a fixed size, so the expert does not grow (`grows = False`).
+Its occupancy grid (NGP's density bitfield), refreshed by pretrain every `occupancy_every` steps
+from the expert's own density, is a lattice of `grid_res` cells along the box's longest side
+(`shape`); `unit`, the length in which density is measured and the render step is set, is the
+spacing of that lattice.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
+from boostnerf_cli.fields.hashgrid import HashEncoding
+from boostnerf_cli.fields.warmstart import fit_batch, fit_density
+
+
+@dataclass
+class NGPConfig:
+    """Architecture of an Instant-NGP-style expert. `res` is the number of levels L."""
+
+    res: int = 16  # L
+    log2_table: int = 19  # T: each level's table has at most 2^T rows
+    features: int = 2  # F per level
+    base_res: int = 16  # N_min: cells along the box's longest side at the coarsest level
+    max_res: int = 1024  # N_max: at the finest level
+    grid_res: int = 128  # occupancy grid (and density unit) cells along the longest side
+    hidden: int = 64  # density MLP: one hidden layer
+    geo_feat: int = 15  # features passed from the density MLP to the colour MLP
+    color_hidden: int = 64
+    color_layers: int = 2
+    view_pe: int = 4
+    alpha_init: float = 1e-4
+    fit_steps: int = 200  # Adam steps of the warm start from the coarse geometry
+
+
+class NGPExpert(nn.Module):
+    """Hash-encoded radiance field; satisfies the Field protocol and the Expert contract."""
+
+    family = "ngp"
+    grows = False
+
+    def __init__(self, cfg: NGPConfig, bbox: Tensor, unit: float | None = None,
+                 shape: tuple[int, int, int] | None = None):
+        super().__init__()
+        if cfg.res < 1:
+            raise BoostNerfError(f"an ngp expert needs at least one level, got res={cfg.res}")
+        self.cfg = cfg
+        self.register_buffer("bbox", bbox.detach().clone().float())
+        size = self.bbox[1] - self.bbox[0]
+        self.shape = tuple(shape) if shape is not None else tuple(
+            max(2, math.ceil(float(s / size.max()) * cfg.grid_res)) for s in size)
+        self.unit = float(unit) if unit is not None else float(size.max()) / cfg.grid_res
+        self.encoding = HashEncoding(self.bbox, cfg.res, cfg.log2_table, cfg.features, cfg.base_res, cfg.max_res)
+        self.sigma_net = nn.Sequential(nn.Linear(self.encoding.out_dim, cfg.hidden), nn.ReLU(inplace=True),
+                                       nn.Linear(cfg.hidden, 1 + cfg.geo_feat))
+        self.rgbnet = color_mlp(cfg.geo_feat + 3 + 6 * cfg.view_pe, cfg.color_hidden, cfg.color_layers)
+        self.shift = math.log(1.0 / (1.0 - cfg.alpha_init) - 1.0)
+
+    @property
+    def spatial_res(self) -> int:
+        """Cells of its occupancy lattice along the longest side (the density volume's default)."""
+        return self.cfg.grid_res
+
+    # --- the Field contract -------------------------------------------------------------------
+    def _inside(self, xyz: Tensor) -> Tensor:
+        return ((xyz >= self.bbox[0]) & (xyz <= self.bbox[1])).all(dim=-1)
+
+    def _hidden(self, xyz: Tensor) -> Tensor:
+        return self.sigma_net(self.encoding(xyz))
+
+    def raw_density(self, xyz: Tensor) -> Tensor:
+        return self._hidden(xyz)[:, 0]
+
+    def _sigma(self, xyz: Tensor, raw: Tensor) -> Tensor:
+        return F.softplus(raw + self.shift) / self.unit * self._inside(xyz)
+
+    def _rgb(self, geo: Tensor, dirs: Tensor) -> Tensor:
+        return torch.sigmoid(self.rgbnet(torch.cat([geo, direction_encoding(dirs, self.cfg.view_pe)], -1)))
+
+    def density(self, xyz: Tensor) -> Tensor:
+        return self._sigma(xyz, self.raw_density(xyz))
+
+    def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
+        return self._rgb(self._hidden(xyz)[:, 1:], dirs)
+
+    def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
+        h = self._hidden(xyz)
+        return self._sigma(xyz, h[:, 0]), self._rgb(h[:, 1:], dirs)
+
+    def regularization(self) -> None:
+        return None
+
+    # --- growth and persistence ---------------------------------------------------------------
+    def regrid(self, n_voxels: int) -> None:
+        raise BoostNerfError("ngp experts have fixed-size hash tables and do not grow")
+
+    def init_density(self, density) -> None:
+        """Fit the encoding and the density MLP to `density(xyz) -> sigma` (see fields/warmstart.py)."""
+        params = [self.encoding.table] + list(self.sigma_net.parameters())
+        fit_density(self.raw_density, params, density, self.bbox, self.unit, self.shift, steps=self.cfg.fit_steps,
+                    batch=fit_batch(self.shape))
+
+    def resize_to(self, shape: tuple[int, int, int]) -> None:
+        if tuple(shape) != tuple(self.shape):
+            raise BoostNerfError(f"an ngp expert's lattice is fixed at {self.shape}, cannot load one of {shape}")
+
+    def param_groups(self, lr_grid: float, lr_mlp: float) -> list[dict]:
+        return [
+            {"params": [self.encoding.table], "lr": lr_grid},
+            {"params": list(self.sigma_net.parameters()) + list(self.rgbnet.parameters()), "lr": lr_mlp},
+        ]
+
+    def config_dict(self) -> dict:
+        return {"family": self.family, "config": asdict(self.cfg), "unit": self.unit, "shape": list(self.shape),
+                "encoding": self.encoding.config_dict()}
+
+    @classmethod
+    def from_config(cls, meta: dict, bbox: Tensor) -> NGPExpert:
+        return cls(NGPConfig(**meta["config"]), bbox, unit=meta["unit"], shape=tuple(meta["shape"]))

@@ -1,0 +1,97 @@
+"""TensoRF- and NGP-style experts through the real CLI on a tiny generated scene: pretrain, build-moe
+(the gate follows the family; mixed families), finetune, eval and count-params."""
+
+import json
+
+import pytest
+from conftest import run_cli
+
+FAMILY_RECIPE = """
+data: {image_size: 32, holdout_every: 8}
+pretrain:
+  model: tensorf
+  res: [10, 14]
+  iters: 20
+  geometry: {res: 12, iters: 60, batch_rays: 256, alpha_init: 0.01}
+  train: {batch_rays: 256, log_every: 10, checkpoint_every: 10, occupancy_every: 10, growth: [0.5]}
+  tensorf: {density_rank: 2, app_rank: 3, app_dim: 6, hidden: 16, layers: 1, fit_steps: 20}
+  ngp: {log2_table: 10, base_res: 4, max_res: 24, grid_res: 14, hidden: 16, color_hidden: 16, color_layers: 1,
+        fit_steps: 20}
+moe:
+  gate_res: 8
+  iters: 10
+  train: {batch_rays: 256, log_every: 5, checkpoint_every: 5}
+"""
+
+
+@pytest.fixture(scope="module")
+def family_ws(tmp_path_factory, tiny_scene):
+    root = tmp_path_factory.mktemp("families")
+    recipe = root / "families.yaml"
+    recipe.write_text(FAMILY_RECIPE)
+    ws = root / "ws"
+    for model, res in (("tensorf", "10,14"), ("ngp", "2,3")):
+        run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--workspace", str(ws),
+                "--model", model, "--res", res, "--device", "cpu", check=True)
+    return ws
+
+
+def _report(ws, name):
+    return json.loads((ws / "experts" / f"{name}.json").read_text())
+
+
+def test_pretrain_trains_each_family_in_one_workspace(family_ws):
+    for name, family in (("tensorf-10", "tensorf"), ("tensorf-14", "tensorf"), ("ngp-2", "ngp"), ("ngp-3", "ngp")):
+        r = _report(family_ws, name)
+        assert r["model"] == family and r["iterations"] == 20 and r["test_psnr"] > 5
+        assert (family_ws / "experts" / f"{name}.safetensors").exists()
+    assert _report(family_ws, "tensorf-14")["grid_shape"] != _report(family_ws, "tensorf-10")["grid_shape"]
+    # one geometry stage, reused by the second family
+    assert len(list((family_ws / "experts").glob("geometry*"))) == 1
+
+
+@pytest.mark.parametrize("experts,gate_grid", [("tensorf-10,tensorf-14", "tensorf"), ("ngp-2,ngp-3", "hash"),
+                                               ("tensorf-10,ngp-2,ngp-3", "dense")])
+def test_build_moe_and_finetune_per_family_and_mixed(family_ws, tmp_path, experts, gate_grid):
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(family_ws, ws)
+    run_cli("build-moe", "--workspace", str(ws), "--experts", experts, "--device", "cpu", check=True)
+    init = json.loads((ws / "moe" / "init.json").read_text())
+    assert init["gate"]["config"]["grid"] == gate_grid  # auto: the gate follows the family
+    assert sorted(init["experts"]) == sorted(experts.split(","))
+    run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--device", "cpu", check=True)
+    top2 = json.loads((ws / "moe" / "top2.json").read_text())
+    assert top2["iterations"] == 10 and abs(sum(top2["load"]) - 2.0) < 1e-6
+    run_cli("count-params", "--workspace", str(ws), "--model", "top2", "--device", "cpu", "--views", "1", check=True)
+    row = json.loads((ws / "reports" / "count-params.json").read_text())["models"][0]
+    assert 0 < row["w0"] <= row["params"] and row["gflops_per_image"] > 0
+    assert row["gate"]["w0"] > 0
+
+
+def test_gate_grid_flag_overrides_and_rejects_unknown(family_ws, tmp_path):
+    import shutil
+
+    from test_cli import _assert_clean_failure
+
+    ws = tmp_path / "ws"
+    shutil.copytree(family_ws, ws)
+    run_cli("build-moe", "--workspace", str(ws), "--experts", "ngp-2,ngp-3", "--gate-grid", "tensorf",
+            "--device", "cpu", check=True)
+    assert json.loads((ws / "moe" / "init.json").read_text())["gate"]["config"]["grid"] == "tensorf"
+    proc = run_cli("build-moe", "--workspace", str(ws), "--gate-grid", "octree", "--device", "cpu")
+    _assert_clean_failure(proc, "unknown gate grid")
+
+
+def test_eval_renders_every_family_and_the_baseline(family_ws, tmp_path):
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(family_ws, ws)
+    run_cli("build-moe", "--workspace", str(ws), "--experts", "ngp-2,ngp-3", "--device", "cpu", check=True)
+    run_cli("finetune", "--workspace", str(ws), "--baseline", "--device", "cpu", check=True)
+    assert json.loads((ws / "moe" / "baseline.json").read_text())["from"] == "ngp-3"
+    run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--report", "--device", "cpu", check=True)
+    names = [m["name"] for m in json.loads((ws / "reports" / "eval.json").read_text())["models"]]
+    assert {"tensorf-10", "tensorf-14", "ngp-2", "ngp-3", "baseline"} <= set(names)
