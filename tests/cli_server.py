@@ -20,8 +20,15 @@ import sys
 def serve(path: str) -> None:
     import torch
 
-    import boostnerf_cli.cli  # noqa: F401  (the commands import their stages lazily: import them now)
-    from boostnerf_cli.stages import build_moe, count_params, evaluate, finetune, pictures, pretrain  # noqa: F401
+    import boostnerf_cli.cli
+    from boostnerf_cli.stages import (  # noqa: F401
+        build_moe,
+        count_params,
+        evaluate,
+        finetune,
+        pictures,
+        pretrain,
+    )
 
     torch.set_num_threads(1)
     torch.optim.Adam([torch.zeros(1, requires_grad=True)], fused=True)  # loads the optimiser's lazy imports

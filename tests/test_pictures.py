@@ -155,3 +155,16 @@ def test_video_mp4_and_gif(tmp_path, monkeypatch):
     with pytest.raises(BoostNerfError, match=".mp4 or .gif"):
         images.video_target(tmp_path / "v.avi")
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary files left
+
+
+def test_gate_by_detail_splits_pixels_at_the_median_detail():
+    from boostnerf_cli.stages.pictures import gate_by_detail
+
+    gt = np.zeros((8, 8, 3))
+    gt[:, 4:] = np.random.default_rng(0).random((8, 4, 1))  # noise (detail) on the right half, flat left
+    probs = np.zeros((8, 8, 2))
+    probs[:, :4, 0] = 1.0  # expert 0 on the flat half
+    probs[:, 4:, 1] = 1.0  # expert 1 on the checkerboard
+    detailed, smooth = gate_by_detail(probs, gt, np.ones((8, 8), bool))
+    assert detailed[1] > 0.7 and smooth[0] > 0.7
+    assert np.allclose(detailed.sum(), 1.0) and np.allclose(smooth.sum(), 1.0)

@@ -68,7 +68,7 @@ def run_render(ws: Workspace, names: list[str] | None, split_name: str, device: 
         if per_expert and model.kind == "mixture":
             from boostnerf_cli.stages.pictures import render_experts_and_gate
 
-            written += render_experts_and_gate(model, scene, split, folder, device, skip, views)
+            written += render_experts_and_gate(model, scene, split, folder, device, skip, views, log)
         log(f"{name}: wrote {len(written)} images to {folder}")
     return written
 

@@ -154,8 +154,25 @@ def _palette(m: int) -> np.ndarray:
     return np.concatenate([_PALETTE[:m], extra])
 
 
+def gate_by_detail(probs: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean gate probability per expert over the more detailed and the smoother half of the pixels.
+
+    probs (H, W, M) per-pixel gate maps, gt (H, W, 3) ground truth, mask (H, W) pixels to use (the
+    object). Detail = the ground truth's gradient magnitude (luminance, central differences); the
+    halves split at its median over the mask -> (detailed (M,), smooth (M,)).
+    """
+    lum = gt.astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+    gy, gx = np.gradient(lum)
+    detail = np.hypot(gx, gy)[mask]
+    p = probs[mask]
+    if detail.size < 2:
+        return np.full(probs.shape[-1], np.nan), np.full(probs.shape[-1], np.nan)
+    high = detail > np.median(detail)
+    return p[high].mean(0), p[~high].mean(0)
+
+
 def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, folder: Path, device: str, skip: bool,
-                            views: int | None) -> list[Path]:
+                            views: int | None, log: Callable[[str], None] | None = None) -> list[Path]:
     """Per expert (ordered by size): its contribution to the mixture, and the gate's probability map; plus a montage.
 
     - `<view>_expert<i>-<name>.png`: expert i's share of the mixture: its density times its routed weight,
@@ -164,6 +181,8 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
       weights (white = every visible sample prefers expert i); black where the ray hits nothing (opacity < 0.1);
     - `<view>_experts.png`: the mixture's render, the expert shares and the gate maps side by side, and a
       routing map (each pixel coloured by the gate's probabilities: blue = smallest expert ... red = largest).
+    `log` (when given) gets, per view, the mean gate probability of each expert over the more detailed
+    and the smoother half of the object's pixels (`gate_by_detail`).
     """
     from boostnerf_cli.moe.mixture import GateView
 
@@ -194,6 +213,10 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
                 _write_png(path, img)
                 written.append(path)
         probs = np.stack(gates, -1)  # (H, W, M)
+        if log is not None:
+            hi, lo = gate_by_detail(probs, split.images[i].numpy(), full["acc"].numpy() > 0.5)
+            log(f"{model.name} {stem}: mean gate probability per expert ({', '.join(names)}) on detailed pixels "
+                f"{[round(float(v), 2) for v in hi]}, on smooth pixels {[round(float(v), 2) for v in lo]}")
         routing = _to_uint8(probs @ _palette(m))
         top = [("mixture", _to_uint8(full["rgb"]))] + [(f"{names[e]} share", shares[e]) for e in range(m)]
         bottom = [("routing (blue=small .. red=large)", routing)] + [
