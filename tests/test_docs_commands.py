@@ -166,3 +166,35 @@ def test_every_documented_command_runs(docs_env):
         else:
             assert ran.count("boostnerf ") >= sum(1 for line in commands[doc] if line.startswith("boostnerf ")), doc
     assert not failures, "\n\n".join(failures)
+
+
+def _run_chain(cwd: Path, env: dict, *args: str) -> tuple[subprocess.CompletedProcess, str]:
+    log = cwd / "chain.log"
+    log.unlink(missing_ok=True)
+    proc = subprocess.run(["bash", "recipes/chain.sh", *args], cwd=cwd, env={**env, "DOCS_LOG": str(log)},
+                          capture_output=True, text=True, timeout=900, check=False)
+    return proc, log.read_text() if log.exists() else ""
+
+
+def test_chain_skips_finished_stages_and_stops_at_the_first_failure(docs_env):
+    base, env = docs_env
+    cwd = base / "chain"
+    cwd.mkdir()
+    (cwd / "recipes").symlink_to(ROOT / "recipes")
+    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", "-", "ws")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert [line.split()[1] for line in ran.splitlines() if line.startswith("boostnerf")] == [
+        "pretrain", "build-moe", "finetune", "finetune", "finetune", "finetune", "eval", "count-params"]
+    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", "-", "ws")  # rerun: nothing left to do
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for stage in ("build-moe", "eval", "count-params"):
+        assert f"chain: {stage} already done" in proc.stderr
+        assert f"boostnerf {stage}" not in ran
+    assert proc.stderr.count("already finetuned, skipping") == 4
+    # a stage that fails stops the chain there, naming it
+    (cwd / "not-a-scene").mkdir()  # exists, so the shim keeps it; pretrain cannot read it
+    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", str(cwd / "not-a-scene"), "ws-bad")
+    assert proc.returncode != 0 and "chain: stage failed: boostnerf pretrain" in proc.stderr
+    assert "build-moe" not in ran
+    proc, _ = _run_chain(cwd, env, "no-such-recipe", "-", "ws-bad")
+    assert proc.returncode == 2 and "recipe" in proc.stderr and "blender-dvgo-cpu" in proc.stderr
