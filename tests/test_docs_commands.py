@@ -93,7 +93,7 @@ def bash_blocks(text: str) -> list[str]:
 
 def runnable_lines(block: str) -> list[str]:
     """The block's boostnerf / recipe-script commands and variable assignments (continuations joined)."""
-    joined = re.sub(r"\\\n\s*", " ", block)
+    joined = re.sub(r"\s*\\\n\s*", " ", block)
     return [line.strip() for line in joined.splitlines() if _KEEP.match(line)]
 
 
