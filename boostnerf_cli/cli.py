@@ -198,18 +198,33 @@ def render(
     split: SplitOpt = "test",
     views: ViewsOpt = None,
     no_skip: NoSkipOpt = False,
-    per_expert: Annotated[bool, typer.Option("--per-expert", help="Mixtures: also each expert's contribution and the gate's probability map per expert.")] = False,
+    per_expert: Annotated[bool, typer.Option("--per-expert", help="Mixtures: also each expert's share, the gate's probability map per expert, and a montage of them.")] = False,
+    compare: Annotated[bool, typer.Option("--compare", help="Instead: one image per view with ground truth and the models (--model, default baseline/top1/top2/ens) side by side over their error heat maps -> WS/renders/compare/.")] = False,
+    path: Annotated[Optional[str], typer.Option("--path", help="Instead: a video along a camera path from the training cameras: orbit (360-degree scenes) or spiral (forward-facing). Needs one --model.")] = None,
+    frames: Annotated[int, typer.Option("--frames", min=1, help="--path: number of frames.")] = 60,
+    fps: Annotated[int, typer.Option("--fps", min=1, help="--path: frames per second.")] = 24,
+    video: Annotated[Optional[Path], typer.Option("--video", help="--path: output .mp4 (GIF instead when imageio-ffmpeg is missing) or .gif; depth goes to FILE_depth. Default WS/renders/MODEL/PATH.mp4.")] = None,
     exact_gate: ExactGateOpt = False,
     device: DeviceOpt = "auto",
 ) -> None:
-    """Render a split of the scene with each model: PNG colour and 16-bit depth under WS/renders/."""
+    """Render a split with each model (PNG colour + 16-bit depth), a comparison (--compare) or a video (--path)."""
+    from boostnerf_cli.stages import pictures
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.stages.evaluate import run_render
 
+    if sum((path is not None, compare, per_expert)) > 1:
+        raise BoostNerfError("--path, --compare and --per-expert are separate outputs: use one per command")
+    if path is None and video is not None:
+        raise BoostNerfError("--video needs --path orbit or --path spiral")
     ws, lock = _writer(workspace)
     with lock:
-        run_render(ws, model, split, resolve_device(device), not no_skip, views, log, per_expert=per_expert,
-                   exact_gate=exact_gate)
+        if path is not None:
+            pictures.run_video(ws, model, path, frames, video, fps, resolve_device(device), not no_skip, log)
+        elif compare:
+            pictures.run_compare(ws, model, split, resolve_device(device), not no_skip, views, log)
+        else:
+            run_render(ws, model, split, resolve_device(device), not no_skip, views, log, per_expert=per_expert,
+                       exact_gate=exact_gate)
 
 
 @app.command("eval")

@@ -100,3 +100,38 @@ def test_render_per_expert_and_gate_maps(moe_ws):
     assert g0.shape == (32, 32, 3) and (g0[..., 0] == g0[..., 1]).all()  # greyscale
     acc_like = g0[..., 0] + g1[..., 0]  # probabilities sum to the pixel's opacity (<= 255 up to rounding)
     assert acc_like.max() <= 256
+
+
+def test_render_expert_montage_and_comparison(moe_ws):
+    import imageio.v3 as iio
+
+    run_cli("render", "--workspace", str(moe_ws), "--model", "top1", "--views", "1", "--per-expert",
+            "--device", "cpu", check=True)
+    montages = list((moe_ws / "renders" / "top1" / "test").glob("*_experts.png"))
+    assert len(montages) == 1 and iio.imread(montages[0]).shape[2] == 3
+    run_cli("render", "--workspace", str(moe_ws), "--compare", "--views", "2", "--device", "cpu", check=True)
+    compared = sorted((moe_ws / "renders" / "compare" / "test").glob("*.png"))
+    assert len(compared) == 2
+    img = iio.imread(compared[0])
+    # ground truth + baseline, top1, top2, ens: 5 panels of 32 px enlarged 6x (>= 192 px), 4 px gaps
+    assert img.shape[1] == 5 * (32 * 6 + 4) + 4
+    proc = run_cli("render", "--workspace", str(moe_ws), "--compare", "--per-expert")
+    _assert_clean_failure(proc, "one per command")
+
+
+def test_render_orbit_video(moe_ws, tmp_path):
+    import imageio.v3 as iio
+
+    from boostnerf_cli.images import ffmpeg_available
+
+    out = tmp_path / "orbit.mp4"
+    run_cli("render", "--workspace", str(moe_ws), "--model", "top2", "--path", "orbit", "--frames", "3",
+            "--video", str(out), "--device", "cpu", check=True)
+    suffix = ".mp4" if ffmpeg_available() else ".gif"
+    for name in (f"orbit{suffix}", f"orbit_depth{suffix}"):
+        frames = list(iio.imiter(tmp_path / name))
+        assert len(frames) == 3 and frames[0].shape[:2] == (32, 32)
+    proc = run_cli("render", "--workspace", str(moe_ws), "--path", "orbit", "--frames", "3")
+    _assert_clean_failure(proc, "--model NAME")
+    proc = run_cli("render", "--workspace", str(moe_ws), "--video", str(out))
+    _assert_clean_failure(proc, "--path")

@@ -66,31 +66,10 @@ def run_render(ws: Workspace, names: list[str] | None, split_name: str, device: 
             write_png(folder / f"{stem}_depth.png", depth_to_uint16(r["depth"], scene.far))
             written.append(folder / f"{stem}.png")
         if per_expert and model.kind == "mixture":
-            written += _render_experts_and_gate(model, scene, split, split_name, folder, device, skip, views)
+            from boostnerf_cli.stages.pictures import render_experts_and_gate
+
+            written += render_experts_and_gate(model, scene, split, folder, device, skip, views, log)
         log(f"{name}: wrote {len(written)} images to {folder}")
-    return written
-
-
-def _render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, split_name: str, folder: Path,
-                             device: str, skip: bool, views: int | None) -> list[Path]:
-    """Per expert (ordered by size): its contribution to the mixture, and the gate's probability map."""
-    from dataclasses import replace
-
-    from boostnerf_cli.moe.mixture import GateView
-
-    mix = model.field
-    written = []
-    for e, ename in enumerate(mix.cfg.expert_names):
-        views_of = {"expert": (mix.expert_only(e), scene.background), "gate": (GateView(mix, e), (0.0, 0.0, 0.0))}
-        for kind, (field, background) in views_of.items():
-            fake = replace(model, field=field)
-            settings = replace(fake.settings(scene, 1e-4 if skip else 0.0), background=background)
-            for i in range(len(split) if views is None else min(views, len(split))):
-                r = render_image(field, split.poses[i], split.intrinsics[i], split.height, split.width, settings,
-                                 model.skip if skip else None, device=device)
-                path = folder / f"{Path(split.names[i]).name}_{kind}{e}-{ename}.png"
-                write_png(path, to_uint8(r["rgb"]))
-                written.append(path)
     return written
 
 

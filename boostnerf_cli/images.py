@@ -1,0 +1,147 @@
+"""Pictures on disk: a heat colour map, labelled panel grids, and videos (MP4 or GIF).
+
+Pure numpy + Pillow + imageio (all core dependencies); MP4 needs the optional `imageio-ffmpeg`
+(`pip install 'boostnerf[video]'`), otherwise videos are written as GIF and the caller is told.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from boostnerf_cli.errors import BoostNerfError
+
+# Heat map: black -> purple -> red -> orange -> yellow -> white (monotonic in brightness, so it
+# also reads in greyscale print). Anchors at evenly spaced values in [0, 1].
+_HEAT = np.array([
+    [0, 0, 0], [40, 10, 90], [120, 20, 130], [200, 40, 70], [245, 110, 20], [250, 200, 40], [255, 255, 230],
+], dtype=np.float64) / 255.0
+
+
+def heat(values: np.ndarray, lo: float = 0.0, hi: float = 1.0) -> np.ndarray:
+    """Values (...,) -> uint8 RGB (..., 3) on the heat map, `lo` black, `hi` near-white, clipped."""
+    span = hi - lo if hi > lo else 1.0
+    x = np.clip((np.asarray(values, dtype=np.float64) - lo) / span, 0.0, 1.0) * (len(_HEAT) - 1)
+    i = np.minimum(np.floor(x).astype(int), len(_HEAT) - 2)
+    f = (x - i)[..., None]
+    rgb = _HEAT[i] * (1.0 - f) + _HEAT[i + 1] * f
+    return (rgb * 255.0 + 0.5).astype(np.uint8)
+
+
+def colorize_depth(depth: np.ndarray, acc: np.ndarray, lo: float, hi: float, background=(0, 0, 0)) -> np.ndarray:
+    """Depth (H, W) -> uint8 RGB: near bright, far dark on the heat map; pixels with opacity < 0.5 get `background`."""
+    rgb = heat(hi - np.asarray(depth), 0.0, hi - lo)
+    rgb[np.asarray(acc) < 0.5] = np.asarray(background, dtype=np.uint8)
+    return rgb
+
+
+def upscale(img: np.ndarray, factor: int) -> np.ndarray:
+    """Nearest-neighbour enlargement (keeps every rendered pixel visible as a block)."""
+    return img if factor <= 1 else np.repeat(np.repeat(img, factor, axis=0), factor, axis=1)
+
+
+def _font(size: int):
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # Pillow < 10.1: fixed bitmap font
+        return ImageFont.load_default()
+
+
+def panel_grid(rows: list[list[tuple[str, np.ndarray | None]]], min_width: int = 192, caption: str = "") -> np.ndarray:
+    """Labelled panels in a grid -> uint8 RGB image.
+
+    rows: lists of (label, uint8 RGB (H, W, 3) image or None for an empty cell); every image has
+    the same size. Panels are enlarged by an integer factor to be at least `min_width` wide, each
+    gets its label above it, and `caption` (optional) goes under the grid.
+    """
+    from PIL import Image, ImageDraw
+
+    images = [img for row in rows for _, img in row if img is not None]
+    if not images:
+        raise BoostNerfError("nothing to draw")
+    h, w = images[0].shape[:2]
+    k = max(1, -(-min_width // w))
+    ph, pw, pad, label_h = h * k, w * k, 4, 18
+    ncols = max(len(r) for r in rows)
+    cap_h = 20 if caption else 0
+    canvas = Image.new("RGB", (ncols * (pw + pad) + pad, len(rows) * (ph + label_h + pad) + pad + cap_h), "white")
+    draw = ImageDraw.Draw(canvas)
+    font = _font(13)
+    for r, row in enumerate(rows):
+        y = pad + r * (ph + label_h + pad)
+        for c, (label, img) in enumerate(row):
+            x = pad + c * (pw + pad)
+            draw.text((x + 2, y + 2), label, fill=(0, 0, 0), font=font)
+            if img is not None:
+                canvas.paste(Image.fromarray(upscale(np.ascontiguousarray(img), k)), (x, y + label_h))
+    if caption:
+        draw.text((pad + 2, canvas.height - cap_h + 3), caption, fill=(0, 0, 0), font=font)
+    return np.asarray(canvas)
+
+
+def colorbar(height: int, width: int, lo: float, hi: float) -> np.ndarray:
+    """A vertical heat-map legend (top = hi, bottom = lo) of the given size, uint8 RGB; the caller labels it."""
+    values = np.linspace(hi, lo, height)[:, None].repeat(max(1, width // 4), axis=1)
+    bar = np.full((height, width, 3), 255, dtype=np.uint8)
+    bar[:, : values.shape[1]] = heat(values, lo, hi)
+    return bar
+
+
+# --- videos ---------------------------------------------------------------------------------------
+def ffmpeg_available() -> bool:
+    try:
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def video_target(path: Path) -> tuple[Path, str]:
+    """Where a video asked for at `path` is written, and in which format: MP4 when `path` ends in .mp4 and
+    imageio-ffmpeg is installed, GIF otherwise (the suffix becomes .gif)."""
+    path = Path(path)
+    if path.suffix.lower() == ".gif":
+        return path, "gif"
+    if path.suffix.lower() != ".mp4":
+        raise BoostNerfError(f"--video {path}: name an .mp4 or .gif file")
+    if ffmpeg_available():
+        return path, "mp4"
+    return path.with_suffix(".gif"), "gif"
+
+
+def write_video(path: Path, frames: list[np.ndarray], fps: int, fmt: str) -> None:
+    """Frames (uint8 RGB, same size) -> `path` as MP4 (H.264, yuv420p) or looping GIF, atomically."""
+    if not frames:
+        raise BoostNerfError("no frames to write")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # a temporary file with the real suffix, in the same folder, renamed over the target when complete
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        if fmt == "mp4":
+            import imageio.v2 as iio2
+
+            h, w = frames[0].shape[:2]
+            pad = ((0, h % 2), (0, w % 2), (0, 0))  # yuv420p needs even sides
+            with iio2.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
+                                 macro_block_size=1, quality=8) as writer:
+                for f in frames:
+                    writer.append_data(np.pad(f, pad, mode="edge"))
+        elif fmt == "gif":
+            import imageio.v3 as iio
+
+            iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=round(1000 / fps), loop=0)
+        else:
+            raise BoostNerfError(f"unknown video format {fmt!r}")
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)

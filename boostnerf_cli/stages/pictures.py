@@ -1,0 +1,228 @@
+"""What `boostnerf render` shows besides plain views: camera-path videos, side-by-side comparisons
+with error heat maps, and each expert's share of a mixture with the gate's probability maps.
+
+Files (all under WS/renders/, see docs/stages.md):
+- `render --path orbit|spiral`: `<model>/<path>.mp4` (or `--video FILE`) and `<...>_depth.mp4`;
+  GIF when imageio-ffmpeg is not installed;
+- `render --compare`: `compare/<split>/<view>.png`;
+- `render --per-expert` (mixtures): `<model>/<split>/<view>_expert<i>-<name>.png`,
+  `<view>_gate<i>-<name>.png` and the montage `<view>_experts.png`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.images import (
+    colorbar,
+    colorize_depth,
+    heat,
+    panel_grid,
+    video_target,
+    write_video,
+)
+from boostnerf_cli.render.paths import camera_path
+from boostnerf_cli.render.renderer import render_image
+from boostnerf_cli.scenes import Scene, Split
+from boostnerf_cli.stages.common import (
+    LoadedModel,
+    all_model_names,
+    load_model,
+    workspace_scene,
+)
+from boostnerf_cli.workspace import Workspace
+
+COMPARED = ("baseline", "top1", "top2", "ens")  # the paper's comparison models, in its order
+
+
+def _to_uint8(img: torch.Tensor | np.ndarray) -> np.ndarray:
+    a = img.numpy() if isinstance(img, torch.Tensor) else img
+    return (np.clip(a, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def _write_png(path: Path, array: np.ndarray) -> None:
+    from boostnerf_cli.stages.evaluate import write_png
+
+    write_png(path, array)
+
+
+def _n_views(split: Split, views: int | None) -> int:
+    return len(split) if views is None else min(views, len(split))
+
+
+# --- videos ---------------------------------------------------------------------------------------
+def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, video: Path | None, fps: int,
+              device: str, skip: bool, log: Callable[[str], None]) -> list[Path]:
+    """Render one model along a camera path derived from the training cameras -> colour and depth videos."""
+    if not names or len(names) != 1:
+        raise BoostNerfError(f"--path renders one model: add --model NAME (models: {', '.join(all_model_names(ws)) or 'none yet'})")
+    scene = workspace_scene(ws)
+    model = load_model(ws, names[0], device)
+    train = scene.split("train")
+    facing = float(torch.linalg.norm(train.poses[:, :3, 2].mean(0)))  # 1: all cameras look the same way
+    if kind == "spiral" and facing < 0.5:
+        log("note: the training cameras look in many directions (a 360-degree capture?): --path orbit suits it better")
+    if kind == "orbit" and facing > 0.9:
+        log("note: the training cameras all look one way (a forward-facing capture?): --path spiral suits it better")
+    poses = camera_path(kind, train.poses, model.bbox.cpu(), scene.near, scene.far, n_frames)
+    settings = model.settings(scene, 1e-4 if skip else 0.0)
+    rgb, depth, acc = [], [], []
+    for i, pose in enumerate(poses):
+        r = render_image(model.field, pose, train.intrinsics[0], train.height, train.width, settings,
+                         model.skip if skip else None, device=device)
+        rgb.append(_to_uint8(r["rgb"]))
+        depth.append((r["depth"] / r["acc"].clamp_min(1e-6)).numpy())  # expected depth of the surface hit
+        acc.append(r["acc"].numpy())
+        if (i + 1) % 10 == 0 or i + 1 == len(poses):
+            log(f"{model.name}: {kind} frame {i + 1}/{len(poses)}")
+    seen = np.concatenate([d[a >= 0.5] for d, a in zip(depth, acc)])
+    lo, hi = (np.percentile(seen, [1, 99]) if seen.size else (scene.near, scene.far))
+    depth_frames = [colorize_depth(d, a, float(lo), float(max(hi, lo + 1e-6))) for d, a in zip(depth, acc)]
+    asked = video or ws.root / "renders" / model.name / f"{kind}.mp4"
+    target, fmt = video_target(asked)
+    depth_target = target.with_name(f"{target.stem}_depth{target.suffix}")
+    write_video(target, rgb, fps, fmt)
+    write_video(depth_target, depth_frames, fps, fmt)
+    if fmt == "gif" and asked.suffix.lower() == ".mp4":
+        log("imageio-ffmpeg is not installed, so the videos are GIF, not MP4 (pip install 'boostnerf[video]' for MP4)")
+    log(f"{model.name}: wrote {fmt.upper()} {target} and {depth_target} ({len(poses)} frames, {fps} fps, "
+        f"{kind} path; depth: near bright, far dark, {lo:.3g} .. {hi:.3g} world units)")
+    return [target, depth_target]
+
+
+# --- side-by-side comparison ------------------------------------------------------------------------
+def compared_models(ws: Workspace, names: list[str] | None) -> list[str]:
+    """`names`, else the paper's comparison models the workspace has, else every model it has."""
+    if names:
+        return names
+    have = all_model_names(ws)
+    chosen = [n for n in COMPARED if n in have] or have
+    if not chosen:
+        raise BoostNerfError(f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
+    return chosen
+
+
+def pixel_error(rgb: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Root-mean-square error over the colour channels per pixel, (H, W), in [0, 1]."""
+    return np.sqrt(np.mean((rgb.astype(np.float64) - gt.astype(np.float64)) ** 2, axis=-1))
+
+
+def run_compare(ws: Workspace, names: list[str] | None, split_name: str, device: str, skip: bool, views: int | None,
+                log: Callable[[str], None]) -> list[Path]:
+    """One image per view: ground truth and each model side by side, each model's error heat map below it."""
+    scene = workspace_scene(ws)
+    split = scene.split(split_name)
+    names = compared_models(ws, names)
+    n = _n_views(split, views)
+    from boostnerf_cli.stages.evaluate import render_split
+
+    renders = {}
+    for name in names:
+        renders[name] = [r["rgb"].numpy() for r in render_split(load_model(ws, name, device), scene, split, device, skip, n)]
+    folder = ws.root / "renders" / "compare" / split_name
+    written = []
+    for i in range(n):
+        gt = split.images[i].numpy()
+        errors = {name: pixel_error(renders[name][i], gt) for name in names}
+        hi = max(max(float(np.percentile(e, 99.5)) for e in errors.values()), 1e-3)
+        top, bottom = [("ground truth", _to_uint8(gt))], [(f"RMS error: black 0, white {hi:.2f}", colorbar(gt.shape[0], gt.shape[1], 0.0, hi))]
+        for name in names:
+            mse = float(np.mean((renders[name][i].astype(np.float64) - gt) ** 2))
+            psnr = -10.0 * np.log10(max(mse, 1e-10))
+            top.append((f"{name}  {psnr:.2f} dB", _to_uint8(renders[name][i])))
+            bottom.append((f"{name} error", heat(errors[name], 0.0, hi)))
+        path = folder / f"{Path(split.names[i]).name}.png"
+        _write_png(path, panel_grid([top, bottom], caption=f"{scene.name}, {split_name} view {split.names[i]}"))
+        written.append(path)
+    log(f"compared {', '.join(names)}: wrote {len(written)} images to {folder}")
+    return written
+
+
+# --- per-expert pictures of a mixture -----------------------------------------------------------------
+# routing colours for the montage, smallest expert first: blue, cyan, green, orange, red, then grey
+_PALETTE = np.array([[40, 90, 255], [0, 200, 220], [60, 200, 60], [255, 160, 0], [230, 30, 30]], dtype=np.float64) / 255
+
+
+def _palette(m: int) -> np.ndarray:
+    extra = np.full((max(0, m - len(_PALETTE)), 3), 0.6)
+    return np.concatenate([_PALETTE[:m], extra])
+
+
+def gate_by_detail(probs: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean gate probability per expert over the more detailed and the smoother half of the pixels.
+
+    probs (H, W, M) per-pixel gate maps, gt (H, W, 3) ground truth, mask (H, W) pixels to use (the
+    object). Detail = the ground truth's gradient magnitude (luminance, central differences); the
+    halves split at its median over the mask -> (detailed (M,), smooth (M,)).
+    """
+    lum = gt.astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+    gy, gx = np.gradient(lum)
+    detail = np.hypot(gx, gy)[mask]
+    p = probs[mask]
+    if detail.size < 2:
+        return np.full(probs.shape[-1], np.nan), np.full(probs.shape[-1], np.nan)
+    high = detail > np.median(detail)
+    return p[high].mean(0), p[~high].mean(0)
+
+
+def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, folder: Path, device: str, skip: bool,
+                            views: int | None, log: Callable[[str], None] | None = None) -> list[Path]:
+    """Per expert (ordered by size): its contribution to the mixture, and the gate's probability map; plus a montage.
+
+    - `<view>_expert<i>-<name>.png`: expert i's share of the mixture: its density times its routed weight,
+      its own colour, composited on the scene's background;
+    - `<view>_gate<i>-<name>.png`: greyscale probability G(x)_i averaged along each ray with the rendering
+      weights (white = every visible sample prefers expert i); black where the ray hits nothing (opacity < 0.1);
+    - `<view>_experts.png`: the mixture's render, the expert shares and the gate maps side by side, and a
+      routing map (each pixel coloured by the gate's probabilities: blue = smallest expert ... red = largest).
+    `log` (when given) gets, per view, the mean gate probability of each expert over the more detailed
+    and the smoother half of the object's pixels (`gate_by_detail`).
+    """
+    from boostnerf_cli.moe.mixture import GateView
+
+    mix = model.field
+    names = list(mix.cfg.expert_names)
+    m = len(names)
+    settings = model.settings(scene, 1e-4 if skip else 0.0)
+    black = replace(settings, background=(0.0, 0.0, 0.0))
+    written = []
+    for i in range(_n_views(split, views)):
+        stem = Path(split.names[i]).name
+
+        def draw(field, s, i=i):
+            return render_image(field, split.poses[i], split.intrinsics[i], split.height, split.width, s,
+                                model.skip if skip else None, device=device)
+
+        full = draw(mix, settings)
+        shares, gates = [], []
+        for e, ename in enumerate(names):
+            share = _to_uint8(draw(mix.expert_only(e), settings)["rgb"])
+            g = draw(GateView(mix, e), black)
+            acc = g["acc"].numpy()
+            prob = np.where(acc > 0.1, g["rgb"].numpy()[..., 0] / np.maximum(acc, 1e-6), 0.0).clip(0, 1)
+            gates.append(prob)
+            shares.append(share)
+            for kind, img in (("expert", share), ("gate", _to_uint8(np.repeat(prob[..., None], 3, -1)))):
+                path = folder / f"{stem}_{kind}{e}-{ename}.png"
+                _write_png(path, img)
+                written.append(path)
+        probs = np.stack(gates, -1)  # (H, W, M)
+        if log is not None:
+            hi, lo = gate_by_detail(probs, split.images[i].numpy(), full["acc"].numpy() > 0.5)
+            log(f"{model.name} {stem}: mean gate probability per expert ({', '.join(names)}) on detailed pixels "
+                f"{[round(float(v), 2) for v in hi]}, on smooth pixels {[round(float(v), 2) for v in lo]}")
+        routing = _to_uint8(probs @ _palette(m))
+        top = [("mixture", _to_uint8(full["rgb"]))] + [(f"{names[e]} share", shares[e]) for e in range(m)]
+        bottom = [("routing (blue=small .. red=large)", routing)] + [
+            (f"gate p({names[e]})", _to_uint8(np.repeat(gates[e][..., None], 3, -1))) for e in range(m)]
+        path = folder / f"{stem}_experts.png"
+        _write_png(path, panel_grid([top, bottom], caption=f"{model.name}, {split.names[i]}: experts smallest first; "
+                                    "gate: white = probability 1, black = 0 or empty"))
+        written.append(path)
+    return written

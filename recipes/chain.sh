@@ -1,0 +1,78 @@
+#!/usr/bin/env bash
+# The whole boostnerf chain for one scene, as users run it:
+#   pretrain -> build-moe -> finetune --baseline, --topk 1, --topk 2, --ensemble -> eval --report -> count-params
+#
+# Usage: bash recipes/chain.sh RECIPE DATA WS [PRETRAIN_OPTIONS...]
+#   RECIPE  a recipe file, or the name of one in recipes/ (blender-dvgo-cpu = recipes/blender-dvgo-cpu.yaml)
+#   DATA    the scene folder, or - for the embedded procedural scene
+#   WS      the workspace folder
+#   PRETRAIN_OPTIONS are passed to pretrain only (e.g. --format llff, --image-size 200, --device cpu)
+# Environment: DEVICE (auto, cpu or cuda; default auto), MODELS (finetuned models to make; default
+# "baseline top1 top2 ens").
+#
+# Stops at the first failing stage (set -euo pipefail) and says which. Rerunnable: pretrain and
+# finetune skip the models they already finished (and resume an interrupted one from its
+# checkpoint); build-moe is skipped when moe/init is newer than every expert, eval and count-params
+# when their report is newer than every model in the workspace.
+set -euo pipefail
+if [ $# -lt 3 ]; then
+  sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//' >&2
+  exit 2
+fi
+HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+RECIPE="$1" DATA="$2" WS="$3"
+shift 3
+DEVICE="${DEVICE:-auto}"
+MODELS="${MODELS:-baseline top1 top2 ens}"
+case "$RECIPE" in
+  */*|*.yaml|*.yml) ;;
+  *) RECIPE="$HERE/$RECIPE.yaml" ;;
+esac
+if [ ! -f "$RECIPE" ]; then
+  echo "chain: recipe $RECIPE not found; recipes here: $(cd "$HERE" && ls ./*.yaml | sed 's|^\./||; s|\.yaml$||' | tr '\n' ' ')" >&2
+  exit 2
+fi
+DATA_ARGS=()
+[ "$DATA" = "-" ] || DATA_ARGS=(--data "$DATA")
+
+stage() {  # stage NAME COMMAND...: run one stage, name it when it fails
+  echo "== chain: $1" >&2
+  shift
+  if ! "$@"; then
+    echo "chain: stage failed: $*" >&2
+    exit 1
+  fi
+}
+
+fresh() {  # fresh FILE DIR...: FILE exists and no model (*.safetensors) under the DIRs is newer than it
+  local out="$1"
+  shift
+  [ -f "$out" ] && [ -z "$(find "$@" -name '*.safetensors' -newer "$out" 2>/dev/null)" ]
+}
+
+stage pretrain boostnerf pretrain --workspace "$WS" "${DATA_ARGS[@]}" --recipe "$RECIPE" --device "$DEVICE" "$@"
+if fresh "$WS/moe/init.safetensors" "$WS/experts"; then
+  echo "== chain: build-moe already done ($WS/moe/init.safetensors), skipping" >&2
+else
+  stage build-moe boostnerf build-moe --workspace "$WS" --recipe "$RECIPE" --device "$DEVICE"
+fi
+for m in $MODELS; do
+  case "$m" in
+    baseline) flag=(--baseline) ;;
+    ens) flag=(--ensemble) ;;
+    top[0-9]*) flag=(--topk "${m#top}") ;;
+    *) echo "chain: unknown model $m in MODELS (use baseline, topK, ens)" >&2; exit 2 ;;
+  esac
+  stage "finetune $m" boostnerf finetune --workspace "$WS" --recipe "$RECIPE" "${flag[@]}" --device "$DEVICE"
+done
+if fresh "$WS/reports/eval.json" "$WS/experts" "$WS/moe"; then
+  echo "== chain: eval already done ($WS/reports/eval.md), skipping" >&2
+else
+  stage eval boostnerf eval --workspace "$WS" --split test --report --device "$DEVICE"
+fi
+if fresh "$WS/reports/count-params.json" "$WS/experts" "$WS/moe"; then
+  echo "== chain: count-params already done ($WS/reports/count-params.json), skipping" >&2
+else
+  stage count-params boostnerf count-params --workspace "$WS" --split test --device "$DEVICE"
+fi
+echo "chain: done. Table: $WS/reports/eval.md; counts: $WS/reports/count-params.json" >&2
