@@ -147,6 +147,15 @@ def _non_finite_entry(obj, where: str = "") -> str | None:
     return None
 
 
+def _kept(checkpoint: Path | None) -> str:
+    """What a stopped run keeps, for its error message."""
+    if checkpoint is None:
+        return "this short stage keeps no checkpoint"
+    if checkpoint.exists():
+        return f"the last good checkpoint {checkpoint} is kept (rerunning resumes from it)"
+    return "no checkpoint had been written yet"
+
+
 def _check_signature(path: Path, saved: dict | None, wanted: dict | None) -> None:
     """Refuse to resume a checkpoint written with settings that change what is being trained."""
     if saved is None or wanted is None or saved == wanted:
@@ -196,6 +205,8 @@ def train(
         if state.get("cuda_rng") and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(state["cuda_rng"])
     progress = Progress(title, sched.iters, start, sched.log_every)
+    if start > 0:
+        progress.warn(f"resuming from {checkpoint} at step {start}/{sched.iters}")
     bad_run = 0
     t0 = time.perf_counter() - elapsed
     try:
@@ -220,10 +231,16 @@ def train(
                     opt.zero_grad(set_to_none=True)
                     progress.warn(f"step {step + 1}: non-finite {'gradient' if finite_loss else 'loss'}, "
                                   f"step skipped ({skipped} so far)")
+                    if not all(bool(torch.isfinite(p).all()) for p in params):  # skipping cannot help: the parameters themselves are gone
+                        raise BoostNerfError(
+                            f"training diverged: the parameters became non-finite by step {step + 1} (an "
+                            f"optimiser step overflowed); {_kept(checkpoint)}: lower the learning rates in the recipe"
+                        )
                     if bad_run >= sched.max_bad_steps:
                         raise BoostNerfError(
                             f"training diverged: {bad_run} consecutive steps had a non-finite loss or gradient "
-                            f"(last at step {step}); lower the learning rates in the recipe or check the data"
+                            f"(last at step {step + 1}); {_kept(checkpoint)}: lower the learning rates in the "
+                            "recipe or check the data"
                         )
             done = step + 1
             if done % sched.log_every == 0 or done == sched.iters:
@@ -244,11 +261,11 @@ def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, st
     """Write the resumable state atomically; a state with NaN or infinity stops the run instead
     (the previous checkpoint stays, so nothing before it is lost)."""
     task_state, optim_state = task.state(), opt.state_dict()
-    bad = _non_finite_entry({"model": task_state, "optimiser": optim_state})
+    bad = _non_finite_entry(task_state) or _non_finite_entry(optim_state, "optimiser")
     if bad is not None:
         raise BoostNerfError(
-            f"training diverged: {bad} holds non-finite values at step {step}; not checkpointed (the last good "
-            f"checkpoint {path.name} is kept): lower the learning rates in the recipe or check the data"
+            f"training diverged: {bad} holds non-finite values at step {step}, so it is not checkpointed; "
+            f"{_kept(path)}: lower the learning rates in the recipe or check the data"
         )
     state = {
         "task": task_state,
