@@ -19,7 +19,7 @@ from torch import Tensor
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
-from boostnerf_cli.workspace import atomic_path
+from boostnerf_cli.workspace import save_torch
 
 
 @dataclass
@@ -279,5 +279,4 @@ def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, st
         "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
         "signature": signature,
     }
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    save_torch(path, state)

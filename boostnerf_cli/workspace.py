@@ -118,7 +118,44 @@ def save_tensors(path: Path, tensors: dict[str, torch.Tensor], meta: dict[str, A
     clean = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
     header = {"boostnerf": json.dumps({**meta, "format_version": FORMAT_VERSION, "digest": tensors_digest(clean)})}
     with atomic_path(path) as tmp:
-        save_file(clean, str(tmp), metadata=header)
+        try:
+            save_file(clean, str(tmp), metadata=header)
+        except SafetensorError as e:  # e.g. "I/O error: No space left on device (os error 28)"
+            raise OSError(str(e)) from None
+
+
+class _RecordingFile:
+    """A file wrapper that remembers the OSError of a failed write: torch.save reports a full disk
+    only as an opaque RuntimeError ("enforce fail at inline_container.cc")."""
+
+    def __init__(self, f):
+        self.f, self.error = f, None
+
+    def write(self, data):
+        try:
+            return self.f.write(data)
+        except OSError as e:
+            self.error = e
+            raise
+
+    def flush(self):
+        try:
+            return self.f.flush()
+        except OSError as e:
+            self.error = e
+            raise
+
+
+def save_torch(path: Path, obj: Any) -> None:
+    """`torch.save` atomically (used for training checkpoints); a failed write is one clear error."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as raw:
+        out = _RecordingFile(raw)
+        try:
+            torch.save(obj, out)
+        except RuntimeError:
+            if out.error is not None:
+                raise out.error from None
+            raise
 
 
 def tensors_digest(tensors: dict[str, torch.Tensor]) -> str:

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import run_cli
+from test_cli import _assert_clean_failure
 
 from boostnerf_cli import workspace as wsmod
 from boostnerf_cli.errors import BoostNerfError
@@ -24,8 +26,6 @@ from boostnerf_cli.recipe import load_recipe
 from boostnerf_cli.stages import build_moe, pretrain
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace
-from conftest import run_cli
-from test_cli import _assert_clean_failure
 
 
 def _tmp_files(root: Path) -> list[Path]:
@@ -63,9 +63,9 @@ def test_lock_of_a_killed_process_is_stale_and_taken_over(tmp_path):
     holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(ws)], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "locked"
-        with pytest.raises(BoostNerfError, match=f"in use by another boostnerf process .*{holder.pid}"):
-            with Workspace(ws).lock():
-                pass
+        with pytest.raises(BoostNerfError, match=f"in use by another boostnerf process .*{holder.pid}"), \
+                Workspace(ws).lock():
+            pass
     finally:
         holder.send_signal(signal.SIGKILL)
         holder.wait()
@@ -245,3 +245,36 @@ def test_a_different_or_changed_scene_is_refused(trained_ws, tiny_scene, tiny_re
     iio.imwrite(other / "train" / "r_0.png", img)
     proc = run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--device", "cpu")
     _assert_clean_failure(proc, "changed since pretrain")
+
+
+def test_disk_full_while_checkpointing_is_one_line_and_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
+    """torch.save reports a full disk as an opaque RuntimeError; it must become the OSError's message."""
+    ckpt = tmp_path / "run.pt"
+    wsmod.save_torch(ckpt, {"step": 5, "w": torch.ones(10)})
+    real_open = open
+
+    class FullDisk:
+        def __init__(self, f):
+            self.f, self.written = f, 0
+
+        def write(self, data):
+            self.written += len(data)
+            if self.written > 300:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return self.f.write(data)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return self.f.__exit__(*exc)
+
+    monkeypatch.setattr(wsmod, "open", lambda *a, **k: FullDisk(real_open(*a, **k)), raising=False)
+    with pytest.raises(BoostNerfError, match=r"could not write .*run\.pt \(No space left on device\)"):
+        wsmod.save_torch(ckpt, {"step": 10, "w": torch.zeros(10_000)})
+    monkeypatch.undo()
+    assert torch.load(ckpt, weights_only=True)["step"] == 5
+    assert not _tmp_files(tmp_path)

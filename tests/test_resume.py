@@ -22,9 +22,9 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import run_cli
 
 from boostnerf_cli.workspace import load_tensors
-from conftest import run_cli
 
 RESUME_ATOL = 1e-5  # documented in docs/reliability.md; observed difference: exactly 0
 
@@ -80,8 +80,8 @@ def kill_repeatedly(args: list[str], seed: int, max_lines: int, kills: int = 3) 
 
 
 def assert_same_tensors(a: Path, b: Path) -> None:
-    ta, ma = load_tensors(a)
-    tb, mb = load_tensors(b)
+    ta, _ = load_tensors(a)
+    tb, _ = load_tensors(b)
     assert sorted(ta) == sorted(tb), a.name
     for k in ta:
         if ta[k].is_floating_point():
@@ -119,7 +119,7 @@ def test_pretrain_killed_at_random_points_resumes_to_the_uninterrupted_result(se
     root, _, ref, args = setup
     ws = root / "killed-pretrain"
     args = [a if a != str(ref) else str(ws) for a in args]
-    landed = kill_repeatedly(args, seed=7, max_lines=20)
+    landed = kill_repeatedly(args, seed=14, max_lines=20)  # in geometry, dvgo-10, then later
     assert landed >= 2  # most seeded kill points land inside the run
     for p in sorted((ref / "experts").glob("*.safetensors")):
         assert_same_tensors(p, ws / "experts" / p.name)

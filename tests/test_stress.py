@@ -241,7 +241,7 @@ def reference_trilinear(table64: torch.Tensor, xyz64: torch.Tensor, bbox: torch.
     for p in xyz64:
         q = torch.minimum(torch.maximum(p, lo), hi)
         u = (q - lo) / (hi - lo) * (torch.tensor(shape, dtype=torch.float64) - 1)
-        i0 = [min(int(math.floor(float(u[a]))), shape[a] - 2) for a in range(3)]
+        i0 = [min(math.floor(float(u[a])), shape[a] - 2) for a in range(3)]
         f = [float(u[a]) - i0[a] for a in range(3)]
         v = torch.zeros(table64.shape[1], dtype=torch.float64)
         for dx in (0, 1):
