@@ -231,7 +231,8 @@ def train(
                     opt.zero_grad(set_to_none=True)
                     progress.warn(f"step {step + 1}: non-finite {'gradient' if finite_loss else 'loss'}, "
                                   f"step skipped ({skipped} so far)")
-                    if not all(bool(torch.isfinite(p).all()) for p in params):  # skipping cannot help: the parameters themselves are gone
+                    # Skipping cannot help when the parameters themselves are gone (an overflowing step).
+                    if not all(bool(torch.isfinite(p).all()) for p in params):
                         raise BoostNerfError(
                             f"training diverged: the parameters became non-finite by step {step + 1} (an "
                             f"optimiser step overflowed); {_kept(checkpoint)}: lower the learning rates in the recipe"
