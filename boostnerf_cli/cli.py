@@ -339,12 +339,25 @@ def bench(
         + (f" and {len(result['plots'])} plots" if result["plots"] else ""))
 
 
+class Interrupted(BaseException):
+    """Ctrl-C or SIGTERM. A BaseException like KeyboardInterrupt (no `except Exception` swallows it),
+    but not one, because Typer turns KeyboardInterrupt into a silent exit."""
+
+
+def _interrupt(signum, frame) -> None:
+    raise Interrupted()
+
+
 def main() -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, _interrupt)
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         app()
     except BoostNerfError as e:
         err.print(f"error: {e}", markup=False)
         sys.exit(e.exit_code)
-    except KeyboardInterrupt:
+    except (Interrupted, KeyboardInterrupt):  # the stage's cleanup (lock, temporary files) has run
         err.print("interrupted: finished files are kept; rerun the same command to resume", markup=False)
         sys.exit(130)

@@ -19,7 +19,7 @@ from torch import Tensor
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
-from boostnerf_cli.workspace import atomic_path
+from boostnerf_cli.workspace import save_torch
 
 
 @dataclass
@@ -108,6 +108,12 @@ class Progress:
         elif step % self.log_every == 0 or step == self.total:
             print(f"[{self.title}] step {step}/{self.total} {info}", file=sys.stderr, flush=True)
 
+    def warn(self, msg: str) -> None:
+        if self.bar is not None:
+            self.bar.console.print(f"[{self.title}] {msg}", markup=False, highlight=False)
+        else:
+            print(f"[{self.title}] {msg}", file=sys.stderr, flush=True)
+
     def close(self) -> None:
         if self.bar is not None:
             self.bar.stop()
@@ -130,6 +136,39 @@ def _all_finite(params: list[Tensor]) -> bool:
     return all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params)
 
 
+def _non_finite_entry(obj, where: str = "") -> str | None:
+    """The first floating-point tensor in a nested state holding NaN or infinity, by its path; None if none."""
+    if isinstance(obj, Tensor):
+        return where if obj.is_floating_point() and not bool(torch.isfinite(obj).all()) else None
+    items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, (list, tuple)) else ()
+    for k, v in items:
+        found = _non_finite_entry(v, f"{where}.{k}" if where else str(k))
+        if found is not None:
+            return found
+    return None
+
+
+def _kept(checkpoint: Path | None) -> str:
+    """What a stopped run keeps, for its error message."""
+    if checkpoint is None:
+        return "this short stage keeps no checkpoint"
+    if checkpoint.exists():
+        return f"the last good checkpoint {checkpoint} is kept (rerunning resumes from it)"
+    return "no checkpoint had been written yet"
+
+
+def _check_signature(path: Path, saved: dict | None, wanted: dict | None) -> None:
+    """Refuse to resume a checkpoint written with settings that change what is being trained."""
+    if saved is None or wanted is None or saved == wanted:
+        return
+    for key in sorted(set(saved) | set(wanted)):
+        if saved.get(key) != wanted.get(key):
+            raise BoostNerfError(
+                f"training checkpoint {path} was written with other settings ({key}: {saved.get(key)!r}, now "
+                f"{wanted.get(key)!r}): rerun with the settings it was made with to resume, or delete it to restart this model"
+            )
+
+
 def train(
     task: TrainTask,
     rays: RayData,
@@ -138,8 +177,16 @@ def train(
     title: str,
     checkpoint: Path | None = None,
     on_log: Callable[[int, dict], None] | None = None,
+    signature: dict | None = None,
 ) -> TrainResult:
-    """Run `sched.iters` steps of `task` on random batches of `rays`, resuming from `checkpoint`."""
+    """Run `sched.iters` steps of `task` on random batches of `rays`, resuming from `checkpoint`.
+
+    `checkpoint` is written atomically every `sched.checkpoint_every` steps and after the last step
+    (model, optimiser, step, skipped-step count, history, batch and global RNG states, `signature`);
+    a checkpoint whose `signature` (the settings that define what is trained) differs is refused.
+    A non-finite loss or gradient skips the step (counted, reported); `sched.max_bad_steps`
+    consecutive ones stop the run. A state with non-finite values is never checkpointed.
+    """
     gen = torch.Generator(device="cpu").manual_seed(seed)
     torch.manual_seed(seed)
     start, elapsed, skipped, history = 0, 0.0, 0, []
@@ -149,13 +196,18 @@ def train(
             state = torch.load(checkpoint, map_location="cpu", weights_only=True)
         except Exception as e:  # a damaged checkpoint: say so, do not train from a wrong state
             raise BoostNerfError(f"training checkpoint {checkpoint} is damaged ({type(e).__name__}); delete it to restart this model") from None
+        _check_signature(checkpoint, state.get("signature"), signature)
         task.load_state(state["task"])
         opt = make_optimizer(task)
         opt.load_state_dict(state["optim"])
         start, elapsed, skipped, history = state["step"], state["seconds"], state["skipped"], state["history"]
         gen.set_state(state["gen"])
         torch.set_rng_state(state["rng"])
+        if state.get("cuda_rng") and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["cuda_rng"])
     progress = Progress(title, sched.iters, start, sched.log_every)
+    if start > 0:
+        progress.warn(f"resuming from {checkpoint} at step {start}/{sched.iters}")
     bad_run = 0
     t0 = time.perf_counter() - elapsed
     try:
@@ -168,18 +220,29 @@ def train(
             opt.zero_grad(set_to_none=True)
             params = [p for g in opt.param_groups for p in g["params"]]
             if loss.requires_grad:  # False when every sample of the batch was skipped: nothing to learn
-                if torch.isfinite(loss):
+                finite_loss = bool(torch.isfinite(loss))
+                if finite_loss:
                     loss.backward()
-                if torch.isfinite(loss) and _all_finite(params):
+                if finite_loss and _all_finite(params):
                     bad_run = 0
                     opt.step()
                 else:
                     skipped += 1
                     bad_run += 1
+                    opt.zero_grad(set_to_none=True)
+                    progress.warn(f"step {step + 1}: non-finite {'gradient' if finite_loss else 'loss'}, "
+                                  f"step skipped ({skipped} so far)")
+                    # Skipping cannot help when the parameters themselves are gone (an overflowing step).
+                    if not all(bool(torch.isfinite(p).all()) for p in params):
+                        raise BoostNerfError(
+                            f"training diverged: the parameters became non-finite by step {step + 1} (an "
+                            f"optimiser step overflowed); {_kept(checkpoint)}: lower the learning rates in the recipe"
+                        )
                     if bad_run >= sched.max_bad_steps:
                         raise BoostNerfError(
                             f"training diverged: {bad_run} consecutive steps had a non-finite loss or gradient "
-                            f"(last at step {step}); lower the learning rates in the recipe or check the data"
+                            f"(last at step {step + 1}); {_kept(checkpoint)}: lower the learning rates in the "
+                            "recipe or check the data"
                         )
             done = step + 1
             if done % sched.log_every == 0 or done == sched.iters:
@@ -188,24 +251,34 @@ def train(
                 if on_log is not None:
                     on_log(done, entry)
             progress.update(done, logs)
-            if checkpoint is not None and done % sched.checkpoint_every == 0 and done < sched.iters:
-                _save_checkpoint(checkpoint, task, opt, done, time.perf_counter() - t0, skipped, history, gen)
+            if checkpoint is not None and (done % sched.checkpoint_every == 0 or done == sched.iters):
+                _save_checkpoint(checkpoint, task, opt, done, time.perf_counter() - t0, skipped, history, gen, signature)
     finally:
         progress.close()
     return TrainResult(sched.iters, time.perf_counter() - t0, skipped, history)
 
 
 def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, step: int, seconds: float,
-                     skipped: int, history: list, gen: torch.Generator) -> None:
+                     skipped: int, history: list, gen: torch.Generator, signature: dict | None = None) -> None:
+    """Write the resumable state atomically; a state with NaN or infinity stops the run instead
+    (the previous checkpoint stays, so nothing before it is lost)."""
+    task_state, optim_state = task.state(), opt.state_dict()
+    bad = _non_finite_entry(task_state) or _non_finite_entry(optim_state, "optimiser")
+    if bad is not None:
+        raise BoostNerfError(
+            f"training diverged: {bad} holds non-finite values at step {step}, so it is not checkpointed; "
+            f"{_kept(path)}: lower the learning rates in the recipe or check the data"
+        )
     state = {
-        "task": task.state(),
-        "optim": opt.state_dict(),
+        "task": task_state,
+        "optim": optim_state,
         "step": step,
         "seconds": seconds,
         "skipped": skipped,
         "history": history,
         "gen": gen.get_state(),
         "rng": torch.get_rng_state(),
+        "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+        "signature": signature,
     }
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    save_torch(path, state)

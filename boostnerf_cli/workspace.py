@@ -12,11 +12,15 @@ WS/reports/eval.json, count-params.json
 
 Every file appears only when complete: it is written to a temporary name in the same folder, then
 renamed over the target (atomic on POSIX), so a crash never leaves a half-written artifact and never
-destroys the previous version.
+destroys the previous version. Every safetensors file carries a `digest` of its tensors; stages
+record the digests of their inputs in the manifest and their outputs, and refuse stale inputs.
+One process writes a workspace at a time (`Workspace.lock`).
 """
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import json
 import os
 import socket
@@ -36,18 +40,55 @@ FORMAT_VERSION = "1"
 
 @contextmanager
 def atomic_path(target: Path) -> Iterator[Path]:
-    """Yield a temporary path next to `target`; rename it over `target` only if the block succeeds."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
+    """Yield a temporary path next to `target`; rename it over `target` only if the block succeeds.
+
+    The data is flushed to disk before the rename, so after a crash or power loss `target` is
+    either the previous version or the complete new one. A failing write (disk full, read-only
+    folder, ...) leaves the previous `target` untouched, removes the temporary file and becomes one
+    `BoostNerfError` line.
+    """
+    tmp_path: Path | None = None
     try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+        os.close(fd)
+        tmp_path = Path(tmp)
         yield tmp_path
+        _fsync(tmp_path)
         os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, target)
+        _fsync_dir(target.parent)
+    except OSError as e:
+        reason = e.strerror or str(e) or type(e).__name__
+        raise BoostNerfError(
+            f"could not write {target} ({reason}); the previous version, if any, is unchanged: "
+            "free disk space or fix the folder's permissions and rerun the same command"
+        ) from None
     finally:
-        if tmp_path.exists():
+        if tmp_path is not None and tmp_path.exists():
             tmp_path.unlink()
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename durable (POSIX); a no-op where folders cannot be opened (Windows)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def _umask() -> int:
@@ -76,9 +117,57 @@ def save_tensors(path: Path, tensors: dict[str, torch.Tensor], meta: dict[str, A
         if t.is_floating_point() and not bool(torch.isfinite(t).all()):
             raise BoostNerfError(f"refusing to write {path.name}: tensor {name!r} has non-finite values")
     clean = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
-    header = {"boostnerf": json.dumps({**meta, "format_version": FORMAT_VERSION})}
+    header = {"boostnerf": json.dumps({**meta, "format_version": FORMAT_VERSION, "digest": tensors_digest(clean)})}
     with atomic_path(path) as tmp:
-        save_file(clean, str(tmp), metadata=header)
+        try:
+            save_file(clean, str(tmp), metadata=header)
+        except SafetensorError as e:  # e.g. "I/O error: No space left on device (os error 28)"
+            raise OSError(str(e)) from None
+
+
+class _RecordingFile:
+    """A file wrapper that remembers the OSError of a failed write: torch.save reports a full disk
+    only as an opaque RuntimeError ("enforce fail at inline_container.cc")."""
+
+    def __init__(self, f):
+        self.f, self.error = f, None
+
+    def write(self, data):
+        try:
+            return self.f.write(data)
+        except OSError as e:
+            self.error = e
+            raise
+
+    def flush(self):
+        try:
+            return self.f.flush()
+        except OSError as e:
+            self.error = e
+            raise
+
+
+def save_torch(path: Path, obj: Any) -> None:
+    """`torch.save` atomically (used for training checkpoints); a failed write is one clear error."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as raw:
+        out = _RecordingFile(raw)
+        try:
+            torch.save(obj, out)
+        except RuntimeError:
+            if out.error is not None:
+                raise out.error from None
+            raise
+
+
+def tensors_digest(tensors: dict[str, torch.Tensor]) -> str:
+    """Fingerprint of a set of named tensors (names, dtypes, shapes, bytes), stored in every file's
+    metadata as `digest`: later stages record the digests of their inputs to detect stale ones."""
+    h = hashlib.blake2b(digest_size=16)
+    for name in sorted(tensors):
+        t = tensors[name].detach().contiguous().cpu()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
 
 
 def read_meta(path: Path) -> dict[str, Any]:
@@ -151,16 +240,6 @@ def _unpack_tensors(tensors: dict[str, torch.Tensor], packed: dict, path: Path) 
     return out
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 class Workspace:
     """Paths and manifest of one workspace directory."""
 
@@ -169,31 +248,48 @@ class Workspace:
 
     @contextmanager
     def lock(self) -> Iterator[None]:
-        """Exclusive writer lock (WS/.lock holding host and pid); a stale lock of a dead process is taken over."""
-        self.root.mkdir(parents=True, exist_ok=True)
+        """Exclusive writer lock: an OS lock (`flock`) on WS/.lock, which holds the writer's host and pid.
+
+        The kernel releases the lock when its process ends, however it ends (also `kill -9`), so a
+        lock file left behind by a dead process is stale by construction and is taken over; a lock
+        held by a live process is refused with one clear line.
+        """
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise BoostNerfError(f"cannot create workspace {self.root} ({e.strerror or e})") from None
         path = self.root / ".lock"
         me = f"{socket.gethostname()} {os.getpid()}"
-        for _ in range(2):
+        while True:
+            fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
             try:
-                fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            except FileExistsError:
-                holder = path.read_text().strip() if path.exists() else ""
-                host, _, pid = holder.partition(" ")
-                if host == socket.gethostname() and pid.isdigit() and not _pid_alive(int(pid)):
-                    path.unlink(missing_ok=True)  # stale: its process is gone
-                    continue
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.read(fd, 200).decode(errors="replace").strip()
+                os.close(fd)
                 raise BoostNerfError(
                     f"workspace {self.root} is in use by another boostnerf process ({holder or 'unknown'}): "
-                    f"wait for it to finish, or delete {path} if that process is gone"
+                    "wait for it to finish; two writers to one workspace are refused"
                 ) from None
-            with os.fdopen(fd, "w") as f:
-                f.write(me)
-            break
+            try:
+                same = os.fstat(fd).st_ino == os.stat(path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:  # not a file its previous holder unlinked just before we locked it
+                break
+            os.close(fd)
+        os.ftruncate(fd, 0)
+        os.write(fd, me.encode())
+        # Temporary files of `atomic_path` left by a writer that was killed mid-write: never artifacts
+        # (they were not renamed into place), and no other writer can be using them now.
+        for tmp in self.root.rglob(".*.tmp"):
+            if tmp.is_file():
+                tmp.unlink(missing_ok=True)
         try:
             yield
         finally:
-            if path.exists() and path.read_text().strip() == me:
-                path.unlink()
+            path.unlink(missing_ok=True)  # unlink while still holding the lock, then release it
+            os.close(fd)
 
     # paths
     @property

@@ -80,3 +80,82 @@ def test_isolated_non_finite_steps_are_skipped_and_counted(tiny_scene):
     result = train(task, rays, Schedule(iters=12, batch_rays=64), seed=0, title="inf")
     assert result.skipped_steps == 2
     assert all(torch.isfinite(p).all() for p in task.model.parameters())
+
+
+def test_skipped_steps_are_counted_warned_and_in_the_stage_report(tmp_path, tiny_scene, tiny_recipe, monkeypatch,
+                                                                   capsys):
+    import json
+
+    from boostnerf_cli.recipe import load_recipe
+    from boostnerf_cli.stages import pretrain as stage
+    from boostnerf_cli.workspace import Workspace
+
+    rec = load_recipe(tiny_recipe)
+    rec.pretrain.res, rec.pretrain.iters, rec.pretrain.geometry.iters = [12], 12, 10
+    real = FieldTask.loss
+
+    def loss(self, o, d, c, step):
+        value, logs = real(self, o, d, c, step)
+        return (value * float("nan"), logs) if step in (3, 8) else (value, logs)
+
+    monkeypatch.setattr(FieldTask, "loss", loss)
+    ws = Workspace(tmp_path / "ws")
+    stage.run(ws, tiny_scene, rec, "cpu", False, lambda m: None)
+    report = json.loads(ws.expert_report_path("dvgo-12").read_text())
+    assert report["skipped_steps"] == 2 and report["iterations"] == 12
+    err = capsys.readouterr().err
+    assert "[dvgo-12] step 4: non-finite loss, step skipped (1 so far)" in err
+    assert "[dvgo-12] step 9: non-finite loss, step skipped (2 so far)" in err
+
+
+def test_non_finite_gradient_is_skipped_like_a_non_finite_loss(tiny_scene):
+    scene = load_scene(tiny_scene)
+    rays = RayData.from_split(scene.splits["train"], scene.bbox, scene.near, scene.far)
+    task = _task(scene, 10)
+    real_loss = task.loss
+
+    def loss(o, d, c, step):
+        value, logs = real_loss(o, d, c, step)
+        if step == 4:  # finite loss whose gradient is infinite: d/dx sqrt(x) at 0
+            value = value + torch.sqrt(task.model.density_table[0, 0] * 0.0)
+        return value, logs
+
+    task.loss = loss
+    before = [p.detach().clone() for p in task.model.parameters()]
+    result = train(task, rays, Schedule(iters=10, batch_rays=64), seed=0, title="grad")
+    assert result.skipped_steps == 1
+    assert all(torch.isfinite(p).all() for p in task.model.parameters())
+    assert any(not torch.equal(a, b) for a, b in zip(before, task.model.parameters()))
+
+
+def test_a_state_with_non_finite_values_is_never_checkpointed(tiny_scene, tmp_path):
+    scene = load_scene(tiny_scene)
+    rays = RayData.from_split(scene.splits["train"], scene.bbox, scene.near, scene.far)
+    task = _task(scene, 20)
+    real_loss = task.loss
+
+    def loss(o, d, c, step):
+        if step == 7:  # an optimiser step that overflowed, in a cell no ray of the batch reaches
+            with torch.no_grad():
+                task.model.feature_table[0, 0] = float("inf")
+        return real_loss(o, d, c, step)
+
+    task.loss = loss
+    ckpt = tmp_path / "run.pt"
+    with pytest.raises(BoostNerfError, match="training diverged.*non-finite.*run.pt is kept"):
+        train(task, rays, Schedule(iters=20, batch_rays=64, checkpoint_every=5), seed=0, title="inf", checkpoint=ckpt)
+    state = torch.load(ckpt, weights_only=True)
+    assert state["step"] == 5  # the last good one, untouched
+    assert all(torch.isfinite(v).all() for v in state["task"]["model"].values() if v.is_floating_point())
+
+
+def test_a_checkpoint_made_with_other_settings_is_refused(tiny_scene, tmp_path):
+    scene = load_scene(tiny_scene)
+    rays = RayData.from_split(scene.splits["train"], scene.bbox, scene.near, scene.far)
+    ckpt = tmp_path / "run.pt"
+    train(_task(scene, 6), rays, Schedule(iters=6, batch_rays=64, checkpoint_every=3), seed=0, title="a",
+          checkpoint=ckpt, signature={"iters": 6, "seed": 0})
+    assert torch.load(ckpt, weights_only=True)["step"] == 6  # also checkpointed after the last step
+    with pytest.raises(BoostNerfError, match=r"run.pt was written with other settings \(iters: 6, now 12\)"):
+        train(_task(scene, 12), rays, Schedule(iters=12, batch_rays=64), seed=0, title="b", checkpoint=ckpt,
+              signature={"iters": 12, "seed": 0})

@@ -1,5 +1,6 @@
 """Workspace safety: atomic writes keep the previous artifact, one writer at a time, recipes strict."""
 
+import errno
 import json
 import os
 import socket
@@ -20,10 +21,10 @@ RECIPES = sorted((Path(__file__).parent.parent / "recipes").glob("*.yaml"))
 def test_failed_write_keeps_the_previous_file(tmp_path):
     target = tmp_path / "r.json"
     write_json(target, {"v": 1})
-    with pytest.raises(OSError):
+    with pytest.raises(BoostNerfError, match=r"could not write .*r\.json \(No space left on device\); the previous"):
         with atomic_path(target) as tmp:
             tmp.write_text('{"v": 2')  # half written, then the disk "fills up"
-            raise OSError("No space left on device")
+            raise OSError(errno.ENOSPC, "No space left on device")
     assert json.loads(target.read_text()) == {"v": 1}
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
 

@@ -135,7 +135,11 @@ class Gate(nn.Module):
         return []
 
     def probs(self, xyz: Tensor) -> Tensor:
-        return torch.softmax(self.logits(xyz), dim=-1)
+        """Softmax in float32 even under autocast (reduced-precision logits are upcast first)."""
+        logits = self.logits(xyz)
+        if logits.dtype in (torch.float16, torch.bfloat16):
+            logits = logits.float()
+        return torch.softmax(logits, dim=-1)
 
     @torch.no_grad()
     def baked(self, res: int) -> "Gate":

@@ -93,7 +93,7 @@ def render_rays(
     pts = xyz.reshape(-1, 3)[flat]
     sigma = torch.zeros(r * s, device=origins.device, dtype=origins.dtype)
     if flat.numel():
-        sigma = sigma.index_put((flat,), field.density(pts))
+        sigma = sigma.index_put((flat,), field.density(pts).to(sigma.dtype))  # float32 under autocast too
     sigma = sigma.reshape(r, s)
     weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
 
@@ -108,7 +108,7 @@ def render_rays(
             colors = field.color_rows(sel.nonzero().squeeze(-1), dirs[ray_of])
         else:
             colors = field.color(pts[sel], dirs[ray_of])
-        rgb = rgb.index_put((cflat,), colors)
+        rgb = rgb.index_put((cflat,), colors.to(rgb.dtype))
     rgb = rgb.reshape(r, s, 3)
     color, depth, acc = composite(weights, rgb, t, settings.background)
     flops.add("composite", flops.COMPOSITE_FLOPS * r * s)

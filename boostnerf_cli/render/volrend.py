@@ -13,6 +13,8 @@ The transmittance is an exclusive cumulative sum in log space: log(1 - alpha_j) 
 to 1e3 stay finite in value and gradient. Weights along a ray sum to at most 1 (up to rounding).
 
 Layout: padded (R, S) tensors, one row per ray; padding samples carry sigma = 0 (no effect).
+Under CPU/CUDA autocast every step here runs in the input dtype (float32): cumsum, exp and expm1
+are not downcast by autocast, and `accumulate` turns autocast off.
 """
 
 from __future__ import annotations
@@ -42,8 +44,12 @@ def render_weights(sigma: Tensor, delta: Tensor) -> tuple[Tensor, Tensor, Tensor
 
 
 def accumulate(weights: Tensor, values: Tensor) -> Tensor:
-    """sum_i w_i v_i along the ray: weights (R, S), values (R, S, C) -> (R, C)."""
-    return torch.einsum("rs,rsc->rc", weights, values)
+    """sum_i w_i v_i along the ray: weights (R, S), values (R, S, C) -> (R, C), in the weights' dtype.
+
+    Autocast is off here: it would run this product in bfloat16/float16 (8/11-bit mantissas) and
+    lose up to ~1e-2 of a pixel's colour; compositing stays in the ray dtype (docs/reliability.md)."""
+    with torch.autocast(weights.device.type, enabled=False):
+        return torch.einsum("rs,rsc->rc", weights, values.to(weights.dtype))
 
 
 def composite(

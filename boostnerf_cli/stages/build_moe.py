@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from typing import Callable
 
+import torch
+
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import count_params, load_expert
 from boostnerf_cli.moe.density_volume import DensityVolume
@@ -15,7 +17,7 @@ from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, save_mixture
 from boostnerf_cli.moe.router import PENALTIES
 from boostnerf_cli.recipe import MoERecipe
 from boostnerf_cli.render.occupancy import OccupancyGrid
-from boostnerf_cli.workspace import Workspace, read_json, write_json
+from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
 
 def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, log: Callable[[str], None]) -> dict:
@@ -35,8 +37,9 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
         raise BoostNerfError(f"moe.step_from must be smallest or largest, got {rec.step_from!r}")
     if rec.penalty not in PENALTIES:
         raise BoostNerfError(f"unknown penalty {rec.penalty!r}: use {', '.join(PENALTIES)}")
-    experts, scenes = [], set()
+    experts, scenes, inputs = [], set(), {}
     for n in names:
+        inputs[n] = read_meta(ws.expert_path(n)).get("digest")
         model, occ, meta = load_expert(ws.expert_path(n), device)
         experts.append((count_params(model), n, model, meta["step"]))
         scenes.add(meta.get("scene"))
@@ -54,13 +57,14 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     vd.init_from(smallest.density)
     occ = OccupancyGrid.from_density(vd.density, bbox, vd.shape, step, rec.density_threshold)
     gate_grid = resolve_gate_grid(rec.gate_grid, [e[2].family for e in experts])
+    torch.manual_seed(rec.seed)  # the gate's random initialisation: the same for the same recipe
     gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=rec.gate_channels, hidden=rec.gate_hidden,
                            layers=rec.gate_layers, grid=gate_grid), len(experts), bbox).to(device)
     cfg = MixtureConfig(topk=min(rec.topk, len(experts)), renormalize=rec.renormalize, threshold=rec.density_threshold,
                         penalty=rec.penalty, vd_res=vd_res, step=step, bake_res=rec.bake_res,
                         expert_names=[e[1] for e in experts])
     mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
-    save_mixture(ws.model_path("init"), mix, {"name": "init"})
+    save_mixture(ws.model_path("init"), mix, {"name": "init", "inputs": inputs})
     report = {
         "name": "init",
         "experts": cfg.expert_names,
@@ -72,7 +76,8 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
         "step": step,
     }
     write_json(ws.moe_dir / "init.json", report)
-    ws.update_manifest(moe={"init": {"experts": cfg.expert_names, "gate": rec.gate_type, "gate_grid": gate_grid}})
+    ws.update_manifest(moe={"init": {"experts": cfg.expert_names, "gate": rec.gate_type, "gate_grid": gate_grid,
+                                     "inputs": inputs, "digest": read_meta(ws.model_path("init")).get("digest")}})
     grid_text = f" ({gate_grid} features)" if rec.gate_type in ("grid", "linear") else ""
     log(f"built a mixture of {len(experts)} experts ({', '.join(cfg.expert_names)}), gate {rec.gate_type}{grid_text} "
         f"{'x'.join(map(str, gate.shape))}, V_D from {cfg.expert_names[0]} keeps {100 * occ.fraction():.1f}% of cells")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -36,8 +37,25 @@ def workspace_scene(ws: Workspace) -> Scene:
     path = Path(data["path"])
     if not path.exists():
         raise BoostNerfError(f"the workspace's scene {path} is gone: restore it or rerun pretrain in a new workspace")
-    return load_scene(path, image_size=data.get("image_size"), holdout_every=data.get("holdout_every", 8),
-                      format=data.get("format", "auto"))
+    scene = load_scene(path, image_size=data.get("image_size"), holdout_every=data.get("holdout_every", 8),
+                       format=data.get("format", "auto"))
+    if m.get("scene_digest") and scene_digest(scene) != m["scene_digest"]:
+        raise BoostNerfError(
+            f"the workspace's scene {path} changed since pretrain (its images or cameras differ): restore it, "
+            f"or retrain with `boostnerf pretrain --workspace {ws.root} --data {path} --force`"
+        )
+    return scene
+
+
+def scene_digest(scene: Scene) -> str:
+    """Fingerprint of what training sees: every split's images, poses and intrinsics (recorded by pretrain)."""
+    h = hashlib.blake2b(digest_size=16)
+    for name in sorted(scene.splits):
+        s = scene.splits[name]
+        h.update(name.encode())
+        for t in (s.images, s.poses, s.intrinsics):
+            h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
 
 
 @dataclass

@@ -25,7 +25,7 @@ from boostnerf_cli.scenes import Scene
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.stages.pretrain import FieldTask, photometric_loss
 from boostnerf_cli.train import RayData, Schedule, train
-from boostnerf_cli.workspace import Workspace, read_json, write_json
+from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
 
 @dataclass
@@ -74,6 +74,27 @@ def model_name(topk: int | None, ensemble: bool, baseline: bool) -> str:
     return "ens" if ensemble else "baseline" if baseline else f"top{topk}"
 
 
+def check_inputs(ws: Workspace, init_meta: dict) -> None:
+    """Refuse a moe/init built from experts that have been retrained or removed since build-moe."""
+    for expert, digest in (init_meta.get("inputs") or {}).items():
+        path = ws.expert_path(expert)
+        now = read_meta(path).get("digest") if path.exists() else None
+        if now != digest:
+            what = "removed" if now is None else "retrained"
+            raise BoostNerfError(
+                f"expert {expert} was {what} after build-moe, so moe/init is stale: rerun "
+                f"`boostnerf build-moe --workspace {ws.root}`, then finetune with --force"
+            )
+
+
+def _source_digest(ws: Workspace, name: str, init_meta: dict) -> str | None:
+    """Digest of what model `name` is finetuned from: moe/init, or the largest expert for the baseline."""
+    if name == "baseline":
+        largest = init_meta["mixture"]["expert_names"][-1]
+        return read_meta(ws.expert_path(largest)).get("digest")
+    return init_meta.get("digest")
+
+
 def _train_rays(scene: Scene, bbox: Tensor, device: str) -> RayData:
     return RayData.from_split(scene.splits["train"], bbox.cpu(), scene.near, scene.far, scene.ndc).to(device)
 
@@ -83,7 +104,15 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     init = ws.model_path("init")
     if not init.exists():
         raise BoostNerfError(f"no mixture to finetune in {ws.root}: run `boostnerf build-moe --workspace {ws.root}` first")
+    init_meta = read_meta(init)
+    check_inputs(ws, init_meta)
     if ws.model_path(name).exists() and (ws.moe_dir / f"{name}.json").exists() and not force:
+        made_from = read_meta(ws.model_path(name)).get("from_digest")
+        if made_from is not None and made_from != _source_digest(ws, name, init_meta):
+            raise BoostNerfError(
+                f"{name} was finetuned from an older {'expert' if name == 'baseline' else 'moe/init'} "
+                f"(build-moe or pretrain ran again since): add --force to finetune it again"
+            )
         log(f"{name}: already finetuned, skipping (use --force to redo it)")
         return read_json(ws.moe_dir / f"{name}.json", "finetune report")
     if rec.penalty not in PENALTIES:
@@ -94,8 +123,9 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     mix, meta = load_mixture(init, device)
     mix.train()
     sched = Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every, rec.train.checkpoint_every)
+    source = _source_digest(ws, name, init_meta)
     if name == "baseline":
-        return _baseline(ws, scene, mix, rec, sched, device, log)
+        return _baseline(ws, scene, mix, rec, sched, device, log, source)
     if name == "ens":
         mix.gate = Gate(GateConfig(kind="uniform"), mix.m, mix.bbox).to(device)
         mix.cfg = dataclasses.replace(mix.cfg, topk=mix.m)
@@ -108,7 +138,10 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     settings = RenderSettings(step=mix.cfg.step, near=scene.near, far=scene.far, bbox=mix.bbox,
                               background=scene.background, color_threshold=rec.train.color_threshold, ndc=scene.ndc)
     task = MixtureTask(mix, settings, rec.train, rec)
-    result = train(task, _train_rays(scene, mix.bbox, device), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name))
+    signature = {"stage": "finetune", "model": name, "from": source, "iters": rec.iters, "seed": rec.seed,
+                 "topk": mix.cfg.topk, "renormalize": mix.cfg.renormalize, "penalty": mix.cfg.penalty}
+    result = train(task, _train_rays(scene, mix.bbox, device), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
+                   signature=signature)
     mix.eval()
     final = result.history[-1] if result.history else {}
     report = {
@@ -128,7 +161,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         "train_psnr": final.get("psnr"),
         "history": result.history,
     }
-    save_mixture(ws.model_path(name), mix, {"name": name})
+    save_mixture(ws.model_path(name), mix, {"name": name, "from": "init", "from_digest": source})
     write_json(ws.moe_dir / f"{name}.json", report)
     ws.checkpoint_path(name).unlink(missing_ok=True)
     ws.update_manifest(moe={name: {"from": "init", "iterations": rec.iters}})
@@ -138,7 +171,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
 
 
 def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: Schedule, device: str,
-              log: Callable[[str], None]) -> dict:
+              log: Callable[[str], None], source: str | None) -> dict:
     """The largest expert alone, trained for the same finetuning iterations and schedule."""
     largest = mix.cfg.expert_names[-1]
     model, occ, meta = load_expert(ws.expert_path(largest), device)
@@ -147,7 +180,9 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
                               background=scene.background, color_threshold=rec.train.color_threshold, ndc=scene.ndc)
     task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
     result = train(task, _train_rays(scene, model.bbox, device), sched, rec.seed, "baseline",
-                   checkpoint=ws.checkpoint_path("baseline"))
+                   checkpoint=ws.checkpoint_path("baseline"),
+                   signature={"stage": "finetune", "model": "baseline", "from": source, "iters": rec.iters,
+                              "seed": rec.seed})
     model.eval()
     final = result.history[-1] if result.history else {}
     report = {
@@ -161,7 +196,8 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
         "train_psnr": final.get("psnr"),
         "history": result.history,
     }
-    save_expert(ws.model_path("baseline"), model, task.skip, {**meta, "name": "baseline"})
+    save_expert(ws.model_path("baseline"), model, task.skip,
+                {**meta, "name": "baseline", "from": largest, "from_digest": source})
     write_json(ws.moe_dir / "baseline.json", report)
     ws.checkpoint_path("baseline").unlink(missing_ok=True)
     ws.update_manifest(moe={"baseline": {"from": largest, "iterations": rec.iters}})

@@ -10,9 +10,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,8 +31,9 @@ from boostnerf_cli.recipe import GeometryRecipe, PretrainRecipe, Recipe, TrainRe
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_image, render_rays
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
+from boostnerf_cli.stages.common import scene_digest
 from boostnerf_cli.train import RayData, Schedule, train
-from boostnerf_cli.workspace import Workspace, read_json, write_json
+from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
 
 def photometric_loss(bundle, rgb: Tensor, tcfg: TrainRecipe) -> tuple[Tensor, dict[str, float]]:
@@ -128,7 +131,8 @@ def _test_psnr(model: nn.Module, split: Split, settings: RenderSettings, skip, d
 
 # ----------------------------------------------------------------------------------------------
 def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int, device: str,
-                    log: Callable[[str], None]) -> tuple[Tensor, OccupancyGrid, nn.Module]:
+                    log: Callable[[str], None], checkpoint_every: int = 500,
+                    scene_tag: str = "") -> tuple[Tensor, OccupancyGrid, nn.Module]:
     """The shared occupied box, occupancy mask and coarse density (trained once per workspace).
 
     -> (box (2, 3), occupancy over the camera box, the coarse model: a DVGO grid with direct colour)
@@ -138,6 +142,7 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
         return torch.tensor(meta["fine_bbox"], device=device), occ, model
     log(f"geometry: training a {rec.res}^3 coarse grid for {rec.iters} steps to find the occupied box")
     bbox = scene.bbox.to(device)
+    torch.manual_seed(seed)
     model = DVGOExpert(DVGOConfig(res=rec.res, hidden=0, alpha_init=rec.alpha_init), bbox).to(device)
     step = 0.5 * model.voxel_size
     settings = RenderSettings(step=step, near=scene.near, far=scene.far, bbox=bbox, background=scene.background,
@@ -146,7 +151,10 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     task = FieldTask(model, settings, tcfg, skip=None, base_mask=None)
     rays = RayData.from_split(scene.splits["train"], bbox, scene.near, scene.far, scene.ndc).to(device)
     t0 = time.perf_counter()
-    train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5)), seed, "geometry")
+    ckpt = ws.checkpoint_path("geometry")
+    train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5),
+                               checkpoint_every=checkpoint_every), seed, "geometry", checkpoint=ckpt,
+          signature={"stage": "geometry", "scene": scene_tag, "recipe": dataclasses.asdict(rec), "seed": seed})
     model.eval()
     occ = OccupancyGrid.from_density(model.density, bbox, model.shape, step, rec.alpha_threshold)
     if not occ.occupied.any():
@@ -157,6 +165,7 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     seconds = round(time.perf_counter() - t0, 2)
     save_expert(ws.geometry_path, model, occ, {"name": "geometry", "fine_bbox": box.tolist(), "iters": rec.iters,
                                                "seconds": seconds, "occupied_fraction": occ.fraction()})
+    ckpt.unlink(missing_ok=True)
     log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {[round(v, 3) for v in box.flatten().tolist()]} "
         f"({seconds:.1f}s)")
     return box, occ, model
@@ -190,6 +199,10 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     """Train one expert at `res` and write its safetensors file and JSON report."""
     name = expert_name(rec.model, res)
     tcfg = rec.train
+    # Seed before building: the colour MLP's initialisation must not depend on what ran before in this
+    # process (geometry trained now or loaded, other experts trained or skipped), or a resumed
+    # pretrain would not reproduce an uninterrupted one.
+    torch.manual_seed(rec.seed + res)
     model = build_expert(rec.model, expert_options(rec, res), box).to(device)
     final_voxels = res ** 3
     growth = growth_schedule(rec.iters, tcfg.growth) if model.grows else ()
@@ -202,7 +215,10 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     rays = RayData.from_split(scene.splits["train"], box, scene.near, scene.far, scene.ndc).to(device)
     sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
-    result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt)
+    signature = {"stage": "pretrain", "scene": scene_tag, "model": rec.model, "res": res, "dvgo": rec.dvgo,
+                 "iters": rec.iters, "growth": list(tcfg.growth), "seed": rec.seed + res,
+                 "geometry": read_meta(ws.geometry_path).get("digest")}
+    result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt, signature=signature)
     model.eval()
     task.refresh_occupancy()
     report = {
@@ -238,6 +254,13 @@ def scene_id(inputs: dict) -> str:
     return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()[:16]
 
 
+def _forget_trained(ws: Workspace) -> None:
+    """--force on another scene: the experts, the geometry and every training checkpoint go."""
+    for folder in (ws.experts_dir, ws.checkpoints_dir):
+        for p in list(folder.glob("*")) if folder.exists() else []:
+            p.unlink()
+
+
 def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
         log: Callable[[str], None]) -> list[dict]:
     """Train every expert of the recipe that is not finished yet; -> their reports."""
@@ -245,7 +268,13 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
         data = ws.root / "scene"
         if not (data / "transforms_train.json").exists():
             log(f"no --data given: generating the default procedural scene in {data}")
-            make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)
+            # Written to a temporary folder and renamed: a run killed while generating never leaves a
+            # half-written scene that a rerun would take for a complete one.
+            tmp = ws.root / ".scene.tmp"
+            shutil.rmtree(tmp, ignore_errors=True)
+            make_scene(tmp, size=rec.data.image_size or 64, seed=rec.pretrain.seed)
+            shutil.rmtree(data, ignore_errors=True)
+            tmp.rename(data)
     inputs = scene_inputs(Path(data), rec)
     previous = ws.manifest().get("data")
     if previous and previous != inputs:
@@ -254,21 +283,31 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
                 f"workspace {ws.root} was made for another scene or image size ({previous['path']}, "
                 f"image_size={previous['image_size']}): use a new --workspace, or --force to retrain everything"
             )
-        for p in list(ws.experts_dir.glob("*")) if ws.experts_dir.exists() else []:
-            p.unlink()
+        _forget_trained(ws)
     scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
                        format=rec.data.format)
     if rec.pretrain.model not in FAMILIES:
         raise BoostNerfError(f"unknown model family {rec.pretrain.model!r}: choose one of {', '.join(FAMILIES)}")
     for res in rec.pretrain.res:  # per-expert options are checked before anything trains
         expert_options(rec.pretrain, res)
-    ws.update_manifest(data=inputs, scene_id=scene_id(inputs), scene=scene.describe(), recipe=recipe_dict(rec))
+    digest = scene_digest(scene)
+    recorded = ws.manifest().get("scene_digest")
+    if recorded and recorded != digest and not force:
+        raise BoostNerfError(
+            f"the scene at {data} changed since this workspace was trained on it (its images or cameras differ): "
+            "restore it, use a new --workspace, or --force to retrain everything"
+        )
+    if recorded and recorded != digest:
+        _forget_trained(ws)
+    ws.update_manifest(data=inputs, scene_id=scene_id(inputs), scene_digest=digest, scene=scene.describe(),
+                       recipe=recipe_dict(rec))
     if "detected" in scene.extra:
         log(f"format: {scene.extra['detected']}")
     log(f"scene {scene.name}: {len(scene.splits['train'])} train views "
         f"{scene.splits['train'].width}x{scene.splits['train'].height}"
         + (f", {scene.holdout}" if scene.holdout else ""))
-    box, geom, prior = ensure_geometry(ws, scene, rec.pretrain.geometry, rec.pretrain.seed, device, log)
+    box, geom, prior = ensure_geometry(ws, scene, rec.pretrain.geometry, rec.pretrain.seed, device, log,
+                                       rec.pretrain.train.checkpoint_every, scene_id(inputs))
     reports = []
     for res in sorted(rec.pretrain.res):
         name = expert_name(rec.pretrain.model, res)

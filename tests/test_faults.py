@@ -1,0 +1,280 @@
+"""Fault injection: interrupted and concurrent runs, failing writes, damaged and stale inputs.
+
+Each test backs one or more rows of the table in docs/reliability.md.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import run_cli
+from test_cli import _assert_clean_failure
+
+from boostnerf_cli import workspace as wsmod
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields import load_expert, save_expert
+from boostnerf_cli.recipe import load_recipe
+from boostnerf_cli.stages import build_moe, pretrain
+from boostnerf_cli.stages.common import workspace_scene
+from boostnerf_cli.workspace import Workspace
+
+
+def _tmp_files(root: Path) -> list[Path]:
+    return [p for p in root.rglob("*") if p.name.endswith(".tmp")]
+
+
+@pytest.fixture()
+def moe_copy(trained_ws, tmp_path):
+    """A private copy of the tiny workspace with a built (untrained) mixture."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    build_moe.build(Workspace(ws), None, load_recipe(None).moe.__class__(gate_res=8), "cpu", lambda m: None)
+    return ws
+
+
+# --- one writer at a time -----------------------------------------------------------------------
+def test_second_writer_is_refused_through_the_cli_and_the_lock_is_released(trained_ws, tmp_path):
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    with Workspace(ws).lock():
+        proc = run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--device", "cpu")
+        _assert_clean_failure(proc, "in use by another boostnerf process", str(os.getpid()))
+    assert not (ws / ".lock").exists()
+    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--device", "cpu")  # fails: no build-moe
+    _assert_clean_failure(proc, "build-moe")
+    assert not (ws / ".lock").exists()  # released on an error exit too
+
+
+HOLD_LOCK = "import sys, time; from boostnerf_cli.workspace import Workspace; cm = Workspace(sys.argv[1]).lock(); " \
+            "cm.__enter__(); print('locked', flush=True); time.sleep(120)"
+
+
+def test_lock_of_a_killed_process_is_stale_and_taken_over(tmp_path):
+    ws = tmp_path / "ws"
+    holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(ws)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(BoostNerfError, match=f"in use by another boostnerf process .*{holder.pid}"), \
+                Workspace(ws).lock():
+            pass
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    assert str(holder.pid) in (ws / ".lock").read_text()  # the dead writer's lock file is still there
+    (ws / "experts").mkdir()
+    (ws / "experts" / ".dvgo-12.safetensors.abc.tmp").write_bytes(b"half")  # and a file it was writing
+    with Workspace(ws).lock():
+        assert (ws / ".lock").read_text().endswith(f" {os.getpid()}")
+    assert not _tmp_files(ws) and not (ws / ".lock").exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_interrupt_stops_cleanly_and_the_rerun_resumes(tmp_path, tiny_scene, sig):
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("data: {image_size: 24}\npretrain:\n  res: [10]\n  iters: 30\n"
+                      "  geometry: {res: 8, iters: 8, batch_rays: 64, alpha_init: 0.01}\n"
+                      "  train: {batch_rays: 64, log_every: 1, checkpoint_every: 5}\n  dvgo: {hidden: 8, layers: 1}\n")
+    ws = tmp_path / "ws"
+    args = ["pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--workspace", str(ws), "--device", "cpu"]
+    proc = subprocess.Popen([sys.executable, "-m", "boostnerf_cli", *args], stderr=subprocess.PIPE, text=True,
+                            stdout=subprocess.DEVNULL)
+    for line in proc.stderr:
+        if line.startswith("[dvgo-10] step 12/"):
+            proc.send_signal(sig)
+            break
+    err = proc.stderr.read()
+    assert proc.wait(timeout=120) == 130
+    assert err.strip().splitlines()[-1] == "interrupted: finished files are kept; rerun the same command to resume"
+    assert "Traceback" not in err
+    assert not (ws / ".lock").exists() and not _tmp_files(ws)
+    step = torch.load(ws / "checkpoints" / "dvgo-10.pt", weights_only=True)["step"]
+    assert step >= 10  # nothing lost beyond the steps since this checkpoint
+    rerun = run_cli(*args, check=True)
+    assert f"resuming from {ws / 'checkpoints' / 'dvgo-10.pt'} at step {step}/30" in rerun.stderr
+    assert json.loads((ws / "experts" / "dvgo-10.json").read_text())["iterations"] == 30
+
+
+# --- failing writes ----------------------------------------------------------------------------
+def _enospc(*args, **kwargs):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_disk_full_while_writing_an_artifact_keeps_the_previous_one(moe_copy, monkeypatch):
+    ws = Workspace(moe_copy)
+    before = ws.model_path("init").read_bytes()
+    report_before = (ws.moe_dir / "init.json").read_text()
+    real_save = wsmod.save_file
+
+    def half_then_full(tensors, path, metadata=None):
+        real_save(tensors, path, metadata=metadata)
+        with open(path, "r+b") as f:
+            f.truncate(os.path.getsize(path) // 2)  # the disk filled up half way
+        _enospc()
+
+    monkeypatch.setattr(wsmod, "save_file", half_then_full)
+    rec = load_recipe(None).moe.__class__(gate_res=6)
+    with pytest.raises(BoostNerfError, match=r"could not write .*init\.safetensors \(No space left on device\)"):
+        build_moe.build(ws, None, rec, "cpu", lambda m: None)
+    assert ws.model_path("init").read_bytes() == before
+    assert (ws.moe_dir / "init.json").read_text() == report_before
+    assert not _tmp_files(moe_copy)
+
+
+@pytest.mark.parametrize("where", ["_fsync", "replace"])
+def test_failing_json_write_keeps_the_previous_report_and_manifest(moe_copy, monkeypatch, where):
+    ws = Workspace(moe_copy)
+    manifest = ws.manifest_path.read_text()
+    if where == "replace":
+        monkeypatch.setattr(wsmod.os, "replace", _enospc)
+    else:
+        monkeypatch.setattr(wsmod, where, _enospc)
+    with pytest.raises(BoostNerfError, match="No space left on device"):
+        ws.update_manifest(moe={"x": 1})
+    assert ws.manifest_path.read_text() == manifest
+    assert not _tmp_files(moe_copy)
+
+
+def test_unwritable_workspace_is_one_clear_line(tmp_path, monkeypatch):
+    def denied(*args, **kwargs):
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    monkeypatch.setattr(wsmod.tempfile, "mkstemp", denied)
+    with pytest.raises(BoostNerfError, match=r"could not write .*r\.json \(Permission denied\)"):
+        wsmod.write_json(tmp_path / "r.json", {"a": 1})
+
+
+def test_generating_the_default_scene_is_atomic(tmp_path, monkeypatch):
+    ws = Workspace(tmp_path / "ws")
+    rec = load_recipe(None)
+    rec.data.image_size = 16
+    real = pretrain.make_scene
+
+    def dies_half_way(out, **kw):
+        (Path(out) / "train").mkdir(parents=True)
+        (Path(out) / "transforms_train.json").write_text("{}")  # written before the crash
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pretrain, "make_scene", dies_half_way)
+    with pytest.raises(KeyboardInterrupt):
+        pretrain.run(ws, None, rec, "cpu", False, lambda m: None)
+    assert not (ws.root / "scene").exists()  # no half scene a rerun would take for a finished one
+
+    class Stop(Exception):
+        pass
+
+    monkeypatch.setattr(pretrain, "make_scene", lambda out, **kw: real(out, n_train=3, n_test=1, **kw))
+    monkeypatch.setattr(pretrain, "ensure_geometry", lambda *a, **k: (_ for _ in ()).throw(Stop()))
+    with pytest.raises(Stop):
+        pretrain.run(ws, None, rec, "cpu", False, lambda m: None)
+    assert (ws.root / "scene" / "transforms_test.json").exists() and not (ws.root / ".scene.tmp").exists()
+
+
+# --- damaged inputs ----------------------------------------------------------------------------
+def test_damaged_training_checkpoint_and_manifest_are_one_clear_line(trained_ws, tiny_scene, tiny_recipe, tmp_path):
+    ws = tmp_path / "ws"
+    (ws / "checkpoints").mkdir(parents=True)
+    (ws / "checkpoints" / "geometry.pt").write_bytes(b"\x00garbage")
+    proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws),
+                   "--device", "cpu")
+    _assert_clean_failure(proc, "geometry.pt is damaged", "delete it")
+    ws2 = tmp_path / "ws2"
+    shutil.copytree(trained_ws, ws2)
+    (ws2 / "manifest.json").write_text('{"data": ')
+    proc = run_cli("build-moe", "--workspace", str(ws2), "--device", "cpu")
+    _assert_clean_failure(proc, "manifest", "not valid JSON")
+
+
+# --- stale or mismatched inputs ----------------------------------------------------------------
+def test_experts_retrained_or_removed_after_build_moe_are_detected(moe_copy):
+    path = moe_copy / "experts" / "dvgo-12.safetensors"
+    model, occ, meta = load_expert(path)
+    with torch.no_grad():
+        model.density_table.add_(0.01)  # as if `pretrain --force` had retrained it
+    save_expert(path, model, occ, {k: meta[k] for k in ("name", "step", "scene")})
+    proc = run_cli("finetune", "--workspace", str(moe_copy), "--topk", "1", "--device", "cpu")
+    _assert_clean_failure(proc, "expert dvgo-12 was retrained after build-moe", "build-moe")
+    path.unlink()
+    (moe_copy / "experts" / "dvgo-12.json").unlink()
+    proc = run_cli("finetune", "--workspace", str(moe_copy), "--topk", "1", "--device", "cpu")
+    _assert_clean_failure(proc, "expert dvgo-12 was removed after build-moe")
+
+
+def test_a_model_finetuned_from_an_older_init_is_not_silently_kept(moe_copy, monkeypatch):
+    from boostnerf_cli.stages import finetune
+
+    ws = Workspace(moe_copy)
+    rec = load_recipe(None).moe.__class__(gate_res=8, iters=2)
+    rec.train.batch_rays = 64
+    finetune.run(ws, "top1", 1, rec, "cpu", False, lambda m: None)
+    assert json.loads(ws.manifest_path.read_text())["moe"]["init"]["inputs"].keys() == {"dvgo-12", "dvgo-16"}
+    logs = []
+    finetune.run(ws, "top1", 1, rec, "cpu", False, logs.append)
+    assert "already finetuned" in logs[-1]
+    build_moe.build(ws, None, load_recipe(None).moe.__class__(gate_res=6), "cpu", lambda m: None)  # a new init
+    with pytest.raises(BoostNerfError, match="top1 was finetuned from an older moe/init .* --force"):
+        finetune.run(ws, "top1", 1, rec, "cpu", False, lambda m: None)
+    finetune.run(ws, "top1", 1, rec, "cpu", True, lambda m: None)  # --force redoes it from the new init
+
+
+def test_a_different_or_changed_scene_is_refused(trained_ws, tiny_scene, tiny_recipe, tmp_path):
+    other = tmp_path / "other"
+    shutil.copytree(tiny_scene, other)
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    proc = run_cli("pretrain", "--data", str(other), "--recipe", str(tiny_recipe), "--workspace", str(ws),
+                   "--device", "cpu")
+    _assert_clean_failure(proc, "was made for another scene", "--force")
+    # the same path, its content edited after pretrain: later stages refuse it
+    manifest = json.loads((ws / "manifest.json").read_text())
+    manifest["data"]["path"] = str(other)
+    (ws / "manifest.json").write_text(json.dumps(manifest))
+    workspace_scene(Workspace(ws))  # an identical copy passes
+    import imageio.v3 as iio
+
+    img = iio.imread(other / "train" / "r_0.png")
+    img[5, 5] = [255, 0, 0, 255]  # one pixel now opaque red
+    iio.imwrite(other / "train" / "r_0.png", img)
+    proc = run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--device", "cpu")
+    _assert_clean_failure(proc, "changed since pretrain")
+
+
+def test_disk_full_while_checkpointing_is_one_line_and_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
+    """torch.save reports a full disk as an opaque RuntimeError; it must become the OSError's message."""
+    ckpt = tmp_path / "run.pt"
+    wsmod.save_torch(ckpt, {"step": 5, "w": torch.ones(10)})
+    real_open = open
+
+    class FullDisk:
+        def __init__(self, f):
+            self.f, self.written = f, 0
+
+        def write(self, data):
+            self.written += len(data)
+            if self.written > 300:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return self.f.write(data)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return self.f.__exit__(*exc)
+
+    monkeypatch.setattr(wsmod, "open", lambda *a, **k: FullDisk(real_open(*a, **k)), raising=False)
+    with pytest.raises(BoostNerfError, match=r"could not write .*run\.pt \(No space left on device\)"):
+        wsmod.save_torch(ckpt, {"step": 10, "w": torch.zeros(10_000)})
+    monkeypatch.undo()
+    assert torch.load(ckpt, weights_only=True)["step"] == 5
+    assert not _tmp_files(tmp_path)
