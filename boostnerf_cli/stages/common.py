@@ -70,6 +70,12 @@ class LoadedModel:
     bbox: Tensor
     params: int
 
+    def for_rendering(self, exact_gate: bool = False) -> "LoadedModel":
+        """Ready to render: a mixture's gate baked (`Mixture.for_rendering`) unless `exact_gate`."""
+        if self.kind == "mixture":
+            self.field.for_rendering(exact_gate)
+        return self
+
     def settings(self, scene: Scene, color_threshold: float = 1e-4) -> RenderSettings:
         return RenderSettings(step=self.step, near=scene.near, far=scene.far, bbox=self.bbox,
                               background=scene.background, color_threshold=color_threshold, ndc=scene.ndc)
@@ -89,8 +95,7 @@ def load_model(ws: Workspace, name: str, device: str, exact_gate: bool = False) 
 
         mix, meta = load_mixture(path, device)
         params = meta.get("stored_params", count_params(mix))  # the trained model's, before baking (pruned: stored)
-        mix = mix.for_rendering(exact_gate)
-        return LoadedModel(name, "mixture", mix, mix.skip, meta["step"], mix.bbox, params)
+        return LoadedModel(name, "mixture", mix, mix.skip, meta["step"], mix.bbox, params).for_rendering(exact_gate)
     model, occ, meta = load_expert(path, device)
     return LoadedModel(name, "expert", model, occ.to(device) if occ is not None else None, meta["step"],
                        model.bbox, meta.get("stored_params", count_params(model)))

@@ -76,17 +76,14 @@ def gflops_per_image(model: LoadedModel, scene: Scene, split: Split, device: str
 
 
 def model_costs(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None,
-                render_model: LoadedModel | None = None) -> dict:
-    """||w||_0 of `model` (a mixture with its exact, trainable gate); GFLOPs of `render_model`
-    (what render and eval run: the mixture with its baked gate), `model` itself when None."""
+                exact_gate: bool = False) -> dict:
+    """||w||_0 and GFLOPs per image of `model`, loaded with its exact (trainable) gate.
+
+    ||w||_0 is counted on the model as trained; then `model` is made ready to render in place (a
+    mixture's gate baked unless `exact_gate`) and the GFLOPs are those of what render and eval run.
+    """
     active = active_parameters(model, scene, split, device, views)
-    row = {
-        "name": model.name,
-        "kind": model.kind,
-        "params": model.params,
-        "w0": active["w0"],
-        "gflops_per_image": round(gflops_per_image(render_model or model, scene, split, device, views), 4),
-    }
+    row = {"name": model.name, "kind": model.kind, "params": model.params, "w0": active["w0"]}
     if model.kind == "mixture":
         mix = model.field
         row["experts"] = [
@@ -95,6 +92,7 @@ def model_costs(model: LoadedModel, scene: Scene, split: Split, device: str, vie
             for i, n in enumerate(mix.cfg.expert_names)
         ]
         row["gate"] = {"params": sum(p.numel() for p in mix.gate.parameters()), "w0": active["per_module"].get("gate", 0)}
+    row["gflops_per_image"] = round(gflops_per_image(model.for_rendering(exact_gate), scene, split, device, views), 4)
     return row
 
 
@@ -107,8 +105,7 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, vi
         raise BoostNerfError(f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
     rows = []
     for name in names:
-        row = model_costs(load_model(ws, name, device, exact_gate=True), scene, split, device, views,
-                          render_model=load_model(ws, name, device))
+        row = model_costs(load_model(ws, name, device, exact_gate=True), scene, split, device, views)
         log(f"{name}: {row['params']:,} parameters, ||w||_0 {row['w0']:,}, {row['gflops_per_image']:.3f} GFLOPs/image")
         rows.append(row)
     result = {"split": split_name, "views": min(views or len(split), len(split)), "models": rows}

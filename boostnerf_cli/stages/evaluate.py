@@ -107,14 +107,14 @@ def run_eval(ws: Workspace, names: list[str] | None, split_name: str, device: st
         log(lpips_note)
     rows = []
     for name in names:
-        model = load_model(ws, name, device, exact_gate)
-        row = evaluate_model(model, scene, split, device, lpips_model, skip, views)
+        model = load_model(ws, name, device, exact_gate=True)  # ||w||_0 needs the trainable gate
+        cost = {}
         if costs:
             from boostnerf_cli.stages.count_params import model_costs
 
-            trained = load_model(ws, name, device, exact_gate=True) if model.kind == "mixture" else model
-            c = model_costs(trained, scene, split, device, views, render_model=model)
-            row.update(w0=c["w0"], gflops_per_image=c["gflops_per_image"])
+            c = model_costs(model, scene, split, device, views, exact_gate)  # leaves it ready to render
+            cost = {"w0": c["w0"], "gflops_per_image": c["gflops_per_image"]}
+        row = {**evaluate_model(model.for_rendering(exact_gate), scene, split, device, lpips_model, skip, views), **cost}
         log(f"{name}: PSNR {row['psnr']:.3f}  SSIM {row['ssim']:.4f}  {row['seconds_per_image']:.3f}s/image")
         rows.append(row)
     result = {"split": split_name, "views": min(views or len(split), len(split)), "skip": skip,
