@@ -120,7 +120,15 @@ def _build(cls: type, data: Any, where: str) -> Any:
         )
     kwargs = {}
     for key, value in data.items():
-        kwargs[key] = _coerce(hints[key], value, f"{where + '.' if where else ''}{key}")
+        path = f"{where + '.' if where else ''}{key}"
+        if dataclasses.is_dataclass(hints[key]) and isinstance(value, dict):
+            # A partial section overrides its own defaults (e.g. moe.train keeps finetuning's lower learning
+            # rates when only batch_rays is given), not those of the section's class.
+            default = fields[key].default_factory() if fields[key].default_factory is not dataclasses.MISSING else None
+            built = _build(hints[key], value, path)
+            kwargs[key] = built if default is None else dataclasses.replace(default, **{k: getattr(built, k) for k in value})
+        else:
+            kwargs[key] = _coerce(hints[key], value, path)
     return cls(**kwargs)
 
 

@@ -159,3 +159,19 @@ def test_a_checkpoint_made_with_other_settings_is_refused(tiny_scene, tmp_path):
     with pytest.raises(BoostNerfError, match=r"run.pt was written with other settings \(iters: 6, now 12\)"):
         train(_task(scene, 12), rays, Schedule(iters=12, batch_rays=64), seed=0, title="b", checkpoint=ckpt,
               signature={"iters": 12, "seed": 0})
+
+
+def test_a_partial_recipe_section_keeps_that_sections_own_defaults(tmp_path):
+    """moe.train with only batch_rays keeps finetuning's lower learning rates and no growth, not the
+    pretraining defaults of TrainRecipe (which used to come back silently)."""
+    from boostnerf_cli.recipe import MoERecipe, load_recipe
+
+    path = tmp_path / "r.yaml"
+    path.write_text("moe: {iters: 7, train: {batch_rays: 512}}\npretrain: {train: {lr_grid: 0.2}}\n")
+    rec = load_recipe(path)
+    finetune_defaults = MoERecipe().train
+    assert rec.moe.train.batch_rays == 512 and rec.moe.iters == 7
+    assert (rec.moe.train.lr_grid, rec.moe.train.lr_mlp, rec.moe.train.growth, rec.moe.train.occupancy_every) == (
+        finetune_defaults.lr_grid, finetune_defaults.lr_mlp, [], 0)
+    assert finetune_defaults.lr_grid != TrainRecipe().lr_grid  # the case that matters
+    assert rec.pretrain.train.lr_grid == 0.2 and rec.pretrain.train.growth == TrainRecipe().growth
