@@ -39,14 +39,21 @@ def log(msg: str) -> None:
     err.print(msg)
 
 
-def _writer(workspace: Path, must_exist: bool = True):
-    """The workspace, locked against a second writer (and checked to be one, unless it is being made)."""
+def _writer(workspace: Path, must_exist: bool = True, distributed: bool = False):
+    """The workspace, locked against a second writer (and checked to be one, unless it is being made).
+
+    `distributed`: the command may run under torchrun (every rank shares rank 0's lock); the others refuse to.
+    """
+    from boostnerf_cli import distributed as dist
     from boostnerf_cli.workspace import Workspace
 
+    if dist.launched() and not distributed:
+        raise BoostNerfError("only pretrain and finetune run under torchrun (docs/distributed.md): "
+                             "run this command as one process")
     ws = Workspace(workspace)
     if must_exist:
         ws.require_manifest()
-    return ws, ws.lock()
+    return ws, dist.writer_lock(ws)
 
 
 def _int_list(text: str, what: str) -> list[int]:
@@ -92,6 +99,7 @@ def pretrain(
     force: Annotated[bool, typer.Option("--force", help="Retrain experts that are already finished.")] = False,
 ) -> None:
     """Train one expert per resolution, independently (stage 1 of the paper)."""
+    from boostnerf_cli import distributed as dist
     from boostnerf_cli.recipe import load_recipe
     from boostnerf_cli.stages import pretrain as stage
     from boostnerf_cli.stages.common import resolve_device
@@ -111,9 +119,11 @@ def pretrain(
         rec.data.format = data_format
     if seed is not None:
         rec.pretrain.seed = seed
-    ws, lock = _writer(workspace, must_exist=False)
-    with lock:
-        reports = stage.run(ws, data, rec, resolve_device(device), force, log)
+    ws, lock = _writer(workspace, must_exist=False, distributed=True)
+    with dist.session(resolve_device(device)) as dev, lock:
+        reports = stage.run(ws, data, rec, dev, force, log)
+        if not dist.is_main():
+            return
     table = Table("expert", "params", "steps", "seconds", "train PSNR", "held-out PSNR")
     for r in reports:
         table.add_row(r["name"], f"{r['params']:,}", str(r["iterations"]), f"{r['seconds']:.0f}",
@@ -178,6 +188,7 @@ def finetune(
     force: Annotated[bool, typer.Option("--force", help="Redo a model that is already finetuned.")] = False,
 ) -> None:
     """Train gate and experts jointly (Algorithm 1), or the ensemble / baseline comparison models."""
+    from boostnerf_cli import distributed as dist
     from boostnerf_cli.stages import finetune as stage
     from boostnerf_cli.stages.common import resolve_device
 
@@ -186,9 +197,9 @@ def finetune(
     for key, value in (("iters", iters), ("lam", lam), ("penalty", penalty), ("renormalize", renormalize), ("seed", seed)):
         if value is not None:
             setattr(rec.moe, key, value)
-    ws, lock = _writer(workspace)
-    with lock:
-        stage.run(ws, name, topk, rec.moe, resolve_device(device), force, log)
+    ws, lock = _writer(workspace, distributed=True)
+    with dist.session(resolve_device(device)) as dev, lock:
+        stage.run(ws, name, topk, rec.moe, dev, force, dist.main_log(log))
 
 
 @app.command()

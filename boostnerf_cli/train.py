@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import sys
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Callable, Protocol
 
 import torch
 from torch import Tensor
 
+from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
@@ -87,12 +90,12 @@ class TrainResult:
 
 
 class Progress:
-    """A rich progress bar on a terminal, plain periodic log lines otherwise."""
+    """A rich progress bar on a terminal, plain periodic log lines otherwise; nothing when `quiet`."""
 
-    def __init__(self, title: str, total: int, start: int, log_every: int):
-        self.title, self.total, self.log_every = title, total, log_every
+    def __init__(self, title: str, total: int, start: int, log_every: int, quiet: bool = False):
+        self.title, self.total, self.log_every, self.quiet = title, total, log_every, quiet
         self.bar = None
-        if sys.stderr.isatty():
+        if sys.stderr.isatty() and not quiet:
             from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
             from rich.progress import Progress as RichProgress
 
@@ -105,13 +108,13 @@ class Progress:
         info = " ".join(f"{k}={v:.4g}" for k, v in logs.items())
         if self.bar is not None:
             self.bar.update(self.task, completed=step, info=info)
-        elif step % self.log_every == 0 or step == self.total:
+        elif not self.quiet and (step % self.log_every == 0 or step == self.total):
             print(f"[{self.title}] step {step}/{self.total} {info}", file=sys.stderr, flush=True)
 
     def warn(self, msg: str) -> None:
         if self.bar is not None:
             self.bar.console.print(f"[{self.title}] {msg}", markup=False, highlight=False)
-        else:
+        elif not self.quiet:
             print(f"[{self.title}] {msg}", file=sys.stderr, flush=True)
 
     def close(self) -> None:
@@ -169,6 +172,25 @@ def _check_signature(path: Path, saved: dict | None, wanted: dict | None) -> Non
             )
 
 
+def batch_gradients(task: TrainTask, rays: RayData, idx: Tensor, step: int,
+                    parallel: bool = False) -> tuple[bool, bool, dict[str, float]]:
+    """The loss of the batch `idx` and its gradient, accumulated in the parameters' .grad.
+
+    -> (learnable: the loss depends on the parameters (False when every sample was skipped), the loss is
+    finite, logs); a non-finite loss is not backpropagated. `parallel` (data parallel): `idx` is the
+    global batch and this rank takes its shard, with the random draws its rays get in the global batch
+    (`distributed.rng_share`); the ranks' gradients are then combined by `distributed.average_gradients`.
+    """
+    if parallel:
+        idx = dist.shard(idx)
+    with dist.rng_share(len(idx), rays.origins.device) if parallel else nullcontext():
+        loss, logs = task.loss(rays.origins[idx], rays.dirs[idx], rays.rgb[idx], step)
+    finite = bool(torch.isfinite(loss))
+    if loss.requires_grad and finite:
+        loss.backward()
+    return loss.requires_grad, finite, logs
+
+
 def train(
     task: TrainTask,
     rays: RayData,
@@ -178,6 +200,7 @@ def train(
     checkpoint: Path | None = None,
     on_log: Callable[[int, dict], None] | None = None,
     signature: dict | None = None,
+    data_parallel: bool = False,
 ) -> TrainResult:
     """Run `sched.iters` steps of `task` on random batches of `rays`, resuming from `checkpoint`.
 
@@ -186,7 +209,16 @@ def train(
     a checkpoint whose `signature` (the settings that define what is trained) differs is refused.
     A non-finite loss or gradient skips the step (counted, reported); `sched.max_bad_steps`
     consecutive ones stop the run. A state with non-finite values is never checkpointed.
+
+    `data_parallel` under torchrun: every rank draws the same global batch, trains on its shard, and
+    the gradients are averaged (`batch_gradients`), so a step is the one-process step on the whole
+    batch; every rank keeps the same state, rank 0 alone prints and writes the checkpoint, and the
+    checkpoint does not depend on the number of ranks (docs/distributed.md).
     """
+    parallel = data_parallel and dist.world_size() > 1
+    if parallel and sched.batch_rays % dist.world_size():
+        raise BoostNerfError(f"train.batch_rays ({sched.batch_rays}) must be divisible by the number of processes "
+                             f"({dist.world_size()}) to split every batch evenly: change one of them")
     gen = torch.Generator(device="cpu").manual_seed(seed)
     torch.manual_seed(seed)
     start, elapsed, skipped, history = 0, 0.0, 0, []
@@ -205,24 +237,29 @@ def train(
         torch.set_rng_state(state["rng"])
         if state.get("cuda_rng") and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(state["cuda_rng"])
-    progress = Progress(title, sched.iters, start, sched.log_every)
+    progress = Progress(title, sched.iters, start, sched.log_every, quiet=parallel and not dist.is_main())
     if start > 0:
         progress.warn(f"resuming from {checkpoint} at step {start}/{sched.iters}")
     bad_run = 0
     t0 = time.perf_counter() - elapsed
     try:
         for step in range(start, sched.iters):
-            if task.before_step(step) or opt is None:
-                opt = make_optimizer(task)
-            _set_lr(opt, step, sched)
-            idx = torch.randint(0, len(rays), (sched.batch_rays,), generator=gen).to(rays.origins.device)
-            loss, logs = task.loss(rays.origins[idx], rays.dirs[idx], rays.rgb[idx], step)
-            opt.zero_grad(set_to_none=True)
-            params = [p for g in opt.param_groups for p in g["params"]]
-            if loss.requires_grad:  # False when every sample of the batch was skipped: nothing to learn
-                finite_loss = bool(torch.isfinite(loss))
-                if finite_loss:
-                    loss.backward()
+            learnable, finite_loss, logs, failure = False, True, {}, None
+            try:
+                if task.before_step(step) or opt is None:
+                    opt = make_optimizer(task)
+                _set_lr(opt, step, sched)
+                idx = torch.randint(0, len(rays), (sched.batch_rays,), generator=gen).to(rays.origins.device)
+                opt.zero_grad(set_to_none=True)
+                learnable, finite_loss, logs = batch_gradients(task, rays, idx, step, parallel)
+            except Exception as e:
+                if not parallel:
+                    raise
+                failure = e  # every rank stops with this rank's message (in average_gradients)
+            params = [p for g in opt.param_groups for p in g["params"]] if opt is not None else []
+            if parallel:
+                learnable, finite_loss, logs = dist.average_gradients(params, learnable, finite_loss, logs, failure)
+            if learnable:  # False when every sample of the batch was skipped: nothing to learn
                 if finite_loss and _all_finite(params):
                     bad_run = 0
                     opt.step()
@@ -252,7 +289,12 @@ def train(
                     on_log(done, entry)
             progress.update(done, logs)
             if checkpoint is not None and (done % sched.checkpoint_every == 0 or done == sched.iters):
-                _save_checkpoint(checkpoint, task, opt, done, time.perf_counter() - t0, skipped, history, gen, signature)
+                save = partial(_save_checkpoint, checkpoint, task, opt, done, time.perf_counter() - t0, skipped,
+                               history, gen, signature)
+                if parallel:
+                    dist.on_main(save)  # one file for all ranks (they hold the same state)
+                else:
+                    save()
     finally:
         progress.close()
     return TrainResult(sched.iters, time.perf_counter() - t0, skipped, history)

@@ -4,6 +4,8 @@
 --ensemble   -> moe/ens:    every expert, equal weights, jointly finetuned (the paper's Ens)
 --baseline   -> moe/baseline: the largest expert trained alone for the same finetuning iterations
 All three start from the same pretrained experts and use the same photometric loss and schedule.
+Under torchrun every model trains data parallel (`train(..., data_parallel=True)`, the auxiliary loss
+by `batch_routing`); rank 0 alone writes the outputs (docs/distributed.md).
 """
 
 from __future__ import annotations
@@ -12,13 +14,15 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Callable
 
+import torch
 from torch import Tensor
 
+from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import count_params, load_expert, save_expert
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, RoutingStats, load_mixture, save_mixture
-from boostnerf_cli.moe.router import PENALTIES, penalty_weights
+from boostnerf_cli.moe.router import PENALTIES, expert_counts, penalty_weights
 from boostnerf_cli.recipe import MoERecipe, TrainRecipe
 from boostnerf_cli.render.renderer import RenderSettings, render_rays
 from boostnerf_cli.scenes import Scene
@@ -51,11 +55,11 @@ class MixtureTask:
             reg = ex.regularization()
             if reg is not None:
                 loss = loss + reg
+        aux, aux_value, load = batch_routing(stats, self.mix.penalty, self.mix.m)
         if self.rec.lam > 0 and self.mix.gate.cfg.kind != "uniform":
-            aux = stats.aux(self.mix.penalty)
             loss = loss + self.rec.lam * aux
-            logs["aux"] = float(aux.detach())
-        for i, f in enumerate(stats.load(self.mix.m)):
+            logs["aux"] = aux_value
+        for i, f in enumerate(load):
             logs[f"load{i}"] = f
         logs["samples"] = bundle.n_samples / origins.shape[0]
         return loss, logs
@@ -65,6 +69,30 @@ class MixtureTask:
 
     def load_state(self, state: dict) -> None:
         self.mix.load_state_dict(state["model"])
+
+
+def batch_routing(stats: RoutingStats, weights: Tensor, m: int) -> tuple[Tensor, float, list[float]]:
+    """The auxiliary loss L = M / |B|^2 sum_i c_i m_i w_i of the step's whole batch, and the load per expert.
+
+    -> (the term to add to this rank's loss, L's value, the fraction of routed samples each expert got).
+    Data parallel, the batch is the union of the ranks' shards and L is not a mean of per-shard terms:
+    the counts c_i and the number of samples |B| are summed over the ranks (they carry no gradient), and
+    each rank's term keeps its own samples' probability mass m_i^(r), times the number of ranks N, so the
+    ranks' averaged gradient, (1/N) sum_r N M/|B|^2 sum_i c_i w_i grad m_i^(r), is exactly L's gradient.
+    """
+    if dist.world_size() == 1:
+        aux = stats.aux(weights)
+        return aux, float(aux.detach()), stats.load(m)
+    probs = torch.cat(stats.probs) if stats.probs else weights.new_zeros(0, m)
+    idx = torch.cat(stats.idx) if stats.idx else torch.zeros(0, 1, dtype=torch.long, device=weights.device)
+    mass = probs.sum(dim=0)
+    local = torch.cat([expert_counts(idx, m).to(mass), mass, mass.new_tensor([float(probs.shape[0])])])
+    total = dist.all_sum(local.double())
+    counts, n = total[:m].to(mass), float(total[-1])
+    if n == 0:
+        return mass.sum() * 0.0, 0.0, [0.0] * m
+    value = m / n**2 * float((total[:m] * total[m : 2 * m] * weights.double()).sum())
+    return dist.world_size() * m / n**2 * (counts * mass * weights.to(mass)).sum(), value, (total[:m] / n).tolist()
 
 
 def model_name(topk: int | None, ensemble: bool, baseline: bool) -> str:
@@ -118,7 +146,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     if rec.penalty not in PENALTIES:
         raise BoostNerfError(f"unknown penalty {rec.penalty!r}: use {', '.join(PENALTIES)}")
     if force:
-        ws.checkpoint_path(name).unlink(missing_ok=True)
+        dist.on_main(lambda: ws.checkpoint_path(name).unlink(missing_ok=True))
     scene = workspace_scene(ws)
     mix, meta = load_mixture(init, device)
     mix.train()
@@ -141,7 +169,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     signature = {"stage": "finetune", "model": name, "from": source, "iters": rec.iters, "seed": rec.seed,
                  "topk": mix.cfg.topk, "renormalize": mix.cfg.renormalize, "penalty": mix.cfg.penalty}
     result = train(task, _train_rays(scene, mix.bbox, device), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
-                   signature=signature)
+                   signature=signature, data_parallel=True)
     mix.eval()
     final = result.history[-1] if result.history else {}
     report = {
@@ -161,10 +189,14 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         "train_psnr": final.get("psnr"),
         "history": result.history,
     }
-    save_mixture(ws.model_path(name), mix, {"name": name, "from": "init", "from_digest": source})
-    write_json(ws.moe_dir / f"{name}.json", report)
-    ws.checkpoint_path(name).unlink(missing_ok=True)
-    ws.update_manifest(moe={name: {"from": "init", "iterations": rec.iters}})
+
+    def write() -> None:
+        save_mixture(ws.model_path(name), mix, {"name": name, "from": "init", "from_digest": source})
+        write_json(ws.moe_dir / f"{name}.json", report)
+        ws.checkpoint_path(name).unlink(missing_ok=True)
+        ws.update_manifest(moe={name: {"from": "init", "iterations": rec.iters}})
+
+    dist.on_main(write)
     log(f"{name}: {result.iterations} steps in {result.seconds:.0f}s, train PSNR {report['train_psnr']:.2f}, "
         f"load per expert {[round(v, 3) for v in report['load']]}")
     return report
@@ -182,7 +214,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
     result = train(task, _train_rays(scene, model.bbox, device), sched, rec.seed, "baseline",
                    checkpoint=ws.checkpoint_path("baseline"),
                    signature={"stage": "finetune", "model": "baseline", "from": source, "iters": rec.iters,
-                              "seed": rec.seed})
+                              "seed": rec.seed}, data_parallel=True)
     model.eval()
     final = result.history[-1] if result.history else {}
     report = {
@@ -196,10 +228,14 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
         "train_psnr": final.get("psnr"),
         "history": result.history,
     }
-    save_expert(ws.model_path("baseline"), model, task.skip,
-                {**meta, "name": "baseline", "from": largest, "from_digest": source})
-    write_json(ws.moe_dir / "baseline.json", report)
-    ws.checkpoint_path("baseline").unlink(missing_ok=True)
-    ws.update_manifest(moe={"baseline": {"from": largest, "iterations": rec.iters}})
+
+    def write() -> None:
+        save_expert(ws.model_path("baseline"), model, task.skip,
+                    {**meta, "name": "baseline", "from": largest, "from_digest": source})
+        write_json(ws.moe_dir / "baseline.json", report)
+        ws.checkpoint_path("baseline").unlink(missing_ok=True)
+        ws.update_manifest(moe={"baseline": {"from": largest, "iterations": rec.iters}})
+
+    dist.on_main(write)
     log(f"baseline ({largest}): {result.iterations} steps in {result.seconds:.0f}s, train PSNR {report['train_psnr']:.2f}")
     return report

@@ -23,6 +23,7 @@ from typing import Callable
 import torch
 from torch import Tensor, nn
 
+from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import FAMILIES, build_expert, count_params, load_expert, save_expert
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
@@ -261,9 +262,47 @@ def _forget_trained(ws: Workspace) -> None:
             p.unlink()
 
 
+def assign(res: list[int], world: int) -> list[list[int]]:
+    """Share experts out over `world` ranks by cost: the largest first, each to the rank with the least work so far
+    (an expert's cost taken as its `res`, which its samples per ray grow with); -> each rank's, ascending."""
+    shares: list[list[int]] = [[] for _ in range(world)]
+    for r in sorted(res, reverse=True):
+        min(shares, key=sum).append(r)
+    return [sorted(s) for s in shares]
+
+
 def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
         log: Callable[[str], None]) -> list[dict]:
-    """Train every expert of the recipe that is not finished yet; -> their reports."""
+    """Train every expert of the recipe that is not finished yet; -> the reports of all of them.
+
+    Under torchrun, rank 0 first prepares the workspace (scene, manifest, the shared geometry) while the
+    other ranks wait, then they read what it wrote; the experts left to train are shared out (`assign`),
+    each rank trains its own and writes their files, and once every rank has succeeded rank 0 alone
+    records them in the manifest. A rank's failure stops every rank with its message (docs/distributed.md).
+    """
+    scene, tag, box, geom, prior, todo = dist.main_first(
+        lambda: _prepare(ws, data, rec, device, force, dist.main_log(log)))
+    with dist.together():
+        for res in assign(todo, dist.world_size())[dist.rank()]:
+            report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, tag)
+            log(f"{report['name']}: {report['iterations']} steps in {report['seconds']:.0f}s, train PSNR "
+                f"{report['train_psnr']:.2f}"
+                + (f", held-out PSNR {report['test_psnr']:.2f}" if "test_psnr" in report else ""))
+    reports = [read_json(ws.expert_report_path(expert_name(rec.pretrain.model, res)), "expert report")
+               for res in sorted(rec.pretrain.res)]
+    dist.on_main(lambda: ws.update_manifest(experts={r["name"]: {"res": r["res"], "params": r["params"]}
+                                                     for r in reports}))
+    return reports
+
+
+def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
+             log: Callable[[str], None]) -> tuple[Scene, str, Tensor, OccupancyGrid, nn.Module, list[int]]:
+    """Check the inputs, record them, load the scene and the shared geometry (trained if missing).
+
+    -> (scene, scene id, box, occupancy, coarse model, resolutions of the experts left to train).
+    Under torchrun rank 0 runs this first and alone writes; the other ranks then find everything made.
+    """
+    main = dist.is_main()
     if data is None:
         data = ws.root / "scene"
         if not (data / "transforms_train.json").exists():
@@ -299,8 +338,9 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
         )
     if recorded and recorded != digest:
         _forget_trained(ws)
-    ws.update_manifest(data=inputs, scene_id=scene_id(inputs), scene_digest=digest, scene=scene.describe(),
-                       recipe=recipe_dict(rec))
+    if main:
+        ws.update_manifest(data=inputs, scene_id=scene_id(inputs), scene_digest=digest, scene=scene.describe(),
+                           recipe=recipe_dict(rec))
     if "detected" in scene.extra:
         log(f"format: {scene.extra['detected']}")
     log(f"scene {scene.name}: {len(scene.splits['train'])} train views "
@@ -308,18 +348,13 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
         + (f", {scene.holdout}" if scene.holdout else ""))
     box, geom, prior = ensure_geometry(ws, scene, rec.pretrain.geometry, rec.pretrain.seed, device, log,
                                        rec.pretrain.train.checkpoint_every, scene_id(inputs))
-    reports = []
+    todo = []
     for res in sorted(rec.pretrain.res):
         name = expert_name(rec.pretrain.model, res)
         if ws.expert_path(name).exists() and ws.expert_report_path(name).exists() and not force:
             log(f"{name}: already trained, skipping (use --force to retrain)")
-            reports.append(read_json(ws.expert_report_path(name), "expert report"))
             continue
-        if force:
+        if force and main:
             ws.checkpoint_path(name).unlink(missing_ok=True)
-        report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, scene_id(inputs))
-        log(f"{name}: {report['iterations']} steps in {report['seconds']:.0f}s, train PSNR {report['train_psnr']:.2f}"
-            + (f", held-out PSNR {report['test_psnr']:.2f}" if "test_psnr" in report else ""))
-        reports.append(report)
-    ws.update_manifest(experts={r["name"]: {"res": r["res"], "params": r["params"]} for r in reports})
-    return reports
+        todo.append(res)
+    return scene, scene_id(inputs), box, geom, prior, todo
