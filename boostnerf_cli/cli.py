@@ -31,6 +31,7 @@ RecipeOpt = Annotated[Optional[Path], typer.Option("--recipe", help="YAML recipe
 SplitOpt = Annotated[str, typer.Option("--split", help="Split to use: test (falls back to val), val or train.")]
 ModelsOpt = Annotated[Optional[list[str]], typer.Option("--model", help="Model name(s); default: every model of the workspace.")]
 NoSkipOpt = Annotated[bool, typer.Option("--no-skip", help="Turn every skip off: dense sampling, every sample evaluated.")]
+SkipOffOpt = Annotated[Optional[list[str]], typer.Option("--skip-off", help="Turn one skip off (repeatable): empty (occupancy grid and density volume V_D) or terminated (colour only where the rendering weight > 1e-4).")]
 ExactGateOpt = Annotated[bool, typer.Option("--exact-gate", help="Mixtures: run the gate's grid + MLP on every sample instead of its baked logits (moe.bake_res).")]
 ViewsOpt = Annotated[Optional[int], typer.Option("--views", min=1, help="Only the first N views of the split.")]
 
@@ -209,6 +210,7 @@ def render(
     split: SplitOpt = "test",
     views: ViewsOpt = None,
     no_skip: NoSkipOpt = False,
+    skip_off: SkipOffOpt = None,
     per_expert: Annotated[bool, typer.Option("--per-expert", help="Mixtures: also each expert's share, the gate's probability map per expert, and a montage of them.")] = False,
     compare: Annotated[bool, typer.Option("--compare", help="Instead: one image per view with ground truth and the models (--model, default baseline/top1/top2/ens) side by side over their error heat maps -> WS/renders/compare/.")] = False,
     path: Annotated[Optional[str], typer.Option("--path", help="Instead: a video along a camera path from the training cameras: orbit (360-degree scenes) or spiral (forward-facing). Needs one --model.")] = None,
@@ -220,21 +222,22 @@ def render(
 ) -> None:
     """Render a split with each model (PNG colour + 16-bit depth), a comparison (--compare) or a video (--path)."""
     from boostnerf_cli.stages import pictures
-    from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.stages.common import Skips, resolve_device
     from boostnerf_cli.stages.evaluate import run_render
 
     if sum((path is not None, compare, per_expert)) > 1:
         raise BoostNerfError("--path, --compare and --per-expert are separate outputs: use one per command")
     if path is None and video is not None:
         raise BoostNerfError("--video needs --path orbit or --path spiral")
+    skips = Skips.from_flags(no_skip, skip_off)
     ws, lock = _writer(workspace)
     with lock:
         if path is not None:
-            pictures.run_video(ws, model, path, frames, video, fps, resolve_device(device), not no_skip, log)
+            pictures.run_video(ws, model, path, frames, video, fps, resolve_device(device), skips, log)
         elif compare:
-            pictures.run_compare(ws, model, split, resolve_device(device), not no_skip, views, log)
+            pictures.run_compare(ws, model, split, resolve_device(device), skips, views, log)
         else:
-            run_render(ws, model, split, resolve_device(device), not no_skip, views, log, per_expert=per_expert,
+            run_render(ws, model, split, resolve_device(device), skips, views, log, per_expert=per_expert,
                        exact_gate=exact_gate)
 
 
@@ -245,18 +248,20 @@ def eval_cmd(
     split: SplitOpt = "test",
     views: ViewsOpt = None,
     no_skip: NoSkipOpt = False,
+    skip_off: SkipOffOpt = None,
     report: Annotated[bool, typer.Option("--report", help="Write WS/reports/eval.json.")] = False,
     no_costs: Annotated[bool, typer.Option("--no-costs", help="Skip ||w||_0 and GFLOPs (they need an extra pass).")] = False,
     exact_gate: ExactGateOpt = False,
     device: DeviceOpt = "auto",
 ) -> None:
     """PSNR, SSIM, LPIPS (when its weights are on disk) and seconds per image for every model."""
-    from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.stages.common import Skips, resolve_device
     from boostnerf_cli.stages.evaluate import run_eval
 
+    skips = Skips.from_flags(no_skip, skip_off)
     ws, lock = _writer(workspace)
     with lock:
-        result = run_eval(ws, model, split, resolve_device(device), not no_skip, views, report, log, costs=not no_costs,
+        result = run_eval(ws, model, split, resolve_device(device), skips, views, report, log, costs=not no_costs,
                           exact_gate=exact_gate)
     table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")
     for r in result["models"]:

@@ -238,6 +238,7 @@ class Bench:
 
     def run_row(self, row: Row) -> dict:
         from boostnerf_cli.stages import finetune
+        from boostnerf_cli.stages.common import Skips
         from boostnerf_cli.stages.evaluate import run_eval
 
         setup = self.setups[row.setup]
@@ -246,7 +247,7 @@ class Bench:
             self.build(ws, setup)
             topk = int(row.train[3:]) if row.train.startswith("top") else None
             finetune.run(ws, row.train, topk, setup.recipe.moe, self.device, False, self.log)
-        result = run_eval(ws, [row.model], "test", self.device, True, self.views, False, self.log, costs=True)
+        result = run_eval(ws, [row.model], "test", self.device, Skips(), self.views, False, self.log, costs=True)
         ev = result["models"][0]
         out = {
             "name": row.name,

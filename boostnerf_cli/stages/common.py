@@ -58,6 +58,42 @@ def scene_digest(scene: Scene) -> str:
     return h.hexdigest()
 
 
+SKIP_NAMES = ("empty", "terminated")
+
+
+@dataclass(frozen=True)
+class Skips:
+    """Which render-time skips are on; each can be turned off to measure what it saves and costs.
+
+    empty:      samples in empty space are not evaluated (a model's occupancy grid; for a mixture also
+                the density volume V_D below its threshold T)
+    terminated: colour is computed only for samples whose rendering weight exceeds 1e-4 (drops samples
+                behind rays that have terminated and in near-empty space)
+    All off (`--no-skip`) is dense fixed-step sampling over the model's box, every sample through density
+    and colour.
+    """
+
+    empty: bool = True
+    terminated: bool = True
+
+    @staticmethod
+    def from_flags(no_skip: bool = False, off: list[str] | None = None) -> "Skips":
+        off = set(off or [])
+        unknown = sorted(off - set(SKIP_NAMES))
+        if unknown:
+            raise BoostNerfError(f"--skip-off {unknown[0]}: unknown skip; the skips are {', '.join(SKIP_NAMES)}")
+        if no_skip:
+            off = set(SKIP_NAMES)
+        return Skips(empty="empty" not in off, terminated="terminated" not in off)
+
+    def describe(self) -> str:
+        on = [n for n in SKIP_NAMES if getattr(self, n)]
+        return "all on" if len(on) == len(SKIP_NAMES) else "all off" if not on else f"only {', '.join(on)} on"
+
+
+ALL_SKIPS = Skips()
+
+
 @dataclass
 class LoadedModel:
     """A field ready to render, with what rendering it needs."""
@@ -79,6 +115,10 @@ class LoadedModel:
     def settings(self, scene: Scene, color_threshold: float = 1e-4) -> RenderSettings:
         return RenderSettings(step=self.step, near=scene.near, far=scene.far, bbox=self.bbox,
                               background=scene.background, color_threshold=color_threshold, ndc=scene.ndc)
+
+    def render_setup(self, scene: Scene, skips: Skips) -> tuple[RenderSettings, Callable[[Tensor], Tensor] | None]:
+        """The render settings and the empty-space filter for rendering this model with `skips`."""
+        return self.settings(scene, 1e-4 if skips.terminated else 0.0), self.skip if skips.empty else None
 
 
 def load_model(ws: Workspace, name: str, device: str, exact_gate: bool = False) -> LoadedModel:

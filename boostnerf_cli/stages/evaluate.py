@@ -20,7 +20,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.metrics import image_metrics, load_lpips
 from boostnerf_cli.render.renderer import render_image
 from boostnerf_cli.scenes import Scene, Split
-from boostnerf_cli.stages.common import LoadedModel, all_model_names, load_model, workspace_scene
+from boostnerf_cli.stages.common import ALL_SKIPS, LoadedModel, Skips, all_model_names, load_model, workspace_scene
 from boostnerf_cli.workspace import Workspace, atomic_path, write_json
 
 
@@ -38,21 +38,21 @@ def write_png(path: Path, array: np.ndarray) -> None:
         iio.imwrite(tmp, array, extension=".png")
 
 
-def render_split(model: LoadedModel, scene: Scene, split: Split, device: str, skip: bool = True,
+def render_split(model: LoadedModel, scene: Scene, split: Split, device: str, skips: Skips = ALL_SKIPS,
                  views: int | None = None) -> list[dict]:
     """Render the first `views` views of a split (all by default) -> outputs with timings."""
-    settings = model.settings(scene, color_threshold=1e-4 if skip else 0.0)
+    settings, skip = model.render_setup(scene, skips)
     out = []
     for i in range(len(split) if views is None else min(views, len(split))):
         t0 = time.perf_counter()
         r = render_image(model.field, split.poses[i], split.intrinsics[i], split.height, split.width, settings,
-                         model.skip if skip else None, device=device)
+                         skip, device=device)
         r["seconds"] = time.perf_counter() - t0
         out.append(r)
     return out
 
 
-def run_render(ws: Workspace, names: list[str] | None, split_name: str, device: str, skip: bool, views: int | None,
+def run_render(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
                log: Callable[[str], None], per_expert: bool = False, exact_gate: bool = False) -> list[Path]:
     scene = workspace_scene(ws)
     split = scene.split(split_name)
@@ -60,7 +60,7 @@ def run_render(ws: Workspace, names: list[str] | None, split_name: str, device: 
     for name in names or all_model_names(ws):
         model = load_model(ws, name, device, exact_gate)
         folder = ws.renders_dir(name, split_name)
-        for i, r in enumerate(render_split(model, scene, split, device, skip, views)):
+        for i, r in enumerate(render_split(model, scene, split, device, skips, views)):
             stem = Path(split.names[i]).name
             write_png(folder / f"{stem}.png", to_uint8(r["rgb"]))
             write_png(folder / f"{stem}_depth.png", depth_to_uint16(r["depth"], scene.far))
@@ -68,16 +68,16 @@ def run_render(ws: Workspace, names: list[str] | None, split_name: str, device: 
         if per_expert and model.kind == "mixture":
             from boostnerf_cli.stages.pictures import render_experts_and_gate
 
-            written += render_experts_and_gate(model, scene, split, folder, device, skip, views, log)
+            written += render_experts_and_gate(model, scene, split, folder, device, skips, views, log)
         log(f"{name}: wrote {len(written)} images to {folder}")
     return written
 
 
-def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, lpips_model, skip: bool = True,
+def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, lpips_model, skips: Skips = ALL_SKIPS,
                    views: int | None = None) -> dict:
     """Mean per-image PSNR / SSIM / LPIPS of one model over a split."""
     rows = []
-    for i, r in enumerate(render_split(model, scene, split, device, skip, views)):
+    for i, r in enumerate(render_split(model, scene, split, device, skips, views)):
         m = image_metrics(r["rgb"], split.images[i], lpips_model)
         rows.append({**m, "seconds": r["seconds"], "samples": r["n_samples"], "colored": r["n_color"]})
     n = len(rows)
@@ -95,7 +95,7 @@ def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, 
     }
 
 
-def run_eval(ws: Workspace, names: list[str] | None, split_name: str, device: str, skip: bool, views: int | None,
+def run_eval(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
              report: bool, log: Callable[[str], None], costs: bool = True, exact_gate: bool = False) -> dict:
     scene = workspace_scene(ws)
     split = scene.split(split_name)
@@ -114,10 +114,11 @@ def run_eval(ws: Workspace, names: list[str] | None, split_name: str, device: st
 
             c = model_costs(model, scene, split, device, views, exact_gate)  # leaves it ready to render
             cost = {"w0": c["w0"], "gflops_per_image": c["gflops_per_image"]}
-        row = {**evaluate_model(model.for_rendering(exact_gate), scene, split, device, lpips_model, skip, views), **cost}
+        row = {**evaluate_model(model.for_rendering(exact_gate), scene, split, device, lpips_model, skips, views), **cost}
         log(f"{name}: PSNR {row['psnr']:.3f}  SSIM {row['ssim']:.4f}  {row['seconds_per_image']:.3f}s/image")
         rows.append(row)
-    result = {"split": split_name, "views": min(views or len(split), len(split)), "skip": skip,
+    result = {"split": split_name, "views": min(views or len(split), len(split)), "skip": skips.empty and skips.terminated,
+              "skips": {"empty": skips.empty, "terminated": skips.terminated},
               "lpips_note": lpips_note or None, "models": rows}
     if report:
         write_json(ws.reports_dir / "eval.json", result)
@@ -132,7 +133,7 @@ def markdown_table(result: dict) -> str:
         return "n/a" if v is None else format(v, fmt)
 
     lines = [
-        f"Split `{result['split']}`, {result['views']} views, skips {'on' if result['skip'] else 'off'}.",
+        f"Split `{result['split']}`, {result['views']} views, skips {Skips(**result['skips']).describe()}.",
         "",
         "| model | PSNR | SSIM | LPIPS | params | ‖w‖₀ | GFLOPs/image | s/image |",
         "|---|---|---|---|---|---|---|---|",

@@ -32,6 +32,7 @@ from boostnerf_cli.render.renderer import render_image
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import (
     LoadedModel,
+    Skips,
     all_model_names,
     load_model,
     workspace_scene,
@@ -58,7 +59,7 @@ def _n_views(split: Split, views: int | None) -> int:
 
 # --- videos ---------------------------------------------------------------------------------------
 def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, video: Path | None, fps: int,
-              device: str, skip: bool, log: Callable[[str], None]) -> list[Path]:
+              device: str, skips: Skips, log: Callable[[str], None]) -> list[Path]:
     """Render one model along a camera path derived from the training cameras -> colour and depth videos."""
     if not names or len(names) != 1:
         raise BoostNerfError(f"--path renders one model: add --model NAME (models: {', '.join(all_model_names(ws)) or 'none yet'})")
@@ -71,11 +72,11 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
     if kind == "orbit" and facing > 0.9:
         log("note: the training cameras all look one way (a forward-facing capture?): --path spiral suits it better")
     poses = camera_path(kind, train.poses, model.bbox.cpu(), scene.near, scene.far, n_frames)
-    settings = model.settings(scene, 1e-4 if skip else 0.0)
+    settings, skip = model.render_setup(scene, skips)
     rgb, depth, acc = [], [], []
     for i, pose in enumerate(poses):
-        r = render_image(model.field, pose, train.intrinsics[0], train.height, train.width, settings,
-                         model.skip if skip else None, device=device)
+        r = render_image(model.field, pose, train.intrinsics[0], train.height, train.width, settings, skip,
+                         device=device)
         rgb.append(_to_uint8(r["rgb"]))
         depth.append((r["depth"] / r["acc"].clamp_min(1e-6)).numpy())  # expected depth of the surface hit
         acc.append(r["acc"].numpy())
@@ -113,7 +114,7 @@ def pixel_error(rgb: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean((rgb.astype(np.float64) - gt.astype(np.float64)) ** 2, axis=-1))
 
 
-def run_compare(ws: Workspace, names: list[str] | None, split_name: str, device: str, skip: bool, views: int | None,
+def run_compare(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
                 log: Callable[[str], None]) -> list[Path]:
     """One image per view: ground truth and each model side by side, each model's error heat map below it."""
     scene = workspace_scene(ws)
@@ -124,7 +125,7 @@ def run_compare(ws: Workspace, names: list[str] | None, split_name: str, device:
 
     renders = {}
     for name in names:
-        renders[name] = [r["rgb"].numpy() for r in render_split(load_model(ws, name, device), scene, split, device, skip, n)]
+        renders[name] = [r["rgb"].numpy() for r in render_split(load_model(ws, name, device), scene, split, device, skips, n)]
     folder = ws.root / "renders" / "compare" / split_name
     written = []
     for i in range(n):
@@ -171,7 +172,7 @@ def gate_by_detail(probs: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple
     return p[high].mean(0), p[~high].mean(0)
 
 
-def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, folder: Path, device: str, skip: bool,
+def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, folder: Path, device: str, skips: Skips,
                             views: int | None, log: Callable[[str], None] | None = None) -> list[Path]:
     """Per expert (ordered by size): its contribution to the mixture, and the gate's probability map; plus a montage.
 
@@ -189,15 +190,15 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
     mix = model.field
     names = list(mix.cfg.expert_names)
     m = len(names)
-    settings = model.settings(scene, 1e-4 if skip else 0.0)
+    settings, skip = model.render_setup(scene, skips)
     black = replace(settings, background=(0.0, 0.0, 0.0))
     written = []
     for i in range(_n_views(split, views)):
         stem = Path(split.names[i]).name
 
         def draw(field, s, i=i):
-            return render_image(field, split.poses[i], split.intrinsics[i], split.height, split.width, s,
-                                model.skip if skip else None, device=device)
+            return render_image(field, split.poses[i], split.intrinsics[i], split.height, split.width, s, skip,
+                                device=device)
 
         full = draw(mix, settings)
         shares, gates = [], []
