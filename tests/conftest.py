@@ -10,7 +10,12 @@ from pathlib import Path
 import pytest
 import torch
 
-torch.set_num_threads(min(2, os.cpu_count() or 1))
+# pytest-xdist runs test files in parallel workers (pyproject addopts): each worker, and every CLI subprocess
+# it starts, gets its share of the cores, so the workers do not oversubscribe them.
+_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+_THREADS = max(1, min(2, (os.cpu_count() or 1) // _WORKERS))
+os.environ["OMP_NUM_THREADS"] = str(_THREADS)
+torch.set_num_threads(_THREADS)
 
 TINY_RECIPE = """
 data: {image_size: 32, holdout_every: 8}
