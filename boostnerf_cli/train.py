@@ -136,7 +136,10 @@ def _set_lr(opt: torch.optim.Optimizer, step: int, sched: Schedule) -> None:
 
 
 def _all_finite(params: list[Tensor]) -> bool:
-    return all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params)
+    """True when no gradient holds a NaN or an infinity: one fused max-norm pass over all gradients (a
+    tensor's max-norm is NaN or inf exactly then; `isfinite` per tensor took ~20% of a small expert's step)."""
+    grads = [p.grad for p in params if p.grad is not None]
+    return not grads or bool(torch.stack(torch._foreach_norm(grads, float("inf"))).isfinite().all())
 
 
 def _non_finite_entry(obj, where: str = "") -> str | None:

@@ -175,3 +175,16 @@ def test_a_partial_recipe_section_keeps_that_sections_own_defaults(tmp_path):
         finetune_defaults.lr_grid, finetune_defaults.lr_mlp, [], 0)
     assert finetune_defaults.lr_grid != TrainRecipe().lr_grid  # the case that matters
     assert rec.pretrain.train.lr_grid == 0.2 and rec.pretrain.train.growth == TrainRecipe().growth
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf"), None])
+def test_all_finite_finds_any_non_finite_gradient(bad):
+    from boostnerf_cli.train import _all_finite
+
+    params = [torch.zeros(5, requires_grad=True), torch.zeros(3, 2, requires_grad=True), torch.zeros(2, requires_grad=True)]
+    params[0].grad = torch.tensor([1.0, -3e38, 0.0, 2.0, 3e38])  # huge but finite
+    params[1].grad = torch.ones(3, 2)
+    if bad is not None:
+        params[1].grad[2, 1] = bad
+    assert _all_finite(params) is (bad is None)  # params[2] has no gradient: ignored
+    assert _all_finite([torch.zeros(1, requires_grad=True)])  # no gradient at all
