@@ -16,6 +16,7 @@ from boostnerf_cli.recipe import load_recipe
 from boostnerf_cli.workspace import Workspace, atomic_path, load_tensors, save_tensors, write_json
 
 RECIPES = sorted((Path(__file__).parent.parent / "recipes").glob("*.yaml"))
+EXPERIMENTS = sorted((Path(__file__).parent.parent / "recipes" / "experiments").glob("*.yaml"))  # docs/results.md
 
 
 def test_failed_write_keeps_the_previous_file(tmp_path):
@@ -56,7 +57,7 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
         assert (tmp_path / ".lock").read_text() == f"{socket.gethostname()} {os.getpid()}"
 
 
-@pytest.mark.parametrize("path", RECIPES, ids=[p.name for p in RECIPES])
+@pytest.mark.parametrize("path", RECIPES + EXPERIMENTS, ids=[p.name for p in RECIPES + EXPERIMENTS])
 def test_every_recipe_loads(path):
     from boostnerf_cli.fields import CONFIGS
 
