@@ -39,7 +39,7 @@ from boostnerf_cli.render.renderer import RenderSettings, render_image
 from boostnerf_cli.stages.common import Skips, load_model, workspace_scene
 from boostnerf_cli.stages.finetune import MixtureTask, _train_rays
 from boostnerf_cli.stages.pretrain import FieldTask
-from boostnerf_cli.train import _all_finite, make_optimizer
+from boostnerf_cli.train import _all_finite, batch_gradients, make_optimizer
 from boostnerf_cli.workspace import Workspace, write_json
 
 
@@ -91,13 +91,11 @@ class Recorder:
 
 
 def _train_step(task, opt, rays, batch: int, gen: torch.Generator) -> None:
-    """The body of train.train's loop (without its logging and checkpoints)."""
+    """The body of train.train's loop (without its logging and checkpoints), through its own pieces."""
     idx = torch.randint(0, len(rays), (batch,), generator=gen).to(rays.origins.device)
-    loss, _ = task.loss(rays.origins[idx], rays.dirs[idx], rays.rgb[idx], 0)
     opt.zero_grad(set_to_none=True)
-    loss.backward()
-    params = [p for g in opt.param_groups for p in g["params"]]
-    if _all_finite(params):
+    learnable, finite, _ = batch_gradients(task, rays, idx, 0)
+    if learnable and finite and _all_finite([p for g in opt.param_groups for p in g["params"]]):
         opt.step()
 
 
