@@ -88,6 +88,26 @@ def test_aux_loss_empty_batch_is_zero_with_a_gradient_path():
 
 
 @pytest.mark.parametrize("k", [1, 2, 3])
+def test_render_routing_without_probabilities_matches_training_routing(k):
+    """Rendering skips the softmax: top-k of the logits, weights = softmax of the chosen logits."""
+    mix = _mixture(m=3, k=k)
+    xyz, d = _points(500)
+    with torch.no_grad():
+        probs, vals, idx = mix.route(xyz)  # the full path (probabilities wanted)
+        none, fast_vals, fast_idx = mix.route(xyz, need_probs=False)
+        assert probs is not None and none is None
+        assert torch.equal(fast_idx, idx)
+        assert torch.allclose(fast_vals, vals, atol=1e-6, rtol=0)
+        ref = torch.softmax(mix.gate.logits(xyz).double(), -1)
+        chosen = ref.gather(1, idx)
+        assert torch.allclose(fast_vals.double(), chosen / chosen.sum(-1, keepdim=True), atol=1e-6, rtol=0)
+        assert torch.allclose(mix.density(xyz), mix.routed().density(xyz))
+    mix.train()
+    probs, _, _ = mix.route(xyz, need_probs=False)  # autograd on: the trained path, probabilities kept
+    assert probs is not None
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
 def test_sparse_dispatch_matches_dense_reference_in_values_and_gradients(k):
     mix = _mixture(m=3, k=k)
     xyz, d = _points(300)

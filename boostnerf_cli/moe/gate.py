@@ -44,6 +44,14 @@ class GateConfig:
     log2_table: int = 15  # hash grid: at most 2^log2_table rows per level
 
 
+def softmax(logits: Tensor) -> Tensor:
+    """Softmax over the last (expert) dimension, in float32 even under autocast (reduced-precision
+    logits are upcast first)."""
+    if logits.dtype in (torch.float16, torch.bfloat16):
+        logits = logits.float()
+    return torch.softmax(logits, dim=-1)
+
+
 def positional_encoding(x: Tensor, n_freq: int) -> Tensor:
     freqs = 2.0 ** torch.arange(n_freq, device=x.device, dtype=x.dtype) * math.pi
     y = (x[:, None, :] * freqs[:, None]).reshape(x.shape[0], -1)
@@ -135,11 +143,7 @@ class Gate(nn.Module):
         return []
 
     def probs(self, xyz: Tensor) -> Tensor:
-        """Softmax in float32 even under autocast (reduced-precision logits are upcast first)."""
-        logits = self.logits(xyz)
-        if logits.dtype in (torch.float16, torch.bfloat16):
-            logits = logits.float()
-        return torch.softmax(logits, dim=-1)
+        return softmax(self.logits(xyz))
 
     @torch.no_grad()
     def baked(self, res: int) -> "Gate":

@@ -21,7 +21,7 @@ from boostnerf_cli import flops
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import FAMILIES
 from boostnerf_cli.moe.density_volume import DensityVolume
-from boostnerf_cli.moe.gate import Gate, GateConfig
+from boostnerf_cli.moe.gate import Gate, GateConfig, softmax
 from boostnerf_cli.moe.router import aux_loss, dispatch, penalty_weights, top_k
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.workspace import load_tensors, save_tensors
@@ -97,13 +97,22 @@ class Mixture(nn.Module):
         return keep
 
     # --- routing --------------------------------------------------------------------------------
-    def route(self, xyz: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """-> probabilities (N, M), weights (N, k), expert indices (N, k)."""
-        probs = self.gate.probs(xyz)
+    def route(self, xyz: Tensor, need_probs: bool = True) -> tuple[Tensor | None, Tensor, Tensor]:
+        """-> probabilities (N, M), weights (N, k), expert indices (N, k).
+
+        Rendering (no autograd, `need_probs` False) with renormalised weights skips the probabilities:
+        the renormalised top-k weights are the softmax of the k chosen logits alone (1 for k = 1), and
+        the choice is the top-k of the logits; the probabilities are then returned as None.
+        """
         flops.add("routing", 4 * self.m * xyz.shape[0])
         if self.gate.cfg.kind == "uniform":  # the ensemble: every expert, equal weights
+            probs = self.gate.probs(xyz)
             idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
             return probs, probs, idx
+        if not need_probs and self.cfg.renormalize and not torch.is_grad_enabled():
+            chosen, idx = top_k(self.gate.logits(xyz).float(), self.cfg.topk, renormalize=False)
+            return None, (torch.ones_like(chosen) if self.cfg.topk == 1 else softmax(chosen)), idx
+        probs = self.gate.probs(xyz)
         vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
         return probs, vals, idx
 
@@ -117,11 +126,11 @@ class Mixture(nn.Module):
 
     # --- the Field contract ---------------------------------------------------------------------
     def density(self, xyz: Tensor) -> Tensor:
-        _, vals, idx = self.route(xyz)
+        _, vals, idx = self.route(xyz, need_probs=False)
         return self._mix(xyz, None, vals, idx)
 
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
-        _, vals, idx = self.route(xyz)
+        _, vals, idx = self.route(xyz, need_probs=False)
         return self._mix(xyz, dirs, vals, idx)
 
     def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
@@ -168,7 +177,7 @@ class RoutedMixture:
         self._last: tuple[Tensor, Tensor, Tensor] | None = None
 
     def density(self, xyz: Tensor) -> Tensor:
-        probs, vals, idx = self.mixture.route(xyz)
+        probs, vals, idx = self.mixture.route(xyz, need_probs=self.stats is not None)
         if self.stats is not None:
             self.stats.probs.append(probs)
             self.stats.idx.append(idx)
@@ -196,7 +205,7 @@ class SingleExpertView:
         self.mixture, self.e = mixture, e
 
     def _weight(self, xyz: Tensor) -> Tensor:
-        _, vals, idx = self.mixture.route(xyz)
+        _, vals, idx = self.mixture.route(xyz, need_probs=False)
         return (vals * (idx == self.e)).sum(-1)
 
     def density(self, xyz: Tensor) -> Tensor:

