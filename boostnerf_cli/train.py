@@ -136,10 +136,13 @@ def _set_lr(opt: torch.optim.Optimizer, step: int, sched: Schedule) -> None:
 
 
 def _all_finite(params: list[Tensor]) -> bool:
-    """True when no gradient holds a NaN or an infinity: one fused max-norm pass over all gradients (a
-    tensor's max-norm is NaN or inf exactly then; `isfinite` per tensor took ~20% of a small expert's step)."""
+    """True when no gradient holds a NaN or an infinity: one sum per gradient tensor. A sum is NaN or
+    +-inf when any entry is (+inf and -inf together give NaN); finite entries whose sum overflows float32
+    are refused too, as a gradient that large should be. Measured on CPU over an 80^3 DVGO expert's 6.7M
+    gradients, one thread: 0.9 ms, against 29 ms for a fused max-norm (`_foreach_norm(inf)`, slow on CPU)
+    and ~20% of a small expert's step for an `isfinite` pass per tensor."""
     grads = [p.grad for p in params if p.grad is not None]
-    return not grads or bool(torch.stack(torch._foreach_norm(grads, float("inf"))).isfinite().all())
+    return not grads or bool(torch.stack([g.sum() for g in grads]).isfinite().all())
 
 
 def _non_finite_entry(obj, where: str = "") -> str | None:

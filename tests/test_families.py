@@ -92,7 +92,7 @@ def test_tensorf_l1_regularisation_is_the_weighted_mean_absolute_density_compone
     m = _expert("tensorf")
     params = list(m.density_vm.parameters())
     expected = sum(float(p.detach().abs().sum()) for p in params) / sum(p.numel() for p in params)
-    assert math.isclose(float(m.regularization()), m.cfg.l1_weight * expected, rel_tol=1e-5)
+    assert math.isclose(float(m.regularization().detach()), m.cfg.l1_weight * expected, rel_tol=1e-5)
     assert _expert("dvgo").regularization() is None and _expert("ngp").regularization() is None
 
 

@@ -1,5 +1,8 @@
 """Trilinear grids against grid_sample in float64; rays, projection and box clipping."""
 
+import math
+
+import pytest
 import torch
 import torch.nn.functional as F
 
@@ -19,11 +22,13 @@ def _grid_sample_ref(table, shape, xyz, bbox):
     return out.view(table.shape[1], -1).T
 
 
-def test_lookup_matches_grid_sample_forward_and_backward():
+@pytest.mark.parametrize("channels,shape,n", [(3, (5, 7, 4), 200), (1, (5, 7, 4), 200), (12, (23, 19, 17), 40)])
+def test_lookup_matches_grid_sample_forward_and_backward(channels, shape, n):
+    """One channel (the density grid's path) and several (the compact path; the (23, 19, 17) grid with
+    40 points leaves most rows untouched, whose gradient must be exactly 0)."""
     g = torch.Generator().manual_seed(0)
-    shape = (5, 7, 4)
-    table = torch.randn(5 * 7 * 4, 3, dtype=torch.float64, generator=g, requires_grad=True)
-    xyz = BOX[0] + torch.rand(200, 3, dtype=torch.float64, generator=g) * (BOX[1] - BOX[0])
+    table = torch.randn(math.prod(shape), channels, dtype=torch.float64, generator=g, requires_grad=True)
+    xyz = BOX[0] + torch.rand(n, 3, dtype=torch.float64, generator=g) * (BOX[1] - BOX[0])
     idx, w = G.corners(xyz, BOX, shape)
     ours = G._Lookup.apply(table, idx, w)
     ref = _grid_sample_ref(table, shape, xyz, BOX)

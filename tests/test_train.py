@@ -188,3 +188,9 @@ def test_all_finite_finds_any_non_finite_gradient(bad):
         params[1].grad[2, 1] = bad
     assert _all_finite(params) is (bad is None)  # params[2] has no gradient: ignored
     assert _all_finite([torch.zeros(1, requires_grad=True)])  # no gradient at all
+    both = torch.zeros(4, requires_grad=True)
+    both.grad = torch.tensor([float("inf"), 1.0, -float("inf"), 0.0])  # +inf and -inf in one tensor
+    assert not _all_finite([both])
+    huge = torch.zeros(2, requires_grad=True)
+    huge.grad = torch.tensor([3e38, 3e38])  # finite, but its sum overflows: refused, as documented
+    assert not _all_finite([huge])

@@ -60,9 +60,19 @@ class _Lookup(torch.autograd.Function):
         idx, w = ctx.saved_tensors
         channels = grad.shape[1]
         src = (grad.T[:, :, None] * w[None, :, :]).reshape(channels, -1)
-        grad_table = torch.zeros(channels, ctx.rows, dtype=grad.dtype, device=grad.device)
-        grad_table.index_add_(1, idx.reshape(-1), src)
-        return grad_table.T, None, None
+        if channels == 1:
+            grad_table = torch.zeros(1, ctx.rows, dtype=grad.dtype, device=grad.device)
+            grad_table.index_add_(1, idx.reshape(-1), src)
+            return grad_table.T, None, None  # (rows, 1): already in the table's layout
+        # Several channels: accumulate over the rows the batch touches only (a few % of a large grid),
+        # then copy them into a zeroed gradient in the table's own (rows, C) layout. Accumulating over
+        # the whole grid channels-first and transposing it back cost ~6x more on CPU (an 80^3 grid's
+        # 12 channels, 7k samples: 65 ms against 11 ms, one thread), the transpose most of it.
+        rows, inv = torch.unique(idx.reshape(-1), return_inverse=True)
+        compact = torch.zeros(channels, rows.numel(), dtype=grad.dtype, device=grad.device)
+        compact.index_add_(1, inv, src)
+        grad_table = torch.zeros(ctx.rows, channels, dtype=grad.dtype, device=grad.device)
+        return grad_table.index_copy_(0, rows, compact.T.contiguous()), None, None
 
 
 def lookup(table: Tensor, idx: Tensor, w: Tensor) -> Tensor:
