@@ -103,6 +103,32 @@ def test_intersect_box_handles_misses_parallel_rays_and_near_far():
     assert not hit[0]
 
 
+def test_occupancy_lookup_matches_a_per_point_reference_on_faces_edges_and_outside():
+    """Cells by floor((x - lo) / size * res); the box includes its faces (max face -> last cell)."""
+    g = torch.Generator().manual_seed(3)
+    shape = (5, 3, 7)
+    occ = torch.rand(shape, generator=g) > 0.5
+    box = torch.tensor([[-1.0, -1.2, -0.9], [1.1, 1.3, 0.8]])
+    grid = OccupancyGrid(occ, box)
+    pts = box[0] + (torch.rand(4000, 3, generator=g) * 1.4 - 0.2) * (box[1] - box[0])
+    for a in range(3):  # points exactly on each min and max face, and just outside them
+        pts[a * 200 : a * 200 + 50, a] = box[0, a]
+        pts[a * 200 + 50 : a * 200 + 100, a] = box[1, a]
+        pts[a * 200 + 100 : a * 200 + 150, a] = box[1, a] + 1e-4
+        pts[a * 200 + 150 : a * 200 + 200, a] = box[0, a] - 1e-4
+
+    def reference(p):
+        rel = [(float(p[a]) - float(box[0, a])) / (float(box[1, a]) - float(box[0, a])) for a in range(3)]
+        if not all(0.0 <= r <= 1.0 for r in rel):
+            return False
+        return bool(occ[tuple(min(int(math.floor(r * n)), n - 1) for r, n in zip(rel, shape))])
+
+    got = grid(pts)
+    want = torch.tensor([reference(p) for p in pts])
+    assert torch.equal(got, want)
+    assert grid(torch.zeros(0, 3)).shape == (0,)
+
+
 def test_occupancy_grid_lookup_and_bbox():
     occ = torch.zeros(4, 4, 4, dtype=torch.bool)
     occ[1, 2, 3] = True
