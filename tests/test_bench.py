@@ -141,3 +141,14 @@ def test_bench_refuses_bad_input(quick_bench, tiny_scene, bench_recipe, tmp_path
     _assert_clean_failure(proc, "unknown suite")
     proc = run_cli("bench", "--workspace", str(root), "--recipe", str(bench_recipe), "--list", "--only", "naive")
     assert proc.returncode == 0 and "naive-step" in proc.stdout and "top1" not in proc.stdout
+
+
+def test_bench_config_of_a_recipe_with_per_resolution_options_reads_back_equal(tmp_path):
+    """A recipe with `hidden: {64: 64, 80: 128}` (int keys) must not look like another recipe on rerun."""
+    from boostnerf_cli.workspace import read_json, write_json
+
+    rec = Recipe()
+    rec.pretrain.dvgo = {"hidden": {64: 64, 80: 128}}
+    config = bench.bench_config(tmp_path, None, rec)
+    write_json(tmp_path / "bench-config.json", config)
+    assert read_json(tmp_path / "bench-config.json", "bench config") == bench.bench_config(tmp_path, None, rec)

@@ -28,6 +28,7 @@ from __future__ import annotations
 import copy
 import csv
 import io
+import json
 import math
 import os
 import shutil
@@ -282,6 +283,12 @@ class Bench:
         return sum(expert_seconds(n) for n in report["experts"]) + float(report["seconds"])
 
 
+def bench_config(data: Path, views: int | None, rec: Recipe) -> dict:
+    """What a bench folder is for, as its bench-config.json reads back: through JSON, so that a
+    per-resolution mapping (`hidden: {64: 64, ...}`, int keys) compares equal to its stored copy."""
+    return json.loads(json.dumps({"data": str(Path(data).resolve()), "views": views, "recipe": recipe_dict(rec)}))
+
+
 def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] | None, device: str,
         views: int | None, log: Callable[[str], None]) -> dict:
     setups, rows = catalogue(rec, suite)
@@ -295,7 +302,7 @@ def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] 
             make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)
     if not Path(data).exists():
         raise BoostNerfError(f"--data {data} does not exist")
-    config = {"data": str(Path(data).resolve()), "views": views, "recipe": recipe_dict(rec)}
+    config = bench_config(data, views, rec)
     config_path = root / "bench-config.json"
     if config_path.exists():
         previous = read_json(config_path, "bench config")
