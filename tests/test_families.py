@@ -28,6 +28,7 @@ from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, load_mixture, save_mixture
 from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.render.renderer import RenderSettings, render_rays
 
 BOX = torch.tensor([[-1.0, -1.0, -0.5], [1.0, 1.0, 0.5]])
 SMALL = {
@@ -70,6 +71,51 @@ def test_satisfies_the_field_and_expert_contracts(family):
     assert m.density(xyz[:0]).shape == (0,) and m.color(xyz[:0], dirs[:0]).shape == (0, 3)
     meta = m.config_dict()
     assert {"family", "config", "unit", "shape"} <= set(meta) and tuple(meta["shape"]) == tuple(m.shape)
+
+
+class _Plain:
+    """A field through the bare Field protocol (no per-batch view)."""
+
+    def __init__(self, field):
+        self.field = field
+
+    def density(self, xyz):
+        return self.field.density(xyz)
+
+    def color(self, xyz, dirs):
+        return self.field.color(xyz, dirs)
+
+    def query(self, xyz, dirs):
+        return self.field.query(xyz, dirs)
+
+
+def test_ngp_batch_view_encodes_each_sample_once_with_the_plain_fields_image_and_gradients(monkeypatch):
+    m = _expert("ngp").double()
+    with torch.no_grad():
+        m.sigma_net[-1].bias[0] = 12.0  # dense enough that rays saturate: the colour pass skips some samples
+    g = torch.Generator().manual_seed(2)
+    origins = torch.tensor([0.0, 0.0, -3.0], dtype=torch.float64).expand(24, 3).clone()
+    dirs = F.normalize(torch.randn(24, 3, generator=g, dtype=torch.float64) * 0.3
+                       + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), dim=-1)
+    settings = RenderSettings(step=0.05, near=0.1, far=6.0, bbox=BOX.double(), color_threshold=1e-3)
+    calls = []
+    real = m.encoding.forward
+    monkeypatch.setattr(m.encoding, "forward", lambda x: calls.append(x.shape[0]) or real(x))
+
+    def render(field):
+        m.zero_grad()
+        b = render_rays(field, origins, dirs, settings)
+        (b.color * torch.linspace(0.5, 1.5, 3, dtype=torch.float64)).sum().backward()
+        assert 0 < b.n_color < b.n_samples  # the colour pass is a proper subset of the samples
+        return b.color.detach(), [p.grad.clone() for p in m.parameters()]
+
+    color_view, grads_view = render(m)
+    assert len(calls) == 1  # the density pass alone ran the hash encoding
+    color_plain, grads_plain = render(_Plain(m))
+    assert len(calls) == 3
+    assert torch.allclose(color_view, color_plain, atol=1e-12)
+    for a, b in zip(grads_view, grads_plain):
+        assert torch.allclose(a, b, atol=1e-12)
 
 
 @pytest.mark.parametrize("family", FAMILIES)

@@ -101,7 +101,7 @@ def test_render_routing_without_probabilities_matches_training_routing(k):
         ref = torch.softmax(mix.gate.logits(xyz).double(), -1)
         chosen = ref.gather(1, idx)
         assert torch.allclose(fast_vals.double(), chosen / chosen.sum(-1, keepdim=True), atol=1e-6, rtol=0)
-        assert torch.allclose(mix.density(xyz), mix.routed().density(xyz))
+        assert torch.allclose(mix.density(xyz), mix.batch_view().density(xyz))
     mix.train()
     probs, _, _ = mix.route(xyz, need_probs=False)  # autograd on: the trained path, probabilities kept
     assert probs is not None

@@ -6,8 +6,9 @@ Shapes: N points; xyz (N, 3) world coordinates; dirs (N, 3) unit view directions
 the camera into the scene). Density sigma (N,) is non-negative, per world unit; rgb (N, 3) in [0, 1].
 
 Optional, for fields that share work between the renderer's two passes (the mixture of experts
-routes each sample once): `routed()` returns a per-batch view whose `color_rows(rows, dirs)` gives
-the colour of the samples `rows` of its last `density` call. The renderer uses them when present.
+routes each sample once; an Instant-NGP-style expert encodes each sample once): `batch_view()`
+returns a per-batch view whose `color_rows(rows, dirs)` gives the colour of the samples `rows` of its
+last `density` call. The renderer uses them when present.
 """
 
 from __future__ import annotations

@@ -103,6 +103,10 @@ class NGPExpert(nn.Module):
         h = self._hidden(xyz)
         return self._sigma(xyz, h[:, 0]), self._rgb(h[:, 1:], dirs)
 
+    def batch_view(self) -> "NGPBatch":
+        """A per-batch view for the renderer: each sample is encoded once for both passes."""
+        return NGPBatch(self)
+
     def regularization(self) -> None:
         return None
 
@@ -133,3 +137,34 @@ class NGPExpert(nn.Module):
     @classmethod
     def from_config(cls, meta: dict, bbox: Tensor) -> NGPExpert:
         return cls(NGPConfig(**meta["config"]), bbox, unit=meta["unit"], shape=tuple(meta["shape"]))
+
+
+class NGPBatch:
+    """A per-batch Field view of an NGP expert that encodes each sample once.
+
+    `density(xyz)` keeps the density MLP's output for those samples (raw density and geometry
+    features); the renderer's colour pass then calls `color_rows(rows, dirs)` for a subset `rows` of
+    them, which takes their geometry features from it instead of hashing and running the density MLP
+    again. The values are those of `color(xyz[rows], dirs)`; the gradients too (the features' gradient
+    from both passes meets in the one encoding). Measured in docs/benchmarks.md.
+    """
+
+    def __init__(self, expert: NGPExpert):
+        self.expert = expert
+        self._hidden: Tensor | None = None
+
+    def density(self, xyz: Tensor) -> Tensor:
+        h = self.expert._hidden(xyz)
+        self._hidden = h
+        return self.expert._sigma(xyz, h[:, 0])
+
+    def color_rows(self, rows: Tensor, dirs: Tensor) -> Tensor:
+        if self._hidden is None:
+            raise RuntimeError("color_rows needs a density pass first")
+        return self.expert._rgb(self._hidden[rows, 1:], dirs)
+
+    def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
+        return self.expert.color(xyz, dirs)
+
+    def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
+        return self.expert.query(xyz, dirs)

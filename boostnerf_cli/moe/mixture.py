@@ -142,7 +142,7 @@ class Mixture(nn.Module):
             self.gate = self.gate.baked(self.cfg.bake_res)
         return self
 
-    def routed(self) -> "RoutedMixture":
+    def batch_view(self) -> "RoutedMixture":
         """A per-batch view for the renderer: the gate runs once per sample (see RoutedMixture)."""
         return RoutedMixture(self, None)
 

@@ -82,8 +82,8 @@ def render_rays(
     """Render a batch of rays (R, 3), (R, 3) through `field`; differentiable w.r.t. the field."""
     t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter)
     r, s = t.shape
-    if hasattr(field, "routed"):  # a mixture: route each sample once for both passes
-        field = field.routed()
+    if hasattr(field, "batch_view"):  # shares the density pass's work with the colour pass
+        field = field.batch_view()
     if skip is not None and valid.any():
         keep = valid.clone()
         keep[valid] = skip(xyz[valid])
@@ -104,7 +104,7 @@ def render_rays(
     rgb = torch.zeros(r * s, 3, device=origins.device, dtype=origins.dtype)
     if cflat.numel():
         ray_of = cflat // s
-        if hasattr(field, "color_rows"):  # reuses the density pass's work (a mixture's routing)
+        if hasattr(field, "color_rows"):  # reuses the density pass's work (routing, encoding)
             colors = field.color_rows(sel.nonzero().squeeze(-1), dirs[ray_of])
         else:
             colors = field.color(pts[sel], dirs[ray_of])
