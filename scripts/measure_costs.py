@@ -2,7 +2,7 @@
 
     python scripts/measure_costs.py --workspace WS [--mixture top1] [--views 3] [--steps 12] [--threads 2]
 
-Writes WS/reports/costs.json and prints a summary. Three measurements, each alternating its
+Writes WS/reports/costs.json and prints a summary. Four measurements, each alternating its
 variants (A B A B ...) so that a noisy machine slows both alike; the figures are medians.
 
 1. skips: the largest expert (and the finetuned `baseline` and `--mixture`, when present) render the
@@ -18,6 +18,9 @@ variants (A B A B ...) so that a noisy machine slows both alike; the figures are
    lookup, MLP, softmax), top-k, the auxiliary loss, and the dispatch and gather (sort by expert,
    row gathers, weighted index_add) with the experts replaced by a 3 -> out linear map so that only the
    routing bookkeeping is timed. Reported: overhead / step.
+4. shared work (experts with a per-batch view, e.g. NGP): a pretraining step of the largest expert
+   through its view (each sample encoded once for both passes) against the same step through the
+   bare Field protocol (the colour pass encodes its samples again), alternated on the same batches.
 """
 
 from __future__ import annotations
@@ -73,17 +76,52 @@ def measure_skips(ws: Workspace, scene, names: list[str], views: int, device: st
 
 
 class Recorder:
-    """Wraps a field and keeps the inputs of its last density and colour calls."""
+    """Wraps a field and keeps the inputs of its last density and colour calls.
+
+    A field with a per-batch view (`batch_view`, e.g. an NGP expert) is recorded through it, so the
+    step measured is the one training runs: the colour pass then records the rows it reuses.
+    """
 
     def __init__(self, field):
-        self.field, self.pts, self.cpts, self.cdirs = field, None, None, None
+        self.field, self.pts, self.cpts, self.cdirs, self.rows = field, None, None, None, None
+        if hasattr(field, "batch_view"):
+            self.batch_view = lambda: _RecordingView(self, field.batch_view())
 
     def density(self, xyz):
-        self.pts = xyz.detach()
+        self.pts, self.rows = xyz.detach(), None
         return self.field.density(xyz)
 
     def color(self, xyz, dirs):
         self.cpts, self.cdirs = xyz.detach(), dirs.detach()
+        return self.field.color(xyz, dirs)
+
+    def regularization(self):
+        return self.field.regularization()
+
+
+class _RecordingView:
+    def __init__(self, rec: Recorder, view):
+        self.rec, self.view = rec, view
+
+    def density(self, xyz):
+        self.rec.pts = xyz.detach()
+        return self.view.density(xyz)
+
+    def color_rows(self, rows, dirs):
+        self.rec.rows, self.rec.cpts, self.rec.cdirs = rows, self.rec.pts[rows], dirs.detach()
+        return self.view.color_rows(rows, dirs)
+
+
+class Plain:
+    """A field through the bare Field protocol only (no per-batch view): both passes from scratch."""
+
+    def __init__(self, field):
+        self.field = field
+
+    def density(self, xyz):
+        return self.field.density(xyz)
+
+    def color(self, xyz, dirs):
         return self.field.color(xyz, dirs)
 
     def regularization(self):
@@ -99,9 +137,14 @@ def _train_step(task, opt, rays, batch: int, gen: torch.Generator) -> None:
         opt.step()
 
 
-def _bare_step(model, pts, cpts, cdirs) -> None:
-    """The model's own work in a step: density and colour forward and backward on the step's samples."""
-    (model.density(pts).sum() + model.color(cpts, cdirs).sum()).backward()
+def _bare_step(model, pts, cpts, cdirs, rows=None) -> None:
+    """The model's own work in a step: density and colour forward and backward on the step's samples
+    (through its per-batch view when the step used one: `rows` are then the colour pass's rows)."""
+    if rows is None:
+        (model.density(pts).sum() + model.color(cpts, cdirs).sum()).backward()
+    else:
+        view = model.batch_view()
+        (view.density(pts).sum() + view.color_rows(rows, cdirs).sum()).backward()
 
 
 def _gate_part(mix, pts):
@@ -137,7 +180,7 @@ def measure_step(ws: Workspace, scene, rec: Recipe, expert: str, steps: int, dev
         t_step, _ = timed(_train_step, task, opt, rays, tcfg.batch_rays, gen)
         pts, cpts, cdirs = rec_model.pts, rec_model.cpts, rec_model.cdirs
         opt.zero_grad(set_to_none=True)
-        t_bare, _ = timed(_bare_step, model, pts, cpts, cdirs)
+        t_bare, _ = timed(_bare_step, model, pts, cpts, cdirs, rec_model.rows)
         opt.zero_grad(set_to_none=True)
         if i >= 2:  # warm-up
             step_s.append(t_step)
@@ -148,6 +191,34 @@ def measure_step(ws: Workspace, scene, rec: Recipe, expert: str, steps: int, dev
             "density_samples": statistics.median(s[0] for s in samples),
             "color_samples": statistics.median(s[1] for s in samples),
             "step_seconds": step, "bare_seconds": bare_t, "throughput_ratio": bare_t / step}
+
+
+def measure_view(ws: Workspace, scene, rec: Recipe, expert: str, steps: int, device: str) -> dict | None:
+    """A pretraining step of `expert` through its per-batch view against the same step through the
+    bare Field protocol, alternated; None when the expert has no per-batch view."""
+    model, occ, meta = load_expert(ws.expert_path(expert), device)
+    if not hasattr(model, "batch_view"):
+        return None
+    model.train()
+    tcfg = rec.pretrain.train
+    settings = RenderSettings(step=meta["step"], near=scene.near, far=scene.far, bbox=model.bbox,
+                              background=scene.background, color_threshold=tcfg.color_threshold, ndc=scene.ndc)
+    tasks = {}
+    for name, field in (("view", model), ("plain", Plain(model))):
+        tasks[name] = FieldTask(field, settings, tcfg, skip=occ, base_mask=occ)
+        tasks[name].param_groups = lambda: model.param_groups(tcfg.lr_grid, tcfg.lr_mlp)
+    opt = make_optimizer(tasks["view"])
+    rays = _train_rays(scene, model.bbox, device)
+    gens = {name: torch.Generator().manual_seed(0) for name in tasks}  # the same batches for both
+    secs: dict[str, list[float]] = {name: [] for name in tasks}
+    for i in range(steps + 2):
+        for name, task in tasks.items():
+            t, _ = timed(_train_step, task, opt, rays, tcfg.batch_rays, gens[name])
+            if i >= 2:
+                secs[name].append(t)
+    view, plain = statistics.median(secs["view"]), statistics.median(secs["plain"])
+    return {"expert": expert, "steps": steps, "view_step_seconds": view, "plain_step_seconds": plain,
+            "speedup": plain / view}
 
 
 def measure_mixture(ws: Workspace, scene, rec: Recipe, name: str, steps: int, device: str) -> dict:
@@ -206,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=12)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--only", default="skips,step,mixture", help="comma-separated: skips, step, mixture")
+    ap.add_argument("--only", default="skips,step,view,mixture", help="comma-separated: skips, step, view, mixture")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     ws = Workspace(args.workspace)
@@ -227,6 +298,11 @@ def main(argv: list[str] | None = None) -> int:
         s = result["step"] = measure_step(ws, scene, rec, largest, args.steps, args.device)
         print(f"step of {largest}: {s['step_seconds']:.3f} s, bare density+colour fwd+bwd {s['bare_seconds']:.3f} s "
               f"-> {100 * s['throughput_ratio']:.1f}% ({s['density_samples']} density, {s['color_samples']} colour samples)")
+    if "view" in only:
+        v = result["view"] = measure_view(ws, scene, rec, largest, args.steps, args.device)
+        if v is not None:
+            print(f"step of {largest} through its per-batch view {v['view_step_seconds']:.3f} s, through the bare "
+                  f"Field protocol {v['plain_step_seconds']:.3f} s -> {v['speedup']:.2f}x")
     if "mixture" in only and ws.model_path(args.mixture).exists():
         x = result["mixture"] = measure_mixture(ws, scene, rec, args.mixture, args.steps, args.device)
         print(f"{args.mixture} step {x['step_seconds']:.3f} s: gate+top-k+aux {x['gate_topk_aux_seconds']:.3f} s, "
