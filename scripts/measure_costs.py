@@ -34,6 +34,7 @@ from pathlib import Path
 import torch
 
 from boostnerf_cli.fields import load_expert
+from boostnerf_cli.fields.base import BareField
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.moe.mixture import RoutedMixture, load_mixture
 from boostnerf_cli.moe.router import aux_loss, dispatch, top_k
@@ -112,22 +113,6 @@ class _RecordingView:
         return self.view.color_rows(rows, dirs)
 
 
-class Plain:
-    """A field through the bare Field protocol only (no per-batch view): both passes from scratch."""
-
-    def __init__(self, field):
-        self.field = field
-
-    def density(self, xyz):
-        return self.field.density(xyz)
-
-    def color(self, xyz, dirs):
-        return self.field.color(xyz, dirs)
-
-    def regularization(self):
-        return self.field.regularization()
-
-
 def _train_step(task, opt, rays, batch: int, gen: torch.Generator) -> None:
     """The body of train.train's loop (without its logging and checkpoints), through its own pieces."""
     idx = torch.randint(0, len(rays), (batch,), generator=gen).to(rays.origins.device)
@@ -163,15 +148,26 @@ def _dispatch_part(m, pts, rows, idx, vals, lin1, lin3) -> None:
     (d.sum() + c.sum()).backward()
 
 
-def measure_step(ws: Workspace, scene, rec: Recipe, expert: str, steps: int, device: str) -> dict:
+def _expert_tasks(ws: Workspace, scene, rec: Recipe, expert: str, device: str, wrappers: dict) -> tuple:
+    """`expert` in training mode and, per name in `wrappers`, a pretraining task on `wrap(expert)`
+    (its occupancy grid, render settings and schedule as pretrain sets them) -> (expert, tasks)."""
     model, occ, meta = load_expert(ws.expert_path(expert), device)
     model.train()
     tcfg = rec.pretrain.train
     settings = RenderSettings(step=meta["step"], near=scene.near, far=scene.far, bbox=model.bbox,
                               background=scene.background, color_threshold=tcfg.color_threshold, ndc=scene.ndc)
-    rec_model = Recorder(model)
-    task = FieldTask(rec_model, settings, tcfg, skip=occ, base_mask=occ)
-    task.param_groups = lambda: model.param_groups(tcfg.lr_grid, tcfg.lr_mlp)
+    tasks = {}
+    for name, wrap in wrappers.items():
+        tasks[name] = FieldTask(wrap(model), settings, tcfg, skip=occ, base_mask=occ)
+        tasks[name].param_groups = lambda: model.param_groups(tcfg.lr_grid, tcfg.lr_mlp)
+    return model, tasks
+
+
+def measure_step(ws: Workspace, scene, rec: Recipe, expert: str, steps: int, device: str) -> dict:
+    tcfg = rec.pretrain.train
+    model, tasks = _expert_tasks(ws, scene, rec, expert, device, {"step": Recorder})
+    task = tasks["step"]
+    rec_model = task.model
     opt = make_optimizer(task)
     rays = _train_rays(scene, model.bbox, device)
     gen = torch.Generator().manual_seed(0)
@@ -196,17 +192,10 @@ def measure_step(ws: Workspace, scene, rec: Recipe, expert: str, steps: int, dev
 def measure_view(ws: Workspace, scene, rec: Recipe, expert: str, steps: int, device: str) -> dict | None:
     """A pretraining step of `expert` through its per-batch view against the same step through the
     bare Field protocol, alternated; None when the expert has no per-batch view."""
-    model, occ, meta = load_expert(ws.expert_path(expert), device)
+    tcfg = rec.pretrain.train
+    model, tasks = _expert_tasks(ws, scene, rec, expert, device, {"view": lambda m: m, "plain": BareField})
     if not hasattr(model, "batch_view"):
         return None
-    model.train()
-    tcfg = rec.pretrain.train
-    settings = RenderSettings(step=meta["step"], near=scene.near, far=scene.far, bbox=model.bbox,
-                              background=scene.background, color_threshold=tcfg.color_threshold, ndc=scene.ndc)
-    tasks = {}
-    for name, field in (("view", model), ("plain", Plain(model))):
-        tasks[name] = FieldTask(field, settings, tcfg, skip=occ, base_mask=occ)
-        tasks[name].param_groups = lambda: model.param_groups(tcfg.lr_grid, tcfg.lr_mlp)
     opt = make_optimizer(tasks["view"])
     rays = _train_rays(scene, model.bbox, device)
     gens = {name: torch.Generator().manual_seed(0) for name in tasks}  # the same batches for both

@@ -17,6 +17,7 @@ from boostnerf_cli.fields import (
     load_expert,
     save_expert,
 )
+from boostnerf_cli.fields.base import BareField
 from boostnerf_cli.fields.hashgrid import (
     PRIMES,
     HashEncoding,
@@ -73,22 +74,6 @@ def test_satisfies_the_field_and_expert_contracts(family):
     assert {"family", "config", "unit", "shape"} <= set(meta) and tuple(meta["shape"]) == tuple(m.shape)
 
 
-class _Plain:
-    """A field through the bare Field protocol (no per-batch view)."""
-
-    def __init__(self, field):
-        self.field = field
-
-    def density(self, xyz):
-        return self.field.density(xyz)
-
-    def color(self, xyz, dirs):
-        return self.field.color(xyz, dirs)
-
-    def query(self, xyz, dirs):
-        return self.field.query(xyz, dirs)
-
-
 def test_ngp_batch_view_encodes_each_sample_once_with_the_plain_fields_image_and_gradients(monkeypatch):
     m = _expert("ngp").double()
     with torch.no_grad():
@@ -111,7 +96,7 @@ def test_ngp_batch_view_encodes_each_sample_once_with_the_plain_fields_image_and
 
     color_view, grads_view = render(m)
     assert len(calls) == 1  # the density pass alone ran the hash encoding
-    color_plain, grads_plain = render(_Plain(m))
+    color_plain, grads_plain = render(BareField(m))
     assert len(calls) == 3
     assert torch.allclose(color_view, color_plain, atol=1e-12)
     for a, b in zip(grads_view, grads_plain):

@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from boostnerf_cli.fields.base import BareField
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
@@ -239,7 +240,7 @@ def test_renderer_routes_each_sample_once_and_matches_the_plain_mixture(k, monke
 
     def render(routed: bool):
         mix.zero_grad()
-        field = mix if routed else _PlainField(mix)
+        field = mix if routed else BareField(mix)
         b = render_rays(field, origins, dirs, settings, mix.skip)
         b.color.sum().backward()
         return b.color.detach(), [p.grad.clone() if p.grad is not None else None for p in mix.parameters()]
@@ -256,19 +257,6 @@ def test_renderer_routes_each_sample_once_and_matches_the_plain_mixture(k, monke
         assert (a is None) == (b is None)
         if a is not None:
             assert torch.allclose(a, b, atol=1e-5)
-
-
-class _PlainField:
-    """The mixture through the bare Field protocol (no routed view)."""
-
-    def __init__(self, mix):
-        self.mix = mix
-
-    def density(self, xyz):
-        return self.mix.density(xyz)
-
-    def color(self, xyz, dirs):
-        return self.mix.color(xyz, dirs)
 
 
 def test_baked_gate_equals_the_gate_at_its_lattice_and_has_nothing_to_train():

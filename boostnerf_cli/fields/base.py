@@ -76,3 +76,24 @@ class Expert(Field, Protocol):
     def config_dict(self) -> dict:
         """JSON metadata with `family`, `config`, `unit`, `shape`; `from_config(meta, bbox)` inverts it."""
         ...
+
+
+class BareField:
+    """`field` through the Field contract alone, without its optional per-batch view, so each of the
+    renderer's passes computes from scratch; `regularization` passes through for training. What the
+    per-batch view saves is measured (scripts/measure_costs.py) and tested against it."""
+
+    def __init__(self, field):
+        self.field = field
+
+    def density(self, xyz: Tensor) -> Tensor:
+        return self.field.density(xyz)
+
+    def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
+        return self.field.color(xyz, dirs)
+
+    def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
+        return self.field.query(xyz, dirs)
+
+    def regularization(self):
+        return self.field.regularization()
