@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from boostnerf_cli.fields import grid as G
+from boostnerf_cli.fields.mlp import MLP
 
 
 @dataclass
@@ -48,15 +49,10 @@ def raw_from_sigma(sigma: Tensor, unit: float, shift: float) -> Tensor:
     return torch.where(y > 20, y, torch.log(torch.expm1(y))) - shift
 
 
-def color_mlp(in_dim: int, hidden: int, layers: int) -> nn.Sequential:
-    mods: list[nn.Module] = []
-    d = in_dim
-    for _ in range(layers):
-        mods += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
-        d = hidden
-    last = nn.Linear(d, 3)
-    nn.init.zeros_(last.bias)
-    return nn.Sequential(*mods, last)
+def color_mlp(in_dim: int, hidden: int, layers: int) -> MLP:
+    mlp = MLP([in_dim] + [hidden] * layers + [3])
+    nn.init.zeros_(mlp[-1].bias)
+    return mlp
 
 
 class DVGOExpert(nn.Module):

@@ -59,7 +59,11 @@ class _Lookup(torch.autograd.Function):
         # (measured 3-4x faster than a channels-last index_add for 3-12 channels on CPU).
         idx, w = ctx.saved_tensors
         channels = grad.shape[1]
-        src = (grad.T[:, :, None] * w[None, :, :]).reshape(channels, -1)
+        # (C, N, K) written in that order: with the weights as the first operand the product's layout is
+        # (C, N, K) and the reshape is free (grad first made it (N, C, K) plus a copy: 0.46 against 1.7 ms
+        # for 13k points x 8 corners x 8 channels, one thread). `grad.T.contiguous()` is free when the
+        # gradient arrives channels-first (fields/mlp.py's backward delivers it so).
+        src = (w[None, :, :] * grad.T.contiguous()[:, :, None]).reshape(channels, -1)
         if channels == 1 or 4 * idx.numel() >= ctx.rows:
             grad_table = torch.zeros(channels, ctx.rows, dtype=grad.dtype, device=grad.device)
             grad_table.index_add_(1, idx.reshape(-1), src)

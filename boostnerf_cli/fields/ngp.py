@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.hashgrid import HashEncoding
+from boostnerf_cli.fields.mlp import MLP
 from boostnerf_cli.fields.warmstart import fit_batch, fit_density
 
 
@@ -67,8 +68,7 @@ class NGPExpert(nn.Module):
             max(2, math.ceil(float(s / size.max()) * cfg.grid_res)) for s in size)
         self.unit = float(unit) if unit is not None else float(size.max()) / cfg.grid_res
         self.encoding = HashEncoding(self.bbox, cfg.res, cfg.log2_table, cfg.features, cfg.base_res, cfg.max_res)
-        self.sigma_net = nn.Sequential(nn.Linear(self.encoding.out_dim, cfg.hidden), nn.ReLU(inplace=True),
-                                       nn.Linear(cfg.hidden, 1 + cfg.geo_feat))
+        self.sigma_net = MLP([self.encoding.out_dim, cfg.hidden, 1 + cfg.geo_feat])
         self.rgbnet = color_mlp(cfg.geo_feat + 3 + 6 * cfg.view_pe, cfg.color_hidden, cfg.color_layers)
         self.shift = math.log(1.0 / (1.0 - cfg.alpha_init) - 1.0)
 
