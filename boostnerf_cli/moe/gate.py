@@ -66,7 +66,7 @@ def _mlp(d_in: int, hidden: int, layers: int, d_out: int) -> MLP:
     last = mlp[-1]
     # Small random logits, not zeros: with exactly uniform probabilities top-k breaks every tie the
     # same way (experts 0..k-1), and the largest experts would never receive a sample to learn from.
-    nn.init.normal_(last.weight, std=0.5 / math.sqrt(hidden if layers else d_in))
+    nn.init.normal_(last.weight, std=0.5 / math.sqrt(last.in_features))
     nn.init.zeros_(last.bias)
     return mlp
 
