@@ -27,7 +27,8 @@ from boostnerf_cli.workspace import save_torch
 
 @dataclass
 class RayData:
-    """All training rays of a split that hit the box: origins, dirs, rgb, each (N, 3)."""
+    """All training rays of a split that hit the box: origins, dirs, rgb, each (N, 3), on the split's device
+    (the CPU) until `.to(device)`."""
 
     origins: Tensor
     dirs: Tensor
@@ -42,7 +43,8 @@ class RayData:
             ds.append(d)
             cs.append(split.images[i].reshape(-1, 3))
         o, d, c = torch.cat(os_), torch.cat(ds), torch.cat(cs)
-        _, _, hit = intersect_box(o, d, bbox, near, far)
+        # The split's rays are built where its images are (the CPU); the box may be on the model's device.
+        _, _, hit = intersect_box(o, d, bbox.to(o.device), near, far)
         # A ray that misses the box renders the background exactly: nothing to learn from it.
         return RayData(o[hit], d[hit], c[hit])
 

@@ -185,12 +185,14 @@ def read_meta(path: Path) -> dict[str, Any]:
 
 
 def load_tensors(path: Path, device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
-    """-> (tensors, meta) from a file written by `save_tensors`; one clear error when it is damaged."""
+    """-> (tensors, meta) on `device` from a file written by `save_tensors`; one clear error when it is damaged.
+
+    Read on the CPU (where a pruned file's tables are rebuilt), then moved to `device` in one place."""
     if not path.exists():
         raise BoostNerfError(f"checkpoint {path} does not exist")
     meta = read_meta(path)
     try:
-        tensors = load_file(str(path), device=str(device))
+        tensors = load_file(str(path), device="cpu")
     except (SafetensorError, OSError, KeyError, ValueError, json.JSONDecodeError) as e:
         raise BoostNerfError(
             f"checkpoint {path} is damaged or not a boostnerf file ({type(e).__name__}); "
@@ -198,7 +200,7 @@ def load_tensors(path: Path, device: str | torch.device = "cpu") -> tuple[dict[s
         ) from None
     if meta.get("packed"):
         tensors = _unpack_tensors(tensors, meta["packed"], path)
-    return tensors, meta
+    return {k: v.to(device) for k, v in tensors.items()}, meta
 
 
 # --- pruned (packed) tables ---------------------------------------------------------------------

@@ -72,7 +72,10 @@ def _mlp(d_in: int, hidden: int, layers: int, d_out: int) -> MLP:
 
 
 class Gate(nn.Module):
-    """xyz (N, 3) -> logits (N, M); `probs` applies the softmax."""
+    """xyz (N, 3) -> logits (N, M); `probs` applies the softmax.
+
+    Built on the CPU whatever `bbox`'s device, like any `nn.Module`: move it with `.to(device)`.
+    """
 
     def __init__(self, cfg: GateConfig, n_experts: int, bbox: Tensor, shape: tuple[int, int, int] | None = None):
         super().__init__()
@@ -81,7 +84,7 @@ class Gate(nn.Module):
         if cfg.grid not in GATE_GRIDS:
             raise ValueError(f"unknown gate grid {cfg.grid!r}")
         self.cfg, self.m = cfg, n_experts
-        self.register_buffer("bbox", bbox.detach().clone().float())
+        self.register_buffer("bbox", bbox.detach().float().cpu().clone())
         self.shape = tuple(shape) if shape is not None else G.lattice_shape(self.bbox, cfg.res ** 3)
         self.table = None
         self.vm = None
@@ -150,9 +153,10 @@ class Gate(nn.Module):
         if self.cfg.kind in ("uniform", "baked"):
             return self
         out = Gate(GateConfig(kind="baked", res=res, channels=self.m, hidden=0, layers=0), self.m, self.bbox)
+        out = out.to(self.bbox.device)  # sampled where this gate lives
         pts = G.lattice_points(out.bbox, out.shape)
         out.logit_table.copy_(torch.cat([self.logits(pts[i : i + (1 << 16)]) for i in range(0, pts.shape[0], 1 << 16)]))
-        return out.to(self.bbox.device).eval()
+        return out.eval()
 
     def config_dict(self) -> dict:
         return {"config": asdict(self.cfg), "shape": list(self.shape), "experts": self.m}

@@ -1,0 +1,140 @@
+"""A simulated accelerator for machines with no GPU: tensors that live on the CPU but say `meta`.
+
+A CPU-only PyTorch cannot create a tensor that reports `cuda` (the CUDA device guard is not linked in),
+so the simulated GPU takes the name of PyTorch's `meta` device, whose guard exists. Under
+`simulated_gpu()`, every tensor moved to or created on `meta` is a `SimTensor`: a wrapper that holds
+real CPU data and reports device `meta`. Every operator then checks what a real GPU's kernels check:
+all tensor arguments on one device (0-dim CPU tensors excepted, as on CUDA; copies between devices
+allowed), else the same "Expected all tensors to be on the same device" error a GPU raises. The tool's
+device resolution is patched so that `--device cuda` and `--device auto` pick it. So a tensor that a
+stage leaves on the CPU next to the model's is caught on a CPU-only machine, through the whole pipeline.
+
+Test-only: it proves device placement, not CUDA kernels (those are scripts/gpu-check.sh's job).
+"""
+
+from __future__ import annotations
+
+from contextlib import ExitStack, contextmanager
+from typing import Iterator
+from unittest import mock
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_flatten, tree_map
+
+GPU = torch.device("meta")
+aten = torch.ops.aten
+
+# Operators that legitimately see two devices: copies between them, and metadata-only calls.
+_CROSS_DEVICE = {aten.copy_.default, aten._to_copy.default, aten._has_compatible_shallow_copy_type.default,
+                 aten.detach.default, aten._local_scalar_dense.default}
+
+
+class SimTensor(torch.Tensor):
+    """A CPU tensor that reports the simulated GPU as its device."""
+
+    elem: torch.Tensor
+
+    @staticmethod
+    def __new__(cls, elem: torch.Tensor):
+        r = torch.Tensor._make_wrapper_subclass(cls, elem.shape, strides=elem.stride(),
+                                                storage_offset=elem.storage_offset(), dtype=elem.dtype,
+                                                layout=elem.layout, device=GPU, requires_grad=False)
+        r.elem = elem
+        return r
+
+    def __repr__(self) -> str:
+        return f"SimTensor({self.elem!r})"
+
+    @property
+    def is_meta(self) -> bool:  # it holds data: load_state_dict must copy into it, not skip it as a meta tensor
+        return False
+
+    def tolist(self):  # allowed on a GPU tensor (it copies to the host)
+        return self.elem.tolist()
+
+    def __reduce_ex__(self, proto):
+        # torch.save of a GPU tensor, loaded with map_location="cpu", gives its CPU copy: the same here.
+        return torch.Tensor.__reduce_ex__(self.elem.detach().clone(), proto)
+
+    @classmethod
+    def __torch_dispatch__(cls, func, types, args=(), kwargs=None):
+        return _dispatch(func, args, kwargs or {})
+
+
+def _device_of(t: torch.Tensor) -> str | None:
+    if isinstance(t, SimTensor):
+        return "gpu"
+    if t.device.type == "cpu" and t.dim() == 0:
+        return None  # CPU scalars are accepted by GPU kernels
+    return str(t.device)
+
+
+def _dispatch(func, args, kwargs):
+    flat, _ = tree_flatten((args, kwargs))
+    devices = {d for d in (_device_of(a) for a in flat if isinstance(a, torch.Tensor)) if d is not None}
+    if len(devices) > 1 and func not in _CROSS_DEVICE:
+        raise RuntimeError("Expected all tensors to be on the same device, but found at least two devices, "
+                           f"{' and '.join(sorted(d.replace('gpu', 'the simulated GPU') for d in devices))} "
+                           f"(in {func})")
+    on_gpu = "gpu" in devices
+    if func in (aten._to_copy.default, aten.copy_.default):
+        on_gpu = isinstance(args[0], SimTensor)
+    if kwargs.get("device") is not None:
+        on_gpu = torch.device(kwargs["device"]).type == GPU.type
+        kwargs = {**kwargs, "device": torch.device("cpu")}
+    plain_args, plain_kwargs = tree_map(lambda x: x.elem if isinstance(x, SimTensor) else x, (args, kwargs))
+    out = func(*plain_args, **plain_kwargs)
+    if args and isinstance(args[0], torch.Tensor) and out is plain_args[0]:
+        return args[0]  # in-place operators return their argument
+    if func is aten._local_scalar_dense.default or not on_gpu:
+        return out
+    return tree_map(lambda x: SimTensor(x) if isinstance(x, torch.Tensor) and not isinstance(x, SimTensor) else x, out)
+
+
+class _Mode(TorchDispatchMode):
+    """Factory calls and moves of plain tensors (no SimTensor argument yet) pass through here."""
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        return _dispatch(func, args, kwargs or {})
+
+
+def _moved(make):
+    def wrapper(data, *args, device=None, **kwargs):
+        t = make(data, *args, **kwargs)
+        return t if device is None else t.to(device)
+
+    return wrapper
+
+
+@contextmanager
+def simulated_gpu() -> Iterator[str]:
+    """Run the block as if a GPU were present; -> the device name the tool resolves to."""
+    from boostnerf_cli.stages import common
+
+    autocast, autocast_enabled = torch.autocast, torch.is_autocast_enabled
+
+    def resolve(name: str) -> str:
+        if name not in ("auto", "cuda", "cpu"):
+            raise AssertionError(f"unexpected device {name!r}")
+        return "cpu" if name == "cpu" else GPU.type
+
+    with ExitStack() as stack:
+        stack.enter_context(mock.patch.object(common, "resolve_device", resolve))
+        # autocast knows no `meta` device type: the simulated GPU's autocast is the CPU's.
+        stack.enter_context(mock.patch.object(
+            torch, "autocast", lambda device_type, *a, **k: autocast("cpu" if device_type == GPU.type else device_type, *a, **k)))
+        stack.enter_context(mock.patch.object(
+            torch, "is_autocast_enabled", lambda *a: autocast_enabled(*("cpu" if d == GPU.type else d for d in a))))
+        # torch.tensor / as_tensor with a device move the data in C++, past the dispatch mode: build on
+        # the CPU, then move through it.
+        for name in ("tensor", "as_tensor"):
+            make = getattr(torch, name)
+            stack.enter_context(mock.patch.object(torch, name, _moved(make)))
+        from torch.optim import optimizer
+
+        fused = optimizer._get_fused_kernels_supported_devices
+        stack.enter_context(mock.patch.object(optimizer, "_get_fused_kernels_supported_devices",
+                                              lambda: [*fused(), GPU.type]))
+        stack.enter_context(_Mode())
+        yield GPU.type
