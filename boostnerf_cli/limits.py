@@ -33,6 +33,8 @@ class Range:
     def allows(self, v: Any) -> bool:
         if v in self.also:
             return True
+        if v in (INF, -INF):  # every value the code uses is finite, also where the range has no bound
+            return False
         above = v > self.lo if self.lo_open else v >= self.lo
         below = v < self.hi if self.hi_open else v <= self.hi
         return bool(above and below)  # NaN fails both

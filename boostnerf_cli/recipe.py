@@ -7,6 +7,7 @@ A recipe supplies defaults for every stage; command-line flags override them. Se
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -170,7 +171,8 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
 
 
 def _bad(source: str, where: str, value: Any, rule: Any) -> BoostNerfError:
-    return BoostNerfError(f"{source} {where} = {value!r}: must be {rule}")
+    finite = "a finite number " if isinstance(value, float) and not math.isfinite(value) else ""
+    return BoostNerfError(f"{source} {where} = {value!r}: must be {finite}{rule}")
 
 
 def check_section(section: Any, where: str, source: str = "recipe key") -> None:

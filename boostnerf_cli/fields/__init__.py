@@ -22,7 +22,7 @@ __all__ = ["CONFIGS", "FAMILIES", "Expert", "Field", "build_expert", "count_para
 
 
 def build_expert(family: str, config: dict, bbox: torch.Tensor) -> nn.Module:
-    if not isinstance(family, str) or family not in FAMILIES:
+    if family not in FAMILIES:
         raise BoostNerfError(f"unknown model family {family!r}: choose one of {', '.join(sorted(FAMILIES))}")
     cfg_type = CONFIGS[family]
     known = set(cfg_type.__dataclass_fields__)
@@ -48,7 +48,7 @@ def load_expert(path: Path, device: str | torch.device = "cpu") -> tuple[nn.Modu
     """-> (expert in eval mode, its occupancy grid or None, metadata)."""
     tensors, meta = load_tensors(path, device)
     family = meta.get("family")
-    if family not in FAMILIES:
+    if not isinstance(family, str) or family not in FAMILIES:
         raise BoostNerfError(f"{path} holds an unknown model family {family!r}; was it written by a newer boostnerf?")
     try:
         occ = None
