@@ -7,6 +7,7 @@ A recipe supplies defaults for every stage; command-line flags override them. Se
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -16,51 +17,59 @@ from typing import Any
 import yaml
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields import CONFIGS, FAMILIES
+from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, POSITIVE, THRESHOLD, OneOf, Range, at_least, limit, rule_of
+from boostnerf_cli.moe.gate import GATE_GRIDS, TRAINABLE_GATES
+from boostnerf_cli.moe.router import PENALTIES
+from boostnerf_cli.scenes import FORMATS
+
+# Seeds feed numpy's generator (the procedural scene: no negative seeds) and torch's (64 bits, seed + res).
+SEED = Range(0, 2**63 - 1)
 
 
 @dataclass
 class DataRecipe:
-    image_size: int | None = None  # longer side in pixels after area downscaling; None = native
-    holdout_every: int = 8  # for datasets without a test split: every N-th train view is held out
-    format: str = "auto"  # auto | blender | nsvf | tanks | llff | nerfstudio (docs/datasets.md)
+    image_size: int | None = limit(None, at_least(1))  # longer side in pixels after area downscaling; None = native
+    holdout_every: int = limit(8, Range(2, also=(0,)))  # datasets without a test split: every N-th train view is held out
+    format: str = limit("auto", OneOf(("auto", *FORMATS)))  # auto | blender | nsvf | tanks | llff | nerfstudio (docs/datasets.md)
 
 
 @dataclass
 class GeometryRecipe:
     """The shared coarse stage that finds the occupied box and the occupancy mask."""
 
-    res: int = 32
-    iters: int = 600
-    batch_rays: int = 1024
-    lr: float = 0.1
-    alpha_init: float = 1e-4
-    alpha_threshold: float = 1e-3  # per coarse step: cells below it are empty
-    weight_entropy: float = 0.1  # pushes ray opacity to 0 or 1: clears floaters against the background
+    res: int = limit(32, at_least(1))
+    iters: int = limit(600, at_least(1))
+    batch_rays: int = limit(1024, at_least(1))
+    lr: float = limit(0.1, POSITIVE)
+    alpha_init: float = limit(1e-4, OPEN_UNIT)
+    alpha_threshold: float = limit(1e-3, THRESHOLD)  # per coarse step: cells below it are empty
+    weight_entropy: float = limit(0.1, NON_NEGATIVE)  # pushes ray opacity to 0 or 1: clears floaters against the background
 
 
 @dataclass
 class TrainRecipe:
-    batch_rays: int = 4096
-    lr_grid: float = 0.1
-    lr_mlp: float = 1e-3
-    lr_decay: float = 0.1
-    step_ratio: float = 0.5  # sampling step in voxels of the final grid
-    color_threshold: float = 1e-4  # samples with a smaller weight skip the colour MLP
-    weight_rgbper: float = 0.01
-    weight_entropy: float = 1e-3
-    growth: list[float] = field(default_factory=lambda: [0.1, 0.2, 0.3])  # fractions of iters; voxels x2 each
-    occupancy_every: int = 500  # steps between occupancy refreshes (0 = never)
-    occupancy_threshold: float = 1e-4  # alpha per step below which a cell is skipped
-    log_every: int = 100
-    checkpoint_every: int = 500
+    batch_rays: int = limit(4096, at_least(1))
+    lr_grid: float = limit(0.1, POSITIVE)
+    lr_mlp: float = limit(1e-3, POSITIVE)
+    lr_decay: float = limit(0.1, Range(0, 1, lo_open=True))  # learning rates fall to this fraction at the last step
+    step_ratio: float = limit(0.5, POSITIVE)  # sampling step in voxels of the final grid
+    color_threshold: float = limit(1e-4, THRESHOLD)  # samples with a smaller weight skip the colour MLP
+    weight_rgbper: float = limit(0.01, NON_NEGATIVE)
+    weight_entropy: float = limit(1e-3, NON_NEGATIVE)
+    growth: list[float] = limit(rule=OPEN_UNIT, factory=lambda: [0.1, 0.2, 0.3])  # fractions of iters; voxels x2 each
+    occupancy_every: int = limit(500, NON_NEGATIVE)  # steps between occupancy refreshes (0 = never)
+    occupancy_threshold: float = limit(1e-4, THRESHOLD)  # alpha per step below which a cell is skipped
+    log_every: int = limit(100, at_least(1))
+    checkpoint_every: int = limit(500, at_least(1))
 
 
 @dataclass
 class PretrainRecipe:
-    model: str = "dvgo"
-    res: list[int] = field(default_factory=lambda: [64, 96, 128])
-    iters: int = 3000
-    seed: int = 0
+    model: str = limit("dvgo", OneOf(tuple(FAMILIES)))
+    res: list[int] = limit(rule=at_least(1), factory=lambda: [64, 96, 128], min_items=1)
+    iters: int = limit(3000, at_least(1))
+    seed: int = limit(0, SEED)
     geometry: GeometryRecipe = field(default_factory=GeometryRecipe)
     train: TrainRecipe = field(default_factory=TrainRecipe)
     dvgo: dict = field(default_factory=dict)  # DVGOConfig fields other than res
@@ -79,24 +88,24 @@ def _finetune_train() -> TrainRecipe:
 
 @dataclass
 class MoERecipe:
-    gate_type: str = "grid"  # grid | linear | switch
-    gate_grid: str = "auto"  # dense | tensorf | hash | auto (the experts' family: dvgo dense, tensorf VM, ngp hash)
-    gate_res: int = 32  # the gate grid has gate_res^3 voxels (128 in the paper)
-    gate_channels: int = 8
-    gate_hidden: int = 64
-    gate_layers: int = 2
-    vd_res: int | None = None  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
-    density_threshold: float = 1e-3  # T: samples whose V_D opacity over one step is below it are filtered
-    step_from: str = "largest"  # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
-    topk: int = 2
-    lam: float = 1e-3
-    penalty: str = "geometric"  # geometric | linear | quadratic | none
+    gate_type: str = limit("grid", OneOf(TRAINABLE_GATES))  # grid | linear | switch
+    gate_grid: str = limit("auto", OneOf(("auto", *GATE_GRIDS)))  # dense | tensorf | hash | auto (the experts' family: dvgo dense, tensorf VM, ngp hash)
+    gate_res: int = limit(32, at_least(2))  # the gate grid has gate_res^3 voxels (128 in the paper)
+    gate_channels: int = limit(8, at_least(1))
+    gate_hidden: int = limit(64, at_least(1))
+    gate_layers: int = limit(2, NON_NEGATIVE)
+    vd_res: int | None = limit(None, at_least(1))  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
+    density_threshold: float = limit(1e-3, THRESHOLD)  # T: samples whose V_D opacity over one step is below it are filtered
+    step_from: str = limit("largest", OneOf(("smallest", "largest")))  # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
+    topk: int = limit(2, at_least(1))  # at most the number of experts (checked by build-moe)
+    lam: float = limit(1e-3, NON_NEGATIVE)
+    penalty: str = limit("geometric", OneOf(PENALTIES))  # geometric | linear | quadratic | none
     renormalize: bool = True  # top-k weights sum to 1 (k = 1: straight-through 1); False: raw probabilities (docs/results.md)
-    bake_res: int = 128  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
-    iters: int = 1000
-    lr_gate: float = 1e-2
-    lr_gate_mlp: float = 1e-3
-    seed: int = 0
+    bake_res: int = limit(128, NON_NEGATIVE)  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
+    iters: int = limit(1000, at_least(1))
+    lr_gate: float = limit(1e-2, POSITIVE)
+    lr_gate_mlp: float = limit(1e-3, POSITIVE)
+    seed: int = limit(0, SEED)
     train: TrainRecipe = field(default_factory=_finetune_train)
 
 
@@ -113,7 +122,7 @@ def _build(cls: type, data: Any, where: str) -> Any:
         raise BoostNerfError(f"recipe section {where or 'top level'} must be a mapping, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - set(fields))
+    unknown = sorted((k for k in data if k not in fields), key=str)
     if unknown:
         raise BoostNerfError(
             f"unknown recipe key {where + '.' if where else ''}{unknown[0]}: known keys here are {', '.join(sorted(fields))}"
@@ -152,10 +161,94 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
             raise BoostNerfError(f"recipe key {where} must be a mapping")
         return value
     if hint is float and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:
+            raise BoostNerfError(f"recipe key {where} = {value}: too large for a float") from None
     if hint in (int, float, str, bool) and not (isinstance(value, hint) and not (hint is int and isinstance(value, bool))):
         raise BoostNerfError(f"recipe key {where} must be {hint.__name__}, got {value!r}")
     return value
+
+
+def _bad(source: str, where: str, value: Any, rule: Any) -> BoostNerfError:
+    finite = "a finite number " if isinstance(value, float) and not math.isfinite(value) else ""
+    return BoostNerfError(f"{source} {where} = {value!r}: must be {finite}{rule}")
+
+
+def check_section(section: Any, where: str, source: str = "recipe key") -> None:
+    """Refuse any value of a recipe section (a dataclass, recursively) outside its field's declared rule
+    (`limits.limit`); the family sections (`dvgo`, `tensorf`, `ngp`) against their config's fields.
+    `source` starts the message: "recipe key" when read from a file, "setting" once flags override it."""
+    for f in dataclasses.fields(section):
+        value, path = getattr(section, f.name), f"{where + '.' if where else ''}{f.name}"
+        if dataclasses.is_dataclass(value):
+            check_section(value, path, source)
+        elif f.name in CONFIGS and isinstance(value, dict):
+            _check_family(f.name, value, path, source)
+        elif isinstance(value, list):
+            if len(value) < f.metadata.get("min_items", 0):
+                raise BoostNerfError(f"{source} {path} = {value!r}: needs at least {f.metadata['min_items']} value(s)")
+            for item in value:
+                _check_value(f, item, path, source)
+        else:
+            _check_value(f, value, path, source)
+
+
+def _check_value(f: dataclasses.Field, value: Any, path: str, source: str) -> None:
+    rule = rule_of(f)
+    if rule is not None and value is not None and not rule.allows(value):
+        raise _bad(source, path, value, rule)
+
+
+def _check_family(family: str, section: dict, where: str, source: str) -> None:
+    """A family section: known keys (the config's fields but `res`), each value (single, or per resolution) in range."""
+    cfg = CONFIGS[family]
+    hints = typing.get_type_hints(cfg)
+    fields = {f.name: f for f in dataclasses.fields(cfg) if f.name != "res"}
+    for key, value in section.items():
+        if key not in fields:
+            extra = " (the resolutions are pretrain.res)" if key == "res" else ""
+            raise BoostNerfError(f"unknown {source} {where}.{key}{extra}: known keys here are {', '.join(sorted(fields))}")
+        per_res = value.items() if isinstance(value, dict) else [(None, value)]
+        for res, v in per_res:
+            path = f"{where}.{key}" if res is None else f"{where}.{key}[{res}]"
+            if res is not None and not _is_int_key(res):
+                raise BoostNerfError(f"{source} {where}.{key}: the keys of a per-expert mapping must be resolutions "
+                                     f"(integers), got {res!r}")
+            _check_value(fields[key], _coerce(hints[key], v, path), path, source)
+
+
+def _is_int_key(key: Any) -> bool:
+    if isinstance(key, bool):
+        return False
+    try:
+        int(key)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def _family_value(section: dict, key: str, res: int, default: Any) -> Any:
+    value = section.get(key, default)
+    if isinstance(value, dict):
+        value = {int(k): v for k, v in value.items()}.get(res, default)
+    return value
+
+
+def check_recipe(recipe: Recipe, source: str = "recipe key") -> Recipe:
+    """Every value of `recipe` in its declared range (see `check_section`), plus the one rule between two keys:
+    an ngp expert's coarsest hash level is no finer than its finest (base_res <= max_res)."""
+    check_section(recipe, "", source)
+    pre = recipe.pretrain
+    if pre.model == "ngp":
+        defaults = CONFIGS["ngp"]()
+        for res in pre.res:
+            lo = _family_value(pre.ngp, "base_res", res, defaults.base_res)
+            hi = _family_value(pre.ngp, "max_res", res, defaults.max_res)
+            if lo > hi:
+                raise BoostNerfError(f"{source} pretrain.ngp.max_res = {hi!r}: must be >= base_res ({lo!r}) "
+                                     f"(expert ngp-{res})")
+    return recipe
 
 
 def load_recipe(path: Path | None) -> Recipe:
@@ -165,11 +258,19 @@ def load_recipe(path: Path | None) -> Recipe:
     path = Path(path)
     if not path.exists():
         raise BoostNerfError(f"recipe {path} does not exist (recipes ship in the recipes/ folder)")
+    if path.is_dir():
+        raise BoostNerfError(f"recipe {path} is a folder: pass a YAML file (e.g. recipes/demo-dvgo-cpu.yaml)")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise BoostNerfError(f"recipe {path} is not a text file (not UTF-8): pass a YAML recipe") from None
+    except OSError as e:
+        raise BoostNerfError(f"cannot read recipe {path} ({e.strerror or type(e).__name__})") from None
+    try:
+        data = yaml.safe_load(text) or {}
+    except (yaml.YAMLError, ValueError) as e:  # ValueError: an integer of more than 4300 digits
         raise BoostNerfError(f"recipe {path} is not valid YAML: {str(e).splitlines()[0]}") from None
-    recipe = _build(Recipe, data, "")
+    recipe = check_recipe(_build(Recipe, data, ""))
     if recipe.name == "defaults":
         recipe.name = path.stem
     return recipe
@@ -181,4 +282,4 @@ def recipe_dict(recipe: Recipe) -> dict:
 
 def recipe_from_dict(data: dict) -> Recipe:
     """A recipe recorded in a workspace manifest (validated like a YAML file)."""
-    return _build(Recipe, data, "")
+    return check_recipe(_build(Recipe, data, ""), "workspace manifest's recipe key")

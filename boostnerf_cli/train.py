@@ -22,7 +22,7 @@ from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
-from boostnerf_cli.workspace import save_torch
+from boostnerf_cli.workspace import MALFORMED, malformed, save_torch
 
 
 @dataclass
@@ -236,15 +236,23 @@ def train(
             state = torch.load(checkpoint, map_location="cpu", weights_only=True)
         except Exception as e:  # a damaged checkpoint: say so, do not train from a wrong state
             raise BoostNerfError(f"training checkpoint {checkpoint} is damaged ({type(e).__name__}); delete it to restart this model") from None
-        _check_signature(checkpoint, state.get("signature"), signature)
-        task.load_state(state["task"])
-        opt = make_optimizer(task)
-        opt.load_state_dict(state["optim"])
-        start, elapsed, skipped, history = state["step"], state["seconds"], state["skipped"], state["history"]
-        gen.set_state(state["gen"])
-        torch.set_rng_state(state["rng"])
-        if state.get("cuda_rng") and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all(state["cuda_rng"])
+        if not isinstance(state, dict):
+            raise BoostNerfError(f"training checkpoint {checkpoint} is not a boostnerf training state; "
+                                 "delete it to restart this model")
+        try:
+            _check_signature(checkpoint, state.get("signature"), signature)
+            task.load_state(state["task"])
+            opt = make_optimizer(task)
+            opt.load_state_dict(state["optim"])
+            start, elapsed, skipped, history = (int(state["step"]), float(state["seconds"]), int(state["skipped"]),
+                                                list(state["history"]))
+            gen.set_state(state["gen"])
+            torch.set_rng_state(state["rng"])
+            if state.get("cuda_rng") and torch.cuda.is_available():
+                torch.cuda.set_rng_state_all(state["cuda_rng"])
+        except MALFORMED as e:
+            raise BoostNerfError(f"training checkpoint {checkpoint} does not hold this model's training state "
+                                 f"({malformed(e)}); delete it to restart this model") from None
     progress = Progress(title, sched.iters, start, sched.log_every, quiet=parallel and not dist.is_main())
     if start > 0:
         progress.warn(f"resuming from {checkpoint} at step {start}/{sched.iters}")

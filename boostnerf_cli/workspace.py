@@ -25,7 +25,7 @@ import json
 import os
 import socket
 import tempfile
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -102,13 +102,22 @@ def write_json(path: Path, data: Any) -> None:
         tmp.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
 
 
-def read_json(path: Path, what: str = "file") -> Any:
+def read_json(path: Path, what: str = "file") -> dict:
+    """A JSON object written by `write_json` (manifest, reports); one clear line for anything else."""
     try:
-        return json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise BoostNerfError(f"{what} {path} does not exist") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise BoostNerfError(f"{what} {path} is not valid JSON ({e}); delete it and rerun the stage") from None
+    except IsADirectoryError:
+        raise BoostNerfError(f"{what} {path} is a folder, not a file: move it away and rerun the stage") from None
+    except OSError as e:
+        raise BoostNerfError(f"cannot read {what} {path} ({e.strerror or type(e).__name__}): fix its permissions") from None
+    except (json.JSONDecodeError, UnicodeDecodeError, ValueError, RecursionError) as e:
+        reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise BoostNerfError(f"{what} {path} is not valid JSON ({reason}); delete it and rerun the stage") from None
+    if not isinstance(data, dict):
+        raise BoostNerfError(f"{what} {path} holds a JSON {type(data).__name__}, not an object: delete it and rerun the stage")
+    return data
 
 
 def save_tensors(path: Path, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
@@ -170,18 +179,33 @@ def tensors_digest(tensors: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()
 
 
+# What building a model from a file that loads but holds the wrong structure raises (a missing key, a
+# value of the wrong type or range, a tensor of the wrong shape): callers turn it into one line (`malformed`).
+MALFORMED = (KeyError, TypeError, ValueError, IndexError, AttributeError, ArithmeticError, RuntimeError)
+
+
+def malformed(e: BaseException) -> str:
+    """One line describing what was wrong in a file's contents, for the callers' error messages."""
+    text = str(e).strip().splitlines()[0] if str(e).strip() else ""
+    return f"{type(e).__name__}: {text[:200]}" if text else type(e).__name__
+
+
 def read_meta(path: Path) -> dict[str, Any]:
     """Only the metadata of a file written by `save_tensors` (cheap: reads the header)."""
     from safetensors import safe_open
 
     try:
         with safe_open(str(path), framework="pt") as f:
-            return json.loads((f.metadata() or {})["boostnerf"])
-    except (SafetensorError, OSError, KeyError, ValueError) as e:
+            meta = json.loads((f.metadata() or {})["boostnerf"])
+    except (SafetensorError, OSError, KeyError, ValueError, TypeError) as e:
         raise BoostNerfError(
             f"checkpoint {path} is damaged or not a boostnerf file ({type(e).__name__}); "
             "delete it and rerun the stage that writes it"
         ) from None
+    if not isinstance(meta, dict):
+        raise BoostNerfError(f"checkpoint {path} is not a boostnerf file (its metadata is not an object); "
+                             "delete it and rerun the stage that writes it")
+    return meta
 
 
 def load_tensors(path: Path, device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
@@ -261,6 +285,22 @@ class Workspace:
         except OSError as e:
             raise BoostNerfError(f"cannot create workspace {self.root} ({e.strerror or e})") from None
         path = self.root / ".lock"
+        try:
+            fd = self._acquire(path)
+        except OSError as e:  # a read-only workspace, a .lock owned by another user or that is a folder, ...
+            raise BoostNerfError(
+                f"cannot take the writer lock {path} ({e.strerror or type(e).__name__}): "
+                "fix the workspace folder's permissions (or remove that .lock) and rerun"
+            ) from None
+        try:
+            yield
+        finally:
+            with suppress(OSError):  # a lock file left behind (read-only folder by now) is stale once released
+                path.unlink(missing_ok=True)  # unlink while still holding the lock, then release it
+            os.close(fd)
+
+    def _acquire(self, path: Path) -> int:
+        """Lock `path` (-> its descriptor, which holds this host and pid) and clean up temporary files."""
         me = f"{socket.gethostname()} {os.getpid()}"
         while True:
             fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
@@ -273,6 +313,9 @@ class Workspace:
                     f"workspace {self.root} is in use by another boostnerf process ({holder or 'unknown'}): "
                     "wait for it to finish; two writers to one workspace are refused"
                 ) from None
+            except OSError:
+                os.close(fd)
+                raise
             try:
                 same = os.fstat(fd).st_ino == os.stat(path).st_ino
             except FileNotFoundError:
@@ -280,18 +323,20 @@ class Workspace:
             if same:  # not a file its previous holder unlinked just before we locked it
                 break
             os.close(fd)
-        os.ftruncate(fd, 0)
-        os.write(fd, me.encode())
-        # Temporary files of `atomic_path` left by a writer that was killed mid-write: never artifacts
-        # (they were not renamed into place), and no other writer can be using them now.
-        for tmp in self.root.rglob(".*.tmp"):
-            if tmp.is_file():
-                tmp.unlink(missing_ok=True)
         try:
-            yield
-        finally:
-            path.unlink(missing_ok=True)  # unlink while still holding the lock, then release it
+            os.ftruncate(fd, 0)
+            os.write(fd, me.encode())
+            # Temporary files of `atomic_path` left by a writer that was killed mid-write: never artifacts
+            # (they were not renamed into place), and no other writer can be using them now.
+            for tmp in self.root.rglob(".*.tmp"):
+                if tmp.is_file():
+                    tmp.unlink(missing_ok=True)
+        except OSError:
+            with suppress(OSError):
+                path.unlink(missing_ok=True)
             os.close(fd)
+            raise
+        return fd
 
     # paths
     @property

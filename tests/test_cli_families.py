@@ -81,7 +81,7 @@ def test_gate_grid_flag_overrides_and_rejects_unknown(family_ws, tmp_path):
             "--device", "cpu", check=True)
     assert json.loads((ws / "moe" / "init.json").read_text())["gate"]["config"]["grid"] == "tensorf"
     proc = run_cli("build-moe", "--workspace", str(ws), "--gate-grid", "octree", "--device", "cpu")
-    _assert_clean_failure(proc, "unknown gate grid")
+    _assert_clean_failure(proc, "moe.gate_grid = 'octree'", "one of auto, dense")
 
 
 def test_eval_renders_every_family_and_the_baseline(family_ws, tmp_path):

@@ -13,7 +13,7 @@ from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.fields.ngp import NGPConfig, NGPExpert
 from boostnerf_cli.fields.tensorf import TensoRFConfig, TensoRFExpert
 from boostnerf_cli.render.occupancy import OccupancyGrid
-from boostnerf_cli.workspace import load_tensors, save_tensors
+from boostnerf_cli.workspace import MALFORMED, load_tensors, malformed, save_tensors
 
 FAMILIES: dict[str, type] = {"dvgo": DVGOExpert, "tensorf": TensoRFExpert, "ngp": NGPExpert}
 CONFIGS: dict[str, type] = {"dvgo": DVGOConfig, "tensorf": TensoRFConfig, "ngp": NGPConfig}
@@ -48,16 +48,15 @@ def load_expert(path: Path, device: str | torch.device = "cpu") -> tuple[nn.Modu
     """-> (expert in eval mode, its occupancy grid or None, metadata)."""
     tensors, meta = load_tensors(path, device)
     family = meta.get("family")
-    if family not in FAMILIES:
+    if not isinstance(family, str) or family not in FAMILIES:
         raise BoostNerfError(f"{path} holds an unknown model family {family!r}; was it written by a newer boostnerf?")
-    occ = None
-    if "occupancy" in tensors:
-        occ = OccupancyGrid(tensors.pop("occupancy").bool(), tensors.pop("occupancy_bbox"))
     try:
+        occ = None
+        if "occupancy" in tensors:
+            occ = OccupancyGrid(tensors.pop("occupancy").bool(), tensors.pop("occupancy_bbox"))
         model = FAMILIES[family].from_config(meta, tensors["bbox"])
         model.load_state_dict(tensors)
-    except (KeyError, TypeError) as e:
-        raise BoostNerfError(f"{path} lacks {e} (written by another boostnerf version?): rerun the stage that wrote it") from None
-    except RuntimeError as e:
-        raise BoostNerfError(f"{path} does not match its own config ({str(e).splitlines()[0]}); delete it and rerun") from None
+    except MALFORMED as e:
+        raise BoostNerfError(f"{path} does not hold a valid {family} expert ({malformed(e)}; written by another "
+                             "boostnerf version?): delete it and rerun the stage that wrote it") from None
     return model.to(device).eval(), occ, meta

@@ -20,18 +20,19 @@ from torch import Tensor, nn
 
 from boostnerf_cli.fields import grid as G
 from boostnerf_cli.fields.mlp import MLP
+from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, at_least, limit
 
 
 @dataclass
 class DVGOConfig:
     """Architecture of a DVGO-style expert. `res`: the final grid has res^3 voxels."""
 
-    res: int = 128
-    feat_dim: int = 12
-    hidden: int = 128  # width of the colour MLP; 0 = no MLP, colour = sigmoid of 3 grid channels
-    layers: int = 2  # hidden layers of the colour MLP
-    view_pe: int = 4  # frequencies of the view-direction encoding
-    alpha_init: float = 1e-2
+    res: int = limit(128, at_least(1))
+    feat_dim: int = limit(12, at_least(1))
+    hidden: int = limit(128, NON_NEGATIVE)  # width of the colour MLP; 0 = no MLP, colour = sigmoid of 3 grid channels
+    layers: int = limit(2, NON_NEGATIVE)  # hidden layers of the colour MLP
+    view_pe: int = limit(4, NON_NEGATIVE)  # frequencies of the view-direction encoding
+    alpha_init: float = limit(1e-2, OPEN_UNIT)  # log(1/(1 - a) - 1): a in (0, 1)
 
 
 def direction_encoding(dirs: Tensor, n_freq: int) -> Tensor:

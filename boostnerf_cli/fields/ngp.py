@@ -26,7 +26,8 @@ from torch import Tensor, nn
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
-from boostnerf_cli.fields.hashgrid import HashEncoding
+from boostnerf_cli.fields.hashgrid import MAX_COORD, HashEncoding
+from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, Range, at_least, limit
 from boostnerf_cli.fields.mlp import MLP
 from boostnerf_cli.fields.warmstart import fit_batch, fit_density
 
@@ -35,19 +36,19 @@ from boostnerf_cli.fields.warmstart import fit_batch, fit_density
 class NGPConfig:
     """Architecture of an Instant-NGP-style expert. `res` is the number of levels L."""
 
-    res: int = 16  # L
-    log2_table: int = 19  # T: each level's table has at most 2^T rows
-    features: int = 2  # F per level
-    base_res: int = 16  # N_min: cells along the box's longest side at the coarsest level
-    max_res: int = 1024  # N_max: at the finest level
-    grid_res: int = 128  # occupancy grid (and density unit) cells along the longest side
-    hidden: int = 64  # density MLP: one hidden layer
-    geo_feat: int = 15  # features passed from the density MLP to the colour MLP
-    color_hidden: int = 64
-    color_layers: int = 2
-    view_pe: int = 4
-    alpha_init: float = 1e-4
-    fit_steps: int = 200  # Adam steps of the warm start from the coarse geometry
+    res: int = limit(16, at_least(1))  # L
+    log2_table: int = limit(19, Range(1, 30))  # T: each level's table has at most 2^T rows (hashgrid.py)
+    features: int = limit(2, at_least(1))  # F per level
+    base_res: int = limit(16, at_least(1))  # N_min: cells along the box's longest side at the coarsest level
+    max_res: int = limit(1024, Range(1, MAX_COORD - 3))  # N_max (>= base_res): at the finest level
+    grid_res: int = limit(128, at_least(1))  # occupancy grid (and density unit) cells along the longest side
+    hidden: int = limit(64, at_least(1))  # density MLP: one hidden layer
+    geo_feat: int = limit(15, NON_NEGATIVE)  # features passed from the density MLP to the colour MLP
+    color_hidden: int = limit(64, at_least(1))
+    color_layers: int = limit(2, NON_NEGATIVE)
+    view_pe: int = limit(4, NON_NEGATIVE)
+    alpha_init: float = limit(1e-4, OPEN_UNIT)
+    fit_steps: int = limit(200, NON_NEGATIVE)  # Adam steps of the warm start from the coarse geometry
 
 
 class NGPExpert(nn.Module):

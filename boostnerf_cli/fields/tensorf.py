@@ -25,23 +25,24 @@ from boostnerf_cli.fields import grid as G
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.vm import VMGrid
 from boostnerf_cli.fields.warmstart import fit_batch, fit_density
+from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, at_least, limit
 
 
 @dataclass
 class TensoRFConfig:
     """Architecture of a TensoRF-style expert. `res`: the final lattice has res^3 voxels."""
 
-    res: int = 128
-    density_rank: int = 8  # components per mode (TensoRF-VM uses 16)
-    app_rank: int = 24  # components per mode (TensoRF-VM uses 48)
-    app_dim: int = 27  # appearance feature after the basis matrix
-    hidden: int = 128  # width of the shading MLP
-    layers: int = 2
-    view_pe: int = 2  # frequencies of the view-direction encoding
-    feat_pe: int = 2  # frequencies of the appearance-feature encoding
-    alpha_init: float = 1e-4  # opacity over one unit where the density components are zero
-    l1_weight: float = 8e-5  # weight of the L1 density regularisation in the training loss
-    fit_steps: int = 200  # Adam steps of the warm start from the coarse geometry
+    res: int = limit(128, at_least(1))
+    density_rank: int = limit(8, at_least(1))  # components per mode (TensoRF-VM uses 16)
+    app_rank: int = limit(24, at_least(1))  # components per mode (TensoRF-VM uses 48)
+    app_dim: int = limit(27, at_least(1))  # appearance feature after the basis matrix
+    hidden: int = limit(128, at_least(1))  # width of the shading MLP
+    layers: int = limit(2, NON_NEGATIVE)
+    view_pe: int = limit(2, NON_NEGATIVE)  # frequencies of the view-direction encoding
+    feat_pe: int = limit(2, NON_NEGATIVE)  # frequencies of the appearance-feature encoding
+    alpha_init: float = limit(1e-4, OPEN_UNIT)  # opacity over one unit where the density components are zero
+    l1_weight: float = limit(8e-5, NON_NEGATIVE)  # weight of the L1 density regularisation in the training loss
+    fit_steps: int = limit(200, NON_NEGATIVE)  # Adam steps of the warm start from the coarse geometry
 
 
 class TensoRFExpert(nn.Module):

@@ -29,6 +29,7 @@ from boostnerf_cli.fields.mlp import MLP
 from boostnerf_cli.fields.vm import VMGrid
 
 GATE_TYPES = ("grid", "linear", "switch", "uniform", "baked")
+TRAINABLE_GATES = ("grid", "linear", "switch")  # what build-moe makes (uniform: the ensemble; baked: for rendering)
 GATE_GRIDS = ("dense", "tensorf", "hash")
 
 

@@ -24,7 +24,7 @@ from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig, softmax
 from boostnerf_cli.moe.router import aux_loss, dispatch, penalty_weights, top_k
 from boostnerf_cli.render.occupancy import OccupancyGrid
-from boostnerf_cli.workspace import load_tensors, save_tensors
+from boostnerf_cli.workspace import MALFORMED, load_tensors, malformed, save_tensors
 
 
 @dataclass
@@ -259,8 +259,9 @@ def load_mixture(path: Path, device: str | torch.device = "cpu") -> tuple[Mixtur
         raise BoostNerfError(f"{path} is not a mixture of experts file")
     try:
         return _build_mixture(path, tensors, meta, device)
-    except (KeyError, TypeError) as e:
-        raise BoostNerfError(f"{path} lacks {e} (written by another boostnerf version?): rerun build-moe and finetune") from None
+    except MALFORMED as e:
+        raise BoostNerfError(f"{path} does not hold a valid mixture ({malformed(e)}; written by another boostnerf "
+                             "version?): rerun build-moe and finetune") from None
 
 
 def _build_mixture(path: Path, tensors: dict, meta: dict, device) -> tuple[Mixture, dict]:
@@ -276,8 +277,5 @@ def _build_mixture(path: Path, tensors: dict, meta: dict, device) -> tuple[Mixtu
     if "occupancy" in tensors:
         occ = OccupancyGrid(tensors.pop("occupancy").bool(), tensors.pop("occupancy_bbox"))
     mix = Mixture(experts, gate, vd, occ, MixtureConfig(**meta["mixture"]))
-    try:
-        mix.load_state_dict(tensors)
-    except RuntimeError as e:
-        raise BoostNerfError(f"{path} does not match its own config ({str(e).splitlines()[0]}); rerun build-moe") from None
+    mix.load_state_dict(tensors)
     return mix.to(device).eval(), meta

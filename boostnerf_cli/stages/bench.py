@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import dataclasses
 import io
 import json
 import math
@@ -235,7 +236,10 @@ class Bench:
         from boostnerf_cli.stages import build_moe
 
         if not ws.model_path("init").exists():
-            build_moe.build(ws, None, setup.recipe.moe, self.device, self.log)
+            # Each row finetunes with its own top-k; the untrained mixture's only has to fit its experts.
+            moe = setup.recipe.moe
+            moe = dataclasses.replace(moe, topk=min(moe.topk, len(setup.recipe.pretrain.res)))
+            build_moe.build(ws, None, moe, self.device, self.log)
 
     def run_row(self, row: Row) -> dict:
         from boostnerf_cli.stages import finetune

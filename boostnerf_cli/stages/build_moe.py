@@ -12,10 +12,9 @@ import torch
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import count_params, load_expert
 from boostnerf_cli.moe.density_volume import DensityVolume
-from boostnerf_cli.moe.gate import GATE_GRIDS, GATE_TYPES, Gate, GateConfig
+from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, save_mixture
-from boostnerf_cli.moe.router import PENALTIES
-from boostnerf_cli.recipe import MoERecipe
+from boostnerf_cli.recipe import MoERecipe, check_section
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
@@ -29,14 +28,10 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     missing = [n for n in names if n not in available]
     if missing:
         raise BoostNerfError(f"no pretrained expert {missing[0]!r} in {ws.root} (experts: {', '.join(available)})")
-    if rec.gate_type not in GATE_TYPES or rec.gate_type == "uniform":
-        raise BoostNerfError(f"unknown gate type {rec.gate_type!r}: use grid, linear or switch")
-    if rec.gate_grid not in GATE_GRIDS + ("auto",):
-        raise BoostNerfError(f"unknown gate grid {rec.gate_grid!r}: use auto, {', '.join(GATE_GRIDS)}")
-    if rec.step_from not in ("smallest", "largest"):
-        raise BoostNerfError(f"moe.step_from must be smallest or largest, got {rec.step_from!r}")
-    if rec.penalty not in PENALTIES:
-        raise BoostNerfError(f"unknown penalty {rec.penalty!r}: use {', '.join(PENALTIES)}")
+    check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
+    if rec.topk > len(names):
+        raise BoostNerfError(f"moe.topk = {rec.topk} but the mixture has {len(names)} experts ({', '.join(names)}): "
+                             f"set moe.topk to at most {len(names)}")
     experts, scenes, inputs = [], set(), {}
     for n in names:
         inputs[n] = read_meta(ws.expert_path(n)).get("digest")
@@ -60,7 +55,7 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     torch.manual_seed(rec.seed)  # the gate's random initialisation: the same for the same recipe
     gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=rec.gate_channels, hidden=rec.gate_hidden,
                            layers=rec.gate_layers, grid=gate_grid), len(experts), bbox).to(device)
-    cfg = MixtureConfig(topk=min(rec.topk, len(experts)), renormalize=rec.renormalize, threshold=rec.density_threshold,
+    cfg = MixtureConfig(topk=rec.topk, renormalize=rec.renormalize, threshold=rec.density_threshold,
                         penalty=rec.penalty, vd_res=vd_res, step=step, bake_res=rec.bake_res,
                         expert_names=[e[1] for e in experts])
     mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)

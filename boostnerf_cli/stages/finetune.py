@@ -22,8 +22,8 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import count_params, load_expert, save_expert
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, RoutingStats, load_mixture, save_mixture
-from boostnerf_cli.moe.router import PENALTIES, expert_counts, penalty_weights
-from boostnerf_cli.recipe import MoERecipe, TrainRecipe
+from boostnerf_cli.moe.router import expert_counts, penalty_weights
+from boostnerf_cli.recipe import MoERecipe, TrainRecipe, check_section
 from boostnerf_cli.render.renderer import RenderSettings, render_rays
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.stages.common import workspace_scene
@@ -129,6 +129,7 @@ def _train_rays(scene: Scene, bbox: Tensor, device: str) -> RayData:
 
 def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str, force: bool,
         log: Callable[[str], None]) -> dict:
+    check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
     init = ws.model_path("init")
     if not init.exists():
         raise BoostNerfError(f"no mixture to finetune in {ws.root}: run `boostnerf build-moe --workspace {ws.root}` first")
@@ -143,8 +144,6 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
             )
         log(f"{name}: already finetuned, skipping (use --force to redo it)")
         return read_json(ws.moe_dir / f"{name}.json", "finetune report")
-    if rec.penalty not in PENALTIES:
-        raise BoostNerfError(f"unknown penalty {rec.penalty!r}: use {', '.join(PENALTIES)}")
     if force:
         dist.on_main(lambda: ws.checkpoint_path(name).unlink(missing_ok=True))
     scene = workspace_scene(ws)

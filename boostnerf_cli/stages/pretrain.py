@@ -25,10 +25,10 @@ from torch import Tensor, nn
 
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields import FAMILIES, build_expert, count_params, load_expert, save_expert
+from boostnerf_cli.fields import build_expert, count_params, load_expert, save_expert
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.metrics import mse_to_psnr
-from boostnerf_cli.recipe import GeometryRecipe, PretrainRecipe, Recipe, TrainRecipe, recipe_dict
+from boostnerf_cli.recipe import GeometryRecipe, PretrainRecipe, Recipe, TrainRecipe, check_recipe, recipe_dict
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_image, render_rays
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
@@ -303,6 +303,7 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     Under torchrun rank 0 runs this first and alone writes; the other ranks then find everything made.
     """
     main = dist.is_main()
+    check_recipe(rec, "setting")  # the recipe was checked when read; flags may have changed it since
     if data is None:
         data = ws.root / "scene"
         if not (data / "transforms_train.json").exists():
@@ -325,8 +326,6 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
         _forget_trained(ws)
     scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
                        format=rec.data.format)
-    if rec.pretrain.model not in FAMILIES:
-        raise BoostNerfError(f"unknown model family {rec.pretrain.model!r}: choose one of {', '.join(FAMILIES)}")
     for res in rec.pretrain.res:  # per-expert options are checked before anything trains
         expert_options(rec.pretrain, res)
     digest = scene_digest(scene)

@@ -1,0 +1,78 @@
+"""Allowed values of settings, declared next to each dataclass field (`limit(default, rule)`).
+
+The recipe sections (`recipe.py`) and the expert families' configs (`fields/dvgo.py`, `tensorf.py`,
+`ngp.py`) declare each field's rule in its metadata; `recipe.check_recipe` reads them all, so a value
+out of range is refused, with one line naming the key, the value and the rule, when a recipe or a
+workspace manifest is read, before anything runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+INF = math.inf
+
+
+def _num(v: float) -> str:
+    return "inf" if v == INF else "-inf" if v == -INF else f"{v:g}" if isinstance(v, float) else str(v)
+
+
+@dataclass(frozen=True)
+class Range:
+    """lo <= v <= hi, each end open or closed; `also`: single values allowed besides (e.g. 0 = off)."""
+
+    lo: float = -INF
+    hi: float = INF
+    lo_open: bool = False
+    hi_open: bool = False
+    also: tuple = ()
+
+    def allows(self, v: Any) -> bool:
+        if v in self.also:
+            return True
+        if v in (INF, -INF):  # every value the code uses is finite, also where the range has no bound
+            return False
+        above = v > self.lo if self.lo_open else v >= self.lo
+        below = v < self.hi if self.hi_open else v <= self.hi
+        return bool(above and below)  # NaN fails both
+
+    def __str__(self) -> str:
+        if self.hi == INF:
+            text = f"{'>' if self.lo_open else '>='} {_num(self.lo)}"
+        else:
+            text = f"in {'(' if self.lo_open else '['}{_num(self.lo)}, {_num(self.hi)}{')' if self.hi_open else ']'}"
+        return " or ".join([*map(_num, self.also), text])
+
+
+@dataclass(frozen=True)
+class OneOf:
+    choices: tuple[str, ...]
+
+    def allows(self, v: Any) -> bool:
+        return v in self.choices
+
+    def __str__(self) -> str:
+        return f"one of {', '.join(self.choices)}"
+
+
+def at_least(lo: int | float) -> Range:
+    return Range(lo)
+
+
+POSITIVE = Range(0, lo_open=True)  # > 0 (learning rates, step sizes)
+OPEN_UNIT = Range(0, 1, lo_open=True, hi_open=True)  # (0, 1): opacities, growth fractions
+THRESHOLD = Range(0, 1, hi_open=True)  # [0, 1): opacity / weight thresholds (0 = keep everything)
+NON_NEGATIVE = Range(0)
+
+
+def limit(default: Any = dataclasses.MISSING, rule: Range | OneOf | None = None, *, factory: Any = dataclasses.MISSING,
+          min_items: int = 0) -> Any:
+    """A dataclass field with its allowed values (for a list field: of each item; `min_items`: its length)."""
+    return dataclasses.field(default=default, default_factory=factory, metadata={"rule": rule, "min_items": min_items})
+
+
+def rule_of(f: dataclasses.Field) -> Range | OneOf | None:
+    return f.metadata.get("rule")

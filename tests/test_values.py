@@ -1,0 +1,329 @@
+"""Issue 20: every recipe value is range-checked when read, and every file the tool reads fails with one line.
+
+The bad and good values below are written from the code that uses each value (not read from the
+rules declared in boostnerf_cli), so a rule that drifts from what the code needs fails here.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import pytest
+import torch
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.recipe import load_recipe, recipe_dict, recipe_from_dict
+from boostnerf_cli.workspace import Workspace, read_json, read_meta, save_tensors
+
+NAN_INF = st.sampled_from([math.nan, math.inf, -math.inf])
+INT_BELOW = lambda lo: st.integers(max_value=lo - 1)  # noqa: E731
+NOT_POSITIVE = st.one_of(st.floats(max_value=0.0, allow_nan=False), NAN_INF)
+NEGATIVE = st.one_of(st.floats(max_value=-1e-9, allow_nan=False), NAN_INF)
+OUTSIDE_OPEN_UNIT = st.one_of(st.floats(max_value=0.0, allow_nan=False), st.floats(min_value=1.0, allow_nan=False),
+                              st.just(math.nan))
+OUTSIDE_THRESHOLD = st.one_of(st.floats(max_value=-1e-12, allow_nan=False), st.floats(min_value=1.0, allow_nan=False),
+                              st.just(math.nan))
+BAD_WORD = st.text(min_size=1, max_size=12)
+
+# key -> out-of-range values (what the code using the value cannot work with)
+BAD: dict[str, st.SearchStrategy] = {
+    "data.image_size": INT_BELOW(1),
+    "data.holdout_every": st.one_of(st.integers(max_value=-1), st.just(1)),  # blender.py: 0 (off) or >= 2
+    "data.format": BAD_WORD.filter(lambda w: w not in ("auto", "blender", "nsvf", "tanks", "llff", "nerfstudio")),
+    "pretrain.model": BAD_WORD.filter(lambda w: w not in ("dvgo", "tensorf", "ngp")),
+    "pretrain.iters": INT_BELOW(1),
+    "pretrain.seed": st.one_of(st.integers(max_value=-1), st.integers(min_value=2**63)),  # numpy / torch seeds
+    "pretrain.geometry.res": INT_BELOW(1),
+    "pretrain.geometry.iters": INT_BELOW(1),
+    "pretrain.geometry.batch_rays": INT_BELOW(1),
+    "pretrain.geometry.lr": NOT_POSITIVE,
+    "pretrain.geometry.alpha_init": OUTSIDE_OPEN_UNIT,  # log(1/(1-a) - 1)
+    "pretrain.geometry.alpha_threshold": OUTSIDE_THRESHOLD,
+    "pretrain.geometry.weight_entropy": NEGATIVE,
+    "pretrain.train.batch_rays": INT_BELOW(1),
+    "pretrain.train.lr_grid": NOT_POSITIVE,
+    "pretrain.train.lr_mlp": NOT_POSITIVE,
+    "pretrain.train.lr_decay": st.one_of(st.floats(max_value=0.0, allow_nan=False),
+                                         st.floats(min_value=1.0, exclude_min=True, allow_nan=False), st.just(math.nan)),
+    "pretrain.train.step_ratio": NOT_POSITIVE,
+    "pretrain.train.color_threshold": OUTSIDE_THRESHOLD,
+    "pretrain.train.occupancy_threshold": OUTSIDE_THRESHOLD,
+    "pretrain.train.weight_rgbper": NEGATIVE,
+    "pretrain.train.occupancy_every": INT_BELOW(0),
+    "pretrain.train.log_every": INT_BELOW(1),  # step % log_every
+    "pretrain.train.checkpoint_every": INT_BELOW(1),
+    "pretrain.dvgo.alpha_init": OUTSIDE_OPEN_UNIT,
+    "pretrain.dvgo.feat_dim": INT_BELOW(1),
+    "pretrain.dvgo.hidden": INT_BELOW(0),
+    "pretrain.dvgo.view_pe": INT_BELOW(0),
+    "pretrain.tensorf.alpha_init": OUTSIDE_OPEN_UNIT,
+    "pretrain.tensorf.density_rank": INT_BELOW(1),
+    "pretrain.tensorf.l1_weight": NEGATIVE,
+    "pretrain.tensorf.fit_steps": INT_BELOW(0),
+    "pretrain.ngp.alpha_init": OUTSIDE_OPEN_UNIT,
+    "pretrain.ngp.log2_table": st.one_of(INT_BELOW(1), st.integers(min_value=31)),  # hashgrid.py: 1..30
+    "pretrain.ngp.features": INT_BELOW(1),
+    "pretrain.ngp.grid_res": INT_BELOW(1),
+    "pretrain.ngp.max_res": st.integers(min_value=(1 << 24) - 2),  # hashgrid.py: level resolution + 2 < 2^24
+    "moe.gate_type": BAD_WORD.filter(lambda w: w not in ("grid", "linear", "switch")),
+    "moe.gate_grid": BAD_WORD.filter(lambda w: w not in ("auto", "dense", "tensorf", "hash")),
+    "moe.gate_res": INT_BELOW(2),
+    "moe.vd_res": INT_BELOW(1),
+    "moe.density_threshold": OUTSIDE_THRESHOLD,
+    "moe.step_from": BAD_WORD.filter(lambda w: w not in ("smallest", "largest")),
+    "moe.topk": INT_BELOW(1),
+    "moe.lam": NEGATIVE,
+    "moe.penalty": BAD_WORD.filter(lambda w: w not in ("geometric", "linear", "quadratic", "none")),
+    "moe.bake_res": INT_BELOW(0),
+    "moe.iters": INT_BELOW(1),
+    "moe.lr_gate": NOT_POSITIVE,
+    "moe.lr_gate_mlp": NOT_POSITIVE,
+    "moe.train.lr_grid": NOT_POSITIVE,
+    "moe.train.batch_rays": INT_BELOW(1),
+}
+
+# key -> values the code works with (including the edges: 0 = off, 1 for lr_decay, ...)
+GOOD: dict[str, st.SearchStrategy] = {
+    "data.holdout_every": st.one_of(st.just(0), st.integers(2, 100)),
+    "pretrain.iters": st.integers(1, 10**6),
+    "pretrain.train.lr_decay": st.one_of(st.just(1.0), st.floats(1e-9, 1.0)),
+    "pretrain.train.occupancy_every": st.integers(0, 10**4),
+    "pretrain.train.color_threshold": st.one_of(st.just(0.0), st.floats(0.0, 0.999)),
+    "pretrain.dvgo.alpha_init": st.floats(1e-12, 1 - 1e-9),
+    "pretrain.dvgo.hidden": st.integers(0, 512),
+    "pretrain.ngp.log2_table": st.integers(1, 30),
+    "pretrain.tensorf.feat_pe": st.integers(0, 8),
+    "moe.gate_res": st.integers(2, 512),
+    "moe.topk": st.integers(1, 16),
+    "moe.lam": st.floats(0.0, 10.0),
+    "moe.bake_res": st.integers(0, 256),
+    "moe.gate_type": st.sampled_from(["grid", "linear", "switch"]),
+}
+
+
+def _nested(key: str, value) -> dict:
+    out = value
+    for part in reversed(key.split(".")):
+        out = {part: out}
+    return out
+
+
+def _write(tmp_path, data: dict):
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def _assert_names(err: BoostNerfError, key: str) -> None:
+    msg = str(err)
+    assert "\n" not in msg and msg.strip() == msg
+    assert key in msg and "must be" in msg, msg
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data(), key=st.sampled_from(sorted(BAD)))
+def test_out_of_range_values_are_one_line_naming_the_key(tmp_path, data, key):
+    value = data.draw(BAD[key], label=key)
+    path = _write(tmp_path, _nested(key, value))
+    with pytest.raises(BoostNerfError) as e:
+        load_recipe(path)
+    _assert_names(e.value, key)
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data(), key=st.sampled_from(["pretrain.dvgo.alpha_init", "pretrain.dvgo.hidden", "pretrain.ngp.log2_table"]),
+       res=st.integers(2, 512))
+def test_per_resolution_values_are_checked_each(tmp_path, data, key, res):
+    value = data.draw(BAD[key], label=key)
+    good = {"pretrain.dvgo.alpha_init": 0.01, "pretrain.dvgo.hidden": 64, "pretrain.ngp.log2_table": 19}[key]
+    path = _write(tmp_path, _nested(key, {res + 1: good, res: value}))
+    with pytest.raises(BoostNerfError) as e:
+        load_recipe(path)
+    _assert_names(e.value, f"{key}[{res}]")
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data(), key=st.sampled_from(sorted(GOOD)))
+def test_in_range_values_load(tmp_path, data, key):
+    value = data.draw(GOOD[key], label=key)
+    rec = load_recipe(_write(tmp_path, _nested(key, value)))
+    section = rec
+    for part in key.split(".")[:-1]:
+        section = getattr(section, part)
+    got = section[key.split(".")[-1]] if isinstance(section, dict) else getattr(section, key.split(".")[-1])
+    assert got == value
+    assert recipe_from_dict(recipe_dict(rec)) == rec  # the manifest's copy passes the same checks
+
+
+ANY_VALUE = st.recursive(st.one_of(st.none(), st.booleans(), st.integers(), st.floats(), st.text(max_size=8)),
+                         lambda inner: st.one_of(st.lists(inner, max_size=3),
+                                                 st.dictionaries(st.one_of(st.text(max_size=5), st.integers()), inner,
+                                                                 max_size=3)), max_leaves=6)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(key=st.sampled_from(sorted(set(BAD) | set(GOOD) | {"pretrain.res", "pretrain.train.growth", "moe.renormalize",
+                                                           "pretrain.dvgo", "moe.train", "name"})),
+       value=ANY_VALUE)
+def test_any_value_loads_or_is_one_line(tmp_path, key, value):
+    """Whatever YAML holds at a key: the recipe loads, or one BoostNerfError line naming the key; never another exception."""
+    try:
+        load_recipe(_write(tmp_path, _nested(key, value)))
+    except BoostNerfError as e:
+        msg = str(e)
+        assert "\n" not in msg and key.split(".")[0] in msg, msg
+
+
+def test_known_values_from_the_issue(tmp_path):
+    cases = {
+        "pretrain:\n  dvgo: {alpha_init: 0}\n": "recipe key pretrain.dvgo.alpha_init = 0.0: must be in (0, 1)",
+        "pretrain:\n  dvgo: {alpha_init: 1}\n": "recipe key pretrain.dvgo.alpha_init = 1.0: must be in (0, 1)",
+        "pretrain:\n  model: ngp\n  ngp: {log2_table: 40}\n": "recipe key pretrain.ngp.log2_table = 40: must be in [1, 30]",
+        "pretrain:\n  train: {batch_rays: -4}\n": "recipe key pretrain.train.batch_rays = -4: must be >= 1",
+        "pretrain:\n  train: {growth: [0.1, 1.2]}\n": "recipe key pretrain.train.growth = 1.2: must be in (0, 1)",
+        "moe:\n  train: {lr_decay: 1.5}\n": "recipe key moe.train.lr_decay = 1.5: must be in (0, 1]",
+        "moe:\n  gate_res: 1\n": "recipe key moe.gate_res = 1: must be >= 2",
+        "moe:\n  penalty: cubic\n": "recipe key moe.penalty = 'cubic': must be one of geometric, linear, quadratic, none",
+        "pretrain:\n  res: []\n": "recipe key pretrain.res = []: needs at least 1 value(s)",
+        "pretrain:\n  model: ngp\n  res: [8]\n  ngp: {base_res: 64, max_res: 32}\n":
+            "recipe key pretrain.ngp.max_res = 32: must be >= base_res (64) (expert ngp-8)",
+        "pretrain:\n  dvgo: {width: 3}\n": "unknown recipe key pretrain.dvgo.width",
+        "pretrain:\n  dvgo: {hidden: {abc: 3}}\n": "the keys of a per-expert mapping must be resolutions",
+    }
+    for text, expected in cases.items():
+        path = tmp_path / "r.yaml"
+        path.write_text(text)
+        with pytest.raises(BoostNerfError) as e:
+            load_recipe(path)
+        assert expected in str(e.value) and "\n" not in str(e.value), (text, str(e.value))
+
+
+def test_a_bad_value_in_a_workspace_manifest_is_refused():
+    data = recipe_dict(load_recipe(None))
+    data["moe"]["topk"] = 0
+    with pytest.raises(BoostNerfError, match=r"^workspace manifest's recipe key moe.topk = 0: must be >= 1$"):
+        recipe_from_dict(data)
+
+
+# --- files ---------------------------------------------------------------------------------------
+def test_read_json_of_a_folder_a_non_object_and_binary_bytes(tmp_path):
+    (tmp_path / "dir.json").mkdir()
+    with pytest.raises(BoostNerfError, match=r"report .*dir.json is a folder"):
+        read_json(tmp_path / "dir.json", "report")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    with pytest.raises(BoostNerfError, match="holds a JSON list, not an object"):
+        read_json(tmp_path / "list.json", "report")
+    (tmp_path / "bin.json").write_bytes(b"\xff\xfe\x00\x81")
+    with pytest.raises(BoostNerfError, match="is not valid JSON"):
+        read_json(tmp_path / "bin.json", "report")
+
+
+def test_read_json_unreadable(tmp_path, monkeypatch):
+    path = tmp_path / "r.json"
+    path.write_text("{}")
+
+    def denied(self, *a, **k):
+        raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(type(path), "read_text", denied)
+    with pytest.raises(BoostNerfError, match=r"cannot read report .*r.json \(Permission denied\)"):
+        read_json(path, "report")
+
+
+def test_lock_file_that_cannot_be_opened_is_one_line(tmp_path, monkeypatch):
+    real_open = os.open
+
+    def denied(path, *a, **k):
+        if str(path).endswith(".lock"):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, *a, **k)
+
+    monkeypatch.setattr(os, "open", denied)
+    with pytest.raises(BoostNerfError, match=r"cannot take the writer lock .*\.lock \(Permission denied\)"):
+        with Workspace(tmp_path / "ws").lock():
+            pass
+
+
+def test_safetensors_whose_metadata_is_not_an_object(tmp_path):
+    from safetensors.torch import save_file
+
+    path = tmp_path / "x.safetensors"
+    save_file({"a": torch.zeros(2)}, str(path), metadata={"boostnerf": "[1, 2]"})
+    with pytest.raises(BoostNerfError, match="not a boostnerf file"):
+        read_meta(path)
+
+
+def _tiny_expert_file(tmp_path, **meta_changes):
+    from boostnerf_cli.fields import save_expert
+    from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+    from boostnerf_cli.render.occupancy import OccupancyGrid
+
+    box = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    model = DVGOExpert(DVGOConfig(res=6, hidden=8, layers=1), box)
+    path = tmp_path / "e.safetensors"
+    save_expert(path, model, OccupancyGrid(torch.ones(4, 4, 4, dtype=torch.bool), box))
+    from boostnerf_cli.workspace import load_tensors
+
+    tensors, meta = load_tensors(path)
+    drop = meta_changes.pop("drop", None)
+    if drop:
+        tensors.pop(drop)
+    meta = {**meta, **meta_changes}
+    meta.pop("digest"), meta.pop("format_version")
+    save_tensors(path, tensors, meta)
+    return path
+
+
+@pytest.mark.parametrize("change", [
+    {"drop": "occupancy_bbox"},  # KeyError outside any handler before
+    {"config": {"res": 6, "hidden": 8, "layers": 1, "alpha_init": 0}},  # math domain error before
+    {"config": {"res": 6, "hidden": 8, "layers": 1, "alpha_init": 1}},  # division by zero before
+    {"unit": "wide"},  # ValueError before
+    {"family": ["dvgo"]},  # unhashable: TypeError before
+], ids=["no-occupancy-bbox", "alpha-0", "alpha-1", "unit-text", "family-list"])
+def test_expert_file_with_the_wrong_structure_is_one_line(tmp_path, change):
+    from boostnerf_cli.fields import load_expert
+
+    path = _tiny_expert_file(tmp_path, **change)
+    with pytest.raises(BoostNerfError) as e:
+        load_expert(path)
+    assert "e.safetensors" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_mixture_file_with_the_wrong_structure_is_one_line(tmp_path):
+    from test_moe import _mixture
+
+    from boostnerf_cli.moe.mixture import load_mixture, save_mixture
+    from boostnerf_cli.workspace import load_tensors
+
+    path = tmp_path / "m.safetensors"
+    save_mixture(path, _mixture(m=2, k=1))
+    tensors, meta = load_tensors(path)
+    meta["gate"]["config"]["kind"] = "octree"  # Gate raised ValueError outside any handler before
+    meta.pop("digest"), meta.pop("format_version")
+    save_tensors(path, tensors, meta)
+    with pytest.raises(BoostNerfError, match=r"m.safetensors does not hold a valid mixture \(ValueError: unknown gate type"):
+        load_mixture(path)
+
+
+def test_training_checkpoint_with_the_wrong_structure_is_one_line(tmp_path):
+    from boostnerf_cli.train import RayData, Schedule, train
+
+    class Task:
+        def param_groups(self):
+            return [{"params": [torch.zeros(1, requires_grad=True)], "lr": 0.1}]
+
+        def load_state(self, state):
+            self.w = state["weights"]
+
+    ckpt = tmp_path / "c.pt"
+    rays = RayData(torch.zeros(4, 3), torch.ones(4, 3), torch.zeros(4, 3))
+    for state in ({"task": {}, "step": 1}, [1, 2, 3], {"task": {"weights": 1}, "signature": 5}):
+        torch.save(state, ckpt)
+        with pytest.raises(BoostNerfError, match=r"training checkpoint .*c.pt .*delete it to restart this model") as e:
+            train(Task(), rays, Schedule(iters=2), 0, "t", checkpoint=ckpt, signature={"stage": "x"})
+        assert "\n" not in str(e.value)
