@@ -20,7 +20,8 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import CONFIGS, FAMILIES
 from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, POSITIVE, THRESHOLD, OneOf, Range, at_least, limit, rule_of
 from boostnerf_cli.moe.gate import GATE_GRIDS, TRAINABLE_GATES
-from boostnerf_cli.moe.router import PENALTIES
+from boostnerf_cli.moe.mixture import MIX_MODES
+from boostnerf_cli.moe.router import AUX_NORMS, AUX_SAMPLES, PENALTIES
 from boostnerf_cli.scenes import FORMATS
 
 # Seeds feed numpy's generator (the procedural scene: no negative seeds) and torch's (64 bits, seed + res).
@@ -94,12 +95,16 @@ class MoERecipe:
     gate_channels: int = limit(8, at_least(1))
     gate_hidden: int = limit(64, at_least(1))
     gate_layers: int = limit(2, NON_NEGATIVE)
+    gate_init: str = limit("random", OneOf(("random", "expert")))  # the gate's dense feature grid: random, or expert: the smallest (dvgo) expert's feature grid, copied (same lattice) or resampled trilinearly, gate_channels then = its channels (the official code's)
     vd_res: int | None = limit(None, at_least(1))  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
     density_threshold: float = limit(1e-3, THRESHOLD)  # T: samples whose V_D opacity over one step is below it are filtered
     step_from: str = limit("largest", OneOf(("smallest", "largest")))  # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
     topk: int = limit(2, at_least(1))  # at most the number of experts (checked by build-moe)
     lam: float = limit(1e-3, NON_NEGATIVE)
     penalty: str = limit("geometric", OneOf(PENALTIES))  # geometric | linear | quadratic | none
+    aux_norm: str = limit("batch", OneOf(AUX_NORMS))  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 = k^2 |B|^2 (official code)
+    aux_samples: str = limit("all", OneOf(AUX_SAMPLES))  # auxiliary loss over every routed sample | visible: those whose V_D opacity and V_D rendering weight pass moe.train.color_threshold (official code)
+    mix: str = limit("density", OneOf(MIX_MODES))  # the routing weights mix density (paper's equation) | alpha: each expert's opacity over one render step (official code)
     renormalize: bool = True  # top-k weights sum to 1 (k = 1: straight-through 1); False: raw probabilities (docs/results.md)
     bake_res: int = limit(128, NON_NEGATIVE)  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
     iters: int = limit(1000, at_least(1))

@@ -93,7 +93,8 @@ def lookup(table: Tensor, idx: Tensor, w: Tensor) -> Tensor:
 
 def lattice_points(bbox: Tensor, shape: tuple[int, int, int]) -> Tensor:
     """World positions of every lattice vertex, (prod(shape), 3), in table row order."""
-    axes = [torch.linspace(float(bbox[0, a]), float(bbox[1, a]), shape[a], device=bbox.device) for a in range(3)]
+    axes = [torch.linspace(float(bbox[0, a]), float(bbox[1, a]), shape[a], device=bbox.device, dtype=bbox.dtype)
+            for a in range(3)]
     return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
 
 

@@ -10,6 +10,9 @@ The feature grid V_G follows the experts' family, as in the paper (`grid`):
           cells, 2 features each, tables of at most 2^`log2_table` rows (Instant-NGP)
 switch  : softmax(MLP_4x128(PE(x)))                  (Switch-NeRF-style, no grid)
 uniform : G(x)_i = 1/M                               (the ensemble; no parameters)
+The dense feature grid starts random (unit-scale features), or, `init` expert, as a copy of a pretrained
+expert's feature grid (`init_grid_from`; the official code copies its lowest-resolution model's, see
+build_moe.gate_source).
 baked   : softmax(interp(L, x)), L the logits of a trained gate sampled at the vertices of a
           `res`^3 lattice (`Gate.baked`): what rendering uses, so the gate MLP does not run on
           every sample of every image (its error is measured in docs/results.md)
@@ -44,6 +47,7 @@ class GateConfig:
     grid: str = "dense"  # the feature grid of grid / linear gates: dense | tensorf | hash
     levels: int = 6  # hash grid levels
     log2_table: int = 15  # hash grid: at most 2^log2_table rows per level
+    init: str = "random"  # the dense feature grid's start: random | expert (copied from an expert, `init_grid_from`)
 
 
 def softmax(logits: Tensor) -> Tensor:
@@ -133,6 +137,21 @@ class Gate(nn.Module):
         if self.cfg.kind == "baked":
             return G.lookup(self.logit_table, idx, w)
         return self.mlp(G.lookup(self.table, idx, w))
+
+    @torch.no_grad()
+    def init_grid_from(self, table: Tensor, shape: tuple[int, int, int], bbox: Tensor) -> None:
+        """Start the dense feature grid from another dense grid: `table` (prod(shape), C) over `bbox`, C = the
+        gate's channels. The same lattice (shape and box): an exact copy of `table`; another lattice: `table`
+        resampled trilinearly at the gate's lattice vertices (`grid.resample`). The logits are centred again."""
+        if self.table is None:
+            raise ValueError("only a grid or linear gate with a dense feature grid starts from another grid")
+        if table.shape != (math.prod(shape), self.table.shape[1]):
+            raise ValueError(f"a table of {tuple(table.shape)} does not fit a {shape} lattice of "
+                             f"{self.table.shape[1]} channels")
+        src, box = table.detach().to(self.table), bbox.detach().to(self.bbox)
+        same = tuple(shape) == self.shape and torch.equal(box, self.bbox)
+        self.table.copy_(src if same else G.resample(src, tuple(shape), box, self.shape, self.bbox))
+        self._center_logits()
 
     def grid_parameters(self) -> list[Tensor]:
         """The feature grid's parameters (trained at the gate's grid learning rate)."""

@@ -3,10 +3,16 @@
     skip(x)   = alpha_D(x) > T      V_D: a density volume initialised from the smallest expert
     G(x)      = gate probabilities over the M experts
     K         = top-k(G(x))
-    sigma_f   = sum_{i in K} g_i sigma_i(x),   c_f = sum_{i in K} g_i c_i(x, d)
+    sigma_f   = sum_{i in K} g_i sigma_i(x),   c_f = sum_{i in K} g_i c_i(x, d)     (mix: density, the paper)
 
 with g = G(x)_K, renormalised over K when `renormalize` (then the k weights sum to 1). Experts
 are black boxes behind the Field protocol; each runs only on the samples routed to it.
+
+mix: alpha (the official code, EIDOSLAB/boost-your-nerf dvgo/moe.py, DVGOMoE.forward) mixes opacities
+instead: alpha_f = sum_{i in K} g_i alpha_i, alpha_i = 1 - exp(-sigma_i delta) over one render step
+delta = `step`. The renderer is unchanged: the mixture returns the density that has opacity alpha_f
+over that step (`alpha_mix_density`), so a step of `step` composites alpha_f exactly (a longer step,
+when a ray needs more than the renderer's max_samples, composites 1 - (1 - alpha_f)^(step'/step)).
 """
 
 from __future__ import annotations
@@ -23,6 +29,11 @@ from boostnerf_cli.fields import FAMILIES
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig, softmax
 from boostnerf_cli.moe.router import aux_loss, dispatch, penalty_weights, top_k
+
+MIX_MODES = ("density", "alpha")
+# Smallest one-step transmittance of a mixed sample (alpha_f <= 1 - 1e-30, optical depth <= 69): keeps the
+# optical depth and its gradient finite when every chosen expert is opaque.
+MIN_TRANSMITTANCE = 1e-30
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.workspace import MALFORMED, load_tensors, malformed, save_tensors
 
@@ -37,6 +48,30 @@ class MixtureConfig:
     step: float = 0.01  # render step (world units)
     bake_res: int = 0  # > 0: rendering uses the gate baked on a bake_res^3 lattice (Gate.baked)
     expert_names: list[str] = field(default_factory=list)
+    mix: str = "density"  # what the routing weights mix with the colours: density (paper) | alpha (official code)
+    aux_norm: str = "batch"  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 (official code)
+    aux_samples: str = "all"  # auxiliary loss over every routed sample | visible: V_D opacity and weight pass
+                              # the colour threshold (official code)
+
+
+def alpha_mix_density(alpha: Tensor, trans: Tensor, wsum: Tensor, step: float) -> Tensor:
+    """The density whose opacity over one `step` is alpha_f = sum_i w_i alpha_i.
+
+    alpha (N,) = sum_i w_i alpha_i with alpha_i = -expm1(-sigma_i step) (exact for alpha_i -> 0),
+    trans (N,) = sum_i w_i exp(-sigma_i step) (exact for alpha_i -> 1), wsum (N,) = sum_i w_i.
+    The density is -log(1 - alpha_f) / step, taken as -log1p(-alpha_f) / step below alpha_f = 1/2 and as
+    -log((1 - wsum) + trans) / step above it (the same value, without cancellation in either range), the
+    transmittance floored at MIN_TRANSMITTANCE: finite, with finite gradients, for opaque experts and any step > 0.
+    """
+    low = -torch.log1p(-alpha.clamp(0.0, 0.5))
+    high = -torch.log(((1.0 - wsum) + trans).clamp(MIN_TRANSMITTANCE, 1.0))
+    return torch.where(alpha < 0.5, low, high) / step
+
+
+def _alpha_and_trans(sigma: Tensor, step: float) -> Tensor:
+    """sigma (N,) -> (N, 2): one step's opacity -expm1(-sigma step) and transmittance exp(-sigma step)."""
+    tau = sigma * step
+    return torch.stack([-torch.expm1(-tau), torch.exp(-tau)], dim=-1)
 
 
 @dataclass
@@ -46,10 +81,14 @@ class RoutingStats:
     probs: list[Tensor] = field(default_factory=list)
     idx: list[Tensor] = field(default_factory=list)
 
-    def aux(self, weights: Tensor) -> Tensor:
+    def aux(self, weights: Tensor, norm: str = "batch", keep: Tensor | None = None) -> Tensor:
+        """The auxiliary loss over the recorded samples, or those of them where `keep` (a bool mask) holds."""
         if not self.probs:
             return torch.zeros((), device=weights.device)
-        return aux_loss(torch.cat(self.probs), torch.cat(self.idx), weights)
+        probs, idx = torch.cat(self.probs), torch.cat(self.idx)
+        if keep is not None:
+            probs, idx = probs[keep], idx[keep]
+        return aux_loss(probs, idx, weights, norm)
 
     def load(self, m: int) -> list[float]:
         """Fraction of routed samples that each expert received (sums to k)."""
@@ -67,6 +106,8 @@ class Mixture(nn.Module):
     def __init__(self, experts: list[nn.Module], gate: Gate, vd: DensityVolume, occupancy: OccupancyGrid | None,
                  cfg: MixtureConfig):
         super().__init__()
+        if cfg.mix not in MIX_MODES:
+            raise BoostNerfError(f"unknown mixing {cfg.mix!r}: one of {', '.join(MIX_MODES)}")
         if cfg.topk < 1 or cfg.topk > len(experts):
             raise BoostNerfError(f"--topk must be between 1 and the number of experts ({len(experts)}), got {cfg.topk}")
         self.experts = nn.ModuleList(experts)
@@ -118,6 +159,11 @@ class Mixture(nn.Module):
 
     def _mix(self, xyz: Tensor, dirs: Tensor | None, vals: Tensor, idx: Tensor) -> Tensor:
         """Run each expert on its routed samples only: density (dirs None) -> (N,), colour -> (N, 3)."""
+        if dirs is None and self.cfg.mix == "alpha":
+            step = self.cfg.step
+            out, _ = dispatch(xyz.shape[0], idx, vals, self.m,
+                              lambda e, r: _alpha_and_trans(self.experts[e].density(xyz[r]), step), 2, xyz)
+            return alpha_mix_density(out[:, 0], out[:, 1], vals.sum(-1), step)
         if dirs is None:
             out, _ = dispatch(xyz.shape[0], idx, vals, self.m, lambda e, r: self.experts[e].density(xyz[r])[:, None], 1, xyz)
             return out[:, 0]
@@ -199,7 +245,8 @@ class RoutedMixture:
 
 
 class SingleExpertView:
-    """Expert e's contribution to the mixture: its own density and colour, times its routed weight."""
+    """Expert e's contribution to the mixture: its own density (mix: alpha, its opacity) and colour, the
+    density (opacity) times its routed weight."""
 
     def __init__(self, mixture: Mixture, e: int):
         self.mixture, self.e = mixture, e
@@ -209,7 +256,12 @@ class SingleExpertView:
         return (vals * (idx == self.e)).sum(-1)
 
     def density(self, xyz: Tensor) -> Tensor:
-        return self._weight(xyz) * self.mixture.experts[self.e].density(xyz)
+        w, sigma = self._weight(xyz), self.mixture.experts[self.e].density(xyz)
+        if self.mixture.cfg.mix == "alpha":  # opacity w alpha_e over one step
+            step = self.mixture.cfg.step
+            at = _alpha_and_trans(sigma, step)
+            return alpha_mix_density(w * at[:, 0], w * at[:, 1], w, step)
+        return w * sigma
 
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
         return self.mixture.experts[self.e].color(xyz, dirs)

@@ -60,17 +60,32 @@ def expert_counts(idx: Tensor, m: int) -> Tensor:
     return torch.bincount(idx.reshape(-1), minlength=m).to(torch.float32)
 
 
-def aux_loss(probs: Tensor, idx: Tensor, weights: Tensor) -> Tensor:
-    """L_rw-aux = M / |B|^2 * sum_i c_i m_i w_i, m_i = sum over the batch of G(x)_i.
+AUX_NORMS = ("batch", "counts")
+AUX_SAMPLES = ("all", "visible")
+
+
+def aux_loss(probs: Tensor, idx: Tensor, weights: Tensor, norm: str = "batch") -> Tensor:
+    """L_rw-aux = M / Z^2 * sum_i c_i m_i w_i, m_i = sum over the batch of G(x)_i.
 
     probs (N, M) gate probabilities, idx (N, k) chosen experts, weights (M,). An empty batch gives 0.
+    norm "batch":  Z = |B| = N, the paper's Eq. (the project's default);
+    norm "counts": Z = sum_i c_i = k N, the official code's (EIDOSLAB/boost-your-nerf, instant-ngp/moe_main.py,
+                   train_moe: `num_experts / sum(c_s)**2`), k^2 times smaller than "batch" for Top-k.
+    Which samples form the batch (every routed sample, or the visible ones) is the caller's choice.
     """
     n, m = probs.shape
     if n == 0:
         return probs.sum() * 0.0
     c = expert_counts(idx, m).to(probs.device)
     mass = probs.sum(dim=0)
-    return m / float(n) ** 2 * (c * mass * weights.to(probs)).sum()
+    return m / aux_denominator(n, idx.shape[1], norm) ** 2 * (c * mass * weights.to(probs)).sum()
+
+
+def aux_denominator(n: int | float, k: int, norm: str) -> float:
+    """Z of the auxiliary loss for n routed samples, k experts each: n ("batch") or sum_i c_i = k n ("counts")."""
+    if norm not in AUX_NORMS:
+        raise ValueError(f"unknown auxiliary-loss normalisation {norm!r}")
+    return float(n) * (k if norm == "counts" else 1)
 
 
 def dispatch(

@@ -112,7 +112,10 @@ def render_rays(
     rgb = rgb.reshape(r, s, 3)
     color, depth, acc = composite(weights, rgb, t, settings.background)
     flops.add("composite", flops.COMPOSITE_FLOPS * r * s)
-    return RayBundle(color, depth, acc, int(flat.numel()), int(cflat.numel()), {"weights": weights, "t": t, "rgb": rgb})
+    # rows: the density pass's samples (indices into the flattened (R, S) samples, in the order `field.density`
+    # saw them); step: the sampling step used
+    return RayBundle(color, depth, acc, int(flat.numel()), int(cflat.numel()),
+                     {"weights": weights, "t": t, "rgb": rgb, "rows": flat, "step": step})
 
 
 @torch.no_grad()

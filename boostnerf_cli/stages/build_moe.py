@@ -52,12 +52,18 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     vd.init_from(smallest.density)
     occ = OccupancyGrid.from_density(vd.density, bbox, vd.shape, step, rec.density_threshold)
     gate_grid = resolve_gate_grid(rec.gate_grid, [e[2].family for e in experts])
+    source = gate_source(rec, gate_grid, experts)
+    channels = rec.gate_channels if source is None else source[2].feature_table.shape[1]
     torch.manual_seed(rec.seed)  # the gate's random initialisation: the same for the same recipe
-    gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=rec.gate_channels, hidden=rec.gate_hidden,
-                           layers=rec.gate_layers, grid=gate_grid), len(experts), bbox).to(device)
+    gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=channels, hidden=rec.gate_hidden,
+                           layers=rec.gate_layers, grid=gate_grid, init=rec.gate_init), len(experts), bbox)
+    if source is not None:
+        gate.init_grid_from(source[2].feature_table, source[2].shape, source[2].bbox)
+    gate = gate.to(device)
     cfg = MixtureConfig(topk=rec.topk, renormalize=rec.renormalize, threshold=rec.density_threshold,
                         penalty=rec.penalty, vd_res=vd_res, step=step, bake_res=rec.bake_res,
-                        expert_names=[e[1] for e in experts])
+                        expert_names=[e[1] for e in experts], mix=rec.mix, aux_norm=rec.aux_norm,
+                        aux_samples=rec.aux_samples)
     mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
     save_mixture(ws.model_path("init"), mix, {"name": "init", "inputs": inputs})
     report = {
@@ -66,6 +72,7 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
         "expert_params": [e[0] for e in experts],
         "gate": gate.config_dict(),
         "gate_params": count_params(gate),
+        "gate_init": "random" if source is None else source[1],
         "density_volume": {"res": vd_res, "threshold": rec.density_threshold, "from": cfg.expert_names[0],
                            "occupied_fraction": occ.fraction()},
         "step": step,
@@ -74,9 +81,31 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     ws.update_manifest(moe={"init": {"experts": cfg.expert_names, "gate": rec.gate_type, "gate_grid": gate_grid,
                                      "inputs": inputs, "digest": read_meta(ws.model_path("init")).get("digest")}})
     grid_text = f" ({gate_grid} features)" if rec.gate_type in ("grid", "linear") else ""
+    if source is not None:
+        same = tuple(source[2].shape) == tuple(gate.shape)
+        grid_text += f" started from {source[1]}'s feature grid ({'copied' if same else 'resampled trilinearly'})"
     log(f"built a mixture of {len(experts)} experts ({', '.join(cfg.expert_names)}), gate {rec.gate_type}{grid_text} "
         f"{'x'.join(map(str, gate.shape))}, V_D from {cfg.expert_names[0]} keeps {100 * occ.fraction():.1f}% of cells")
     return report
+
+
+def gate_source(rec: MoERecipe, gate_grid: str, experts: list[tuple]) -> tuple | None:
+    """The expert whose feature grid starts the gate's (moe.gate_init: expert), or None (random).
+
+    The smallest expert, as in the official code (EIDOSLAB/boost-your-nerf, instant-ngp/moe_main.py: the gate's
+    k0 feature grid is a copy of the lowest-resolution, 128^3, model's; its density grid is copied too but never
+    read by the gate's forward, so only the feature grid is copied here). `experts` are (params, name, model,
+    step) tuples, smallest first. Needs a grid or linear gate with a dense grid and a dvgo smallest expert."""
+    if rec.gate_init == "random":
+        return None
+    source = experts[0]
+    if source[2].family != "dvgo":
+        raise BoostNerfError(f"moe.gate_init = expert needs dvgo experts (the gate copies a dense feature grid); "
+                             f"the smallest expert {source[1]} is {source[2].family}: set moe.gate_init to random")
+    if rec.gate_type not in ("grid", "linear") or gate_grid != "dense":
+        raise BoostNerfError(f"moe.gate_init = expert needs a grid or linear gate with a dense feature grid (moe.gate_type "
+                             f"= {rec.gate_type}, gate grid {gate_grid}): set moe.gate_init to random or moe.gate_grid to dense")
+    return source
 
 
 FAMILY_GATE_GRID = {"dvgo": "dense", "tensorf": "tensorf", "ngp": "hash"}

@@ -1,0 +1,380 @@
+"""Issue 18: the mixture as the official code trains it (moe.aux_norm, moe.aux_samples, moe.mix, moe.gate_init).
+
+Each option against an independent float64 reference written here with plain loops; then the whole chain
+through the CLI with every official option on.
+"""
+
+import json
+import math
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+from conftest import TINY_RECIPE, run_cli
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields import load_expert
+from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.moe.density_volume import DensityVolume
+from boostnerf_cli.moe.gate import Gate, GateConfig
+from boostnerf_cli.moe.mixture import (Mixture, MixtureConfig, RoutingStats, alpha_mix_density, load_mixture,
+                                       save_mixture)
+from boostnerf_cli.moe.router import aux_loss, penalty_weights, top_k
+from boostnerf_cli.recipe import MoERecipe, load_recipe
+from boostnerf_cli.render.renderer import RenderSettings, render_rays, sample_rays
+from boostnerf_cli.stages.build_moe import gate_source
+from boostnerf_cli.stages.finetune import batch_routing, visible_samples
+from boostnerf_cli.workspace import load_tensors, save_tensors
+
+BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], dtype=torch.float64)
+STEP = 0.05
+RECIPES = Path(__file__).parent.parent / "recipes"
+
+
+def _experts(m, seed=0, scale=2.0):
+    torch.manual_seed(seed)
+    out = []
+    for i in range(m):
+        e = DVGOExpert(DVGOConfig(res=6 + 2 * i, hidden=8, layers=1), BOX.float())
+        with torch.no_grad():
+            e.density_table.normal_(0, scale)
+            e.feature_table.normal_()
+            for p in e.rgbnet.parameters():
+                p.normal_(0, 0.3)
+        out.append(e.double())
+    return out
+
+
+def _mixture(m=3, k=2, mix="density", seed=0, scale=2.0, renormalize=True):
+    experts = _experts(m, seed, scale)
+    gate = Gate(GateConfig(kind="grid", res=4, channels=4, hidden=8, layers=2), m, BOX)
+    with torch.no_grad():
+        for p in gate.parameters():
+            p.normal_(0, 0.5)
+    vd = DensityVolume(BOX, 6).double()
+    vd.init_from(experts[0].density)
+    mixture = Mixture(experts, gate, vd, None, MixtureConfig(topk=k, renormalize=renormalize, step=STEP, mix=mix,
+                                                             expert_names=[f"e{i}" for i in range(m)]))
+    return mixture.double()
+
+
+def _rays(n, seed=2):
+    g = torch.Generator().manual_seed(seed)
+    origins = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1) * 3
+    target = (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * 0.8
+    return origins, torch.nn.functional.normalize(target - origins, dim=-1)
+
+
+def _settings(**kw):
+    return RenderSettings(step=STEP, near=0.1, far=8.0, bbox=BOX, background=(1.0, 0.5, 0.25), **kw)
+
+
+# --- the auxiliary loss: (sum c_i)^2 normalisation, visible samples ---------------------------------------
+def _aux_reference(probs, idx, weights, norm):
+    """M / Z^2 sum_i c_i m_i w_i with plain loops; Z = N (batch) or sum_i c_i (counts)."""
+    n, m = probs.shape
+    c = [0] * m
+    for row in idx.tolist():
+        for e in row:
+            c[e] += 1
+    mass = [sum(float(probs[s, i]) for s in range(n)) for i in range(m)]
+    z = sum(c) if norm == "counts" else n
+    return m / z**2 * sum(c[i] * mass[i] * float(weights[i]) for i in range(m))
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_counts_normalisation_is_the_official_sum_of_counts_squared(k):
+    g = torch.Generator().manual_seed(k)
+    probs = torch.softmax(torch.randn(37, 4, generator=g, dtype=torch.float64) * 2, dim=-1)
+    _, idx = top_k(probs, k, renormalize=True)
+    w = penalty_weights(4, "geometric").double()
+    counts = float(aux_loss(probs, idx, w, "counts"))
+    assert counts == pytest.approx(_aux_reference(probs, idx, w, "counts"), rel=1e-13, abs=0)
+    batch = float(aux_loss(probs, idx, w, "batch"))
+    assert batch == pytest.approx(_aux_reference(probs, idx, w, "batch"), rel=1e-13, abs=0)
+    assert counts == pytest.approx(batch / k**2, rel=1e-13)  # sum_i c_i = k |B|
+
+
+def _visible_reference(mix, origins, dirs, settings, rows, threshold):
+    """V_D composited alone over the density pass's samples, ray by ray in float64: alpha and weight > threshold."""
+    t, _, xyz, step = sample_rays(origins, dirs, settings, jitter=False)
+    s = t.shape[1]
+    trans = {}  # ray -> transmittance so far
+    out, opaque = [], []
+    for row in rows.tolist():
+        ray = row // s
+        sigma = float(mix.vd.density(xyz[ray, row % s][None])[0])
+        alpha = 1.0 - math.exp(-sigma * step)
+        tr = trans.get(ray, 1.0)
+        out.append(alpha > threshold and tr * alpha > threshold)
+        opaque.append(alpha > threshold)
+        trans[ray] = tr * (1.0 - alpha)
+    return torch.tensor(out, dtype=torch.bool), torch.tensor(opaque, dtype=torch.bool)
+
+
+def test_visible_samples_and_the_official_auxiliary_loss_match_a_per_ray_reference():
+    torch.manual_seed(0)
+    mix = _mixture(m=3, k=2, scale=3.0)
+    origins, dirs = _rays(48)
+    settings = _settings(color_threshold=1e-4)
+    stats = RoutingStats()
+    bundle = render_rays(mix.with_stats(stats), origins, dirs, settings)
+    keep = visible_samples(mix, bundle, origins, dirs, 1e-4)
+    rows = bundle.extras["rows"]
+    ref, opaque = _visible_reference(mix, origins, dirs, settings, rows, 1e-4)
+    assert keep.shape == (rows.numel(),) and torch.equal(keep, ref)
+    assert 0 < int(keep.sum()) < int(opaque.sum()) < keep.numel()  # occluded samples (opaque enough) are dropped too
+    probs, idx = torch.cat(stats.probs), torch.cat(stats.idx)
+    aux, value, load = batch_routing(stats, mix.penalty.double(), 3, "counts", keep)
+    expected = _aux_reference(probs[ref].detach(), idx[ref], mix.penalty, "counts")
+    assert float(aux.detach()) == pytest.approx(expected, rel=1e-12) and value == pytest.approx(expected, rel=1e-12)
+    assert sum(load) == pytest.approx(2.0)  # the load is still over every routed sample
+    everything = _aux_reference(probs.detach(), idx, mix.penalty, "counts")
+    assert abs(everything - expected) > 1e-3 * everything  # the visible batch is another loss
+    aux.backward()
+    assert mix.gate.table.grad is not None and torch.isfinite(mix.gate.table.grad).all()
+
+
+# --- alpha mixing ---------------------------------------------------------------------------------------
+def test_alpha_mixing_mixes_the_experts_opacities():
+    mix = _mixture(m=3, k=2, mix="alpha", scale=3.0)
+    g = torch.Generator().manual_seed(3)
+    xyz = torch.rand(200, 3, generator=g, dtype=torch.float64) * 1.8 - 0.9
+    with torch.no_grad():
+        sigma = mix.density(xyz)
+        _, vals, idx = mix.route(xyz, need_probs=False)
+        for s in range(xyz.shape[0]):
+            ref = 0.0
+            for j in range(2):
+                sig = float(mix.experts[int(idx[s, j])].density(xyz[s : s + 1])[0])
+                ref += float(vals[s, j]) * (1.0 - math.exp(-sig * STEP))
+            assert 1.0 - math.exp(-float(sigma[s]) * STEP) == pytest.approx(ref, rel=1e-10, abs=1e-14)
+
+
+def test_alpha_mixing_renders_the_hand_composited_colour():
+    mix = _mixture(m=3, k=2, mix="alpha", scale=3.0)
+    origins, dirs = _rays(24)
+    settings = _settings(color_threshold=0.0)
+    with torch.no_grad():
+        bundle = render_rays(mix, origins, dirs, settings)
+        t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter=False)
+        assert step == STEP
+        bg = torch.tensor(settings.background, dtype=torch.float64)
+        # the routing is an input here (float32 weights at render time): one batch, as the renderer routes them
+        _, vals_all, idx_all = mix.route(xyz[valid], need_probs=False)
+        n = 0
+        for r in range(origins.shape[0]):
+            trans, color = 1.0, torch.zeros(3, dtype=torch.float64)
+            for j in range(t.shape[1]):
+                if not valid[r, j]:
+                    continue
+                p = xyz[r, j][None]
+                vals, idx = vals_all[n : n + 1], idx_all[n : n + 1]
+                n += 1
+                alpha, rgb = 0.0, torch.zeros(3, dtype=torch.float64)
+                for c in range(2):
+                    e = mix.experts[int(idx[0, c])]
+                    alpha += float(vals[0, c]) * (1.0 - math.exp(-float(e.density(p)[0]) * STEP))
+                    rgb += float(vals[0, c]) * e.color(p, dirs[r][None])[0]
+                color += trans * alpha * rgb
+                trans *= 1.0 - alpha
+            color += trans * bg
+            assert torch.allclose(bundle.color[r], color, rtol=0, atol=1e-10), (r, (bundle.color[r] - color).abs().max())
+
+
+def test_density_and_alpha_mixing_differ_as_the_issue_says():
+    """Half and half of an empty expert and one with sigma delta = 5: density mixing gives 0.92, alpha mixing 0.5."""
+    w = torch.tensor([0.5], dtype=torch.float64)
+    tau = torch.tensor([5.0], dtype=torch.float64)
+    alpha_mixed = alpha_mix_density(w * -torch.expm1(-tau), w * torch.exp(-tau) + w * 1.0, 2 * w, 1.0)
+    assert float(-torch.expm1(-alpha_mixed)) == pytest.approx(0.5 * (1 - math.exp(-5)), rel=1e-12)
+    assert 1 - math.exp(-0.5 * 5.0) == pytest.approx(0.918, abs=1e-3)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_alpha_mixing_is_finite_for_opaque_experts_and_tiny_steps(dtype):
+    for step in (1e-8, 1e-3, 1.0):
+        for tau in (0.0, 1e-9, 0.3, 0.69, 0.7, 30.0, 1e3, 1e10):
+            for w in ((1.0,), (0.7, 0.3), (0.4, 0.35)):  # renormalised, and raw probabilities (sum below 1)
+                vals = torch.tensor(w, dtype=dtype, requires_grad=True)
+                sig = torch.full((len(w),), tau / step, dtype=dtype, requires_grad=True)
+                a = -torch.expm1(-sig * step)
+                out = alpha_mix_density((vals * a).sum()[None], (vals * torch.exp(-sig * step)).sum()[None],
+                                        vals.sum()[None], step)
+                got = -torch.expm1(-out * step)
+                ref = sum(wi * (1 - math.exp(-tau)) for wi in w)
+                assert torch.isfinite(out).all() and float(got) == pytest.approx(ref, rel=1e-5, abs=1e-6)
+                got.sum().backward()
+                assert torch.isfinite(vals.grad).all() and torch.isfinite(sig.grad).all()
+                if tau < 20:  # d alpha_f / d w_i = alpha_i, where the opacity is not saturated
+                    assert vals.grad.tolist() == pytest.approx([1 - math.exp(-tau)] * len(w), rel=1e-4, abs=1e-6)
+
+
+def test_alpha_mixing_trains_with_finite_gradients_through_opaque_experts():
+    mix = _mixture(m=3, k=2, mix="alpha", scale=1.0)
+    with torch.no_grad():
+        mix.experts[2].density_table.fill_(1e5)  # exp(-sigma step) underflows to 0: alpha = 1 exactly
+        mix.experts[1].density_table.fill_(-200.0)  # empty
+    origins, dirs = _rays(32)
+    stats = RoutingStats()
+    bundle = render_rays(mix.with_stats(stats), origins, dirs, _settings(), jitter=True)
+    loss = (bundle.color - 0.3).square().mean() + stats.aux(mix.penalty, "counts")
+    loss.backward()
+    assert torch.isfinite(bundle.color).all()
+    grads = [p.grad for p in mix.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+    assert float(mix.gate.table.grad.abs().sum()) > 0
+
+
+# --- gate initialisation from an expert -----------------------------------------------------------------
+def _trilinear_reference(table, shape, bbox, point):
+    """The value of a dense grid at `point`, from its 8 surrounding vertices, with explicit loops."""
+    pos, base, frac = [], [], []
+    for a in range(3):
+        u = (float(point[a]) - float(bbox[0, a])) / (float(bbox[1, a]) - float(bbox[0, a])) * (shape[a] - 1)
+        u = min(max(u, 0.0), shape[a] - 1.0)
+        i = min(int(math.floor(u)), shape[a] - 2)
+        base.append(i)
+        frac.append(u - i)
+        pos.append(u)
+    out = torch.zeros(table.shape[1], dtype=torch.float64)
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                wt = ((frac[0] if dx else 1 - frac[0]) * (frac[1] if dy else 1 - frac[1]) * (frac[2] if dz else 1 - frac[2]))
+                row = ((base[0] + dx) * shape[1] + (base[1] + dy)) * shape[2] + (base[2] + dz)
+                out += wt * table[row].double()
+    return out
+
+
+def test_gate_init_copies_the_experts_feature_grid_on_the_same_lattice():
+    box = torch.tensor([[-1.0, -0.5, -0.8], [1.0, 0.7, 0.9]])
+    expert = DVGOExpert(DVGOConfig(res=10, hidden=8, layers=1), box)
+    with torch.no_grad():
+        expert.feature_table.normal_()
+    gate = Gate(GateConfig(res=10, channels=expert.feature_table.shape[1], hidden=8, layers=1, init="expert"), 3, box)
+    assert gate.shape == expert.shape
+    gate.init_grid_from(expert.feature_table, expert.shape, expert.bbox)
+    assert torch.equal(gate.table, expert.feature_table)
+    xyz = torch.rand(4096, 3, generator=torch.Generator().manual_seed(0)) * (box[1] - box[0]) + box[0]
+    assert gate.logits(xyz).mean(0).abs().max() < 1e-4  # centred again on the new features
+
+
+def test_gate_init_resamples_another_lattice_trilinearly():
+    box = torch.tensor([[-1.0, -0.5, -0.8], [1.0, 0.7, 0.9]], dtype=torch.float64)
+    expert = DVGOExpert(DVGOConfig(res=9, hidden=8, layers=1), box).double()
+    with torch.no_grad():
+        expert.feature_table.normal_()
+    gate = Gate(GateConfig(res=6, channels=12, hidden=8, layers=1, init="expert"), 2, box).double()
+    assert gate.shape != expert.shape
+    gate.init_grid_from(expert.feature_table, expert.shape, expert.bbox)
+    axes = [torch.linspace(float(box[0, a]), float(box[1, a]), gate.shape[a], dtype=torch.float64) for a in range(3)]
+    row = 0
+    for x in axes[0]:
+        for y in axes[1]:
+            for z in axes[2]:
+                ref = _trilinear_reference(expert.feature_table.detach(), expert.shape, box, (x, y, z))
+                assert torch.allclose(gate.table[row].detach(), ref, rtol=0, atol=1e-12), row
+                row += 1
+    assert row == gate.table.shape[0]
+
+
+def test_gate_init_names_its_requirements():
+    rec = MoERecipe(gate_init="expert")
+    tensorf = [(10, "tensorf-8", SimpleNamespace(family="tensorf"), 0.1)]
+    with pytest.raises(BoostNerfError, match="needs dvgo experts"):
+        gate_source(rec, "tensorf", tensorf)
+    dvgo = [(10, "dvgo-8", SimpleNamespace(family="dvgo"), 0.1), (20, "dvgo-9", SimpleNamespace(family="dvgo"), 0.1)]
+    assert gate_source(rec, "dense", dvgo)[1] == "dvgo-8"  # the smallest, as the official code's
+    with pytest.raises(BoostNerfError, match="dense feature grid"):
+        gate_source(MoERecipe(gate_init="expert", gate_type="switch"), "dense", dvgo)
+    assert gate_source(MoERecipe(), "dense", dvgo) is None
+
+
+# --- persistence and the recipe -------------------------------------------------------------------------
+def test_the_options_are_saved_and_old_files_load_with_the_paper_defaults(tmp_path):
+    mix = _mixture(m=2, k=2, mix="alpha").float()
+    mix.cfg.aux_norm, mix.cfg.aux_samples = "counts", "visible"
+    save_mixture(tmp_path / "m.safetensors", mix)
+    loaded, _ = load_mixture(tmp_path / "m.safetensors")
+    assert (loaded.cfg.mix, loaded.cfg.aux_norm, loaded.cfg.aux_samples) == ("alpha", "counts", "visible")
+    xyz = torch.rand(300, 3, generator=torch.Generator().manual_seed(0)) * 1.8 - 0.9
+    with torch.no_grad():
+        assert torch.equal(loaded.density(xyz), mix.eval().density(xyz))
+    tensors, meta = load_tensors(tmp_path / "m.safetensors")
+    for key in ("mix", "aux_norm", "aux_samples"):
+        del meta["mixture"][key]
+    del meta["gate"]["config"]["init"]
+    meta.pop("digest", None), meta.pop("format_version", None)
+    save_tensors(tmp_path / "old.safetensors", tensors, meta)
+    old, _ = load_mixture(tmp_path / "old.safetensors")
+    assert (old.cfg.mix, old.cfg.aux_norm, old.cfg.aux_samples, old.gate.cfg.init) == ("density", "batch", "all", "random")
+    with torch.no_grad():
+        assert not torch.allclose(old.density(xyz), loaded.density(xyz))
+
+
+def test_the_official_recipe_selects_every_official_option():
+    rec = load_recipe(RECIPES / "blender-dvgo-cpu-official.yaml")
+    cpu = load_recipe(RECIPES / "blender-dvgo-cpu.yaml")
+    assert rec.pretrain.res == cpu.pretrain.res == [64, 72, 80] and rec.data.image_size == 100
+    m = rec.moe
+    assert (m.gate_init, m.aux_norm, m.aux_samples, m.mix) == ("expert", "counts", "visible", "alpha")
+    assert m.gate_res == 64 and m.lr_gate == 0.1 and m.train.lr_grid == 0.1 and m.train.lr_mlp == 1e-3
+    assert m.train.lr_decay == 0.1 and rec.pretrain.iters < m.iters
+    d = MoERecipe()
+    assert (d.gate_init, d.aux_norm, d.aux_samples, d.mix) == ("random", "batch", "all", "density")
+
+
+# --- the chain through the CLI --------------------------------------------------------------------------
+OFFICIAL = TINY_RECIPE.replace("  gate_res: 8\n", """  gate_res: 12
+  gate_init: expert
+  aux_norm: counts
+  aux_samples: visible
+  mix: alpha
+  lam: 0.01
+  lr_gate: 0.1
+""")
+
+
+def test_build_finetune_and_eval_with_every_official_option(trained_ws, tmp_path):
+    assert OFFICIAL != TINY_RECIPE
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    recipe = tmp_path / "official.yaml"
+    recipe.write_text(OFFICIAL)
+    run_cli("build-moe", "--workspace", str(ws), "--recipe", str(recipe), "--device", "cpu", check=True)
+    init = json.loads((ws / "moe" / "init.json").read_text())
+    assert init["gate_init"] == "dvgo-12" and init["experts"] == ["dvgo-12", "dvgo-16"]
+    mix, meta = load_mixture(ws / "moe" / "init.safetensors")
+    expert, _, _ = load_expert(ws / "experts" / "dvgo-12.safetensors")
+    assert mix.gate.shape == expert.shape and meta["gate"]["config"]["channels"] == expert.feature_table.shape[1]
+    assert torch.equal(mix.gate.table, expert.feature_table)  # an exact copy of the smallest expert's features
+
+    run_cli("finetune", "--workspace", str(ws), "--recipe", str(recipe), "--topk", "2", "--device", "cpu", check=True)
+    report = json.loads((ws / "moe" / "top2.json").read_text())
+    assert (report["mix"], report["aux_norm"], report["aux_samples"]) == ("alpha", "counts", "visible")
+    auxes = [h["aux"] for h in report["history"] if "aux" in h]
+    # lambda * M / (sum c)^2 sum c m w with k = 2: at most M * max(w) / k = 2 * 2 / 2
+    assert auxes and all(0 < a <= 2.0 for a in auxes)
+    top2, meta = load_mixture(ws / "moe" / "top2.safetensors")
+    assert (top2.cfg.mix, top2.cfg.aux_norm, top2.cfg.aux_samples) == ("alpha", "counts", "visible")
+    assert not torch.equal(top2.gate.table, expert.feature_table)  # trained
+
+    proc = run_cli("eval", "--workspace", str(ws), "--model", "top2", "--views", "1", "--no-costs", "--report",
+                   "--device", "cpu", check=True)
+    row = json.loads((ws / "reports" / "eval.json").read_text())["models"][0]
+    assert row["name"] == "top2" and 5 < row["psnr"] < 60, proc.stdout
+
+    # eval rendered with alpha mixing: the same model rendered in-process matches, with density mixing it does not
+    from boostnerf_cli.stages.common import load_model, workspace_scene
+    from boostnerf_cli.stages.evaluate import evaluate_model
+    from boostnerf_cli.workspace import Workspace
+
+    w = Workspace(ws)
+    scene = workspace_scene(w)
+    model = load_model(w, "top2", "cpu")
+    assert evaluate_model(model, scene, scene.split("test"), "cpu", None, views=1)["psnr"] == row["psnr"]
+    model.field.cfg.mix = "density"
+    assert evaluate_model(model, scene, scene.split("test"), "cpu", None, views=1)["psnr"] != row["psnr"]
