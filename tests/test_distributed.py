@@ -156,16 +156,22 @@ def _task(ws: Path, name: str):
     return MixtureTask(mix, settings, rec.train, rec), _train_rays(scene, mix.bbox, "cpu"), rec
 
 
-def first_step(ws: Path, name: str, parallel: bool, lam: float | None = None) -> tuple[dict[str, torch.Tensor], dict]:
+def first_step(ws: Path, name: str, parallel: bool, lam: float | None = None,
+               official: bool = False) -> tuple[dict[str, torch.Tensor], dict]:
     """Step 1 of `finetune` for `name` as `train` runs it: the global batch of the seed, this process's share
     of it, the gradients (averaged over the ranks when `parallel`); -> (gradients by parameter name, logs).
-    `lam`: the mixture's auxiliary-loss weight instead of the recipe's."""
+    `lam`: the mixture's auxiliary-loss weight instead of the recipe's; `official`: the mixture trained with
+    the official code's options (alpha mixing, auxiliary loss over (sum c_i)^2 and the visible samples)."""
+    import dataclasses
+
     from boostnerf_cli import distributed as dist
     from boostnerf_cli.train import batch_gradients, make_optimizer
 
     task, rays, rec = _task(ws, name)
     if lam is not None:
         rec.lam = lam
+    if official and name != "baseline":
+        task.mix.cfg = dataclasses.replace(task.mix.cfg, mix="alpha", aux_norm="counts", aux_samples="visible")
     torch.manual_seed(rec.seed)
     gen = torch.Generator().manual_seed(rec.seed)
     idx = torch.randint(0, len(rays), (rec.train.batch_rays,), generator=gen)
@@ -180,20 +186,22 @@ def first_step(ws: Path, name: str, parallel: bool, lam: float | None = None) ->
     return grads, logs
 
 
-def dp_worker(ws: str, out: str) -> None:
+def dp_worker(ws: str, out: str, official: bool = False) -> None:
     """One rank of the data-parallel step (run with torchrun's environment variables)."""
     from boostnerf_cli import distributed as dist
 
     with dist.session("cpu"):
-        result = {name: first_step(Path(ws), name, parallel=True, lam=LAM) for name in ("top2", "baseline")}
+        result = {name: first_step(Path(ws), name, parallel=True, lam=LAM, official=official)
+                  for name in ("top2", "baseline")}
         torch.save(result, Path(out) / f"rank{dist.rank()}.pt")
 
 
-def test_a_data_parallel_step_equals_one_process_step_on_the_union(setup, tmp_path):
+@pytest.mark.parametrize("official", [False, True])
+def test_a_data_parallel_step_equals_one_process_step_on_the_union(setup, tmp_path, official):
     ws = setup[0] / "one"
     port = free_port()
     procs = [subprocess.Popen([sys.executable, "-c", f"from test_distributed import dp_worker; dp_worker({str(ws)!r}, "
-                               f"{str(tmp_path)!r})"], cwd=TESTS, stderr=subprocess.PIPE, text=True,
+                               f"{str(tmp_path)!r}, {official})"], cwd=TESTS, stderr=subprocess.PIPE, text=True,
                               env={**_env(), "RANK": str(r), "LOCAL_RANK": str(r), "WORLD_SIZE": "2",
                                    "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)}) for r in range(2)]
     for p in procs:
@@ -202,7 +210,7 @@ def test_a_data_parallel_step_equals_one_process_step_on_the_union(setup, tmp_pa
     ranks = [torch.load(tmp_path / f"rank{r}.pt") for r in range(2)]
     torch.set_num_threads(1)
     for name in ("top2", "baseline"):
-        want_grads, want_logs = first_step(ws, name, parallel=False, lam=LAM)
+        want_grads, want_logs = first_step(ws, name, parallel=False, lam=LAM, official=official)
         (g0, logs0), (g1, logs1) = ranks[0][name], ranks[1][name]
         assert logs0 == logs1 and sorted(g0) == sorted(g1) == sorted(want_grads), name
         for k, want in want_grads.items():
