@@ -76,11 +76,13 @@ def make_scene_cmd(
     seed: Annotated[int, typer.Option()] = 0,
     layout: Annotated[str, typer.Option("--format", help="Layout to write: blender, nsvf, tanks, llff or nerfstudio.")] = "blender",
     rig: Annotated[str | None, typer.Option("--rig", help="Cameras: sphere (around the scene) or forward (forward-facing). Default: forward for llff, sphere otherwise.")] = None,
+    content: Annotated[str, typer.Option("--content", help="objects (floor and four solids) or thin (plus rods and a cable 1-2 px wide at 100 px, reaching the scene's edge).")] = "objects",
 ) -> None:
     """Write a small procedural scene (exact analytic ray casting) in any dataset layout boostnerf reads."""
     from boostnerf_cli.scenes import make_scene
 
-    path = make_scene(out_dir, size=size, n_train=n_train, n_test=n_test, seed=seed, layout=layout, rig=rig)
+    path = make_scene(out_dir, size=size, n_train=n_train, n_test=n_test, seed=seed, layout=layout, rig=rig,
+                      content=content)
     log(f"wrote a {size}x{size} {layout} scene with {n_train} train and {n_test} test views to {path}")
 
 
@@ -97,6 +99,7 @@ def pretrain(
     data_format: Annotated[str | None, typer.Option("--format", help="Dataset format: auto (detect), blender, nsvf, tanks, llff or nerfstudio.")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
+    no_skip: Annotated[bool, typer.Option("--no-skip", help="Train without skipping: the whole scene box, no occupancy mask, colour for every sample (the reference that skipping is measured against).")] = False,
     force: Annotated[bool, typer.Option("--force", help="Retrain experts that are already finished.")] = False,
 ) -> None:
     """Train one expert per resolution, independently (stage 1 of the paper)."""
@@ -120,6 +123,8 @@ def pretrain(
         rec.data.format = data_format
     if seed is not None:
         rec.pretrain.seed = seed
+    if no_skip:
+        rec.pretrain.skip = False
     ws, lock = _writer(workspace, must_exist=False, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock:
         reports = stage.run(ws, data, rec, dev, force, log)

@@ -46,6 +46,7 @@ class GeometryRecipe:
     alpha_init: float = limit(1e-4, OPEN_UNIT)
     alpha_threshold: float = limit(1e-3, THRESHOLD)  # per coarse step: cells below it are empty
     weight_entropy: float = limit(0.1, NON_NEGATIVE)  # pushes ray opacity to 0 or 1: clears floaters against the background
+    cover_foreground: bool = True  # grow the mask until every foreground training ray crosses it (render/coverage.py)
 
 
 @dataclass
@@ -71,6 +72,7 @@ class PretrainRecipe:
     res: list[int] = limit(rule=at_least(1), factory=lambda: [64, 96, 128], min_items=1)
     iters: int = limit(3000, at_least(1))
     seed: int = limit(0, SEED)
+    skip: bool = True  # False (--no-skip): experts train on the whole scene box, every sample evaluated
     geometry: GeometryRecipe = field(default_factory=GeometryRecipe)
     train: TrainRecipe = field(default_factory=TrainRecipe)
     dvgo: dict = field(default_factory=dict)  # DVGOConfig fields other than res

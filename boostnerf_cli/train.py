@@ -7,6 +7,7 @@ resumable checkpoints. What is trained, how rays are rendered and what the loss 
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from contextlib import nullcontext
@@ -89,6 +90,38 @@ class TrainResult:
     seconds: float
     skipped_steps: int
     history: list[dict] = field(default_factory=list)
+
+
+class PsnrTrend:
+    """The mean training PSNR of each logging interval, and a warning when it falls for `intervals` intervals
+    in a row by `min_drop` dB in all (a falling train PSNR means the run is losing what it had learnt)."""
+
+    def __init__(self, intervals: int = 3, min_drop: float = 0.5):
+        self.intervals, self.min_drop = intervals, min_drop
+        self.total, self.count, self.means, self.warned = 0.0, 0, [], False
+
+    def add(self, psnr: float | None) -> None:
+        if psnr is not None and math.isfinite(psnr):
+            self.total, self.count = self.total + psnr, self.count + 1
+
+    def close_interval(self) -> float | None:
+        mean = self.total / self.count if self.count else None
+        if mean is not None:
+            self.means.append(mean)
+        self.total, self.count = 0.0, 0
+        return mean
+
+    def falling_warning(self, step: int) -> str | None:
+        last = self.means[-(self.intervals + 1):]
+        if self.warned or len(last) <= self.intervals:
+            return None
+        if all(b < a for a, b in zip(last, last[1:])) and last[0] - last[-1] >= self.min_drop:
+            self.warned = True
+            return (f"warning: the train PSNR fell for {self.intervals} logging intervals in a row "
+                    f"({last[0]:.2f} -> {last[-1]:.2f} dB by step {step}). Likely causes: skipping cut away structure "
+                    "the training views show (compare with `pretrain --no-skip`), or learning rates too high for "
+                    "this scene (lower train.lr_grid / lr_mlp)")
+        return None
 
 
 class Progress:
@@ -257,6 +290,7 @@ def train(
     if start > 0:
         progress.warn(f"resuming from {checkpoint} at step {start}/{sched.iters}")
     bad_run = 0
+    trend = PsnrTrend()
     t0 = time.perf_counter() - elapsed
     try:
         for step in range(start, sched.iters):
@@ -298,9 +332,16 @@ def train(
                             "recipe or check the data"
                         )
             done = step + 1
+            trend.add(logs.get("psnr"))
             if done % sched.log_every == 0 or done == sched.iters:
                 entry = {"step": done, "seconds": round(time.perf_counter() - t0, 2), **logs}
+                mean = trend.close_interval()
+                if mean is not None:
+                    entry["psnr_mean"] = round(mean, 3)
                 history.append(entry)
+                warning = trend.falling_warning(done)
+                if warning:
+                    progress.warn(warning)
                 if on_log is not None:
                     on_log(done, entry)
             progress.update(done, logs)

@@ -13,12 +13,13 @@ import torch
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC, image_rays, project_points
 from boostnerf_cli.scenes import LAYOUTS, detect_format, load_scene, make_scene
-from boostnerf_cli.scenes.procedural import CAMERA_ANGLE_X, camera_poses, forward_poses
+from boostnerf_cli.scenes.procedural import CAMERA_ANGLE_X, camera_poses, forward_poses, sequence_order
 from tests.conftest import run_cli
 
 SIZE, N_TRAIN, N_TEST = 16, 9, 3
 # layouts that store 8-bit RGBA (compared exactly) vs RGB composited on white before quantising
 COMPOSITED = {"tanks", "llff"}
+SEQUENCE = {"llff", "nerfstudio"}  # one sequence of views, test views at every 8th place (sequence_order)
 
 
 @pytest.fixture(scope="module")
@@ -29,8 +30,12 @@ def forward(tmp_path_factory):
             for lay in LAYOUTS}
 
 
-def _all_views(scene):
-    """Every view of a scene loaded with holdout_every=0, in written order (train, then val/test)."""
+def _all_views(scene, order=None):
+    """Every view of a scene loaded with holdout_every=0, in written order (train, then val/test), or in
+    `order` ((split, index) pairs) for the Blender reference of a one-sequence layout."""
+    if order is not None:
+        pick = lambda attr: torch.stack([getattr(scene.splits[s], attr)[i] for s, i in order])  # noqa: E731
+        return pick("images"), pick("poses").double(), pick("intrinsics")
     splits = [scene.splits[s] for s in ("train", "val", "test") if s in scene.splits]
     return (torch.cat([s.images for s in splits]), torch.cat([s.poses for s in splits]).double(),
             torch.cat([s.intrinsics for s in splits]))
@@ -56,7 +61,7 @@ def test_every_format_loads_the_same_cameras_and_images(forward, layout):
     assert scene.format == layout
     assert scene.extra["detected"].startswith(layout)
     images, poses, k = _all_views(scene)
-    ref_images, ref_poses, ref_k = _all_views(ref)
+    ref_images, ref_poses, ref_k = _all_views(ref, sequence_order(N_TRAIN, N_TEST) if layout in SEQUENCE else None)
     atol = 2.0 / 255 if layout in COMPOSITED else 1e-6
     torch.testing.assert_close(images, ref_images, atol=atol, rtol=0)
     torch.testing.assert_close(k, ref_k, atol=1e-4, rtol=1e-6)
@@ -66,8 +71,9 @@ def test_every_format_loads_the_same_cameras_and_images(forward, layout):
 def _known_pixel(layout):
     """A world point on the ray through the centre of pixel (5, 7) of view 0 of the generating camera,
     at depth 3.3 (computed here from the generator's camera definition, not from any loader)."""
-    train, _ = (forward_poses if layout == "llff" else camera_poses)(N_TRAIN, N_TEST)
-    pose = train[0]
+    train, test = (forward_poses if layout == "llff" else camera_poses)(N_TRAIN, N_TEST)
+    split, i = sequence_order(N_TRAIN, N_TEST)[0] if layout in SEQUENCE else ("train", 0)  # the first view loaded
+    pose = (train if split == "train" else test)[i]
     f = 0.5 * SIZE / math.tan(0.5 * CAMERA_ANGLE_X)
     u, v = 5.5, 7.5
     d_cam = np.array([(u - SIZE / 2) / f, -(v - SIZE / 2) / f, -1.0])

@@ -49,8 +49,40 @@ def _place(rng: np.random.Generator) -> np.ndarray:
     return quadrants * 0.45 + rng.uniform(-0.1, 0.1, (4, 2))
 
 
-def scene_objects(seed: int = 0) -> list[dict]:
-    """The seeded object list (JSON-able): kind, geometry, colours and texture of each object."""
+CONTENTS = ("objects", "thin")
+THIN_RADIUS = 0.018  # rods and cable of the "thin" content: about 1.2 px wide at 100 px (2 px at 160 px)
+
+
+def thin_objects(seed: int = 0) -> list[dict]:
+    """Thin structures far from the main mass, reaching the content box's edge (`CONTENT_BOX`): a cable
+    lying on the floor near its rim, two upright rods at the rim and a slanted wire from a rod top to the
+    far corner. Each is a capsule (a segment of radius `THIN_RADIUS`), dark on the light floor and background."""
+    rng = np.random.default_rng(seed + 1000)
+    dark = lambda: [round(float(v), 4) for v in rng.uniform(0.02, 0.2, 3)]  # noqa: E731
+    r, z0 = THIN_RADIUS, FLOOR_Z + THIN_RADIUS
+    a = float(rng.uniform(0, 2 * math.pi))
+    rim = lambda ang, rad: [round(rad * math.cos(ang), 4), round(rad * math.sin(ang), 4)]  # noqa: E731
+    p1, p2 = rim(a, 0.93), rim(a + 2.2, 0.93)
+    return [
+        {"kind": "capsule", "a": rim(a + 3.3, 0.95) + [z0], "b": rim(a + 4.9, 0.95) + [z0], "radius": r,
+         "texture": "plain", "colours": [dark(), dark()]},  # the cable on the floor
+        {"kind": "capsule", "a": p1 + [FLOOR_Z], "b": p1 + [0.35], "radius": r, "texture": "plain",
+         "colours": [dark(), dark()]},
+        {"kind": "capsule", "a": p2 + [FLOOR_Z], "b": p2 + [0.3], "radius": r, "texture": "plain",
+         "colours": [dark(), dark()]},
+        {"kind": "capsule", "a": p1 + [0.35], "b": [1.08 * math.copysign(1, -p1[0]), 1.08 * math.copysign(1, -p1[1]), 0.38],
+         "radius": r, "texture": "plain", "colours": [dark(), dark()]},
+    ]
+
+
+def scene_objects(seed: int = 0, content: str = "objects") -> list[dict]:
+    """The seeded object list (JSON-able): kind, geometry, colours and texture of each object.
+
+    content: "objects" (the floor and four solids) or "thin" (the same, plus `thin_objects`)."""
+    if content not in CONTENTS:
+        raise BoostNerfError(f"unknown scene content {content!r}: use one of {', '.join(CONTENTS)}")
+    if content == "thin":
+        return scene_objects(seed) + thin_objects(seed)
     rng = np.random.default_rng(seed)
     colour = lambda: [round(float(v), 4) for v in rng.uniform(0.15, 0.95, 3)]  # noqa: E731
     xy = _place(rng)
@@ -83,8 +115,10 @@ def _rot_z(angle: float) -> Tensor:
 def intersect(obj: dict, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """First hit of rays o, d (R, 3) (d unit) with `obj` -> t (R,) (inf on a miss), world normal (R, 3),
     texture coordinates (R, 3) (the hit point in the object's frame)."""
-    c = torch.tensor(obj["centre"], dtype=torch.float64)
     inf = torch.full(o.shape[:1], math.inf, dtype=torch.float64)
+    if obj["kind"] == "capsule":
+        return _capsule(obj, o, d, inf)
+    c = torch.tensor(obj["centre"], dtype=torch.float64)
     if obj["kind"] == "sphere":
         oc = o - c
         b = (d * oc).sum(-1)
@@ -111,10 +145,41 @@ def intersect(obj: dict, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return t, nl @ rot.T, pl
 
 
+def _capsule(obj: dict, o: Tensor, d: Tensor, inf: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Ray / capsule (segment a-b of radius r): the infinite cylinder's hit where it projects inside the
+    segment, else the nearer end sphere's."""
+    a, b = (torch.tensor(obj[k], dtype=torch.float64) for k in ("a", "b"))
+    r = obj["radius"]
+    ba, oa = b - a, o - a
+    baba = float(ba @ ba)
+    bard, baoa = d @ ba, oa @ ba
+    rdoa, oaoa = (d * oa).sum(-1), (oa * oa).sum(-1)
+    qa = baba - bard * bard
+    qb = baba * rdoa - baoa * bard
+    qc = baba * oaoa - baoa * baoa - r * r * baba
+    disc = qb * qb - qa * qc
+    t_cyl = (-qb - disc.clamp_min(0).sqrt()) / torch.where(qa.abs() > 1e-12, qa, torch.full_like(qa, 1e-12))
+    y = baoa + t_cyl * bard
+    cyl = (disc >= 0) & (qa.abs() > 1e-12) & (y > 0) & (y < baba) & (t_cyl > 0)
+    t = torch.where(cyl, t_cyl, inf)
+    for end in (a, b):  # the end caps
+        oc = o - end
+        bb = (d * oc).sum(-1)
+        h = bb * bb - (oc * oc).sum(-1) + r * r
+        ts = -bb - h.clamp_min(0).sqrt()
+        t = torch.where((h >= 0) & (ts > 0) & (ts < t), ts, t)
+    p = o + t.clamp_max(1e9)[:, None] * d
+    axis_pt = a + ((p - a) @ ba / baba).clamp(0, 1)[:, None] * ba
+    normal = (p - axis_pt) / r
+    return t, normal, p
+
+
 def shade(obj: dict, normal: Tensor, p: Tensor) -> Tensor:
     """Lambertian colour (R, 3) of `obj` at texture coordinates p (R, 3) with world normals (R, 3)."""
     a, b = (torch.tensor(col, dtype=torch.float64) for col in obj["colours"])
-    if obj["texture"] == "gradient":  # smooth: blend weight varies slowly over the object
+    if obj["texture"] == "plain":
+        w = torch.zeros_like(p[:, 0])
+    elif obj["texture"] == "gradient":  # smooth: blend weight varies slowly over the object
         w = 0.5 + 0.5 * torch.sin(2.0 * p[:, 0] + 1.5 * p[:, 1] + 3.0 * p[:, 2])
     elif obj["texture"] == "stripes":
         w = torch.floor(p[:, 2] / (obj["period"] / 2)).remainder(2)
@@ -216,10 +281,10 @@ LAYOUT_TEXT = {
              "intrinsics.txt (4x4 matrix K), bbox.txt.",
     "llff": "LLFF layout: poses_bounds.npy (3x5 [R|t|hwf] per image in LLFF axis order down/right/backwards, then "
             "near and far depth bounds), images/ and images_2/ (2x area-downscaled) RGB 8-bit PNGs on a white "
-            "background, the train views first, then the test views (the loader holds out every 8th).",
+            "background; the test views at every 8th position (0, 8, ...), so the loader's every-8th hold-out gives the test split.",
     "nerfstudio": "nerfstudio layout: transforms.json (camera_model OPENCV, fl_x fl_y cx cy w h, zero distortion, "
-                  "OpenGL camera-to-world matrices), images/frame_*.png RGBA 8-bit, the train views first, then "
-                  "the test views (the loader holds out every 8th).",
+                  "OpenGL camera-to-world matrices), images/frame_*.png RGBA 8-bit, the test views at every 8th "
+                  "position (0, 8, ...), so the loader's every-8th hold-out gives the test split.",
 }
 
 README = """Procedurally generated test scene (boostnerf make-scene), seed {seed}.
@@ -234,7 +299,7 @@ Cameras: {rig_text} World z up.
 Content (inside about [-1, 1]^2 x [-0.5, 0.3]): a floor disc with a fine checkerboard (cell 0.05),
 a sphere with a smooth colour gradient, a sphere with thin stripes (period 0.06), a rotated box with a
 fine 3-D checkerboard (cell 0.04) and a box with a smooth gradient; Lambertian shading under a fixed
-directional light, no shadows. Free to use for any purpose.
+directional light, no shadows.{thin_text} Free to use for any purpose.
 """
 
 RIG_TEXT = {
@@ -296,10 +361,29 @@ def _write_nsvf(out: Path, views: dict, focal: float, size: int, masked: bool) -
     (out / "bbox.txt").write_text(" ".join(repr(float(v)) for v in box[0] + box[1]) + " 0.05\n")
 
 
+HOLDOUT_EVERY = 8  # the loaders' default hold-out for layouts without a test split
+
+
+def sequence_order(n_train: int, n_test: int) -> list[tuple[str, int]]:
+    """The order of the views in layouts without splits (LLFF, nerfstudio): test view j at position
+    8 j while test views last, the train views in order around them, so that the loaders' every-8th
+    hold-out gives back exactly the test split (and the same training views as the Blender layout)."""
+    order, train, test = [], iter(range(n_train)), iter(range(n_test))
+    for pos in range(n_train + n_test):
+        j = next(test, None) if pos % HOLDOUT_EVERY == 0 else None
+        if j is None:
+            i = next(train, None)
+            order.append(("train", i) if i is not None else ("test", next(test)))
+        else:
+            order.append(("test", j))
+    return order
+
+
 def _all_views(views: dict) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Train views then test views, as one sequence (layouts without splits)."""
-    poses = np.concatenate([views[s][0] for s in views])
-    return poses, [r for s in views for r in views[s][1]]
+    """Every view as one sequence (layouts without splits), in `sequence_order`."""
+    n_test = len(views["test"][0]) if "test" in views else 0
+    order = sequence_order(len(views["train"][0]), n_test)
+    return np.stack([views[s][0][i] for s, i in order]), [views[s][1][i] for s, i in order]
 
 
 def _write_llff(out: Path, views: dict, focal: float, size: int) -> None:
@@ -340,13 +424,15 @@ def _write_nerfstudio(out: Path, views: dict, focal: float, size: int) -> None:
 
 
 def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8, seed: int = 0, supersample: int = 2,
-               layout: str = "blender", rig: str | None = None) -> Path:
+               layout: str = "blender", rig: str | None = None, content: str = "objects") -> Path:
     """Render the seeded procedural scene into `out_dir` in `layout` (one of `LAYOUTS`) and return `out_dir`.
 
     rig: "sphere" (cameras on the upper hemisphere) or "forward" (forward-facing); default forward
     for llff, sphere otherwise. Every layout gets the same views for the same arguments. Blender:
     transforms_train.json, transforms_test.json (omitted when n_test = 0), train/r_*.png, test/r_*.png;
     the other layouts as `LAYOUT_TEXT` says. Always objects.json (the exact geometry) and README.txt.
+    content: "objects" (default) or "thin" (plus rods and a cable one to two pixels wide at 100 px,
+    reaching the content box's edge: the scene that checks that skipping never cuts thin structure).
     Deterministic: the same arguments give byte-identical files.
     """
     if size < 4 or n_train < 1 or n_test < 0 or supersample < 1:
@@ -361,7 +447,7 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         raise BoostNerfError(f"unknown camera rig {rig!r}: use one of {', '.join(RIGS)}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    objects = scene_objects(seed)
+    objects = scene_objects(seed, content)
     train, test = (forward_poses if rig == "forward" else camera_poses)(n_train, n_test)
     focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
     k = torch.tensor([focal, focal, size / 2, size / 2])
@@ -379,8 +465,11 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         _write_llff(out_dir, views, focal, size)
     else:
         _write_nerfstudio(out_dir, views, focal, size)
-    (out_dir / "objects.json").write_text(json.dumps({"seed": seed, "objects": objects}, indent=2))
+    (out_dir / "objects.json").write_text(json.dumps({"seed": seed, "content": content, "objects": objects}, indent=2))
     text = README.format(seed=seed, ss=supersample, n_train=n_train, n_test=n_test, size=size, angle=CAMERA_ANGLE_X,
-                         rig_text=RIG_TEXT[rig].format(radius=RADIUS), layout_text=LAYOUT_TEXT[layout])
+                         rig_text=RIG_TEXT[rig].format(radius=RADIUS), layout_text=LAYOUT_TEXT[layout],
+                         thin_text="" if content == "objects" else
+                         f" Thin structures (content 'thin'): a cable on the floor near its rim, two upright rods at "
+                         f"the rim and a slanted wire to the far corner, capsules of radius {THIN_RADIUS}.")
     (out_dir / "README.txt").write_text(text)
     return out_dir

@@ -29,6 +29,7 @@ from boostnerf_cli.fields import build_expert, count_params, load_expert, save_e
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.recipe import GeometryRecipe, PretrainRecipe, Recipe, TrainRecipe, check_recipe, recipe_dict
+from boostnerf_cli.render.coverage import cover_foreground
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_image, render_rays
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
@@ -158,6 +159,13 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
           signature={"stage": "geometry", "scene": scene_tag, "recipe": dataclasses.asdict(rec), "seed": seed})
     model.eval()
     occ = OccupancyGrid.from_density(model.density, bbox, model.shape, step, rec.alpha_threshold)
+    cover = None
+    if rec.cover_foreground:  # nothing the training views show may be cut away for good
+        train_split = scene.splits["train"]
+        occ, cover = cover_foreground(occ, model.density, train_split.images, train_split.poses,
+                                      train_split.intrinsics, scene.background, scene.near, scene.far, scene.ndc)
+        log(f"geometry: {cover['missed_before']} of {cover['foreground_rays']} foreground training rays crossed no "
+            f"occupied cell; {cover['cells_added']} cells added along them ({cover['missed_after']} still missed)")
     if not occ.occupied.any():
         log("geometry: warning: the coarse stage found no occupied space (too few geometry.iters?); "
             "experts will train on the whole camera box without skipping")
@@ -165,7 +173,8 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     box = occ.occupied_bbox(margin_cells=1)
     seconds = round(time.perf_counter() - t0, 2)
     save_expert(ws.geometry_path, model, occ, {"name": "geometry", "fine_bbox": box.tolist(), "iters": rec.iters,
-                                               "seconds": seconds, "occupied_fraction": occ.fraction()})
+                                               "seconds": seconds, "occupied_fraction": occ.fraction(),
+                                               "coverage": cover})
     ckpt.unlink(missing_ok=True)
     log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {[round(v, 3) for v in box.flatten().tolist()]} "
         f"({seconds:.1f}s)")
@@ -176,9 +185,11 @@ def expert_name(model: str, res: int) -> str:
     return f"{model}-{res}"
 
 
-def expert_options(rec: PretrainRecipe, res: int) -> dict:
+def expert_options(rec: PretrainRecipe, res: int, log: Callable[[str], None] | None = None) -> dict:
     """The family options of the expert at `res`. A mapping from resolution to value sets an option
-    per expert (e.g. `hidden: {64: 64, 80: 96, 96: 128}` widens the colour MLP with the grid)."""
+    per expert (e.g. `hidden: {64: 64, 80: 96, 96: 128}` widens the colour MLP with the grid); for a
+    resolution the mapping does not list (`--res 48` over such a recipe) the nearest listed resolution's
+    value is taken (the larger on a tie), and `log` says so."""
     opts = {}
     for key, value in rec.family_config().items():
         if isinstance(value, dict):
@@ -187,10 +198,18 @@ def expert_options(rec: PretrainRecipe, res: int) -> dict:
             except ValueError:
                 raise BoostNerfError(f"recipe key pretrain.{rec.model}.{key}: the keys of a per-expert mapping must be "
                                      f"resolutions (integers), got {list(value)}") from None
+            if not value:
+                raise BoostNerfError(f"recipe key pretrain.{rec.model}.{key} is an empty mapping: give a value per "
+                                     "resolution, or a single value")
             if res not in value:
-                raise BoostNerfError(f"recipe key pretrain.{rec.model}.{key} has no value for res {res} "
-                                     f"(it has {', '.join(map(str, value))}): add one, or give a single value")
-            value = value[res]
+                nearest = min(value, key=lambda r: (abs(r - res), -r))
+                if log is not None:
+                    log(f"recipe key pretrain.{rec.model}.{key} lists no value for res {res}: using {value[nearest]!r}, "
+                        f"the value for the nearest listed resolution ({nearest})")
+                res_key = nearest
+            else:
+                res_key = res
+            value = value[res_key]
         opts[key] = value
     return {**opts, "res": res}
 
@@ -210,14 +229,17 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     if growth:
         model.regrid(final_voxels // (2 ** len(growth)))
     model.init_density(prior.density)  # warm start: colour is then computed near surfaces only
+    if not rec.skip:  # the reference without skipping: no box, no occupancy, colour for every sample
+        tcfg = dataclasses.replace(tcfg, occupancy_every=0, color_threshold=0.0)
+        geom = None
     settings = RenderSettings(step=tcfg.step_ratio * model.unit, near=scene.near, far=scene.far, bbox=box,
                               background=scene.background, color_threshold=tcfg.color_threshold, ndc=scene.ndc)
     task = FieldTask(model, settings, tcfg, skip=geom, base_mask=geom, growth_steps=growth, final_voxels=final_voxels)
     rays = RayData.from_split(scene.splits["train"], box, scene.near, scene.far, scene.ndc).to(device)
     sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
-    signature = {"stage": "pretrain", "scene": scene_tag, "model": rec.model, "res": res, "dvgo": rec.dvgo,
-                 "iters": rec.iters, "growth": list(tcfg.growth), "seed": rec.seed + res,
+    signature = {"stage": "pretrain", "scene": scene_tag, "model": rec.model, "res": res,
+                 rec.model: rec.family_config(), "iters": rec.iters, "skip": rec.skip, "growth": list(tcfg.growth), "seed": rec.seed + res,
                  "geometry": read_meta(ws.geometry_path).get("digest")}
     result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt, signature=signature)
     model.eval()
@@ -232,6 +254,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
         "params": count_params(model),
         "grid_shape": list(model.shape),
         "occupied_fraction": task.skip.fraction() if task.skip is not None else 1.0,
+        "skip": rec.skip,
         "train_psnr": result.history[-1]["psnr"] if result.history else None,
         "history": result.history,
     }
@@ -282,6 +305,9 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
     """
     scene, tag, box, geom, prior, todo = dist.main_first(
         lambda: _prepare(ws, data, rec, device, force, dist.main_log(log)))
+    if not rec.pretrain.skip:
+        box = scene.bbox.to(device)
+        dist.main_log(log)("--no-skip: experts train on the whole scene box, every sample through density and colour")
     with dist.together():
         for res in assign(todo, dist.world_size())[dist.rank()]:
             report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, tag)
@@ -326,8 +352,8 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
         _forget_trained(ws)
     scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
                        format=rec.data.format)
-    for res in rec.pretrain.res:  # per-expert options are checked before anything trains
-        expert_options(rec.pretrain, res)
+    for res in rec.pretrain.res:  # per-expert options are checked (and chosen, said once) before anything trains
+        expert_options(rec.pretrain, res, log)
     digest = scene_digest(scene)
     recorded = ws.manifest().get("scene_digest")
     if recorded and recorded != digest and not force:
