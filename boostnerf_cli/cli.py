@@ -99,7 +99,7 @@ def pretrain(
     data_format: Annotated[str | None, typer.Option("--format", help="Dataset format: auto (detect), blender, nsvf, tanks, llff or nerfstudio.")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
-    no_skip: Annotated[bool, typer.Option("--no-skip", help="Train without skipping: the whole scene box, no occupancy mask, colour for every sample (the reference that skipping is measured against).")] = False,
+    no_skip: Annotated[bool, typer.Option("--no-skip", help="Train without skipping empty space: the whole scene box, no occupancy mask (the reference that skipping is measured against).")] = False,
     force: Annotated[bool, typer.Option("--force", help="Retrain experts that are already finished.")] = False,
 ) -> None:
     """Train one expert per resolution, independently (stage 1 of the paper)."""

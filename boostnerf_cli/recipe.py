@@ -72,7 +72,7 @@ class PretrainRecipe:
     res: list[int] = limit(rule=at_least(1), factory=lambda: [64, 96, 128], min_items=1)
     iters: int = limit(3000, at_least(1))
     seed: int = limit(0, SEED)
-    skip: bool = True  # False (--no-skip): experts train on the whole scene box, every sample evaluated
+    skip: bool = True  # False (--no-skip): experts train on the whole scene box, no occupancy mask
     geometry: GeometryRecipe = field(default_factory=GeometryRecipe)
     train: TrainRecipe = field(default_factory=TrainRecipe)
     dvgo: dict = field(default_factory=dict)  # DVGOConfig fields other than res

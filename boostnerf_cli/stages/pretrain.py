@@ -229,8 +229,8 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     if growth:
         model.regrid(final_voxels // (2 ** len(growth)))
     model.init_density(prior.density)  # warm start: colour is then computed near surfaces only
-    if not rec.skip:  # the reference without skipping: no box, no occupancy, colour for every sample
-        tcfg = dataclasses.replace(tcfg, occupancy_every=0, color_threshold=0.0)
+    if not rec.skip:  # the reference without skipping: the whole scene box, no occupancy mask or refresh
+        tcfg = dataclasses.replace(tcfg, occupancy_every=0)
         geom = None
     settings = RenderSettings(step=tcfg.step_ratio * model.unit, near=scene.near, far=scene.far, bbox=box,
                               background=scene.background, color_threshold=tcfg.color_threshold, ndc=scene.ndc)
@@ -307,7 +307,8 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
         lambda: _prepare(ws, data, rec, device, force, dist.main_log(log)))
     if not rec.pretrain.skip:
         box = scene.bbox.to(device)
-        dist.main_log(log)("--no-skip: experts train on the whole scene box, every sample through density and colour")
+        dist.main_log(log)("--no-skip: experts train on the whole scene box without an occupancy mask (colour is still "
+                           "computed only where a sample's rendering weight exceeds train.color_threshold)")
     with dist.together():
         for res in assign(todo, dist.world_size())[dist.rank()]:
             report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, tag)
