@@ -1,6 +1,7 @@
 """The mixture-of-experts stages through the real CLI, on the tiny workspace."""
 
 import json
+import os
 import shutil
 
 import pytest
@@ -122,19 +123,35 @@ def test_render_expert_montage_and_comparison(moe_ws):
 def test_render_orbit_video(moe_ws, tmp_path):
     import imageio.v3 as iio
 
-    from boostnerf_cli.images import ffmpeg_available
-
     out = tmp_path / "orbit.mp4"
     run_cli("render", "--workspace", str(moe_ws), "--model", "top2", "--path", "orbit", "--frames", "3",
             "--video", str(out), "--device", "cpu", check=True)
-    suffix = ".mp4" if ffmpeg_available() else ".gif"
-    for name in (f"orbit{suffix}", f"orbit_depth{suffix}"):
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["orbit.mp4", "orbit_depth.mp4"]  # the MP4 asked for
+    for name in ("orbit.mp4", "orbit_depth.mp4"):
         frames = list(iio.imiter(tmp_path / name))
         assert len(frames) == 3 and frames[0].shape[:2] == (32, 32)
     proc = run_cli("render", "--workspace", str(moe_ws), "--path", "orbit", "--frames", "3")
     _assert_clean_failure(proc, "--model NAME")
     proc = run_cli("render", "--workspace", str(moe_ws), "--video", str(out))
     _assert_clean_failure(proc, "--path")
+
+
+def test_render_mp4_without_the_ffmpeg_backend_fails_in_one_line_and_writes_nothing(moe_ws, tmp_path, monkeypatch):
+    """A user who asks for NAME.mp4 gets that file or an error, never a GIF under another name."""
+    fake = tmp_path / "site"
+    (fake / "imageio_ffmpeg").mkdir(parents=True)
+    (fake / "imageio_ffmpeg" / "__init__.py").write_text('raise ImportError("simulated: imageio-ffmpeg missing")\n')
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(fake), *filter(None, [os.environ.get("PYTHONPATH")])]))
+    out = tmp_path / "videos"
+    out.mkdir()
+    renders = sorted(p for p in (moe_ws / "renders").rglob("*")) if (moe_ws / "renders").exists() else []
+    for video in ([ "--video", str(out / "o.mp4")], []):  # asked for, and the default WS/renders/top2/orbit.mp4
+        proc = run_cli("render", "--workspace", str(moe_ws), "--model", "top2", "--path", "orbit", "--frames", "3",
+                       *video, "--device", "cpu")
+        _assert_clean_failure(proc, "imageio-ffmpeg")
+        assert len([ln for ln in proc.stderr.splitlines() if ln.strip()]) == 1, proc.stderr
+    assert list(out.iterdir()) == []
+    assert (sorted(p for p in (moe_ws / "renders").rglob("*")) if (moe_ws / "renders").exists() else []) == renders
 
 
 @pytest.mark.parametrize("name", ["dvgo-16", "top1", "top2"])
