@@ -221,7 +221,7 @@ def render(
     path: Annotated[Optional[str], typer.Option("--path", help="Instead: a video along a camera path from the training cameras: orbit (360-degree scenes) or spiral (forward-facing). Needs one --model.")] = None,
     frames: Annotated[int, typer.Option("--frames", min=1, help="--path: number of frames.")] = 60,
     fps: Annotated[int, typer.Option("--fps", min=1, help="--path: frames per second.")] = 24,
-    video: Annotated[Optional[Path], typer.Option("--video", help="--path: output .mp4 (GIF instead when imageio-ffmpeg is missing) or .gif; depth goes to FILE_depth. Default WS/renders/MODEL/PATH.mp4.")] = None,
+    video: Annotated[Optional[Path], typer.Option("--video", help="--path: output .mp4 or .gif; depth goes to FILE_depth. Default WS/renders/MODEL/PATH.mp4.")] = None,
     exact_gate: ExactGateOpt = False,
     device: DeviceOpt = "auto",
 ) -> None:

@@ -1,7 +1,8 @@
 """Pictures on disk: a heat colour map, labelled panel grids, and videos (MP4 or GIF).
 
-Pure numpy + Pillow + imageio (all core dependencies); MP4 needs the optional `imageio-ffmpeg`
-(`pip install 'boostnerf[video]'`), otherwise videos are written as GIF and the caller is told.
+Pure numpy + Pillow + imageio + imageio-ffmpeg (all core dependencies; MP4 is written with the ffmpeg
+binary that imageio-ffmpeg ships). A .mp4 asked for when that backend is missing is refused, not
+written as GIF.
 """
 
 from __future__ import annotations
@@ -94,24 +95,29 @@ def colorbar(height: int, width: int, lo: float, hi: float) -> np.ndarray:
 
 # --- videos ---------------------------------------------------------------------------------------
 def ffmpeg_available() -> bool:
+    """True when imageio-ffmpeg (a core dependency) imports and finds its ffmpeg binary."""
     try:
-        import imageio_ffmpeg  # noqa: F401
-    except ImportError:
+        import imageio_ffmpeg
+
+        imageio_ffmpeg.get_ffmpeg_exe()
+    except (ImportError, RuntimeError):
         return False
     return True
 
 
 def video_target(path: Path) -> tuple[Path, str]:
-    """Where a video asked for at `path` is written, and in which format: MP4 when `path` ends in .mp4 and
-    imageio-ffmpeg is installed, GIF otherwise (the suffix becomes .gif)."""
+    """The format of the video asked for at `path`, from its suffix: "mp4" or "gif". A .mp4 without a
+    working ffmpeg backend is refused (before anything is rendered or written), never changed to GIF."""
     path = Path(path)
     if path.suffix.lower() == ".gif":
         return path, "gif"
     if path.suffix.lower() != ".mp4":
         raise BoostNerfError(f"--video {path}: name an .mp4 or .gif file")
-    if ffmpeg_available():
-        return path, "mp4"
-    return path.with_suffix(".gif"), "gif"
+    if not ffmpeg_available():
+        raise BoostNerfError(f"cannot write {path.name}: the MP4 writer imageio-ffmpeg (a boostnerf dependency) is "
+                             "not installed or has no ffmpeg binary; reinstall it (pip install imageio-ffmpeg) "
+                             "or ask for --video NAME.gif")
+    return path, "mp4"
 
 
 def write_video(path: Path, frames: list[np.ndarray], fps: int, fmt: str) -> None:

@@ -23,7 +23,7 @@ from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
-from boostnerf_cli.workspace import MALFORMED, malformed, save_torch
+from boostnerf_cli.workspace import MALFORMED, kill_point_for_tests, malformed, save_torch
 
 
 @dataclass
@@ -381,3 +381,4 @@ def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, st
         "signature": signature,
     }
     save_torch(path, state)
+    kill_point_for_tests("checkpoint")  # inert unless a resume test asks for it (workspace.TEST_KILL_ENV)

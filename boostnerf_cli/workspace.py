@@ -38,6 +38,32 @@ from boostnerf_cli.errors import BoostNerfError
 FORMAT_VERSION = "1"
 
 
+# Test hook for tests/test_resume.py, inert unless the variable is set (one environment lookup per file write):
+# "checkpoint:N" makes this process SIGKILL itself right after writing its N-th training checkpoint, "write:NAME"
+# inside its atomic write of the file NAME (the temporary file complete and flushed, before the rename), so the
+# resume tests kill the CLI at known points instead of at timed ones.
+TEST_KILL_ENV = "BOOSTNERF_TEST_KILL"
+_test_kill_count = {"checkpoint": 0}
+
+
+def kill_point_for_tests(kind: str, name: str = "") -> None:
+    spec = os.environ.get(TEST_KILL_ENV)
+    if not spec:
+        return
+    want, _, arg = spec.partition(":")
+    if want != kind:
+        return
+    if kind == "checkpoint":
+        _test_kill_count[kind] += 1
+        hit = _test_kill_count[kind] == int(arg)
+    else:
+        hit = name == arg
+    if hit:
+        import signal
+
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
 @contextmanager
 def atomic_path(target: Path) -> Iterator[Path]:
     """Yield a temporary path next to `target`; rename it over `target` only if the block succeeds.
@@ -55,6 +81,7 @@ def atomic_path(target: Path) -> Iterator[Path]:
         tmp_path = Path(tmp)
         yield tmp_path
         _fsync(tmp_path)
+        kill_point_for_tests("write", target.name)
         os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, target)
         _fsync_dir(target.parent)

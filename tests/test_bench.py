@@ -4,6 +4,7 @@ import csv
 import json
 import math
 
+import imageio.v3 as iio
 import pytest
 from conftest import TINY_RECIPE, run_cli
 from test_cli import _assert_clean_failure
@@ -98,12 +99,21 @@ def test_quick_suite_writes_a_finite_table(quick_bench):
                 for v in ("main", "naive-res", "naive-step", "naive-wide")]
     assert len(set(geometry)) == 1  # trained once, hard-linked
     plots = sorted(p.name for p in (root / "reports").glob("*.png"))
-    try:
-        import matplotlib  # noqa: F401
+    assert plots == ["bench-psnr-gflops.png", "bench-psnr-time.png"]  # matplotlib is in the test extra
+    for p in plots:
+        img = iio.imread(root / "reports" / p)
+        assert img.shape[:2] == (600, 840) and img[..., :3].std() > 10  # 7x5 in at 120 dpi, not blank
 
-        assert plots == ["bench-psnr-gflops.png", "bench-psnr-time.png"]
-    except ImportError:
-        assert plots == [] and "matplotlib is not installed" in proc.stderr
+
+def test_bench_plots_are_skipped_with_one_line_without_matplotlib(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises ImportError
+    said = []
+    rows = [{"name": "top1", "group": "moe", "psnr": 20.0, "gflops_per_image": 1.0, "seconds_per_image": 0.1}]
+    assert bench.plot(rows, tmp_path, said.append) == []
+    assert len(said) == 1 and "matplotlib is not installed" in said[0]
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_bench_resumes_and_reuses_experts_for_ablations(quick_bench, tiny_scene, bench_recipe):

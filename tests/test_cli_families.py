@@ -4,7 +4,7 @@
 import json
 
 import pytest
-from conftest import run_cli
+from conftest import PSNR_MARGIN, run_cli
 
 FAMILY_RECIPE = """
 data: {image_size: 32, holdout_every: 8}
@@ -36,6 +36,10 @@ def family_ws(tmp_path_factory, tiny_scene):
     return ws
 
 
+# test PSNR (dB) of each expert of family_ws, measured when this check was written (see conftest.PSNR_MARGIN)
+FAMILY_PSNR = {"tensorf-10": 13.41, "tensorf-14": 14.47, "ngp-2": 13.00, "ngp-3": 16.42}
+
+
 def _report(ws, name):
     return json.loads((ws / "experts" / f"{name}.json").read_text())
 
@@ -43,7 +47,8 @@ def _report(ws, name):
 def test_pretrain_trains_each_family_in_one_workspace(family_ws):
     for name, family in (("tensorf-10", "tensorf"), ("tensorf-14", "tensorf"), ("ngp-2", "ngp"), ("ngp-3", "ngp")):
         r = _report(family_ws, name)
-        assert r["model"] == family and r["iterations"] == 20 and r["test_psnr"] > 5
+        assert r["model"] == family and r["iterations"] == 20
+        assert r["test_psnr"] >= FAMILY_PSNR[name] - PSNR_MARGIN, (name, r["test_psnr"])
         assert (family_ws / "experts" / f"{name}.safetensors").exists()
     assert _report(family_ws, "tensorf-14")["grid_shape"] != _report(family_ws, "tensorf-10")["grid_shape"]
     # one geometry stage, reused by the second family

@@ -3,6 +3,7 @@
 import re
 from pathlib import Path
 
+import pytest
 import typer
 
 from boostnerf_cli.cli import app
@@ -42,16 +43,74 @@ def test_readme_has_exactly_two_setup_commands():
     assert commands[1] in ci
 
 
+TESTS = Path(__file__).parent
+REF = re.compile(r"^(?:(?P<file>test_\w+\.py)(?:::)?)?(?P<name>test_\w+|\.\.\.)?(?P<dots>\.\.\.)?(?:\[(?P<param>.+)\])?$")
+
+
+def _check_how(cell: str, earlier: set[int], previous: str | None) -> str | None:
+    """One "how we tried it" cell of docs/reliability.md: clauses separated by ';', each "cmd..." (a command
+    that was run) or "test" followed by tests that exist -- `file.py::test_name`, `test_name`, `test_prefix...`,
+    `test_name[param]`, `...[param]` (the previous row's test with another parameter), `test_file.py` -- or
+    by an earlier row's number ("test 1", "test as row 25"). Raises AssertionError; -> the last test named."""
+    clauses = [c.strip() for c in re.split(r";(?=(?:[^`]*`[^`]*`)*[^`]*$)", cell) if c.strip()]  # ; outside `code`
+    assert clauses, f"empty cell: {cell!r}"
+    for clause in clauses:
+        if re.match(r"cmd\b", clause):
+            assert len(clause) > len("cmd: x"), f"a command clause names no command: {clause!r}"
+            continue
+        assert re.match(r"test\b", clause), f"neither a test nor a command: {clause!r}"
+        row = re.match(r"test (?:as row )?(\d+)\b", clause)
+        if row:
+            assert int(row.group(1)) in earlier, f"{clause!r} points at a row that is not an earlier one"
+        named = 0
+        for token in re.findall(r"`([^`]+)`", clause):
+            m = REF.match(token)
+            if not m or not (m["file"] or m["name"]):
+                continue  # not a test reference (e.g. a function the test calls)
+            file, name = m["file"], m["name"]
+            if name == "...":
+                assert previous and m["param"], f"{token!r} needs a test named in the row before"
+                name = previous
+            sources = [TESTS / file] if file else sorted(TESTS.glob("test_*.py"))
+            assert all(f.exists() for f in sources), f"{file} does not exist"
+            text = "\n".join(f.read_text() for f in sources)
+            if name:
+                assert re.search(rf"def {name}{'' if m['dots'] else '[(]'}", text), f"no test {name} ({token!r})"
+                previous = name
+            for param in (m["param"] or "").split(","):
+                assert param.strip() in text, f"{token!r}: parameter {param.strip()!r} not in the tests"
+            named += 1
+        assert named or row, f"a test clause that names no test: {clause!r}"
+    return previous
+
+
 def test_reliability_table_lists_at_least_25_faults_each_backed_by_a_test_or_command():
     text = (DOCS / "reliability.md").read_text()
     table = text.split("## Faults and bad inputs tried", 1)[1].split("\n### ", 1)[0]
     rows = [ln for ln in table.splitlines() if ln.startswith("| ") and ln.split("|")[1].strip().isdigit()]
     assert len(rows) >= 25
     assert [int(r.split("|")[1]) for r in rows] == list(range(1, len(rows) + 1))
-    tests_dir = Path(__file__).parent
-    sources = "\n".join(p.read_text() for p in tests_dir.glob("test_*.py"))
+    earlier, previous = set(), None
     for row in rows:
-        how = row.split("|")[3]
-        assert "test" in how or "cmd" in how, row
-        for name in re.findall(r"`(?:[\w.]+::)?(test_\w+)(?!\w|\.py)", how):  # every test named exists
-            assert f"def {name}" in sources, name
+        cells = row.split("|")
+        assert len(cells) == 7, row  # | # | fault | how | what boostnerf did | what was lost |
+        try:
+            previous = _check_how(cells[3], earlier, previous)
+        except AssertionError as e:
+            raise AssertionError(f"docs/reliability.md row {cells[1].strip()}: {e}") from None
+        earlier.add(int(cells[1]))
+
+
+@pytest.mark.parametrize("cell", [
+    "we ran the tests",  # the word "test" is no evidence
+    "test of the resume path",  # a test clause naming no test
+    "test `test_no_such_test_anywhere`",
+    "test `test_cli.py::test_unknown_recipe`",  # a prefix without "..." must be the whole name
+    "test `test_moe.py::test_unknown_recipe_key`",  # exists, but in another file
+    "test 7",  # not an earlier row
+    "test `test_faults.py::test_interrupt_stops_cleanly_and_the_rerun_resumes[SIGQUIT]`",
+    "cmd",
+])
+def test_the_reliability_table_check_rejects_rows_without_evidence(cell):
+    with pytest.raises(AssertionError):
+        _check_how(cell, {1, 2}, None)

@@ -71,8 +71,10 @@ def test_save_load_round_trip_is_exact(tmp_path):
     occ = OccupancyGrid(torch.rand(4, 4, 4) > 0.5, BOX)
     save_expert(tmp_path / "e.safetensors", m, occ, {"step": 0.01})
     m2, occ2, meta = load_expert(tmp_path / "e.safetensors")
-    for (k, a), (_, b) in zip(m.state_dict().items(), m2.state_dict().items()):
-        assert torch.equal(a, b), k
+    sd, sd2 = m.state_dict(), m2.state_dict()
+    assert sd.keys() == sd2.keys()  # a tensor missing from the file fails here, not silently skipped
+    for k in sd:
+        assert torch.equal(sd[k], sd2[k]), k
     assert torch.equal(occ.occupied, occ2.occupied) and meta["step"] == 0.01
     xyz = torch.rand(30, 3) - 0.5
     d = torch.nn.functional.normalize(torch.randn(30, 3), dim=-1)

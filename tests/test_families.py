@@ -22,7 +22,6 @@ from boostnerf_cli.fields.hashgrid import (
     PRIMES,
     HashEncoding,
     level_resolutions,
-    reference_encoding,
 )
 from boostnerf_cli.fields.vm import LINE_AXIS, PLANE_AXES, VMGrid
 from boostnerf_cli.moe.density_volume import DensityVolume
@@ -30,6 +29,7 @@ from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, load_mixture, save_mixture
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_rays
+from reference import reference_encoding
 
 BOX = torch.tensor([[-1.0, -1.0, -0.5], [1.0, 1.0, 0.5]])
 SMALL = {

@@ -211,6 +211,7 @@ def test_load_lpips_from_files_in_reference_layouts(tmp_path, monkeypatch) -> No
     model, reason = load_lpips("cpu")
     assert reason == "" and model is not None
     assert not model.training
+    assert model.state_dict().keys() == src.state_dict().keys()
     for key, value in src.state_dict().items():
         assert torch.equal(model.state_dict()[key], value), key
     rng = _rng(8)

@@ -10,8 +10,9 @@ from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, RoutingStats, load_mixture, save_mixture
-from boostnerf_cli.moe.router import aux_loss, dispatch, dispatch_dense_reference, penalty_weights, top_k
+from boostnerf_cli.moe.router import aux_loss, dispatch, penalty_weights, top_k
 from boostnerf_cli.render.renderer import RenderSettings, render_rays
+from reference import dispatch_dense_reference
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -102,10 +103,70 @@ def test_render_routing_without_probabilities_matches_training_routing(k):
         ref = torch.softmax(mix.gate.logits(xyz).double(), -1)
         chosen = ref.gather(1, idx)
         assert torch.allclose(fast_vals.double(), chosen / chosen.sum(-1, keepdim=True), atol=1e-6, rtol=0)
-        assert torch.allclose(mix.density(xyz), mix.batch_view().density(xyz))
     mix.train()
     probs, _, _ = mix.route(xyz, need_probs=False)  # autograd on: the trained path, probabilities kept
     assert probs is not None
+
+
+def _per_sample_reference(mix, xyz, dirs):
+    """The paper's Sec. 3 written out one sample at a time in float64, with the experts, the gate's logits
+    and V_D's density as black boxes: keep = 1 - exp(-sigma_D step) > T; p = softmax(logits);
+    K = the k largest p; g_i = p_i (/ sum_K p when renormalised; 1 for k = 1); sigma = sum_K g_i sigma_i,
+    c = sum_K g_i c_i. -> sigma (N,), colour (N, 3), keep (N,) as Python lists."""
+    with torch.no_grad():
+        logits = mix.gate.logits(xyz).double().tolist()
+        sig = [e.density(xyz).double().tolist() for e in mix.experts]
+        col = [e.color(xyz, dirs).double().tolist() for e in mix.experts]
+        vd = mix.vd.density(xyz).double().tolist()
+    k, out_s, out_c, keep = mix.cfg.topk, [], [], []
+    for s in range(xyz.shape[0]):
+        z = [math.exp(v - max(logits[s])) for v in logits[s]]
+        p = [v / sum(z) for v in z]
+        chosen = sorted(range(mix.m), key=lambda i: -p[i])[:k]
+        if mix.cfg.renormalize:
+            g = {i: (1.0 if k == 1 else p[i] / sum(p[j] for j in chosen)) for i in chosen}
+        else:
+            g = {i: p[i] for i in chosen}
+        out_s.append(sum(g[i] * sig[i][s] for i in chosen))
+        out_c.append([sum(g[i] * col[i][s][c] for i in chosen) for c in range(3)])
+        keep.append(1.0 - math.exp(-vd[s] * mix.cfg.step) > mix.cfg.threshold)
+    return torch.tensor(out_s, dtype=torch.float64), torch.tensor(out_c, dtype=torch.float64), torch.tensor(keep)
+
+
+@pytest.mark.parametrize("k,renormalize", [(1, True), (2, True), (3, True), (1, False), (2, False)])
+def test_mixture_equals_a_float64_per_sample_reference(k, renormalize):
+    """Every way the tool evaluates a mixture -- the Field calls (rendering), the renderer's routed view
+    (density, then colour of a subset of its samples), the training view with routing statistics -- and
+    the V_D filter, against the hand-written reference."""
+    mix = _mixture(m=3, k=k, renormalize=renormalize)
+    xyz, d = _points(400, seed=5)
+    ref_s, ref_c, ref_keep = _per_sample_reference(mix, xyz, d)
+    assert 0 < int(ref_keep.sum()) < len(ref_keep)  # the filter keeps some samples and drops others
+    tol = dict(atol=1e-4, rtol=1e-5)
+    with torch.no_grad():
+        assert torch.allclose(mix.density(xyz).double(), ref_s, **tol)
+        assert torch.allclose(mix.color(xyz, d).double(), ref_c, **tol)
+        assert torch.equal(mix.skip(xyz).cpu(), ref_keep)
+        view = mix.batch_view()
+        assert torch.allclose(view.density(xyz).double(), ref_s, **tol)
+        rows = torch.nonzero(ref_keep).reshape(-1)
+        assert torch.allclose(view.color_rows(rows, d[rows]).double(), ref_c[rows], **tol)
+    stats = RoutingStats()
+    trained = mix.with_stats(stats)  # autograd on: the training path, probabilities recorded
+    assert torch.allclose(trained.density(xyz).detach().double(), ref_s, **tol)
+    assert len(stats.probs) == 1 and stats.probs[0].shape == (400, 3)
+
+
+def test_the_per_sample_reference_is_not_the_code_it_checks():
+    """The reference fails a mixture whose routing is wrong: a mixture that takes the k *smallest* probabilities."""
+    mix = _mixture(m=3, k=2)
+    xyz, d = _points(200, seed=5)
+    ref_s, _, _ = _per_sample_reference(mix, xyz, d)
+    real = mix.gate.logits
+    mix.gate.logits = lambda x: -real(x)  # routes to the other experts; the reference reads the true logits first
+    with torch.no_grad():
+        wrong = mix.density(xyz).double()
+    assert not torch.allclose(wrong, ref_s, atol=1e-2)
 
 
 @pytest.mark.parametrize("k", [1, 2, 3])
@@ -287,3 +348,23 @@ def test_rendering_a_mixture_uses_the_baked_gate_unless_asked_for_the_exact_one(
     xyz, _ = _points(300)
     agree = (exact.probs(xyz).argmax(-1) == mix.gate.probs(xyz).argmax(-1)).float().mean()
     assert agree > 0.9  # top-1 routing changes only next to the gate's decision boundaries
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_topk_routing_changes_with_the_gate(k):
+    """The experts chosen are the gate's: perturbing the gate's parameters changes them, restoring them restores them."""
+    mix = _mixture(m=3, k=k)
+    xyz, _ = _points(500)
+    with torch.no_grad():
+        _, _, before = mix.route(xyz, need_probs=False)
+        saved = [p.clone() for p in mix.gate.parameters()]
+        g = torch.Generator().manual_seed(7)
+        for p in mix.gate.parameters():
+            p.add_(torch.randn(p.shape, generator=g) * 0.5)
+        _, _, after = mix.route(xyz, need_probs=False)
+        changed = (torch.sort(after, -1).values != torch.sort(before, -1).values).any(-1).float().mean()
+        assert changed > 0.2, float(changed)
+        for p, q in zip(mix.gate.parameters(), saved, strict=True):
+            p.copy_(q)
+        _, _, again = mix.route(xyz, need_probs=False)
+    assert torch.equal(again, before)

@@ -139,15 +139,14 @@ def test_panel_grid_places_labelled_enlarged_panels():
 
 def test_video_mp4_and_gif(tmp_path, monkeypatch):
     frames = [np.full((15, 21, 3), 20 * i, np.uint8) for i in range(5)]  # odd sides: padded for yuv420p
-    if images.ffmpeg_available():
-        target, fmt = images.video_target(tmp_path / "v.mp4")
-        assert (target.name, fmt) == ("v.mp4", "mp4")
-        images.write_video(target, frames, 10, fmt)
-        read = list(iio.imiter(target))
-        assert len(read) == 5 and read[0].shape[:2] == (16, 22)
-        assert abs(float(read[3].mean()) - 60) < 4
-    monkeypatch.setattr(images, "ffmpeg_available", lambda: False)
+    assert images.ffmpeg_available()  # imageio-ffmpeg is a core dependency
     target, fmt = images.video_target(tmp_path / "v.mp4")
+    assert (target.name, fmt) == ("v.mp4", "mp4")
+    images.write_video(target, frames, 10, fmt)
+    read = list(iio.imiter(target))
+    assert len(read) == 5 and read[0].shape[:2] == (16, 22)
+    assert abs(float(read[3].mean()) - 60) < 4
+    target, fmt = images.video_target(tmp_path / "v.gif")
     assert (target.name, fmt) == ("v.gif", "gif")
     images.write_video(target, frames, 10, fmt)
     read = iio.imread(target, index=None)
@@ -155,6 +154,26 @@ def test_video_mp4_and_gif(tmp_path, monkeypatch):
     with pytest.raises(BoostNerfError, match=".mp4 or .gif"):
         images.video_target(tmp_path / "v.avi")
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary files left
+
+
+def test_an_mp4_without_the_ffmpeg_backend_is_refused_not_turned_into_a_gif(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # `import imageio_ffmpeg` raises ImportError
+    assert not images.ffmpeg_available()
+    with pytest.raises(BoostNerfError, match="cannot write v.mp4: .*imageio-ffmpeg"):
+        images.video_target(tmp_path / "v.mp4")
+    assert images.video_target(tmp_path / "v.gif") == (tmp_path / "v.gif", "gif")  # GIF needs no ffmpeg
+    monkeypatch.undo()
+
+    class NoBinary:
+        @staticmethod
+        def get_ffmpeg_exe():
+            raise RuntimeError("No ffmpeg exe could be found")
+
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", NoBinary)  # installed, but no ffmpeg binary
+    assert not images.ffmpeg_available()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_gate_by_detail_splits_pixels_at_the_median_detail():

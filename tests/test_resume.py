@@ -1,30 +1,27 @@
-"""kill -9 at random moments, rerun the same command: the result equals an uninterrupted run.
+"""kill -9, rerun the same command: the result equals an uninterrupted run.
 
-The real CLI runs in a subprocess and is SIGKILLed at seeded random points of its progress output
-(plus a random delay, so some kills land inside checkpoint and artifact writes). Rerunning the same
-command resumes from the last checkpoint; the final artifacts must match an uninterrupted run with
-the same seed within RESUME_ATOL (docs/reliability.md), and the killed runs must leave no partial
-file, checkpoint or lock behind once the command has completed.
+The real CLI runs in a subprocess and SIGKILLs itself at known points (workspace.TEST_KILL_ENV): right
+after its N-th training checkpoint, or inside the atomic write of a named artifact (temporary file
+written, not yet renamed). Rerunning the same command resumes from the last checkpoint; the final
+artifacts must match an uninterrupted run with the same seed within RESUME_ATOL (docs/reliability.md),
+and the killed runs must leave no partial file, checkpoint or lock behind once the command has completed.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import random
-import re
 import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 import torch
 from conftest import run_cli
 
-from boostnerf_cli.workspace import load_tensors
+from boostnerf_cli.workspace import TEST_KILL_ENV, load_tensors
 
 RESUME_ATOL = 1e-5  # documented in docs/reliability.md; observed difference: exactly 0
 
@@ -43,43 +40,27 @@ moe:
   train: {batch_rays: 128, log_every: 1, checkpoint_every: 4}
 """
 
-STEP_LINE = re.compile(r"^\[[\w.-]+\] step \d+/\d+")
-
-
 def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "boostnerf_cli", *args]
 
 
-def run_and_kill(args: list[str], after_lines: int, delay: float) -> int | None:
-    """Start the CLI, SIGKILL it `delay` s after its `after_lines`-th progress line; -> its return code.
-
-    A tiny step takes a few milliseconds on a quiet machine, so the delay stays short (tens of ms): enough to
-    land some kills inside checkpoint and artifact writes, not so long that the run finishes first."""
-    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
-    proc = subprocess.Popen(_cli(*args), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
-    seen = 0
-    assert proc.stderr is not None
-    for line in proc.stderr:
-        if STEP_LINE.match(line):
-            seen += 1
-            if seen == after_lines:
-                time.sleep(delay)
-                proc.send_signal(signal.SIGKILL)
-                break
-    proc.stderr.close()
-    return proc.wait(timeout=600)
+def run_killed(args: list[str], point: str) -> None:
+    """Run the CLI until it SIGKILLs itself at `point` (workspace.TEST_KILL_ENV: "checkpoint:N", "write:NAME")."""
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", TEST_KILL_ENV: point}
+    proc = subprocess.run(_cli(*args), capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == -signal.SIGKILL, f"{point}: not killed ({proc.returncode}):\n{proc.stderr[-2000:]}"
 
 
-def kill_repeatedly(args: list[str], seed: int, max_lines: int, kills: int = 3) -> int:
-    """Kill the command at `kills` seeded random points (each on a rerun), then let it finish; -> kills landed."""
-    rng = random.Random(seed)
-    landed = 0
-    for _ in range(kills):
-        code = run_and_kill(args, after_lines=rng.randint(1, max_lines), delay=rng.uniform(0.0, 0.03))
-        landed += code == -signal.SIGKILL
+def kill_at(args: list[str], points: list[str], ws: Path) -> None:
+    """Kill the command at each point in turn (each on a rerun), then rerun it to the end."""
+    for point in points:
+        run_killed(args, point)
+        if point.startswith("write:"):  # killed mid-write: the temporary file is there, the artifact is not
+            name = point.split(":", 1)[1]
+            assert list(ws.rglob(f".{name}.*.tmp")) and not list(ws.rglob(name)), point
     proc = run_cli(*args, check=True)
     assert "error" not in proc.stderr.lower(), proc.stderr[-2000:]
-    return landed
+    assert "resuming from" in proc.stderr
 
 
 def assert_same_tensors(a: Path, b: Path) -> None:
@@ -118,12 +99,13 @@ def setup(tmp_path_factory, tiny_scene):
     return root, recipe, ref, args
 
 
-def test_pretrain_killed_at_random_points_resumes_to_the_uninterrupted_result(setup):
+def test_pretrain_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupted_result(setup):
     root, _, ref, args = setup
     ws = root / "killed-pretrain"
     args = [a if a != str(ref) else str(ws) for a in args]
-    landed = kill_repeatedly(args, seed=14, max_lines=20)  # in geometry, dvgo-10, then later
-    assert landed >= 2  # most seeded kill points land inside the run
+    # after the geometry stage's 2nd checkpoint (step 8/24); on the rerun, 4 more geometry checkpoints and 3 of
+    # dvgo-10 (step 12/24); then inside the write of dvgo-10's weights, after its last checkpoint
+    kill_at(args, ["checkpoint:2", "checkpoint:7", "write:dvgo-10.safetensors"], ws)
     for p in sorted((ref / "experts").glob("*.safetensors")):
         assert_same_tensors(p, ws / "experts" / p.name)
     for p in sorted((ref / "experts").glob("dvgo-*.json")):
@@ -134,15 +116,16 @@ def test_pretrain_killed_at_random_points_resumes_to_the_uninterrupted_result(se
 
 
 @pytest.mark.parametrize("how", [["--topk", "2"]], ids=["top2"])
-def test_finetune_killed_at_random_points_resumes_to_the_uninterrupted_result(setup, how):
+def test_finetune_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupted_result(setup, how):
     root, _, ref, _ = setup
     run_cli("build-moe", "--workspace", str(ref), "--device", "cpu", check=True)
     ws = root / "killed-finetune"
     shutil.copytree(ref, ws)
     run_cli("finetune", "--workspace", str(ref), *how, "--device", "cpu", check=True)
     name = "top" + how[1]
-    landed = kill_repeatedly(["finetune", "--workspace", str(ws), *how, "--device", "cpu"], seed=11, max_lines=8)
-    assert landed >= 2
+    # after step 4/24; after step 16 (3 checkpoints on the rerun); inside the write of the finished mixture
+    kill_at(["finetune", "--workspace", str(ws), *how, "--device", "cpu"],
+            ["checkpoint:1", "checkpoint:3", f"write:{name}.safetensors"], ws)
     assert_same_tensors(ref / "moe" / f"{name}.safetensors", ws / "moe" / f"{name}.safetensors")
     got = json.loads((ws / "moe" / f"{name}.json").read_text())
     want = json.loads((ref / "moe" / f"{name}.json").read_text())

@@ -145,10 +145,17 @@ def test_empty_batches_and_rays_that_miss_the_box():
     assert out.n_samples == 0
     assert torch.equal(out.color, torch.tensor([[0.2, 0.3, 0.4]]).expand(16, 3))
     assert (out.acc == 0).all() and (out.depth == 0).all()
-    loss = out.color.sum()
-    if loss.requires_grad:
-        loss.backward()
-    assert all(p.grad is None or (p.grad == 0).all() for p in model.parameters())
+    # no sample, so nothing to learn: the colour is the constant background, cut off from the parameters
+    # (train.batch_gradients then skips the step as not learnable)
+    assert not out.color.requires_grad
+    # one ray through the box among them: its colour learns, the missed rays keep the exact background
+    o_hit, d_hit = torch.tensor([[0.0, 0.0, -4.0]]), torch.tensor([[0.0, 0.0, 1.0]])  # through the box centre
+    mixed = render_rays(model, torch.cat([o_hit, o]), torch.cat([d_hit, d]), settings_, jitter=True)
+    assert mixed.n_samples > 0 and mixed.color.requires_grad
+    assert torch.equal(mixed.color[1:].detach(), torch.tensor([[0.2, 0.3, 0.4]]).expand(16, 3))
+    mixed.color.sum().backward()
+    grads = [p.grad for p in model.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads) and any(g.abs().max() > 0 for g in grads)
     # parallel to a slab, outside it: no NaN from 0 * inf in the slab test
     par = render_rays(model, torch.tensor([[5.0, 0.0, 1.0]]), torch.tensor([[0.0, 1.0, 0.0]]), settings_)
     assert torch.isfinite(par.color).all() and par.n_samples == 0

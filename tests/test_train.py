@@ -51,8 +51,10 @@ def test_resume_after_a_crash_matches_an_uninterrupted_run(tiny_scene, tmp_path)
     resumed = _task(scene, 24)
     result = train(resumed, rays, sched, seed=3, title="resume", checkpoint=ckpt)
     assert result.iterations == 24
-    for (k, a), (_, b) in zip(ref.model.state_dict().items(), resumed.model.state_dict().items()):
-        assert torch.allclose(a, b, atol=1e-6), k
+    sd, sd2 = ref.model.state_dict(), resumed.model.state_dict()
+    assert sd.keys() == sd2.keys()
+    for k in sd:
+        assert torch.allclose(sd[k], sd2[k], atol=1e-6), k
     assert [h["step"] for h in result.history] == [4, 8, 12, 16, 20, 24]
 
 

@@ -119,14 +119,3 @@ def dispatch(
         out = out.index_add(0, r, y * w[start : start + c, None])
         start += c
     return out, counts
-
-
-def dispatch_dense_reference(
-    x_rows: int, idx: Tensor, vals: Tensor, m: int, run_all: Callable[[int], Tensor], out_dim: int, like: Tensor
-) -> Tensor:
-    """The obvious version, for tests: every expert on every sample, masked by the routing."""
-    out = like.new_zeros(x_rows, out_dim)
-    for e in range(m):
-        weight = (vals * (idx == e)).sum(-1)  # (N,)
-        out = out + weight[:, None] * run_all(e).reshape(x_rows, out_dim)
-    return out

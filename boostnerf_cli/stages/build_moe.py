@@ -16,7 +16,7 @@ from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, save_mixture
 from boostnerf_cli.recipe import MoERecipe, check_section
 from boostnerf_cli.render.occupancy import OccupancyGrid
-from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
+from boostnerf_cli.workspace import Workspace, read_meta, write_json
 
 
 def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, log: Callable[[str], None]) -> dict:
@@ -117,7 +117,3 @@ def resolve_gate_grid(choice: str, families: list[str]) -> str:
         return choice
     kinds = {FAMILY_GATE_GRID.get(f, "dense") for f in families}
     return kinds.pop() if len(kinds) == 1 else "dense"
-
-
-def init_report(ws: Workspace) -> dict:
-    return read_json(ws.moe_dir / "init.json", "mixture report")

@@ -14,7 +14,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import count_params, load_expert
 from boostnerf_cli.render.renderer import RenderSettings
 from boostnerf_cli.scenes import Scene, load_scene
-from boostnerf_cli.workspace import Workspace, read_json, read_meta
+from boostnerf_cli.workspace import Workspace, read_meta
 
 
 def resolve_device(name: str) -> str:
@@ -146,7 +146,3 @@ def all_model_names(ws: Workspace) -> list[str]:
     order = {"baseline": 0, "top1": 1, "top2": 2, "ens": 9}
     mixtures = sorted((n for n in ws.model_names() if n != "init"), key=lambda n: (order.get(n, 5), n))
     return ws.expert_names() + mixtures
-
-
-def expert_report(ws: Workspace, name: str) -> dict:
-    return read_json(ws.expert_report_path(name), "expert report")

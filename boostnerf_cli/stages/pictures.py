@@ -2,8 +2,8 @@
 with error heat maps, and each expert's share of a mixture with the gate's probability maps.
 
 Files (all under WS/renders/, see docs/stages.md):
-- `render --path orbit|spiral`: `<model>/<path>.mp4` (or `--video FILE`) and `<...>_depth.mp4`;
-  GIF when imageio-ffmpeg is not installed;
+- `render --path orbit|spiral`: `<model>/<path>.mp4` (or `--video FILE`, .mp4 or .gif) and
+  `<...>_depth.mp4`; an MP4 without the ffmpeg backend is refused before anything is rendered;
 - `render --compare`: `compare/<split>/<view>.png`;
 - `render --per-expert` (mixtures): `<model>/<split>/<view>_expert<i>-<name>.png`,
   `<view>_gate<i>-<name>.png` and the montage `<view>_experts.png`.
@@ -65,6 +65,7 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
         raise BoostNerfError(f"--path renders one model: add --model NAME (models: {', '.join(all_model_names(ws)) or 'none yet'})")
     scene = workspace_scene(ws)
     model = load_model(ws, names[0], device)
+    target, fmt = video_target(video or ws.root / "renders" / model.name / f"{kind}.mp4")  # refused before rendering
     train = scene.split("train")
     facing = float(torch.linalg.norm(train.poses[:, :3, 2].mean(0)))  # 1: all cameras look the same way
     if kind == "spiral" and facing < 0.5:
@@ -85,13 +86,9 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
     seen = np.concatenate([d[a >= 0.5] for d, a in zip(depth, acc)])
     lo, hi = (np.percentile(seen, [1, 99]) if seen.size else (scene.near, scene.far))
     depth_frames = [colorize_depth(d, a, float(lo), float(max(hi, lo + 1e-6))) for d, a in zip(depth, acc)]
-    asked = video or ws.root / "renders" / model.name / f"{kind}.mp4"
-    target, fmt = video_target(asked)
     depth_target = target.with_name(f"{target.stem}_depth{target.suffix}")
     write_video(target, rgb, fps, fmt)
     write_video(depth_target, depth_frames, fps, fmt)
-    if fmt == "gif" and asked.suffix.lower() == ".mp4":
-        log("imageio-ffmpeg is not installed, so the videos are GIF, not MP4 (pip install 'boostnerf[video]' for MP4)")
     log(f"{model.name}: wrote {fmt.upper()} {target} and {depth_target} ({len(poses)} frames, {fps} fps, "
         f"{kind} path; depth: near bright, far dark, {lo:.3g} .. {hi:.3g} world units)")
     return [target, depth_target]

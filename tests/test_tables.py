@@ -1,0 +1,85 @@
+"""The result tables in docs/ are what scripts/tables.py makes of the reports in docs/data/."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).parent.parent
+_spec = importlib.util.spec_from_file_location("tables", ROOT / "scripts" / "tables.py")
+tables = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(tables)
+
+
+def _marked() -> list[tuple[Path, str]]:
+    return [(md, m["name"]) for md in sorted((ROOT / "docs").glob("*.md")) for m in tables.BLOCK.finditer(md.read_text())]
+
+
+def test_every_marked_table_matches_its_data():
+    marked = _marked()
+    names = {n for _, n in marked}
+    assert {"results-session4-dvgo", "results-session6-families", "benchmarks-quick-demo"} <= names
+    for md, _ in {(md, None) for md, _ in marked}:
+        text = md.read_text()
+        new, changed = tables.rebuild(text)
+        assert not changed, f"{md.name}: {changed} differ from docs/data (run python scripts/tables.py)"
+        assert new == text
+    assert tables.main(["--check"]) == 0
+
+
+def test_every_data_file_has_a_table_and_a_provenance_line():
+    names = {n for _, n in _marked()}
+    files = sorted((ROOT / "docs" / "data").glob("*.json"))
+    specs = [json.loads(p.read_text()) for p in files]
+    reports = {g["report"] for spec in specs for g in spec.get("groups", []) if "report" in g}
+    readme = (ROOT / "docs" / "data" / "README.md").read_text()
+    for path in files:
+        assert path.stem in names or path.name in reports, f"{path.name} is used by no table"
+        assert f"`{path.name}`" in readme, f"{path.name}: say where it comes from in docs/data/README.md"
+
+
+def test_a_hand_edited_table_is_caught():
+    md, name = next(x for x in _marked() if x[1] == "results-session4-dvgo")
+    text = md.read_text().replace("| 34.545 | +0.30 |", "| 34.645 | +0.40 |")
+    assert text != md.read_text()
+    _, changed = tables.rebuild(text)
+    assert changed == [name]
+
+
+def test_a_table_from_raw_eval_reports_with_deltas_against_each_baseline(tmp_path, monkeypatch):
+    """What the lead engineer does with new runs: copy WS/reports/eval.json files to docs/data/ and list them."""
+    def report(psnr_base, psnr_top2):
+        row = {"kind": "mixture", "lpips": None, "seconds_per_image": 0.1, "samples_per_image": 1, "colored_per_image": 1,
+               "params": 2_000_000}
+        return {"split": "test", "views": 8, "lpips_note": None, "models": [
+            {**row, "name": "dvgo-80", "kind": "expert", "psnr": 33.781, "ssim": 0.9801, "w0": 1_090_123,
+             "gflops_per_image": 2.789},
+            {**row, "name": "baseline", "kind": "expert", "psnr": psnr_base, "ssim": 0.98404, "w0": 1_051_655,
+             "gflops_per_image": 2.5701},
+            {**row, "name": "top2", "psnr": psnr_top2, "ssim": 0.98512, "w0": 1_720_000, "gflops_per_image": 2.6969}]}
+
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "dvgo-eval.json").write_text(json.dumps(report(34.2494, 34.5451)))
+    (data / "ngp-eval.json").write_text(json.dumps(report(33.1271, 33.4482)))
+    (data / "families.json").write_text(json.dumps({"groups": [
+        {"label": "DVGO", "report": "dvgo-eval.json"}, {"label": "NGP", "report": "ngp-eval.json", "models": ["baseline", "top2"]}]}))
+    monkeypatch.setattr(tables, "DATA", data)
+    assert tables.render("families") == (
+        "| model | PSNR | vs baseline | SSIM | ‖w‖₀ | GFLOPs / image |\n"
+        "|---|---|---|---|---|---|\n"
+        "| DVGO: dvgo-80 | 33.781 | -0.47 | 0.9801 | 1,090,123 | 2.789 |\n"
+        "| DVGO: baseline | 34.249 |  | 0.9840 | 1,051,655 | 2.570 |\n"
+        "| DVGO: top2 | 34.545 | +0.30 | 0.9851 | 1,720,000 | 2.697 |\n"
+        "| NGP: baseline | 33.127 |  | 0.9840 | 1,051,655 | 2.570 |\n"
+        "| NGP: top2 | 33.448 | +0.32 | 0.9851 | 1,720,000 | 2.697 |\n")
+    # one raw eval.json copied as the table's own file: a single group
+    (data / "one.json").write_text(json.dumps(report(34.2494, 34.5451)))
+    assert tables.render("one").splitlines()[4] == "| top2 | 34.545 | +0.30 | 0.9851 | 1,720,000 | 2.697 |"
+
+
+@pytest.mark.parametrize("value,compact,text", [(593_532, True, "594k"), (1_072_525, True, "1.07M"),
+                                                (1_072_525, False, "1,072,525"), (None, True, "-"), ("1.1M", False, "1.1M")])
+def test_parameter_counts(value, compact, text):
+    assert tables._count(value, compact) == text
