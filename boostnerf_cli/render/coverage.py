@@ -8,12 +8,22 @@ good. `cover_foreground` makes the mask conservative by construction:
 1. foreground rays: training pixels whose colour differs from the scene's known background colour
    by more than `tol` (for a scene with no known background, every pixel is foreground);
 2. a ray is covered when one of its samples inside the box falls in an occupied cell;
-3. each uncovered foreground ray gets the cells along it that lie in the visual hull of the training
-   views (cells that project onto foreground, with the masks dilated by the cell's footprint, in every
-   view that sees them), or, where the hull gives none or there is no background, the cell where the
-   coarse model puts most of the ray's rendering weight;
+3. each uncovered foreground ray gets one cell: where the coarse model puts most of the ray's rendering
+   weight, among the ray's cells in the visual hull of the training views (cells that project onto
+   foreground in every view that sees them: first at their centre, else anywhere in their footprint),
+   or among all its cells where the hull has none or the background is unknown;
 4. after that every foreground ray crosses an occupied cell, so a box drawn around the occupied cells
-   (with a margin) holds every visible structure: `covered_fraction` checks it.
+   (with a margin) holds every visible structure (`missed_after` counts the rays that still do not).
+
+Before step 2, occupied cells outside the visual hull are dropped: a cell whose centre projects onto
+background in some training view holds no surface there (the coarse model's floaters against the
+background), and so is a cell seen by under a quarter of the views (in front of a camera, where the coarse
+model's floaters sit: a hull of few views is a wide cone). This tight hull can drop
+a cell that a thin structure crosses off-centre; step 3, with the footprint-dilated hull, puts back
+those that a foreground ray needs. So the box is set by what the views show, not by the initial bounds a dataset layout
+gives (a camera-derived box or a bbox.txt). The hull assumes the object's colour differs from the
+background's by more than `FOREGROUND_TOL` somewhere in each of its pixels; a part exactly the
+background's colour can be carved (it renders as the background from every training view anyway).
 """
 
 from __future__ import annotations
@@ -65,29 +75,40 @@ def covered(origins: Tensor, dirs: Tensor, occ: OccupancyGrid, near: float, far:
 
 
 @torch.no_grad()
-def visual_hull(occ: OccupancyGrid, poses: Tensor, intrinsics: Tensor, masks: Tensor) -> Tensor:
-    """Cells (occupancy grid shape, bool) whose centre projects onto foreground in every view that sees
-    it, each view's mask dilated by the cell's footprint there (so a cell holding a thin structure
-    anywhere inside it is kept); cells no view sees are kept too (nothing says they are empty)."""
+def visual_hull(occ: OccupancyGrid, poses: Tensor, intrinsics: Tensor, masks: Tensor, footprint: bool = True,
+                min_views: int = 1) -> Tensor:
+    """Cells (occupancy grid shape, bool) that at least one training view sees and that every view seeing
+    them shows as foreground somewhere in their footprint: with `footprint`, the square of half-side
+    focal * (half the cell's diagonal) / depth pixels around the centre's projection, so a cell holding a
+    thin structure anywhere inside is kept; without, the 3 x 3 pixels around the centre's projection (the
+    cells a surface passes through near their centre). A cell seen by fewer than `min_views` views is left
+    out (one view's hull is a whole cone: the space just in front of a camera passes it)."""
     centres = occ.cell_centers()
     cell = (occ.bbox[1] - occ.bbox[0]) / torch.tensor(occ.shape, device=occ.bbox.device)
     half_diag = 0.5 * float(cell.norm())
     h, w = masks.shape[1:]
     keep = torch.ones(centres.shape[0], dtype=torch.bool, device=centres.device)
+    seen_by = torch.zeros(centres.shape[0], dtype=torch.long, device=centres.device)
     for pose, k, mask in zip(poses, intrinsics, masks):
         uv, depth = project_points(centres, pose.to(centres.device), k)
         front = depth > 1e-6
-        if not bool(front.any()):
+        seen = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        if not bool(seen.any()):
             continue
-        radius = int(math.ceil(float(k[0]) * half_diag / float(depth[front].min()))) if bool(front.any()) else 1
-        radius = max(1, min(radius, 16))
-        grown = F.max_pool2d(mask.float()[None, None], 2 * radius + 1, stride=1, padding=radius)[0, 0] > 0
-        u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
-        seen = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        fg = torch.zeros_like(keep)
-        fg[seen] = grown[v[seen], u[seen]]
-        keep &= fg | ~seen
-    return keep.reshape(occ.shape)
+        # foreground pixels in each footprint: a summed-area table of the mask, one box sum per cell
+        sat = F.pad(mask.double().cumsum(0).cumsum(1), (1, 0, 1, 0))
+        r = (float(k[0]) * half_diag / depth[seen].clamp_min(1e-6)).ceil() if footprint else torch.ones_like(depth[seen])
+        u, v = uv[seen, 0], uv[seen, 1]
+        u0 = (u - r).floor().clamp(0, w).long()
+        u1 = (u + r).floor().add(1).clamp(0, w).long()
+        v0 = (v - r).floor().clamp(0, h).long()
+        v1 = (v + r).floor().add(1).clamp(0, h).long()
+        count = sat[v1, u1] - sat[v0, u1] - sat[v1, u0] + sat[v0, u0]
+        fg = torch.ones_like(keep)
+        fg[seen] = count > 0.5
+        keep &= fg
+        seen_by += seen.long()
+    return (keep & (seen_by >= min_views)).reshape(occ.shape)
 
 
 @torch.no_grad()
@@ -105,13 +126,18 @@ def cover_foreground(
 ) -> tuple[OccupancyGrid, dict]:
     """Grow `occ` until every foreground training ray crosses an occupied cell (module docstring).
 
-    -> (the grown grid, {"foreground_rays", "missed_before", "missed_after", "cells_added"}).
+    -> (the grown grid, {"foreground_rays", "missed_before", "missed_after", "cells_added", "cells_carved"}).
     """
     n, h, w = images.shape[:3]
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
     masks = foreground_masks(images, background).to(device)
-    hull = visual_hull(occ, poses, intrinsics, masks) if background is not None and ndc is None else None
+    known = background is not None and ndc is None
+    hull = visual_hull(occ, poses, intrinsics, masks) if known else None
     occupied = occ.occupied.clone()
+    tight = visual_hull(occ, poses, intrinsics, masks, footprint=False, min_views=max(2, math.ceil(n / 4))) if known else None
+    if known:  # carve with the tight hull; the cells a thin structure needs come back along its rays below
+        occupied &= tight
+    carved = int((occ.occupied & ~occupied).sum())
     total = missed_before = 0
     for i in range(n):
         o, d = _fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i])
@@ -129,27 +155,28 @@ def cover_foreground(
             xyz, valid = xyz[miss], valid[miss]
             idx = _cell_index(xyz, occ)  # (R, S) flat cell index, -1 outside
             ok = valid & (idx >= 0)
-            if hull is not None:
-                in_hull = torch.zeros_like(ok)
-                in_hull[ok] = hull.reshape(-1)[idx[ok]]
-                chosen = ok & in_hull
-            else:
-                chosen = torch.zeros_like(ok)
-            # rays the hull gives no cell for: the cell of the coarse model's largest rendering weight
-            none = ~chosen.any(-1)
-            if bool(none.any()):
-                sigma = torch.zeros(valid[none].shape, device=xyz.device)
-                sigma[valid[none]] = density(xyz[none][valid[none]])
-                weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
-                best = weights.argmax(-1)
-                rows = none.nonzero()[:, 0]
-                chosen[rows, best] = ok[rows, best]
+            # one cell per ray: where the coarse model puts most of the ray's weight, among the cells of the
+            # tight hull if any, else of the footprint hull, else among all
+            sigma = torch.zeros(valid.shape, device=xyz.device)
+            sigma[valid] = density(xyz[valid])
+            weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
+            choice = torch.full(ok.shape[:1], -1, dtype=torch.long, device=ok.device)
+            for table in (tight, hull, None):
+                allowed = ok.clone()
+                if table is not None:
+                    allowed[ok] = table.reshape(-1)[idx[ok]]
+                todo = (choice < 0) & allowed.any(-1)
+                score = torch.where(allowed, weights + 1e-12, torch.full_like(weights, -1.0))
+                choice = torch.where(todo, score.argmax(-1), choice)
+            rows = (choice >= 0).nonzero()[:, 0]
+            chosen = torch.zeros_like(ok)
+            chosen[rows, choice[rows]] = True
             occupied.view(-1)[idx[chosen]] = True
     grown = OccupancyGrid(occupied, occ.bbox)
     missed_after = total - int(sum(int(covered(*_fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i]), grown, near, far).sum())
                                    for i in range(n)))
     stats = {"foreground_rays": total, "missed_before": missed_before, "missed_after": missed_after,
-             "cells_added": int((occupied & ~occ.occupied).sum())}
+             "cells_added": int((occupied & ~occ.occupied).sum()), "cells_carved": carved}
     return grown, stats
 
 
