@@ -137,6 +137,7 @@ def cover_foreground(
     tight = visual_hull(occ, poses, intrinsics, masks, footprint=False, min_views=max(2, math.ceil(n / 4))) if known else None
     if known:  # carve with the tight hull; the cells a thin structure needs come back along its rays below
         occupied &= tight
+    carved_mask = occupied.clone()
     carved = int((occ.occupied & ~occupied).sum())
     total = missed_before = 0
     for i in range(n):
@@ -176,7 +177,7 @@ def cover_foreground(
     missed_after = total - int(sum(int(covered(*_fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i]), grown, near, far).sum())
                                    for i in range(n)))
     stats = {"foreground_rays": total, "missed_before": missed_before, "missed_after": missed_after,
-             "cells_added": int((occupied & ~occ.occupied).sum()), "cells_carved": carved}
+             "cells_added": int((occupied & ~carved_mask).sum()), "cells_carved": carved}
     return grown, stats
 
 
