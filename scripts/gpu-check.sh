@@ -6,7 +6,7 @@
 #   QUICK=1 runs only part (a). DEVICE=cpu runs the same commands on the CPU, to check this script itself.
 #
 # (a) every stage and family on a tiny generated scene: one OK/FAIL line per stage;
-# (b) a short chain on SCENE at 400 px (recipes/gpu-check-blender-400.yaml: DVGO experts 96/128/160,
+# (b) a short chain on SCENE at 400 px (recipes/blender-dvgo-paper-gpucheck.yaml: DVGO experts 96/128/160,
 #     baseline, Top-1, Top-2, ensemble): held-out PSNR, GFLOPs per image, training rays per second and
 #     seconds per rendered image, as a markdown table (also written to OUT/gpu-check.md).
 # Exits non-zero on any failure, and at once, with one line, when torch sees no CUDA GPU.
@@ -109,7 +109,7 @@ fi
 
 # ---- (b) the 400 px chain on SCENE -------------------------------------------------------------
 W="$OUT/chain-400"
-R="$HERE/recipes/gpu-check-blender-400.yaml"
+R="$HERE/recipes/blender-dvgo-paper-gpucheck.yaml"
 check "400px pretrain 96/128/160" "${BN[@]}" pretrain -w "$W" --data "$SCENE" --recipe "$R" --device $DEV
 check "400px build-moe" "${BN[@]}" build-moe -w "$W" --recipe "$R" --device $DEV
 for m in baseline top1 top2 ens; do

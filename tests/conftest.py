@@ -44,9 +44,10 @@ TINY_MOE_PSNR_2_VIEWS = {"dvgo-12": 13.46, "dvgo-16": 15.37, "baseline": 15.86, 
                          "ens": 15.23}  # eval --views 2 after build-moe and the four finetunes
 
 
-def run_cli(*args: str, cwd: Path | None = None, check: bool = False) -> subprocess.CompletedProcess:
-    """Run the real CLI in a subprocess (`python -m boostnerf_cli ...`)."""
-    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+def run_cli(*args: str, cwd: Path | None = None, check: bool = False,
+            env_extra: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """Run the real CLI in a subprocess (`python -m boostnerf_cli ...`), with `env_extra` set."""
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", **(env_extra or {})}
     proc = subprocess.run([sys.executable, "-m", "boostnerf_cli", *args], capture_output=True, text=True, cwd=cwd,
                           env=env, timeout=600)
     if check and proc.returncode != 0:

@@ -15,15 +15,10 @@ good. `cover_foreground` makes the mask conservative by construction:
 4. after that every foreground ray crosses an occupied cell, so a box drawn around the occupied cells
    (with a margin) holds every visible structure (`missed_after` counts the rays that still do not).
 
-Before step 2, occupied cells outside the visual hull are dropped: a cell whose centre projects onto
-background in some training view holds no surface there (the coarse model's floaters against the
-background), and so is a cell seen by under a quarter of the views (in front of a camera, where the coarse
-model's floaters sit: a hull of few views is a wide cone). This tight hull can drop
-a cell that a thin structure crosses off-centre; step 3, with the footprint-dilated hull, puts back
-those that a foreground ray needs. So the box is set by what the views show, not by the initial bounds a dataset layout
-gives (a camera-derived box or a bbox.txt). The hull assumes the object's colour differs from the
-background's by more than `FOREGROUND_TOL` somewhere in each of its pixels; a part exactly the
-background's colour can be carved (it renders as the background from every training view anyway).
+Nothing is removed: the mask only grows, so what the coarse stage kept stays kept. (Carving the mask
+with the views' visual hull was tried: it tightened the box, so the Blender and nerfstudio copies of a
+scene agreed, but a hull test at a cell's centre also cut silhouette cells of lego, -0.47 dB for DVGO-80;
+docs/results.md, issue 17.)
 """
 
 from __future__ import annotations
@@ -126,7 +121,7 @@ def cover_foreground(
 ) -> tuple[OccupancyGrid, dict]:
     """Grow `occ` until every foreground training ray crosses an occupied cell (module docstring).
 
-    -> (the grown grid, {"foreground_rays", "missed_before", "missed_after", "cells_added", "cells_carved"}).
+    -> (the grown grid, {"foreground_rays", "missed_before", "missed_after", "cells_added"}).
     """
     n, h, w = images.shape[:3]
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
@@ -135,10 +130,6 @@ def cover_foreground(
     hull = visual_hull(occ, poses, intrinsics, masks) if known else None
     occupied = occ.occupied.clone()
     tight = visual_hull(occ, poses, intrinsics, masks, footprint=False, min_views=max(2, math.ceil(n / 4))) if known else None
-    if known:  # carve with the tight hull; the cells a thin structure needs come back along its rays below
-        occupied &= tight
-    carved_mask = occupied.clone()
-    carved = int((occ.occupied & ~occupied).sum())
     total = missed_before = 0
     for i in range(n):
         o, d = _fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i])
@@ -177,7 +168,7 @@ def cover_foreground(
     missed_after = total - int(sum(int(covered(*_fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i]), grown, near, far).sum())
                                    for i in range(n)))
     stats = {"foreground_rays": total, "missed_before": missed_before, "missed_after": missed_after,
-             "cells_added": int((occupied & ~carved_mask).sum()), "cells_carved": carved}
+             "cells_added": int((occupied & ~occ.occupied).sum())}
     return grown, stats
 
 

@@ -164,9 +164,8 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
         train_split = scene.splits["train"]
         occ, cover = cover_foreground(occ, model.density, train_split.images, train_split.poses,
                                       train_split.intrinsics, scene.background, scene.near, scene.far, scene.ndc)
-        log(f"geometry: {cover['cells_carved']} occupied cells outside the views' visual hull dropped; "
-            f"{cover['missed_before']} of {cover['foreground_rays']} foreground training rays then crossed no occupied "
-            f"cell, {cover['cells_added']} cells added along them ({cover['missed_after']} still missed)")
+        log(f"geometry: {cover['missed_before']} of {cover['foreground_rays']} foreground training rays crossed no "
+            f"occupied cell; {cover['cells_added']} cells added along them ({cover['missed_after']} still missed)")
     if not occ.occupied.any():
         log("geometry: warning: the coarse stage found no occupied space (too few geometry.iters?); "
             "experts will train on the whole camera box without skipping")
