@@ -1,0 +1,76 @@
+#!/usr/bin/env bash
+# Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
+#
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|collect]...
+#   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
+#               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2
+#   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
+#               default, 2000 joint steps, Top-1 (and the baseline once)
+#   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds
+# One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
+set -euo pipefail
+LEGO="$1" OUT="$2"
+shift 2
+HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
+export OMP_NUM_THREADS=1 DEVICE=cpu
+OFFICIAL="$HERE/recipes/blender-dvgo-cpu-official.yaml"
+mkdir -p "$OUT"
+variant() {  # variant NAME RES HIDDEN GATE_RES: the official recipe with other experts
+  sed -e "s/res: \[64, 72, 80\]/res: [$2]/" -e "s/hidden: {64: 64, 72: 96, 80: 128}/hidden: {$3}/" \
+      -e "s/gate_res: 64/gate_res: $4/" "$OFFICIAL" > "$OUT/official-$1.yaml"
+  echo "$OUT/official-$1.yaml"
+}
+for what in "$@"; do
+  case $what in
+    m3) MODELS="baseline top1 top2" bash "$HERE/recipes/chain.sh" "$OFFICIAL" "$LEGO" "$OUT/m3" ;;
+    m4) MODELS="baseline top1 top2" bash "$HERE/recipes/chain.sh" \
+          "$(variant m4 "64, 72, 80, 88" "64: 64, 72: 96, 80: 128, 88: 128" 64)" "$LEGO" "$OUT/m4" ;;
+    m5) MODELS="baseline top1 top2" bash "$HERE/recipes/chain.sh" \
+          "$(variant m5 "56, 64, 72, 80, 88" "56: 64, 64: 64, 72: 96, 80: 128, 88: 128" 56)" "$LEGO" "$OUT/m5" ;;
+    ablation)
+      python - "$OFFICIAL" "$OUT" <<'PY'
+import copy, sys, yaml
+base = yaml.safe_load(open(sys.argv[1])); base["moe"]["iters"] = 2000
+variants = {"official": {},
+            "gate-random": {"gate_init": "random", "gate_res": 24, "gate_channels": 8, "gate_layers": 2, "lr_gate": 0.01},
+            "aux-batch-all": {"aux_norm": "batch", "aux_samples": "all"},
+            "mix-density": {"mix": "density"},
+            "rates-0.3x": {"train": {**base["moe"]["train"], "lr_grid": 0.03, "lr_mlp": 0.0005}}}
+for name, change in variants.items():
+    r = copy.deepcopy(base); r["moe"].update(change)
+    yaml.safe_dump(r, open(f"{sys.argv[2]}/abl-{name}.yaml", "w"), sort_keys=False)
+PY
+      for v in official gate-random aux-batch-all mix-density rates-0.3x; do
+        W="$OUT/abl-$v"
+        mkdir -p "$W" && cp -r "$OUT/m3/experts" "$OUT/m3/manifest.json" "$W/"
+        boostnerf build-moe -w "$W" --recipe "$OUT/abl-$v.yaml" --device cpu
+        boostnerf finetune -w "$W" --recipe "$OUT/abl-$v.yaml" --topk 1 --device cpu
+        models=(--model top1)
+        if [ $v = official ]; then
+          boostnerf finetune -w "$W" --recipe "$OUT/abl-$v.yaml" --baseline --device cpu
+          models+=(--model baseline)
+        fi
+        boostnerf eval -w "$W" --report --device cpu "${models[@]}"
+      done ;;
+    collect)
+      python - "$OUT" "$HERE/docs/data" <<'PY'
+import json, sys
+from pathlib import Path
+out, data = Path(sys.argv[1]), Path(sys.argv[2])
+for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exists()):
+    report = json.loads((ws / "reports" / "eval.json").read_text())
+    experts = {p.stem: json.loads(p.read_text()) for p in (ws / "experts").glob("*.json")}
+    pre = sum(e["seconds"] for e in experts.values())
+    largest = max(experts.values(), key=lambda e: e["res"])["seconds"] if experts else 0
+    for m in report["models"]:
+        f = ws / "moe" / f"{m['name']}.json"
+        tuned = json.loads(f.read_text())["seconds"] if f.exists() else 0
+        own = experts[m["name"]]["seconds"] if m["name"] in experts else (largest if m["name"] == "baseline" else pre)
+        m["extra"] = {"train s": str(round(own + tuned))}
+    (data / f"issue18-{ws.name}.json").write_text(json.dumps(report, indent=2) + "\n")
+    print("wrote", data / f"issue18-{ws.name}.json")
+PY
+      ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, collect)" >&2; exit 2 ;;
+  esac
+done
