@@ -18,6 +18,10 @@ one of:
   and "extra": {model name: {column: text}}) or {"label": str, "models": [rows]} with rows of the eval report's schema (name, psnr, ssim, w0,
   gflops_per_image; null when not measured) transcribed by hand, plus "extra": {column: text}.
 
+- a generic table {"columns": [header, ...], "rows": [[cell, ...], ...]} for a table that is neither a
+  model nor a bench table (a transcribed comparison, a list of targets): every cell is a string printed
+  exactly as written (bold `**...**`, units and all), and each row has as many cells as there are columns.
+
 Model tables have the columns model, PSNR, vs baseline, SSIM, ||w||_0, GFLOPs / image and then the
 extra columns; "vs baseline" is each row's PSNR minus its group's baseline row (the row named
 "baseline", or the group's "baseline": NAME). A value given as a string is printed as written (a
@@ -113,9 +117,21 @@ def bench_table(spec: dict) -> str:
     return _table(BENCH_COLUMNS, rows)
 
 
+def generic_table(spec: dict) -> str:
+    columns, rows = spec["columns"], spec["rows"]
+    for r in rows:
+        if len(r) != len(columns) or not all(isinstance(c, str) for c in r):
+            raise ValueError(f"generic table row {r!r}: want {len(columns)} string cells")
+    return _table(columns, rows)
+
+
 def render(name: str) -> str:
     spec = json.loads((DATA / f"{name}.json").read_text())
-    return bench_table(spec) if "suite" in spec else model_table(spec)
+    if "suite" in spec:
+        return bench_table(spec)
+    if "columns" in spec:
+        return generic_table(spec)
+    return model_table(spec)
 
 
 def rebuild(text: str) -> tuple[str, list[str]]:

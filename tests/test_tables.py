@@ -83,3 +83,32 @@ def test_a_table_from_raw_eval_reports_with_deltas_against_each_baseline(tmp_pat
                                                 (1_072_525, False, "1,072,525"), (None, True, "-"), ("1.1M", False, "1.1M")])
 def test_parameter_counts(value, compact, text):
     assert tables._count(value, compact) == text
+
+
+def test_a_generic_table_prints_its_cells_as_written(tmp_path, monkeypatch):
+    """A table that is neither a model nor a bench table: {"columns", "rows"}, every cell a string kept as typed."""
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "targets.json").write_text(json.dumps({"columns": ["target", "measured", "met?"], "rows": [
+        ["skips >= 6x faster", "**6.47x** (0.05 dB)", "yes"], ["overhead <= 15%", "24.9%", ""]]}))
+    monkeypatch.setattr(tables, "DATA", data)
+    assert tables.render("targets") == (
+        "| target | measured | met? |\n"
+        "|---|---|---|\n"
+        "| skips >= 6x faster | **6.47x** (0.05 dB) | yes |\n"
+        "| overhead <= 15% | 24.9% |  |\n")
+    text = "before\n<!-- table: targets -->\n" + tables.render("targets") + "<!-- /table -->\nafter\n"
+    assert tables.rebuild(text) == (text, [])
+    _, changed = tables.rebuild(text.replace("**6.47x**", "**7.47x**"))  # a hand-edited cell
+    assert changed == ["targets"]
+    (data / "bad.json").write_text(json.dumps({"columns": ["a", "b"], "rows": [["1"]]}))
+    with pytest.raises(ValueError):
+        tables.render("bad")
+
+
+def test_every_transcribed_generic_table_is_caught_when_hand_edited():
+    md, name = next(x for x in _marked() if x[1] == "benchmarks-issue6-targets")
+    text = md.read_text().replace("**6.47x**", "**6.48x**")
+    assert text != md.read_text()
+    _, changed = tables.rebuild(text)
+    assert changed == [name]
