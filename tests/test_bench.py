@@ -73,6 +73,12 @@ def quick_bench(tiny_scene, bench_recipe, tmp_path_factory):
     return root, proc
 
 
+# each row's PSNR on the tiny scene, measured (the same with 1 and 2 threads); a row must stay within 0.25 dB
+# of it: these 16-step models are close to the image mean, so a broken model is only tenths of a dB lower
+BENCH_PSNR = {"dvgo-12": 12.02, "dvgo-16": 12.97, "baseline": 13.20, "top1": 12.23, "top2": 12.76, "ens": 12.73,
+              "naive-res": 13.87, "naive-step": 13.62, "naive-wide": 13.82}
+
+
 def test_quick_suite_writes_a_finite_table(quick_bench):
     root, proc = quick_bench
     with open(root / "reports" / "bench.csv") as f:
@@ -84,7 +90,8 @@ def test_quick_suite_writes_a_finite_table(quick_bench):
         values = [float(v) for v in r[2:]]
         assert all(math.isfinite(v) for v in values), r
         psnr, ssim, train_s, s_img, gflops, params, w0 = values
-        assert psnr > 5 and 0 < ssim <= 1 and train_s > 0 and s_img > 0 and gflops > 0 and 0 < w0 <= params
+        assert psnr > BENCH_PSNR[r[0]] - 0.25, (r[0], psnr)
+        assert 0 < ssim <= 1 and train_s > 0 and s_img > 0 and gflops > 0 and 0 < w0 <= params
     table = json.loads((root / "reports" / "bench.json").read_text())
     assert table["suite"] == "quick" and table["missing"] == [] and len(table["rows"]) == 9
     by_name = {r["name"]: r for r in table["rows"]}

@@ -69,36 +69,3 @@ def test_autocast_runs_each_layer_in_reduced_precision():
     assert y.dtype == torch.bfloat16
     y.float().sum().backward()
     assert all(p.grad is not None for p in mlp.parameters())
-
-
-def test_autocast_check_works_with_the_pre_2_4_torch_signature(monkeypatch):
-    """torch < 2.4 (pyproject allows >= 2.1): `is_autocast_enabled()` takes no argument (CUDA) and CPU has
-    `is_autocast_cpu_enabled()`. The MLP must still run, and still see CPU autocast."""
-    import boostnerf_cli.fields.mlp as mlp_module
-
-    new_api = torch.is_autocast_enabled
-
-    def old_is_autocast_enabled(*args):
-        if args:
-            raise TypeError("is_autocast_enabled() takes 0 positional arguments but 1 was given")
-        return new_api("cuda")
-
-    def as_old_torch(mp):  # patched only around the MLP calls: torch.autocast itself uses the new API
-        mp.setattr(torch, "is_autocast_enabled", old_is_autocast_enabled)
-        mp.setattr(torch, "is_autocast_cpu_enabled", lambda: new_api("cpu"), raising=False)
-
-    torch.manual_seed(2)
-    mlp = MLP([8, 16, 3])
-    x = torch.randn(32, 8)
-    with monkeypatch.context() as mp:
-        as_old_torch(mp)
-        y = mlp(x)  # the new-only call raised TypeError here
-        assert mlp_module.autocast_enabled("cpu") is False
-    assert "ReluMLP" in type(y.grad_fn).__name__
-    torch.testing.assert_close(y, _reference(mlp)(x))
-    with torch.autocast("cpu", dtype=torch.bfloat16):
-        with monkeypatch.context() as mp:
-            as_old_torch(mp)
-            assert mlp_module.autocast_enabled("cpu") is True
-            z = mlp(x)  # under autocast: plain nn.Sequential, each layer's precision chosen by autocast
-    assert z.dtype == torch.bfloat16 and "ReluMLP" not in type(z.grad_fn).__name__

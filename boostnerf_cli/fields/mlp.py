@@ -19,18 +19,6 @@ import torch
 from torch import Tensor, nn
 
 
-def autocast_enabled(device_type: str) -> bool:
-    """Whether autocast is on for `device_type`, on every torch the project supports (pyproject: >= 2.1).
-
-    `torch.is_autocast_enabled(device_type)` exists from torch 2.4; before, it took no argument and
-    meant CUDA, and CPU had `torch.is_autocast_cpu_enabled()` (deprecated since 2.4, so not called there).
-    """
-    try:
-        return torch.is_autocast_enabled(device_type)
-    except TypeError:  # torch < 2.4
-        return torch.is_autocast_cpu_enabled() if device_type == "cpu" else torch.is_autocast_enabled()
-
-
 class _ReluMLP(torch.autograd.Function):
     """x, W_0, b_0, ..., W_{n-1}, b_{n-1} -> y: n Linear layers with ReLU between them."""
 
@@ -87,6 +75,6 @@ class MLP(nn.Sequential):
         return [m for m in self if isinstance(m, nn.Linear)]
 
     def forward(self, x: Tensor) -> Tensor:  # type: ignore[override]
-        if not torch.is_grad_enabled() or autocast_enabled(x.device.type):
+        if not torch.is_grad_enabled() or torch.is_autocast_enabled(x.device.type):
             return super().forward(x)  # autocast chooses each layer's precision itself
         return _ReluMLP.apply(x, *[p for lin in self.linears for p in (lin.weight, lin.bias)])
