@@ -136,3 +136,23 @@ def test_occupancy_grid_lookup_and_bbox():
     pts = torch.tensor([[1.5, 2.5, 3.5], [0.5, 0.5, 0.5], [9.0, 2.5, 3.5]])
     assert grid(pts).tolist() == [True, False, False]
     assert torch.allclose(grid.occupied_bbox(margin_cells=0), torch.tensor([[1.0, 2.0, 3.0], [2.0, 3.0, 4.0]]))
+
+
+def test_cell_index_names_the_cell_the_occupancy_lookup_reads():
+    """OccupancyGrid.cell_index and the lookup share one arithmetic: the same cell for points inside, on the
+    faces (the max face in the last cell) and -1 outside (the lookup's empty border)."""
+    from boostnerf_cli.render.occupancy import OccupancyGrid
+
+    g = torch.Generator().manual_seed(3)
+    bbox = torch.tensor([[-1.0, -0.5, 0.0], [1.0, 0.7, 2.0]])
+    grid = OccupancyGrid(torch.rand(5, 4, 6, generator=g) > 0.5, bbox)
+    pts = bbox[0] + (torch.rand(4000, 3, generator=g) * 1.4 - 0.2) * (bbox[1] - bbox[0])
+    faces = bbox[0] + torch.randint(0, 2, (300, 3), generator=g) * (bbox[1] - bbox[0])
+    pts = torch.cat([pts, faces, bbox])
+    idx = grid.cell_index(pts)
+    full = OccupancyGrid(torch.ones(5, 4, 6, dtype=torch.bool), bbox)
+    assert torch.equal(idx >= 0, full(pts))  # inside exactly where the lookup finds a cell
+    assert bool((idx[:4000] >= 0).any()) and bool((idx[:4000] < 0).any()) and bool((idx[4000:] >= 0).all())
+    assert torch.equal(grid(pts), (idx >= 0) & grid.occupied.reshape(-1)[idx.clamp_min(0)])
+    centres = grid.cell_centers()
+    assert torch.equal(grid.cell_index(centres), torch.arange(5 * 4 * 6))  # [x, y, z] order

@@ -16,7 +16,7 @@ import pytest
 import torch
 from conftest import run_cli
 
-from boostnerf_cli.render.coverage import cover_foreground, covered, foreground_masks
+from boostnerf_cli.render.coverage import cover_foreground, foreground_masks, ray_cells
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.scenes import load_scene, make_scene
@@ -52,6 +52,14 @@ def _pretrain(root: Path, layout: str, *flags: str) -> dict:
     return {"psnr": report["test_psnr"], "box": torch.tensor(meta["fine_bbox"]), "coverage": meta["coverage"]}
 
 
+def covered(origins, dirs, grid: OccupancyGrid, near: float, far: float):
+    """(R,) bool: some sample of the ray, a quarter cell apart inside the box, lies in an occupied cell."""
+    xyz, valid, _ = ray_cells(origins, dirs, grid, near, far)
+    hit = torch.zeros(valid.shape, dtype=torch.bool)
+    hit[valid] = grid(xyz[valid])
+    return hit.any(-1)
+
+
 def test_cover_foreground_reaches_every_foreground_ray(thin):
     """An empty mask grows until each foreground training ray crosses an occupied cell, and the cells it
     adds are on the thin structures' rays, not the whole box."""
@@ -64,7 +72,7 @@ def test_cover_foreground_reaches_every_foreground_ray(thin):
     assert stats["foreground_rays"] == int(masks.sum()) > 0
     # rays are checked view by view, so a cell added for one ray covers later ones through it
     assert 0 < stats["missed_before"] <= stats["foreground_rays"] and stats["missed_after"] == 0
-    for i in (0, 7, 19):
+    for i in range(len(tr)):
         o, d = image_rays(tr.poses[i], tr.intrinsics[i], tr.height, tr.width)
         fg = masks[i].reshape(-1)
         assert bool(covered(o[fg], d[fg], grown, scene.near, scene.far).all())
@@ -112,3 +120,10 @@ def test_layouts_without_a_box_file_give_the_same_box_and_psnr(thin):
 def test_a_box_file_gives_the_same_box_as_the_cameras(thin):
     runs = {layout: _pretrain(thin, layout) for layout in ("blender", "nsvf")}
     _agree(runs, "blender", "nsvf")
+
+
+def test_an_unknown_content_is_one_line_and_writes_nothing(tmp_path):
+    proc = run_cli("make-scene", str(tmp_path / "s"), "--content", "wires")
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
+        "error: unknown scene content 'wires': use one of objects, thin"]
+    assert not (tmp_path / "s").exists()

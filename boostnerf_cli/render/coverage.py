@@ -46,7 +46,8 @@ def foreground_masks(images: Tensor, background: tuple[float, float, float] | No
     return (images - bg).abs().amax(-1) > tol
 
 
-def ray_cells(origins: Tensor, dirs: Tensor, occ: OccupancyGrid, near: float, far: float) -> tuple[Tensor, Tensor]:
+def ray_cells(origins: Tensor, dirs: Tensor, occ: OccupancyGrid, near: float,
+              far: float) -> tuple[Tensor, Tensor, float]:
     """Points along each ray, a quarter cell apart, inside the occupancy grid's box.
 
     -> xyz (R, S, 3), valid (R, S) bool, the step between them."""
@@ -56,17 +57,6 @@ def ray_cells(origins: Tensor, dirs: Tensor, occ: OccupancyGrid, near: float, fa
     settings = RenderSettings(step=cell / 4, near=near, far=far, bbox=occ.bbox, max_samples=4096)
     _, valid, xyz, step = sample_rays(origins, dirs, settings, jitter=False)
     return xyz, valid, step
-
-
-def covered(origins: Tensor, dirs: Tensor, occ: OccupancyGrid, near: float, far: float, chunk: int = 4096) -> Tensor:
-    """(R,) bool: the ray has a sample in an occupied cell."""
-    out = []
-    for i in range(0, origins.shape[0], chunk):
-        xyz, valid, _ = ray_cells(origins[i : i + chunk], dirs[i : i + chunk], occ, near, far)
-        hit = torch.zeros(valid.shape, dtype=torch.bool, device=valid.device)
-        hit[valid] = occ(xyz[valid])
-        out.append(hit.any(-1))
-    return torch.cat(out) if out else torch.zeros(0, dtype=torch.bool)
 
 
 @torch.no_grad()
@@ -127,25 +117,26 @@ def cover_foreground(
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
     masks = foreground_masks(images, background).to(device)
     known = background is not None and ndc is None
-    hull = visual_hull(occ, poses, intrinsics, masks) if known else None
+    hulls = None  # (tight, footprint) visual hulls, made when a first ray is missed (on most scenes none is)
     occupied = occ.occupied.clone()
-    tight = visual_hull(occ, poses, intrinsics, masks, footprint=False, min_views=max(2, math.ceil(n / 4))) if known else None
-    total = missed_before = 0
+    grid = occ  # the grid as grown so far (rebuilt when cells are added)
+    total = missed_before = missed_after = 0
     for i in range(n):
         o, d = _fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i])
         total += o.shape[0]
         for j in range(0, o.shape[0], chunk):
             oc, dc = o[j : j + chunk], d[j : j + chunk]
             xyz, valid, step = ray_cells(oc, dc, occ, near, far)
-            grid = OccupancyGrid(occupied, occ.bbox)
             hit = torch.zeros(valid.shape, dtype=torch.bool, device=valid.device)
             hit[valid] = grid(xyz[valid])
-            miss = ~hit.any(-1) & valid.any(-1)
+            inside = valid.any(-1)
+            missed_after += int((~inside).sum())  # a foreground ray that misses the box: nothing can hold it
+            miss = ~hit.any(-1) & inside
             if not bool(miss.any()):
                 continue
             missed_before += int(miss.sum())
             xyz, valid = xyz[miss], valid[miss]
-            idx = _cell_index(xyz, occ)  # (R, S) flat cell index, -1 outside
+            idx = occ.cell_index(xyz)  # (R, S) flat cell index, -1 outside
             ok = valid & (idx >= 0)
             # one cell per ray: where the coarse model puts most of the ray's weight, among the cells of the
             # tight hull if any, else of the footprint hull, else among all
@@ -153,7 +144,10 @@ def cover_foreground(
             sigma[valid] = density(xyz[valid])
             weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
             choice = torch.full(ok.shape[:1], -1, dtype=torch.long, device=ok.device)
-            for table in (tight, hull, None):
+            if hulls is None:
+                hulls = (visual_hull(occ, poses, intrinsics, masks, footprint=False, min_views=max(2, math.ceil(n / 4))),
+                         visual_hull(occ, poses, intrinsics, masks)) if known else ()
+            for table in (*hulls, None):
                 allowed = ok.clone()
                 if table is not None:
                     allowed[ok] = table.reshape(-1)[idx[ok]]
@@ -161,28 +155,19 @@ def cover_foreground(
                 score = torch.where(allowed, weights + 1e-12, torch.full_like(weights, -1.0))
                 choice = torch.where(todo, score.argmax(-1), choice)
             rows = (choice >= 0).nonzero()[:, 0]
+            # a chosen cell holds one of the ray's samples (`cell_index` is the grid's own lookup), so the ray is
+            # covered from now on (the mask only grows); a ray none of whose samples has a cell stays missed
+            missed_after += int((choice < 0).sum())
             chosen = torch.zeros_like(ok)
             chosen[rows, choice[rows]] = True
             occupied.view(-1)[idx[chosen]] = True
-    grown = OccupancyGrid(occupied, occ.bbox)
-    missed_after = total - int(sum(int(covered(*_fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i]), grown, near, far).sum())
-                                   for i in range(n)))
+            grid = OccupancyGrid(occupied, occ.bbox)
     stats = {"foreground_rays": total, "missed_before": missed_before, "missed_after": missed_after,
              "cells_added": int((occupied & ~occ.occupied).sum())}
-    return grown, stats
+    return grid, stats
 
 
 def _fg_rays(pose: Tensor, k: Tensor, h: int, w: int, ndc: NDC | None, mask: Tensor) -> tuple[Tensor, Tensor]:
     o, d = image_rays(pose, k, h, w, ndc)  # built on the CPU, with the scene's cameras
     fg = mask.reshape(-1)
     return o.to(mask.device)[fg], d.to(mask.device)[fg]
-
-
-def _cell_index(xyz: Tensor, occ: OccupancyGrid) -> Tensor:
-    """Flat [x, y, z] cell index of each point (..., 3), -1 outside the box."""
-    res = torch.tensor(occ.shape, device=xyz.device)
-    u = ((xyz - occ.bbox[0]) / (occ.bbox[1] - occ.bbox[0]) * res).floor().long()
-    u = torch.minimum(u, res - 1)  # the max face belongs to the last cell
-    inside = ((u >= 0) & (u < res)).all(-1)
-    flat = (u[..., 0] * res[1] + u[..., 1]) * res[2] + u[..., 2]
-    return torch.where(inside, flat, torch.full_like(flat, -1))

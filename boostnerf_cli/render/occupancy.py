@@ -55,11 +55,24 @@ class OccupancyGrid:
         """
         if xyz.shape[0] == 0:
             return torch.zeros(0, dtype=torch.bool, device=xyz.device)
+        cell = torch.minimum(self._cells(xyz).clamp_min_(-1.0), self._res).add_(1.0)
+        return self._padded[(cell @ self._strides).long()]
+
+    def _cells(self, xyz: Tensor) -> Tensor:
+        """(..., 3) points -> their cell coordinates (floored, float; outside the box below 0 or at least res)."""
         lo, hi, res = self.bbox[0], self.bbox[1], self._res
         u = (xyz.float() - lo).div_(hi - lo).mul_(res)  # the same arithmetic, so the same cells, as a box test
         u = torch.where(u == res, res - 0.5, u)  # a point on the max face belongs to the last cell
-        cell = torch.minimum(u.floor_().clamp_min_(-1.0), res).add_(1.0)
-        return self._padded[(cell @ self._strides).long()]
+        return u.floor_()
+
+    def cell_index(self, xyz: Tensor) -> Tensor:
+        """(..., 3) points -> the flat [x, y, z] index of the cell each lies in (the cell `__call__` looks
+        up), -1 outside the box."""
+        u = self._cells(xyz)
+        inside = ((u >= 0) & (u < self._res)).all(-1)
+        r = self.shape
+        flat = ((u[..., 0] * r[1] + u[..., 1]) * r[2] + u[..., 2]).long()
+        return torch.where(inside, flat, torch.full_like(flat, -1))
 
     def cell_centers(self) -> Tensor:
         """World coordinates of every cell centre, (X*Y*Z, 3) in [x, y, z] cell order."""

@@ -445,9 +445,9 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     rig = rig or ("forward" if layout == "llff" else "sphere")
     if rig not in RIGS:
         raise BoostNerfError(f"unknown camera rig {rig!r}: use one of {', '.join(RIGS)}")
+    objects = scene_objects(seed, content)  # checks `content`, before anything is written
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    objects = scene_objects(seed, content)
     train, test = (forward_poses if rig == "forward" else camera_poses)(n_train, n_test)
     focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
     k = torch.tensor([focal, focal, size / 2, size / 2])

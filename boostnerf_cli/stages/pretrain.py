@@ -216,9 +216,13 @@ def expert_options(rec: PretrainRecipe, res: int, log: Callable[[str], None] | N
 
 def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, box: Tensor, geom: OccupancyGrid,
                     prior: nn.Module, device: str, scene_tag: str = "") -> dict:
-    """Train one expert at `res` and write its safetensors file and JSON report."""
+    """Train one expert at `res` and write its safetensors file and JSON report (with `rec.skip` off: on the
+    scene's whole box instead of `box`, without `geom`)."""
     name = expert_name(rec.model, res)
     tcfg = rec.train
+    if not rec.skip:  # the reference without skipping: the whole scene box, no occupancy mask or refresh
+        box, geom = scene.bbox.to(device), None
+        tcfg = dataclasses.replace(tcfg, occupancy_every=0)
     # Seed before building: the colour MLP's initialisation must not depend on what ran before in this
     # process (geometry trained now or loaded, other experts trained or skipped), or a resumed
     # pretrain would not reproduce an uninterrupted one.
@@ -229,9 +233,6 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     if growth:
         model.regrid(final_voxels // (2 ** len(growth)))
     model.init_density(prior.density)  # warm start: colour is then computed near surfaces only
-    if not rec.skip:  # the reference without skipping: the whole scene box, no occupancy mask or refresh
-        tcfg = dataclasses.replace(tcfg, occupancy_every=0)
-        geom = None
     settings = RenderSettings(step=tcfg.step_ratio * model.unit, near=scene.near, far=scene.far, bbox=box,
                               background=scene.background, color_threshold=tcfg.color_threshold, ndc=scene.ndc)
     task = FieldTask(model, settings, tcfg, skip=geom, base_mask=geom, growth_steps=growth, final_voxels=final_voxels)
@@ -239,7 +240,8 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
     signature = {"stage": "pretrain", "scene": scene_tag, "model": rec.model, "res": res,
-                 rec.model: rec.family_config(), "iters": rec.iters, "skip": rec.skip, "growth": list(tcfg.growth), "seed": rec.seed + res,
+                 rec.model: rec.family_config(), "iters": rec.iters, "skip": rec.skip, "growth": list(tcfg.growth),
+                 "seed": rec.seed + res,
                  "geometry": read_meta(ws.geometry_path).get("digest")}
     result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt, signature=signature)
     model.eval()
@@ -306,7 +308,6 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
     scene, tag, box, geom, prior, todo = dist.main_first(
         lambda: _prepare(ws, data, rec, device, force, dist.main_log(log)))
     if not rec.pretrain.skip:
-        box = scene.bbox.to(device)
         dist.main_log(log)("--no-skip: experts train on the whole scene box without an occupancy mask (colour is still "
                            "computed only where a sample's rendering weight exceeds train.color_threshold)")
     with dist.together():
