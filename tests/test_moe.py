@@ -4,6 +4,7 @@ import math
 
 import pytest
 import torch
+from reference import dispatch_dense_reference
 
 from boostnerf_cli.fields.base import BareField
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
@@ -12,7 +13,6 @@ from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, RoutingStats, load_mixture, save_mixture
 from boostnerf_cli.moe.router import aux_loss, dispatch, penalty_weights, top_k
 from boostnerf_cli.render.renderer import RenderSettings, render_rays
-from reference import dispatch_dense_reference
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 

@@ -19,8 +19,14 @@ from boostnerf_cli.fields import load_expert
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
-from boostnerf_cli.moe.mixture import (Mixture, MixtureConfig, RoutingStats, alpha_mix_density, load_mixture,
-                                       save_mixture)
+from boostnerf_cli.moe.mixture import (
+    Mixture,
+    MixtureConfig,
+    RoutingStats,
+    alpha_mix_density,
+    load_mixture,
+    save_mixture,
+)
 from boostnerf_cli.moe.router import aux_loss, penalty_weights, top_k
 from boostnerf_cli.recipe import MoERecipe, load_recipe
 from boostnerf_cli.render.renderer import RenderSettings, render_rays, sample_rays

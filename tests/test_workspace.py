@@ -72,7 +72,7 @@ def test_recipes_follow_the_naming_contract():
     assert {f"blender-{f}-{size}" for f in families for size in ("cpu", "paper")} <= names
     for n in names:  # DATASET-FAMILY-SIZE, optionally -VARIANT (blender-dvgo-cpu-official)
         parts = n.split("-")
-        dataset, model, size = parts[0], parts[1], parts[2]
+        model, size = parts[1], parts[2]
         assert size in ("cpu", "paper") and model in families and len(parts) <= 4, n
         assert load_recipe(RECIPES[0].parent / f"{n}.yaml").pretrain.model == model
 

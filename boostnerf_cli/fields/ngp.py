@@ -27,9 +27,9 @@ from torch import Tensor, nn
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.hashgrid import MAX_COORD, HashEncoding
-from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, Range, at_least, limit
 from boostnerf_cli.fields.mlp import MLP
 from boostnerf_cli.fields.warmstart import fit_batch, fit_density
+from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, Range, at_least, limit
 
 
 @dataclass

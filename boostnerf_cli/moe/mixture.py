@@ -29,13 +29,13 @@ from boostnerf_cli.fields import FAMILIES
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig, softmax
 from boostnerf_cli.moe.router import aux_loss, dispatch, penalty_weights, top_k
+from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.workspace import MALFORMED, load_tensors, malformed, save_tensors
 
 MIX_MODES = ("density", "alpha")
 # Smallest one-step transmittance of a mixed sample (alpha_f <= 1 - 1e-30, optical depth <= 69): keeps the
 # optical depth and its gradient finite when every chosen expert is opaque.
 MIN_TRANSMITTANCE = 1e-30
-from boostnerf_cli.render.occupancy import OccupancyGrid
-from boostnerf_cli.workspace import MALFORMED, load_tensors, malformed, save_tensors
 
 
 @dataclass
