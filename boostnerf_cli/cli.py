@@ -108,23 +108,10 @@ def pretrain(
     from boostnerf_cli.stages import pretrain as stage
     from boostnerf_cli.stages.common import resolve_device
 
-    rec = load_recipe(recipe)
-    if model is not None:
-        rec.pretrain.model = model
-    if res is not None:
-        rec.pretrain.res = _int_list(res, "--res")
-    if iters is not None:
-        rec.pretrain.iters = iters
-    if image_size is not None:
-        rec.data.image_size = image_size
-    if holdout_every is not None:
-        rec.data.holdout_every = holdout_every
-    if data_format is not None:
-        rec.data.format = data_format
-    if seed is not None:
-        rec.pretrain.seed = seed
-    if no_skip:
-        rec.pretrain.skip = False
+    rec = load_recipe(recipe).override({
+        "pretrain.model": model, "pretrain.res": _int_list(res, "--res") if res is not None else None,
+        "pretrain.iters": iters, "pretrain.seed": seed, "pretrain.skip": False if no_skip else None,
+        "data.image_size": image_size, "data.holdout_every": holdout_every, "data.format": data_format})
     ws, lock = _writer(workspace, must_exist=False, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock:
         reports = stage.run(ws, data, rec, dev, force, log)
@@ -163,15 +150,8 @@ def build_moe(
     from boostnerf_cli.stages import build_moe as stage
     from boostnerf_cli.stages.common import resolve_device
 
-    rec = _moe_recipe(workspace, recipe)
-    if gate_res is not None:
-        rec.moe.gate_res = gate_res
-    if gate_type is not None:
-        rec.moe.gate_type = gate_type
-    if gate_grid is not None:
-        rec.moe.gate_grid = gate_grid
-    if threshold is not None:
-        rec.moe.density_threshold = threshold
+    rec = _moe_recipe(workspace, recipe).override({"moe.gate_res": gate_res, "moe.gate_type": gate_type,
+                                                   "moe.gate_grid": gate_grid, "moe.density_threshold": threshold})
     names = [n for n in experts.split(",") if n] if experts else None
     ws, lock = _writer(workspace)
     with lock:
@@ -198,11 +178,9 @@ def finetune(
     from boostnerf_cli.stages import finetune as stage
     from boostnerf_cli.stages.common import resolve_device
 
-    rec = _moe_recipe(workspace, recipe)
     name = stage.model_name(topk, ensemble, baseline)
-    for key, value in (("iters", iters), ("lam", lam), ("penalty", penalty), ("renormalize", renormalize), ("seed", seed)):
-        if value is not None:
-            setattr(rec.moe, key, value)
+    rec = _moe_recipe(workspace, recipe).override({"moe.iters": iters, "moe.lam": lam, "moe.penalty": penalty,
+                                                   "moe.renormalize": renormalize, "moe.seed": seed})
     ws, lock = _writer(workspace, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock:
         stage.run(ws, name, topk, rec.moe, dev, force, dist.main_log(log))
@@ -226,9 +204,9 @@ def render(
     device: DeviceOpt = "auto",
 ) -> None:
     """Render a split with each model (PNG colour + 16-bit depth), a comparison (--compare) or a video (--path)."""
-    from boostnerf_cli.stages import pictures
-    from boostnerf_cli.stages.common import Skips, resolve_device
-    from boostnerf_cli.stages.evaluate import run_render
+    from boostnerf_cli.models import Skips
+    from boostnerf_cli.stages import render as stage
+    from boostnerf_cli.stages.common import resolve_device
 
     if sum((path is not None, compare, per_expert)) > 1:
         raise BoostNerfError("--path, --compare and --per-expert are separate outputs: use one per command")
@@ -238,12 +216,12 @@ def render(
     ws, lock = _writer(workspace)
     with lock:
         if path is not None:
-            pictures.run_video(ws, model, path, frames, video, fps, resolve_device(device), skips, log)
+            stage.run_video(ws, model, path, frames, video, fps, resolve_device(device), skips, log)
         elif compare:
-            pictures.run_compare(ws, model, split, resolve_device(device), skips, views, log)
+            stage.run_compare(ws, model, split, resolve_device(device), skips, views, log)
         else:
-            run_render(ws, model, split, resolve_device(device), skips, views, log, per_expert=per_expert,
-                       exact_gate=exact_gate)
+            stage.run(ws, model, split, resolve_device(device), skips, views, log, per_expert=per_expert,
+                      exact_gate=exact_gate)
 
 
 @app.command("eval")
@@ -260,13 +238,14 @@ def eval_cmd(
     device: DeviceOpt = "auto",
 ) -> None:
     """PSNR, SSIM, LPIPS (when its weights are on disk) and seconds per image for every model."""
-    from boostnerf_cli.stages.common import Skips, resolve_device
-    from boostnerf_cli.stages.evaluate import run_eval
+    from boostnerf_cli.models import Skips
+    from boostnerf_cli.stages import evaluate as stage
+    from boostnerf_cli.stages.common import resolve_device
 
     skips = Skips.from_flags(no_skip, skip_off)
     ws, lock = _writer(workspace)
     with lock:
-        result = run_eval(ws, model, split, resolve_device(device), skips, views, report, log, costs=not no_costs,
+        result = stage.run(ws, model, split, resolve_device(device), skips, views, report, log, costs=not no_costs,
                           exact_gate=exact_gate)
     table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")
     for r in result["models"]:
@@ -343,7 +322,7 @@ def bench(
         _, rows = stage.catalogue(rec, suite)
         table = Table("row", "group", "workspace", "model", "finished")
         for r in stage.select(rows, names, suite):
-            done = (workspace / "rows" / f"{r.name}.json").exists()
+            done = stage.row_path(workspace, r.name).exists()
             table.add_row(r.name, r.group, f"variants/{r.setup}", r.model, "yes" if done else "no")
         out.print(table)
         return

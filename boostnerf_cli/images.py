@@ -12,8 +12,30 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.workspace import atomic_path
+
+
+def to_uint8(img: torch.Tensor | np.ndarray) -> np.ndarray:
+    """Colours in [0, 1] (clipped) -> uint8, rounded to nearest."""
+    a = img.numpy() if isinstance(img, torch.Tensor) else img
+    return (np.clip(a, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def depth_to_uint16(depth: torch.Tensor, far: float) -> np.ndarray:
+    """Depth in world units -> 16-bit PNG values, 65535 = `far` (documented in docs/stages.md)."""
+    return (depth.clamp(0, far) / far * 65535.0 + 0.5).numpy().astype(np.uint16)
+
+
+def write_png(path: Path, array: np.ndarray) -> None:
+    """`array` (uint8 or uint16) as a PNG at `path`, atomically."""
+    import imageio.v3 as iio
+
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, array, extension=".png")
+
 
 # Heat map: black -> purple -> red -> orange -> yellow -> white (monotonic in brightness, so it
 # also reads in greyscale print). Anchors at evenly spaced values in [0, 1].

@@ -17,7 +17,7 @@ from typing import Any
 import yaml
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields import CONFIGS, FAMILIES
+from boostnerf_cli.fields.registry import CONFIGS, FAMILIES
 from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, POSITIVE, THRESHOLD, OneOf, Range, at_least, limit, rule_of
 from boostnerf_cli.moe.gate import GATE_GRIDS, TRAINABLE_GATES
 from boostnerf_cli.moe.mixture import MIX_MODES
@@ -122,6 +122,21 @@ class Recipe:
     pretrain: PretrainRecipe = field(default_factory=PretrainRecipe)
     moe: MoERecipe = field(default_factory=MoERecipe)
     name: str = "defaults"
+
+    def override(self, changes: dict[str, Any]) -> "Recipe":
+        """Set the keys `changes` names by their dotted path (`"pretrain.iters"`) to its values, skipping None
+        (a flag not given), then check the recipe again (`check_recipe`, errors naming the setting). -> self."""
+        for path, value in changes.items():
+            if value is None:
+                continue
+            *sections, key = path.split(".")
+            target = self
+            for name in sections:
+                target = getattr(target, name)
+            if not hasattr(target, key):
+                raise BoostNerfError(f"no recipe key {path}")
+            setattr(target, key, value)
+        return check_recipe(self, "setting")
 
 
 def _build(cls: type, data: Any, where: str) -> Any:

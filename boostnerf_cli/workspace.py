@@ -402,8 +402,10 @@ class Workspace:
     def checkpoint_path(self, name: str) -> Path:
         return self.checkpoints_dir / f"{name}.pt"
 
-    def renders_dir(self, model: str, split: str) -> Path:
-        return self.root / "renders" / model / split
+    def renders_dir(self, model: str, split: str | None = None) -> Path:
+        """WS/renders/MODEL/SPLIT (or WS/renders/MODEL): where `render` writes a model's pictures."""
+        folder = self.root / "renders" / model
+        return folder / split if split is not None else folder
 
     # manifest
     def manifest(self) -> dict:

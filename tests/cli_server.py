@@ -26,8 +26,8 @@ def serve(path: str) -> None:
         count_params,
         evaluate,
         finetune,
-        pictures,
         pretrain,
+        render,
     )
 
     torch.set_num_threads(1)

@@ -36,7 +36,8 @@ def test_the_psnr_references_fail_broken_models(trained_ws):
 
     import torch
 
-    from boostnerf_cli.stages.common import load_model, workspace_scene
+    from boostnerf_cli.models import load_model
+    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.stages.evaluate import evaluate_model
     from boostnerf_cli.workspace import Workspace
 

@@ -159,8 +159,8 @@ def test_render_mp4_without_the_ffmpeg_backend_fails_in_one_line_and_writes_noth
 def test_each_render_skip_only_drops_work_and_changes_pixels_by_at_most_its_threshold(moe_ws, name):
     """Skips on, each one off, all off: the same image (up to the colour threshold's dropped weights) from
     more and more evaluated samples."""
-    from boostnerf_cli.stages.common import Skips, load_model, workspace_scene
-    from boostnerf_cli.stages.evaluate import render_split
+    from boostnerf_cli.models import Skips, load_model, render_split
+    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.workspace import Workspace
 
     ws = Workspace(moe_ws)

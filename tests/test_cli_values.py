@@ -59,7 +59,7 @@ def test_build_moe_topk_above_the_number_of_experts(tmp_path, trained_ws, tiny_r
     recipe = tmp_path / "top7.yaml"
     recipe.write_text(tiny_recipe.read_text().replace("moe:\n", "moe:\n  topk: 7\n"))
     proc = run_cli("build-moe", "--workspace", str(ws), "--recipe", str(recipe), "--device", "cpu")
-    _assert_clean_failure(proc, "moe.topk = 7 but the mixture has 2 experts (dvgo-12, dvgo-16): set moe.topk to at most 2")
+    _assert_clean_failure(proc, "moe.topk = 7 but the mixture has 2 experts (dvgo-12, dvgo-16): set moe.topk between 1 and 2")
     assert not (ws / "moe" / "init.safetensors").exists()
 
 

@@ -2,8 +2,10 @@
 
 import torch
 
-from boostnerf_cli.fields import Field, build_expert, count_params, load_expert, save_expert
+from boostnerf_cli.fields.base import Field
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.fields.registry import build_expert, count_params
+from boostnerf_cli.models import load_expert, save_expert
 from boostnerf_cli.render.occupancy import OccupancyGrid
 
 BOX = torch.tensor([[-1.0, -1.0, -0.5], [1.0, 1.0, 0.5]])

@@ -10,24 +10,18 @@ import torch.nn.functional as F
 from reference import reference_encoding
 
 from boostnerf_cli import flops
-from boostnerf_cli.fields import (
-    Expert,
-    Field,
-    build_expert,
-    count_params,
-    load_expert,
-    save_expert,
-)
-from boostnerf_cli.fields.base import BareField
+from boostnerf_cli.fields.base import BareField, Expert, Field
 from boostnerf_cli.fields.hashgrid import (
     PRIMES,
     HashEncoding,
     level_resolutions,
 )
+from boostnerf_cli.fields.registry import build_expert, count_params
 from boostnerf_cli.fields.vm import LINE_AXIS, PLANE_AXES, VMGrid
+from boostnerf_cli.models import load_expert, load_mixture, save_expert, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
-from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, load_mixture, save_mixture
+from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_rays
 

@@ -21,7 +21,7 @@ from test_cli import _assert_clean_failure
 
 from boostnerf_cli import workspace as wsmod
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields import load_expert, save_expert
+from boostnerf_cli.models import load_expert, save_expert
 from boostnerf_cli.recipe import load_recipe
 from boostnerf_cli.stages import build_moe, pretrain
 from boostnerf_cli.stages.common import workspace_scene

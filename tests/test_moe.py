@@ -8,9 +8,10 @@ from reference import dispatch_dense_reference
 
 from boostnerf_cli.fields.base import BareField
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.models import load_mixture, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
-from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, RoutingStats, load_mixture, save_mixture
+from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, RoutingStats
 from boostnerf_cli.moe.router import aux_loss, dispatch, penalty_weights, top_k
 from boostnerf_cli.render.renderer import RenderSettings, render_rays
 
@@ -261,7 +262,7 @@ def test_a_single_expert_mixture_equals_the_expert():
 def test_topk_larger_than_m_is_refused():
     from boostnerf_cli.errors import BoostNerfError
 
-    with pytest.raises(BoostNerfError, match="--topk"):
+    with pytest.raises(BoostNerfError, match="moe.topk = 3 but the mixture has 2 experts"):
         _mixture(m=2, k=3)
 
 

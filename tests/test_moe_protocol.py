@@ -15,23 +15,16 @@ import torch
 from conftest import TINY_RECIPE, run_cli
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields import load_expert
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.models import load_expert, load_mixture, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
-from boostnerf_cli.moe.mixture import (
-    Mixture,
-    MixtureConfig,
-    RoutingStats,
-    alpha_mix_density,
-    load_mixture,
-    save_mixture,
-)
+from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, RoutingStats, alpha_mix_density
 from boostnerf_cli.moe.router import aux_loss, penalty_weights, top_k
 from boostnerf_cli.recipe import MoERecipe, load_recipe
 from boostnerf_cli.render.renderer import RenderSettings, render_rays, sample_rays
 from boostnerf_cli.stages.build_moe import gate_source
-from boostnerf_cli.stages.finetune import batch_routing, visible_samples
+from boostnerf_cli.tasks import batch_routing, visible_samples
 from boostnerf_cli.workspace import load_tensors, save_tensors
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], dtype=torch.float64)
@@ -374,7 +367,8 @@ def test_build_finetune_and_eval_with_every_official_option(trained_ws, tmp_path
     assert row["name"] == "top2" and 5 < row["psnr"] < 60, proc.stdout
 
     # eval rendered with alpha mixing: the same model rendered in-process matches, with density mixing it does not
-    from boostnerf_cli.stages.common import load_model, workspace_scene
+    from boostnerf_cli.models import load_model
+    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.stages.evaluate import evaluate_model
     from boostnerf_cli.workspace import Workspace
 

@@ -177,7 +177,7 @@ def test_an_mp4_without_the_ffmpeg_backend_is_refused_not_turned_into_a_gif(tmp_
 
 
 def test_gate_by_detail_splits_pixels_at_the_median_detail():
-    from boostnerf_cli.stages.pictures import gate_by_detail
+    from boostnerf_cli.stages.render import gate_by_detail
 
     gt = np.zeros((8, 8, 3))
     gt[:, 4:] = np.random.default_rng(0).random((8, 4, 1))  # noise (detail) on the right half, flat left

@@ -76,8 +76,9 @@ def test_prune_writes_a_smaller_model_and_its_report(pruned_ws):
 
 
 def test_pruned_model_matches_the_original_on_kept_rows_and_renders_the_train_views_alike(pruned_ws):
+    from boostnerf_cli.models import load_model
     from boostnerf_cli.render.renderer import render_image
-    from boostnerf_cli.stages.common import load_model, workspace_scene
+    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.workspace import Workspace
 
     ws = Workspace(pruned_ws)

@@ -258,8 +258,8 @@ def test_safetensors_whose_metadata_is_not_an_object(tmp_path):
 
 
 def _tiny_expert_file(tmp_path, **meta_changes):
-    from boostnerf_cli.fields import save_expert
     from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+    from boostnerf_cli.models import save_expert
     from boostnerf_cli.render.occupancy import OccupancyGrid
 
     box = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -286,7 +286,7 @@ def _tiny_expert_file(tmp_path, **meta_changes):
     {"family": ["dvgo"]},  # unhashable: TypeError before
 ], ids=["no-occupancy-bbox", "alpha-0", "alpha-1", "unit-text", "family-list"])
 def test_expert_file_with_the_wrong_structure_is_one_line(tmp_path, change):
-    from boostnerf_cli.fields import load_expert
+    from boostnerf_cli.models import load_expert
 
     path = _tiny_expert_file(tmp_path, **change)
     with pytest.raises(BoostNerfError) as e:
@@ -297,7 +297,7 @@ def test_expert_file_with_the_wrong_structure_is_one_line(tmp_path, change):
 def test_mixture_file_with_the_wrong_structure_is_one_line(tmp_path):
     from test_moe import _mixture
 
-    from boostnerf_cli.moe.mixture import load_mixture, save_mixture
+    from boostnerf_cli.models import load_mixture, save_mixture
     from boostnerf_cli.workspace import load_tensors
 
     path = tmp_path / "m.safetensors"

@@ -59,7 +59,7 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
 
 @pytest.mark.parametrize("path", RECIPES + EXPERIMENTS, ids=[p.name for p in RECIPES + EXPERIMENTS])
 def test_every_recipe_loads(path):
-    from boostnerf_cli.fields import CONFIGS
+    from boostnerf_cli.fields.registry import CONFIGS
 
     rec = load_recipe(path)
     assert rec.pretrain.res and rec.pretrain.iters > 0

@@ -1,16 +1,12 @@
-"""ReLU MLPs (the experts' colour and density networks, the gate's network) with a CPU-friendly backward.
+"""ReLU MLPs (the experts' colour and density networks, the gate's network).
 
 `MLP` is an `nn.Sequential(Linear, ReLU, ..., Linear)`: the same modules, parameter names and
-checkpoints. Its training pass is one autograd node (`_ReluMLP`) instead of one per layer, for one
-reason: the orientation of the backward's matrix products. Autograd computes a layer's gradients as
-`g.T @ a` (weight) and `g @ W` (input) whatever the layer's shape; for a thin layer (few inputs, many
-outputs: the gate's 8 -> 64, a colour MLP's 39 -> 64) that product runs 2-5x slower on a CPU than
-the same product transposed, `(a.T @ g).T` and `(W.T @ g.T).T` (13k rows, one thread, MKL: 1.15
-against 0.21 ms and 0.91 against 0.23 ms for 8 -> 64). The backward here picks the orientation from
-the layer's shape (transposed when it has fewer inputs than outputs, measured faster for every shape
-used here). The input's gradient of such a layer then arrives channels-first (a transposed view),
-which is the layout the grid lookups' backward wants anyway (fields/grid.py). Without autograd (no
-gradient needed) and under autocast the forward is plain `nn.Sequential`.
+checkpoints. With gradients its forward is one autograd node (`_ReluMLP`) whose backward computes,
+per layer i with input a_i and output gradient g_i, dW_i = g_i^T a_i, db_i = sum g_i and
+da_i = g_i W_i (masked by the ReLU of layer i-1), taking each matrix product in the orientation that is
+faster for the layer's shape (docs/benchmarks.md, "Session 6": thin layers' backward); equal to
+`nn.Sequential`'s gradients (tests/test_mlp.py). Without gradients, and under autocast, it is plain
+`nn.Sequential`.
 """
 
 from __future__ import annotations

@@ -17,20 +17,18 @@ when a ray needs more than the renderer's max_samples, composites 1 - (1 - alpha
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
-from pathlib import Path
+import dataclasses
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor, nn
 
 from boostnerf_cli import flops
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields import FAMILIES
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig, softmax
-from boostnerf_cli.moe.router import aux_loss, dispatch, penalty_weights, top_k
+from boostnerf_cli.moe.router import aux_loss, check_topk, dispatch, penalty_weights, top_k
 from boostnerf_cli.render.occupancy import OccupancyGrid
-from boostnerf_cli.workspace import MALFORMED, load_tensors, malformed, save_tensors
 
 MIX_MODES = ("density", "alpha")
 # Smallest one-step transmittance of a mixed sample (alpha_f <= 1 - 1e-30, optical depth <= 69): keeps the
@@ -52,6 +50,14 @@ class MixtureConfig:
     aux_norm: str = "batch"  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 (official code)
     aux_samples: str = "all"  # auxiliary loss over every routed sample | visible: V_D opacity and weight pass
                               # the colour threshold (official code)
+
+
+def check_config(cfg: MixtureConfig, m: int) -> None:
+    """A mixture of `m` experts can use `cfg`: a known mixing and 1 <= k <= m."""
+    if cfg.mix not in MIX_MODES:
+        raise BoostNerfError(f"unknown mixing {cfg.mix!r}: one of {', '.join(MIX_MODES)}")
+    names = cfg.expert_names if len(cfg.expert_names) == m else [f"expert {i}" for i in range(m)]
+    check_topk(cfg.topk, names, "moe.topk")
 
 
 def alpha_mix_density(alpha: Tensor, trans: Tensor, wsum: Tensor, step: float) -> Tensor:
@@ -106,10 +112,7 @@ class Mixture(nn.Module):
     def __init__(self, experts: list[nn.Module], gate: Gate, vd: DensityVolume, occupancy: OccupancyGrid | None,
                  cfg: MixtureConfig):
         super().__init__()
-        if cfg.mix not in MIX_MODES:
-            raise BoostNerfError(f"unknown mixing {cfg.mix!r}: one of {', '.join(MIX_MODES)}")
-        if cfg.topk < 1 or cfg.topk > len(experts):
-            raise BoostNerfError(f"--topk must be between 1 and the number of experts ({len(experts)}), got {cfg.topk}")
+        check_config(cfg, len(experts))
         self.experts = nn.ModuleList(experts)
         self.gate = gate
         self.vd = vd
@@ -197,6 +200,19 @@ class Mixture(nn.Module):
 
     def expert_only(self, e: int) -> "SingleExpertView":
         return SingleExpertView(self, e)
+
+    def configure(self, **changes) -> None:
+        """Change how the mixture routes, mixes and is penalised (`MixtureConfig` fields, e.g. finetune's top-k,
+        weights, penalty and auxiliary-loss options over the mixture build-moe made); checked as a new one is."""
+        cfg = dataclasses.replace(self.cfg, **changes)
+        check_config(cfg, self.m)
+        self.cfg = cfg
+        self.penalty = penalty_weights(self.m, cfg.penalty, device=self.penalty.device)
+
+    def make_ensemble(self) -> None:
+        """Every expert with equal weights (the paper's Ens): a uniform gate and k = M."""
+        self.gate = Gate(GateConfig(kind="uniform"), self.m, self.bbox).to(self.bbox.device)
+        self.configure(topk=self.m)
 
     def param_groups(self, lr_grid: float, lr_mlp: float, lr_gate: float, lr_gate_mlp: float) -> list[dict]:
         groups = []
@@ -288,46 +304,3 @@ class GateView:
 
 
 # --- persistence ------------------------------------------------------------------------------
-def save_mixture(path: Path, mix: Mixture, extra: dict | None = None) -> None:
-    tensors = {k: v for k, v in mix.state_dict().items()}
-    if mix.occupancy is not None:
-        tensors["occupancy"] = mix.occupancy.occupied.to(torch.uint8)
-        tensors["occupancy_bbox"] = mix.occupancy.bbox.clone()
-    meta = {
-        "family": "mixture",
-        "mixture": asdict(mix.cfg),
-        "gate": mix.gate.config_dict(),
-        "vd": mix.vd.config_dict(),
-        "experts": [ex.config_dict() for ex in mix.experts],
-        "step": mix.cfg.step,
-        **(extra or {}),
-    }
-    save_tensors(path, tensors, meta)
-
-
-def load_mixture(path: Path, device: str | torch.device = "cpu") -> tuple[Mixture, dict]:
-    tensors, meta = load_tensors(path, device)
-    if meta.get("family") != "mixture":
-        raise BoostNerfError(f"{path} is not a mixture of experts file")
-    try:
-        return _build_mixture(path, tensors, meta, device)
-    except MALFORMED as e:
-        raise BoostNerfError(f"{path} does not hold a valid mixture ({malformed(e)}; written by another boostnerf "
-                             "version?): rerun build-moe and finetune") from None
-
-
-def _build_mixture(path: Path, tensors: dict, meta: dict, device) -> tuple[Mixture, dict]:
-    experts = []
-    for i, em in enumerate(meta["experts"]):
-        if em["family"] not in FAMILIES:
-            raise BoostNerfError(f"{path}: expert {i} has unknown family {em['family']!r}")
-        experts.append(FAMILIES[em["family"]].from_config(em, tensors[f"experts.{i}.bbox"]))
-    gm = meta["gate"]
-    gate = Gate(GateConfig(**gm["config"]), gm["experts"], tensors["gate.bbox"], tuple(gm["shape"]))
-    vd = DensityVolume.from_config(meta["vd"], tensors["vd.bbox"])
-    occ = None
-    if "occupancy" in tensors:
-        occ = OccupancyGrid(tensors.pop("occupancy").bool(), tensors.pop("occupancy_bbox"))
-    mix = Mixture(experts, gate, vd, occ, MixtureConfig(**meta["mixture"]))
-    mix.load_state_dict(tensors)
-    return mix.to(device).eval(), meta

@@ -11,6 +11,8 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from boostnerf_cli.errors import BoostNerfError
+
 PENALTIES = ("geometric", "linear", "quadratic", "none")
 
 
@@ -33,6 +35,13 @@ def penalty_weights(m: int, kind: str, device=None) -> Tensor:
     if kind == "linear":
         return 1.0 + i
     return 2.0**i
+
+
+def check_topk(k: int, experts: list[str], key: str) -> None:
+    """The one check of k: 1 <= k <= M; `key` names where k came from (moe.topk, --topk) in the error."""
+    if not 1 <= k <= len(experts):
+        raise BoostNerfError(f"{key} = {k} but the mixture has {len(experts)} experts ({', '.join(experts)}): "
+                             f"set {key} between 1 and {len(experts)}")
 
 
 def top_k(probs: Tensor, k: int, renormalize: bool) -> tuple[Tensor, Tensor]:

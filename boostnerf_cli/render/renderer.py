@@ -12,7 +12,7 @@ Setting both skips off (`skip=None`, `color_threshold=0`) evaluates every sample
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Protocol
 
 import torch
 from torch import Tensor
@@ -152,3 +152,19 @@ def render_image(
         "n_samples": n_samples,
         "n_color": n_color,
     }
+
+
+class Views(Protocol):
+    """Posed cameras of one size, e.g. a dataset split: poses (N, 4, 4), intrinsics (N, 3, 3)."""
+
+    poses: Tensor
+    intrinsics: Tensor
+    height: int
+    width: int
+
+
+def render_view(field: Field, views: Views, i: int, settings: RenderSettings,
+                skip: Callable[[Tensor], Tensor] | None = None, device: torch.device | str = "cpu") -> dict:
+    """`render_image` of camera `i` of `views` (a dataset split)."""
+    return render_image(field, views.poses[i], views.intrinsics[i], views.height, views.width, settings, skip,
+                        device=device)

@@ -20,6 +20,7 @@ from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC
+from boostnerf_cli.render.renderer import RenderSettings
 
 
 @dataclass(frozen=True)
@@ -94,6 +95,12 @@ class Scene:
         raise BoostNerfError(
             f"scene {self.name!r} has no {name!r} split (it has: {', '.join(sorted(self.splits))})"
         )
+
+    def render_settings(self, step: float, bbox: Tensor, color_threshold: float = 1e-4) -> RenderSettings:
+        """How to render this scene with samples `step` apart inside `bbox` (a model's box): the scene's near,
+        far, background and NDC warp; colour only where a sample's weight exceeds `color_threshold`."""
+        return RenderSettings(step=step, near=self.near, far=self.far, bbox=bbox, background=self.background,
+                              color_threshold=color_threshold, ndc=self.ndc)
 
     def describe(self) -> dict:
         """A JSON-able summary, recorded in the workspace manifest."""

@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Callable
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.models import Skips
 from boostnerf_cli.moe.router import PENALTIES
 from boostnerf_cli.recipe import Recipe, recipe_dict
 from boostnerf_cli.workspace import Workspace, atomic_path, read_json, write_json
@@ -179,6 +180,11 @@ def select(rows: list[Row], only: list[str] | None, suite: str) -> list[Row]:
 
 
 # --- running -----------------------------------------------------------------------------------
+def row_path(root: Path, name: str) -> Path:
+    """BENCH/rows/NAME.json: row NAME's result, written when it finishes (a rerun skips the rows that have one)."""
+    return root / "rows" / f"{name}.json"
+
+
 def _link(src: Path, dst: Path) -> None:
     """Hard-link a finished artifact into another workspace (copy across file systems)."""
     if dst.exists() or not src.exists():
@@ -200,7 +206,7 @@ class Bench:
         return Workspace(self.root / "variants" / name)
 
     def row_path(self, name: str) -> Path:
-        return self.root / "rows" / f"{name}.json"
+        return row_path(self.root, name)
 
     def prepare(self, setup: Setup) -> Workspace:
         """Make a variant workspace ready: its experts trained or linked, its mixture built."""
@@ -242,9 +248,7 @@ class Bench:
             build_moe.build(ws, None, moe, self.device, self.log)
 
     def run_row(self, row: Row) -> dict:
-        from boostnerf_cli.stages import finetune
-        from boostnerf_cli.stages.common import Skips
-        from boostnerf_cli.stages.evaluate import run_eval
+        from boostnerf_cli.stages import evaluate, finetune
 
         setup = self.setups[row.setup]
         ws = self.prepare(setup)
@@ -252,7 +256,7 @@ class Bench:
             self.build(ws, setup)
             topk = int(row.train[3:]) if row.train.startswith("top") else None
             finetune.run(ws, row.train, topk, setup.recipe.moe, self.device, False, self.log)
-        result = run_eval(ws, [row.model], "test", self.device, Skips(), self.views, False, self.log, costs=True)
+        result = evaluate.run(ws, [row.model], "test", self.device, Skips(), self.views, False, self.log, costs=True)
         ev = result["models"][0]
         out = {
             "name": row.name,
@@ -330,10 +334,9 @@ def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] 
 
 def write_table(root: Path, suite: str, rows: list[Row], log: Callable[[str], None]) -> dict:
     """bench.json / bench.csv / plots of every finished row of the suite, in catalogue order."""
-    done = [read_json(root / "rows" / f"{r.name}.json", "bench row") for r in rows
-            if (root / "rows" / f"{r.name}.json").exists()]
+    done = [read_json(row_path(root, r.name), "bench row") for r in rows if row_path(root, r.name).exists()]
     reports = root / "reports"
-    table = {"suite": suite, "rows": done, "missing": [r.name for r in rows if not (root / "rows" / f"{r.name}.json").exists()]}
+    table = {"suite": suite, "rows": done, "missing": [r.name for r in rows if not row_path(root, r.name).exists()]}
     write_json(reports / "bench.json", table)
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")

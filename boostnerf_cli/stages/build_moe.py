@@ -10,10 +10,12 @@ from typing import Callable
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields import count_params, load_expert
+from boostnerf_cli.fields.registry import count_params
+from boostnerf_cli.models import load_expert, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
-from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, save_mixture
+from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
+from boostnerf_cli.moe.router import check_topk
 from boostnerf_cli.recipe import MoERecipe, check_section
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.workspace import Workspace, read_meta, write_json
@@ -29,9 +31,7 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     if missing:
         raise BoostNerfError(f"no pretrained expert {missing[0]!r} in {ws.root} (experts: {', '.join(available)})")
     check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
-    if rec.topk > len(names):
-        raise BoostNerfError(f"moe.topk = {rec.topk} but the mixture has {len(names)} experts ({', '.join(names)}): "
-                             f"set moe.topk to at most {len(names)}")
+    check_topk(rec.topk, names, "moe.topk")
     experts, scenes, inputs = [], set(), {}
     for n in names:
         inputs[n] = read_meta(ws.expert_path(n)).get("digest")

@@ -1,4 +1,4 @@
-"""`boostnerf render` and `boostnerf eval`: images on disk, and one table of every model's quality.
+"""`boostnerf eval`: one table of every model's quality and cost.
 
 reports/eval.json schema (documented in docs/reports.md):
 {"split": str, "views": int, "lpips_note": str | null,
@@ -8,69 +8,15 @@ reports/eval.json schema (documented in docs/reports.md):
 
 from __future__ import annotations
 
-import time
-from pathlib import Path
 from typing import Callable
 
-import imageio.v3 as iio
-import numpy as np
-import torch
-
+from boostnerf_cli.costs import model_costs
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.metrics import image_metrics, load_lpips
-from boostnerf_cli.render.renderer import render_image
+from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, all_model_names, load_model, render_split
 from boostnerf_cli.scenes import Scene, Split
-from boostnerf_cli.stages.common import ALL_SKIPS, LoadedModel, Skips, all_model_names, load_model, workspace_scene
+from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, atomic_path, write_json
-
-
-def to_uint8(img: torch.Tensor) -> np.ndarray:
-    return (img.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
-
-
-def depth_to_uint16(depth: torch.Tensor, far: float) -> np.ndarray:
-    """Depth in world units -> 16-bit PNG values, 65535 = `far` (documented in docs/stages.md)."""
-    return (depth.clamp(0, far) / far * 65535.0 + 0.5).numpy().astype(np.uint16)
-
-
-def write_png(path: Path, array: np.ndarray) -> None:
-    with atomic_path(path) as tmp:
-        iio.imwrite(tmp, array, extension=".png")
-
-
-def render_split(model: LoadedModel, scene: Scene, split: Split, device: str, skips: Skips = ALL_SKIPS,
-                 views: int | None = None) -> list[dict]:
-    """Render the first `views` views of a split (all by default) -> outputs with timings."""
-    settings, skip = model.render_setup(scene, skips)
-    out = []
-    for i in range(len(split) if views is None else min(views, len(split))):
-        t0 = time.perf_counter()
-        r = render_image(model.field, split.poses[i], split.intrinsics[i], split.height, split.width, settings,
-                         skip, device=device)
-        r["seconds"] = time.perf_counter() - t0
-        out.append(r)
-    return out
-
-
-def run_render(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
-               log: Callable[[str], None], per_expert: bool = False, exact_gate: bool = False) -> list[Path]:
-    scene = workspace_scene(ws)
-    split = scene.split(split_name)
-    written = []
-    for name in names or all_model_names(ws):
-        model = load_model(ws, name, device, exact_gate)
-        folder = ws.renders_dir(name, split_name)
-        for i, r in enumerate(render_split(model, scene, split, device, skips, views)):
-            stem = Path(split.names[i]).name
-            write_png(folder / f"{stem}.png", to_uint8(r["rgb"]))
-            write_png(folder / f"{stem}_depth.png", depth_to_uint16(r["depth"], scene.far))
-            written.append(folder / f"{stem}.png")
-        if per_expert and model.kind == "mixture":
-            from boostnerf_cli.stages.pictures import render_experts_and_gate
-
-            written += render_experts_and_gate(model, scene, split, folder, device, skips, views, log)
-        log(f"{name}: wrote {len(written)} images to {folder}")
-    return written
 
 
 def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, lpips_model, skips: Skips = ALL_SKIPS,
@@ -95,7 +41,7 @@ def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, 
     }
 
 
-def run_eval(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
+def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
              report: bool, log: Callable[[str], None], costs: bool = True, exact_gate: bool = False) -> dict:
     scene = workspace_scene(ws)
     split = scene.split(split_name)
@@ -110,8 +56,6 @@ def run_eval(ws: Workspace, names: list[str] | None, split_name: str, device: st
         model = load_model(ws, name, device, exact_gate=True)  # ||w||_0 needs the trainable gate
         cost = {}
         if costs:
-            from boostnerf_cli.stages.count_params import model_costs
-
             c = model_costs(model, scene, split, device, views, exact_gate)  # leaves it ready to render
             cost = {"w0": c["w0"], "gflops_per_image": c["gflops_per_image"]}
         row = {**evaluate_model(model.for_rendering(exact_gate), scene, split, device, lpips_model, skips, views), **cost}

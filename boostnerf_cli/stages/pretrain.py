@@ -13,10 +13,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import shutil
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -25,96 +23,19 @@ from torch import Tensor, nn
 
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields import build_expert, count_params, load_expert, save_expert
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.fields.registry import build_expert, count_params
 from boostnerf_cli.metrics import mse_to_psnr
+from boostnerf_cli.models import load_expert, save_expert
 from boostnerf_cli.recipe import GeometryRecipe, PretrainRecipe, Recipe, TrainRecipe, check_recipe, recipe_dict
 from boostnerf_cli.render.coverage import cover_foreground
 from boostnerf_cli.render.occupancy import OccupancyGrid
-from boostnerf_cli.render.renderer import RenderSettings, render_image, render_rays
+from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.stages.common import scene_digest
-from boostnerf_cli.train import RayData, Schedule, train
+from boostnerf_cli.tasks import FieldTask, train_rays
+from boostnerf_cli.train import Schedule, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
-
-
-def photometric_loss(bundle, rgb: Tensor, tcfg: TrainRecipe) -> tuple[Tensor, dict[str, float]]:
-    """MSE + DVGO's per-sample colour loss and background entropy loss."""
-    mse = torch.mean((bundle.color - rgb) ** 2)
-    loss = mse
-    if tcfg.weight_rgbper > 0:
-        w, c = bundle.extras["weights"], bundle.extras["rgb"]
-        loss = loss + tcfg.weight_rgbper * (w * ((c - rgb[:, None, :]) ** 2).sum(-1)).sum(-1).mean()
-    if tcfg.weight_entropy > 0:
-        acc = bundle.acc.clamp(1e-6, 1 - 1e-6)
-        loss = loss + tcfg.weight_entropy * -(acc * torch.log(acc) + (1 - acc) * torch.log(1 - acc)).mean()
-    return loss, {"loss": float(loss.detach()), "psnr": mse_to_psnr(float(mse.detach()))}
-
-
-@dataclass
-class FieldTask:
-    """Train one expert-like field: growth schedule, occupancy refresh, photometric loss."""
-
-    model: nn.Module
-    settings: RenderSettings
-    tcfg: TrainRecipe
-    skip: OccupancyGrid | None
-    base_mask: OccupancyGrid | None  # skips never reopen cells outside it
-    growth_steps: tuple[int, ...] = ()
-    final_voxels: int = 0
-
-    def param_groups(self) -> list[dict]:
-        return self.model.param_groups(self.tcfg.lr_grid, self.tcfg.lr_mlp)
-
-    def before_step(self, step: int) -> bool:
-        changed = False
-        if step in self.growth_steps:
-            k = len(self.growth_steps) - (self.growth_steps.index(step) + 1)
-            self.model.regrid(self.final_voxels // (2 ** k))
-            changed = True
-        every = self.tcfg.occupancy_every
-        if every > 0 and step > 0 and (step % every == 0 or step in self.growth_steps):
-            self.refresh_occupancy()
-        return changed
-
-    def refresh_occupancy(self) -> None:
-        grid = OccupancyGrid.from_density(
-            self.model.density, self.model.bbox, occupancy_shape(self.model), self.settings.step,
-            self.tcfg.occupancy_threshold,
-        )
-        if self.base_mask is not None:
-            grid = OccupancyGrid(grid.occupied & self.base_mask.sample_cells(grid), grid.bbox)
-        self.skip = grid
-
-    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):
-        bundle = render_rays(self.model, origins, dirs, self.settings, self.skip, jitter=True)
-        loss, logs = photometric_loss(bundle, rgb, self.tcfg)
-        reg = self.model.regularization()
-        if reg is not None:
-            loss = loss + reg
-        logs["samples"] = bundle.n_samples / origins.shape[0]
-        logs["colored"] = bundle.n_color / origins.shape[0]
-        return loss, logs
-
-    def state(self) -> dict:
-        return {
-            "meta": self.model.config_dict(),
-            "model": self.model.state_dict(),
-            "skip": None if self.skip is None else self.skip.occupied,
-        }
-
-    def load_state(self, state: dict) -> None:
-        self.model.resize_to(tuple(state["meta"]["shape"]))
-        self.model.load_state_dict(state["model"])
-        if state["skip"] is not None:
-            self.skip = OccupancyGrid(state["skip"], self.model.bbox)
-
-
-def occupancy_shape(model: nn.Module) -> tuple[int, int, int]:
-    """Occupancy cells: the model's lattice, capped at 128 per side."""
-    s = model.shape
-    f = max(1.0, max(s) / 128)
-    return tuple(max(2, int(math.ceil(v / f))) for v in s)  # type: ignore[return-value]
 
 
 def growth_schedule(iters: int, fractions: list[float]) -> tuple[int, ...]:
@@ -124,8 +45,7 @@ def growth_schedule(iters: int, fractions: list[float]) -> tuple[int, ...]:
 def _test_psnr(model: nn.Module, split: Split, settings: RenderSettings, skip, device, max_views: int = 1000) -> float:
     psnrs = []
     for i in range(min(len(split), max_views)):
-        out = render_image(model, split.poses[i], split.intrinsics[i], split.height, split.width, settings, skip,
-                           device=device)
+        out = render_view(model, split, i, settings, skip, device)
         mse = float(torch.mean((out["rgb"] - split.images[i]) ** 2))
         psnrs.append(mse_to_psnr(mse))
     return sum(psnrs) / max(1, len(psnrs))
@@ -147,11 +67,10 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     torch.manual_seed(seed)
     model = DVGOExpert(DVGOConfig(res=rec.res, hidden=0, alpha_init=rec.alpha_init), bbox).to(device)
     step = 0.5 * model.voxel_size
-    settings = RenderSettings(step=step, near=scene.near, far=scene.far, bbox=bbox, background=scene.background,
-                              ndc=scene.ndc)
+    settings = scene.render_settings(step, bbox)
     tcfg = TrainRecipe(lr_grid=rec.lr, weight_rgbper=0.0, weight_entropy=rec.weight_entropy, occupancy_every=0)
     task = FieldTask(model, settings, tcfg, skip=None, base_mask=None)
-    rays = RayData.from_split(scene.splits["train"], bbox, scene.near, scene.far, scene.ndc).to(device)
+    rays = train_rays(scene, bbox, device)
     t0 = time.perf_counter()
     ckpt = ws.checkpoint_path("geometry")
     train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5),
@@ -233,10 +152,9 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     if growth:
         model.regrid(final_voxels // (2 ** len(growth)))
     model.init_density(prior.density)  # warm start: colour is then computed near surfaces only
-    settings = RenderSettings(step=tcfg.step_ratio * model.unit, near=scene.near, far=scene.far, bbox=box,
-                              background=scene.background, color_threshold=tcfg.color_threshold, ndc=scene.ndc)
+    settings = scene.render_settings(tcfg.step_ratio * model.unit, box, tcfg.color_threshold)
     task = FieldTask(model, settings, tcfg, skip=geom, base_mask=geom, growth_steps=growth, final_voxels=final_voxels)
-    rays = RayData.from_split(scene.splits["train"], box, scene.near, scene.far, scene.ndc).to(device)
+    rays = train_rays(scene, box, device)
     sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
     signature = {"stage": "pretrain", "scene": scene_tag, "model": rec.model, "res": res,

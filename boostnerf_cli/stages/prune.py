@@ -1,31 +1,13 @@
 """`boostnerf prune`: keep only the grid entries the training views use; write a compact model.
 
-The paper measures ||w||_0 (the parameters with a non-zero gradient of the photometric loss) and
-leaves pruning the rest as future work. Here: freeze the model, render every training view,
-backpropagate the photometric loss, and for each dense grid table (every parameter whose name ends
-in `table`: the experts' density and feature grids, the gate's feature grid) keep the rows (lattice
-vertices) with a non-zero gradient in any channel. The MLPs stay dense (they are small and every
-sample uses them). The result, `moe/<name>-pruned.safetensors`, stores each pruned table as its kept
-rows plus a one-bit-per-row mask (`workspace.pack_rows`); loading rebuilds the dense table, so the
-pruned model renders and evaluates like any other model under the name `<name>-pruned`.
-
-Which rows are used. A row with a zero gradient is either never read by a rendered sample, read
-with a zero trilinear weight (a sample on a lattice plane), or read only by samples whose
-transmittance underflowed to exactly 0 (behind an opaque surface): none of these changes a training
-view's pixels, so the training views render the same after pruning (checked and reported).
-A mixture renders with its gate baked on a lattice (`Mixture.for_rendering`); a baked lattice vertex
-blends gate rows around it that the exact gate at the training samples may not read, so the rows
-the baked path needs are found too: the gradient reaches the baked logits, and is carried back to
-the gate's rows through the baking (a vector-Jacobian product at the baked vertices that received
-gradient). The kept rows are the union of both paths, for the experts as well (the baked routing
-may send a sample to another expert near a routing boundary).
-
-What a dropped row becomes (`fill`, stored per table): density tables take the smallest kept value
-of the table, i.e. the emptiest density the model learned where the training views saw it (every
-family's density is increasing in its raw value); other tables take 0 (the initial value of DVGO
-features). A dropped row is never read with a non-zero effect by the training views, so the fill
-only matters for new views that read grid entries no training view reached: "empty" there adds no
-floaters. docs/benchmarks.md records the measurement behind this choice.
+For each dense grid table of the model (a 2-D parameter whose name ends in `table`: the experts' density
+and feature grids, the gate's feature grid) the rows (lattice vertices) kept are those where the
+photometric loss of the training views has a non-zero gradient in any channel, through the exact gate
+and through the baked gate that render and eval use (`usage_masks`). MLPs stay dense. The result,
+`moe/<name>-pruned.safetensors` (`models.save_pruned`), renders and evaluates like any model under the
+name `<name>-pruned`; a dropped row reads back as `fill_row`: the smallest kept value for density
+tables, 0 otherwise. The training views render the same before and after (checked and reported).
+Why these rows and this fill, and what pruning saves: docs/benchmarks.md, "Pruning parameters nothing uses".
 """
 
 from __future__ import annotations
@@ -36,14 +18,15 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from boostnerf_cli.costs import photometric_grads
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import grid as G
 from boostnerf_cli.metrics import mse_to_psnr
-from boostnerf_cli.render.renderer import render_image
+from boostnerf_cli.models import LoadedModel, load_model, model_file, save_pruned
+from boostnerf_cli.render.renderer import render_view
 from boostnerf_cli.scenes import Scene, Split
-from boostnerf_cli.stages.common import LoadedModel, load_model, workspace_scene
-from boostnerf_cli.stages.count_params import photometric_grads
-from boostnerf_cli.workspace import Workspace, load_tensors, pack_rows, save_tensors, write_json
+from boostnerf_cli.stages.common import workspace_scene
+from boostnerf_cli.workspace import Workspace, read_json, write_json
 
 SUFFIX = "-pruned"
 CHECK_VIEWS = 4  # training views rendered before and after to check they are unchanged
@@ -107,15 +90,10 @@ def fill_row(table_name: str, table: Tensor, keep: Tensor) -> list[float]:
     return [0.0] * channels
 
 
-def _source_path(ws: Workspace, name: str):
-    return ws.expert_path(name) if ws.expert_path(name).exists() else ws.model_path(name)
-
-
 @torch.no_grad()
 def _renders(model: LoadedModel, scene: Scene, split: Split, device: str, n: int) -> list[Tensor]:
     settings = model.settings(scene)
-    return [render_image(model.field, split.poses[i], split.intrinsics[i], split.height, split.width, settings,
-                         model.skip, device=device)["rgb"] for i in range(min(n, len(split)))]
+    return [render_view(model.field, split, i, settings, model.skip, device)["rgb"] for i in range(min(n, len(split)))]
 
 
 def _psnr(images: list[Tensor], split: Split) -> float:
@@ -130,34 +108,16 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
     out_name = name + SUFFIX
     out_path, report_path = ws.model_path(out_name), ws.moe_dir / f"{out_name}.json"
     if out_path.exists() and report_path.exists() and not force:
-        from boostnerf_cli.workspace import read_json
-
         log(f"{out_name}: already pruned, skipping (use --force to redo it)")
         return read_json(report_path, "prune report")
     before = load_model(ws, name, device)  # also: a clear error for an unknown name, before any work
-    src = _source_path(ws, name)
+    src = model_file(ws, name)
     scene = workspace_scene(ws)
     split = scene.split(split_name)
     t0 = time.perf_counter()
     masks = usage_masks(ws, name, scene, split, device, views, render=before)
-    tensors, meta = load_tensors(src)
-    if meta.get("packed"):
-        raise BoostNerfError(f"{src} is already a pruned model")
-    packed, tables, dropped = {}, [], 0
-    for tname, keep in masks.items():
-        table, keep = tensors.pop(tname), keep.cpu()
-        fill = fill_row(tname, table, keep)
-        parts = pack_rows(table, keep)
-        tensors[f"{tname}@values"], tensors[f"{tname}@mask"] = parts["values"], parts["mask"]
-        packed[tname] = {"rows": table.shape[0], "fill": fill}
-        kept = int(keep.sum())
-        dropped += (table.shape[0] - kept) * table.shape[1]
-        tables.append({"name": tname, "rows": table.shape[0], "kept_rows": kept, "channels": table.shape[1],
-                       "fill": fill})
     params_before = before.params
-    meta = {k: v for k, v in meta.items() if k != "format_version"}
-    save_tensors(out_path, tensors, {**meta, "name": out_name, "pruned_from": name, "packed": packed,
-                                     "stored_params": params_before - dropped})
+    tables, dropped = save_pruned(src, out_path, masks, fill_row, out_name, name, params_before)
     after = load_model(ws, out_name, device)
     train_before = _renders(before, scene, split, device, CHECK_VIEWS)
     train_after = _renders(after, scene, split, device, CHECK_VIEWS)

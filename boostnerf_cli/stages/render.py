@@ -1,7 +1,8 @@
-"""What `boostnerf render` shows besides plain views: camera-path videos, side-by-side comparisons
-with error heat maps, and each expert's share of a mixture with the gate's probability maps.
+"""`boostnerf render`: every view of a split as PNG colour and 16-bit depth, camera-path videos, side-by-side
+comparisons with error heat maps, and each expert's share of a mixture with the gate's probability maps.
 
 Files (all under WS/renders/, see docs/stages.md):
+- `render`: `<model>/<split>/<view>.png` and `<view>_depth.png`;
 - `render --path orbit|spiral`: `<model>/<path>.mp4` (or `--video FILE`, .mp4 or .gif) and
   `<...>_depth.mp4`; an MP4 without the ffmpeg backend is refused before anything is rendered;
 - `render --compare`: `compare/<split>/<view>.png`;
@@ -22,39 +23,42 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.images import (
     colorbar,
     colorize_depth,
+    depth_to_uint16,
     heat,
     panel_grid,
+    to_uint8,
     video_target,
+    write_png,
     write_video,
 )
+from boostnerf_cli.models import LoadedModel, Skips, all_model_names, load_model, n_views, render_split
+from boostnerf_cli.moe.mixture import GateView
 from boostnerf_cli.render.paths import camera_path
-from boostnerf_cli.render.renderer import render_image
+from boostnerf_cli.render.renderer import render_image, render_view
 from boostnerf_cli.scenes import Scene, Split
-from boostnerf_cli.stages.common import (
-    LoadedModel,
-    Skips,
-    all_model_names,
-    load_model,
-    workspace_scene,
-)
+from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace
 
 COMPARED = ("baseline", "top1", "top2", "ens")  # the paper's comparison models, in its order
 
 
-def _to_uint8(img: torch.Tensor | np.ndarray) -> np.ndarray:
-    a = img.numpy() if isinstance(img, torch.Tensor) else img
-    return (np.clip(a, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
-def _write_png(path: Path, array: np.ndarray) -> None:
-    from boostnerf_cli.stages.evaluate import write_png
-
-    write_png(path, array)
-
-
-def _n_views(split: Split, views: int | None) -> int:
-    return len(split) if views is None else min(views, len(split))
+def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
+               log: Callable[[str], None], per_expert: bool = False, exact_gate: bool = False) -> list[Path]:
+    scene = workspace_scene(ws)
+    split = scene.split(split_name)
+    written = []
+    for name in names or all_model_names(ws):
+        model = load_model(ws, name, device, exact_gate)
+        folder = ws.renders_dir(name, split_name)
+        for i, r in enumerate(render_split(model, scene, split, device, skips, views)):
+            stem = Path(split.names[i]).name
+            write_png(folder / f"{stem}.png", to_uint8(r["rgb"]))
+            write_png(folder / f"{stem}_depth.png", depth_to_uint16(r["depth"], scene.far))
+            written.append(folder / f"{stem}.png")
+        if per_expert and model.kind == "mixture":
+            written += render_experts_and_gate(model, scene, split, folder, device, skips, views, log)
+        log(f"{name}: wrote {len(written)} images to {folder}")
+    return written
 
 
 # --- videos ---------------------------------------------------------------------------------------
@@ -65,7 +69,7 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
         raise BoostNerfError(f"--path renders one model: add --model NAME (models: {', '.join(all_model_names(ws)) or 'none yet'})")
     scene = workspace_scene(ws)
     model = load_model(ws, names[0], device)
-    target, fmt = video_target(video or ws.root / "renders" / model.name / f"{kind}.mp4")  # refused before rendering
+    target, fmt = video_target(video or ws.renders_dir(model.name) / f"{kind}.mp4")  # refused before rendering
     train = scene.split("train")
     facing = float(torch.linalg.norm(train.poses[:, :3, 2].mean(0)))  # 1: all cameras look the same way
     if kind == "spiral" and facing < 0.5:
@@ -78,7 +82,7 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
     for i, pose in enumerate(poses):
         r = render_image(model.field, pose, train.intrinsics[0], train.height, train.width, settings, skip,
                          device=device)
-        rgb.append(_to_uint8(r["rgb"]))
+        rgb.append(to_uint8(r["rgb"]))
         depth.append((r["depth"] / r["acc"].clamp_min(1e-6)).numpy())  # expected depth of the surface hit
         acc.append(r["acc"].numpy())
         if (i + 1) % 10 == 0 or i + 1 == len(poses):
@@ -117,26 +121,24 @@ def run_compare(ws: Workspace, names: list[str] | None, split_name: str, device:
     scene = workspace_scene(ws)
     split = scene.split(split_name)
     names = compared_models(ws, names)
-    n = _n_views(split, views)
-    from boostnerf_cli.stages.evaluate import render_split
-
+    n = n_views(split, views)
     renders = {}
     for name in names:
         renders[name] = [r["rgb"].numpy() for r in render_split(load_model(ws, name, device), scene, split, device, skips, n)]
-    folder = ws.root / "renders" / "compare" / split_name
+    folder = ws.renders_dir("compare", split_name)
     written = []
     for i in range(n):
         gt = split.images[i].numpy()
         errors = {name: pixel_error(renders[name][i], gt) for name in names}
         hi = max(max(float(np.percentile(e, 99.5)) for e in errors.values()), 1e-3)
-        top, bottom = [("ground truth", _to_uint8(gt))], [(f"RMS error: black 0, white {hi:.2f}", colorbar(gt.shape[0], gt.shape[1], 0.0, hi))]
+        top, bottom = [("ground truth", to_uint8(gt))], [(f"RMS error: black 0, white {hi:.2f}", colorbar(gt.shape[0], gt.shape[1], 0.0, hi))]
         for name in names:
             mse = float(np.mean((renders[name][i].astype(np.float64) - gt) ** 2))
             psnr = -10.0 * np.log10(max(mse, 1e-10))
-            top.append((f"{name}  {psnr:.2f} dB", _to_uint8(renders[name][i])))
+            top.append((f"{name}  {psnr:.2f} dB", to_uint8(renders[name][i])))
             bottom.append((f"{name} error", heat(errors[name], 0.0, hi)))
         path = folder / f"{Path(split.names[i]).name}.png"
-        _write_png(path, panel_grid([top, bottom], caption=f"{scene.name}, {split_name} view {split.names[i]}"))
+        write_png(path, panel_grid([top, bottom], caption=f"{scene.name}, {split_name} view {split.names[i]}"))
         written.append(path)
     log(f"compared {', '.join(names)}: wrote {len(written)} images to {folder}")
     return written
@@ -182,45 +184,42 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
     `log` (when given) gets, per view, the mean gate probability of each expert over the more detailed
     and the smoother half of the object's pixels (`gate_by_detail`).
     """
-    from boostnerf_cli.moe.mixture import GateView
-
     mix = model.field
     names = list(mix.cfg.expert_names)
     m = len(names)
     settings, skip = model.render_setup(scene, skips)
     black = replace(settings, background=(0.0, 0.0, 0.0))
     written = []
-    for i in range(_n_views(split, views)):
+    for i in range(n_views(split, views)):
         stem = Path(split.names[i]).name
 
         def draw(field, s, i=i):
-            return render_image(field, split.poses[i], split.intrinsics[i], split.height, split.width, s, skip,
-                                device=device)
+            return render_view(field, split, i, s, skip, device)
 
         full = draw(mix, settings)
         shares, gates = [], []
         for e, ename in enumerate(names):
-            share = _to_uint8(draw(mix.expert_only(e), settings)["rgb"])
+            share = to_uint8(draw(mix.expert_only(e), settings)["rgb"])
             g = draw(GateView(mix, e), black)
             acc = g["acc"].numpy()
             prob = np.where(acc > 0.1, g["rgb"].numpy()[..., 0] / np.maximum(acc, 1e-6), 0.0).clip(0, 1)
             gates.append(prob)
             shares.append(share)
-            for kind, img in (("expert", share), ("gate", _to_uint8(np.repeat(prob[..., None], 3, -1)))):
+            for kind, img in (("expert", share), ("gate", to_uint8(np.repeat(prob[..., None], 3, -1)))):
                 path = folder / f"{stem}_{kind}{e}-{ename}.png"
-                _write_png(path, img)
+                write_png(path, img)
                 written.append(path)
         probs = np.stack(gates, -1)  # (H, W, M)
         if log is not None:
             hi, lo = gate_by_detail(probs, split.images[i].numpy(), full["acc"].numpy() > 0.5)
             log(f"{model.name} {stem}: mean gate probability per expert ({', '.join(names)}) on detailed pixels "
                 f"{[round(float(v), 2) for v in hi]}, on smooth pixels {[round(float(v), 2) for v in lo]}")
-        routing = _to_uint8(probs @ _palette(m))
-        top = [("mixture", _to_uint8(full["rgb"]))] + [(f"{names[e]} share", shares[e]) for e in range(m)]
+        routing = to_uint8(probs @ _palette(m))
+        top = [("mixture", to_uint8(full["rgb"]))] + [(f"{names[e]} share", shares[e]) for e in range(m)]
         bottom = [("routing (blue=small .. red=large)", routing)] + [
-            (f"gate p({names[e]})", _to_uint8(np.repeat(gates[e][..., None], 3, -1))) for e in range(m)]
+            (f"gate p({names[e]})", to_uint8(np.repeat(gates[e][..., None], 3, -1))) for e in range(m)]
         path = folder / f"{stem}_experts.png"
-        _write_png(path, panel_grid([top, bottom], caption=f"{model.name}, {split.names[i]}: experts smallest first; "
+        write_png(path, panel_grid([top, bottom], caption=f"{model.name}, {split.names[i]}: experts smallest first; "
                                     "gate: white = probability 1, black = 0 or empty"))
         written.append(path)
     return written

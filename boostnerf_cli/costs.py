@@ -1,0 +1,92 @@
+"""What a model costs: the paper's ||w||_0 and GFLOPs per rendered image.
+
+||w||_0 (supplementary, "||w||_0 Computation"): freeze the model, render every view of the split,
+compute the photometric loss, and count the parameters whose gradient is non-zero. For a sparse
+mixture this counts only what the routing actually uses (`prune` keeps exactly these grid rows).
+GFLOPs per image: matrix products counted by torch's FlopCounterMode plus the analytic counts of
+`boostnerf_cli.flops` (interpolation, routing, compositing), averaged over the rendered views.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from boostnerf_cli.flops import count_flops
+from boostnerf_cli.models import LoadedModel
+from boostnerf_cli.render.rays import image_rays
+from boostnerf_cli.render.renderer import render_rays, render_view
+from boostnerf_cli.scenes import Scene, Split
+
+
+def photometric_grads(field, skip, settings, split: Split, device: str, views: int | None = None,
+                      extra: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor | None]:
+    """Backpropagate the photometric loss of the first `views` views of `split` through a frozen field.
+
+    -> {parameter name: its gradient (None when nothing reached it)}, also for the `extra` tensors
+    (e.g. a buffer made to require a gradient); the gradients are taken off the tensors afterwards.
+    """
+    tensors = {**dict(field.named_parameters()), **(extra or {})}
+    for t in tensors.values():
+        t.grad = None
+        t.requires_grad_(True)
+    n = len(split) if views is None else min(views, len(split))
+    total_pixels = n * split.height * split.width
+    for i in range(n):
+        o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, settings.ndc)
+        gt = split.images[i].reshape(-1, 3).to(device)
+        o, d = o.to(device), d.to(device)
+        for j in range(0, o.shape[0], settings.chunk):
+            b = render_rays(field, o[j : j + settings.chunk], d[j : j + settings.chunk], settings, skip)
+            loss = ((b.color - gt[j : j + settings.chunk]) ** 2).sum() / total_pixels
+            if loss.requires_grad:
+                loss.backward()
+    grads = {}
+    for name, t in tensors.items():
+        grads[name] = t.grad
+        t.grad = None
+    return grads
+
+
+def active_parameters(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None) -> dict:
+    """-> {"w0": int, "per_module": {name: w0}} from the gradient of the photometric loss."""
+    grads = photometric_grads(model.field, model.skip, model.settings(scene), split, device, views)
+    per_module: dict[str, int] = {}
+    for name, g in grads.items():
+        nz = int((g != 0).sum()) if g is not None else 0
+        top = ".".join(name.split(".")[:2]) if name.startswith("experts.") else name.split(".")[0]
+        per_module[top] = per_module.get(top, 0) + nz
+    return {"w0": sum(per_module.values()), "per_module": per_module}
+
+
+@torch.no_grad()
+def gflops_per_image(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None) -> float:
+    settings = model.settings(scene)
+    n = len(split) if views is None else min(views, len(split))
+    total = 0
+    for i in range(n):
+        with count_flops() as fc:
+            render_view(model.field, split, i, settings, model.skip, device)
+        total += fc.total
+    return total / max(1, n) / 1e9
+
+
+def model_costs(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None,
+                exact_gate: bool = False) -> dict:
+    """||w||_0 and GFLOPs per image of `model`, loaded with its exact (trainable) gate.
+
+    ||w||_0 is counted on the model as trained; then `model` is made ready to render in place (a
+    mixture's gate baked unless `exact_gate`) and the GFLOPs are those of what render and eval run.
+    """
+    active = active_parameters(model, scene, split, device, views)
+    row = {"name": model.name, "kind": model.kind, "params": model.params, "w0": active["w0"]}
+    if model.kind == "mixture":
+        mix = model.field
+        row["experts"] = [
+            {"name": n, "params": sum(p.numel() for p in mix.experts[i].parameters()),
+             "w0": active["per_module"].get(f"experts.{i}", 0)}
+            for i, n in enumerate(mix.cfg.expert_names)
+        ]
+        row["gate"] = {"params": sum(p.numel() for p in mix.gate.parameters()), "w0": active["per_module"].get("gate", 0)}
+    row["gflops_per_image"] = round(gflops_per_image(model.for_rendering(exact_gate), scene, split, device, views), 4)
+    return row
+

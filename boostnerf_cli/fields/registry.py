@@ -1,0 +1,31 @@
+"""The expert families by name. A new family is one module in `fields/` (a config dataclass and an
+`nn.Module` meeting the Expert contract of `fields/base.py`) plus one line in each table below."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.fields.ngp import NGPConfig, NGPExpert
+from boostnerf_cli.fields.tensorf import TensoRFConfig, TensoRFExpert
+
+FAMILIES: dict[str, type] = {"dvgo": DVGOExpert, "tensorf": TensoRFExpert, "ngp": NGPExpert}
+CONFIGS: dict[str, type] = {"dvgo": DVGOConfig, "tensorf": TensoRFConfig, "ngp": NGPConfig}
+
+
+def build_expert(family: str, config: dict, bbox: torch.Tensor) -> nn.Module:
+    """A new, untrained expert of `family` with the options `config` over the box `bbox` (2, 3)."""
+    if family not in FAMILIES:
+        raise BoostNerfError(f"unknown model family {family!r}: choose one of {', '.join(sorted(FAMILIES))}")
+    cfg_type = CONFIGS[family]
+    known = set(cfg_type.__dataclass_fields__)
+    unknown = set(config) - known
+    if unknown:
+        raise BoostNerfError(f"unknown {family} setting(s) {sorted(unknown)}: known are {sorted(known)}")
+    return FAMILIES[family](cfg_type(**config), bbox)
+
+
+def count_params(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())

@@ -1,0 +1,203 @@
+"""Training tasks: what one training step of a field computes, for the loop in `train.py`.
+
+`train.train(task, rays, schedule, ...)` draws a batch of training rays and calls `task.loss(origins, dirs,
+rgb, step)`; a task renders the batch through its field (`render.renderer.render_rays`) and returns the loss
+and what to log. `FieldTask` trains one expert (pretrain, the geometry stage, the finetuned baseline);
+`MixtureTask` a mixture of experts (finetune: photometric loss plus lambda times the auxiliary loss).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from boostnerf_cli import distributed as dist
+from boostnerf_cli.metrics import mse_to_psnr
+from boostnerf_cli.moe.mixture import Mixture, RoutingStats
+from boostnerf_cli.moe.router import aux_denominator, expert_counts
+from boostnerf_cli.recipe import MoERecipe, TrainRecipe
+from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.render.renderer import RayBundle, RenderSettings, render_rays
+from boostnerf_cli.render.volrend import render_weights
+from boostnerf_cli.scenes import Scene
+from boostnerf_cli.train import RayData
+
+
+def train_rays(scene: Scene, bbox: Tensor, device: str) -> RayData:
+    """Every training ray of `scene` that crosses `bbox`, with its pixel colour, on `device`."""
+    return RayData.from_split(scene.splits["train"], bbox.cpu(), scene.near, scene.far, scene.ndc).to(device)
+
+
+def photometric_loss(bundle, rgb: Tensor, tcfg: TrainRecipe) -> tuple[Tensor, dict[str, float]]:
+    """MSE + DVGO's per-sample colour loss and background entropy loss."""
+    mse = torch.mean((bundle.color - rgb) ** 2)
+    loss = mse
+    if tcfg.weight_rgbper > 0:
+        w, c = bundle.extras["weights"], bundle.extras["rgb"]
+        loss = loss + tcfg.weight_rgbper * (w * ((c - rgb[:, None, :]) ** 2).sum(-1)).sum(-1).mean()
+    if tcfg.weight_entropy > 0:
+        acc = bundle.acc.clamp(1e-6, 1 - 1e-6)
+        loss = loss + tcfg.weight_entropy * -(acc * torch.log(acc) + (1 - acc) * torch.log(1 - acc)).mean()
+    return loss, {"loss": float(loss.detach()), "psnr": mse_to_psnr(float(mse.detach()))}
+
+
+@dataclass
+class FieldTask:
+    """Train one expert-like field: growth schedule, occupancy refresh, photometric loss."""
+
+    model: nn.Module
+    settings: RenderSettings
+    tcfg: TrainRecipe
+    skip: OccupancyGrid | None
+    base_mask: OccupancyGrid | None  # skips never reopen cells outside it
+    growth_steps: tuple[int, ...] = ()
+    final_voxels: int = 0
+
+    def param_groups(self) -> list[dict]:
+        return self.model.param_groups(self.tcfg.lr_grid, self.tcfg.lr_mlp)
+
+    def before_step(self, step: int) -> bool:
+        changed = False
+        if step in self.growth_steps:
+            k = len(self.growth_steps) - (self.growth_steps.index(step) + 1)
+            self.model.regrid(self.final_voxels // (2 ** k))
+            changed = True
+        every = self.tcfg.occupancy_every
+        if every > 0 and step > 0 and (step % every == 0 or step in self.growth_steps):
+            self.refresh_occupancy()
+        return changed
+
+    def refresh_occupancy(self) -> None:
+        grid = OccupancyGrid.from_density(
+            self.model.density, self.model.bbox, occupancy_shape(self.model), self.settings.step,
+            self.tcfg.occupancy_threshold,
+        )
+        if self.base_mask is not None:
+            grid = OccupancyGrid(grid.occupied & self.base_mask.sample_cells(grid), grid.bbox)
+        self.skip = grid
+
+    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):
+        bundle = render_rays(self.model, origins, dirs, self.settings, self.skip, jitter=True)
+        loss, logs = photometric_loss(bundle, rgb, self.tcfg)
+        reg = self.model.regularization()
+        if reg is not None:
+            loss = loss + reg
+        logs["samples"] = bundle.n_samples / origins.shape[0]
+        logs["colored"] = bundle.n_color / origins.shape[0]
+        return loss, logs
+
+    def state(self) -> dict:
+        return {
+            "meta": self.model.config_dict(),
+            "model": self.model.state_dict(),
+            "skip": None if self.skip is None else self.skip.occupied,
+        }
+
+    def load_state(self, state: dict) -> None:
+        self.model.resize_to(tuple(state["meta"]["shape"]))
+        self.model.load_state_dict(state["model"])
+        if state["skip"] is not None:
+            self.skip = OccupancyGrid(state["skip"], self.model.bbox)
+
+
+def occupancy_shape(model: nn.Module) -> tuple[int, int, int]:
+    """Occupancy cells: the model's lattice, capped at 128 per side."""
+    s = model.shape
+    f = max(1.0, max(s) / 128)
+    return tuple(max(2, int(math.ceil(v / f))) for v in s)  # type: ignore[return-value]
+
+
+@dataclass
+class MixtureTask:
+    """One finetuning step of a mixture: render with routing stats, photometric + lambda * aux loss."""
+
+    mix: Mixture
+    settings: RenderSettings
+    tcfg: TrainRecipe
+    rec: MoERecipe
+
+    def param_groups(self) -> list[dict]:
+        return self.mix.param_groups(self.tcfg.lr_grid, self.tcfg.lr_mlp, self.rec.lr_gate, self.rec.lr_gate_mlp)
+
+    def before_step(self, step: int) -> bool:
+        return False
+
+    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):
+        stats = RoutingStats()
+        bundle = render_rays(self.mix.with_stats(stats), origins, dirs, self.settings, self.mix.skip, jitter=True)
+        loss, logs = photometric_loss(bundle, rgb, self.tcfg)
+        for ex in self.mix.experts:  # family-specific terms (TensoRF's L1), as in pretraining
+            reg = ex.regularization()
+            if reg is not None:
+                loss = loss + reg
+        keep = None
+        if self.mix.cfg.aux_samples == "visible":
+            keep = visible_samples(self.mix, bundle, origins, dirs, self.settings.color_threshold)
+        aux, aux_value, load = batch_routing(stats, self.mix.penalty, self.mix.m, self.mix.cfg.aux_norm, keep)
+        if self.rec.lam > 0 and self.mix.gate.cfg.kind != "uniform":
+            loss = loss + self.rec.lam * aux
+            logs["aux"] = aux_value
+        for i, f in enumerate(load):
+            logs[f"load{i}"] = f
+        logs["samples"] = bundle.n_samples / origins.shape[0]
+        return loss, logs
+
+    def state(self) -> dict:
+        return {"model": self.mix.state_dict()}
+
+    def load_state(self, state: dict) -> None:
+        self.mix.load_state_dict(state["model"])
+
+
+@torch.no_grad()
+def visible_samples(mix: Mixture, bundle: RayBundle, origins: Tensor, dirs: Tensor, threshold: float) -> Tensor:
+    """Which samples of the density pass are visible, as the official code counts them for its auxiliary loss
+    (EIDOSLAB/boost-your-nerf, dvgo/moe.py, DVGOMoE.forward): the density volume's opacity over the step and its
+    rendering weight along the ray (V_D alone composited over the density pass's samples) both above `threshold`
+    (its fast_color_thres, 1e-4; here moe.train.color_threshold). -> (n_samples,) bool, in the routing order."""
+    rows, t, step = bundle.extras["rows"], bundle.extras["t"], bundle.extras["step"]
+    r, s = t.shape
+    ray = rows // s
+    xyz = origins[ray] + t.reshape(-1)[rows, None] * dirs[ray]  # the renderer's sample positions
+    sigma = torch.zeros(r * s, device=t.device, dtype=t.dtype)
+    sigma[rows] = mix.vd.density(xyz).to(t.dtype)
+    weights, alpha, _ = render_weights(sigma.reshape(r, s), torch.full((r, s), step, device=t.device, dtype=t.dtype))
+    return (alpha.reshape(-1)[rows] > threshold) & (weights.reshape(-1)[rows] > threshold)
+
+
+def batch_routing(stats: RoutingStats, weights: Tensor, m: int, norm: str = "batch",
+                  keep: Tensor | None = None) -> tuple[Tensor, float, list[float]]:
+    """The auxiliary loss L = M / Z^2 sum_i c_i m_i w_i of the step's whole batch, and the load per expert.
+
+    Z = |B| (norm "batch") or sum_i c_i (norm "counts", `router.aux_loss`); the batch is every routed sample, or
+    those where `keep` holds (mask over the routed samples; the load is over every routed sample).
+    -> (the term to add to this rank's loss, L's value, the fraction of routed samples each expert got).
+    Data parallel, the batch is the union of the ranks' shards and L is not a mean of per-shard terms:
+    the counts c_i and the number of samples |B| are summed over the ranks (they carry no gradient), and
+    each rank's term keeps its own samples' probability mass m_i^(r), times the number of ranks N, so the
+    ranks' averaged gradient, (1/N) sum_r N M/Z^2 sum_i c_i w_i grad m_i^(r), is exactly L's gradient.
+    """
+    if dist.world_size() == 1:
+        aux = stats.aux(weights, norm, keep)
+        return aux, float(aux.detach()), stats.load(m)
+    probs = torch.cat(stats.probs) if stats.probs else weights.new_zeros(0, m)
+    idx = torch.cat(stats.idx) if stats.idx else torch.zeros(0, 1, dtype=torch.long, device=weights.device)
+    routed, n_routed = expert_counts(idx, m).to(weights), float(idx.shape[0])
+    if keep is not None:
+        probs, idx = probs[keep], idx[keep]
+    mass = probs.sum(dim=0)
+    local = torch.cat([expert_counts(idx, m).to(mass), mass, mass.new_tensor([float(probs.shape[0])]), routed.to(mass),
+                       mass.new_tensor([n_routed])])
+    total = dist.all_sum(local.double())
+    counts, n = total[:m].to(mass), float(total[2 * m])
+    routed_total, n_routed = total[2 * m + 1 : 3 * m + 1], float(total[-1])
+    load = (routed_total / n_routed).tolist() if n_routed > 0 else [0.0] * m
+    if n == 0:
+        return mass.sum() * 0.0, 0.0, load
+    z = aux_denominator(n, idx.shape[1], norm)
+    value = m / z**2 * float((total[:m] * total[m : 2 * m] * weights.double()).sum())
+    return dist.world_size() * m / z**2 * (counts * mass * weights.to(mass)).sum(), value, load
+
