@@ -200,9 +200,11 @@ def test_measure_costs_script_reports_every_measurement(moe_ws):
     import sys
     from pathlib import Path
 
-    script = Path(__file__).parent.parent / "scripts" / "measure_costs.py"
+    root = Path(__file__).parent.parent
+    script = root / "scripts" / "measure_costs.py"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
     proc = subprocess.run([sys.executable, str(script), "--workspace", str(moe_ws), "--views", "1", "--steps", "1",
-                           "--threads", "1"], capture_output=True, text=True, timeout=300)
+                           "--threads", "1"], capture_output=True, text=True, timeout=300, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     costs = json.loads((moe_ws / "reports" / "costs.json").read_text())
     rows = costs["skips"]["rows"]
