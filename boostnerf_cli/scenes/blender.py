@@ -28,6 +28,7 @@ from boostnerf_cli.scenes.frames import (
     parse_pose,
     read_transforms,
     resolve_image,
+    scene_from_splits,
 )
 from boostnerf_cli.scenes.scene import Scene, Split
 
@@ -116,15 +117,4 @@ def load_blender(
     near, far = _near_far({s: parsed[s][1] for s in found}, folder)
     train = splits["train"]
     bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
-    return Scene(
-        name=folder.resolve().name,
-        splits=splits,
-        near=near,
-        far=far,
-        bbox=bbox,
-        background=tuple(float(c) for c in background),
-        source=str(folder.resolve()),
-        format="blender",
-        holdout=holdout,
-        extra={"native_size": list(native), "image_size": list(size)},
-    )
+    return scene_from_splits(folder, splits, near, far, bbox, background, "blender", holdout, native, size)

@@ -1,10 +1,10 @@
 """What more than one dataset loader uses: frames, image reading and downscaling, pose and JSON
-parsing, and the hold-out split.
+parsing, the hold-out split and the `Scene` a loader returns.
 
 A loader parses its own files into `Frame`s (image path, name, OpenGL camera-to-world pose, camera
 keys), reads all their images with `load_frames` (one size for the whole scene, area-downscaled,
-composited on the background), builds its `Split`s and optionally holds views out with `hold_out`.
-Every error is a one-line `BoostNerfError` naming the file.
+composited on the background), builds its `Split`s, optionally holds views out with `hold_out`, and
+returns `scene_from_splits(...)`. Every error is a one-line `BoostNerfError` naming the file.
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.scenes.scene import Split
+from boostnerf_cli.render.rays import NDC
+from boostnerf_cli.scenes.scene import Scene, Split
 
 
 @dataclass(frozen=True)
@@ -230,3 +231,38 @@ def hold_out(train: Split, every: int) -> tuple[Split, Split, str]:
         )
     text = f"every {every}th train view ({len(held)} of {len(train)}) held out as test"
     return train.subset(kept), train.subset(held), text
+
+
+def scene_from_splits(
+    folder: Path,
+    splits: dict[str, Split],
+    near: float,
+    far: float,
+    bbox: Tensor,
+    background: tuple[float, float, float],
+    format: str,
+    holdout: str,
+    native: tuple[int, int],
+    size: tuple[int, int],
+    extra: dict | None = None,
+    ndc: NDC | None = None,
+) -> Scene:
+    """The `Scene` a loader returns for the dataset in `folder`.
+
+    name: the folder's own name and source: its absolute path (both after resolving links);
+    background: as floats. extra: `native_size` (the images' size on disk) and `image_size` (as
+    stored), each [height, width], then the loader's own `extra` keys.
+    """
+    return Scene(
+        name=folder.resolve().name,
+        splits=splits,
+        near=near,
+        far=far,
+        bbox=bbox,
+        background=tuple(float(c) for c in background),
+        source=str(folder.resolve()),
+        format=format,
+        holdout=holdout,
+        extra={"native_size": list(native), "image_size": list(size), **(extra or {})},
+        ndc=ndc,
+    )

@@ -34,7 +34,7 @@ from PIL import Image
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC
-from boostnerf_cli.scenes.frames import Frame, hold_out, load_frames, one_line
+from boostnerf_cli.scenes.frames import Frame, hold_out, load_frames, one_line, scene_from_splits
 from boostnerf_cli.scenes.scene import Scene, Split
 
 BOUND_FACTOR = 0.75
@@ -195,17 +195,7 @@ def load_llff(
     ndc = NDC(sx=2 * fx / train.width, sy=2 * fy / train.height, near=NDC_NEAR)
     bbox = ndc_bbox(ndc, train.poses, train.intrinsics, train.height, train.width)
     far = float((bbox[1] - bbox[0]).norm())
-    return Scene(
-        name=folder.resolve().name,
-        splits=splits,
-        near=0.0,
-        far=far,
-        bbox=bbox,
-        background=tuple(float(c) for c in background),
-        source=str(folder.resolve()),
-        format="llff",
-        holdout=holdout,
-        extra={"native_size": list(native), "image_size": list(size), "images_folder": sub.name,
-               "world_from_data": world_from_data.tolist(), "bounds": (bounds * scale).tolist()},
-        ndc=ndc,
-    )
+    return scene_from_splits(folder, splits, 0.0, far, bbox, background, "llff", holdout, native, size,
+                             extra={"images_folder": sub.name, "world_from_data": world_from_data.tolist(),
+                                    "bounds": (bounds * scale).tolist()},
+                             ndc=ndc)

@@ -31,6 +31,7 @@ from boostnerf_cli.scenes.frames import (
     parse_pose,
     read_transforms,
     resolve_image,
+    scene_from_splits,
 )
 from boostnerf_cli.scenes.scene import Scene, Split
 
@@ -102,18 +103,7 @@ def load_nerfstudio(
     train = splits["train"]
     near, far = camera_near_far(train.poses)
     bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
-    return Scene(
-        name=folder.resolve().name,
-        splits=splits,
-        near=near,
-        far=far,
-        bbox=bbox,
-        background=tuple(float(c) for c in background),
-        source=str(folder.resolve()),
-        format="nerfstudio",
-        holdout=holdout,
-        extra={"native_size": list(native), "image_size": list(size)},
-    )
+    return scene_from_splits(folder, splits, near, far, bbox, background, "nerfstudio", holdout, native, size)
 
 
 def _intrinsics(frame: Frame, native: tuple[int, int], size: tuple[int, int]) -> list[float]:

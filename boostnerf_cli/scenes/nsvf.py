@@ -32,7 +32,7 @@ from boostnerf_cli.scenes.bounds import (
     camera_near_far,
     frustum_overlap_bbox,
 )
-from boostnerf_cli.scenes.frames import Frame, hold_out, load_frames, one_line
+from boostnerf_cli.scenes.frames import Frame, hold_out, load_frames, one_line, scene_from_splits
 from boostnerf_cli.scenes.scene import Scene, Split
 
 PREFIXES = {"0": "train", "1": "val", "2": "test"}
@@ -202,19 +202,8 @@ def load_nsvf(
     else:
         near, far = camera_near_far(train.poses)
         bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
-    return Scene(
-        name=folder.resolve().name,
-        splits=splits,
-        near=near,
-        far=far,
-        bbox=bbox,
-        background=tuple(float(c) for c in background),
-        source=str(folder.resolve()),
-        format=format,
-        holdout=holdout,
-        extra={"native_size": list(native), "image_size": list(size),
-               "bbox_source": "bbox.txt" if (folder / "bbox.txt").is_file() else "cameras"},
-    )
+    return scene_from_splits(folder, splits, near, far, bbox, background, format, holdout, native, size,
+                             extra={"bbox_source": "bbox.txt" if (folder / "bbox.txt").is_file() else "cameras"})
 
 
 def load_tanks(path: Path, image_size: int | None = None, holdout_every: int = 8) -> Scene:
