@@ -55,6 +55,22 @@ def run_cli(*args: str, cwd: Path | None = None, check: bool = False,
     return proc
 
 
+def assert_clean_failure(proc: subprocess.CompletedProcess, *needles: str) -> None:
+    """The CLI refused cleanly: exit code 2, no traceback, the last stderr line is `error: ...` and holds
+    every one of `needles`."""
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) >= 1 and lines[-1].startswith("error:"), proc.stderr
+    for n in needles:
+        assert n in lines[-1], lines[-1]
+
+
+def no_temp_files(folder: Path) -> bool:
+    """True when no `*.tmp` file (an unfinished atomic write) is left anywhere under `folder`."""
+    return not [p for p in folder.rglob("*") if p.name.endswith(".tmp")]
+
+
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory) -> Path:
     from boostnerf_cli.scenes import make_scene

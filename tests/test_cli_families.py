@@ -4,7 +4,7 @@
 import json
 
 import pytest
-from conftest import PSNR_MARGIN, run_cli
+from conftest import PSNR_MARGIN, assert_clean_failure, run_cli
 
 FAMILY_RECIPE = """
 data: {image_size: 32, holdout_every: 8}
@@ -78,15 +78,13 @@ def test_build_moe_and_finetune_per_family_and_mixed(family_ws, tmp_path, expert
 def test_gate_grid_flag_overrides_and_rejects_unknown(family_ws, tmp_path):
     import shutil
 
-    from test_cli import _assert_clean_failure
-
     ws = tmp_path / "ws"
     shutil.copytree(family_ws, ws)
     run_cli("build-moe", "--workspace", str(ws), "--experts", "ngp-2,ngp-3", "--gate-grid", "tensorf",
             "--device", "cpu", check=True)
     assert json.loads((ws / "moe" / "init.json").read_text())["gate"]["config"]["grid"] == "tensorf"
     proc = run_cli("build-moe", "--workspace", str(ws), "--gate-grid", "octree", "--device", "cpu")
-    _assert_clean_failure(proc, "moe.gate_grid = 'octree'", "one of auto, dense")
+    assert_clean_failure(proc, "moe.gate_grid = 'octree'", "one of auto, dense")
 
 
 def test_eval_renders_every_family_and_the_baseline(family_ws, tmp_path):
