@@ -6,22 +6,19 @@ import math
 
 import imageio.v3 as iio
 import pytest
-from conftest import TINY_RECIPE, assert_clean_failure, run_cli
+from conftest import assert_clean_failure, make_recipe, run_cli
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.recipe import Recipe, load_recipe
 from boostnerf_cli.stages import bench
 
-# TINY_RECIPE with fewer steps: the bench trains 5 experts and 4 mixtures.
-BENCH_RECIPE = (TINY_RECIPE.replace("iters: 30", "iters: 16").replace("iters: 20", "iters: 8")
-                .replace("geometry: {res: 12, iters: 100", "geometry: {res: 12, iters: 60"))
+# the tiny recipe with fewer steps: the bench trains 5 experts and 4 mixtures.
+BENCH_CHANGES = {"pretrain": {"iters": 16, "geometry": {"iters": 60}}, "moe": {"iters": 8}}
 
 
 @pytest.fixture(scope="module")
 def bench_recipe(tmp_path_factory):
-    path = tmp_path_factory.mktemp("bench-recipe") / "bench.yaml"
-    path.write_text(BENCH_RECIPE)
-    return path
+    return make_recipe(tmp_path_factory.mktemp("bench-recipe") / "bench.yaml", **BENCH_CHANGES)
 
 
 def test_ladder_and_suites():

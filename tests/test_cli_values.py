@@ -4,13 +4,7 @@ import shutil
 
 import pytest
 import torch
-from conftest import TINY_RECIPE, assert_clean_failure, run_cli
-
-
-def _recipe(tmp_path, extra: str):
-    path = tmp_path / "r.yaml"
-    path.write_text(TINY_RECIPE.replace("  dvgo: {hidden: 16, layers: 1}\n", extra))
-    return path
+from conftest import REMOVE, assert_clean_failure, make_recipe, run_cli
 
 
 def test_recipe_that_is_a_folder(tmp_path):
@@ -26,9 +20,9 @@ def test_recipe_that_is_binary(tmp_path):
     assert_clean_failure(proc, "r.yaml is not a text file (not UTF-8)")
 
 
-@pytest.mark.parametrize("alpha", ["0", "1"])
+@pytest.mark.parametrize("alpha", [0, 1])
 def test_alpha_init_zero_and_one(tmp_path, tiny_scene, alpha):
-    recipe = _recipe(tmp_path, f"  dvgo: {{hidden: 16, layers: 1, alpha_init: {alpha}}}\n")
+    recipe = make_recipe(tmp_path / "r.yaml", pretrain={"dvgo": {"alpha_init": alpha}})
     proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--workspace", str(tmp_path / "ws"),
                    "--device", "cpu")
     assert_clean_failure(proc, f"recipe key pretrain.dvgo.alpha_init = {float(alpha)}: must be in (0, 1)")
@@ -36,9 +30,9 @@ def test_alpha_init_zero_and_one(tmp_path, tiny_scene, alpha):
 
 
 def test_log2_table_40(tmp_path, tiny_scene):
-    recipe = _recipe(tmp_path, "  ngp: {log2_table: 40}\n").read_text().replace("model: dvgo", "model: ngp")
-    (tmp_path / "r.yaml").write_text(recipe.replace("res: [12, 16]", "res: [2, 3]"))
-    proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tmp_path / "r.yaml"), "--workspace",
+    recipe = make_recipe(tmp_path / "r.yaml", pretrain={"model": "ngp", "res": [2, 3], "dvgo": REMOVE,
+                                                        "ngp": {"log2_table": 40}})
+    proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--workspace",
                    str(tmp_path / "ws"), "--device", "cpu")
     assert_clean_failure(proc, "recipe key pretrain.ngp.log2_table = 40: must be in [1, 30]")
 
@@ -52,11 +46,10 @@ def test_flags_are_checked_like_recipe_values(tmp_path, trained_ws):
     assert_clean_failure(proc, "setting pretrain.seed = -3: must be in [0, ")
 
 
-def test_build_moe_topk_above_the_number_of_experts(tmp_path, trained_ws, tiny_recipe):
+def test_build_moe_topk_above_the_number_of_experts(tmp_path, trained_ws):
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws)
-    recipe = tmp_path / "top7.yaml"
-    recipe.write_text(tiny_recipe.read_text().replace("moe:\n", "moe:\n  topk: 7\n"))
+    recipe = make_recipe(tmp_path / "top7.yaml", moe={"topk": 7})
     proc = run_cli("build-moe", "--workspace", str(ws), "--recipe", str(recipe), "--device", "cpu")
     assert_clean_failure(proc, "moe.topk = 7 but the mixture has 2 experts (dvgo-12, dvgo-16): set moe.topk to at most 2")
     assert not (ws / "moe" / "init.safetensors").exists()

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import assert_clean_failure, run_cli
+from conftest import REMOVE, assert_clean_failure, make_recipe, run_cli
 
 from boostnerf_cli import workspace as wsmod
 from boostnerf_cli.errors import BoostNerfError
@@ -78,10 +78,12 @@ def test_lock_of_a_killed_process_is_stale_and_taken_over(tmp_path):
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_interrupt_stops_cleanly_and_the_rerun_resumes(tmp_path, tiny_scene, sig):
-    recipe = tmp_path / "r.yaml"
-    recipe.write_text("data: {image_size: 24}\npretrain:\n  res: [10]\n  iters: 30\n"
-                      "  geometry: {res: 8, iters: 8, batch_rays: 64, alpha_init: 0.01}\n"
-                      "  train: {batch_rays: 64, log_every: 1, checkpoint_every: 5}\n  dvgo: {hidden: 8, layers: 1}\n")
+    recipe = make_recipe(tmp_path / "r.yaml", data={"image_size": 24}, pretrain={
+        "res": [10],
+        "geometry": {"res": 8, "iters": 8, "batch_rays": 64},
+        "train": {"batch_rays": 64, "log_every": 1, "checkpoint_every": 5, "occupancy_every": REMOVE},
+        "dvgo": {"hidden": 8},
+    }, moe=REMOVE)
     ws = tmp_path / "ws"
     args = ["pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--workspace", str(ws), "--device", "cpu"]
     proc = subprocess.Popen([sys.executable, "-m", "boostnerf_cli", *args], stderr=subprocess.PIPE, text=True,
