@@ -41,9 +41,9 @@ from boostnerf_cli.moe.router import aux_loss, dispatch, top_k
 from boostnerf_cli.recipe import Recipe, recipe_from_dict
 from boostnerf_cli.render.renderer import RenderSettings, render_image
 from boostnerf_cli.stages.common import Skips, load_model, workspace_scene
-from boostnerf_cli.stages.finetune import MixtureTask, _train_rays
+from boostnerf_cli.stages.finetune import MixtureTask, train_rays
 from boostnerf_cli.stages.pretrain import FieldTask
-from boostnerf_cli.train import _all_finite, batch_gradients, make_optimizer
+from boostnerf_cli.train import all_finite, batch_gradients, make_optimizer
 from boostnerf_cli.workspace import Workspace, write_json
 
 
@@ -119,7 +119,7 @@ def _train_step(task, opt, rays, batch: int, gen: torch.Generator) -> None:
     idx = torch.randint(0, len(rays), (batch,), generator=gen).to(rays.origins.device)
     opt.zero_grad(set_to_none=True)
     learnable, finite, _ = batch_gradients(task, rays, idx, 0)
-    if learnable and finite and _all_finite([p for g in opt.param_groups for p in g["params"]]):
+    if learnable and finite and all_finite([p for g in opt.param_groups for p in g["params"]]):
         opt.step()
 
 
@@ -170,7 +170,7 @@ def measure_step(ws: Workspace, scene, rec: Recipe, expert: str, steps: int, dev
     task = tasks["step"]
     rec_model = task.model
     opt = make_optimizer(task)
-    rays = _train_rays(scene, model.bbox, device)
+    rays = train_rays(scene, model.bbox, device)
     gen = torch.Generator().manual_seed(0)
     step_s, bare_s, samples = [], [], []
     for i in range(steps + 2):
@@ -198,7 +198,7 @@ def measure_view(ws: Workspace, scene, rec: Recipe, expert: str, steps: int, dev
     if not hasattr(model, "batch_view"):
         return None
     opt = make_optimizer(tasks["view"])
-    rays = _train_rays(scene, model.bbox, device)
+    rays = train_rays(scene, model.bbox, device)
     gens = {name: torch.Generator().manual_seed(0) for name in tasks}  # the same batches for both
     secs: dict[str, list[float]] = {name: [] for name in tasks}
     for i in range(steps + 2):
@@ -219,7 +219,7 @@ def measure_mixture(ws: Workspace, scene, rec: Recipe, name: str, steps: int, de
                               background=scene.background, color_threshold=rec.moe.train.color_threshold, ndc=scene.ndc)
     task = MixtureTask(mix, settings, rec.moe.train, rec.moe)
     opt = make_optimizer(task)
-    rays = _train_rays(scene, mix.bbox, device)
+    rays = train_rays(scene, mix.bbox, device)
     gen = torch.Generator().manual_seed(0)
     captured = {}
     orig_density, orig_color_rows = RoutedMixture.density, RoutedMixture.color_rows

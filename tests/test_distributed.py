@@ -131,7 +131,7 @@ def _task(ws: Path, name: str):
     from boostnerf_cli.recipe import recipe_from_dict
     from boostnerf_cli.render.renderer import RenderSettings
     from boostnerf_cli.stages.common import workspace_scene
-    from boostnerf_cli.stages.finetune import MixtureTask, _train_rays
+    from boostnerf_cli.stages.finetune import MixtureTask, train_rays
     from boostnerf_cli.stages.pretrain import FieldTask
     from boostnerf_cli.workspace import Workspace
 
@@ -144,14 +144,14 @@ def _task(ws: Path, name: str):
                                   background=scene.background, color_threshold=rec.train.color_threshold,
                                   ndc=scene.ndc)
         task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
-        return task, _train_rays(scene, model.bbox, "cpu"), rec
+        return task, train_rays(scene, model.bbox, "cpu"), rec
     mix, _ = load_mixture(w.model_path("init"))
     mix.cfg = dataclasses.replace(mix.cfg, topk=2, renormalize=rec.renormalize, penalty=rec.penalty)
     mix.penalty = penalty_weights(mix.m, rec.penalty)
     mix.train()
     settings = RenderSettings(step=mix.cfg.step, near=scene.near, far=scene.far, bbox=mix.bbox,
                               background=scene.background, color_threshold=rec.train.color_threshold, ndc=scene.ndc)
-    return MixtureTask(mix, settings, rec.train, rec), _train_rays(scene, mix.bbox, "cpu"), rec
+    return MixtureTask(mix, settings, rec.train, rec), train_rays(scene, mix.bbox, "cpu"), rec
 
 
 def first_step(ws: Path, name: str, parallel: bool, lam: float | None = None,

@@ -181,18 +181,18 @@ def test_a_partial_recipe_section_keeps_that_sections_own_defaults(tmp_path):
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf"), None])
 def test_all_finite_finds_any_non_finite_gradient(bad):
-    from boostnerf_cli.train import _all_finite
+    from boostnerf_cli.train import all_finite
 
     params = [torch.zeros(5, requires_grad=True), torch.zeros(3, 2, requires_grad=True), torch.zeros(2, requires_grad=True)]
     params[0].grad = torch.tensor([1.0, -3e38, 0.0, 2.0, 3e38])  # huge but finite
     params[1].grad = torch.ones(3, 2)
     if bad is not None:
         params[1].grad[2, 1] = bad
-    assert _all_finite(params) is (bad is None)  # params[2] has no gradient: ignored
-    assert _all_finite([torch.zeros(1, requires_grad=True)])  # no gradient at all
+    assert all_finite(params) is (bad is None)  # params[2] has no gradient: ignored
+    assert all_finite([torch.zeros(1, requires_grad=True)])  # no gradient at all
     both = torch.zeros(4, requires_grad=True)
     both.grad = torch.tensor([float("inf"), 1.0, -float("inf"), 0.0])  # +inf and -inf in one tensor
-    assert not _all_finite([both])
+    assert not all_finite([both])
     huge = torch.zeros(2, requires_grad=True)
     huge.grad = torch.tensor([3e38, 3e38])  # finite, but its sum overflows: refused, as documented
-    assert not _all_finite([huge])
+    assert not all_finite([huge])

@@ -153,7 +153,8 @@ def _source_digest(ws: Workspace, name: str, init_meta: dict) -> str | None:
     return init_meta.get("digest")
 
 
-def _train_rays(scene: Scene, bbox: Tensor, device: str) -> RayData:
+def train_rays(scene: Scene, bbox: Tensor, device: str) -> RayData:
+    """The scene's train-split rays that hit `bbox` (`RayData.from_split`), moved to `device`: what finetuning trains on."""
     return RayData.from_split(scene.splits["train"], bbox.cpu(), scene.near, scene.far, scene.ndc).to(device)
 
 
@@ -202,7 +203,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     for key in ("mix", "aux_norm", "aux_samples"):  # named only when not the default: older checkpoints still resume
         if getattr(mix.cfg, key) != getattr(defaults, key):
             signature[key] = getattr(mix.cfg, key)
-    result = train(task, _train_rays(scene, mix.bbox, device), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
+    result = train(task, train_rays(scene, mix.bbox, device), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
                    signature=signature, data_parallel=True)
     mix.eval()
     final = result.history[-1] if result.history else {}
@@ -248,7 +249,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
     settings = RenderSettings(step=meta["step"], near=scene.near, far=scene.far, bbox=model.bbox,
                               background=scene.background, color_threshold=rec.train.color_threshold, ndc=scene.ndc)
     task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
-    result = train(task, _train_rays(scene, model.bbox, device), sched, rec.seed, "baseline",
+    result = train(task, train_rays(scene, model.bbox, device), sched, rec.seed, "baseline",
                    checkpoint=ws.checkpoint_path("baseline"),
                    signature={"stage": "finetune", "model": "baseline", "from": source, "iters": rec.iters,
                               "seed": rec.seed}, data_parallel=True)
