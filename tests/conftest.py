@@ -1,7 +1,9 @@
-"""Shared fixtures: tiny generated scenes and a tiny trained workspace (made once per session)."""
+"""Shared fixtures and helpers: the tiny recipe (`make_recipe` writes it and its variants), tiny generated
+scenes, a tiny trained workspace (made once per session), and running the real CLI."""
 
 from __future__ import annotations
 
+import copy
 import os
 import subprocess
 import sys
@@ -9,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 # pytest-xdist runs test files in parallel workers (pyproject addopts): each worker, and every CLI subprocess
 # it starts, gets its share of the cores, so the workers do not oversubscribe them.
@@ -17,20 +20,53 @@ _THREADS = max(1, min(2, (os.cpu_count() or 1) // _WORKERS))
 os.environ["OMP_NUM_THREADS"] = str(_THREADS)
 torch.set_num_threads(_THREADS)
 
-TINY_RECIPE = """
-data: {image_size: 32, holdout_every: 8}
-pretrain:
-  model: dvgo
-  res: [12, 16]
-  iters: 30
-  geometry: {res: 12, iters: 100, batch_rays: 256, alpha_init: 0.01}
-  train: {batch_rays: 256, log_every: 10, checkpoint_every: 10, occupancy_every: 10}
-  dvgo: {hidden: 16, layers: 1}
-moe:
-  gate_res: 8
-  iters: 20
-  train: {batch_rays: 256, log_every: 10, checkpoint_every: 10}
-"""
+# The tiny recipe every CLI test starts from; `make_recipe` writes it, or a variant of it.
+TINY_RECIPE = {
+    "data": {"image_size": 32, "holdout_every": 8},
+    "pretrain": {
+        "model": "dvgo",
+        "res": [12, 16],
+        "iters": 30,
+        "geometry": {"res": 12, "iters": 100, "batch_rays": 256, "alpha_init": 0.01},
+        "train": {"batch_rays": 256, "log_every": 10, "checkpoint_every": 10, "occupancy_every": 10},
+        "dvgo": {"hidden": 16, "layers": 1},
+    },
+    "moe": {
+        "gate_res": 8,
+        "iters": 20,
+        "train": {"batch_rays": 256, "log_every": 10, "checkpoint_every": 10},
+    },
+}
+
+
+class _Remove:
+    def __repr__(self) -> str:
+        return "REMOVE"
+
+
+REMOVE = _Remove()  # as a value in `make_recipe` changes: leave that key out (the tool's default applies)
+
+
+def merge(base: dict, changes: dict) -> dict:
+    """A deep copy of `base` with `changes` merged in: a mapping merges into the mapping it replaces, any
+    other value replaces the old one, and `REMOVE` deletes the key."""
+    out = copy.deepcopy(base)
+    for key, value in changes.items():
+        if value is REMOVE:
+            out.pop(key, None)
+        elif isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def make_recipe(path: Path, **changes: dict) -> Path:
+    """Write `TINY_RECIPE` with `changes` (top-level sections: data=..., pretrain=..., moe=...) merged in
+    (see `merge`) to the YAML file `path`, and return `path`. The file's stem is the recipe's name."""
+    path.write_text(yaml.safe_dump(merge(TINY_RECIPE, changes), sort_keys=False))
+    return path
+
 
 # Whole-run quality references: PSNR (dB) of the tiny workspace's models on the tiny scene's test split, measured
 # when these checks were written (the same with 1 and 2 threads). A run must reach its reference within
@@ -55,6 +91,22 @@ def run_cli(*args: str, cwd: Path | None = None, check: bool = False,
     return proc
 
 
+def assert_clean_failure(proc: subprocess.CompletedProcess, *needles: str) -> None:
+    """The CLI refused cleanly: exit code 2, no traceback, the last stderr line is `error: ...` and holds
+    every one of `needles`."""
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) >= 1 and lines[-1].startswith("error:"), proc.stderr
+    for n in needles:
+        assert n in lines[-1], lines[-1]
+
+
+def no_temp_files(folder: Path) -> bool:
+    """True when no `*.tmp` file (an unfinished atomic write) is left anywhere under `folder`."""
+    return not [p for p in folder.rglob("*") if p.name.endswith(".tmp")]
+
+
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory) -> Path:
     from boostnerf_cli.scenes import make_scene
@@ -64,9 +116,7 @@ def tiny_scene(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def tiny_recipe(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("recipe") / "tiny.yaml"
-    path.write_text(TINY_RECIPE)
-    return path
+    return make_recipe(tmp_path_factory.mktemp("recipe") / "tiny.yaml")
 
 
 @pytest.fixture(scope="session")

@@ -6,23 +6,19 @@ import math
 
 import imageio.v3 as iio
 import pytest
-from conftest import TINY_RECIPE, run_cli
-from test_cli import _assert_clean_failure
+from conftest import assert_clean_failure, make_recipe, run_cli
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.recipe import Recipe, load_recipe
 from boostnerf_cli.stages import bench
 
-# TINY_RECIPE with fewer steps: the bench trains 5 experts and 4 mixtures.
-BENCH_RECIPE = (TINY_RECIPE.replace("iters: 30", "iters: 16").replace("iters: 20", "iters: 8")
-                .replace("geometry: {res: 12, iters: 100", "geometry: {res: 12, iters: 60"))
+# the tiny recipe with fewer steps: the bench trains 5 experts and 4 mixtures.
+BENCH_CHANGES = {"pretrain": {"iters": 16, "geometry": {"iters": 60}}, "moe": {"iters": 8}}
 
 
 @pytest.fixture(scope="module")
 def bench_recipe(tmp_path_factory):
-    path = tmp_path_factory.mktemp("bench-recipe") / "bench.yaml"
-    path.write_text(BENCH_RECIPE)
-    return path
+    return make_recipe(tmp_path_factory.mktemp("bench-recipe") / "bench.yaml", **BENCH_CHANGES)
 
 
 def test_ladder_and_suites():
@@ -149,13 +145,13 @@ def test_bench_refuses_bad_input(quick_bench, tiny_scene, bench_recipe, tmp_path
     root, _ = quick_bench
     proc = run_cli("bench", "--data", str(tiny_scene), "--recipe", str(bench_recipe), "--workspace", str(root),
                    "--views", "1", "--device", "cpu")
-    _assert_clean_failure(proc, "another views")
+    assert_clean_failure(proc, "another views")
     proc = run_cli("bench", "--data", str(tiny_scene), "--workspace", str(tmp_path / "b"), "--only", "top9")
-    _assert_clean_failure(proc, "no row or group 'top9'")
+    assert_clean_failure(proc, "no row or group 'top9'")
     proc = run_cli("bench", "--data", str(tmp_path / "missing"), "--workspace", str(tmp_path / "c"))
-    _assert_clean_failure(proc, "does not exist")
+    assert_clean_failure(proc, "does not exist")
     proc = run_cli("bench", "--workspace", str(tmp_path / "d"), "--suite", "huge")
-    _assert_clean_failure(proc, "unknown suite")
+    assert_clean_failure(proc, "unknown suite")
     proc = run_cli("bench", "--workspace", str(root), "--recipe", str(bench_recipe), "--list", "--only", "naive")
     assert proc.returncode == 0 and "naive-step" in proc.stdout and "top1" not in proc.stdout
 

@@ -2,14 +2,9 @@
 
 import json
 import shutil
-from pathlib import Path
 
-from conftest import PSNR_MARGIN, TINY_PSNR, run_cli
+from conftest import PSNR_MARGIN, TINY_PSNR, assert_clean_failure, no_temp_files, run_cli
 from safetensors import safe_open
-
-
-def _no_temp_files(ws: Path) -> bool:
-    return not [p for p in ws.rglob("*") if p.name.endswith(".tmp")]
 
 
 def test_pretrain_writes_experts_reports_and_manifest(trained_ws):
@@ -26,7 +21,7 @@ def test_pretrain_writes_experts_reports_and_manifest(trained_ws):
     assert manifest["scene"]["splits"]["train"]["views"] == 12
     assert manifest["recipe"]["pretrain"]["res"] == [12, 16]
     assert not (trained_ws / "checkpoints").exists() or not list((trained_ws / "checkpoints").iterdir())
-    assert _no_temp_files(trained_ws)
+    assert no_temp_files(trained_ws)
 
 
 def test_the_psnr_references_fail_broken_models(trained_ws):
@@ -86,18 +81,9 @@ def test_eval_report_schema_and_render_outputs(trained_ws):
     assert rgb.shape == (32, 32, 3) and depth.dtype.name == "uint16"
 
 
-def _assert_clean_failure(proc, *needles):
-    assert proc.returncode == 2, proc.stderr
-    assert "Traceback" not in proc.stderr
-    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
-    assert len(lines) >= 1 and lines[-1].startswith("error:"), proc.stderr
-    for n in needles:
-        assert n in lines[-1], lines[-1]
-
-
 def test_missing_data_path(tmp_path):
     proc = run_cli("pretrain", "--data", str(tmp_path / "nope"), "--workspace", str(tmp_path / "ws"))
-    _assert_clean_failure(proc, "does not exist")
+    assert_clean_failure(proc, "does not exist")
     assert not (tmp_path / "ws" / "experts").exists()
 
 
@@ -107,8 +93,8 @@ def test_transforms_naming_a_missing_image(tmp_path, tiny_scene, tiny_recipe):
     victim = sorted((scene / "train").glob("*.png"))[0]
     victim.unlink()
     proc = run_cli("pretrain", "--data", str(scene), "--recipe", str(tiny_recipe), "--workspace", str(tmp_path / "ws"))
-    _assert_clean_failure(proc, "not found", victim.stem)
-    assert not (tmp_path / "ws" / "experts").exists() and _no_temp_files(tmp_path)
+    assert_clean_failure(proc, "not found", victim.stem)
+    assert not (tmp_path / "ws" / "experts").exists() and no_temp_files(tmp_path)
 
 
 def test_corrupt_png(tmp_path, tiny_scene, tiny_recipe):
@@ -117,7 +103,7 @@ def test_corrupt_png(tmp_path, tiny_scene, tiny_recipe):
     victim = sorted((scene / "train").glob("*.png"))[3]
     victim.write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)
     proc = run_cli("pretrain", "--data", str(scene), "--recipe", str(tiny_recipe), "--workspace", str(tmp_path / "ws"))
-    _assert_clean_failure(proc, victim.name)
+    assert_clean_failure(proc, victim.name)
     assert not (tmp_path / "ws" / "experts").exists()
 
 
@@ -125,7 +111,7 @@ def test_unknown_recipe_key(tmp_path, tiny_scene):
     recipe = tmp_path / "bad.yaml"
     recipe.write_text("pretrain:\n  iters: 5\n  learning_rate: 3\n")
     proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--workspace", str(tmp_path / "ws"))
-    _assert_clean_failure(proc, "pretrain.learning_rate")
+    assert_clean_failure(proc, "pretrain.learning_rate")
     assert not (tmp_path / "ws").exists()
 
 
@@ -136,18 +122,18 @@ def test_truncated_checkpoint_is_refused_and_kept(tmp_path, trained_ws):
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
     proc = run_cli("eval", "--workspace", str(ws), "--model", "dvgo-12", "--device", "cpu")
-    _assert_clean_failure(proc, "dvgo-12.safetensors", "damaged")
+    assert_clean_failure(proc, "dvgo-12.safetensors", "damaged")
     assert path.stat().st_size == len(data) // 2  # not silently replaced
-    assert _no_temp_files(ws)
+    assert no_temp_files(ws)
 
 
 def test_bad_res_flag_and_unknown_model(tmp_path, trained_ws):
     proc = run_cli("pretrain", "--workspace", str(tmp_path / "ws"), "--res", "64,abc")
-    _assert_clean_failure(proc, "--res")
+    assert_clean_failure(proc, "--res")
     proc = run_cli("eval", "--workspace", str(trained_ws), "--model", "top7", "--device", "cpu")
-    _assert_clean_failure(proc, "top7", "dvgo-12")
+    assert_clean_failure(proc, "top7", "dvgo-12")
 
 
 def test_eval_on_an_empty_folder_says_what_to_run(tmp_path):
     proc = run_cli("eval", "--workspace", str(tmp_path), "--device", "cpu")
-    _assert_clean_failure(proc, "boostnerf pretrain")
+    assert_clean_failure(proc, "boostnerf pretrain")

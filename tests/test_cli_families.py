@@ -4,31 +4,29 @@
 import json
 
 import pytest
-from conftest import PSNR_MARGIN, run_cli
+from conftest import PSNR_MARGIN, REMOVE, assert_clean_failure, make_recipe, run_cli
 
-FAMILY_RECIPE = """
-data: {image_size: 32, holdout_every: 8}
-pretrain:
-  model: tensorf
-  res: [10, 14]
-  iters: 20
-  geometry: {res: 12, iters: 60, batch_rays: 256, alpha_init: 0.01}
-  train: {batch_rays: 256, log_every: 10, checkpoint_every: 10, occupancy_every: 10, growth: [0.5]}
-  tensorf: {density_rank: 2, app_rank: 3, app_dim: 6, hidden: 16, layers: 1, fit_steps: 20}
-  ngp: {log2_table: 10, base_res: 4, max_res: 24, grid_res: 14, hidden: 16, color_hidden: 16, color_layers: 1,
-        fit_steps: 20}
-moe:
-  gate_res: 8
-  iters: 10
-  train: {batch_rays: 256, log_every: 5, checkpoint_every: 5}
-"""
+# the tiny recipe's changes: TensoRF and NGP sections instead of DVGO's, fewer steps
+FAMILY_CHANGES = {
+    "pretrain": {
+        "model": "tensorf",
+        "res": [10, 14],
+        "iters": 20,
+        "geometry": {"iters": 60},
+        "train": {"growth": [0.5]},
+        "dvgo": REMOVE,
+        "tensorf": {"density_rank": 2, "app_rank": 3, "app_dim": 6, "hidden": 16, "layers": 1, "fit_steps": 20},
+        "ngp": {"log2_table": 10, "base_res": 4, "max_res": 24, "grid_res": 14, "hidden": 16, "color_hidden": 16,
+                "color_layers": 1, "fit_steps": 20},
+    },
+    "moe": {"iters": 10, "train": {"log_every": 5, "checkpoint_every": 5}},
+}
 
 
 @pytest.fixture(scope="module")
 def family_ws(tmp_path_factory, tiny_scene):
     root = tmp_path_factory.mktemp("families")
-    recipe = root / "families.yaml"
-    recipe.write_text(FAMILY_RECIPE)
+    recipe = make_recipe(root / "families.yaml", **FAMILY_CHANGES)
     ws = root / "ws"
     for model, res in (("tensorf", "10,14"), ("ngp", "2,3")):
         run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--workspace", str(ws),
@@ -78,15 +76,13 @@ def test_build_moe_and_finetune_per_family_and_mixed(family_ws, tmp_path, expert
 def test_gate_grid_flag_overrides_and_rejects_unknown(family_ws, tmp_path):
     import shutil
 
-    from test_cli import _assert_clean_failure
-
     ws = tmp_path / "ws"
     shutil.copytree(family_ws, ws)
     run_cli("build-moe", "--workspace", str(ws), "--experts", "ngp-2,ngp-3", "--gate-grid", "tensorf",
             "--device", "cpu", check=True)
     assert json.loads((ws / "moe" / "init.json").read_text())["gate"]["config"]["grid"] == "tensorf"
     proc = run_cli("build-moe", "--workspace", str(ws), "--gate-grid", "octree", "--device", "cpu")
-    _assert_clean_failure(proc, "moe.gate_grid = 'octree'", "one of auto, dense")
+    assert_clean_failure(proc, "moe.gate_grid = 'octree'", "one of auto, dense")
 
 
 def test_eval_renders_every_family_and_the_baseline(family_ws, tmp_path):

@@ -5,8 +5,7 @@ import os
 import shutil
 
 import pytest
-from conftest import PSNR_MARGIN, TINY_MOE_PSNR_2_VIEWS, run_cli
-from test_cli import _assert_clean_failure, _no_temp_files
+from conftest import PSNR_MARGIN, TINY_MOE_PSNR_2_VIEWS, assert_clean_failure, no_temp_files, run_cli
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +35,7 @@ def test_finetune_adds_every_comparison_model_with_load_reports(moe_ws):
     assert abs(sum(top2["load"]) - 2.0) < 1e-6
     assert any("load0" in h for h in top2["history"])
     assert json.loads((moe_ws / "moe" / "baseline.json").read_text())["from"] == "dvgo-16"
-    assert _no_temp_files(moe_ws) and not list((moe_ws / "checkpoints").glob("*"))
+    assert no_temp_files(moe_ws) and not list((moe_ws / "checkpoints").glob("*"))
 
 
 def test_eval_and_count_params_list_every_model(moe_ws):
@@ -63,14 +62,14 @@ def test_finetune_before_build_moe_says_what_to_run(trained_ws, tmp_path):
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws)
     proc = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--device", "cpu")
-    _assert_clean_failure(proc, "boostnerf build-moe")
+    assert_clean_failure(proc, "boostnerf build-moe")
 
 
 def test_finetune_flag_misuse(moe_ws):
     proc = run_cli("finetune", "--workspace", str(moe_ws), "--topk", "1", "--ensemble")
-    _assert_clean_failure(proc, "exactly one")
+    assert_clean_failure(proc, "exactly one")
     proc = run_cli("finetune", "--workspace", str(moe_ws), "--topk", "5", "--device", "cpu", "--force")
-    _assert_clean_failure(proc, "--topk")
+    assert_clean_failure(proc, "--topk")
 
 
 def test_build_moe_refuses_experts_of_different_scenes(trained_ws, tmp_path, tiny_scene, tiny_recipe):
@@ -81,9 +80,9 @@ def test_build_moe_refuses_experts_of_different_scenes(trained_ws, tmp_path, tin
     shutil.copytree(trained_ws, ws)
     shutil.copy(other / "experts" / "dvgo-12.safetensors", ws / "experts" / "dvgo-12.safetensors")
     proc = run_cli("build-moe", "--workspace", str(ws), "--device", "cpu")
-    _assert_clean_failure(proc, "different scenes")
+    assert_clean_failure(proc, "different scenes")
     proc = run_cli("build-moe", "--workspace", str(ws), "--experts", "dvgo-99", "--device", "cpu")
-    _assert_clean_failure(proc, "dvgo-99")
+    assert_clean_failure(proc, "dvgo-99")
 
 
 def test_render_per_expert_and_gate_maps(moe_ws):
@@ -118,7 +117,7 @@ def test_render_expert_montage_and_comparison(moe_ws):
     # ground truth + baseline, top1, top2, ens: 5 panels of 32 px enlarged 6x (>= 192 px), 4 px gaps
     assert img.shape[1] == 5 * (32 * 6 + 4) + 4
     proc = run_cli("render", "--workspace", str(moe_ws), "--compare", "--per-expert")
-    _assert_clean_failure(proc, "one per command")
+    assert_clean_failure(proc, "one per command")
 
 
 def test_render_orbit_video(moe_ws, tmp_path):
@@ -132,9 +131,9 @@ def test_render_orbit_video(moe_ws, tmp_path):
         frames = list(iio.imiter(tmp_path / name))
         assert len(frames) == 3 and frames[0].shape[:2] == (32, 32)
     proc = run_cli("render", "--workspace", str(moe_ws), "--path", "orbit", "--frames", "3")
-    _assert_clean_failure(proc, "--model NAME")
+    assert_clean_failure(proc, "--model NAME")
     proc = run_cli("render", "--workspace", str(moe_ws), "--video", str(out))
-    _assert_clean_failure(proc, "--path")
+    assert_clean_failure(proc, "--path")
 
 
 def test_render_mp4_without_the_ffmpeg_backend_fails_in_one_line_and_writes_nothing(moe_ws, tmp_path, monkeypatch):
@@ -149,7 +148,7 @@ def test_render_mp4_without_the_ffmpeg_backend_fails_in_one_line_and_writes_noth
     for video in ([ "--video", str(out / "o.mp4")], []):  # asked for, and the default WS/renders/top2/orbit.mp4
         proc = run_cli("render", "--workspace", str(moe_ws), "--model", "top2", "--path", "orbit", "--frames", "3",
                        *video, "--device", "cpu")
-        _assert_clean_failure(proc, "imageio-ffmpeg")
+        assert_clean_failure(proc, "imageio-ffmpeg")
         assert len([ln for ln in proc.stderr.splitlines() if ln.strip()]) == 1, proc.stderr
     assert list(out.iterdir()) == []
     assert (sorted(p for p in (moe_ws / "renders").rglob("*")) if (moe_ws / "renders").exists() else []) == renders
@@ -190,7 +189,7 @@ def test_skip_flags_through_the_cli(moe_ws):
     assert report["skips"] == {"empty": True, "terminated": False} and report["skip"] is False
     assert "skips only empty on" in (moe_ws / "reports" / "eval.md").read_text()
     proc = run_cli("render", "--workspace", str(moe_ws), "--skip-off", "floaters", "--device", "cpu")
-    _assert_clean_failure(proc, "empty, terminated")
+    assert_clean_failure(proc, "empty, terminated")
 
 
 def test_measure_costs_script_reports_every_measurement(moe_ws):

@@ -4,62 +4,54 @@ import shutil
 
 import pytest
 import torch
-from conftest import TINY_RECIPE, run_cli
-from test_cli import _assert_clean_failure
-
-
-def _recipe(tmp_path, extra: str):
-    path = tmp_path / "r.yaml"
-    path.write_text(TINY_RECIPE.replace("  dvgo: {hidden: 16, layers: 1}\n", extra))
-    return path
+from conftest import REMOVE, assert_clean_failure, make_recipe, run_cli
 
 
 def test_recipe_that_is_a_folder(tmp_path):
     (tmp_path / "recipes").mkdir()
     proc = run_cli("pretrain", "--workspace", str(tmp_path / "ws"), "--recipe", str(tmp_path / "recipes"))
-    _assert_clean_failure(proc, "recipes is a folder: pass a YAML file")
+    assert_clean_failure(proc, "recipes is a folder: pass a YAML file")
 
 
 def test_recipe_that_is_binary(tmp_path):
     path = tmp_path / "r.yaml"
     path.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\xff\xfe")
     proc = run_cli("pretrain", "--workspace", str(tmp_path / "ws"), "--recipe", str(path))
-    _assert_clean_failure(proc, "r.yaml is not a text file (not UTF-8)")
+    assert_clean_failure(proc, "r.yaml is not a text file (not UTF-8)")
 
 
-@pytest.mark.parametrize("alpha", ["0", "1"])
+@pytest.mark.parametrize("alpha", [0, 1])
 def test_alpha_init_zero_and_one(tmp_path, tiny_scene, alpha):
-    recipe = _recipe(tmp_path, f"  dvgo: {{hidden: 16, layers: 1, alpha_init: {alpha}}}\n")
+    recipe = make_recipe(tmp_path / "r.yaml", pretrain={"dvgo": {"alpha_init": alpha}})
     proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--workspace", str(tmp_path / "ws"),
                    "--device", "cpu")
-    _assert_clean_failure(proc, f"recipe key pretrain.dvgo.alpha_init = {float(alpha)}: must be in (0, 1)")
+    assert_clean_failure(proc, f"recipe key pretrain.dvgo.alpha_init = {float(alpha)}: must be in (0, 1)")
     assert not (tmp_path / "ws").exists()  # refused before anything was made
 
 
 def test_log2_table_40(tmp_path, tiny_scene):
-    recipe = _recipe(tmp_path, "  ngp: {log2_table: 40}\n").read_text().replace("model: dvgo", "model: ngp")
-    (tmp_path / "r.yaml").write_text(recipe.replace("res: [12, 16]", "res: [2, 3]"))
-    proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tmp_path / "r.yaml"), "--workspace",
+    recipe = make_recipe(tmp_path / "r.yaml", pretrain={"model": "ngp", "res": [2, 3], "dvgo": REMOVE,
+                                                        "ngp": {"log2_table": 40}})
+    proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--workspace",
                    str(tmp_path / "ws"), "--device", "cpu")
-    _assert_clean_failure(proc, "recipe key pretrain.ngp.log2_table = 40: must be in [1, 30]")
+    assert_clean_failure(proc, "recipe key pretrain.ngp.log2_table = 40: must be in [1, 30]")
 
 
 def test_flags_are_checked_like_recipe_values(tmp_path, trained_ws):
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws)
     proc = run_cli("build-moe", "--workspace", str(ws), "--threshold", "1.5", "--device", "cpu")
-    _assert_clean_failure(proc, "setting moe.density_threshold = 1.5: must be in [0, 1)")
+    assert_clean_failure(proc, "setting moe.density_threshold = 1.5: must be in [0, 1)")
     proc = run_cli("pretrain", "--workspace", str(ws), "--seed", "-3", "--device", "cpu")
-    _assert_clean_failure(proc, "setting pretrain.seed = -3: must be in [0, ")
+    assert_clean_failure(proc, "setting pretrain.seed = -3: must be in [0, ")
 
 
-def test_build_moe_topk_above_the_number_of_experts(tmp_path, trained_ws, tiny_recipe):
+def test_build_moe_topk_above_the_number_of_experts(tmp_path, trained_ws):
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws)
-    recipe = tmp_path / "top7.yaml"
-    recipe.write_text(tiny_recipe.read_text().replace("moe:\n", "moe:\n  topk: 7\n"))
+    recipe = make_recipe(tmp_path / "top7.yaml", moe={"topk": 7})
     proc = run_cli("build-moe", "--workspace", str(ws), "--recipe", str(recipe), "--device", "cpu")
-    _assert_clean_failure(proc, "moe.topk = 7 but the mixture has 2 experts (dvgo-12, dvgo-16): set moe.topk between 1 and 2")
+    assert_clean_failure(proc, "moe.topk = 7 but the mixture has 2 experts (dvgo-12, dvgo-16): set moe.topk between 1 and 2")
     assert not (ws / "moe" / "init.safetensors").exists()
 
 
@@ -74,7 +66,7 @@ def test_expert_file_with_the_wrong_structure(tmp_path, trained_ws):
     meta.pop("digest"), meta.pop("format_version")
     save_tensors(path, tensors, meta)
     proc = run_cli("eval", "--workspace", str(ws), "--model", "dvgo-12", "--device", "cpu")
-    _assert_clean_failure(proc, "dvgo-12.safetensors does not hold a valid dvgo expert (KeyError: 'occupancy_bbox'")
+    assert_clean_failure(proc, "dvgo-12.safetensors does not hold a valid dvgo expert (KeyError: 'occupancy_bbox'")
 
 
 def test_training_checkpoint_with_the_wrong_structure(tmp_path, trained_ws, tiny_scene, tiny_recipe):
@@ -86,7 +78,7 @@ def test_training_checkpoint_with_the_wrong_structure(tmp_path, trained_ws, tiny
     torch.save({"task": {"model": {}}, "step": 3}, ws / "checkpoints" / "dvgo-16.pt")  # a dict, the wrong one
     proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws),
                    "--device", "cpu")
-    _assert_clean_failure(proc, "dvgo-16.pt does not hold this model's training state", "delete it")
+    assert_clean_failure(proc, "dvgo-16.pt does not hold this model's training state", "delete it")
 
 
 def test_manifest_that_is_a_folder_and_a_lock_that_is_a_folder(tmp_path, trained_ws):
@@ -94,9 +86,9 @@ def test_manifest_that_is_a_folder_and_a_lock_that_is_a_folder(tmp_path, trained
     shutil.copytree(trained_ws, ws)
     (ws / ".lock").mkdir()
     proc = run_cli("eval", "--workspace", str(ws), "--device", "cpu")
-    _assert_clean_failure(proc, "cannot take the writer lock", ".lock (Is a directory)")
+    assert_clean_failure(proc, "cannot take the writer lock", ".lock (Is a directory)")
     (ws / ".lock").rmdir()
     (ws / "manifest.json").unlink()
     (ws / "manifest.json").mkdir()
     proc = run_cli("eval", "--workspace", str(ws), "--device", "cpu")
-    _assert_clean_failure(proc, "workspace manifest", "manifest.json is a folder")
+    assert_clean_failure(proc, "workspace manifest", "manifest.json is a folder")

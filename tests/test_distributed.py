@@ -19,26 +19,25 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import make_recipe
 
 from boostnerf_cli.workspace import load_tensors
 
 GRAD_RTOL = 1e-5  # of max |gradient| of each parameter; observed: 1.8e-6 (top2), 9.4e-7 (baseline)
 LOSS_RTOL = 1e-6  # logged loss, PSNR, aux, load; observed: 1e-7
 
-RECIPE = """
-data: {image_size: 24, holdout_every: 8}
-pretrain:
-  model: dvgo
-  res: [8, 10, 14]
-  iters: 16
-  geometry: {res: 10, iters: 16, batch_rays: 128, alpha_init: 0.01}
-  train: {batch_rays: 128, log_every: 4, checkpoint_every: 4, occupancy_every: 8, growth: [0.25]}
-  dvgo: {hidden: 8, layers: 1}
-moe:
-  gate_res: 6
-  iters: 24
-  train: {batch_rays: 128, log_every: 1, checkpoint_every: 4}
-"""
+# the tiny recipe's changes: three smaller experts (two ranks get work), smaller batches, frequent checkpoints
+RECIPE_CHANGES = {
+    "data": {"image_size": 24},
+    "pretrain": {
+        "res": [8, 10, 14],
+        "iters": 16,
+        "geometry": {"res": 10, "iters": 16, "batch_rays": 128},
+        "train": {"batch_rays": 128, "log_every": 4, "checkpoint_every": 4, "occupancy_every": 8, "growth": [0.25]},
+        "dvgo": {"hidden": 8},
+    },
+    "moe": {"gate_res": 6, "iters": 24, "train": {"batch_rays": 128, "log_every": 1, "checkpoint_every": 4}},
+}
 TESTS = Path(__file__).parent
 LAM = 0.1  # the data-parallel step test's auxiliary-loss weight: strong, so that its gradient counts
 
@@ -83,8 +82,7 @@ def assert_clean(ws: Path) -> None:
 def setup(tmp_path_factory, tiny_scene):
     """The recipe's experts trained by one process (`one`, then with moe/init) and by 2 ranks (`two`)."""
     root = tmp_path_factory.mktemp("dist")
-    recipe = root / "dist.yaml"
-    recipe.write_text(RECIPE)
+    recipe = make_recipe(root / "dist.yaml", **RECIPE_CHANGES)
     args = ["pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--device", "cpu"]
     run(one_process(*args, "--workspace", str(root / "one")))
     two = run(torchrun(*args, "--workspace", str(root / "two")))

@@ -25,25 +25,24 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import make_recipe
 
 ROOT = Path(__file__).parent.parent
 DOCS = sorted((ROOT / "docs").glob("*.md")) + [ROOT / "README.md"]
 
-# the smallest chain that still exercises every stage (two experts, a gate, a few steps each)
-DOCS_RECIPE = """
-data: {image_size: 24, holdout_every: 8}
-pretrain:
-  model: dvgo
-  res: [8, 12]
-  iters: 8
-  geometry: {res: 8, iters: 20, batch_rays: 128, alpha_init: 0.01}
-  train: {batch_rays: 128, log_every: 4, checkpoint_every: 4, occupancy_every: 4}
-  dvgo: {hidden: 8, layers: 1}
-moe:
-  gate_res: 4
-  iters: 4
-  train: {batch_rays: 128, log_every: 2, checkpoint_every: 2}
-"""
+# the tiny recipe's changes: the smallest chain that still exercises every stage (two experts, a gate, a few
+# steps each)
+DOCS_CHANGES = {
+    "data": {"image_size": 24},
+    "pretrain": {
+        "res": [8, 12],
+        "iters": 8,
+        "geometry": {"res": 8, "iters": 20, "batch_rays": 128},
+        "train": {"batch_rays": 128, "log_every": 4, "checkpoint_every": 4, "occupancy_every": 4},
+        "dvgo": {"hidden": 8},
+    },
+    "moe": {"gate_res": 4, "iters": 4, "train": {"batch_rays": 128, "log_every": 2, "checkpoint_every": 2}},
+}
 
 TINY_VALUES = {"--iters": "4", "--res": "8,12", "--image-size": "24", "--gate-res": "4", "--frames": "3",
                "--size": "24", "--train-views": "6", "--test-views": "2", "--device": "cpu"}
@@ -120,8 +119,7 @@ def docs_env(tmp_path_factory):
 
     base = tmp_path_factory.mktemp("docs")
     scene = make_scene(base / "scene", size=24, n_train=8, n_test=2, seed=0)
-    recipe = base / "docs-recipe.yaml"
-    recipe.write_text(DOCS_RECIPE)
+    recipe = make_recipe(base / "docs-recipe.yaml", **DOCS_CHANGES)
     bin_dir = base / "bin"
     bin_dir.mkdir()
     shim = bin_dir / "boostnerf"

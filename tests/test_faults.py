@@ -16,8 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import run_cli
-from test_cli import _assert_clean_failure
+from conftest import REMOVE, assert_clean_failure, make_recipe, run_cli
 
 from boostnerf_cli import workspace as wsmod
 from boostnerf_cli.errors import BoostNerfError
@@ -47,10 +46,10 @@ def test_second_writer_is_refused_through_the_cli_and_the_lock_is_released(train
     shutil.copytree(trained_ws, ws)
     with Workspace(ws).lock():
         proc = run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--device", "cpu")
-        _assert_clean_failure(proc, "in use by another boostnerf process", str(os.getpid()))
+        assert_clean_failure(proc, "in use by another boostnerf process", str(os.getpid()))
     assert not (ws / ".lock").exists()
     proc = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--device", "cpu")  # fails: no build-moe
-    _assert_clean_failure(proc, "build-moe")
+    assert_clean_failure(proc, "build-moe")
     assert not (ws / ".lock").exists()  # released on an error exit too
 
 
@@ -79,10 +78,12 @@ def test_lock_of_a_killed_process_is_stale_and_taken_over(tmp_path):
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_interrupt_stops_cleanly_and_the_rerun_resumes(tmp_path, tiny_scene, sig):
-    recipe = tmp_path / "r.yaml"
-    recipe.write_text("data: {image_size: 24}\npretrain:\n  res: [10]\n  iters: 30\n"
-                      "  geometry: {res: 8, iters: 8, batch_rays: 64, alpha_init: 0.01}\n"
-                      "  train: {batch_rays: 64, log_every: 1, checkpoint_every: 5}\n  dvgo: {hidden: 8, layers: 1}\n")
+    recipe = make_recipe(tmp_path / "r.yaml", data={"image_size": 24}, pretrain={
+        "res": [10],
+        "geometry": {"res": 8, "iters": 8, "batch_rays": 64},
+        "train": {"batch_rays": 64, "log_every": 1, "checkpoint_every": 5, "occupancy_every": REMOVE},
+        "dvgo": {"hidden": 8},
+    }, moe=REMOVE)
     ws = tmp_path / "ws"
     args = ["pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--workspace", str(ws), "--device", "cpu"]
     proc = subprocess.Popen([sys.executable, "-m", "boostnerf_cli", *args], stderr=subprocess.PIPE, text=True,
@@ -185,12 +186,12 @@ def test_damaged_training_checkpoint_and_manifest_are_one_clear_line(trained_ws,
     (ws / "checkpoints" / "geometry.pt").write_bytes(b"\x00garbage")
     proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws),
                    "--device", "cpu")
-    _assert_clean_failure(proc, "geometry.pt is damaged", "delete it")
+    assert_clean_failure(proc, "geometry.pt is damaged", "delete it")
     ws2 = tmp_path / "ws2"
     shutil.copytree(trained_ws, ws2)
     (ws2 / "manifest.json").write_text('{"data": ')
     proc = run_cli("build-moe", "--workspace", str(ws2), "--device", "cpu")
-    _assert_clean_failure(proc, "manifest", "not valid JSON")
+    assert_clean_failure(proc, "manifest", "not valid JSON")
 
 
 # --- stale or mismatched inputs ----------------------------------------------------------------
@@ -201,11 +202,11 @@ def test_experts_retrained_or_removed_after_build_moe_are_detected(moe_copy):
         model.density_table.add_(0.01)  # as if `pretrain --force` had retrained it
     save_expert(path, model, occ, {k: meta[k] for k in ("name", "step", "scene")})
     proc = run_cli("finetune", "--workspace", str(moe_copy), "--topk", "1", "--device", "cpu")
-    _assert_clean_failure(proc, "expert dvgo-12 was retrained after build-moe", "build-moe")
+    assert_clean_failure(proc, "expert dvgo-12 was retrained after build-moe", "build-moe")
     path.unlink()
     (moe_copy / "experts" / "dvgo-12.json").unlink()
     proc = run_cli("finetune", "--workspace", str(moe_copy), "--topk", "1", "--device", "cpu")
-    _assert_clean_failure(proc, "expert dvgo-12 was removed after build-moe")
+    assert_clean_failure(proc, "expert dvgo-12 was removed after build-moe")
 
 
 def test_a_model_finetuned_from_an_older_init_is_not_silently_kept(moe_copy, monkeypatch):
@@ -232,7 +233,7 @@ def test_a_different_or_changed_scene_is_refused(trained_ws, tiny_scene, tiny_re
     shutil.copytree(trained_ws, ws)
     proc = run_cli("pretrain", "--data", str(other), "--recipe", str(tiny_recipe), "--workspace", str(ws),
                    "--device", "cpu")
-    _assert_clean_failure(proc, "was made for another scene", "--force")
+    assert_clean_failure(proc, "was made for another scene", "--force")
     # the same path, its content edited after pretrain: later stages refuse it
     manifest = json.loads((ws / "manifest.json").read_text())
     manifest["data"]["path"] = str(other)
@@ -244,7 +245,7 @@ def test_a_different_or_changed_scene_is_refused(trained_ws, tiny_scene, tiny_re
     img[5, 5] = [255, 0, 0, 255]  # one pixel now opaque red
     iio.imwrite(other / "train" / "r_0.png", img)
     proc = run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--device", "cpu")
-    _assert_clean_failure(proc, "changed since pretrain")
+    assert_clean_failure(proc, "changed since pretrain")
 
 
 def test_disk_full_while_checkpointing_is_one_line_and_keeps_the_previous_checkpoint(tmp_path, monkeypatch):

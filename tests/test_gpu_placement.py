@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TINY_RECIPE
+from conftest import REMOVE, make_recipe
 from simdevice import SimTensor, simulated_gpu
 from typer.testing import CliRunner
 
@@ -75,16 +75,18 @@ def test_a_gate_is_built_for_a_box_on_the_gpu_and_baked_there(grid):
         assert torch.allclose(baked.logits(pts.to(dev)).cpu(), ref.baked(8).logits(pts))
 
 
+# the tiny recipe's changes for each family (dvgo: none)
+FAMILY_CHANGES = {
+    "dvgo": {},
+    "tensorf": {"model": "tensorf", "dvgo": REMOVE,
+                "tensorf": {"hidden": 16, "layers": 1, "density_rank": 4, "app_rank": 4, "app_dim": 8, "fit_steps": 20}},
+    "ngp": {"model": "ngp", "res": [4, 6], "dvgo": REMOVE,
+            "ngp": {"hidden": 16, "log2_table": 10, "base_res": 4, "max_res": 32, "grid_res": 16}},
+}
+
+
 def _recipe(tmp_path: Path, family: str = "dvgo") -> Path:
-    text = TINY_RECIPE.replace("model: dvgo", f"model: {family}")
-    if family == "tensorf":
-        text = text.replace("dvgo: {hidden: 16, layers: 1}", "tensorf: {hidden: 16, layers: 1, density_rank: 4, app_rank: 4, app_dim: 8, fit_steps: 20}")
-    elif family == "ngp":
-        text = text.replace("res: [12, 16]", "res: [4, 6]").replace(
-            "dvgo: {hidden: 16, layers: 1}", "ngp: {hidden: 16, log2_table: 10, base_res: 4, max_res: 32, grid_res: 16}")
-    path = tmp_path / f"{family}.yaml"
-    path.write_text(text)
-    return path
+    return make_recipe(tmp_path / f"{family}.yaml", pretrain=FAMILY_CHANGES[family])
 
 
 def test_every_stage_on_the_simulated_gpu_gives_the_cpu_numbers(tmp_path, tiny_scene):

@@ -7,7 +7,7 @@ import json
 
 import pytest
 import torch
-from conftest import run_cli
+from conftest import REMOVE, make_recipe, run_cli
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.recipe import PretrainRecipe
@@ -85,17 +85,12 @@ def test_a_resolution_the_recipe_does_not_list_takes_the_nearest_listed_value():
 
 
 def test_res_flag_over_a_per_resolution_recipe_runs_and_says_what_it_chose(tmp_path, tiny_scene):
-    recipe = tmp_path / "r.yaml"
-    recipe.write_text("""
-data: {image_size: 32, holdout_every: 8}
-pretrain:
-  model: dvgo
-  res: [12, 16]
-  iters: 6
-  geometry: {res: 10, iters: 10, batch_rays: 128}
-  train: {batch_rays: 128, log_every: 3, checkpoint_every: 3}
-  dvgo: {hidden: {12: 8, 16: 16}, layers: 1}
-""")
+    recipe = make_recipe(tmp_path / "r.yaml", pretrain={
+        "iters": 6,
+        "geometry": {"res": 10, "iters": 10, "batch_rays": 128, "alpha_init": REMOVE},
+        "train": {"batch_rays": 128, "log_every": 3, "checkpoint_every": 3, "occupancy_every": REMOVE},
+        "dvgo": {"hidden": {12: 8, 16: 16}},
+    }, moe=REMOVE)
     proc = run_cli("pretrain", "-w", str(tmp_path / "ws"), "--data", str(tiny_scene), "--recipe", str(recipe),
                    "--res", "10,20", "--device", "cpu")
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -104,39 +99,43 @@ pretrain:
     assert json.loads((tmp_path / "ws" / "experts" / "dvgo-20.json").read_text())["iterations"] == 6
 
 
-@pytest.mark.parametrize("family,section,change", [
-    ("tensorf", "tensorf: {hidden: 8, layers: 1, density_rank: 2, app_rank: 2, app_dim: 4, fit_steps: 5}", "hidden: 12"),
-    ("ngp", "ngp: {hidden: 8, log2_table: 8, base_res: 4, max_res: 16, grid_res: 8}", "hidden: 12"),
-])
-def test_a_changed_family_setting_is_noticed_on_resume(tmp_path, tiny_scene, family, section, change):
+FAMILY_SECTIONS = {
+    "tensorf": {"hidden": 8, "layers": 1, "density_rank": 2, "app_rank": 2, "app_dim": 4, "fit_steps": 5},
+    "ngp": {"hidden": 8, "log2_table": 8, "base_res": 4, "max_res": 16, "grid_res": 8},
+}
+FAMILY_RES = {"tensorf": 8, "ngp": 3}
+
+
+def _family_recipe(path, family: str, **section_changes):
+    """A small one-expert recipe of `family` with its FAMILY_SECTIONS entry (changed by `section_changes`)."""
+    return make_recipe(path, pretrain={
+        "model": family,
+        "res": [FAMILY_RES[family]],
+        "iters": 40,
+        "geometry": {"res": 8, "iters": 5, "batch_rays": 64, "alpha_init": REMOVE},
+        "train": {"batch_rays": 64, "log_every": 5, "checkpoint_every": 5, "occupancy_every": REMOVE},
+        "dvgo": REMOVE,
+        family: {**FAMILY_SECTIONS[family], **section_changes},
+    }, moe=REMOVE)
+
+
+@pytest.mark.parametrize("family", ["tensorf", "ngp"])
+def test_a_changed_family_setting_is_noticed_on_resume(tmp_path, tiny_scene, family):
     """The checkpoint signature records the family's own section (it recorded `dvgo` whatever the family)."""
-    res = "[3]" if family == "ngp" else "[8]"
-    text = f"""
-data: {{image_size: 32, holdout_every: 8}}
-pretrain:
-  model: {family}
-  res: {res}
-  iters: 40
-  geometry: {{res: 8, iters: 5, batch_rays: 64}}
-  train: {{batch_rays: 64, log_every: 5, checkpoint_every: 5}}
-  {section}
-"""
-    recipe = tmp_path / "a.yaml"
-    recipe.write_text(text)
+    recipe = _family_recipe(tmp_path / "a.yaml", family)
     ws = tmp_path / "ws"
     proc = run_cli("pretrain", "-w", str(ws), "--data", str(tiny_scene), "--recipe", str(recipe), "--device", "cpu",
                    "--iters", "40")
     assert proc.returncode == 0, proc.stderr[-1500:]
     # a checkpoint of an unfinished run, then the same run with one family setting changed
-    name = f"{family}-{res[1:-1]}"
+    name = f"{family}-{FAMILY_RES[family]}"
     ckpt = ws / "checkpoints" / f"{name}.pt"
     (ws / "experts" / f"{name}.safetensors").unlink()
     (ws / "experts" / f"{name}.json").unlink()
     killed = run_cli("pretrain", "-w", str(ws), "--data", str(tiny_scene), "--recipe", str(recipe), "--device",
                      "cpu", "--iters", "40", env_extra={"BOOSTNERF_TEST_KILL": "checkpoint:2"})
     assert killed.returncode != 0 and ckpt.exists()
-    changed = tmp_path / "b.yaml"
-    changed.write_text(text.replace("hidden: 8", change))
+    changed = _family_recipe(tmp_path / "b.yaml", family, hidden=12)
     proc = run_cli("pretrain", "-w", str(ws), "--data", str(tiny_scene), "--recipe", str(changed), "--device", "cpu",
                    "--iters", "40")
     assert proc.returncode == 2 and "other settings" in proc.stderr and f"{family}:" in proc.stderr, proc.stderr

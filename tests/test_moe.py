@@ -4,44 +4,14 @@ import math
 
 import pytest
 import torch
+from helpers import TOY_BOX, toy_mixture
 from reference import dispatch_dense_reference
 
 from boostnerf_cli.fields.base import BareField
-from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.models import load_mixture, save_mixture
-from boostnerf_cli.moe.density_volume import DensityVolume
-from boostnerf_cli.moe.gate import Gate, GateConfig
-from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, RoutingStats
+from boostnerf_cli.moe.mixture import RoutingStats
 from boostnerf_cli.moe.router import aux_loss, dispatch, penalty_weights, top_k
 from boostnerf_cli.render.renderer import RenderSettings, render_rays
-
-BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
-
-
-def _experts(m, seed=0):
-    torch.manual_seed(seed)
-    out = []
-    for i in range(m):
-        e = DVGOExpert(DVGOConfig(res=6 + 2 * i, hidden=8, layers=1), BOX)
-        with torch.no_grad():
-            e.density_table.normal_(0, 2)
-            e.feature_table.normal_()
-            for p in e.rgbnet.parameters():
-                p.normal_(0, 0.3)
-        out.append(e)
-    return out
-
-
-def _mixture(m=3, k=2, kind="grid", renormalize=True, seed=0):
-    experts = _experts(m, seed)
-    gate = Gate(GateConfig(kind=kind, res=4, channels=4, hidden=8, layers=2), m, BOX)
-    with torch.no_grad():
-        for p in gate.parameters():
-            p.normal_(0, 0.5)
-    vd = DensityVolume(BOX, 6)
-    vd.init_from(experts[0].density)
-    return Mixture(experts, gate, vd, None, MixtureConfig(topk=k, renormalize=renormalize, step=0.05,
-                                                          expert_names=[f"e{i}" for i in range(m)]))
 
 
 def _points(n, seed=1):
@@ -93,7 +63,7 @@ def test_aux_loss_empty_batch_is_zero_with_a_gradient_path():
 @pytest.mark.parametrize("k", [1, 2, 3])
 def test_render_routing_without_probabilities_matches_training_routing(k):
     """Rendering skips the softmax: top-k of the logits, weights = softmax of the chosen logits."""
-    mix = _mixture(m=3, k=k)
+    mix = toy_mixture(m=3, k=k)
     xyz, d = _points(500)
     with torch.no_grad():
         probs, vals, idx = mix.route(xyz)  # the full path (probabilities wanted)
@@ -139,7 +109,7 @@ def test_mixture_equals_a_float64_per_sample_reference(k, renormalize):
     """Every way the tool evaluates a mixture -- the Field calls (rendering), the renderer's routed view
     (density, then colour of a subset of its samples), the training view with routing statistics -- and
     the V_D filter, against the hand-written reference."""
-    mix = _mixture(m=3, k=k, renormalize=renormalize)
+    mix = toy_mixture(m=3, k=k, renormalize=renormalize)
     xyz, d = _points(400, seed=5)
     ref_s, ref_c, ref_keep = _per_sample_reference(mix, xyz, d)
     assert 0 < int(ref_keep.sum()) < len(ref_keep)  # the filter keeps some samples and drops others
@@ -160,7 +130,7 @@ def test_mixture_equals_a_float64_per_sample_reference(k, renormalize):
 
 def test_the_per_sample_reference_is_not_the_code_it_checks():
     """The reference fails a mixture whose routing is wrong: a mixture that takes the k *smallest* probabilities."""
-    mix = _mixture(m=3, k=2)
+    mix = toy_mixture(m=3, k=2)
     xyz, d = _points(200, seed=5)
     ref_s, _, _ = _per_sample_reference(mix, xyz, d)
     real = mix.gate.logits
@@ -172,7 +142,7 @@ def test_the_per_sample_reference_is_not_the_code_it_checks():
 
 @pytest.mark.parametrize("k", [1, 2, 3])
 def test_sparse_dispatch_matches_dense_reference_in_values_and_gradients(k):
-    mix = _mixture(m=3, k=k)
+    mix = toy_mixture(m=3, k=k)
     xyz, d = _points(300)
     probs, vals, idx = mix.route(xyz)
 
@@ -204,7 +174,7 @@ def test_sparse_dispatch_matches_dense_reference_in_values_and_gradients(k):
 
 
 def test_mixture_density_matches_the_papers_formula():
-    mix = _mixture(m=3, k=2, renormalize=False)
+    mix = toy_mixture(m=3, k=2, renormalize=False)
     xyz, d = _points(50)
     probs = mix.gate.probs(xyz)
     vals, idx = torch.topk(probs, 2, dim=-1)
@@ -214,14 +184,14 @@ def test_mixture_density_matches_the_papers_formula():
 
 
 def test_ensemble_is_the_plain_average():
-    mix = _mixture(m=3, k=3, kind="uniform")
+    mix = toy_mixture(m=3, k=3, kind="uniform")
     xyz, d = _points(40)
     expected = torch.stack([e.color(xyz, d) for e in mix.experts]).mean(0)
     assert torch.allclose(mix.color(xyz, d), expected, atol=1e-6)
 
 
 def test_an_expert_with_no_samples_and_extreme_gate_logits_stay_finite():
-    mix = _mixture(m=3, k=1)
+    mix = toy_mixture(m=3, k=1)
     with torch.no_grad():
         last = mix.gate.mlp[-1]
         last.weight.zero_()
@@ -241,10 +211,10 @@ def test_an_expert_with_no_samples_and_extreme_gate_logits_stay_finite():
 
 
 def test_every_sample_filtered_gives_background_and_no_nan():
-    mix = _mixture(m=2, k=1)
+    mix = toy_mixture(m=2, k=1)
     o = torch.tensor([[0.0, 0.0, 3.0]]).repeat(8, 1)
     d = torch.tensor([[0.0, 0.0, -1.0]]).repeat(8, 1)
-    s = RenderSettings(step=0.05, near=0.1, far=6.0, bbox=BOX, background=(1.0, 0.5, 0.0))
+    s = RenderSettings(step=0.05, near=0.1, far=6.0, bbox=TOY_BOX, background=(1.0, 0.5, 0.0))
     stats = RoutingStats()
     b = render_rays(mix.with_stats(stats), o, d, s, skip=lambda x: torch.zeros(x.shape[0], dtype=torch.bool))
     assert b.n_samples == 0 and torch.allclose(b.color, torch.tensor([[1.0, 0.5, 0.0]]).repeat(8, 1))
@@ -252,7 +222,7 @@ def test_every_sample_filtered_gives_background_and_no_nan():
 
 
 def test_a_single_expert_mixture_equals_the_expert():
-    mix = _mixture(m=1, k=1)
+    mix = toy_mixture(m=1, k=1)
     xyz, d = _points(60)
     e = mix.experts[0]
     assert torch.allclose(mix.density(xyz), e.density(xyz), atol=1e-6)
@@ -263,12 +233,12 @@ def test_topk_larger_than_m_is_refused():
     from boostnerf_cli.errors import BoostNerfError
 
     with pytest.raises(BoostNerfError, match="moe.topk = 3 but the mixture has 2 experts"):
-        _mixture(m=2, k=3)
+        toy_mixture(m=2, k=3)
 
 
 @pytest.mark.parametrize("kind", ["grid", "linear", "switch"])
 def test_save_load_round_trip(tmp_path, kind):
-    mix = _mixture(m=3, k=2, kind=kind)
+    mix = toy_mixture(m=3, k=2, kind=kind)
     save_mixture(tmp_path / "m.safetensors", mix)
     mix2, meta = load_mixture(tmp_path / "m.safetensors")
     xyz, d = _points(30)
@@ -294,11 +264,11 @@ def test_top1_renormalised_is_a_straight_through_one():
 @pytest.mark.parametrize("k", [1, 2])
 def test_renderer_routes_each_sample_once_and_matches_the_plain_mixture(k, monkeypatch):
     """The routed view reuses the density pass's routing for colour: same image and gradients, one gate call."""
-    mix = _mixture(k=k)
+    mix = toy_mixture(k=k)
     g = torch.Generator().manual_seed(3)
     origins = torch.tensor([0.0, 0.0, -3.0]).expand(16, 3).clone()
     dirs = torch.nn.functional.normalize(torch.randn(16, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
-    settings = RenderSettings(step=0.05, near=0.1, far=6.0, bbox=BOX, color_threshold=1e-4)
+    settings = RenderSettings(step=0.05, near=0.1, far=6.0, bbox=TOY_BOX, color_threshold=1e-4)
 
     def render(routed: bool):
         mix.zero_grad()
@@ -324,7 +294,7 @@ def test_renderer_routes_each_sample_once_and_matches_the_plain_mixture(k, monke
 def test_baked_gate_equals_the_gate_at_its_lattice_and_has_nothing_to_train():
     from boostnerf_cli.fields import grid as G
 
-    mix = _mixture()
+    mix = toy_mixture()
     baked = mix.gate.baked(9)
     pts = G.lattice_points(baked.bbox, baked.shape)
     assert torch.allclose(baked.logits(pts), mix.gate.logits(pts), atol=1e-5)
@@ -339,7 +309,7 @@ def test_baked_gate_equals_the_gate_at_its_lattice_and_has_nothing_to_train():
 def test_rendering_a_mixture_uses_the_baked_gate_unless_asked_for_the_exact_one():
     import dataclasses
 
-    mix = _mixture(k=1)
+    mix = toy_mixture(k=1)
     mix.cfg = dataclasses.replace(mix.cfg, bake_res=0)
     assert mix.for_rendering().gate.cfg.kind == "grid"
     mix.cfg = dataclasses.replace(mix.cfg, bake_res=33)
@@ -354,7 +324,7 @@ def test_rendering_a_mixture_uses_the_baked_gate_unless_asked_for_the_exact_one(
 @pytest.mark.parametrize("k", [1, 2])
 def test_topk_routing_changes_with_the_gate(k):
     """The experts chosen are the gate's: perturbing the gate's parameters changes them, restoring them restores them."""
-    mix = _mixture(m=3, k=k)
+    mix = toy_mixture(m=3, k=k)
     xyz, _ = _points(500)
     with torch.no_grad():
         _, _, before = mix.route(xyz, need_probs=False)

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import TINY_RECIPE, run_cli
+from conftest import make_recipe, run_cli
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
@@ -327,22 +327,14 @@ def test_the_official_recipe_selects_every_official_option():
 
 
 # --- the chain through the CLI --------------------------------------------------------------------------
-OFFICIAL = TINY_RECIPE.replace("  gate_res: 8\n", """  gate_res: 12
-  gate_init: expert
-  aux_norm: counts
-  aux_samples: visible
-  mix: alpha
-  lam: 0.01
-  lr_gate: 0.1
-""")
+OFFICIAL = {"gate_res": 12, "gate_init": "expert", "aux_norm": "counts", "aux_samples": "visible", "mix": "alpha",
+            "lam": 0.01, "lr_gate": 0.1}  # the tiny recipe's moe section with every official option
 
 
 def test_build_finetune_and_eval_with_every_official_option(trained_ws, tmp_path):
-    assert OFFICIAL != TINY_RECIPE
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws)
-    recipe = tmp_path / "official.yaml"
-    recipe.write_text(OFFICIAL)
+    recipe = make_recipe(tmp_path / "official.yaml", moe=OFFICIAL)
     run_cli("build-moe", "--workspace", str(ws), "--recipe", str(recipe), "--device", "cpu", check=True)
     init = json.loads((ws / "moe" / "init.json").read_text())
     assert init["gate_init"] == "dvgo-12" and init["experts"] == ["dvgo-12", "dvgo-16"]

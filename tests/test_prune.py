@@ -5,8 +5,7 @@ import shutil
 
 import pytest
 import torch
-from conftest import run_cli
-from test_cli import _assert_clean_failure, _no_temp_files
+from conftest import assert_clean_failure, no_temp_files, run_cli
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.workspace import load_tensors, pack_rows, save_tensors, unpack_rows
@@ -72,7 +71,7 @@ def test_prune_writes_a_smaller_model_and_its_report(pruned_ws):
     assert {"experts.0.density_table", "experts.1.feature_table", "gate.table"} <= names
     assert report["train_max_abs_diff"] <= 1e-5
     assert abs(report["test_psnr_after"] - report["test_psnr_before"]) < 0.5
-    assert _no_temp_files(pruned_ws)
+    assert no_temp_files(pruned_ws)
 
 
 def test_pruned_model_matches_the_original_on_kept_rows_and_renders_the_train_views_alike(pruned_ws):
@@ -125,9 +124,9 @@ def test_prune_skips_finished_work_and_refuses_bad_input(pruned_ws, tmp_path):
     before = path.stat().st_mtime_ns
     proc = run_cli("prune", "--workspace", str(pruned_ws), "--model", "top1", "--device", "cpu", check=True)
     assert "already pruned" in proc.stderr and path.stat().st_mtime_ns == before
-    _assert_clean_failure(run_cli("prune", "--workspace", str(pruned_ws), "--model", "top1-pruned", "--device", "cpu"),
+    assert_clean_failure(run_cli("prune", "--workspace", str(pruned_ws), "--model", "top1-pruned", "--device", "cpu"),
                           "already pruned")
-    _assert_clean_failure(run_cli("prune", "--workspace", str(pruned_ws), "--model", "nope", "--device", "cpu"),
+    assert_clean_failure(run_cli("prune", "--workspace", str(pruned_ws), "--model", "nope", "--device", "cpu"),
                           "no model named 'nope'")
-    _assert_clean_failure(run_cli("prune", "--workspace", str(tmp_path / "empty"), "--model", "top1"),
+    assert_clean_failure(run_cli("prune", "--workspace", str(tmp_path / "empty"), "--model", "top1"),
                           "boostnerf pretrain")

@@ -19,26 +19,24 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import run_cli
+from conftest import make_recipe, run_cli
 
 from boostnerf_cli.workspace import TEST_KILL_ENV, load_tensors
 
 RESUME_ATOL = 1e-5  # documented in docs/reliability.md; observed difference: exactly 0
 
-RECIPE = """
-data: {image_size: 24, holdout_every: 8}
-pretrain:
-  model: dvgo
-  res: [10, 14]
-  iters: 24
-  geometry: {res: 10, iters: 24, batch_rays: 128, alpha_init: 0.01}
-  train: {batch_rays: 128, log_every: 1, checkpoint_every: 4, occupancy_every: 8, growth: [0.25]}
-  dvgo: {hidden: 8, layers: 1}
-moe:
-  gate_res: 6
-  iters: 24
-  train: {batch_rays: 128, log_every: 1, checkpoint_every: 4}
-"""
+# the tiny recipe's changes: smaller experts and batches, a checkpoint every 4 steps to kill the run at
+RECIPE_CHANGES = {
+    "data": {"image_size": 24},
+    "pretrain": {
+        "res": [10, 14],
+        "iters": 24,
+        "geometry": {"res": 10, "iters": 24, "batch_rays": 128},
+        "train": {"batch_rays": 128, "log_every": 1, "checkpoint_every": 4, "occupancy_every": 8, "growth": [0.25]},
+        "dvgo": {"hidden": 8},
+    },
+    "moe": {"gate_res": 6, "iters": 24, "train": {"batch_rays": 128, "log_every": 1, "checkpoint_every": 4}},
+}
 
 def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "boostnerf_cli", *args]
@@ -91,8 +89,7 @@ def assert_clean(ws: Path) -> None:
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory, tiny_scene):
     root = tmp_path_factory.mktemp("resume")
-    recipe = root / "resume.yaml"
-    recipe.write_text(RECIPE)
+    recipe = make_recipe(root / "resume.yaml", **RECIPE_CHANGES)
     ref = root / "ref"
     args = ["pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--workspace", str(ref), "--device", "cpu"]
     run_cli(*args, check=True)

@@ -16,8 +16,8 @@ from hypothesis import strategies as st
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import image_rays, project_points
 from boostnerf_cli.scenes import Scene, load_blender, load_scene, make_scene
-from boostnerf_cli.scenes.blender import _area_matrix, area_downscale
 from boostnerf_cli.scenes.bounds import frustum_overlap_bbox, frustum_planes, lattice_visible_counts
+from boostnerf_cli.scenes.frames import area_downscale, area_matrix
 from boostnerf_cli.scenes.procedural import CAMERA_ANGLE_X, camera_poses, scene_objects
 
 SIZE, N_TRAIN, N_TEST = 32, 6, 3
@@ -170,7 +170,7 @@ def test_area_downscale_is_block_mean_after_premultiplying(tmp_path):
 
 
 def test_area_weights_non_integer_factor():
-    w = _area_matrix(3, 2).double()  # output pixels cover [0, 1.5) and [1.5, 3)
+    w = area_matrix(3, 2).double()  # output pixels cover [0, 1.5) and [1.5, 3)
     assert torch.allclose(w, torch.tensor([[2 / 3, 1 / 3, 0], [0, 1 / 3, 2 / 3]], dtype=torch.float64))
     img = torch.rand(6, 8, 3)
     assert torch.allclose(area_downscale(img, 3, 4), img.reshape(3, 2, 4, 2, 3).mean((1, 3)))

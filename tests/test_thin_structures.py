@@ -14,29 +14,31 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import run_cli
+from conftest import REMOVE, make_recipe, run_cli
 
 from boostnerf_cli.render.coverage import cover_foreground, foreground_masks, ray_cells
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.scenes import load_scene, make_scene
 
-RECIPE = """
-data: {image_size: 80, holdout_every: 8}
-pretrain:
-  model: dvgo
-  res: [40]
-  iters: 800
-  geometry: {res: 32, iters: 300, batch_rays: 1024}
-  train: {batch_rays: 1024, log_every: 100, checkpoint_every: 5000, occupancy_every: 200}
-  dvgo: {hidden: 32, layers: 1}
-"""
+# the tiny recipe's changes: one larger expert, 80 px images, the default geometry alpha_init, no moe section
+RECIPE_CHANGES = {
+    "data": {"image_size": 80},
+    "pretrain": {
+        "res": [40],
+        "iters": 800,
+        "geometry": {"res": 32, "iters": 300, "batch_rays": 1024, "alpha_init": REMOVE},
+        "train": {"batch_rays": 1024, "log_every": 100, "checkpoint_every": 5000, "occupancy_every": 200},
+        "dvgo": {"hidden": 32},
+    },
+    "moe": REMOVE,
+}
 
 
 @pytest.fixture(scope="module")
 def thin(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("thin")
-    (root / "r.yaml").write_text(RECIPE)
+    make_recipe(root / "r.yaml", **RECIPE_CHANGES)
     for layout in ("blender", "nsvf", "nerfstudio"):
         make_scene(root / layout, size=80, n_train=28, n_test=4, content="thin", layout=layout)
     return root

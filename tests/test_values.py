@@ -295,13 +295,13 @@ def test_expert_file_with_the_wrong_structure_is_one_line(tmp_path, change):
 
 
 def test_mixture_file_with_the_wrong_structure_is_one_line(tmp_path):
-    from test_moe import _mixture
+    from helpers import toy_mixture
 
     from boostnerf_cli.models import load_mixture, save_mixture
     from boostnerf_cli.workspace import load_tensors
 
     path = tmp_path / "m.safetensors"
-    save_mixture(path, _mixture(m=2, k=1))
+    save_mixture(path, toy_mixture(m=2, k=1))
     tensors, meta = load_tensors(path)
     meta["gate"]["config"]["kind"] = "octree"  # Gate raised ValueError outside any handler before
     meta.pop("digest"), meta.pop("format_version")

@@ -6,41 +6,34 @@ optionally `fl_y`, `cx`, `cy`, `w`, `h`, also allowed per frame) and `frames`, e
 `transform_matrix` in the OpenGL convention. Optional top-level `near` / `far` are honoured,
 otherwise the Blender defaults 2 and 6 are used.
 
-Images: RGB or RGBA, 8 or 16 bit. Downscaling is area averaging (`area_downscale`) of the
+Images: RGB or RGBA, 8 or 16 bit. Downscaling is area averaging (`frames.area_downscale`) of the
 premultiplied colour and of alpha; the result is then composited on the background colour.
 """
 
 from __future__ import annotations
 
-import json
-import math
-import os
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
 
-import imageio.v3 as iio
 import numpy as np
 import torch
-from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.bounds import frustum_overlap_bbox
+from boostnerf_cli.scenes.frames import (
+    CAMERA_KEYS,
+    Frame,
+    frame_intrinsics,
+    hold_out,
+    load_frames,
+    parse_pose,
+    read_transforms,
+    resolve_image,
+    scene_from_splits,
+)
 from boostnerf_cli.scenes.scene import Scene, Split
 
 SPLITS = ("train", "val", "test")
 DEFAULT_NEAR, DEFAULT_FAR = 2.0, 6.0
-
-
-@dataclass(frozen=True)
-class _Frame:
-    """One parsed frame: where its image is, its pose and the JSON it came from."""
-
-    image: Path
-    name: str
-    pose: np.ndarray  # (4, 4) float64
-    camera: dict  # intrinsics keys (camera_angle_x, fl_x, ...) of the frame, falling back to the file
-    source: str  # "transforms_train.json frame 3", for error messages
 
 
 def is_blender(path: Path) -> str:
@@ -49,201 +42,26 @@ def is_blender(path: Path) -> str:
     return ", ".join(found)
 
 
-# ----------------------------------------------------------------------------- resampling
-
-
-def _area_matrix(old: int, new: int) -> Tensor:
-    """(new, old) weights of an exact area-weighted 1-D resample: overlap of each output cell
-    [i*s, (i+1)*s) (s = old / new, in input pixels) with each input pixel [j, j+1), divided by s."""
-    s = old / new
-    start = torch.arange(new, dtype=torch.float64)[:, None] * s
-    j = torch.arange(old, dtype=torch.float64)[None, :]
-    overlap = (torch.minimum(start + s, j + 1) - torch.maximum(start, j)).clamp_min(0)
-    return (overlap / s).float()
-
-
-def area_downscale(image: Tensor, height: int, width: int) -> Tensor:
-    """Area-average (H, W, C) -> (height, width, C).
-
-    An integer factor per axis is an exact box filter (block mean). Otherwise each output pixel is
-    the area-weighted mean of the input pixels its footprint overlaps (exact fractional overlaps,
-    separable), which equals the box filter whenever the factor is an integer.
-    """
-    h, w, c = image.shape
-    if (height, width) == (h, w):
-        return image
-    if h % height == 0 and w % width == 0:
-        return image.reshape(height, h // height, width, w // width, c).mean(dim=(1, 3))
-    rows = _area_matrix(h, height) @ image.reshape(h, w * c)
-    return torch.einsum("ow,hwc->hoc", _area_matrix(w, width), rows.reshape(height, w, c))
-
-
-def target_size(height: int, width: int, image_size: int | None) -> tuple[int, int]:
-    """(height, width) after scaling the longer side to `image_size`; never upscales."""
-    longest = max(height, width)
-    if image_size is None or image_size == longest:
-        return height, width
-    if image_size < 1 or image_size > longest:
-        raise BoostNerfError(
-            f"image_size {image_size} is not in 1..{longest} (native {width}x{height}): pass a size "
-            f"no larger than the native longer side, images are never upscaled"
-        )
-    scale = image_size / longest
-    return max(1, round(height * scale)), max(1, round(width * scale))
-
-
-# ----------------------------------------------------------------------------- images
-
-
-def _one_line(err: Exception) -> str:
-    text = " ".join(str(err).split()) or type(err).__name__
-    return text[:200]
-
-
-def read_image(path: Path) -> Tensor:
-    """Read an image as float32 (H, W, C) in [0, 1]: C = 1 grey, 2 grey+alpha, 3 RGB, 4 RGBA."""
-    try:
-        data = iio.imread(path, plugin="pillow")
-    except Exception as err:  # imageio/PIL raise many types for corrupt files
-        raise BoostNerfError(f"cannot read image {path} (corrupt or not an image: {_one_line(err)}); replace or re-export it") from None
-    if data.ndim == 2:
-        data = data[..., None]
-    if data.ndim != 3 or data.shape[-1] not in (1, 2, 3, 4):
-        raise BoostNerfError(f"image {path} has shape {data.shape}: expected grey, RGB or RGBA")
-    img = torch.from_numpy(np.ascontiguousarray(data)).float()
-    if np.issubdtype(data.dtype, np.integer):
-        img.mul_(1.0 / np.iinfo(data.dtype).max)
-    return img
-
-
-def composite(image: Tensor, background: Tensor) -> Tensor:
-    """(h, w, C) premultiplied colour (+ alpha when C is 2 or 4) -> (h, w, 3) RGB on `background` (3,)."""
-    colour = image[..., :3] if image.shape[-1] >= 3 else image[..., :1].expand(*image.shape[:2], 3)
-    if image.shape[-1] in (2, 4):
-        colour = colour + (1.0 - image[..., -1:]) * background
-    return colour.clamp(0.0, 1.0)
-
-
-def load_image(path: Path, size: tuple[int, int], native: tuple[int, int], background: Tensor) -> Tensor:
-    """Read one image, area-downscale its premultiplied colour and alpha to `size` (h, w), then
-    composite on `background` (3,) -> (h, w, 3) float32.
-
-    Raises BoostNerfError when the image's (H, W) differs from `native`.
-    """
-    img = read_image(path)
-    if tuple(img.shape[:2]) != native:
-        raise BoostNerfError(
-            f"image {path} is {img.shape[1]}x{img.shape[0]} but the scene's images are "
-            f"{native[1]}x{native[0]}: all views must have the same size"
-        )
-    if img.shape[-1] in (2, 4):
-        img[..., :-1].mul_(img[..., -1:])  # premultiply in place
-    return composite(area_downscale(img, *size), background)
-
-
-def _load_all(frames: list[_Frame], image_size: int | None, background: Tensor) -> tuple[Tensor, tuple[int, int]]:
-    """Load every frame's image with a small thread pool -> (N, h, w, 3), native (H, W)."""
-    native = tuple(read_image(frames[0].image).shape[:2])
-    size = target_size(*native, image_size)
-    workers = max(1, min(8, os.cpu_count() or 1))
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        images = list(pool.map(lambda f: load_image(f.image, size, native, background), frames))
-    return torch.stack(images), native
-
-
 # ----------------------------------------------------------------------------- JSON
 
 
-def _read_json(path: Path) -> dict:
-    try:
-        meta = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise BoostNerfError(f"cannot parse {path}: {_one_line(err)}; fix or regenerate the file") from None
-    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
-        raise BoostNerfError(f"{path} has no 'frames' list: expected a transforms file with one entry per view")
-    return meta
-
-
-def _resolve_image(folder: Path, file_path: str, source: str) -> Path:
-    base = folder / file_path
-    for candidate in (base, base.with_name(base.name + ".png")):
-        if candidate.is_file():
-            return candidate
-    raise BoostNerfError(f"{source}: image {file_path!r} not found (looked for {base} and {base}.png)")
-
-
-def _parse_pose(matrix, source: str) -> np.ndarray:
-    try:
-        pose = np.asarray(matrix, dtype=np.float64)
-    except (TypeError, ValueError):
-        pose = np.zeros(0)
-    if pose.shape != (4, 4):
-        raise BoostNerfError(f"{source}: transform_matrix must be a 4x4 matrix of numbers, got shape {pose.shape}")
-    if not np.isfinite(pose).all():
-        raise BoostNerfError(f"{source}: transform_matrix contains NaN or infinite values; fix the pose")
-    return pose
-
-
-CAMERA_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
-
-
-def _parse_split(folder: Path, split: str) -> tuple[list[_Frame], dict]:
+def _parse_split(folder: Path, split: str) -> tuple[list[Frame], dict]:
     """Frames of `transforms_<split>.json` and the file's top-level metadata."""
     path = folder / f"transforms_{split}.json"
-    meta = _read_json(path)
+    meta = read_transforms(path)
     frames = []
     for i, frame in enumerate(meta["frames"]):
         source = f"{path.name} frame {i}"
         if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
             raise BoostNerfError(f"{source} in {folder}: needs 'file_path' and 'transform_matrix'")
-        image = _resolve_image(folder, str(frame["file_path"]), f"{source} in {folder}")
+        image = resolve_image(folder, str(frame["file_path"]), f"{source} in {folder}")
         camera = {k: frame.get(k, meta.get(k)) for k in CAMERA_KEYS}
         name = str(image.relative_to(folder).with_suffix("")) if image.is_relative_to(folder) else image.stem
-        frames.append(_Frame(image, name, _parse_pose(frame["transform_matrix"], f"{source} in {folder}"), camera, source))
+        frames.append(Frame(image, name, parse_pose(frame["transform_matrix"], f"{source} in {folder}"), camera, source))
     return frames, meta
 
 
-def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int], source: str) -> list[float]:
-    """fx, fy, cx, cy in pixels of the stored (downscaled) image.
-
-    The JSON values refer to an image of `w` x `h` pixels (default: the native image size); every
-    value is scaled per axis by stored / JSON size.
-    """
-    h_json = float(camera["h"] or native[0])
-    w_json = float(camera["w"] or native[1])
-    if camera["fl_x"] is not None:
-        fx = float(camera["fl_x"])
-    elif camera["camera_angle_x"] is not None:
-        fx = 0.5 * w_json / math.tan(0.5 * float(camera["camera_angle_x"]))
-    else:
-        raise BoostNerfError(f"{source}: no camera_angle_x and no fl_x; add one of them to the transforms file")
-    if camera["fl_y"] is not None:
-        fy = float(camera["fl_y"])
-    elif camera["camera_angle_y"] is not None:
-        fy = 0.5 * h_json / math.tan(0.5 * float(camera["camera_angle_y"]))
-    else:
-        fy = fx
-    cx = float(camera["cx"]) if camera["cx"] is not None else w_json / 2
-    cy = float(camera["cy"]) if camera["cy"] is not None else h_json / 2
-    sx, sy = size[1] / w_json, size[0] / h_json
-    return [fx * sx, fy * sy, cx * sx, cy * sy]
-
-
 # ----------------------------------------------------------------------------- scene
-
-
-def _holdout(train: Split, every: int) -> tuple[Split, Split, str]:
-    """Split `train` into (kept train, held-out test, description): views i with i % every == 0."""
-    if every < 2:
-        raise BoostNerfError(f"holdout_every must be 0 (off) or at least 2, got {every}")
-    held = [i for i in range(len(train)) if i % every == 0]
-    kept = [i for i in range(len(train)) if i % every != 0]
-    if not kept:
-        raise BoostNerfError(
-            f"only {len(train)} train view(s): holding out every {every}th leaves none; pass holdout_every=0"
-        )
-    text = f"every {every}th train view ({len(held)} of {len(train)}) held out as test"
-    return train.subset(kept), train.subset(held), text
 
 
 def _near_far(metas: dict[str, dict], folder: Path) -> tuple[float, float]:
@@ -284,7 +102,7 @@ def load_blender(
     parsed = {s: _parse_split(folder, s) for s in found}
     frames = [f for s in found for f in parsed[s][0]]
     bg = torch.tensor(background, dtype=torch.float32)
-    images, native = _load_all(frames, image_size, bg)
+    images, native = load_frames(frames, image_size, bg)
     size = tuple(images.shape[1:3])
     splits, start = {}, 0
     for s in found:
@@ -295,19 +113,8 @@ def load_blender(
         start += len(fs)
     holdout = ""
     if found == ["train"] and holdout_every:
-        splits["train"], splits["test"], holdout = _holdout(splits["train"], holdout_every)
+        splits["train"], splits["test"], holdout = hold_out(splits["train"], holdout_every)
     near, far = _near_far({s: parsed[s][1] for s in found}, folder)
     train = splits["train"]
     bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
-    return Scene(
-        name=folder.resolve().name,
-        splits=splits,
-        near=near,
-        far=far,
-        bbox=bbox,
-        background=tuple(float(c) for c in background),
-        source=str(folder.resolve()),
-        format="blender",
-        holdout=holdout,
-        extra={"native_size": list(native), "image_size": list(size)},
-    )
+    return scene_from_splits(folder, splits, near, far, bbox, background, "blender", holdout, native, size)

@@ -34,7 +34,7 @@ from PIL import Image
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC
-from boostnerf_cli.scenes.blender import _Frame, _holdout, _load_all, _one_line
+from boostnerf_cli.scenes.frames import Frame, hold_out, load_frames, one_line, scene_from_splits
 from boostnerf_cli.scenes.scene import Scene, Split
 
 BOUND_FACTOR = 0.75
@@ -61,7 +61,7 @@ def _image_size(path: Path) -> tuple[int, int]:
         with Image.open(path) as im:
             return im.height, im.width
     except (OSError, ValueError) as err:
-        raise BoostNerfError(f"cannot read image {path} (corrupt or not an image: {_one_line(err)})") from None
+        raise BoostNerfError(f"cannot read image {path} (corrupt or not an image: {one_line(err)})") from None
 
 
 def choose_folder(folder: Path, image_size: int | None) -> tuple[Path, list[Path]]:
@@ -90,7 +90,7 @@ def read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     try:
         arr = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as err:
-        raise BoostNerfError(f"cannot read {path}: {_one_line(err)}; fix or regenerate the file") from None
+        raise BoostNerfError(f"cannot read {path}: {one_line(err)}; fix or regenerate the file") from None
     if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] == 0:
         raise BoostNerfError(f"{path} has shape {arr.shape}: expected (N, 17), a 3x5 pose and 2 bounds per image")
     arr = arr.astype(np.float64)
@@ -178,9 +178,9 @@ def load_llff(
     to_scene = np.linalg.inv(avg)
     poses = to_scene @ poses
     world_from_data = to_scene @ np.diag([scale, scale, scale, 1.0])
-    frames = [_Frame(f, f.stem, p, {}, f"{sub.name}/{f.name}") for f, p in zip(files, poses)]
+    frames = [Frame(f, f.stem, p, {}, f"{sub.name}/{f.name}") for f, p in zip(files, poses)]
     bg = torch.tensor(background, dtype=torch.float32)
-    images, native = _load_all(frames, image_size, bg)
+    images, native = load_frames(frames, image_size, bg)
     size = tuple(images.shape[1:3])
     # hwf is for the full-resolution images; scale per axis to the images actually stored
     k = np.stack([hwf[:, 2] * size[1] / hwf[:, 1], hwf[:, 2] * size[0] / hwf[:, 0],
@@ -189,23 +189,13 @@ def load_llff(
                              tuple(f.name for f in frames))}
     holdout = ""
     if holdout_every:
-        splits["train"], splits["test"], holdout = _holdout(splits["train"], holdout_every)
+        splits["train"], splits["test"], holdout = hold_out(splits["train"], holdout_every)
     train = splits["train"]
     fx, fy = float(train.intrinsics[0, 0]), float(train.intrinsics[0, 1])
     ndc = NDC(sx=2 * fx / train.width, sy=2 * fy / train.height, near=NDC_NEAR)
     bbox = ndc_bbox(ndc, train.poses, train.intrinsics, train.height, train.width)
     far = float((bbox[1] - bbox[0]).norm())
-    return Scene(
-        name=folder.resolve().name,
-        splits=splits,
-        near=0.0,
-        far=far,
-        bbox=bbox,
-        background=tuple(float(c) for c in background),
-        source=str(folder.resolve()),
-        format="llff",
-        holdout=holdout,
-        extra={"native_size": list(native), "image_size": list(size), "images_folder": sub.name,
-               "world_from_data": world_from_data.tolist(), "bounds": (bounds * scale).tolist()},
-        ndc=ndc,
-    )
+    return scene_from_splits(folder, splits, 0.0, far, bbox, background, "llff", holdout, native, size,
+                             extra={"images_folder": sub.name, "world_from_data": world_from_data.tolist(),
+                                    "bounds": (bounds * scale).tolist()},
+                             ndc=ndc)

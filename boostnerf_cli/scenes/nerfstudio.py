@@ -21,17 +21,18 @@ import numpy as np
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.scenes.blender import (
-    CAMERA_KEYS,
-    _Frame,
-    _holdout,
-    _load_all,
-    _parse_pose,
-    _read_json,
-    _resolve_image,
-    frame_intrinsics,
-)
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
+from boostnerf_cli.scenes.frames import (
+    CAMERA_KEYS,
+    Frame,
+    frame_intrinsics,
+    hold_out,
+    load_frames,
+    parse_pose,
+    read_transforms,
+    resolve_image,
+    scene_from_splits,
+)
 from boostnerf_cli.scenes.scene import Scene, Split
 
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -76,7 +77,7 @@ def load_nerfstudio(
     path = folder / "transforms.json"
     if not path.is_file():
         raise BoostNerfError(f"no transforms.json in {folder}: not a nerfstudio scene")
-    meta = _read_json(path)
+    meta = read_transforms(path)
     _check_pinhole(meta, str(path))
     frames = []
     for i, frame in enumerate(meta["frames"]):
@@ -84,39 +85,28 @@ def load_nerfstudio(
         if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
             raise BoostNerfError(f"{source}: needs 'file_path' and 'transform_matrix'")
         _check_pinhole(frame, source)
-        image = _resolve_image(folder, str(frame["file_path"]), source)
+        image = resolve_image(folder, str(frame["file_path"]), source)
         camera = {k: frame.get(k, meta.get(k)) for k in CAMERA_KEYS}
         if camera["fl_x"] is None and camera["camera_angle_x"] is None:
             raise BoostNerfError(f"{source}: no fl_x, neither in the frame nor at the top level; add the intrinsics")
         name = str(image.relative_to(folder).with_suffix("")) if image.is_relative_to(folder) else image.stem
-        frames.append(_Frame(image, name, _parse_pose(frame["transform_matrix"], source), camera, source))
+        frames.append(Frame(image, name, parse_pose(frame["transform_matrix"], source), camera, source))
     bg = torch.tensor(background, dtype=torch.float32)
-    images, native = _load_all(frames, image_size, bg)
+    images, native = load_frames(frames, image_size, bg)
     size = tuple(images.shape[1:3])
     k = torch.tensor([_intrinsics(f, native, size) for f in frames], dtype=torch.float32)
     poses = torch.tensor(np.stack([f.pose for f in frames]), dtype=torch.float32)
     splits = {"train": Split(images, poses, k, tuple(f.name for f in frames))}
     holdout = ""
     if holdout_every:
-        splits["train"], splits["test"], holdout = _holdout(splits["train"], holdout_every)
+        splits["train"], splits["test"], holdout = hold_out(splits["train"], holdout_every)
     train = splits["train"]
     near, far = camera_near_far(train.poses)
     bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
-    return Scene(
-        name=folder.resolve().name,
-        splits=splits,
-        near=near,
-        far=far,
-        bbox=bbox,
-        background=tuple(float(c) for c in background),
-        source=str(folder.resolve()),
-        format="nerfstudio",
-        holdout=holdout,
-        extra={"native_size": list(native), "image_size": list(size)},
-    )
+    return scene_from_splits(folder, splits, near, far, bbox, background, "nerfstudio", holdout, native, size)
 
 
-def _intrinsics(frame: _Frame, native: tuple[int, int], size: tuple[int, int]) -> list[float]:
+def _intrinsics(frame: Frame, native: tuple[int, int], size: tuple[int, int]) -> list[float]:
     """`frame_intrinsics`, after checking that the frame's w / h (when given) have the image's aspect."""
     w, h = frame.camera["w"], frame.camera["h"]
     if w is not None and h is not None and not math.isclose(float(w) / float(h), native[1] / native[0], rel_tol=0.02):

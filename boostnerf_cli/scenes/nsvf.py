@@ -27,12 +27,12 @@ import torch
 from PIL import Image
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.scenes.blender import _Frame, _holdout, _load_all, _one_line
 from boostnerf_cli.scenes.bounds import (
     box_near_far,
     camera_near_far,
     frustum_overlap_bbox,
 )
+from boostnerf_cli.scenes.frames import Frame, hold_out, load_frames, one_line, scene_from_splits
 from boostnerf_cli.scenes.scene import Scene, Split
 
 PREFIXES = {"0": "train", "1": "val", "2": "test"}
@@ -82,7 +82,7 @@ def _numbers(path: Path, what: str) -> list[list[float]]:
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as err:
-        raise BoostNerfError(f"cannot read {what} {path}: {_one_line(err)}") from None
+        raise BoostNerfError(f"cannot read {what} {path}: {one_line(err)}") from None
     try:
         return [[float(v) for v in line.split()] for line in text.splitlines() if line.strip()]
     except ValueError:
@@ -132,13 +132,13 @@ def read_bbox(folder: Path) -> torch.Tensor | None:
     return torch.tensor([flat[:3], flat[3:6]], dtype=torch.float32)
 
 
-def _frames(folder: Path) -> dict[str, list[_Frame]]:
+def _frames(folder: Path) -> dict[str, list[Frame]]:
     """Frames per split, images matched to poses by file stem."""
     images = _images(folder)
     if not images:
         raise BoostNerfError(f"{folder}/rgb has no images named 0_*.png / 1_*.png / 2_*.png: not an NSVF-layout scene")
     poses = {p.stem: p for p in (folder / "pose").glob("*.txt") if p.name[:2] in ("0_", "1_", "2_")}
-    splits: dict[str, list[_Frame]] = {}
+    splits: dict[str, list[Frame]] = {}
     for prefix, split in PREFIXES.items():
         imgs = [p for p in images if p.name.startswith(prefix + "_")]
         if not imgs:
@@ -154,7 +154,7 @@ def _frames(folder: Path) -> dict[str, list[_Frame]]:
                 f"{folder}: split {split} ({prefix}_*) has {len(imgs)} images but {n_poses} poses ({detail}): "
                 f"every image needs exactly one pose"
             )
-        splits[split] = [_Frame(p, p.stem, read_pose(poses[p.stem]), {}, f"rgb/{p.name}") for p in imgs]
+        splits[split] = [Frame(p, p.stem, read_pose(poses[p.stem]), {}, f"rgb/{p.name}") for p in imgs]
     if "train" not in splits:
         raise BoostNerfError(f"{folder}/rgb has no training images (0_*.png)")
     return splits
@@ -182,7 +182,7 @@ def load_nsvf(
     fx, fy, cx, cy = read_intrinsics(folder)
     order = list(frames)
     bg = torch.tensor(background, dtype=torch.float32)
-    images, native = _load_all([f for s in order for f in frames[s]], image_size, bg)
+    images, native = load_frames([f for s in order for f in frames[s]], image_size, bg)
     size = tuple(images.shape[1:3])
     sx, sy = size[1] / native[1], size[0] / native[0]
     k = torch.tensor([fx * sx, fy * sy, cx * sx, cy * sy], dtype=torch.float32)
@@ -194,7 +194,7 @@ def load_nsvf(
         start += len(fs)
     holdout = ""
     if order == ["train"] and holdout_every:
-        splits["train"], splits["test"], holdout = _holdout(splits["train"], holdout_every)
+        splits["train"], splits["test"], holdout = hold_out(splits["train"], holdout_every)
     train = splits["train"]
     bbox = read_bbox(folder)
     if bbox is not None:
@@ -202,19 +202,8 @@ def load_nsvf(
     else:
         near, far = camera_near_far(train.poses)
         bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
-    return Scene(
-        name=folder.resolve().name,
-        splits=splits,
-        near=near,
-        far=far,
-        bbox=bbox,
-        background=tuple(float(c) for c in background),
-        source=str(folder.resolve()),
-        format=format,
-        holdout=holdout,
-        extra={"native_size": list(native), "image_size": list(size),
-               "bbox_source": "bbox.txt" if (folder / "bbox.txt").is_file() else "cameras"},
-    )
+    return scene_from_splits(folder, splits, near, far, bbox, background, format, holdout, native, size,
+                             extra={"bbox_source": "bbox.txt" if (folder / "bbox.txt").is_file() else "cameras"})
 
 
 def load_tanks(path: Path, image_size: int | None = None, holdout_every: int = 8) -> Scene:

@@ -1,0 +1,268 @@
+"""What more than one dataset loader uses: frames, image reading and downscaling, pose and JSON
+parsing, the hold-out split and the `Scene` a loader returns.
+
+A loader parses its own files into `Frame`s (image path, name, OpenGL camera-to-world pose, camera
+keys), reads all their images with `load_frames` (one size for the whole scene, area-downscaled,
+composited on the background), builds its `Split`s, optionally holds views out with `hold_out`, and
+returns `scene_from_splits(...)`. Every error is a one-line `BoostNerfError` naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+from torch import Tensor
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.render.rays import NDC
+from boostnerf_cli.scenes.scene import Scene, Split
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One parsed frame: where its image is, its pose and the JSON it came from."""
+
+    image: Path
+    name: str
+    pose: np.ndarray  # (4, 4) float64
+    camera: dict  # intrinsics keys (camera_angle_x, fl_x, ...) of the frame, falling back to the file
+    source: str  # "transforms_train.json frame 3", for error messages
+
+
+def one_line(err: Exception) -> str:
+    """An exception's message on one line (whitespace collapsed, at most 200 characters), or its type
+    name when the message is empty: for quoting a library's error inside a `BoostNerfError`."""
+    text = " ".join(str(err).split()) or type(err).__name__
+    return text[:200]
+
+
+# ----------------------------------------------------------------------------- resampling
+
+
+def area_matrix(old: int, new: int) -> Tensor:
+    """(new, old) weights of an exact area-weighted 1-D resample: overlap of each output cell
+    [i*s, (i+1)*s) (s = old / new, in input pixels) with each input pixel [j, j+1), divided by s."""
+    s = old / new
+    start = torch.arange(new, dtype=torch.float64)[:, None] * s
+    j = torch.arange(old, dtype=torch.float64)[None, :]
+    overlap = (torch.minimum(start + s, j + 1) - torch.maximum(start, j)).clamp_min(0)
+    return (overlap / s).float()
+
+
+def area_downscale(image: Tensor, height: int, width: int) -> Tensor:
+    """Area-average (H, W, C) -> (height, width, C).
+
+    An integer factor per axis is an exact box filter (block mean). Otherwise each output pixel is
+    the area-weighted mean of the input pixels its footprint overlaps (exact fractional overlaps,
+    separable), which equals the box filter whenever the factor is an integer.
+    """
+    h, w, c = image.shape
+    if (height, width) == (h, w):
+        return image
+    if h % height == 0 and w % width == 0:
+        return image.reshape(height, h // height, width, w // width, c).mean(dim=(1, 3))
+    rows = area_matrix(h, height) @ image.reshape(h, w * c)
+    return torch.einsum("ow,hwc->hoc", area_matrix(w, width), rows.reshape(height, w, c))
+
+
+def target_size(height: int, width: int, image_size: int | None) -> tuple[int, int]:
+    """(height, width) after scaling the longer side to `image_size`; never upscales."""
+    longest = max(height, width)
+    if image_size is None or image_size == longest:
+        return height, width
+    if image_size < 1 or image_size > longest:
+        raise BoostNerfError(
+            f"image_size {image_size} is not in 1..{longest} (native {width}x{height}): pass a size "
+            f"no larger than the native longer side, images are never upscaled"
+        )
+    scale = image_size / longest
+    return max(1, round(height * scale)), max(1, round(width * scale))
+
+
+# ----------------------------------------------------------------------------- images
+
+
+def read_image(path: Path) -> Tensor:
+    """Read an image as float32 (H, W, C) in [0, 1]: C = 1 grey, 2 grey+alpha, 3 RGB, 4 RGBA."""
+    try:
+        data = iio.imread(path, plugin="pillow")
+    except Exception as err:  # imageio/PIL raise many types for corrupt files
+        raise BoostNerfError(f"cannot read image {path} (corrupt or not an image: {one_line(err)}); replace or re-export it") from None
+    if data.ndim == 2:
+        data = data[..., None]
+    if data.ndim != 3 or data.shape[-1] not in (1, 2, 3, 4):
+        raise BoostNerfError(f"image {path} has shape {data.shape}: expected grey, RGB or RGBA")
+    img = torch.from_numpy(np.ascontiguousarray(data)).float()
+    if np.issubdtype(data.dtype, np.integer):
+        img.mul_(1.0 / np.iinfo(data.dtype).max)
+    return img
+
+
+def composite(image: Tensor, background: Tensor) -> Tensor:
+    """(h, w, C) premultiplied colour (+ alpha when C is 2 or 4) -> (h, w, 3) RGB on `background` (3,)."""
+    colour = image[..., :3] if image.shape[-1] >= 3 else image[..., :1].expand(*image.shape[:2], 3)
+    if image.shape[-1] in (2, 4):
+        colour = colour + (1.0 - image[..., -1:]) * background
+    return colour.clamp(0.0, 1.0)
+
+
+def load_image(path: Path, size: tuple[int, int], native: tuple[int, int], background: Tensor) -> Tensor:
+    """Read one image, area-downscale its premultiplied colour and alpha to `size` (h, w), then
+    composite on `background` (3,) -> (h, w, 3) float32.
+
+    Raises BoostNerfError when the image's (H, W) differs from `native`.
+    """
+    img = read_image(path)
+    if tuple(img.shape[:2]) != native:
+        raise BoostNerfError(
+            f"image {path} is {img.shape[1]}x{img.shape[0]} but the scene's images are "
+            f"{native[1]}x{native[0]}: all views must have the same size"
+        )
+    if img.shape[-1] in (2, 4):
+        img[..., :-1].mul_(img[..., -1:])  # premultiply in place
+    return composite(area_downscale(img, *size), background)
+
+
+def load_frames(frames: list[Frame], image_size: int | None, background: Tensor) -> tuple[Tensor, tuple[int, int]]:
+    """Load every frame's image, in order, with a small thread pool -> (N, h, w, 3), native (H, W).
+
+    The first image's size is the scene's native size (every other image must match it);
+    (h, w) is `target_size(H, W, image_size)`.
+    """
+    native = tuple(read_image(frames[0].image).shape[:2])
+    size = target_size(*native, image_size)
+    workers = max(1, min(8, os.cpu_count() or 1))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        images = list(pool.map(lambda f: load_image(f.image, size, native, background), frames))
+    return torch.stack(images), native
+
+
+# ----------------------------------------------------------------------------- transforms JSON
+
+
+CAMERA_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
+
+
+def read_transforms(path: Path) -> dict:
+    """The top-level object of a transforms JSON file (Blender, nerfstudio); raises unless it parses
+    and has a non-empty `frames` list."""
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise BoostNerfError(f"cannot parse {path}: {one_line(err)}; fix or regenerate the file") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        raise BoostNerfError(f"{path} has no 'frames' list: expected a transforms file with one entry per view")
+    return meta
+
+
+def resolve_image(folder: Path, file_path: str, source: str) -> Path:
+    """The image a frame's `file_path` names: `folder / file_path`, else the same with `.png` added;
+    raises (prefixed with `source`) when neither is a file."""
+    base = folder / file_path
+    for candidate in (base, base.with_name(base.name + ".png")):
+        if candidate.is_file():
+            return candidate
+    raise BoostNerfError(f"{source}: image {file_path!r} not found (looked for {base} and {base}.png)")
+
+
+def parse_pose(matrix, source: str) -> np.ndarray:
+    """A frame's `transform_matrix` as a finite (4, 4) float64 array; raises (prefixed with `source`)
+    otherwise."""
+    try:
+        pose = np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError):
+        pose = np.zeros(0)
+    if pose.shape != (4, 4):
+        raise BoostNerfError(f"{source}: transform_matrix must be a 4x4 matrix of numbers, got shape {pose.shape}")
+    if not np.isfinite(pose).all():
+        raise BoostNerfError(f"{source}: transform_matrix contains NaN or infinite values; fix the pose")
+    return pose
+
+
+def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int], source: str) -> list[float]:
+    """fx, fy, cx, cy in pixels of the stored (downscaled) image.
+
+    The JSON values refer to an image of `w` x `h` pixels (default: the native image size); every
+    value is scaled per axis by stored / JSON size.
+    """
+    h_json = float(camera["h"] or native[0])
+    w_json = float(camera["w"] or native[1])
+    if camera["fl_x"] is not None:
+        fx = float(camera["fl_x"])
+    elif camera["camera_angle_x"] is not None:
+        fx = 0.5 * w_json / math.tan(0.5 * float(camera["camera_angle_x"]))
+    else:
+        raise BoostNerfError(f"{source}: no camera_angle_x and no fl_x; add one of them to the transforms file")
+    if camera["fl_y"] is not None:
+        fy = float(camera["fl_y"])
+    elif camera["camera_angle_y"] is not None:
+        fy = 0.5 * h_json / math.tan(0.5 * float(camera["camera_angle_y"]))
+    else:
+        fy = fx
+    cx = float(camera["cx"]) if camera["cx"] is not None else w_json / 2
+    cy = float(camera["cy"]) if camera["cy"] is not None else h_json / 2
+    sx, sy = size[1] / w_json, size[0] / h_json
+    return [fx * sx, fy * sy, cx * sx, cy * sy]
+
+
+# ----------------------------------------------------------------------------- splits
+
+
+def hold_out(train: Split, every: int) -> tuple[Split, Split, str]:
+    """Split `train` into (kept train, held-out test, description): views i with i % every == 0.
+
+    Raises when `every` < 2 or when no train view would be left.
+    """
+    if every < 2:
+        raise BoostNerfError(f"holdout_every must be 0 (off) or at least 2, got {every}")
+    held = [i for i in range(len(train)) if i % every == 0]
+    kept = [i for i in range(len(train)) if i % every != 0]
+    if not kept:
+        raise BoostNerfError(
+            f"only {len(train)} train view(s): holding out every {every}th leaves none; pass holdout_every=0"
+        )
+    text = f"every {every}th train view ({len(held)} of {len(train)}) held out as test"
+    return train.subset(kept), train.subset(held), text
+
+
+def scene_from_splits(
+    folder: Path,
+    splits: dict[str, Split],
+    near: float,
+    far: float,
+    bbox: Tensor,
+    background: tuple[float, float, float],
+    format: str,
+    holdout: str,
+    native: tuple[int, int],
+    size: tuple[int, int],
+    extra: dict | None = None,
+    ndc: NDC | None = None,
+) -> Scene:
+    """The `Scene` a loader returns for the dataset in `folder`.
+
+    name: the folder's own name and source: its absolute path (both after resolving links);
+    background: as floats. extra: `native_size` (the images' size on disk) and `image_size` (as
+    stored), each [height, width], then the loader's own `extra` keys.
+    """
+    return Scene(
+        name=folder.resolve().name,
+        splits=splits,
+        near=near,
+        far=far,
+        bbox=bbox,
+        background=tuple(float(c) for c in background),
+        source=str(folder.resolve()),
+        format=format,
+        holdout=holdout,
+        extra={"native_size": list(native), "image_size": list(size), **(extra or {})},
+        ndc=ndc,
+    )
