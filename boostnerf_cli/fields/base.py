@@ -13,9 +13,12 @@ last `density` call. The renderer uses them when present.
 
 from __future__ import annotations
 
+import math
+from dataclasses import asdict
 from typing import Protocol, runtime_checkable
 
-from torch import Tensor
+import torch
+from torch import Tensor, nn
 
 
 @runtime_checkable
@@ -76,6 +79,37 @@ class Expert(Field, Protocol):
     def config_dict(self) -> dict:
         """JSON metadata with `family`, `config`, `unit`, `shape`; `from_config(meta, bbox)` inverts it."""
         ...
+
+
+class ExpertModule(nn.Module):
+    """The set-up every expert family shares (subclass it and set `family`, `config_type`): its config `cfg`,
+    its box `bbox` (a buffer, saved in the state dict), the density shift (sigma = softplus(raw + shift) /
+    unit has opacity `cfg.alpha_init` over one unit where raw = 0), and `config_dict` / `from_config`."""
+
+    family = ""
+    config_type: type
+
+    def __init__(self, cfg, bbox: Tensor):
+        super().__init__()
+        self.cfg = cfg
+        self.register_buffer("bbox", bbox.detach().clone().float())
+        self.shift = math.log(1.0 / (1.0 - cfg.alpha_init) - 1.0)
+
+    def spacing(self, shape: tuple[int, int, int]) -> float:
+        """Mean distance between the vertices of a lattice `shape` spanning the box."""
+        size = self.bbox[1] - self.bbox[0]
+        return float((size / (torch.tensor(shape, device=size.device) - 1)).mean())
+
+    def inside(self, xyz: Tensor) -> Tensor:
+        """(N, 3) -> (N,) bool: in the box, faces included."""
+        return ((xyz >= self.bbox[0]) & (xyz <= self.bbox[1])).all(dim=-1)
+
+    def config_dict(self) -> dict:
+        return {"family": self.family, "config": asdict(self.cfg), "unit": self.unit, "shape": list(self.shape)}
+
+    @classmethod
+    def from_config(cls, meta: dict, bbox: Tensor):
+        return cls(cls.config_type(**meta["config"]), bbox, unit=meta["unit"], shape=tuple(meta["shape"]))
 
 
 class BareField:

@@ -12,13 +12,14 @@ Outside its box the expert is empty (density 0), so experts with different boxes
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from boostnerf_cli.fields import grid as G
+from boostnerf_cli.fields.base import ExpertModule
 from boostnerf_cli.fields.mlp import MLP
 from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, at_least, limit
 
@@ -56,36 +57,30 @@ def color_mlp(in_dim: int, hidden: int, layers: int) -> MLP:
     return mlp
 
 
-class DVGOExpert(nn.Module):
+class DVGOExpert(ExpertModule):
     """Dense-grid radiance field; satisfies the Field protocol."""
 
     family = "dvgo"
+    config_type = DVGOConfig
     grows = True
 
     def __init__(self, cfg: DVGOConfig, bbox: Tensor, unit: float | None = None,
                  shape: tuple[int, int, int] | None = None):
-        super().__init__()
-        self.cfg = cfg
-        self.register_buffer("bbox", bbox.detach().clone().float())
+        super().__init__(cfg, bbox)
         final_shape = G.lattice_shape(self.bbox, cfg.res ** 3)
-        self.unit = float(unit) if unit is not None else self._spacing(final_shape)
+        self.unit = float(unit) if unit is not None else self.spacing(final_shape)
         self.shape = tuple(shape) if shape is not None else final_shape
         n = math.prod(self.shape)
         channels = cfg.feat_dim if cfg.hidden > 0 else 3
         self.density_table = nn.Parameter(torch.zeros(n, 1))
         self.feature_table = nn.Parameter(torch.zeros(n, channels))
-        self.shift = math.log(1.0 / (1.0 - cfg.alpha_init) - 1.0)
         self.rgbnet = (
             color_mlp(cfg.feat_dim + 3 + 6 * cfg.view_pe, cfg.hidden, cfg.layers) if cfg.hidden > 0 else None
         )
 
-    def _spacing(self, shape: tuple[int, int, int]) -> float:
-        size = self.bbox[1] - self.bbox[0]
-        return float((size / (torch.tensor(shape, device=size.device) - 1)).mean())
-
     @property
     def voxel_size(self) -> float:
-        return self._spacing(self.shape)
+        return self.spacing(self.shape)
 
     @property
     def spatial_res(self) -> int:
@@ -93,12 +88,9 @@ class DVGOExpert(nn.Module):
         return self.cfg.res
 
     # --- the Field contract -------------------------------------------------------------------
-    def _inside(self, xyz: Tensor) -> Tensor:
-        return ((xyz >= self.bbox[0]) & (xyz <= self.bbox[1])).all(dim=-1)
-
     def _sigma(self, xyz: Tensor, idx: Tensor, w: Tensor) -> Tensor:
         raw = G.lookup(self.density_table, idx, w)[:, 0]
-        return F.softplus(raw + self.shift) / self.unit * self._inside(xyz)
+        return F.softplus(raw + self.shift) / self.unit * self.inside(xyz)
 
     def _rgb(self, idx: Tensor, w: Tensor, dirs: Tensor) -> Tensor:
         feat = G.lookup(self.feature_table, idx, w)
@@ -153,9 +145,3 @@ class DVGOExpert(nn.Module):
             groups.append({"params": list(self.rgbnet.parameters()), "lr": lr_mlp})
         return groups
 
-    def config_dict(self) -> dict:
-        return {"family": self.family, "config": asdict(self.cfg), "unit": self.unit, "shape": list(self.shape)}
-
-    @classmethod
-    def from_config(cls, meta: dict, bbox: Tensor) -> "DVGOExpert":
-        return cls(DVGOConfig(**meta["config"]), bbox, unit=meta["unit"], shape=tuple(meta["shape"]))

@@ -18,13 +18,14 @@ spacing of that lattice.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from torch import Tensor, nn
+from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields.base import ExpertModule
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.hashgrid import MAX_COORD, HashEncoding
 from boostnerf_cli.fields.mlp import MLP
@@ -51,19 +52,18 @@ class NGPConfig:
     fit_steps: int = limit(200, NON_NEGATIVE)  # Adam steps of the warm start from the coarse geometry
 
 
-class NGPExpert(nn.Module):
+class NGPExpert(ExpertModule):
     """Hash-encoded radiance field; satisfies the Field protocol and the Expert contract."""
 
     family = "ngp"
+    config_type = NGPConfig
     grows = False
 
     def __init__(self, cfg: NGPConfig, bbox: Tensor, unit: float | None = None,
                  shape: tuple[int, int, int] | None = None):
-        super().__init__()
         if cfg.res < 1:
             raise BoostNerfError(f"an ngp expert needs at least one level, got res={cfg.res}")
-        self.cfg = cfg
-        self.register_buffer("bbox", bbox.detach().clone().float())
+        super().__init__(cfg, bbox)
         size = self.bbox[1] - self.bbox[0]
         self.shape = tuple(shape) if shape is not None else tuple(
             max(2, math.ceil(float(s / size.max()) * cfg.grid_res)) for s in size)
@@ -71,7 +71,6 @@ class NGPExpert(nn.Module):
         self.encoding = HashEncoding(self.bbox, cfg.res, cfg.log2_table, cfg.features, cfg.base_res, cfg.max_res)
         self.sigma_net = MLP([self.encoding.out_dim, cfg.hidden, 1 + cfg.geo_feat])
         self.rgbnet = color_mlp(cfg.geo_feat + 3 + 6 * cfg.view_pe, cfg.color_hidden, cfg.color_layers)
-        self.shift = math.log(1.0 / (1.0 - cfg.alpha_init) - 1.0)
 
     @property
     def spatial_res(self) -> int:
@@ -79,9 +78,6 @@ class NGPExpert(nn.Module):
         return self.cfg.grid_res
 
     # --- the Field contract -------------------------------------------------------------------
-    def _inside(self, xyz: Tensor) -> Tensor:
-        return ((xyz >= self.bbox[0]) & (xyz <= self.bbox[1])).all(dim=-1)
-
     def _hidden(self, xyz: Tensor) -> Tensor:
         return self.sigma_net(self.encoding(xyz))
 
@@ -89,7 +85,7 @@ class NGPExpert(nn.Module):
         return self._hidden(xyz)[:, 0]
 
     def _sigma(self, xyz: Tensor, raw: Tensor) -> Tensor:
-        return F.softplus(raw + self.shift) / self.unit * self._inside(xyz)
+        return F.softplus(raw + self.shift) / self.unit * self.inside(xyz)
 
     def _rgb(self, geo: Tensor, dirs: Tensor) -> Tensor:
         return torch.sigmoid(self.rgbnet(torch.cat([geo, direction_encoding(dirs, self.cfg.view_pe)], -1)))
@@ -132,12 +128,7 @@ class NGPExpert(nn.Module):
         ]
 
     def config_dict(self) -> dict:
-        return {"family": self.family, "config": asdict(self.cfg), "unit": self.unit, "shape": list(self.shape),
-                "encoding": self.encoding.config_dict()}
-
-    @classmethod
-    def from_config(cls, meta: dict, bbox: Tensor) -> NGPExpert:
-        return cls(NGPConfig(**meta["config"]), bbox, unit=meta["unit"], shape=tuple(meta["shape"]))
+        return {**super().config_dict(), "encoding": self.encoding.config_dict()}
 
 
 class NGPBatch:

@@ -14,14 +14,14 @@ evaluated.
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from boostnerf_cli.fields import grid as G
+from boostnerf_cli.fields.base import ExpertModule
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.vm import VMGrid
 from boostnerf_cli.fields.warmstart import fit_batch, fit_density
@@ -45,30 +45,24 @@ class TensoRFConfig:
     fit_steps: int = limit(200, NON_NEGATIVE)  # Adam steps of the warm start from the coarse geometry
 
 
-class TensoRFExpert(nn.Module):
+class TensoRFExpert(ExpertModule):
     """VM-factorised radiance field; satisfies the Field protocol and the Expert contract."""
 
     family = "tensorf"
+    config_type = TensoRFConfig
     grows = True
 
     def __init__(self, cfg: TensoRFConfig, bbox: Tensor, unit: float | None = None,
                  shape: tuple[int, int, int] | None = None):
-        super().__init__()
-        self.cfg = cfg
-        self.register_buffer("bbox", bbox.detach().clone().float())
+        super().__init__(cfg, bbox)
         final_shape = G.lattice_shape(self.bbox, cfg.res ** 3)
-        self.unit = float(unit) if unit is not None else self._spacing(final_shape)
+        self.unit = float(unit) if unit is not None else self.spacing(final_shape)
         shape = tuple(shape) if shape is not None else final_shape
         self.density_vm = VMGrid(shape, cfg.density_rank)
         self.app_vm = VMGrid(shape, cfg.app_rank)
         self.basis = nn.Linear(3 * cfg.app_rank, cfg.app_dim, bias=False)
-        self.shift = math.log(1.0 / (1.0 - cfg.alpha_init) - 1.0)
         in_dim = cfg.app_dim * (1 + 2 * cfg.feat_pe) + 3 + 6 * cfg.view_pe
         self.rgbnet = color_mlp(in_dim, cfg.hidden, cfg.layers)
-
-    def _spacing(self, shape: tuple[int, int, int]) -> float:
-        size = self.bbox[1] - self.bbox[0]
-        return float((size / (torch.tensor(shape, device=size.device) - 1)).mean())
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -80,14 +74,11 @@ class TensoRFExpert(nn.Module):
         return self.cfg.res
 
     # --- the Field contract -------------------------------------------------------------------
-    def _inside(self, xyz: Tensor) -> Tensor:
-        return ((xyz >= self.bbox[0]) & (xyz <= self.bbox[1])).all(dim=-1)
-
     def raw_density(self, xyz: Tensor) -> Tensor:
         return self.density_vm(xyz, self.bbox).sum(-1)
 
     def density(self, xyz: Tensor) -> Tensor:
-        return F.softplus(self.raw_density(xyz) + self.shift) / self.unit * self._inside(xyz)
+        return F.softplus(self.raw_density(xyz) + self.shift) / self.unit * self.inside(xyz)
 
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
         feat = self.basis(self.app_vm(xyz, self.bbox))
@@ -125,9 +116,3 @@ class TensoRFExpert(nn.Module):
             {"params": list(self.basis.parameters()) + list(self.rgbnet.parameters()), "lr": lr_mlp},
         ]
 
-    def config_dict(self) -> dict:
-        return {"family": self.family, "config": asdict(self.cfg), "unit": self.unit, "shape": list(self.shape)}
-
-    @classmethod
-    def from_config(cls, meta: dict, bbox: Tensor) -> TensoRFExpert:
-        return cls(TensoRFConfig(**meta["config"]), bbox, unit=meta["unit"], shape=tuple(meta["shape"]))
