@@ -1,11 +1,14 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
 #               default, 2000 joint steps, Top-1 (and the baseline once)
+#               (last row: the official raw-probability Top-1 weight, finetune --no-renormalize)
+#   raw         Top-1 with the raw-probability weight on each of m3, m4, m5's experts and moe/init
+#               (5,000 joint steps) -> OUT/m3-raw, m4-raw, m5-raw
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds
 # One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
 set -euo pipefail
@@ -40,17 +43,29 @@ for name, change in variants.items():
     r = copy.deepcopy(base); r["moe"].update(change)
     yaml.safe_dump(r, open(f"{sys.argv[2]}/abl-{name}.yaml", "w"), sort_keys=False)
 PY
-      for v in official gate-random aux-batch-all mix-density rates-0.3x; do
+      cp "$OUT/abl-official.yaml" "$OUT/abl-raw-prob.yaml"
+      for v in official gate-random aux-batch-all mix-density rates-0.3x raw-prob; do
         W="$OUT/abl-$v"
         mkdir -p "$W" && cp -r "$OUT/m3/experts" "$OUT/m3/manifest.json" "$W/"
         boostnerf build-moe -w "$W" --recipe "$OUT/abl-$v.yaml" --device cpu
-        boostnerf finetune -w "$W" --recipe "$OUT/abl-$v.yaml" --topk 1 --device cpu
+        weight=()
+        [ $v = raw-prob ] && weight=(--no-renormalize)
+        boostnerf finetune -w "$W" --recipe "$OUT/abl-$v.yaml" --topk 1 "${weight[@]}" --device cpu
         models=(--model top1)
         if [ $v = official ]; then
           boostnerf finetune -w "$W" --recipe "$OUT/abl-$v.yaml" --baseline --device cpu
           models+=(--model baseline)
         fi
         boostnerf eval -w "$W" --report --device cpu "${models[@]}"
+      done ;;
+    raw)
+      for m in m3 m4 m5; do
+        recipe="$OUT/official-$m.yaml"
+        [ $m = m3 ] && recipe="$OFFICIAL"
+        W="$OUT/$m-raw"
+        mkdir -p "$W/moe" && cp -r "$OUT/$m/experts" "$OUT/$m/manifest.json" "$W/" && cp "$OUT/$m/moe/init."* "$W/moe/"
+        boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
+        boostnerf eval -w "$W" --report --device cpu --model top1
       done ;;
     collect)
       python - "$OUT" "$HERE/docs/data" <<'PY'
@@ -71,6 +86,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, collect)" >&2; exit 2 ;;
   esac
 done
