@@ -354,7 +354,7 @@ def test_lambda_moves_the_load_to_the_cheap_experts_in_inverse_proportion_to_the
     for lam in (0.0, 1.0):
         mix = toy_mixture(m=3, k=1, seed=0).train()
 
-        def load():
+        def load(mix=mix):
             with torch.no_grad():
                 _, _, idx = mix.route(xyz)
             return expert_counts(idx, 3) / idx.shape[0]
