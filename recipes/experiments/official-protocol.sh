@@ -9,6 +9,9 @@
 #               (last row: the official raw-probability Top-1 weight, finetune --no-renormalize)
 #   raw         Top-1 with the raw-probability weight on each of m3, m4, m5's experts and moe/init
 #               (5,000 joint steps) -> OUT/m3-raw, m4-raw, m5-raw
+#   seed1       M = 3 again with finetuning seed 1 (batches drawn differently), on m3's experts and moe/init:
+#               the baseline, Top-1 with the straight-through and with the raw-probability weight
+#               -> OUT/m3-base-s1, m3-st-s1, m3-raw-s1
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds
 # One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
 set -euo pipefail
@@ -67,6 +70,17 @@ PY
         boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
         boostnerf eval -w "$W" --report --device cpu --model top1
       done ;;
+    seed1)
+      for v in base st raw; do
+        W="$OUT/m3-$v-s1"
+        mkdir -p "$W/moe" && cp -r "$OUT/m3/experts" "$OUT/m3/manifest.json" "$W/" && cp "$OUT/m3/moe/init."* "$W/moe/"
+        case $v in
+          base) boostnerf finetune -w "$W" --recipe "$OFFICIAL" --baseline --seed 1 --device cpu; model=baseline ;;
+          st) boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --seed 1 --device cpu; model=top1 ;;
+          raw) boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --seed 1 --device cpu; model=top1 ;;
+        esac
+        boostnerf eval -w "$W" --report --no-costs --device cpu --model $model
+      done ;;
     collect)
       python - "$OUT" "$HERE/docs/data" <<'PY'
 import json, sys
@@ -86,6 +100,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, collect)" >&2; exit 2 ;;
   esac
 done
