@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 
 from boostnerf_cli.flops import count_flops
-from boostnerf_cli.models import LoadedModel
+from boostnerf_cli.models import LoadedModel, n_views
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.render.renderer import render_rays, render_view
 from boostnerf_cli.scenes import Scene, Split
@@ -29,7 +29,7 @@ def photometric_grads(field, skip, settings, split: Split, device: str, views: i
     for t in tensors.values():
         t.grad = None
         t.requires_grad_(True)
-    n = len(split) if views is None else min(views, len(split))
+    n = n_views(split, views)
     total_pixels = n * split.height * split.width
     for i in range(n):
         o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, settings.ndc)
@@ -61,7 +61,7 @@ def active_parameters(model: LoadedModel, scene: Scene, split: Split, device: st
 @torch.no_grad()
 def gflops_per_image(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None) -> float:
     settings = model.settings(scene)
-    n = len(split) if views is None else min(views, len(split))
+    n = n_views(split, views)
     total = 0
     for i in range(n):
         with count_flops() as fc:

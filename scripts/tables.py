@@ -14,8 +14,8 @@ one of:
 - a raw `boostnerf eval --report` file (`WS/reports/eval.json`, copied as is): one row per model;
 - a raw `boostnerf bench` table (`WS/reports/bench.json`): the bench's columns;
 - a table spec {"groups": [...], "extra_columns": [...], "note": ...}, each group
-  {"label": str, "report": "FILE.json"} (a raw eval report under docs/data/, optionally "models": [names]
-  and "extra": {model name: {column: text}}) or {"label": str, "models": [rows]} with rows of the eval report's schema (name, psnr, ssim, w0,
+  {"label": str, "report": "FILE.json"} (a raw eval report under docs/data/, optionally "models": [names])
+  or {"label": str, "models": [rows]} with rows of the eval report's schema (name, psnr, ssim, w0,
   gflops_per_image; null when not measured) transcribed by hand, plus "extra": {column: text}.
 
 - a generic table {"columns": [header, ...], "rows": [[cell, ...], ...]} for a table that is neither a
@@ -88,8 +88,6 @@ def _groups(spec: dict) -> list[dict]:
             report = json.loads((DATA / g["report"]).read_text())
             by_name = {m["name"]: m for m in report["models"]}
             models = [by_name[n] for n in models] if models else report["models"]
-        if "extra" in g:  # {model name: {column: text}} for a raw report's rows (e.g. training time)
-            models = [{**m, "extra": {**m.get("extra", {}), **g["extra"].get(m["name"], {})}} for m in models]
         groups.append({"label": g.get("label", ""), "models": models, "baseline": g.get("baseline", "baseline")})
     return groups
 

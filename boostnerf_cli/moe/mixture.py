@@ -301,6 +301,3 @@ class GateView:
 
     def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
         return self.density(xyz), self.color(xyz, dirs)
-
-
-# --- persistence ------------------------------------------------------------------------------

@@ -7,7 +7,7 @@ from typing import Callable
 
 from boostnerf_cli.costs import model_costs
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.models import all_model_names, load_model
+from boostnerf_cli.models import all_model_names, load_model, n_views
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, write_json
 
@@ -24,6 +24,6 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, vi
         row = model_costs(load_model(ws, name, device, exact_gate=True), scene, split, device, views)
         log(f"{name}: {row['params']:,} parameters, ||w||_0 {row['w0']:,}, {row['gflops_per_image']:.3f} GFLOPs/image")
         rows.append(row)
-    result = {"split": split_name, "views": min(views or len(split), len(split)), "models": rows}
+    result = {"split": split_name, "views": n_views(split, views), "models": rows}
     write_json(ws.reports_dir / "count-params.json", result)
     return result

@@ -13,7 +13,7 @@ from typing import Callable
 from boostnerf_cli.costs import model_costs
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.metrics import image_metrics, load_lpips
-from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, all_model_names, load_model, render_split
+from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, all_model_names, load_model, n_views, render_split
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, atomic_path, write_json
@@ -61,7 +61,7 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
         row = {**evaluate_model(model.for_rendering(exact_gate), scene, split, device, lpips_model, skips, views), **cost}
         log(f"{name}: PSNR {row['psnr']:.3f}  SSIM {row['ssim']:.4f}  {row['seconds_per_image']:.3f}s/image")
         rows.append(row)
-    result = {"split": split_name, "views": min(views or len(split), len(split)), "skip": skips.empty and skips.terminated,
+    result = {"split": split_name, "views": n_views(split, views), "skip": skips.empty and skips.terminated,
               "skips": {"empty": skips.empty, "terminated": skips.terminated},
               "lpips_note": lpips_note or None, "models": rows}
     if report:

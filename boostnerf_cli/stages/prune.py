@@ -22,8 +22,7 @@ from boostnerf_cli.costs import photometric_grads
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import grid as G
 from boostnerf_cli.metrics import mse_to_psnr
-from boostnerf_cli.models import LoadedModel, load_model, model_file, save_pruned
-from boostnerf_cli.render.renderer import render_view
+from boostnerf_cli.models import LoadedModel, load_model, model_file, n_views, render_split, save_pruned
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, read_json, write_json
@@ -90,10 +89,8 @@ def fill_row(table_name: str, table: Tensor, keep: Tensor) -> list[float]:
     return [0.0] * channels
 
 
-@torch.no_grad()
 def _renders(model: LoadedModel, scene: Scene, split: Split, device: str, n: int) -> list[Tensor]:
-    settings = model.settings(scene)
-    return [render_view(model.field, split, i, settings, model.skip, device)["rgb"] for i in range(min(n, len(split)))]
+    return [r["rgb"] for r in render_split(model, scene, split, device, views=n)]
 
 
 def _psnr(images: list[Tensor], split: Split) -> float:
@@ -130,7 +127,7 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
         "from": name,
         "kind": before.kind,
         "split": split_name,
-        "views": min(views or len(split), len(split)),
+        "views": n_views(split, views),
         "params_before": params_before,
         "params_after": params_before - dropped,
         "file_bytes_before": src.stat().st_size,
