@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|seed1|ens|ens-m3|...|seed1-m5|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -12,6 +12,9 @@
 #   seed1       M = 3 again with finetuning seed 1 (batches drawn differently), on m3's experts and moe/init:
 #               the baseline, Top-1 with the straight-through and with the raw-probability weight
 #               -> OUT/m3-base-s1, m3-st-s1, m3-raw-s1
+#   ens         the ensemble (every expert on every sample, the paper's Ens column) on each of m3, m4, m5's
+#               experts and moe/init (5,000 joint steps) -> OUT/m3-ens, m4-ens, m5-ens
+#   seed1-m5    M = 5 again with finetuning seed 1: the baseline and Top-2 -> OUT/m5-base-s1, m5-top2-s1
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds
 # One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
 set -euo pipefail
@@ -81,6 +84,27 @@ PY
         esac
         boostnerf eval -w "$W" --report --no-costs --device cpu --model $model
       done ;;
+    ens|ens-m3|ens-m4|ens-m5)
+      sizes="m3 m4 m5"
+      [ $what = ens ] || sizes="${what#ens-}"
+      for m in $sizes; do
+        recipe="$OUT/official-$m.yaml"
+        [ $m = m3 ] && recipe="$OFFICIAL"
+        W="$OUT/$m-ens"
+        mkdir -p "$W/moe" && cp -r "$OUT/$m/experts" "$OUT/$m/manifest.json" "$W/" && cp "$OUT/$m/moe/init."* "$W/moe/"
+        boostnerf finetune -w "$W" --recipe "$recipe" --ensemble --device cpu
+        boostnerf eval -w "$W" --report --device cpu --model ens
+      done ;;
+    seed1-m5)
+      for v in base top2; do
+        W="$OUT/m5-$v-s1"
+        mkdir -p "$W/moe" && cp -r "$OUT/m5/experts" "$OUT/m5/manifest.json" "$W/" && cp "$OUT/m5/moe/init."* "$W/moe/"
+        case $v in
+          base) boostnerf finetune -w "$W" --recipe "$OUT/official-m5.yaml" --baseline --seed 1 --device cpu; model=baseline ;;
+          top2) boostnerf finetune -w "$W" --recipe "$OUT/official-m5.yaml" --topk 2 --seed 1 --device cpu; model=top2 ;;
+        esac
+        boostnerf eval -w "$W" --report --no-costs --device cpu --model $model
+      done ;;
     collect)
       python - "$OUT" "$HERE/docs/data" <<'PY'
 import json, sys
@@ -100,6 +124,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, seed1-m5, collect)" >&2; exit 2 ;;
   esac
 done
