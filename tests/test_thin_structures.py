@@ -44,14 +44,21 @@ def thin(tmp_path_factory) -> Path:
     return root
 
 
+_RUNS: dict = {}  # (root, layout, flags) -> result: the layout tests share their runs (one xdist worker per file)
+
+
 def _pretrain(root: Path, layout: str, *flags: str) -> dict:
+    key = (root, layout, flags)
+    if key in _RUNS:
+        return _RUNS[key]
     ws = root / f"ws-{layout}{''.join(flags)}"
     run_cli("pretrain", "-w", str(ws), "--data", str(root / layout), "--recipe", str(root / "r.yaml"),
             "--device", "cpu", *flags, check=True)
     report = json.loads((ws / "experts" / "dvgo-40.json").read_text())
     meta = json.loads(__import__("safetensors").safe_open(str(ws / "experts" / "geometry.safetensors"), "pt")
                       .metadata()["boostnerf"])
-    return {"psnr": report["test_psnr"], "box": torch.tensor(meta["fine_bbox"]), "coverage": meta["coverage"]}
+    _RUNS[key] = {"psnr": report["test_psnr"], "box": torch.tensor(meta["fine_bbox"]), "coverage": meta["coverage"]}
+    return _RUNS[key]
 
 
 def covered(origins, dirs, grid: OccupancyGrid, near: float, far: float):
@@ -97,31 +104,33 @@ def test_skipping_keeps_thin_structures(thin):
     assert skip["psnr"] > no_skip["psnr"] - 0.3, (skip["psnr"], no_skip["psnr"])
 
 
-def _agree(runs: dict, ref: str, other: str) -> None:
-    a, b = runs[ref], runs[other]
+def _same_box(a: dict, b: dict) -> None:
     cell = float((a["box"][1] - a["box"][0]).max()) / 32
-    assert torch.allclose(b["box"], a["box"], atol=1.5 * cell), (other, b["box"], a["box"])
-    assert abs(b["psnr"] - a["psnr"]) < 0.3, (other, b["psnr"], a["psnr"])
+    assert torch.allclose(b["box"], a["box"], atol=1.5 * cell), (b["box"], a["box"])
 
 
-LAYOUT_GAP = ("the box is drawn around the coarse model's occupied cells, which depend on the initial bounds each "
-              "layout gives (camera-derived with near 2 / far 6 for Blender, near 0.1 r for nerfstudio, bbox.txt for "
-              "NSVF) and keep the coarse model's floaters: measured 24.67 (Blender), 23.09 (nerfstudio), 26.39 dB "
-              "(NSVF); docs/results.md, issue 17")
+def test_layouts_without_a_box_file_give_the_same_box(thin):
+    """Blender and nerfstudio copies of one scene (same views, same held-out views) give the same box to a coarse
+    cell. Before the box was drawn inside the views' visual hull, the nerfstudio copy's box reached z = 1.69
+    (floaters in front of its cameras, which its near plane of 0.1 r lets the coarse stage sample) against 0.72."""
+    _same_box(_pretrain(thin, "blender"), _pretrain(thin, "nerfstudio"))
 
 
-@pytest.mark.xfail(strict=True, reason=LAYOUT_GAP)
-def test_layouts_without_a_box_file_give_the_same_box_and_psnr(thin):
-    """Blender and nerfstudio copies of one scene (same views, same held-out views): the box found should
-    agree to a coarse cell and the held-out PSNR to 0.3 dB."""
-    runs = {layout: _pretrain(thin, layout) for layout in ("blender", "nerfstudio")}
-    _agree(runs, "blender", "nerfstudio")
+@pytest.mark.xfail(strict=True, reason="same box, but 25.11 (Blender) against 25.72 dB (nerfstudio) held out at seed 0 "
+                   "(25.48 / 25.61 at seed 1): four 80 px test views after 800 steps vary by ~0.4 dB between seeds; "
+                   "docs/results.md, issue 17")
+def test_layouts_without_a_box_file_give_the_same_psnr(thin):
+    a, b = _pretrain(thin, "blender"), _pretrain(thin, "nerfstudio")
+    assert abs(b["psnr"] - a["psnr"]) < 0.3, (b["psnr"], a["psnr"])
 
 
-@pytest.mark.xfail(strict=True, reason=LAYOUT_GAP)
+@pytest.mark.xfail(strict=True, reason="bbox.txt bounds the scene at the floor (z -0.6); from the views alone the space "
+                   "under the floor disc is inside the visual hull and the coarse model puts some rays' surface there, so "
+                   "the Blender box reaches z -1.19 and trains 25.11 dB against NSVF's 26.39; docs/results.md, issue 17")
 def test_a_box_file_gives_the_same_box_as_the_cameras(thin):
-    runs = {layout: _pretrain(thin, layout) for layout in ("blender", "nsvf")}
-    _agree(runs, "blender", "nsvf")
+    a, b = _pretrain(thin, "blender"), _pretrain(thin, "nsvf")
+    _same_box(a, b)
+    assert abs(b["psnr"] - a["psnr"]) < 0.3, (b["psnr"], a["psnr"])
 
 
 def test_an_unknown_content_is_one_line_and_writes_nothing(tmp_path):
@@ -129,3 +138,31 @@ def test_an_unknown_content_is_one_line_and_writes_nothing(tmp_path):
     assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
         "error: unknown scene content 'wires': use one of objects, thin"]
     assert not (tmp_path / "s").exists()
+
+
+def test_the_box_leaves_out_floaters_outside_the_visual_hull_but_covers_every_foreground_ray(thin):
+    """A coarse model that filled its whole box (floaters everywhere): the box is drawn around the occupied
+    cells inside the views' visual hull, which hold every object of the scene, and covering the foreground rays
+    from those cells misses none (docs/results.md, issue 17)."""
+    from boostnerf_cli.render.coverage import hull_cells
+    from boostnerf_cli.scenes.procedural import scene_objects
+
+    scene = load_scene(thin / "blender")
+    tr = scene.splits["train"]
+    full = OccupancyGrid(torch.ones(32, 32, 32, dtype=torch.bool), scene.bbox)
+    framed = hull_cells(full, tr.images, tr.poses, tr.intrinsics, scene.background)
+    box = framed.occupied_bbox(margin_cells=1)
+    size, whole = box[1] - box[0], scene.bbox[1] - scene.bbox[0]
+    assert bool((size < 0.9 * whole).all()), (box, scene.bbox)  # floaters above the scene are out of the box
+    # every object (the floor disc's rim, the rods' tops, the wire's far end) lies inside the box
+    ends = []
+    for obj in scene_objects(0, "thin"):
+        if obj["kind"] == "capsule":
+            ends += [torch.tensor(obj["a"], dtype=torch.float32), torch.tensor(obj["b"], dtype=torch.float32)]
+    ends = torch.stack(ends)
+    assert bool(((ends >= box[0]) & (ends <= box[1])).all()), (ends, box)
+    _, stats = cover_foreground(framed, lambda x: torch.zeros(x.shape[0]), tr.images, tr.poses, tr.intrinsics,
+                                scene.background, scene.near, scene.far)
+    assert stats["missed_after"] == 0
+    # without a known background the hull says nothing: the grid is kept whole
+    assert hull_cells(full, tr.images, tr.poses, tr.intrinsics, None) is full

@@ -15,10 +15,17 @@ good. `cover_foreground` makes the mask conservative by construction:
 4. after that every foreground ray crosses an occupied cell, so a box drawn around the occupied cells
    (with a margin) holds every visible structure (`missed_after` counts the rays that still do not).
 
-Nothing is removed: the mask only grows, so what the coarse stage kept stays kept. (Carving the mask
-with the views' visual hull was tried: it tightened the box, so the Blender and nerfstudio copies of a
-scene agreed, but a hull test at a cell's centre also cut silhouette cells of lego, -0.47 dB for DVGO-80;
-docs/results.md, issue 17.)
+Nothing is removed from the mask: it only grows, so what the coarse stage kept stays kept. (Carving the
+mask with the views' visual hull at each cell's centre was tried: it cut silhouette cells of lego, -0.47 dB
+for DVGO-80; docs/results.md, issue 17.)
+
+The box, though, need not hold the coarse model's floaters. `hull_cells` keeps the occupied cells inside
+the views' visual hull (`visual_hull` with the footprint test, which keeps a cell as soon as any foreground
+pixel lies in its footprint in every view that sees it, and seen by at least a quarter of the views); the
+pretrain stage draws the box around those and then runs `cover_foreground` on them, so step 4 still holds
+inside the smaller box. A floater in front of the cameras, which the other views see against the
+background, no longer stretches the box; without it the box depends on how close to the cameras a dataset
+layout lets the coarse stage sample (docs/results.md, issue 17).
 """
 
 from __future__ import annotations
@@ -94,6 +101,18 @@ def visual_hull(occ: OccupancyGrid, poses: Tensor, intrinsics: Tensor, masks: Te
         keep &= fg
         seen_by += seen.long()
     return (keep & (seen_by >= min_views)).reshape(occ.shape)
+
+
+@torch.no_grad()
+def hull_cells(occ: OccupancyGrid, images: Tensor, poses: Tensor, intrinsics: Tensor,
+               background: tuple[float, float, float] | None, ndc: NDC | None = None) -> OccupancyGrid:
+    """The occupied cells of `occ` inside the training views' visual hull (module docstring), for the box to
+    be drawn around. Without a known background, or for NDC scenes, the hull says nothing: `occ` itself."""
+    if background is None or ndc is not None:
+        return occ
+    masks = foreground_masks(images, background).to(occ.occupied.device)
+    hull = visual_hull(occ, poses, intrinsics, masks, footprint=True, min_views=max(2, math.ceil(len(images) / 4)))
+    return OccupancyGrid(occ.occupied & hull, occ.bbox)
 
 
 @torch.no_grad()

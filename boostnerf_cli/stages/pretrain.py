@@ -28,7 +28,7 @@ from boostnerf_cli.fields.registry import build_expert, count_params
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.models import load_expert, save_expert
 from boostnerf_cli.recipe import GeometryRecipe, PretrainRecipe, Recipe, TrainRecipe, check_recipe, recipe_dict
-from boostnerf_cli.render.coverage import cover_foreground
+from boostnerf_cli.render.coverage import cover_foreground, hull_cells
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
@@ -78,18 +78,27 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
           signature={"stage": "geometry", "scene": scene_tag, "recipe": dataclasses.asdict(rec), "seed": seed})
     model.eval()
     occ = OccupancyGrid.from_density(model.density, bbox, model.shape, step, rec.alpha_threshold)
-    cover = None
+    cover, framed = None, occ  # framed: the cells the box is drawn around
     if rec.cover_foreground:  # nothing the training views show may be cut away for good
         train_split = scene.splits["train"]
-        occ, cover = cover_foreground(occ, model.density, train_split.images, train_split.poses,
-                                      train_split.intrinsics, scene.background, scene.near, scene.far, scene.ndc)
+        if rec.hull_box:
+            framed = hull_cells(occ, train_split.images, train_split.poses, train_split.intrinsics, scene.background,
+                                scene.ndc)
+        outside = int((occ.occupied & ~framed.occupied).sum())
+        if outside:
+            log(f"geometry: {outside} of {int(occ.occupied.sum())} occupied cells lie outside the training views' "
+                "visual hull (floaters, hidden space); the box is drawn around the others")
+        framed, cover = cover_foreground(framed, model.density, train_split.images, train_split.poses,
+                                         train_split.intrinsics, scene.background, scene.near, scene.far, scene.ndc)
+        cover["outside_hull"] = outside
         log(f"geometry: {cover['missed_before']} of {cover['foreground_rays']} foreground training rays crossed no "
             f"occupied cell; {cover['cells_added']} cells added along them ({cover['missed_after']} still missed)")
-    if not occ.occupied.any():
+        occ = OccupancyGrid(occ.occupied | framed.occupied, bbox)  # the mask only grows
+    if not framed.occupied.any():
         log("geometry: warning: the coarse stage found no occupied space (too few geometry.iters?); "
             "experts will train on the whole camera box without skipping")
-        occ = OccupancyGrid(torch.ones_like(occ.occupied), bbox)
-    box = occ.occupied_bbox(margin_cells=1)
+        occ = framed = OccupancyGrid(torch.ones_like(occ.occupied), bbox)
+    box = framed.occupied_bbox(margin_cells=1)
     seconds = round(time.perf_counter() - t0, 2)
     save_expert(ws.geometry_path, model, occ, {"name": "geometry", "fine_bbox": box.tolist(), "iters": rec.iters,
                                                "seconds": seconds, "occupied_fraction": occ.fraction(),
