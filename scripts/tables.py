@@ -14,7 +14,8 @@ one of:
 - a raw `boostnerf eval --report` file (`WS/reports/eval.json`, copied as is): one row per model;
 - a raw `boostnerf bench` table (`WS/reports/bench.json`): the bench's columns;
 - a table spec {"groups": [...], "extra_columns": [...], "note": ...}, each group
-  {"label": str, "report": "FILE.json"} (a raw eval report under docs/data/, optionally "models": [names])
+  {"label": str, "report": "FILE.json"} (a raw eval report under docs/data/, or a list of them read as one
+  report, optionally "models": [names])
   or {"label": str, "models": [rows]} with rows of the eval report's schema (name, psnr, ssim, w0,
   gflops_per_image; null when not measured) transcribed by hand, plus "extra": {column: text}.
 
@@ -84,10 +85,11 @@ def _groups(spec: dict) -> list[dict]:
     groups = []
     for g in spec["groups"]:
         models = g.get("models")
-        if "report" in g:
-            report = json.loads((DATA / g["report"]).read_text())
-            by_name = {m["name"]: m for m in report["models"]}
-            models = [by_name[n] for n in models] if models else report["models"]
+        if "report" in g:  # one report, or several whose models are read as one (later names win)
+            files = g["report"] if isinstance(g["report"], list) else [g["report"]]
+            every = [m for f in files for m in json.loads((DATA / f).read_text())["models"]]
+            by_name = {m["name"]: m for m in every}
+            models = [by_name[n] for n in models] if models else list(by_name.values())
         groups.append({"label": g.get("label", ""), "models": models, "baseline": g.get("baseline", "baseline")})
     return groups
 

@@ -32,7 +32,8 @@ def test_every_data_file_has_a_table_and_a_provenance_line():
     names = {n for _, n in _marked()}
     files = sorted((ROOT / "docs" / "data").glob("*.json"))
     specs = [json.loads(p.read_text()) for p in files]
-    reports = {g["report"] for spec in specs for g in spec.get("groups", []) if "report" in g}
+    reports = {f for spec in specs for g in spec.get("groups", []) if "report" in g
+               for f in (g["report"] if isinstance(g["report"], list) else [g["report"]])}
     readme = (ROOT / "docs" / "data" / "README.md").read_text()
     for path in files:
         assert path.stem in names or path.name in reports, f"{path.name} is used by no table"
@@ -78,6 +79,14 @@ def test_a_table_from_raw_eval_reports_with_deltas_against_each_baseline(tmp_pat
         "| DVGO: top2 | 34.545 | +0.30 | 0.9851 | 1,720,000 | 2.697 |\n"
         "| NGP: baseline | 33.127 |  | 0.9840 | 1,051,655 | 2.570 |\n"
         "| NGP: top2 | 33.448 | +0.32 | 0.9851 | 1,720,000 | 2.697 |\n")
+    # a group read from two reports (a model finetuned in another workspace): deltas against the first's baseline
+    (data / "ens-eval.json").write_text(json.dumps({"models": [
+        {"name": "ens", "psnr": 34.9631, "ssim": 0.98691, "w0": 2_284_373, "gflops_per_image": 4.7101}]}))
+    (data / "with-ens.json").write_text(json.dumps({"groups": [
+        {"label": "M = 3", "report": ["dvgo-eval.json", "ens-eval.json"], "models": ["baseline", "ens"]}]}))
+    assert tables.render("with-ens").splitlines()[2:] == [
+        "| M = 3: baseline | 34.249 |  | 0.9840 | 1,051,655 | 2.570 |",
+        "| M = 3: ens | 34.963 | +0.71 | 0.9869 | 2,284,373 | 4.710 |"]
     # one raw eval.json copied as the table's own file: a single group
     (data / "one.json").write_text(json.dumps(report(34.2494, 34.5451)))
     assert tables.render("one").splitlines()[4] == "| top2 | 34.545 | +0.30 | 0.9851 | 1,720,000 | 2.697 |"

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|seed1|ens|ens-m3|...|ablation-budget|seed1-m5|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|seed1|ens|ens-m3|...|ablation-budget|lam1e-4|seed1-m5|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -17,6 +17,8 @@
 #   ablation-budget  the budget factor of the ablation: the official recipe with 4,000-step experts (boostnerf's
 #               default) and 2,000 joint steps, its own experts trained here; Top-1 (the straight-through weight, as
 #               the other ablation rows) and the baseline (the largest expert, 4,000 + 2,000 steps) -> OUT/abl-budget
+#   lam1e-4     M = 3 Top-1 with the raw-probability weight at lambda 1e-4 (the recipe's 1e-3 sends half the
+#               samples to the smallest expert) on m3's experts and moe/init -> OUT/m3-raw-lam1e-4
 #   seed1-m5    M = 5 again with finetuning seed 1: the baseline and Top-2 -> OUT/m5-base-s1, m5-top2-s1
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds
 # One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
@@ -110,6 +112,11 @@ PY
       boostnerf finetune -w "$W" --recipe "$OUT/abl-budget.yaml" --topk 1 --device cpu
       boostnerf finetune -w "$W" --recipe "$OUT/abl-budget.yaml" --baseline --device cpu
       boostnerf eval -w "$W" --report --device cpu --model top1 --model baseline ;;
+    lam1e-4)
+      W="$OUT/m3-raw-lam1e-4"
+      mkdir -p "$W/moe" && cp -r "$OUT/m3/experts" "$OUT/m3/manifest.json" "$W/" && cp "$OUT/m3/moe/init."* "$W/moe/"
+      boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --lambda 1e-4 --device cpu
+      boostnerf eval -w "$W" --report --device cpu --model top1 ;;
     seed1-m5)
       for v in base top2; do
         W="$OUT/m5-$v-s1"
@@ -139,6 +146,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, seed1-m5, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lam1e-4, seed1-m5, collect)" >&2; exit 2 ;;
   esac
 done
