@@ -34,8 +34,11 @@ def family_ws(tmp_path_factory, tiny_scene):
     return ws
 
 
-# test PSNR (dB) of each expert of family_ws, measured when this check was written (see conftest.PSNR_MARGIN)
-FAMILY_PSNR = {"tensorf-10": 13.41, "tensorf-14": 14.47, "ngp-2": 13.00, "ngp-3": 16.42}
+# test PSNR (dB) of each expert of family_ws, measured when this check was written (see conftest.PSNR_MARGIN).
+# Last remeasured after the box was drawn inside the views' visual hull (geometry.hull_box): the tiny scene's box
+# top fell from z 1.70 to 1.07 (its content ends at z 0.4), and these 20-step experts moved by up to 2.9 dB (ngp-3
+# 16.42 -> 13.52; at 200 steps the same two boxes give ngp-3 20.52 / 20.17 dB). Was 13.41 / 14.47 / 13.00 / 16.42.
+FAMILY_PSNR = {"tensorf-10": 13.90, "tensorf-14": 14.30, "ngp-2": 12.92, "ngp-3": 13.52}
 
 
 def _report(ws, name):
