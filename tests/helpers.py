@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.metrics import ALEXNET_ENV, LPIPS_ENV, LPIPSModel
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
@@ -39,3 +40,31 @@ def toy_mixture(m: int = 3, k: int = 2, kind: str = "grid", renormalize: bool = 
     vd.init_from(experts[0].density)
     return Mixture(experts, gate, vd, None, MixtureConfig(topk=k, renormalize=renormalize, step=0.05,
                                                           expert_names=[f"e{i}" for i in range(m)]))
+
+
+def torchvision_alexnet_layout(model: LPIPSModel) -> dict[str, torch.Tensor]:
+    """Backbone weights named as torchvision's alexnet state dict, with a (shrunk) classifier.
+
+    The real file also holds classifier.{1,4,6}.* ((4096, 9216) ...), which the loader ignores;
+    small stand-ins keep the test fast.
+    """
+    sd = {k: v.clone() for k, v in model.state_dict().items() if k.startswith("features.")}
+    sd["classifier.1.weight"] = torch.zeros(4, 9)
+    sd["classifier.1.bias"] = torch.zeros(4)
+    return sd
+
+
+def lpips_head_layout(model: LPIPSModel) -> dict[str, torch.Tensor]:
+    """Head weights named as in lpips/weights/v0.1/alex.pth (`lin{k}.model.1.weight`)."""
+    return {f"lin{k}.model.1.weight": h.weight.detach().clone() for k, h in enumerate(model.heads)}
+
+
+def write_lpips_weights(folder, seed: int = 0) -> dict[str, str]:
+    """A random LPIPS model's weights written in the two reference layouts under `folder` (the AlexNet backbone as
+    torchvision saves it, the heads as the lpips package ships them) -> the environment that points boostnerf at
+    them. The distances are not LPIPS's, but every line of the LPIPS branch runs."""
+    model = LPIPSModel.random(seed=seed)
+    backbone, heads = folder / "alexnet-owt-7be5be79.pth", folder / "alex.pth"
+    torch.save(torchvision_alexnet_layout(model), backbone)
+    torch.save(lpips_head_layout(model), heads)
+    return {ALEXNET_ENV: str(backbone), LPIPS_ENV: str(heads)}

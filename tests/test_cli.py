@@ -3,8 +3,12 @@
 import json
 import shutil
 
+import pytest
 from conftest import PSNR_MARGIN, TINY_PSNR, assert_clean_failure, no_temp_files, run_cli
+from helpers import write_lpips_weights
 from safetensors import safe_open
+
+from boostnerf_cli.metrics import ALEXNET_ENV, LPIPS_ENV
 
 
 def test_pretrain_writes_experts_reports_and_manifest(trained_ws):
@@ -58,8 +62,10 @@ def test_pretrain_skips_finished_experts(trained_ws, tiny_scene, tiny_recipe):
     assert (trained_ws / "experts" / "dvgo-12.safetensors").stat().st_mtime_ns == before
 
 
-def test_eval_report_schema_and_render_outputs(trained_ws):
-    run_cli("eval", "--workspace", str(trained_ws), "--split", "test", "--report", "--device", "cpu", check=True)
+def test_eval_report_schema_and_render_outputs(trained_ws, tmp_path):
+    missing = {ALEXNET_ENV: str(tmp_path / "none" / "alexnet-owt-7be5be79.pth"), LPIPS_ENV: str(tmp_path / "alex.pth")}
+    run_cli("eval", "--workspace", str(trained_ws), "--split", "test", "--report", "--device", "cpu", check=True,
+            env_extra=missing)
     report = json.loads((trained_ws / "reports" / "eval.json").read_text())
     assert report["split"] == "test"
     names = [m["name"] for m in report["models"]]
@@ -68,8 +74,8 @@ def test_eval_report_schema_and_render_outputs(trained_ws):
         assert set(m) >= {"name", "psnr", "ssim", "lpips", "seconds_per_image"}
         assert 0 < m["ssim"] <= 1 and m["seconds_per_image"] > 0
         assert m["psnr"] >= TINY_PSNR[m["name"]] - PSNR_MARGIN, (m["name"], m["psnr"])
-        assert m["lpips"] is None or m["lpips"] >= 0
-    assert report["lpips_note"] is None or "LPIPS" in report["lpips_note"]
+        assert m["lpips"] is None
+    assert ALEXNET_ENV in report["lpips_note"] and missing[ALEXNET_ENV] in report["lpips_note"]
 
     run_cli("render", "--workspace", str(trained_ws), "--model", "dvgo-16", "--views", "2", "--device", "cpu", check=True)
     import imageio.v3 as iio
@@ -79,6 +85,35 @@ def test_eval_report_schema_and_render_outputs(trained_ws):
     rgb = iio.imread([p for p in pngs if "depth" not in p.name][0])
     depth = iio.imread([p for p in pngs if "depth" in p.name][0])
     assert rgb.shape == (32, 32, 3) and depth.dtype.name == "uint16"
+
+
+def test_eval_reports_lpips_when_its_weights_are_on_disk(trained_ws, tmp_path):
+    """The LPIPS branch of eval, with a random LPIPS model's weights in the reference file layouts: the report holds
+    the mean distance over the views, computed with the model the files hold (the same figure as the in-memory
+    model gives, and not the distance of a model with other weights)."""
+    from boostnerf_cli.metrics import LPIPSModel, lpips
+    from boostnerf_cli.models import load_model, render_split
+    from boostnerf_cli.stages.common import workspace_scene
+    from boostnerf_cli.workspace import Workspace
+
+    env = write_lpips_weights(tmp_path, seed=3)
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
+    run_cli("eval", "--workspace", str(ws), "--model", "dvgo-16", "--views", "2", "--report", "--device", "cpu",
+            check=True, env_extra=env)
+    report = json.loads((ws / "reports" / "eval.json").read_text())
+    assert report["lpips_note"] is None
+    (row,) = report["models"]
+    assert isinstance(row["lpips"], float) and row["lpips"] > 0
+    scene = workspace_scene(Workspace(ws))
+    test = scene.split("test")
+    model = load_model(Workspace(ws), "dvgo-16", "cpu")
+    renders = [r["rgb"] for r in render_split(model.for_rendering(), scene, test, "cpu", views=2)]
+    direct = {seed: sum(lpips(r, test.images[i], LPIPSModel.random(seed=seed)) for i, r in enumerate(renders)) / 2
+              for seed in (3, 4)}
+    assert row["lpips"] == pytest.approx(direct[3], abs=2e-5)
+    assert abs(direct[4] - direct[3]) > 1e-3  # another model's distance differs: the figure is the files' model's
+
 
 
 def test_missing_data_path(tmp_path):

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from helpers import lpips_head_layout, torchvision_alexnet_layout
 from skimage.metrics import structural_similarity
 
 from boostnerf_cli.errors import BoostNerfError
@@ -163,7 +164,7 @@ def test_load_lpips_reports_missing_alexnet(tmp_path, monkeypatch) -> None:
 
 def test_load_lpips_reports_missing_heads(tmp_path, monkeypatch) -> None:
     backbone = tmp_path / "alexnet-owt-7be5be79.pth"
-    torch.save(_torchvision_layout(LPIPSModel.random()), backbone)
+    torch.save(torchvision_alexnet_layout(LPIPSModel.random()), backbone)
     missing = tmp_path / "missing_alex.pth"
     monkeypatch.setenv(ALEXNET_ENV, str(backbone))
     monkeypatch.setenv(LPIPS_ENV, str(missing))
@@ -183,29 +184,12 @@ def test_load_lpips_without_env_names_alexnet_file(tmp_path, monkeypatch) -> Non
     assert "alexnet-owt-7be5be79.pth" in reason and ALEXNET_ENV in reason
 
 
-def _torchvision_layout(model: LPIPSModel) -> dict[str, torch.Tensor]:
-    """Backbone weights named as torchvision's alexnet state dict, with a (shrunk) classifier.
-
-    The real file also holds classifier.{1,4,6}.* ((4096, 9216) ...), which the loader ignores;
-    small stand-ins keep the test fast.
-    """
-    sd = {k: v.clone() for k, v in model.state_dict().items() if k.startswith("features.")}
-    sd["classifier.1.weight"] = torch.zeros(4, 9)
-    sd["classifier.1.bias"] = torch.zeros(4)
-    return sd
-
-
-def _lpips_package_layout(model: LPIPSModel) -> dict[str, torch.Tensor]:
-    """Head weights named as in lpips/weights/v0.1/alex.pth (`lin{k}.model.1.weight`)."""
-    return {f"lin{k}.model.1.weight": h.weight.detach().clone() for k, h in enumerate(model.heads)}
-
-
 def test_load_lpips_from_files_in_reference_layouts(tmp_path, monkeypatch) -> None:
     src = LPIPSModel.random(seed=7)
     backbone, heads = tmp_path / "alexnet-owt-7be5be79.pth", tmp_path / "alex.pth"
-    torch.save(_torchvision_layout(src), backbone)
-    torch.save(_lpips_package_layout(src), heads)
-    assert set(_torchvision_layout(src)) >= {f"features.{i}.weight" for i in (0, 3, 6, 8, 10)}
+    torch.save(torchvision_alexnet_layout(src), backbone)
+    torch.save(lpips_head_layout(src), heads)
+    assert set(torchvision_alexnet_layout(src)) >= {f"features.{i}.weight" for i in (0, 3, 6, 8, 10)}
     monkeypatch.setenv(ALEXNET_ENV, str(backbone))
     monkeypatch.setenv(LPIPS_ENV, str(heads))
     model, reason = load_lpips("cpu")
@@ -222,7 +206,7 @@ def test_load_lpips_from_files_in_reference_layouts(tmp_path, monkeypatch) -> No
 def test_load_lpips_reports_wrong_keys(tmp_path, monkeypatch) -> None:
     src = LPIPSModel.random()
     backbone, heads = tmp_path / "alexnet.pth", tmp_path / "alex.pth"
-    torch.save(_torchvision_layout(src), backbone)
+    torch.save(torchvision_alexnet_layout(src), backbone)
     torch.save({"something.else": torch.zeros(1)}, heads)
     monkeypatch.setenv(ALEXNET_ENV, str(backbone))
     monkeypatch.setenv(LPIPS_ENV, str(heads))
