@@ -13,7 +13,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.errors import BoostNerfError, out_of_memory
 
 app = typer.Typer(
     name="boostnerf",
@@ -361,3 +361,11 @@ def main() -> None:
     except (Interrupted, KeyboardInterrupt):  # the stage's cleanup (lock, temporary files) has run
         err.print("interrupted: finished files are kept; rerun the same command to resume", markup=False)
         sys.exit(130)
+    except (MemoryError, RuntimeError) as e:  # RuntimeError: torch's allocators (OutOfMemoryError is one)
+        if not out_of_memory(e):
+            raise
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        err.print(f"error: out of memory ({first[:160]}): lower the recipe's grid resolutions (pretrain.res, "
+                  "moe.gate_res, moe.vd_res) or train.batch_rays, or use a device with more memory; finished files "
+                  "are kept", markup=False)
+        sys.exit(3)

@@ -10,3 +10,16 @@ class BoostNerfError(Exception):
     """An expected, user-facing failure: one line, what is wrong and what to do."""
 
     exit_code = 2
+
+
+# what the allocators say when a tensor does not fit (CPU, CUDA, and sizes past what can be addressed)
+_OUT_OF_MEMORY = ("can't allocate memory", "out of memory", "storage size calculation overflowed")
+
+
+def out_of_memory(e: BaseException) -> bool:
+    """True for an allocation that failed: MemoryError, torch.OutOfMemoryError (CUDA), or the RuntimeError with
+    which the CPU allocator refuses a tensor. Such a failure is the settings' size, not a bug: the CLI says so in
+    one line."""
+    if isinstance(e, MemoryError):
+        return True
+    return isinstance(e, RuntimeError) and any(m in str(e).lower() for m in _OUT_OF_MEMORY)

@@ -66,6 +66,10 @@ POSITIVE = Range(0, lo_open=True)  # > 0 (learning rates, step sizes)
 OPEN_UNIT = Range(0, 1, lo_open=True, hi_open=True)  # (0, 1): opacities, growth fractions
 THRESHOLD = Range(0, 1, hi_open=True)  # [0, 1): opacity / weight thresholds (0 = keep everything)
 NON_NEGATIVE = Range(0)
+# cells along one side of a dense 3D grid (experts, gate, density volume, occupancy): 1024^3 cells of one float32
+# channel are 4 GiB, and every grid holds several channels, so a larger value can only fail for lack of memory
+MAX_GRID_RES = 1024
+GRID_RES = Range(1, MAX_GRID_RES)
 
 
 def limit(default: Any = dataclasses.MISSING, rule: Range | OneOf | None = None, *, factory: Any = dataclasses.MISSING,

@@ -18,7 +18,19 @@ import yaml
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import CONFIGS, FAMILIES
-from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, POSITIVE, THRESHOLD, OneOf, Range, at_least, limit, rule_of
+from boostnerf_cli.limits import (
+    GRID_RES,
+    MAX_GRID_RES,
+    NON_NEGATIVE,
+    OPEN_UNIT,
+    POSITIVE,
+    THRESHOLD,
+    OneOf,
+    Range,
+    at_least,
+    limit,
+    rule_of,
+)
 from boostnerf_cli.moe.gate import GATE_GRIDS, TRAINABLE_GATES
 from boostnerf_cli.moe.mixture import MIX_MODES
 from boostnerf_cli.moe.router import AUX_NORMS, AUX_SAMPLES, PENALTIES
@@ -39,7 +51,7 @@ class DataRecipe:
 class GeometryRecipe:
     """The shared coarse stage that finds the occupied box and the occupancy mask."""
 
-    res: int = limit(32, at_least(1))
+    res: int = limit(32, GRID_RES)
     iters: int = limit(600, at_least(1))
     batch_rays: int = limit(1024, at_least(1))
     lr: float = limit(0.1, POSITIVE)
@@ -70,7 +82,7 @@ class TrainRecipe:
 @dataclass
 class PretrainRecipe:
     model: str = limit("dvgo", OneOf(tuple(FAMILIES)))
-    res: list[int] = limit(rule=at_least(1), factory=lambda: [64, 96, 128], min_items=1)
+    res: list[int] = limit(rule=GRID_RES, factory=lambda: [64, 96, 128], min_items=1)
     iters: int = limit(3000, at_least(1))
     seed: int = limit(0, SEED)
     skip: bool = True  # False (--no-skip): experts train on the whole scene box, no occupancy mask
@@ -94,12 +106,12 @@ def _finetune_train() -> TrainRecipe:
 class MoERecipe:
     gate_type: str = limit("grid", OneOf(TRAINABLE_GATES))  # grid | linear | switch
     gate_grid: str = limit("auto", OneOf(("auto", *GATE_GRIDS)))  # dense | tensorf | hash | auto (the experts' family: dvgo dense, tensorf VM, ngp hash)
-    gate_res: int = limit(32, at_least(2))  # the gate grid has gate_res^3 voxels (128 in the paper)
+    gate_res: int = limit(32, Range(2, MAX_GRID_RES))  # the gate grid has gate_res^3 voxels (128 in the paper)
     gate_channels: int = limit(8, at_least(1))
     gate_hidden: int = limit(64, at_least(1))
     gate_layers: int = limit(2, NON_NEGATIVE)
     gate_init: str = limit("random", OneOf(("random", "expert")))  # the gate's dense feature grid: random, or expert: the smallest (dvgo) expert's feature grid, copied (same lattice) or resampled trilinearly, gate_channels then = its channels (the official code's)
-    vd_res: int | None = limit(None, at_least(1))  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
+    vd_res: int | None = limit(None, GRID_RES)  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
     density_threshold: float = limit(1e-3, THRESHOLD)  # T: samples whose V_D opacity over one step is below it are filtered
     step_from: str = limit("largest", OneOf(("smallest", "largest")))  # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
     topk: int = limit(2, at_least(1))  # at most the number of experts (checked by build-moe)
@@ -109,7 +121,7 @@ class MoERecipe:
     aux_samples: str = limit("all", OneOf(AUX_SAMPLES))  # auxiliary loss over every routed sample | visible: those whose V_D opacity and V_D rendering weight pass moe.train.color_threshold (official code)
     mix: str = limit("density", OneOf(MIX_MODES))  # the routing weights mix density (paper's equation) | alpha: each expert's opacity over one render step (official code)
     renormalize: bool = True  # top-k weights sum to 1 (k = 1: straight-through 1); False: raw probabilities (docs/results.md)
-    bake_res: int = limit(128, NON_NEGATIVE)  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
+    bake_res: int = limit(128, Range(0, MAX_GRID_RES))  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
     iters: int = limit(1000, at_least(1))
     lr_gate: float = limit(1e-2, POSITIVE)
     lr_gate_mlp: float = limit(1e-3, POSITIVE)

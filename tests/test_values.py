@@ -21,6 +21,8 @@ from boostnerf_cli.workspace import Workspace, read_json, read_meta, save_tensor
 
 NAN_INF = st.sampled_from([math.nan, math.inf, -math.inf])
 INT_BELOW = lambda lo: st.integers(max_value=lo - 1)  # noqa: E731
+# a dense grid resolution below lo or above 1024 (1024^3 cells of one channel are 4 GiB: past it, only out of memory)
+GRID_OUTSIDE = lambda lo: st.one_of(INT_BELOW(lo), st.integers(min_value=1025))  # noqa: E731
 NOT_POSITIVE = st.one_of(st.floats(max_value=0.0, allow_nan=False), NAN_INF)
 NEGATIVE = st.one_of(st.floats(max_value=-1e-9, allow_nan=False), NAN_INF)
 OUTSIDE_OPEN_UNIT = st.one_of(st.floats(max_value=0.0, allow_nan=False), st.floats(min_value=1.0, allow_nan=False),
@@ -36,8 +38,9 @@ BAD: dict[str, st.SearchStrategy] = {
     "data.format": BAD_WORD.filter(lambda w: w not in ("auto", "blender", "nsvf", "tanks", "llff", "nerfstudio")),
     "pretrain.model": BAD_WORD.filter(lambda w: w not in ("dvgo", "tensorf", "ngp")),
     "pretrain.iters": INT_BELOW(1),
+    "pretrain.res": GRID_OUTSIDE(1).map(lambda r: [64, r]),  # one expert too large
     "pretrain.seed": st.one_of(st.integers(max_value=-1), st.integers(min_value=2**63)),  # numpy / torch seeds
-    "pretrain.geometry.res": INT_BELOW(1),
+    "pretrain.geometry.res": GRID_OUTSIDE(1),
     "pretrain.geometry.iters": INT_BELOW(1),
     "pretrain.geometry.batch_rays": INT_BELOW(1),
     "pretrain.geometry.lr": NOT_POSITIVE,
@@ -67,18 +70,18 @@ BAD: dict[str, st.SearchStrategy] = {
     "pretrain.ngp.alpha_init": OUTSIDE_OPEN_UNIT,
     "pretrain.ngp.log2_table": st.one_of(INT_BELOW(1), st.integers(min_value=31)),  # hashgrid.py: 1..30
     "pretrain.ngp.features": INT_BELOW(1),
-    "pretrain.ngp.grid_res": INT_BELOW(1),
+    "pretrain.ngp.grid_res": GRID_OUTSIDE(1),
     "pretrain.ngp.max_res": st.integers(min_value=(1 << 24) - 2),  # hashgrid.py: level resolution + 2 < 2^24
     "moe.gate_type": BAD_WORD.filter(lambda w: w not in ("grid", "linear", "switch")),
     "moe.gate_grid": BAD_WORD.filter(lambda w: w not in ("auto", "dense", "tensorf", "hash")),
-    "moe.gate_res": INT_BELOW(2),
-    "moe.vd_res": INT_BELOW(1),
+    "moe.gate_res": GRID_OUTSIDE(2),
+    "moe.vd_res": GRID_OUTSIDE(1),
     "moe.density_threshold": OUTSIDE_THRESHOLD,
     "moe.step_from": BAD_WORD.filter(lambda w: w not in ("smallest", "largest")),
     "moe.topk": INT_BELOW(1),
     "moe.lam": NEGATIVE,
     "moe.penalty": BAD_WORD.filter(lambda w: w not in ("geometric", "linear", "quadratic", "none")),
-    "moe.bake_res": INT_BELOW(0),
+    "moe.bake_res": GRID_OUTSIDE(0),
     "moe.iters": INT_BELOW(1),
     "moe.lr_gate": NOT_POSITIVE,
     "moe.lr_gate_mlp": NOT_POSITIVE,
@@ -186,7 +189,9 @@ def test_known_values_from_the_issue(tmp_path):
         "pretrain:\n  train: {batch_rays: -4}\n": "recipe key pretrain.train.batch_rays = -4: must be >= 1",
         "pretrain:\n  train: {growth: [0.1, 1.2]}\n": "recipe key pretrain.train.growth = 1.2: must be in (0, 1)",
         "moe:\n  train: {lr_decay: 1.5}\n": "recipe key moe.train.lr_decay = 1.5: must be in (0, 1]",
-        "moe:\n  gate_res: 1\n": "recipe key moe.gate_res = 1: must be >= 2",
+        "moe:\n  gate_res: 1\n": "recipe key moe.gate_res = 1: must be in [2, 1024]",
+        "moe:\n  gate_res: 3000\n": "recipe key moe.gate_res = 3000: must be in [2, 1024]",
+        "pretrain:\n  res: [64, 4096]\n": "recipe key pretrain.res = 4096: must be in [1, 1024]",
         "moe:\n  penalty: cubic\n": "recipe key moe.penalty = 'cubic': must be one of geometric, linear, quadratic, none",
         "pretrain:\n  res: []\n": "recipe key pretrain.res = []: needs at least 1 value(s)",
         "pretrain:\n  model: ngp\n  res: [8]\n  ngp: {base_res: 64, max_res: 32}\n":
@@ -327,3 +332,40 @@ def test_training_checkpoint_with_the_wrong_structure_is_one_line(tmp_path):
         with pytest.raises(BoostNerfError, match=r"training checkpoint .*c.pt .*delete it to restart this model") as e:
             train(Task(), rays, Schedule(iters=2), 0, "t", checkpoint=ckpt, signature={"stage": "x"})
         assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("failure", [
+    RuntimeError("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried "
+                 "to allocate 864196993440 bytes. Error code 12 (Cannot allocate memory)"),
+    RuntimeError("Storage size calculation overflowed with sizes=[999999475878907192, 8]"),
+    torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 20.00 GiB"),
+    MemoryError(),
+])
+def test_out_of_memory_is_one_line_naming_the_settings(monkeypatch, capsys, failure):
+    """What the CPU allocator, CUDA and an unaddressable size raise when a grid does not fit (build-moe with
+    gate_res 3000 raised the first before grid resolutions were capped) reaches the user as one line, exit 3."""
+    from boostnerf_cli import cli
+
+    def stage():
+        raise failure
+
+    monkeypatch.setattr(cli, "app", stage)
+    monkeypatch.setattr("signal.signal", lambda *args: None)  # main's Ctrl-C handlers stay out of the test process
+    with pytest.raises(SystemExit) as e:
+        cli.main()
+    assert e.value.code == 3
+    out = capsys.readouterr().err.strip()
+    assert "\n" not in out and out.startswith("error: out of memory") and "moe.gate_res" in out, out
+
+
+def test_a_runtime_error_that_is_not_memory_keeps_its_traceback(monkeypatch):
+    from boostnerf_cli import cli
+
+    def stage():
+        raise RuntimeError("mat1 and mat2 shapes cannot be multiplied")
+
+    monkeypatch.setattr(cli, "app", stage)
+    monkeypatch.setattr("signal.signal", lambda *args: None)
+    with pytest.raises(RuntimeError, match="shapes"):
+        cli.main()
+

@@ -21,14 +21,14 @@ from torch import Tensor, nn
 from boostnerf_cli.fields import grid as G
 from boostnerf_cli.fields.base import ExpertModule
 from boostnerf_cli.fields.mlp import MLP
-from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, at_least, limit
+from boostnerf_cli.limits import GRID_RES, NON_NEGATIVE, OPEN_UNIT, at_least, limit
 
 
 @dataclass
 class DVGOConfig:
     """Architecture of a DVGO-style expert. `res`: the final grid has res^3 voxels."""
 
-    res: int = limit(128, at_least(1))
+    res: int = limit(128, GRID_RES)
     feat_dim: int = limit(12, at_least(1))
     hidden: int = limit(128, NON_NEGATIVE)  # width of the colour MLP; 0 = no MLP, colour = sigmoid of 3 grid channels
     layers: int = limit(2, NON_NEGATIVE)  # hidden layers of the colour MLP

@@ -30,7 +30,7 @@ from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.hashgrid import MAX_COORD, HashEncoding
 from boostnerf_cli.fields.mlp import MLP
 from boostnerf_cli.fields.warmstart import fit_batch, fit_density
-from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, Range, at_least, limit
+from boostnerf_cli.limits import GRID_RES, NON_NEGATIVE, OPEN_UNIT, Range, at_least, limit
 
 
 @dataclass
@@ -42,7 +42,7 @@ class NGPConfig:
     features: int = limit(2, at_least(1))  # F per level
     base_res: int = limit(16, at_least(1))  # N_min: cells along the box's longest side at the coarsest level
     max_res: int = limit(1024, Range(1, MAX_COORD - 3))  # N_max (>= base_res): at the finest level
-    grid_res: int = limit(128, at_least(1))  # occupancy grid (and density unit) cells along the longest side
+    grid_res: int = limit(128, GRID_RES)  # occupancy grid (and density unit) cells along the longest side
     hidden: int = limit(64, at_least(1))  # density MLP: one hidden layer
     geo_feat: int = limit(15, NON_NEGATIVE)  # features passed from the density MLP to the colour MLP
     color_hidden: int = limit(64, at_least(1))

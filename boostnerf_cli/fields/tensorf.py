@@ -25,14 +25,14 @@ from boostnerf_cli.fields.base import ExpertModule
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.vm import VMGrid
 from boostnerf_cli.fields.warmstart import fit_batch, fit_density
-from boostnerf_cli.limits import NON_NEGATIVE, OPEN_UNIT, at_least, limit
+from boostnerf_cli.limits import GRID_RES, NON_NEGATIVE, OPEN_UNIT, at_least, limit
 
 
 @dataclass
 class TensoRFConfig:
     """Architecture of a TensoRF-style expert. `res`: the final lattice has res^3 voxels."""
 
-    res: int = limit(128, at_least(1))
+    res: int = limit(128, GRID_RES)
     density_rank: int = limit(8, at_least(1))  # components per mode (TensoRF-VM uses 16)
     app_rank: int = limit(24, at_least(1))  # components per mode (TensoRF-VM uses 48)
     app_dim: int = limit(27, at_least(1))  # appearance feature after the basis matrix
