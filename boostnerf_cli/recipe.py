@@ -79,7 +79,17 @@ class TrainRecipe:
     checkpoint_every: int = limit(500, at_least(1))
 
 
+def family_sections(cls: type) -> type:
+    """Give the pretrain recipe one `dict` section per registered expert family (`fields/registry.py`), so that a
+    new family needs no line here. Applied before `@dataclass`, so the sections are ordinary fields, last."""
+    for name in FAMILIES:
+        cls.__annotations__[name] = "dict"
+        setattr(cls, name, field(default_factory=dict))
+    return cls
+
+
 @dataclass
+@family_sections
 class PretrainRecipe:
     model: str = limit("dvgo", OneOf(tuple(FAMILIES)))
     res: list[int] = limit(rule=GRID_RES, factory=lambda: [64, 96, 128], min_items=1)
@@ -88,13 +98,12 @@ class PretrainRecipe:
     skip: bool = True  # False (--no-skip): experts train on the whole scene box, no occupancy mask
     geometry: GeometryRecipe = field(default_factory=GeometryRecipe)
     train: TrainRecipe = field(default_factory=TrainRecipe)
-    dvgo: dict = field(default_factory=dict)  # DVGOConfig fields other than res
-    tensorf: dict = field(default_factory=dict)  # TensoRFConfig fields other than res
-    ngp: dict = field(default_factory=dict)  # NGPConfig fields other than res (res = levels L)
+    # then one section per expert family (`family_sections`): dvgo, tensorf, ngp, each a mapping of its config's
+    # fields other than res (for ngp, res is the number of levels L), a value or one per resolution
 
     def family_config(self) -> dict:
-        """The architecture settings of the chosen family (`dvgo`, `tensorf` or `ngp` section)."""
-        return dict({"dvgo": self.dvgo, "tensorf": self.tensorf, "ngp": self.ngp}.get(self.model, {}))
+        """The architecture settings of the chosen family (its section, e.g. `pretrain.dvgo`)."""
+        return dict(getattr(self, self.model, {}))
 
 
 def _finetune_train() -> TrainRecipe:

@@ -2,6 +2,7 @@
 (the gate follows the family; mixed families), finetune, eval and count-params."""
 
 import json
+import os
 
 import pytest
 from conftest import PSNR_MARGIN, REMOVE, assert_clean_failure, make_recipe, run_cli
@@ -99,3 +100,54 @@ def test_eval_renders_every_family_and_the_baseline(family_ws, tmp_path):
     run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--report", "--device", "cpu", check=True)
     names = [m["name"] for m in json.loads((ws / "reports" / "eval.json").read_text())["models"]]
     assert {"tensorf-10", "tensorf-14", "ngp-2", "ngp-3", "baseline"} <= set(names)
+
+
+FOURTH_FAMILY = '''"""A fourth expert family for the test: DVGO's grid under another name and config."""
+from dataclasses import dataclass
+
+from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+
+
+@dataclass
+class ToyConfig(DVGOConfig):
+    pass
+
+
+class ToyExpert(DVGOExpert):
+    family = "toy"
+    config_type = ToyConfig
+'''
+
+
+def test_a_fourth_family_is_one_file_and_one_registry_entry(tmp_path, tiny_scene):
+    """docs/design.md's recipe for a new family, followed on a copy of the package: the module, its class added to
+    the FAMILIES line, nothing else. Its recipe section, --model, pretrain, build-moe and finetune then work."""
+    import shutil
+    import sys
+    from pathlib import Path
+
+    import boostnerf_cli
+
+    src = tmp_path / "src"
+    shutil.copytree(Path(boostnerf_cli.__file__).parent, src / "boostnerf_cli",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    (src / "boostnerf_cli" / "fields" / "toy.py").write_text(FOURTH_FAMILY)
+    registry = src / "boostnerf_cli" / "fields" / "registry.py"
+    text = registry.read_text()
+    line = "for cls in (DVGOExpert, TensoRFExpert, NGPExpert)}"
+    assert text.count(line) == 1
+    registry.write_text(text.replace(line, "for cls in (DVGOExpert, TensoRFExpert, NGPExpert, ToyExpert)}")
+                        .replace("from boostnerf_cli.fields.tensorf", "from boostnerf_cli.fields.toy import ToyExpert\n"
+                                 "from boostnerf_cli.fields.tensorf"))
+    recipe = make_recipe(tmp_path / "toy.yaml", pretrain={"model": "toy", "iters": 10, "toy": {"hidden": {12: 8}},
+                                                          "dvgo": REMOVE},
+                         moe={"iters": 4, "train": {"log_every": 2, "checkpoint_every": 2}})
+    ws = tmp_path / "ws"
+    env = {"PYTHONPATH": str(src) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    logs = [run_cli(*args, "--workspace", str(ws), "--device", "cpu", check=True, env_extra=env, cwd=tmp_path).stderr
+            for args in (("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe)), ("build-moe",),
+                         ("finetune", "--topk", "1"))]
+    assert _report(ws, "toy-12")["model"] == "toy" and _report(ws, "toy-16")["model"] == "toy"
+    assert "pretrain.toy.hidden lists no value for res 16: using 8" in logs[0]  # its own recipe section
+    assert (ws / "moe" / "top1.safetensors").exists()
+    assert sys.modules["boostnerf_cli"].__file__ != str(src / "boostnerf_cli" / "__init__.py")  # the copy ran apart

@@ -82,12 +82,14 @@ class Expert(Field, Protocol):
 
 
 class ExpertModule(nn.Module):
-    """The set-up every expert family shares (subclass it and set `family`, `config_type`): its config `cfg`,
-    its box `bbox` (a buffer, saved in the state dict), the density shift (sigma = softplus(raw + shift) /
-    unit has opacity `cfg.alpha_init` over one unit where raw = 0), and `config_dict` / `from_config`."""
+    """The set-up every expert family shares (subclass it and set `family`, `config_type`, and `gate_grid` where a
+    dense one does not fit): its config `cfg`, its box `bbox` (a buffer, saved in the state dict), the density shift
+    (sigma = softplus(raw + shift) / unit has opacity `cfg.alpha_init` over one unit where raw = 0), and
+    `config_dict` / `from_config`."""
 
     family = ""
     config_type: type
+    gate_grid = "dense"  # the gate's feature grid for a mixture of this family's experts (moe.gate_grid: auto)
 
     def __init__(self, cfg, bbox: Tensor):
         super().__init__()

@@ -57,6 +57,7 @@ class NGPExpert(ExpertModule):
 
     family = "ngp"
     config_type = NGPConfig
+    gate_grid = "hash"  # the paper's Instant-NGP mixture gates with a hash grid
     grows = False
 
     def __init__(self, cfg: NGPConfig, bbox: Tensor, unit: float | None = None,

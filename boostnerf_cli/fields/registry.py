@@ -1,5 +1,6 @@
-"""The expert families by name. A new family is one module in `fields/` (a config dataclass and an
-`nn.Module` meeting the Expert contract of `fields/base.py`) plus one line in each table below."""
+"""The expert families by name. A new family is one module in `fields/` (a config dataclass and a subclass of
+`fields/base.py: ExpertModule` meeting the Expert contract) plus its class in the `FAMILIES` line below: the recipe
+section `pretrain.<family>`, `--model <family>`, saving, loading and mixtures follow from it."""
 
 from __future__ import annotations
 
@@ -7,12 +8,12 @@ import torch
 from torch import nn
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
-from boostnerf_cli.fields.ngp import NGPConfig, NGPExpert
-from boostnerf_cli.fields.tensorf import TensoRFConfig, TensoRFExpert
+from boostnerf_cli.fields.dvgo import DVGOExpert
+from boostnerf_cli.fields.ngp import NGPExpert
+from boostnerf_cli.fields.tensorf import TensoRFExpert
 
-FAMILIES: dict[str, type] = {"dvgo": DVGOExpert, "tensorf": TensoRFExpert, "ngp": NGPExpert}
-CONFIGS: dict[str, type] = {"dvgo": DVGOConfig, "tensorf": TensoRFConfig, "ngp": NGPConfig}
+FAMILIES: dict[str, type] = {cls.family: cls for cls in (DVGOExpert, TensoRFExpert, NGPExpert)}
+CONFIGS: dict[str, type] = {name: cls.config_type for name, cls in FAMILIES.items()}
 
 
 def build_expert(family: str, config: dict, bbox: torch.Tensor) -> nn.Module:

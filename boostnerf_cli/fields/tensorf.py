@@ -50,6 +50,7 @@ class TensoRFExpert(ExpertModule):
 
     family = "tensorf"
     config_type = TensoRFConfig
+    gate_grid = "tensorf"  # the paper's TensoRF mixture gates with a VM-factorised grid
     grows = True
 
     def __init__(self, cfg: TensoRFConfig, bbox: Tensor, unit: float | None = None,

@@ -10,7 +10,7 @@ from typing import Callable
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields.registry import count_params
+from boostnerf_cli.fields.registry import FAMILIES, count_params
 from boostnerf_cli.models import load_expert, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
@@ -108,12 +108,9 @@ def gate_source(rec: MoERecipe, gate_grid: str, experts: list[tuple]) -> tuple |
     return source
 
 
-FAMILY_GATE_GRID = {"dvgo": "dense", "tensorf": "tensorf", "ngp": "hash"}
-
-
 def resolve_gate_grid(choice: str, families: list[str]) -> str:
     """`auto`: the gate grid of the experts' family as in the paper; dense when families are mixed."""
     if choice != "auto":
         return choice
-    kinds = {FAMILY_GATE_GRID.get(f, "dense") for f in families}
+    kinds = {FAMILIES[f].gate_grid for f in families}
     return kinds.pop() if len(kinds) == 1 else "dense"
