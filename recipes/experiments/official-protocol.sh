@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|seed1|ens|ens-m3|...|ablation-budget|lam1e-4|seed1-m5|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|seed1-m5|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
-#               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2
+#               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
 #               default, 2000 joint steps, Top-1 (and the baseline once)
 #               (last row: the official raw-probability Top-1 weight, finetune --no-renormalize)
 #   raw         Top-1 with the raw-probability weight on each of m3, m4, m5's experts and moe/init
-#               (5,000 joint steps) -> OUT/m3-raw, m4-raw, m5-raw
+#               (5,000 joint steps) -> OUT/m3-raw, m4-raw, m5-raw (raw-m3 ...: one size)
 #   seed1       M = 3 again with finetuning seed 1 (batches drawn differently), on m3's experts and moe/init:
 #               the baseline, Top-1 with the straight-through and with the raw-probability weight
 #               -> OUT/m3-base-s1, m3-st-s1, m3-raw-s1
@@ -17,10 +17,11 @@
 #   ablation-budget  the budget factor of the ablation: the official recipe with 4,000-step experts (boostnerf's
 #               default) and 2,000 joint steps, its own experts trained here; Top-1 (the straight-through weight, as
 #               the other ablation rows) and the baseline (the largest expert, 4,000 + 2,000 steps) -> OUT/abl-budget
-#   lam1e-4     M = 3 Top-1 with the raw-probability weight at lambda 1e-4 (the recipe's 1e-3 sends half the
-#               samples to the smallest expert) on m3's experts and moe/init -> OUT/m3-raw-lam1e-4
+#   lamX        M = 3 Top-1 with the raw-probability weight at lambda X (lam1e-4, lam3e-4: the recipe's 1e-3 sends
+#               half the samples to the smallest expert) on m3's experts and moe/init -> OUT/m3-raw-lamX
 #   seed1-m5    M = 5 again with finetuning seed 1: the baseline and Top-2 -> OUT/m5-base-s1, m5-top2-s1
-#   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds
+#   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds, as
+#               issue18-$TAG<workspace>.json (TAG empty by default)
 # One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
 set -euo pipefail
 LEGO="$1" OUT="$2"
@@ -36,10 +37,10 @@ variant() {  # variant NAME RES HIDDEN GATE_RES: the official recipe with other 
 }
 for what in "$@"; do
   case $what in
-    m3) MODELS="baseline top1 top2" bash "$HERE/recipes/chain.sh" "$OFFICIAL" "$LEGO" "$OUT/m3" ;;
-    m4) MODELS="baseline top1 top2" bash "$HERE/recipes/chain.sh" \
+    m3) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" "$OFFICIAL" "$LEGO" "$OUT/m3" ;;
+    m4) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" \
           "$(variant m4 "64, 72, 80, 88" "64: 64, 72: 96, 80: 128, 88: 128" 64)" "$LEGO" "$OUT/m4" ;;
-    m5) MODELS="baseline top1 top2" bash "$HERE/recipes/chain.sh" \
+    m5) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" \
           "$(variant m5 "56, 64, 72, 80, 88" "56: 64, 64: 64, 72: 96, 80: 128, 88: 128" 56)" "$LEGO" "$OUT/m5" ;;
     ablation)
       python - "$OFFICIAL" "$OUT" <<'PY'
@@ -69,8 +70,10 @@ PY
         fi
         boostnerf eval -w "$W" --report --device cpu "${models[@]}"
       done ;;
-    raw)
-      for m in m3 m4 m5; do
+    raw|raw-m3|raw-m4|raw-m5)
+      sizes="m3 m4 m5"
+      [ $what = raw ] || sizes="${what#raw-}"
+      for m in $sizes; do
         recipe="$OUT/official-$m.yaml"
         [ $m = m3 ] && recipe="$OFFICIAL"
         W="$OUT/$m-raw"
@@ -112,10 +115,11 @@ PY
       boostnerf finetune -w "$W" --recipe "$OUT/abl-budget.yaml" --topk 1 --device cpu
       boostnerf finetune -w "$W" --recipe "$OUT/abl-budget.yaml" --baseline --device cpu
       boostnerf eval -w "$W" --report --device cpu --model top1 --model baseline ;;
-    lam1e-4)
-      W="$OUT/m3-raw-lam1e-4"
+    lam[0-9]*)
+      lam="${what#lam}"
+      W="$OUT/m3-raw-lam$lam"
       mkdir -p "$W/moe" && cp -r "$OUT/m3/experts" "$OUT/m3/manifest.json" "$W/" && cp "$OUT/m3/moe/init."* "$W/moe/"
-      boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --lambda 1e-4 --device cpu
+      boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --lambda "$lam" --device cpu
       boostnerf eval -w "$W" --report --device cpu --model top1 ;;
     seed1-m5)
       for v in base top2; do
@@ -128,10 +132,10 @@ PY
         boostnerf eval -w "$W" --report --no-costs --device cpu --model $model
       done ;;
     collect)
-      python - "$OUT" "$HERE/docs/data" <<'PY'
+      python - "$OUT" "$HERE/docs/data" "${TAG:-}" <<'PY'
 import json, sys
 from pathlib import Path
-out, data = Path(sys.argv[1]), Path(sys.argv[2])
+out, data, tag = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
 for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exists()):
     report = json.loads((ws / "reports" / "eval.json").read_text())
     experts = {p.stem: json.loads(p.read_text()) for p in (ws / "experts").glob("*.json")}
@@ -142,10 +146,10 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
         tuned = json.loads(f.read_text())["seconds"] if f.exists() else 0
         own = experts[m["name"]]["seconds"] if m["name"] in experts else (largest if m["name"] == "baseline" else pre)
         m["extra"] = {"train s": str(round(own + tuned))}
-    (data / f"issue18-{ws.name}.json").write_text(json.dumps(report, indent=2) + "\n")
-    print("wrote", data / f"issue18-{ws.name}.json")
+    (data / f"issue18-{tag}{ws.name}.json").write_text(json.dumps(report, indent=2) + "\n")
+    print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lam1e-4, seed1-m5, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, seed1-m5, collect)" >&2; exit 2 ;;
   esac
 done
