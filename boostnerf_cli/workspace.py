@@ -232,6 +232,10 @@ def read_meta(path: Path) -> dict[str, Any]:
     if not isinstance(meta, dict):
         raise BoostNerfError(f"checkpoint {path} is not a boostnerf file (its metadata is not an object); "
                              "delete it and rerun the stage that writes it")
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise BoostNerfError(f"checkpoint {path} has file format {meta.get('format_version')!r}, and this boostnerf "
+                             f"reads format {FORMAT_VERSION!r}: read it with the boostnerf that wrote it, or delete it "
+                             "and rerun the stage that writes it")
     return meta
 
 

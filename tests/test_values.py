@@ -6,6 +6,7 @@ rules declared in boostnerf_cli), so a rule that drifts from what the code needs
 
 from __future__ import annotations
 
+import json
 import math
 import os
 
@@ -260,6 +261,21 @@ def test_safetensors_whose_metadata_is_not_an_object(tmp_path):
     save_file({"a": torch.zeros(2)}, str(path), metadata={"boostnerf": "[1, 2]"})
     with pytest.raises(BoostNerfError, match="not a boostnerf file"):
         read_meta(path)
+
+
+@pytest.mark.parametrize("version", ["2", None])
+def test_a_file_of_another_format_version_is_one_line(tmp_path, version):
+    """A file from a later boostnerf (format "2"), or a safetensors file with boostnerf metadata but no version, is
+    refused in one line naming both formats, before any of its tensors is interpreted."""
+    from safetensors.torch import save_file
+
+    path = tmp_path / "x.safetensors"
+    meta = {"name": "dvgo-12", "family": "dvgo", **({"format_version": version} if version else {})}
+    save_file({"a": torch.zeros(2)}, str(path), metadata={"boostnerf": json.dumps(meta)})
+    with pytest.raises(BoostNerfError) as e:
+        read_meta(path)
+    msg = str(e.value)
+    assert "\n" not in msg and f"file format {version!r}" in msg and "reads format '1'" in msg, msg
 
 
 def _tiny_expert_file(tmp_path, **meta_changes):
