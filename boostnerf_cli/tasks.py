@@ -122,7 +122,19 @@ class MixtureTask:
     def param_groups(self) -> list[dict]:
         return self.mix.param_groups(self.tcfg.lr_grid, self.tcfg.lr_mlp, self.rec.lr_gate, self.rec.lr_gate_mlp)
 
+    def __post_init__(self) -> None:
+        # the routing the task ends with; `rec.wide_start` of the steps route to one expert more before it
+        self.final_routing = {"topk": self.mix.cfg.topk, "renormalize": self.mix.cfg.renormalize}
+        wide = self.mix.gate.cfg.kind != "uniform" and self.final_routing["topk"] < self.mix.m
+        self.wide_steps = int(self.rec.wide_start * self.rec.iters) if wide else 0  # < iters: the last step narrows
+
     def before_step(self, step: int) -> bool:
+        """Set the step's routing (a function of the step alone, so a resumed run routes as an uninterrupted one)."""
+        routing = self.final_routing
+        if step < self.wide_steps:
+            routing = {"topk": routing["topk"] + 1, "renormalize": True}
+        if any(getattr(self.mix.cfg, k) != v for k, v in routing.items()):
+            self.mix.configure(**routing)
         return False
 
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):

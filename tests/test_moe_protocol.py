@@ -370,3 +370,30 @@ def test_build_finetune_and_eval_with_every_official_option(trained_ws, tmp_path
     assert evaluate_model(model, scene, scene.split("test"), "cpu", None, views=1)["psnr"] == row["psnr"]
     model.field.cfg.mix = "density"
     assert evaluate_model(model, scene, scene.split("test"), "cpu", None, views=1)["psnr"] != row["psnr"]
+
+
+def test_wide_start_routes_to_one_expert_more_then_narrows_by_step():
+    """moe.wide_start: the first floor(fraction * iters) steps route to k + 1 experts with renormalised weights,
+    then to k with the recipe's weights; the routing is a function of the step alone (a resumed run, which starts
+    at a later step, routes as an uninterrupted one), the last step is always narrow, and the ensemble is left as
+    it is."""
+    from boostnerf_cli.tasks import MixtureTask
+    from helpers import toy_mixture
+
+    mix = toy_mixture(m=3, k=1, renormalize=False)
+    task = MixtureTask(mix, None, None, MoERecipe(iters=10, wide_start=0.35))
+    assert task.wide_steps == 3
+    seen = []
+    for step in (0, 2, 3, 9, 1, 5):  # out of order, as after a resume
+        task.before_step(step)
+        seen.append((mix.cfg.topk, mix.cfg.renormalize))
+    assert seen == [(2, True), (2, True), (1, False), (1, False), (2, True), (1, False)]
+    assert MixtureTask(toy_mixture(3, k=1), None, None, MoERecipe(iters=10, wide_start=0.99)).wide_steps == 9
+    assert MixtureTask(toy_mixture(3, k=3), None, None, MoERecipe(iters=10, wide_start=0.5)).wide_steps == 0
+    ens = toy_mixture(3, k=1)
+    ens.make_ensemble()
+    assert MixtureTask(ens, None, None, MoERecipe(iters=10, wide_start=0.5)).wide_steps == 0
+    with pytest.raises(BoostNerfError, match="moe.wide_start = 1.0: must be in"):
+        from boostnerf_cli.recipe import recipe_from_dict
+
+        recipe_from_dict({"moe": {"wide_start": 1.0}})

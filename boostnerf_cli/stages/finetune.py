@@ -94,6 +94,8 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     for key in ("mix", "aux_norm", "aux_samples"):  # named only when not the default: older checkpoints still resume
         if getattr(mix.cfg, key) != getattr(defaults, key):
             signature[key] = getattr(mix.cfg, key)
+    if task.wide_steps:
+        signature["wide_steps"] = task.wide_steps
     result = train(task, train_rays(scene, mix.bbox, device), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
                    signature=signature, data_parallel=True)
     mix.eval()
@@ -108,6 +110,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         "mix": mix.cfg.mix,
         "aux_norm": mix.cfg.aux_norm,
         "aux_samples": mix.cfg.aux_samples,
+        "wide_steps": task.wide_steps,
         "gate": mix.gate.cfg.kind,
         "experts": mix.cfg.expert_names,
         "iterations": result.iterations,
