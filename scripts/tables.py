@@ -79,19 +79,29 @@ def _table(columns: list[str], rows: list[list[str]]) -> str:
 
 
 def _groups(spec: dict) -> list[dict]:
-    """The table's groups, each {"label", "baseline", "models": [eval-report rows]}."""
+    """The table's groups, each {"label", "base": the baseline's eval-report row or None, "models": [rows]}.
+
+    The baseline is looked up among every model the group reads, so a group may show its mixtures alone and
+    still give their PSNR against a baseline that another row already shows."""
     if "models" in spec and "groups" not in spec:  # a raw eval report
-        return [{"label": "", "models": spec["models"], "baseline": spec.get("baseline", "baseline")}]
-    groups = []
-    for g in spec["groups"]:
-        models = g.get("models")
-        if "report" in g:  # one report, or several whose models are read as one (later names win)
-            files = g["report"] if isinstance(g["report"], list) else [g["report"]]
-            every = [m for f in files for m in json.loads((DATA / f).read_text())["models"]]
-            by_name = {m["name"]: m for m in every}
-            models = [by_name[n] for n in models] if models else list(by_name.values())
-        groups.append({"label": g.get("label", ""), "models": models, "baseline": g.get("baseline", "baseline")})
-    return groups
+        groups = [({"label": ""}, spec["models"], spec["models"])]
+        default = spec.get("baseline", "baseline")
+    else:
+        groups, default = [], "baseline"
+        for g in spec["groups"]:
+            models = every = g.get("models")
+            if "report" in g:  # one report, or several whose models are read as one (later names win)
+                files = g["report"] if isinstance(g["report"], list) else [g["report"]]
+                by_name = {m["name"]: m for f in files for m in json.loads((DATA / f).read_text())["models"]}
+                every = list(by_name.values())
+                models = [by_name[n] for n in models] if models else every
+            groups.append((g, models, every))
+    out = []
+    for g, models, every in groups:
+        name = g.get("baseline", default)
+        out.append({"label": g.get("label", ""), "models": models,
+                    "base": next((m for m in every if m["name"] == name), None)})
+    return out
 
 
 def model_table(spec: dict) -> str:
@@ -99,7 +109,7 @@ def model_table(spec: dict) -> str:
     compact = spec.get("compact_counts", False)
     rows = []
     for g in _groups(spec):
-        base = next((m for m in g["models"] if m["name"] == g["baseline"]), None)
+        base = g["base"]
         for m in g["models"]:
             psnr, ref = _psnr(m.get("psnr")), _psnr(base.get("psnr")) if base is not None else None
             delta = "" if m is base or psnr is None or ref is None else f"{psnr - ref:+.2f}"

@@ -377,8 +377,9 @@ def test_wide_start_routes_to_one_expert_more_then_narrows_by_step():
     then to k with the recipe's weights; the routing is a function of the step alone (a resumed run, which starts
     at a later step, routes as an uninterrupted one), the last step is always narrow, and the ensemble is left as
     it is."""
-    from boostnerf_cli.tasks import MixtureTask
     from helpers import toy_mixture
+
+    from boostnerf_cli.tasks import MixtureTask
 
     mix = toy_mixture(m=3, k=1, renormalize=False)
     task = MixtureTask(mix, None, None, MoERecipe(iters=10, wide_start=0.35))
