@@ -36,6 +36,9 @@ HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 export OMP_NUM_THREADS=1 DEVICE=cpu
 OFFICIAL="$HERE/recipes/blender-dvgo-cpu-official.yaml"
 mkdir -p "$OUT"
+from_size() {  # from_size SIZE W: a new workspace W holding SIZE's (m3, m4, m5) experts and its moe/init
+  mkdir -p "$2/moe" && cp -r "$OUT/$1/experts" "$OUT/$1/manifest.json" "$2/" && cp "$OUT/$1/moe/init."* "$2/moe/"
+}
 variant() {  # variant NAME RES HIDDEN GATE_RES: the official recipe with other experts
   sed -e "s/res: \[64, 72, 80\]/res: [$2]/" -e "s/hidden: {64: 64, 72: 96, 80: 128}/hidden: {$3}/" \
       -e "s/gate_res: 64/gate_res: $4/" "$OFFICIAL" > "$OUT/official-$1.yaml"
@@ -83,14 +86,14 @@ PY
         recipe="$OUT/official-$m.yaml"
         [ $m = m3 ] && recipe="$OFFICIAL"
         W="$OUT/$m-raw"
-        mkdir -p "$W/moe" && cp -r "$OUT/$m/experts" "$OUT/$m/manifest.json" "$W/" && cp "$OUT/$m/moe/init."* "$W/moe/"
+        from_size $m "$W"
         boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
         boostnerf eval -w "$W" --report --device cpu --model top1
       done ;;
     seed1)
       for v in base st raw; do
         W="$OUT/m3-$v-s1"
-        mkdir -p "$W/moe" && cp -r "$OUT/m3/experts" "$OUT/m3/manifest.json" "$W/" && cp "$OUT/m3/moe/init."* "$W/moe/"
+        from_size m3 "$W"
         case $v in
           base) boostnerf finetune -w "$W" --recipe "$OFFICIAL" --baseline --seed 1 --device cpu; model=baseline ;;
           st) boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --seed 1 --device cpu; model=top1 ;;
@@ -105,7 +108,7 @@ PY
         recipe="$OUT/official-$m.yaml"
         [ $m = m3 ] && recipe="$OFFICIAL"
         W="$OUT/$m-ens"
-        mkdir -p "$W/moe" && cp -r "$OUT/$m/experts" "$OUT/$m/manifest.json" "$W/" && cp "$OUT/$m/moe/init."* "$W/moe/"
+        from_size $m "$W"
         boostnerf finetune -w "$W" --recipe "$recipe" --ensemble --device cpu
         boostnerf eval -w "$W" --report --device cpu --model ens
       done ;;
@@ -124,18 +127,18 @@ PY
     lam[0-9]*)
       lam="${what#lam}"
       W="$OUT/m3-raw-lam$lam"
-      mkdir -p "$W/moe" && cp -r "$OUT/m3/experts" "$OUT/m3/manifest.json" "$W/" && cp "$OUT/m3/moe/init."* "$W/moe/"
+      from_size m3 "$W"
       boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --lambda "$lam" --device cpu
       boostnerf eval -w "$W" --report --device cpu --model top1 ;;
     penalty-*)
       pen="${what#penalty-}"
       W="$OUT/m3-raw-penalty-$pen"
-      mkdir -p "$W/moe" && cp -r "$OUT/m3/experts" "$OUT/m3/manifest.json" "$W/" && cp "$OUT/m3/moe/init."* "$W/moe/"
+      from_size m3 "$W"
       boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --penalty "$pen" --device cpu
       boostnerf eval -w "$W" --report --device cpu --model top1 ;;
     long-base|long-top1)
       W="$OUT/m3-$what"
-      mkdir -p "$W/moe" && cp -r "$OUT/m3/experts" "$OUT/m3/manifest.json" "$W/" && cp "$OUT/m3/moe/init."* "$W/moe/"
+      from_size m3 "$W"
       if [ $what = long-base ]; then
         boostnerf finetune -w "$W" --recipe "$OFFICIAL" --baseline --iters "${LONG:-10000}" --device cpu; model=baseline
       else
@@ -146,13 +149,13 @@ PY
     wide[0-9]*)
       frac="${what#wide}"
       W="$OUT/m3-raw-wide$frac"
-      mkdir -p "$W/moe" && cp -r "$OUT/m3/experts" "$OUT/m3/manifest.json" "$W/" && cp "$OUT/m3/moe/init."* "$W/moe/"
+      from_size m3 "$W"
       boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --wide-start "$frac" --device cpu
       boostnerf eval -w "$W" --report --device cpu --model top1 ;;
     seed1-m5)
       for v in base top2; do
         W="$OUT/m5-$v-s1"
-        mkdir -p "$W/moe" && cp -r "$OUT/m5/experts" "$OUT/m5/manifest.json" "$W/" && cp "$OUT/m5/moe/init."* "$W/moe/"
+        from_size m5 "$W"
         case $v in
           base) boostnerf finetune -w "$W" --recipe "$OUT/official-m5.yaml" --baseline --seed 1 --device cpu; model=baseline ;;
           top2) boostnerf finetune -w "$W" --recipe "$OUT/official-m5.yaml" --topk 2 --seed 1 --device cpu; model=top2 ;;
