@@ -78,30 +78,27 @@ def _table(columns: list[str], rows: list[list[str]]) -> str:
     return "\n".join([_row(columns), "|" + "---|" * len(columns), *(_row(r) for r in rows)]) + "\n"
 
 
+def _group(label: str, models: list[dict], every: list[dict], baseline: str) -> dict:
+    return {"label": label, "models": models, "base": next((m for m in every if m["name"] == baseline), None)}
+
+
 def _groups(spec: dict) -> list[dict]:
     """The table's groups, each {"label", "base": the baseline's eval-report row or None, "models": [rows]}.
 
     The baseline is looked up among every model the group reads, so a group may show its mixtures alone and
     still give their PSNR against a baseline that another row already shows."""
     if "models" in spec and "groups" not in spec:  # a raw eval report
-        groups = [({"label": ""}, spec["models"], spec["models"])]
-        default = spec.get("baseline", "baseline")
-    else:
-        groups, default = [], "baseline"
-        for g in spec["groups"]:
-            models = every = g.get("models")
-            if "report" in g:  # one report, or several whose models are read as one (later names win)
-                files = g["report"] if isinstance(g["report"], list) else [g["report"]]
-                by_name = {m["name"]: m for f in files for m in json.loads((DATA / f).read_text())["models"]}
-                every = list(by_name.values())
-                models = [by_name[n] for n in models] if models else every
-            groups.append((g, models, every))
-    out = []
-    for g, models, every in groups:
-        name = g.get("baseline", default)
-        out.append({"label": g.get("label", ""), "models": models,
-                    "base": next((m for m in every if m["name"] == name), None)})
-    return out
+        return [_group("", spec["models"], spec["models"], spec.get("baseline", "baseline"))]
+    groups = []
+    for g in spec["groups"]:
+        models = every = g.get("models")
+        if "report" in g:  # one report, or several whose models are read as one (later names win)
+            files = g["report"] if isinstance(g["report"], list) else [g["report"]]
+            by_name = {m["name"]: m for f in files for m in json.loads((DATA / f).read_text())["models"]}
+            every = list(by_name.values())
+            models = [by_name[n] for n in models] if models else every
+        groups.append(_group(g.get("label", ""), models, every, g.get("baseline", "baseline")))
+    return groups
 
 
 def model_table(spec: dict) -> str:
