@@ -109,8 +109,8 @@ def test_eval_reports_lpips_when_its_weights_are_on_disk(trained_ws, tmp_path):
     test = scene.split("test")
     model = load_model(Workspace(ws), "dvgo-16", "cpu")
     renders = [r["rgb"] for r in render_split(model.for_rendering(), scene, test, "cpu", views=2)]
-    direct = {seed: sum(lpips(r, test.images[i], LPIPSModel.random(seed=seed)) for i, r in enumerate(renders)) / 2
-              for seed in (3, 4)}
+    models = {seed: LPIPSModel.random(seed=seed) for seed in (3, 4)}
+    direct = {seed: sum(lpips(r, test.images[i], m) for i, r in enumerate(renders)) / 2 for seed, m in models.items()}
     assert row["lpips"] == pytest.approx(direct[3], abs=2e-5)
     assert abs(direct[4] - direct[3]) > 1e-3  # another model's distance differs: the figure is the files' model's
 
