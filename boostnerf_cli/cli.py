@@ -170,6 +170,7 @@ def finetune(
     penalty: Annotated[Optional[str], typer.Option("--penalty", help="geometric (paper), linear, quadratic or none.")] = None,
     renormalize: Annotated[Optional[bool], typer.Option("--renormalize/--no-renormalize", help="Renormalise the top-k weights to sum to 1 (default; for k = 1 a straight-through 1). Off: raw gate probabilities.")] = None,
     wide_start: Annotated[Optional[float], typer.Option("--wide-start", help="Fraction of the steps routed to k + 1 experts (renormalised) before narrowing to k (not in the paper; docs/paper-map.md).")] = None,
+    gate_noise: Annotated[Optional[float], typer.Option("--gate-noise", help="Training chooses experts by log p + F * N(0, 1), noisy top-k (not in the paper; docs/paper-map.md).")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
     force: Annotated[bool, typer.Option("--force", help="Redo a model that is already finetuned.")] = False,
@@ -182,7 +183,7 @@ def finetune(
     name = stage.model_name(topk, ensemble, baseline)
     rec = _moe_recipe(workspace, recipe).override({"moe.iters": iters, "moe.lam": lam, "moe.penalty": penalty,
                                                    "moe.renormalize": renormalize, "moe.seed": seed,
-                                                   "moe.wide_start": wide_start})
+                                                   "moe.wide_start": wide_start, "moe.gate_noise": gate_noise})
     ws, lock = _writer(workspace, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock:
         stage.run(ws, name, topk, rec.moe, dev, force, dist.main_log(log))

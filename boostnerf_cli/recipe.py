@@ -131,6 +131,7 @@ class MoERecipe:
     mix: str = limit("density", OneOf(MIX_MODES))  # the routing weights mix density (paper's equation) | alpha: each expert's opacity over one render step (official code)
     renormalize: bool = True  # top-k weights sum to 1 (k = 1: straight-through 1); False: raw probabilities (docs/results.md)
     wide_start: float = limit(0.0, THRESHOLD)  # fraction of the joint steps routed to k + 1 experts (renormalised) before narrowing to k: the gate compares experts before the partition sets (not in the paper; docs/paper-map.md)
+    gate_noise: float = limit(0.0, Range(0.0, 10.0))  # noisy top-k: training chooses experts by log p + gate_noise * N(0, 1) (Shazeer et al. 2017), so a Top-1 gate sees other experts too; rendering never adds it (not in the paper; docs/paper-map.md)
     bake_res: int = limit(128, Range(0, MAX_GRID_RES))  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
     iters: int = limit(1000, at_least(1))
     lr_gate: float = limit(1e-2, POSITIVE)

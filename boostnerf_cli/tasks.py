@@ -127,6 +127,7 @@ class MixtureTask:
         self.final_routing = {"topk": self.mix.cfg.topk, "renormalize": self.mix.cfg.renormalize}
         wide = self.mix.gate.cfg.kind != "uniform" and self.final_routing["topk"] < self.mix.m
         self.wide_steps = int(self.rec.wide_start * self.rec.iters) if wide else 0  # < iters: the last step narrows
+        self.gate_noise = self.rec.gate_noise if wide else 0.0  # noisy top-k choice while training (router.top_k)
 
     def before_step(self, step: int) -> bool:
         """Set the step's routing (a function of the step alone, so a resumed run routes as an uninterrupted one)."""
@@ -139,7 +140,7 @@ class MixtureTask:
 
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):
         stats = RoutingStats()
-        bundle = render_rays(self.mix.with_stats(stats), origins, dirs, self.settings, self.mix.skip, jitter=True)
+        bundle = render_rays(self.mix.with_stats(stats, self.gate_noise), origins, dirs, self.settings, self.mix.skip, jitter=True)
         loss, logs = photometric_loss(bundle, rgb, self.tcfg)
         for ex in self.mix.experts:  # family-specific terms (TensoRF's L1), as in pretraining
             reg = ex.regularization()

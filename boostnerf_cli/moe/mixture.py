@@ -141,8 +141,8 @@ class Mixture(nn.Module):
         return keep
 
     # --- routing --------------------------------------------------------------------------------
-    def route(self, xyz: Tensor, need_probs: bool = True) -> tuple[Tensor | None, Tensor, Tensor]:
-        """-> probabilities (N, M), weights (N, k), expert indices (N, k).
+    def route(self, xyz: Tensor, need_probs: bool = True, noise: float = 0.0) -> tuple[Tensor | None, Tensor, Tensor]:
+        """-> probabilities (N, M), weights (N, k), expert indices (N, k); `noise`: noisy top-k (`router.top_k`).
 
         Rendering (no autograd, `need_probs` False) with renormalised weights skips the probabilities:
         the renormalised top-k weights are the softmax of the k chosen logits alone (1 for k = 1), and
@@ -153,11 +153,11 @@ class Mixture(nn.Module):
             probs = self.gate.probs(xyz)
             idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
             return probs, probs, idx
-        if not need_probs and self.cfg.renormalize and not torch.is_grad_enabled():
+        if not need_probs and self.cfg.renormalize and not torch.is_grad_enabled() and noise == 0:
             chosen, idx = top_k(self.gate.logits(xyz).float(), self.cfg.topk, renormalize=False)
             return None, (torch.ones_like(chosen) if self.cfg.topk == 1 else softmax(chosen)), idx
         probs = self.gate.probs(xyz)
-        vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
+        vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize, noise)
         return probs, vals, idx
 
     def _mix(self, xyz: Tensor, dirs: Tensor | None, vals: Tensor, idx: Tensor) -> Tensor:
@@ -195,8 +195,9 @@ class Mixture(nn.Module):
         """A per-batch view for the renderer: the gate runs once per sample (see RoutedMixture)."""
         return RoutedMixture(self, None)
 
-    def with_stats(self, stats: RoutingStats) -> "RoutedMixture":
-        return RoutedMixture(self, stats)
+    def with_stats(self, stats: RoutingStats, noise: float = 0.0) -> "RoutedMixture":
+        """The per-batch view of a training step: routing recorded in `stats`, experts chosen with `noise`."""
+        return RoutedMixture(self, stats, noise)
 
     def expert_only(self, e: int) -> "SingleExpertView":
         return SingleExpertView(self, e)
@@ -234,12 +235,12 @@ class RoutedMixture:
     choices are also recorded there (for the auxiliary loss and the load logs).
     """
 
-    def __init__(self, mixture: Mixture, stats: RoutingStats | None):
-        self.mixture, self.stats = mixture, stats
+    def __init__(self, mixture: Mixture, stats: RoutingStats | None, noise: float = 0.0):
+        self.mixture, self.stats, self.noise = mixture, stats, noise
         self._last: tuple[Tensor, Tensor, Tensor] | None = None
 
     def density(self, xyz: Tensor) -> Tensor:
-        probs, vals, idx = self.mixture.route(xyz, need_probs=self.stats is not None)
+        probs, vals, idx = self.mixture.route(xyz, need_probs=self.stats is not None, noise=self.noise)
         if self.stats is not None:
             self.stats.probs.append(probs)
             self.stats.idx.append(idx)

@@ -96,6 +96,8 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
             signature[key] = getattr(mix.cfg, key)
     if task.wide_steps:
         signature["wide_steps"] = task.wide_steps
+    if task.gate_noise:
+        signature["gate_noise"] = task.gate_noise
     result = train(task, train_rays(scene, mix.bbox, device), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
                    signature=signature, data_parallel=True)
     mix.eval()
@@ -111,6 +113,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         "aux_norm": mix.cfg.aux_norm,
         "aux_samples": mix.cfg.aux_samples,
         "wide_steps": task.wide_steps,
+        "gate_noise": task.gate_noise,
         "gate": mix.gate.cfg.kind,
         "experts": mix.cfg.expert_names,
         "iterations": result.iterations,

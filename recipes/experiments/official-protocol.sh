@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|wideX|long-base|long-top1|seed1-m5|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|wideX|noiseX|long-base|long-top1|seed1-m5|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -25,6 +25,8 @@
 #               (10,000) joint steps instead of 5,000, on m3's experts and moe/init -> OUT/m3-long-base, m3-long-top1
 #   wideX       M = 3 Top-1 with the raw-probability weight whose first X of the joint steps route to two experts
 #               (finetune --wide-start X; not in the paper) on m3's experts and moe/init -> OUT/m3-raw-wideX
+#   noiseX      M = 3 Top-1 with the raw-probability weight whose training chooses experts by noisy top-k, noise X
+#               (finetune --gate-noise X; not in the paper) on m3's experts and moe/init -> OUT/m3-raw-noiseX
 #   seed1-m5    M = 5 again with finetuning seed 1: the baseline and Top-2 -> OUT/m5-base-s1, m5-top2-s1
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds, as
 #               issue18-$TAG<workspace>.json (TAG empty by default)
@@ -152,6 +154,12 @@ PY
       from_size m3 "$W"
       boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --wide-start "$frac" --device cpu
       boostnerf eval -w "$W" --report --device cpu --model top1 ;;
+    noise[0-9]*)
+      noise="${what#noise}"
+      W="$OUT/m3-raw-noise$noise"
+      from_size m3 "$W"
+      boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --gate-noise "$noise" --device cpu
+      boostnerf eval -w "$W" --report --device cpu --model top1 ;;
     seed1-m5)
       for v in base top2; do
         W="$OUT/m5-$v-s1"
@@ -181,6 +189,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, wideX, long-base, long-top1, seed1-m5, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, wideX, noiseX, long-base, long-top1, seed1-m5, collect)" >&2; exit 2 ;;
   esac
 done
