@@ -224,20 +224,21 @@ def _finetune_top1(moe_ws, folder, *flags):
     shutil.copytree(moe_ws, ws)
     for p in (ws / "moe").glob("top1.*"):
         p.unlink()
-    run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--iters", "100", *flags, "--device", "cpu", check=True)
+    run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--iters", "200", *flags, "--device", "cpu", check=True)
     return json.loads((ws / "moe" / "top1.json").read_text())
 
 
 def test_finetuning_learns_and_the_resolution_penalty_moves_load_to_the_small_expert(moe_ws, tmp_path):
-    """Measured (session 9): loss 0.028 over steps 10-30 -> 0.019 over steps 80-100 (one batch a logged step, so
-    three are averaged); the smallest expert's share of samples 0.65 with the geometric penalty against 0.50 with
-    none (same lambda 1). Without the auxiliary loss (lambda 0)
+    """Measured (session 11): loss 0.028 over steps 10-50 -> 0.016 over steps 160-200 with the geometric penalty,
+    0.024 -> 0.013 with none (one batch a logged step, so five are averaged; over 100 steps and three batches the
+    fall, 0.84x, was inside the batches' spread once near / far came from the cameras); the smallest expert's share
+    of samples 0.68 with the geometric penalty against 0.51 with none (same lambda 1). Without the auxiliary loss (lambda 0)
     this tiny Top-1 collapses onto one expert (the smallest here, share 1.0), so the share is compared between
     penalties at equal lambda: the weighting w_i, not lambda alone, is what prefers the cheap expert."""
     weighted = _finetune_top1(moe_ws, tmp_path / "geometric", "--lambda", "1", "--penalty", "geometric")
     flat = _finetune_top1(moe_ws, tmp_path / "none", "--lambda", "1", "--penalty", "none")
     for report in (weighted, flat):
         losses = [h["loss"] for h in report["history"]]
-        assert len(losses) == 10 and sum(losses[-3:]) < 0.8 * sum(losses[:3]), losses  # training lowers the loss
+        assert len(losses) == 20 and sum(losses[-5:]) < 0.75 * sum(losses[:5]), losses  # training lowers the loss
     assert weighted["penalty"] == "geometric" and flat["penalty"] == "none"
     assert weighted["load"][0] > flat["load"][0] + 0.05, (weighted["load"], flat["load"])

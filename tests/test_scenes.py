@@ -66,7 +66,9 @@ def test_generated_scene_loads(generated):
     assert train.images.dtype == torch.float32 and 0 <= float(train.images.min()) <= float(train.images.max()) <= 1
     focal = 0.5 * SIZE / math.tan(0.5 * CAMERA_ANGLE_X)
     assert torch.allclose(train.intrinsics[0], torch.tensor([focal, focal, SIZE / 2, SIZE / 2]))
-    assert (scene.near, scene.far) == (2.0, 6.0)
+    # the files record no near / far: they come from the cameras (radius 4 -> 0.1 r and 2 r)
+    assert scene.extra["near_far_source"] == "cameras"
+    assert (scene.near, scene.far) == pytest.approx((0.4, 8.0), rel=1e-3)
     assert train.names[0] == "train/r_0"
     # test cameras are not train cameras
     dist = torch.cdist(test.poses[:, :3, 3], train.poses[:, :3, 3])
@@ -202,8 +204,34 @@ def test_intrinsics_scale_per_axis(tmp_path):
 def test_rgb_images_and_near_far_keys(tmp_path):
     folder = write_blender(tmp_path / "rgb", {"train": [rgba(4, 4)[..., :3]] * 2}, near=0.5, far=3.0)
     scene = load_blender(folder, holdout_every=0)
-    assert (scene.near, scene.far) == (0.5, 3.0)
+    assert (scene.near, scene.far) == (0.5, 3.0) and scene.extra["near_far_source"] == "transforms"
     assert torch.allclose(scene.split("train").images[0], torch.from_numpy(rgba(4, 4)[..., :3] / 255).float())
+
+
+def test_a_blender_scene_at_another_scale_gives_the_scaled_bounds(generated, tmp_path):
+    """The same capture with every camera 4x farther out (a scene modelled in other units): near, far and the
+    box scale with it. With the old fixed near 2 / far 6 the cameras 16 units out saw nothing (far 6 ends
+    every ray 10 units short of the subject)."""
+    import shutil
+
+    folder = tmp_path / "far"
+    shutil.copytree(generated, folder)
+    for split in ("train", "test"):
+        path = folder / f"transforms_{split}.json"
+        meta = json.loads(path.read_text())
+        for frame in meta["frames"]:
+            m = np.array(frame["transform_matrix"])
+            m[:3, 3] *= 4
+            frame["transform_matrix"] = m.tolist()
+        path.write_text(json.dumps(meta))
+    a, b = load_scene(generated), load_scene(folder)
+    assert (b.near, b.far) == pytest.approx((4 * a.near, 4 * a.far), rel=1e-5)
+    assert torch.allclose(b.bbox, 4 * a.bbox, atol=1e-3 * float((b.bbox[1] - b.bbox[0]).max()))
+    # one recorded bound is honoured, the other still comes from the cameras
+    meta = json.loads((folder / "transforms_train.json").read_text())
+    (folder / "transforms_train.json").write_text(json.dumps({**meta, "near": 1.5}))
+    c = load_scene(folder)
+    assert (c.near, c.far) == pytest.approx((1.5, b.far)) and c.extra["near_far_source"] == "transforms,cameras"
 
 
 # ----------------------------------------------------------------------------- splits

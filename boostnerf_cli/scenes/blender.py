@@ -3,8 +3,11 @@
 Layout: a folder with `transforms_<split>.json` files. Each holds `camera_angle_x` (or `fl_x`,
 optionally `fl_y`, `cx`, `cy`, `w`, `h`, also allowed per frame) and `frames`, each with a
 `file_path` (relative to the folder, `.png` optional) and a 4x4 camera-to-world
-`transform_matrix` in the OpenGL convention. Optional top-level `near` / `far` are honoured,
-otherwise the Blender defaults 2 and 6 are used.
+`transform_matrix` in the OpenGL convention. Optional top-level `near` / `far` are honoured;
+a bound the files do not record comes from the cameras (`camera_near_far`: 0.1 r and 2 r, r the
+cameras' distance to the point they look at), as for nerfstudio and NSVF folders without a box. The
+original NeRF loader's fixed 2 / 6 suit only cameras about 4 units from the subject: cameras 16 units
+away would see nothing at all through them, and the box and the coarse stage's samples depended on them.
 
 Images: RGB or RGBA, 8 or 16 bit. Downscaling is area averaging (`frames.area_downscale`) of the
 premultiplied colour and of alpha; the result is then composited on the background colour.
@@ -18,7 +21,7 @@ import numpy as np
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.scenes.bounds import frustum_overlap_bbox
+from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
     CAMERA_KEYS,
     Frame,
@@ -33,7 +36,6 @@ from boostnerf_cli.scenes.frames import (
 from boostnerf_cli.scenes.scene import Scene, Split
 
 SPLITS = ("train", "val", "test")
-DEFAULT_NEAR, DEFAULT_FAR = 2.0, 6.0
 
 
 def is_blender(path: Path) -> str:
@@ -64,16 +66,19 @@ def _parse_split(folder: Path, split: str) -> tuple[list[Frame], dict]:
 # ----------------------------------------------------------------------------- scene
 
 
-def _near_far(metas: dict[str, dict], folder: Path) -> tuple[float, float]:
-    """`near` / `far` from the first transforms file (train, val, test) that has them, else 2 / 6."""
-    values = []
-    for key, default in (("near", DEFAULT_NEAR), ("far", DEFAULT_FAR)):
-        value = next((m[key] for m in metas.values() if key in m), default)
+def _near_far(metas: dict[str, dict], folder: Path, poses) -> tuple[float, float, str]:
+    """`near` / `far` from the first transforms file (train, val, test) that has each, else from the train
+    cameras (`camera_near_far`); and where they came from ("transforms", "cameras" or both, comma-joined)."""
+    derived = camera_near_far(poses)
+    values, sources = [], []
+    for key, default in zip(("near", "far"), derived):
+        value = next((m[key] for m in metas.values() if key in m), None)
+        sources.append("cameras" if value is None else "transforms")
         try:
-            values.append(float(value))
+            values.append(default if value is None else float(value))
         except (TypeError, ValueError):
             raise BoostNerfError(f"transforms files in {folder}: {key} must be a number, got {value!r}") from None
-    return values[0], values[1]
+    return values[0], values[1], ",".join(dict.fromkeys(sources))
 
 
 def load_blender(
@@ -89,7 +94,7 @@ def load_blender(
     (0 disables). With its own test (or val) split nothing is held out.
     Splits: images (N, h, w, 3) float32 composited on `background`, poses (N, 4, 4), intrinsics (N, 4).
     bbox: `frustum_overlap_bbox` of the (kept) train cameras. extra: native_size and image_size
-    as [height, width].
+    as [height, width], near_far_source ("transforms", "cameras" or "transforms,cameras").
     """
     folder = Path(path)
     if not folder.is_dir():
@@ -114,7 +119,8 @@ def load_blender(
     holdout = ""
     if found == ["train"] and holdout_every:
         splits["train"], splits["test"], holdout = hold_out(splits["train"], holdout_every)
-    near, far = _near_far({s: parsed[s][1] for s in found}, folder)
     train = splits["train"]
+    near, far, source = _near_far({s: parsed[s][1] for s in found}, folder, train.poses)
     bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
-    return scene_from_splits(folder, splits, near, far, bbox, background, "blender", holdout, native, size)
+    return scene_from_splits(folder, splits, near, far, bbox, background, "blender", holdout, native, size,
+                             extra={"near_far_source": source})
