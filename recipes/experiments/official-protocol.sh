@@ -41,6 +41,13 @@ mkdir -p "$OUT"
 from_size() {  # from_size SIZE W: a new workspace W holding SIZE's (m3, m4, m5) experts and its moe/init
   mkdir -p "$2/moe" && cp -r "$OUT/$1/experts" "$OUT/$1/manifest.json" "$2/" && cp "$OUT/$1/moe/init."* "$2/moe/"
 }
+raw_top1() {  # raw_top1 W FLAG...: M = 3 Top-1 with the raw-probability weight and FLAG... on m3's experts and moe/init
+  local W="$1"
+  shift
+  from_size m3 "$W"
+  boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize "$@" --device cpu
+  boostnerf eval -w "$W" --report --device cpu --model top1
+}
 variant() {  # variant NAME RES HIDDEN GATE_RES: the official recipe with other experts
   sed -e "s/res: \[64, 72, 80\]/res: [$2]/" -e "s/hidden: {64: 64, 72: 96, 80: 128}/hidden: {$3}/" \
       -e "s/gate_res: 64/gate_res: $4/" "$OFFICIAL" > "$OUT/official-$1.yaml"
@@ -126,18 +133,8 @@ PY
       boostnerf finetune -w "$W" --recipe "$OUT/abl-budget.yaml" --topk 1 --device cpu
       boostnerf finetune -w "$W" --recipe "$OUT/abl-budget.yaml" --baseline --device cpu
       boostnerf eval -w "$W" --report --device cpu --model top1 --model baseline ;;
-    lam[0-9]*)
-      lam="${what#lam}"
-      W="$OUT/m3-raw-lam$lam"
-      from_size m3 "$W"
-      boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --lambda "$lam" --device cpu
-      boostnerf eval -w "$W" --report --device cpu --model top1 ;;
-    penalty-*)
-      pen="${what#penalty-}"
-      W="$OUT/m3-raw-penalty-$pen"
-      from_size m3 "$W"
-      boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --penalty "$pen" --device cpu
-      boostnerf eval -w "$W" --report --device cpu --model top1 ;;
+    lam[0-9]*) raw_top1 "$OUT/m3-raw-$what" --lambda "${what#lam}" ;;
+    penalty-*) raw_top1 "$OUT/m3-raw-$what" --penalty "${what#penalty-}" ;;
     long-base|long-top1)
       W="$OUT/m3-$what"
       from_size m3 "$W"
@@ -148,18 +145,8 @@ PY
           --iters "${LONG:-10000}" --device cpu; model=top1
       fi
       boostnerf eval -w "$W" --report --device cpu --model $model ;;
-    wide[0-9]*)
-      frac="${what#wide}"
-      W="$OUT/m3-raw-wide$frac"
-      from_size m3 "$W"
-      boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --wide-start "$frac" --device cpu
-      boostnerf eval -w "$W" --report --device cpu --model top1 ;;
-    noise[0-9]*)
-      noise="${what#noise}"
-      W="$OUT/m3-raw-noise$noise"
-      from_size m3 "$W"
-      boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --gate-noise "$noise" --device cpu
-      boostnerf eval -w "$W" --report --device cpu --model top1 ;;
+    wide[0-9]*) raw_top1 "$OUT/m3-raw-$what" --wide-start "${what#wide}" ;;
+    noise[0-9]*) raw_top1 "$OUT/m3-raw-$what" --gate-noise "${what#noise}" ;;
     seed1-m5)
       for v in base top2; do
         W="$OUT/m5-$v-s1"
