@@ -242,3 +242,20 @@ def test_finetuning_learns_and_the_resolution_penalty_moves_load_to_the_small_ex
         assert len(losses) == 20 and sum(losses[-5:]) < 0.75 * sum(losses[:5]), losses  # training lowers the loss
     assert weighted["penalty"] == "geometric" and flat["penalty"] == "none"
     assert weighted["load"][0] > flat["load"][0] + 0.05, (weighted["load"], flat["load"])
+
+
+def test_gate_noise_reaches_the_report_and_a_bad_value_is_one_line(moe_ws, tmp_path):
+    """finetune --gate-noise: the report says the noise it trained with; a negative one is refused in one line and
+    leaves no model behind."""
+    ws = tmp_path / "ws"
+    shutil.copytree(moe_ws, ws)
+    for p in (ws / "moe").glob("top1.*"):
+        p.unlink()
+    bad = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--iters", "10", "--gate-noise", "-1",
+                  "--device", "cpu")
+    assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    assert "gate_noise" in bad.stderr and not (ws / "moe" / "top1.safetensors").exists()
+    run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--iters", "10", "--gate-noise", "0.5",
+            "--device", "cpu", check=True)
+    report = json.loads((ws / "moe" / "top1.json").read_text())
+    assert report["gate_noise"] == 0.5 and report["iterations"] == 10
