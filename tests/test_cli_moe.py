@@ -219,11 +219,17 @@ def test_measure_costs_script_reports_every_measurement(moe_ws):
     assert mix["overhead_seconds"] == pytest.approx(mix["gate_topk_aux_seconds"] + mix["dispatch_gather_seconds"])
 
 
-def _finetune_top1(moe_ws, folder, *flags):
+def _without_top1(moe_ws, folder):
+    """A copy of the built workspace at folder/ws with no top1 model in it."""
     ws = folder / "ws"
     shutil.copytree(moe_ws, ws)
     for p in (ws / "moe").glob("top1.*"):
         p.unlink()
+    return ws
+
+
+def _finetune_top1(moe_ws, folder, *flags):
+    ws = _without_top1(moe_ws, folder)
     run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--iters", "200", *flags, "--device", "cpu", check=True)
     return json.loads((ws / "moe" / "top1.json").read_text())
 
@@ -247,10 +253,7 @@ def test_finetuning_learns_and_the_resolution_penalty_moves_load_to_the_small_ex
 def test_gate_noise_reaches_the_report_and_a_bad_value_is_one_line(moe_ws, tmp_path):
     """finetune --gate-noise: the report says the noise it trained with; a negative one is refused in one line and
     leaves no model behind."""
-    ws = tmp_path / "ws"
-    shutil.copytree(moe_ws, ws)
-    for p in (ws / "moe").glob("top1.*"):
-        p.unlink()
+    ws = _without_top1(moe_ws, tmp_path)
     bad = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--iters", "10", "--gate-noise", "-1",
                   "--device", "cpu")
     assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
