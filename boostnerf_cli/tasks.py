@@ -125,9 +125,10 @@ class MixtureTask:
     def __post_init__(self) -> None:
         # the routing the task ends with; `rec.wide_start` of the steps route to one expert more before it
         self.final_routing = {"topk": self.mix.cfg.topk, "renormalize": self.mix.cfg.renormalize}
-        wide = self.mix.gate.cfg.kind != "uniform" and self.final_routing["topk"] < self.mix.m
-        self.wide_steps = int(self.rec.wide_start * self.rec.iters) if wide else 0  # < iters: the last step narrows
-        self.gate_noise = self.rec.gate_noise if wide else 0.0  # noisy top-k choice while training (router.top_k)
+        # both options need a choice to make: a trained gate that leaves some experts out (not the ensemble, not k = M)
+        sparse = self.mix.gate.cfg.kind != "uniform" and self.final_routing["topk"] < self.mix.m
+        self.wide_steps = int(self.rec.wide_start * self.rec.iters) if sparse else 0  # < iters: the last step narrows
+        self.gate_noise = self.rec.gate_noise if sparse else 0.0  # noisy top-k choice while training (router.top_k)
 
     def before_step(self, step: int) -> bool:
         """Set the step's routing (a function of the step alone, so a resumed run routes as an uninterrupted one)."""
