@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|wideX|noiseX|long-base|long-top1|seed1-m5|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|wideX|noiseX|long-base|long-top1|seed1-mX|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -27,7 +27,8 @@
 #               (finetune --wide-start X; not in the paper) on m3's experts and moe/init -> OUT/m3-raw-wideX
 #   noiseX      M = 3 Top-1 with the raw-probability weight whose training chooses experts by noisy top-k, noise X
 #               (finetune --gate-noise X; not in the paper) on m3's experts and moe/init -> OUT/m3-raw-noiseX
-#   seed1-m5    M = 5 again with finetuning seed 1: the baseline and Top-2 -> OUT/m5-base-s1, m5-top2-s1
+#   seed1-m3, seed1-m4, seed1-m5  that size again with finetuning seed 1, on its experts and moe/init: the
+#               baseline and Top-2 -> OUT/mX-base-s1, mX-top2-s1
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds, as
 #               issue18-$TAG<workspace>.json (TAG empty by default)
 # One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
@@ -147,13 +148,16 @@ PY
       boostnerf eval -w "$W" --report --device cpu --model $model ;;
     wide[0-9]*) raw_top1 "$OUT/m3-raw-$what" --wide-start "${what#wide}" ;;
     noise[0-9]*) raw_top1 "$OUT/m3-raw-$what" --gate-noise "${what#noise}" ;;
-    seed1-m5)
+    seed1-m3|seed1-m4|seed1-m5)
+      m="${what#seed1-}"
+      recipe="$OUT/official-$m.yaml"
+      [ $m = m3 ] && recipe="$OFFICIAL"
       for v in base top2; do
-        W="$OUT/m5-$v-s1"
-        from_size m5 "$W"
+        W="$OUT/$m-$v-s1"
+        from_size $m "$W"
         case $v in
-          base) boostnerf finetune -w "$W" --recipe "$OUT/official-m5.yaml" --baseline --seed 1 --device cpu; model=baseline ;;
-          top2) boostnerf finetune -w "$W" --recipe "$OUT/official-m5.yaml" --topk 2 --seed 1 --device cpu; model=top2 ;;
+          base) boostnerf finetune -w "$W" --recipe "$recipe" --baseline --seed 1 --device cpu; model=baseline ;;
+          top2) boostnerf finetune -w "$W" --recipe "$recipe" --topk 2 --seed 1 --device cpu; model=top2 ;;
         esac
         boostnerf eval -w "$W" --report --no-costs --device cpu --model $model
       done ;;
@@ -176,6 +180,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, wideX, noiseX, long-base, long-top1, seed1-m5, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, collect)" >&2; exit 2 ;;
   esac
 done
