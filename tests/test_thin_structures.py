@@ -57,36 +57,79 @@ def _pretrain(root: Path, layout: str, *flags: str) -> dict:
     report = json.loads((ws / "experts" / "dvgo-40.json").read_text())
     meta = json.loads(__import__("safetensors").safe_open(str(ws / "experts" / "geometry.safetensors"), "pt")
                       .metadata()["boostnerf"])
-    _RUNS[key] = {"psnr": report["test_psnr"], "box": torch.tensor(meta["fine_bbox"]), "coverage": meta["coverage"]}
+    _RUNS[key] = {"psnr": report["test_psnr"], "box": torch.tensor(meta["fine_bbox"]), "coverage": meta["coverage"],
+                  "rounds": meta["rounds"]}
     return _RUNS[key]
 
 
-def covered(origins, dirs, grid: OccupancyGrid, near: float, far: float):
-    """(R,) bool: some sample of the ray, a quarter cell apart inside the box, lies in an occupied cell."""
+def covered(origins, dirs, grid: OccupancyGrid, near: float, far: float, box: torch.Tensor | None = None):
+    """(R,) bool: some sample of the ray, a quarter cell apart inside the grid's box, lies in an occupied cell
+    (and inside `box`)."""
     xyz, valid, _ = ray_cells(origins, dirs, grid, near, far)
+    if box is not None:
+        valid = valid & ((xyz >= box[0]) & (xyz <= box[1])).all(-1)
     hit = torch.zeros(valid.shape, dtype=torch.bool)
     hit[valid] = grid(xyz[valid])
     return hit.any(-1)
 
 
 def test_cover_foreground_reaches_every_foreground_ray(thin):
-    """An empty mask grows until each foreground training ray crosses an occupied cell, and the cells it
-    adds are on the thin structures' rays, not the whole box."""
+    """An empty mask grows until each foreground training ray crosses an occupied cell inside the box, and the
+    cells it adds are on the foreground rays, not the whole box."""
     scene = load_scene(thin / "blender")
     tr = scene.splits["train"]
     empty = OccupancyGrid(torch.zeros(24, 24, 24, dtype=torch.bool), scene.bbox)
-    grown, stats = cover_foreground(empty, lambda x: torch.zeros(x.shape[0]), tr.images, tr.poses, tr.intrinsics,
-                                    scene.background, scene.near, scene.far)
+    grown, box, stats = cover_foreground(empty, lambda x: torch.zeros(x.shape[0]), tr.images, tr.poses,
+                                         tr.intrinsics, scene.background, scene.near, scene.far)
     masks = foreground_masks(tr.images, scene.background)
     assert stats["foreground_rays"] == int(masks.sum()) > 0
-    # rays are checked view by view, so a cell added for one ray covers later ones through it
-    assert 0 < stats["missed_before"] <= stats["foreground_rays"] and stats["missed_after"] == 0
+    # no density: no ray reaches a surface, each gets a cell of its own
+    assert stats["missed_before"] == stats["foreground_rays"] and stats["missed_after"] == 0
     for i in range(len(tr)):
         o, d = image_rays(tr.poses[i], tr.intrinsics[i], tr.height, tr.width)
         fg = masks[i].reshape(-1)
-        assert bool(covered(o[fg], d[fg], grown, scene.near, scene.far).all())
-        assert not bool(covered(o[~fg], d[~fg], grown, scene.near, scene.far).all())  # background rays not all
+        assert bool(covered(o[fg], d[fg], grown, scene.near, scene.far, box).all())
+        assert not bool(covered(o[~fg], d[~fg], grown, scene.near, scene.far, box).all())  # background rays not all
     assert 0 < grown.fraction() < 0.3  # the visual hull of the views, not the whole box
+
+
+def _slab(x: torch.Tensor) -> torch.Tensor:
+    """A floor disc (radius 1, top at z -0.44) as a coarse model might learn it: an opaque slab over space under
+    it that no view from above sees but the model filled (density smeared down to z -1.3)."""
+    r = x[:, :2].norm(dim=-1)
+    floor = (r < 1.0) & ((x[:, 2] + 0.5).abs() < 0.06)
+    hidden = (r < 1.0) & (x[:, 2] < -0.5) & (x[:, 2] > -1.3)
+    return torch.where(floor, 400.0, torch.where(hidden, 5.0, 0.0))
+
+
+def test_the_box_holds_the_visible_surface_not_the_space_hidden_under_it(thin):
+    """The box is drawn around the point where each foreground ray's surface starts, so it ends a cell under the
+    floor's top. Space no view sees (filled here under the floor, inside the views' visual hull) stays in the mask
+    but no longer stretches the box: before, the box was drawn around every occupied cell in the hull, which reach
+    below z -1 here (the thin scene's own pretrain box reached -1.25)."""
+    from boostnerf_cli.render.coverage import hull_cells
+
+    scene = load_scene(thin / "blender")
+    tr = scene.splits["train"]
+    bg = torch.tensor(scene.background)
+    images = []
+    for i in range(len(tr)):  # the views of the disc alone: dark where a pixel's ray meets the floor's top
+        o, d = image_rays(tr.poses[i], tr.intrinsics[i], tr.height, tr.width)
+        t = (-0.44 - o[:, 2]) / d[:, 2]
+        hit = (t > 0) & ((o + t[:, None] * d)[:, :2].norm(dim=-1) < 0.97)  # inside the slab's rim
+        images.append(torch.where(hit[:, None], torch.tensor([0.2, 0.2, 0.2]), bg).reshape(tr.height, tr.width, 3))
+    images = torch.stack(images)
+    occ = OccupancyGrid.from_density(_slab, scene.bbox, (32, 32, 32), 0.05, 1e-3)
+    framed = hull_cells(occ, images, tr.poses, tr.intrinsics, scene.background)
+    assert framed.occupied_bbox(1)[0, 2] < -1.0  # the hidden space is (mostly) inside the hull
+    grown, box, stats = cover_foreground(framed, _slab, images, tr.poses, tr.intrinsics, scene.background,
+                                         scene.near, scene.far)
+    cell = (scene.bbox[1] - scene.bbox[0]) / 32
+    assert -0.44 - 1.5 * float(cell[2]) < float(box[0, 2]) < -0.44 - 0.5 * float(cell[2]), box
+    assert float(box[1, 2]) < -0.44 + 1.5 * float(cell[2]), box  # the top: the floor's top, a cell above
+    assert bool((box[0, :2] > -1 - 1.5 * cell[:2]).all() & (box[1, :2] < 1 + 1.5 * cell[:2]).all()), box
+    assert bool((grown.occupied >= framed.occupied).all())  # the mask only grows
+    assert stats["missed_before"] == stats["missed_after"] == 0
 
 
 def test_a_scene_without_a_known_background_covers_every_ray():
@@ -100,7 +143,7 @@ def test_skipping_keeps_thin_structures(thin):
     """The same expert with and without skipping: within 0.3 dB held out (1.6 dB apart before the fix)."""
     skip, no_skip = _pretrain(thin, "blender"), _pretrain(thin, "blender", "--no-skip")
     assert skip["coverage"]["missed_before"] > 0 and skip["coverage"]["missed_after"] == 0
-    assert skip["coverage"]["cells_added"] > 0
+    assert len(skip["rounds"]) == 2 and sum(r["cells_added"] for r in skip["rounds"]) > 0
     assert skip["psnr"] > no_skip["psnr"] - 0.3, (skip["psnr"], no_skip["psnr"])
 
 
@@ -124,9 +167,10 @@ def test_layouts_without_a_box_file_give_the_same_psnr(thin):
     assert abs(b["psnr"] - a["psnr"]) < 0.3, (b["psnr"], a["psnr"])
 
 
-@pytest.mark.xfail(strict=True, reason="bbox.txt bounds the scene at the floor (z -0.6); from the views alone the space "
-                   "under the floor disc is inside the visual hull and the coarse model puts some rays' surface there, so "
-                   "the Blender box reaches z -1.25 and trains 25.72 dB against NSVF's 26.39; docs/results.md, issue 17")
+@pytest.mark.xfail(strict=True, reason="bbox.txt bounds the scene at z -0.6, a tenth under the floor; from the views "
+                   "alone the box ends at z -0.725: rays through the floor's anti-aliased rim pixels pass beyond the rim and "
+                   "reach the surface opacity 0.1-0.2 under it. NSVF trains 26.56 dB, Blender 25.93; NSVF with the Blender "
+                   "box in bbox.txt 26.11, so most of the gap is space under the floor; docs/results.md, issue 17")
 def test_a_box_file_gives_the_same_box_as_the_cameras(thin):
     a, b = _pretrain(thin, "blender"), _pretrain(thin, "nsvf")
     _same_box(a, b)
@@ -161,8 +205,8 @@ def test_the_box_leaves_out_floaters_outside_the_visual_hull_but_covers_every_fo
             ends += [torch.tensor(obj["a"], dtype=torch.float32), torch.tensor(obj["b"], dtype=torch.float32)]
     ends = torch.stack(ends)
     assert bool(((ends >= box[0]) & (ends <= box[1])).all()), (ends, box)
-    _, stats = cover_foreground(framed, lambda x: torch.zeros(x.shape[0]), tr.images, tr.poses, tr.intrinsics,
-                                scene.background, scene.near, scene.far)
+    _, _, stats = cover_foreground(framed, lambda x: torch.zeros(x.shape[0]), tr.images, tr.poses, tr.intrinsics,
+                                   scene.background, scene.near, scene.far)
     assert stats["missed_after"] == 0
     # without a known background the hull says nothing: the grid is kept whole
     assert hull_cells(full, tr.images, tr.poses, tr.intrinsics, None) is full

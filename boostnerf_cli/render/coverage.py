@@ -42,6 +42,7 @@ from boostnerf_cli.render.rays import NDC, image_rays, project_points
 from boostnerf_cli.render.volrend import render_weights
 
 FOREGROUND_TOL = 0.03  # colour difference (max over channels, [0, 1]) from the background: foreground
+SURFACE_OPACITY = 0.1  # a ray's visible surface starts where the opacity gathered along it reaches this
 
 
 def foreground_masks(images: Tensor, background: tuple[float, float, float] | None, tol: float = FOREGROUND_TOL) -> Tensor:
@@ -127,63 +128,76 @@ def cover_foreground(
     far: float,
     ndc: NDC | None = None,
     chunk: int = 4096,
-) -> tuple[OccupancyGrid, dict]:
-    """Grow `occ` until every foreground training ray crosses an occupied cell (module docstring).
+) -> tuple[OccupancyGrid, Tensor, dict]:
+    """One point on every foreground training ray, the mask grown to hold them and the box drawn around them
+    (module docstring).
 
-    -> (the grown grid, {"foreground_rays", "missed_before", "missed_after", "cells_added"}).
+    -> (the grown grid, the box (2, 3): the points' bounds and one cell of `occ` on each side, clipped to its box
+        (`occ.occupied_bbox` when no ray has a point), {"foreground_rays", "missed_before": rays on which the
+        occupied cells never reach `SURFACE_OPACITY`, "missed_after": rays that get no point, "cells_added"}).
     """
     n, h, w = images.shape[:3]
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
     masks = foreground_masks(images, background).to(device)
     known = background is not None and ndc is None
-    hulls = None  # (tight, footprint) visual hulls, made when a first ray is missed (on most scenes none is)
+    hulls = None  # (tight, footprint) visual hulls, made when a first ray needs them (on most scenes none does)
     occupied = occ.occupied.clone()
-    grid = occ  # the grid as grown so far (rebuilt when cells are added)
+    kept = occ.occupied.reshape(-1)
+    lo = torch.full((3,), math.inf, device=device)
+    hi = torch.full((3,), -math.inf, device=device)
     total = missed_before = missed_after = 0
     for i in range(n):
         o, d = _fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i])
         total += o.shape[0]
         for j in range(0, o.shape[0], chunk):
-            oc, dc = o[j : j + chunk], d[j : j + chunk]
-            xyz, valid, step = ray_cells(oc, dc, occ, near, far)
-            hit = torch.zeros(valid.shape, dtype=torch.bool, device=valid.device)
-            hit[valid] = grid(xyz[valid])
-            inside = valid.any(-1)
-            missed_after += int((~inside).sum())  # a foreground ray that misses the box: nothing can hold it
-            miss = ~hit.any(-1) & inside
-            if not bool(miss.any()):
-                continue
-            missed_before += int(miss.sum())
-            xyz, valid = xyz[miss], valid[miss]
+            xyz, valid, step = ray_cells(o[j : j + chunk], d[j : j + chunk], occ, near, far)
             idx = occ.cell_index(xyz)  # (R, S) flat cell index, -1 outside
             ok = valid & (idx >= 0)
-            # one cell per ray: where the coarse model puts most of the ray's weight, among the cells of the
-            # tight hull if any, else of the footprint hull, else among all
+            inside = ok.any(-1)
+            missed_after += int((~inside).sum())  # a foreground ray that misses the box: nothing can hold it
+            # the surface: the first sample where the opacity gathered in occupied cells reaches SURFACE_OPACITY
+            on = ok.clone()
+            on[ok] = kept[idx[ok]]
             sigma = torch.zeros(valid.shape, device=xyz.device)
-            sigma[valid] = density(xyz[valid])
+            sigma[on] = density(xyz[on])
             weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
-            choice = torch.full(ok.shape[:1], -1, dtype=torch.long, device=ok.device)
-            if hulls is None:
-                hulls = (visual_hull(occ, poses, intrinsics, masks, footprint=False, min_views=max(2, math.ceil(n / 4))),
-                         visual_hull(occ, poses, intrinsics, masks)) if known else ()
-            for table in (*hulls, None):
-                allowed = ok.clone()
-                if table is not None:
-                    allowed[ok] = table.reshape(-1)[idx[ok]]
-                todo = (choice < 0) & allowed.any(-1)
-                score = torch.where(allowed, weights + 1e-12, torch.full_like(weights, -1.0))
-                choice = torch.where(todo, score.argmax(-1), choice)
+            reach = weights.cumsum(-1) >= SURFACE_OPACITY
+            choice = torch.where(reach.any(-1) & inside, reach.float().argmax(-1), -1)
+            miss = (choice < 0) & inside
+            if bool(miss.any()):
+                missed_before += int(miss.sum())
+                # where the coarse model puts most of the ray's weight, among the cells of the tight hull if any,
+                # else of the footprint hull, else among all
+                rows = miss.nonzero()[:, 0]
+                sel = ok[rows]
+                sigma = torch.zeros(sel.shape, device=xyz.device)
+                sigma[sel] = density(xyz[rows][sel])
+                weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
+                if hulls is None:
+                    hulls = (visual_hull(occ, poses, intrinsics, masks, footprint=False, min_views=max(2, math.ceil(n / 4))),
+                             visual_hull(occ, poses, intrinsics, masks)) if known else ()
+                pick = torch.full(rows.shape, -1, dtype=torch.long, device=device)
+                for table in (*hulls, None):
+                    allowed = sel.clone()
+                    if table is not None:
+                        allowed[sel] = table.reshape(-1)[idx[rows][sel]]
+                    todo = (pick < 0) & allowed.any(-1)
+                    score = torch.where(allowed, weights + 1e-12, torch.full_like(weights, -1.0))
+                    pick = torch.where(todo, score.argmax(-1), pick)
+                choice[rows] = pick  # a ray with a sample in the box always gets one (the last table allows them all)
             rows = (choice >= 0).nonzero()[:, 0]
-            # a chosen cell holds one of the ray's samples (`cell_index` is the grid's own lookup), so the ray is
-            # covered from now on (the mask only grows); a ray none of whose samples has a cell stays missed
-            missed_after += int((choice < 0).sum())
-            chosen = torch.zeros_like(ok)
-            chosen[rows, choice[rows]] = True
-            occupied.view(-1)[idx[chosen]] = True
-            grid = OccupancyGrid(occupied, occ.bbox)
+            if rows.numel():
+                pts = xyz[rows, choice[rows]]
+                lo, hi = torch.minimum(lo, pts.amin(0)), torch.maximum(hi, pts.amax(0))
+                occupied.view(-1)[idx[rows, choice[rows]]] = True  # the point's own cell: the ray crosses kept space
     stats = {"foreground_rays": total, "missed_before": missed_before, "missed_after": missed_after,
              "cells_added": int((occupied & ~occ.occupied).sum())}
-    return grid, stats
+    grid = OccupancyGrid(occupied, occ.bbox)
+    if not bool(torch.isfinite(lo).all()):
+        return grid, grid.occupied_bbox(margin_cells=1), stats
+    cell = (occ.bbox[1] - occ.bbox[0]) / torch.tensor(occ.shape, device=device)
+    box = torch.stack([torch.maximum(lo - cell, occ.bbox[0]), torch.minimum(hi + cell, occ.bbox[1])])
+    return grid, box, stats
 
 
 def _fg_rays(pose: Tensor, k: Tensor, h: int, w: int, ndc: NDC | None, mask: Tensor) -> tuple[Tensor, Tensor]:

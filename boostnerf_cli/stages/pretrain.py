@@ -57,13 +57,44 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
                     scene_tag: str = "") -> tuple[Tensor, OccupancyGrid, nn.Module]:
     """The shared occupied box, occupancy mask and coarse density (trained once per workspace).
 
-    -> (box (2, 3), occupancy over the camera box, the coarse model: a DVGO grid with direct colour)
+    The coarse grid trains over the scene's box; the box is drawn around the visible surface it finds (every
+    foreground training ray's, render/coverage.py). With `refine`, a second coarse grid of the same size trains
+    inside that box (finer cells, so a floor or a wall is no longer smeared over a coarse cell or two) and draws
+    the box again.
+
+    -> (box (2, 3), occupancy over the last coarse grid's box, the coarse model: a DVGO grid with direct colour)
     """
     if ws.geometry_path.exists():
         model, occ, meta = load_expert(ws.geometry_path, device)
         return torch.tensor(meta["fine_bbox"], device=device), occ, model
-    log(f"geometry: training a {rec.res}^3 coarse grid for {rec.iters} steps to find the occupied box")
-    bbox = scene.bbox.to(device)
+    t0 = time.perf_counter()
+    box, occ, model, cover = _coarse_round(ws, scene, rec, scene.bbox.to(device), "geometry", seed, device, log,
+                                           checkpoint_every, scene_tag)
+    rounds = [cover]
+    if rec.refine and cover is not None:
+        log("geometry: again inside that box, at finer cells")
+        box, occ, model, cover = _coarse_round(ws, scene, rec, box, "geometry-refine", seed, device, log,
+                                               checkpoint_every, scene_tag)
+        rounds.append(cover)
+    seconds = round(time.perf_counter() - t0, 2)
+    save_expert(ws.geometry_path, model, occ, {"name": "geometry", "fine_bbox": box.tolist(), "iters": rec.iters,
+                                               "seconds": seconds, "occupied_fraction": occ.fraction(),
+                                               "coverage": rounds[-1], "rounds": rounds})
+    for name in ("geometry", "geometry-refine"):
+        ws.checkpoint_path(name).unlink(missing_ok=True)
+    log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {[round(v, 3) for v in box.flatten().tolist()]} "
+        f"({seconds:.1f}s)")
+    return box, occ, model
+
+
+def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor, name: str, seed: int, device: str,
+                  log: Callable[[str], None], checkpoint_every: int,
+                  scene_tag: str) -> tuple[Tensor, OccupancyGrid, nn.Module, dict | None]:
+    """Train the coarse grid over `bbox` and find the box and the mask from it.
+
+    -> (box (2, 3), occupancy over `bbox`, the coarse model, the covering's counts (None without cover_foreground))
+    """
+    log(f"{name}: training a {rec.res}^3 coarse grid for {rec.iters} steps to find the occupied box")
     torch.manual_seed(seed)
     model = DVGOExpert(DVGOConfig(res=rec.res, hidden=0, alpha_init=rec.alpha_init), bbox).to(device)
     step = 0.5 * model.voxel_size
@@ -71,42 +102,38 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     tcfg = TrainRecipe(lr_grid=rec.lr, weight_rgbper=0.0, weight_entropy=rec.weight_entropy, occupancy_every=0)
     task = FieldTask(model, settings, tcfg, skip=None, base_mask=None)
     rays = train_rays(scene, bbox, device)
-    t0 = time.perf_counter()
-    ckpt = ws.checkpoint_path("geometry")
+    ckpt = ws.checkpoint_path(name)  # removed once the geometry is saved
     train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5),
-                               checkpoint_every=checkpoint_every), seed, "geometry", checkpoint=ckpt,
-          signature={"stage": "geometry", "scene": scene_tag, "recipe": dataclasses.asdict(rec), "seed": seed})
+                               checkpoint_every=checkpoint_every), seed, name, checkpoint=ckpt,
+          signature={"stage": name, "scene": scene_tag, "recipe": dataclasses.asdict(rec), "seed": seed,
+                     "bbox": [round(v, 6) for v in bbox.flatten().tolist()]})
     model.eval()
     occ = OccupancyGrid.from_density(model.density, bbox, model.shape, step, rec.alpha_threshold)
-    cover, framed = None, occ  # framed: the cells the box is drawn around
+    cover = None
     if rec.cover_foreground:  # nothing the training views show may be cut away for good
         train_split = scene.splits["train"]
+        framed = occ
         if rec.hull_box:
             framed = hull_cells(occ, train_split.images, train_split.poses, train_split.intrinsics, scene.background,
                                 scene.ndc)
         outside = int((occ.occupied & ~framed.occupied).sum())
         if outside:
-            log(f"geometry: {outside} of {int(occ.occupied.sum())} occupied cells lie outside the training views' "
-                "visual hull (floaters, hidden space); the box is drawn around the others")
-        framed, cover = cover_foreground(framed, model.density, train_split.images, train_split.poses,
-                                         train_split.intrinsics, scene.background, scene.near, scene.far, scene.ndc)
+            log(f"{name}: {outside} of {int(occ.occupied.sum())} occupied cells lie outside the training views' "
+                "visual hull (floaters, hidden space); they stay in the mask but do not count as surface")
+        framed, box, cover = cover_foreground(framed, model.density, train_split.images, train_split.poses,
+                                              train_split.intrinsics, scene.background, scene.near, scene.far, scene.ndc)
         cover["outside_hull"] = outside
-        log(f"geometry: {cover['missed_before']} of {cover['foreground_rays']} foreground training rays crossed no "
-            f"occupied cell; {cover['cells_added']} cells added along them ({cover['missed_after']} still missed)")
+        log(f"{name}: {cover['missed_before']} of {cover['foreground_rays']} foreground training rays reach no surface "
+            f"in occupied cells; {cover['cells_added']} cells added along them ({cover['missed_after']} missed); "
+            "the box holds every ray's surface")
         occ = OccupancyGrid(occ.occupied | framed.occupied, bbox)  # the mask only grows
-    if not framed.occupied.any():
-        log("geometry: warning: the coarse stage found no occupied space (too few geometry.iters?); "
+    else:
+        box = occ.occupied_bbox(margin_cells=1)
+    if not occ.occupied.any():
+        log(f"{name}: warning: the coarse stage found no occupied space (too few geometry.iters?); "
             "experts will train on the whole camera box without skipping")
-        occ = framed = OccupancyGrid(torch.ones_like(occ.occupied), bbox)
-    box = framed.occupied_bbox(margin_cells=1)
-    seconds = round(time.perf_counter() - t0, 2)
-    save_expert(ws.geometry_path, model, occ, {"name": "geometry", "fine_bbox": box.tolist(), "iters": rec.iters,
-                                               "seconds": seconds, "occupied_fraction": occ.fraction(),
-                                               "coverage": cover})
-    ckpt.unlink(missing_ok=True)
-    log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {[round(v, 3) for v in box.flatten().tolist()]} "
-        f"({seconds:.1f}s)")
-    return box, occ, model
+        occ, box, cover = OccupancyGrid(torch.ones_like(occ.occupied), bbox), bbox.clone(), None
+    return box, occ, model, cover
 
 
 def expert_name(model: str, res: int) -> str:
