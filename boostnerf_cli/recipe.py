@@ -60,7 +60,7 @@ class GeometryRecipe:
     weight_entropy: float = limit(0.1, NON_NEGATIVE)  # pushes ray opacity to 0 or 1: clears floaters against the background
     cover_foreground: bool = True  # grow the mask until every foreground training ray crosses it (render/coverage.py)
     hull_box: bool = True  # with cover_foreground: only occupied cells in the views' visual hull count as surface
-    refine: bool = True  # with cover_foreground: a second coarse grid trains inside the box the first found
+    refine: bool = True  # with cover_foreground: a second coarse grid trains inside the box the first found (if < half)
 
 
 @dataclass

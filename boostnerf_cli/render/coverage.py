@@ -1,31 +1,35 @@
-"""Conservative skipping: every training ray that shows foreground must cross kept space.
+"""Conservative skipping: the box holds every foreground training ray's visible surface.
 
 The coarse geometry stage decides, once, which cells of the scene box any later stage may sample
 (its occupancy mask, and the box around it). A structure the coarse grid cannot resolve (a wire one
 pixel wide) ends up with too little density to pass the threshold, and would then be cut away for
-good. `cover_foreground` makes the mask conservative by construction:
+good. `cover_foreground` makes the mask and the box conservative by construction:
 
 1. foreground rays: training pixels whose colour differs from the scene's known background colour
    by more than `tol` (for a scene with no known background, every pixel is foreground);
-2. a ray is covered when one of its samples inside the box falls in an occupied cell;
-3. each uncovered foreground ray gets one cell: where the coarse model puts most of the ray's rendering
-   weight, among the ray's cells in the visual hull of the training views (cells that project onto
-   foreground in every view that sees them: first at their centre, else anywhere in their footprint),
-   or among all its cells where the hull has none or the background is unknown;
-4. after that every foreground ray crosses an occupied cell, so a box drawn around the occupied cells
-   (with a margin) holds every visible structure (`missed_after` counts the rays that still do not).
+2. each foreground ray gets one point: where its visible surface starts, the first sample at which the
+   opacity gathered in the occupied cells of the views' visual hull reaches `SURFACE_OPACITY`;
+3. a ray that never reaches it (a wire the coarse grid blurs away) gets, instead, the sample where the
+   coarse model puts most of the ray's rendering weight, among the ray's cells in the visual hull of the
+   training views (cells that project onto foreground in every view that sees them: first at their
+   centre, else anywhere in their footprint), or among all its cells where the hull has none;
+4. the mask grows to hold every point's cell, and the box is drawn around the points with one coarse
+   cell on each side, so every foreground ray crosses kept space inside the box (`missed_after` counts
+   the rays with no sample in the box at all).
 
 Nothing is removed from the mask: it only grows, so what the coarse stage kept stays kept. (Carving the
 mask with the views' visual hull at each cell's centre was tried: it cut silhouette cells of lego, -0.47 dB
 for DVGO-80; docs/results.md, issue 17.)
 
-The box, though, need not hold the coarse model's floaters. `hull_cells` keeps the occupied cells inside
-the views' visual hull (`visual_hull` with the footprint test, which keeps a cell as soon as any foreground
-pixel lies in its footprint in every view that sees it, and seen by at least a quarter of the views); the
-pretrain stage draws the box around those and then runs `cover_foreground` on them, so step 4 still holds
-inside the smaller box. A floater in front of the cameras, which the other views see against the
-background, no longer stretches the box; without it the box depends on how close to the cameras a dataset
-layout lets the coarse stage sample (docs/results.md, issue 17).
+The box, though, holds only what the views show. `hull_cells` keeps the occupied cells inside the views'
+visual hull (`visual_hull` with the footprint test, which keeps a cell as soon as any foreground pixel lies
+in its footprint in every view that sees it, and seen by at least a quarter of the views), so a floater in
+front of the cameras, which other views see against the background, does not count as surface (session 9).
+Space that no view sees (under a floor, inside a solid) is inside the hull, but no ray's surface starts
+there, so it no longer stretches the box either (session 12; before, the box was drawn around every
+occupied cell in the hull and reached 0.75 under the thin scene's floor). Without a known background the
+hull says nothing and every pixel is foreground: there a ray is covered when it crosses an occupied cell,
+and the box is drawn around the mask's cells (docs/results.md, issue 17).
 """
 
 from __future__ import annotations
@@ -132,9 +136,15 @@ def cover_foreground(
     """One point on every foreground training ray, the mask grown to hold them and the box drawn around them
     (module docstring).
 
+    Without a known background (or in NDC) every pixel is foreground and the hull says nothing: a ray that crosses
+    an occupied cell is covered, the others get a cell each, and the box is drawn around the grown grid's cells (a
+    surface point per ray would mean rendering every training ray, for a box that in a forward-facing or unbounded
+    scene is the whole box anyway).
+
     -> (the grown grid, the box (2, 3): the points' bounds and one cell of `occ` on each side, clipped to its box
-        (`occ.occupied_bbox` when no ray has a point), {"foreground_rays", "missed_before": rays on which the
-        occupied cells never reach `SURFACE_OPACITY`, "missed_after": rays that get no point, "cells_added"}).
+        (the grown grid's occupied box without points), {"foreground_rays", "missed_before": rays on which the
+        occupied cells never reach `SURFACE_OPACITY` (cross none, without a known background), "missed_after":
+        rays that get no point, "cells_added"}).
     """
     n, h, w = images.shape[:3]
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
@@ -155,15 +165,18 @@ def cover_foreground(
             ok = valid & (idx >= 0)
             inside = ok.any(-1)
             missed_after += int((~inside).sum())  # a foreground ray that misses the box: nothing can hold it
-            # the surface: the first sample where the opacity gathered in occupied cells reaches SURFACE_OPACITY
             on = ok.clone()
             on[ok] = kept[idx[ok]]
-            sigma = torch.zeros(valid.shape, device=xyz.device)
-            sigma[on] = density(xyz[on])
-            weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
-            reach = weights.cumsum(-1) >= SURFACE_OPACITY
-            choice = torch.where(reach.any(-1) & inside, reach.float().argmax(-1), -1)
-            miss = (choice < 0) & inside
+            if known:  # the surface: the first sample where the opacity gathered in occupied cells reaches SURFACE_OPACITY
+                sigma = torch.zeros(valid.shape, device=xyz.device)
+                sigma[on] = density(xyz[on])
+                weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
+                reach = weights.cumsum(-1) >= SURFACE_OPACITY
+                choice = torch.where(reach.any(-1) & inside, reach.float().argmax(-1), -1)
+                miss = (choice < 0) & inside
+            else:  # every pixel is foreground: a ray is covered when it crosses an occupied cell
+                choice = torch.full(inside.shape, -1, dtype=torch.long, device=device)
+                miss = ~on.any(-1) & inside
             if bool(miss.any()):
                 missed_before += int(miss.sum())
                 # where the coarse model puts most of the ray's weight, among the cells of the tight hull if any,
@@ -187,13 +200,14 @@ def cover_foreground(
                 choice[rows] = pick  # a ray with a sample in the box always gets one (the last table allows them all)
             rows = (choice >= 0).nonzero()[:, 0]
             if rows.numel():
-                pts = xyz[rows, choice[rows]]
-                lo, hi = torch.minimum(lo, pts.amin(0)), torch.maximum(hi, pts.amax(0))
+                if known:
+                    pts = xyz[rows, choice[rows]]
+                    lo, hi = torch.minimum(lo, pts.amin(0)), torch.maximum(hi, pts.amax(0))
                 occupied.view(-1)[idx[rows, choice[rows]]] = True  # the point's own cell: the ray crosses kept space
     stats = {"foreground_rays": total, "missed_before": missed_before, "missed_after": missed_after,
              "cells_added": int((occupied & ~occ.occupied).sum())}
     grid = OccupancyGrid(occupied, occ.bbox)
-    if not bool(torch.isfinite(lo).all()):
+    if not known or not bool(torch.isfinite(lo).all()):
         return grid, grid.occupied_bbox(margin_cells=1), stats
     cell = (occ.bbox[1] - occ.bbox[0]) / torch.tensor(occ.shape, device=device)
     box = torch.stack([torch.maximum(lo - cell, occ.bbox[0]), torch.minimum(hi + cell, occ.bbox[1])])

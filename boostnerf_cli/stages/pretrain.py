@@ -58,8 +58,8 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     """The shared occupied box, occupancy mask and coarse density (trained once per workspace).
 
     The coarse grid trains over the scene's box; the box is drawn around the visible surface it finds (every
-    foreground training ray's, render/coverage.py). With `refine`, a second coarse grid of the same size trains
-    inside that box (finer cells, so a floor or a wall is no longer smeared over a coarse cell or two) and draws
+    foreground training ray's, render/coverage.py). With `refine`, when that box holds less than half the volume,
+    a second coarse grid of the same size trains inside it (finer cells, so a floor or a wall is no longer smeared over a coarse cell or two) and draws
     the box again.
 
     -> (box (2, 3), occupancy over the last coarse grid's box, the coarse model: a DVGO grid with direct colour)
@@ -71,8 +71,9 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     box, occ, model, cover = _coarse_round(ws, scene, rec, scene.bbox.to(device), "geometry", seed, device, log,
                                            checkpoint_every, scene_tag)
     rounds = [cover]
-    if rec.refine and cover is not None:
-        log("geometry: again inside that box, at finer cells")
+    shrink = float((box[1] - box[0]).prod() / (scene.bbox[1] - scene.bbox[0]).prod())
+    if rec.refine and cover is not None and shrink < 0.5:  # cells at least 1.26x finer: worth a second round
+        log(f"geometry: again inside that box ({shrink:.2f} of the volume), at finer cells")
         box, occ, model, cover = _coarse_round(ws, scene, rec, box, "geometry-refine", seed, device, log,
                                                checkpoint_every, scene_tag)
         rounds.append(cover)
