@@ -69,6 +69,10 @@ def session(device: str) -> Iterator[str]:
     _device = torch.device(device)
     try:
         yield device
+        # every rank reaches teardown before any leaves (on success only: a failed rank's peers are stopped by
+        # torchrun). Without it a rank that destroyed its gloo group while its peer still finished the last
+        # collective aborted now and then under load ("terminate called without an active exception")
+        dist.barrier()
     finally:
         _device = torch.device("cpu")
         dist.destroy_process_group()
