@@ -58,9 +58,9 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     """The shared occupied box, occupancy mask and coarse density (trained once per workspace).
 
     The coarse grid trains over the scene's box; the box is drawn around the visible surface it finds (every
-    foreground training ray's, render/coverage.py). With `refine`, when that box holds less than half the volume,
-    a second coarse grid of the same size trains inside it (finer cells, so a floor or a wall is no longer smeared over a coarse cell or two) and draws
-    the box again.
+    foreground training ray's, render/coverage.py). With `refine`, when that box holds less than half the
+    volume, a second coarse grid of the same size trains inside it (finer cells, so a floor or a wall is smeared
+    over fewer of them) and draws the box again.
 
     -> (box (2, 3), occupancy over the last coarse grid's box, the coarse model: a DVGO grid with direct colour)
     """
