@@ -183,6 +183,7 @@ def cover_foreground(
                 # else of the footprint hull, else among all
                 rows = miss.nonzero()[:, 0]
                 sel = ok[rows]
+                cells = idx[rows][sel]
                 sigma = torch.zeros(sel.shape, device=xyz.device)
                 sigma[sel] = density(xyz[rows][sel])
                 weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
@@ -193,7 +194,7 @@ def cover_foreground(
                 for table in (*hulls, None):
                     allowed = sel.clone()
                     if table is not None:
-                        allowed[sel] = table.reshape(-1)[idx[rows][sel]]
+                        allowed[sel] = table.reshape(-1)[cells]
                     todo = (pick < 0) & allowed.any(-1)
                     score = torch.where(allowed, weights + 1e-12, torch.full_like(weights, -1.0))
                     pick = torch.where(todo, score.argmax(-1), pick)

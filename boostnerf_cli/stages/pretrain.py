@@ -68,10 +68,11 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
         model, occ, meta = load_expert(ws.geometry_path, device)
         return torch.tensor(meta["fine_bbox"], device=device), occ, model
     t0 = time.perf_counter()
-    box, occ, model, cover = _coarse_round(ws, scene, rec, scene.bbox.to(device), "geometry", seed, device, log,
-                                           checkpoint_every, scene_tag)
+    bbox = scene.bbox.to(device)
+    box, occ, model, cover = _coarse_round(ws, scene, rec, bbox, "geometry", seed, device, log, checkpoint_every,
+                                           scene_tag)
     rounds = [cover]
-    shrink = float((box[1] - box[0]).prod() / (scene.bbox[1] - scene.bbox[0]).prod())
+    shrink = float((box[1] - box[0]).prod() / (bbox[1] - bbox[0]).prod())
     if rec.refine and cover is not None and shrink < 0.5:  # cells at least 1.26x finer: worth a second round
         log(f"geometry: again inside that box ({shrink:.2f} of the volume), at finer cells")
         box, occ, model, cover = _coarse_round(ws, scene, rec, box, "geometry-refine", seed, device, log,
