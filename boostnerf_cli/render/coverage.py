@@ -47,6 +47,8 @@ from boostnerf_cli.render.volrend import render_weights
 
 FOREGROUND_TOL = 0.03  # colour difference (max over channels, [0, 1]) from the background: foreground
 SURFACE_OPACITY = 0.1  # a ray's visible surface starts where the opacity gathered along it reaches this
+PARTIAL_SHARE = 0.5  # ... or, on a ray that gathers less than twice that in all (through a pixel the surface
+# only partly covers: an anti-aliased rim), where it has gathered this share of all it gathers
 
 
 def foreground_masks(images: Tensor, background: tuple[float, float, float] | None, tol: float = FOREGROUND_TOL) -> Tensor:
@@ -156,6 +158,7 @@ def cover_foreground(
     lo = torch.full((3,), math.inf, device=device)
     hi = torch.full((3,), -math.inf, device=device)
     total = missed_before = missed_after = 0
+    focal = intrinsics[:, :2].amin(-1).tolist()  # pixels per unit of depth, the smaller of fx and fy
     for i in range(n):
         o, d = _fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i])
         total += o.shape[0]
@@ -171,7 +174,9 @@ def cover_foreground(
                 sigma = torch.zeros(valid.shape, device=xyz.device)
                 sigma[on] = density(xyz[on])
                 weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
-                reach = weights.cumsum(-1) >= SURFACE_OPACITY
+                gathered = weights.sum(-1, keepdim=True)
+                reach = (weights.cumsum(-1) >= (PARTIAL_SHARE * gathered).clamp(max=SURFACE_OPACITY)) & (
+                    gathered >= SURFACE_OPACITY)
                 choice = torch.where(reach.any(-1) & inside, reach.float().argmax(-1), -1)
                 miss = (choice < 0) & inside
             else:  # every pixel is foreground: a ray is covered when it crosses an occupied cell
@@ -201,17 +206,17 @@ def cover_foreground(
                 choice[rows] = pick  # a ray with a sample in the box always gets one (the last table allows them all)
             rows = (choice >= 0).nonzero()[:, 0]
             if rows.numel():
-                if known:
+                if known:  # each point widened by half its pixel's footprint: where in the pixel the surface lies
                     pts = xyz[rows, choice[rows]]
-                    lo, hi = torch.minimum(lo, pts.amin(0)), torch.maximum(hi, pts.amax(0))
+                    half = (pts - o[j : j + chunk][rows]).norm(dim=-1, keepdim=True) * (0.5 / focal[i])
+                    lo, hi = torch.minimum(lo, (pts - half).amin(0)), torch.maximum(hi, (pts + half).amax(0))
                 occupied.view(-1)[idx[rows, choice[rows]]] = True  # the point's own cell: the ray crosses kept space
     stats = {"foreground_rays": total, "missed_before": missed_before, "missed_after": missed_after,
              "cells_added": int((occupied & ~occ.occupied).sum())}
     grid = OccupancyGrid(occupied, occ.bbox)
     if not known or not bool(torch.isfinite(lo).all()):
         return grid, grid.occupied_bbox(margin_cells=1), stats
-    cell = (occ.bbox[1] - occ.bbox[0]) / torch.tensor(occ.shape, device=device)
-    box = torch.stack([torch.maximum(lo - cell, occ.bbox[0]), torch.minimum(hi + cell, occ.bbox[1])])
+    box = torch.stack([torch.maximum(lo, occ.bbox[0]), torch.minimum(hi, occ.bbox[1])])
     return grid, box, stats
 
 
