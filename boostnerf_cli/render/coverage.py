@@ -149,8 +149,7 @@ def cover_foreground(
     scene is the whole box anyway).
 
     -> (the grown grid, the box (2, 3): the points' bounds, each widened by half its pixel's footprint, clipped to
-        the box of `occ`
-        (the grown grid's occupied box without points), {"foreground_rays", "missed_before": rays on which the
+        the box of `occ` (the grown grid's occupied box without points), {"foreground_rays", "missed_before": rays on which the
         occupied cells never reach `SURFACE_OPACITY` (cross none, without a known background), "missed_after":
         rays that get no point, "cells_added"}).
     """
@@ -169,7 +168,8 @@ def cover_foreground(
         o, d = _fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i])
         total += o.shape[0]
         for j in range(0, o.shape[0], chunk):
-            xyz, valid, step = ray_cells(o[j : j + chunk], d[j : j + chunk], occ, near, far)
+            oc = o[j : j + chunk]
+            xyz, valid, step = ray_cells(oc, d[j : j + chunk], occ, near, far)
             idx = occ.cell_index(xyz)  # (R, S) flat cell index, -1 outside
             ok = valid & (idx >= 0)
             inside = ok.any(-1)
@@ -214,7 +214,7 @@ def cover_foreground(
             if rows.numel():
                 if known:  # each point widened by half its pixel's footprint: where in the pixel the surface lies
                     pts = xyz[rows, choice[rows]]
-                    half = (pts - o[j : j + chunk][rows]).norm(dim=-1, keepdim=True) * (0.5 / focal[i])
+                    half = (pts - oc[rows]).norm(dim=-1, keepdim=True) * (0.5 / focal[i])
                     lo, hi = torch.minimum(lo, (pts - half).amin(0)), torch.maximum(hi, (pts + half).amax(0))
                 occupied.view(-1)[idx[rows, choice[rows]]] = True  # the point's own cell: the ray crosses kept space
     stats = {"foreground_rays": total, "missed_before": missed_before, "missed_after": missed_after,
