@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|wideX|noiseX|long-base|long-top1|seed1-mX|hires|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -32,6 +32,8 @@
 #   hires       M = 3 with experts 96/112/128 (gate 96^3, a copy of the smallest): grids finer than the 100 px
 #               views resolve, as the paper's 160^3..384^3 are at 800 px; the baseline, Top-2, and Top-1 with the
 #               raw-probability weight -> OUT/hires
+#   seed1-hires hires again with finetuning seed 1, on its experts and moe/init: the baseline and Top-1 (raw weight)
+#               -> OUT/hires-base-s1, hires-top1-s1
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds, as
 #               issue18-$TAG<workspace>.json (TAG empty by default)
 # One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
@@ -72,6 +74,17 @@ for what in "$@"; do
       boostnerf finetune -w "$W" --recipe "$recipe" --topk 2 --device cpu
       boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
       boostnerf eval -w "$W" --report --device cpu ;;
+    seed1-hires)
+      recipe="$(variant hires "96, 112, 128" "96: 64, 112: 96, 128: 128" 96)"
+      for v in base top1; do
+        W="$OUT/hires-$v-s1"
+        from_size hires "$W"
+        case $v in
+          base) boostnerf finetune -w "$W" --recipe "$recipe" --baseline --seed 1 --device cpu; model=baseline ;;
+          top1) boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --seed 1 --device cpu; model=top1 ;;
+        esac
+        boostnerf eval -w "$W" --report --no-costs --device cpu --model $model
+      done ;;
     ablation)
       python - "$OFFICIAL" "$OUT" <<'PY'
 import copy, sys, yaml
@@ -191,6 +204,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, collect)" >&2; exit 2 ;;
   esac
 done
