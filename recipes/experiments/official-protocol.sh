@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -34,6 +34,8 @@
 #               raw-probability weight -> OUT/hires
 #   seed1-hires hires again with finetuning seed 1, on its experts and moe/init: the baseline and Top-1 (raw weight)
 #               -> OUT/hires-base-s1, hires-top1-s1
+#   hires-base96  the control for hires: its smallest expert (dvgo-96) alone for 1,000 + 5,000 steps, as the baseline
+#               of a two-expert recipe 88/96 -> OUT/hires-base96
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds, as
 #               issue18-$TAG<workspace>.json (TAG empty by default)
 # One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
@@ -85,6 +87,12 @@ for what in "$@"; do
         esac
         boostnerf eval -w "$W" --report --no-costs --device cpu --model $model
       done ;;
+    hires-base96)
+      recipe="$(variant hires-base96 "88, 96" "88: 64, 96: 64" 88)" W="$OUT/hires-base96"
+      boostnerf pretrain -w "$W" --data "$LEGO" --recipe "$recipe" --device cpu
+      boostnerf build-moe -w "$W" --recipe "$recipe" --device cpu
+      boostnerf finetune -w "$W" --recipe "$recipe" --baseline --device cpu
+      boostnerf eval -w "$W" --report --device cpu --model baseline ;;
     ablation)
       python - "$OFFICIAL" "$OUT" <<'PY'
 import copy, sys, yaml
@@ -204,6 +212,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, collect)" >&2; exit 2 ;;
   esac
 done
