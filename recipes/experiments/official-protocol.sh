@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -36,6 +36,8 @@
 #               -> OUT/hires-base-s1, hires-top1-s1
 #   hires-base96  the control for hires: its smallest expert (dvgo-96) alone for 1,000 + 5,000 steps, as the baseline
 #               of a two-expert recipe 88/96 -> OUT/hires-base96
+#   m3-alone    the same control for m3: its smaller experts dvgo-64 and dvgo-72 each alone for 1,000 + 5,000 steps
+#               (two-expert recipes 56/64 and 64/72) -> OUT/m3-alone64, m3-alone72
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds, as
 #               issue18-$TAG<workspace>.json (TAG empty by default)
 # One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
@@ -60,6 +62,14 @@ variant() {  # variant NAME RES HIDDEN GATE_RES: the official recipe with other 
   sed -e "s/res: \[64, 72, 80\]/res: [$2]/" -e "s/hidden: {64: 64, 72: 96, 80: 128}/hidden: {$3}/" \
       -e "s/gate_res: 64/gate_res: $4/" "$OFFICIAL" > "$OUT/official-$1.yaml"
   echo "$OUT/official-$1.yaml"
+}
+alone() {  # alone NAME RES HIDDEN GATE_RES: the larger of two experts alone for the baseline's steps -> OUT/NAME
+  local recipe W="$OUT/$1"
+  recipe="$(variant "$1" "$2" "$3" "$4")"
+  boostnerf pretrain -w "$W" --data "$LEGO" --recipe "$recipe" --device cpu
+  boostnerf build-moe -w "$W" --recipe "$recipe" --device cpu
+  boostnerf finetune -w "$W" --recipe "$recipe" --baseline --device cpu
+  boostnerf eval -w "$W" --report --device cpu --model baseline
 }
 for what in "$@"; do
   case $what in
@@ -87,12 +97,10 @@ for what in "$@"; do
         esac
         boostnerf eval -w "$W" --report --no-costs --device cpu --model $model
       done ;;
-    hires-base96)
-      recipe="$(variant hires-base96 "88, 96" "88: 64, 96: 64" 88)" W="$OUT/hires-base96"
-      boostnerf pretrain -w "$W" --data "$LEGO" --recipe "$recipe" --device cpu
-      boostnerf build-moe -w "$W" --recipe "$recipe" --device cpu
-      boostnerf finetune -w "$W" --recipe "$recipe" --baseline --device cpu
-      boostnerf eval -w "$W" --report --device cpu --model baseline ;;
+    hires-base96) alone hires-base96 "88, 96" "88: 64, 96: 64" 88 ;;
+    m3-alone)
+      alone m3-alone64 "56, 64" "56: 64, 64: 64" 56
+      alone m3-alone72 "64, 72" "64: 64, 72: 96" 64 ;;
     ablation)
       python - "$OFFICIAL" "$OUT" <<'PY'
 import copy, sys, yaml
@@ -212,6 +220,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, collect)" >&2; exit 2 ;;
   esac
 done
