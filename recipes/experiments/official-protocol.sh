@@ -63,13 +63,23 @@ variant() {  # variant NAME RES HIDDEN GATE_RES: the official recipe with other 
       -e "s/gate_res: 64/gate_res: $4/" "$OFFICIAL" > "$OUT/official-$1.yaml"
   echo "$OUT/official-$1.yaml"
 }
+HIRES=("96, 112, 128" "96: 64, 112: 96, 128: 128" 96)  # hires' experts: variant's RES HIDDEN GATE_RES
+prepare() {  # prepare W RECIPE: pretrain W's experts, build its mixture and train its baseline
+  boostnerf pretrain -w "$1" --data "$LEGO" --recipe "$2" --device cpu
+  boostnerf build-moe -w "$1" --recipe "$2" --device cpu
+  boostnerf finetune -w "$1" --recipe "$2" --baseline --device cpu
+}
 alone() {  # alone NAME RES HIDDEN GATE_RES: the larger of two experts alone for the baseline's steps -> OUT/NAME
-  local recipe W="$OUT/$1"
-  recipe="$(variant "$1" "$2" "$3" "$4")"
-  boostnerf pretrain -w "$W" --data "$LEGO" --recipe "$recipe" --device cpu
-  boostnerf build-moe -w "$W" --recipe "$recipe" --device cpu
-  boostnerf finetune -w "$W" --recipe "$recipe" --baseline --device cpu
-  boostnerf eval -w "$W" --report --device cpu --model baseline
+  prepare "$OUT/$1" "$(variant "$@")"
+  boostnerf eval -w "$OUT/$1" --report --device cpu --model baseline
+}
+seed1_model() {  # seed1_model SIZE RECIPE V MODEL FLAG...: finetune MODEL (FLAG...) with finetuning seed 1 on
+  # SIZE's experts and moe/init -> OUT/SIZE-V-s1, evaluated without costs
+  local W="$OUT/$1-$3-s1" recipe="$2" model="$4"
+  from_size "$1" "$W"
+  shift 4
+  boostnerf finetune -w "$W" --recipe "$recipe" "$@" --seed 1 --device cpu
+  boostnerf eval -w "$W" --report --no-costs --device cpu --model "$model"
 }
 for what in "$@"; do
   case $what in
@@ -79,24 +89,15 @@ for what in "$@"; do
     m5) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" \
           "$(variant m5 "56, 64, 72, 80, 88" "56: 64, 64: 64, 72: 96, 80: 128, 88: 128" 56)" "$LEGO" "$OUT/m5" ;;
     hires)
-      recipe="$(variant hires "96, 112, 128" "96: 64, 112: 96, 128: 128" 96)" W="$OUT/hires"
-      boostnerf pretrain -w "$W" --data "$LEGO" --recipe "$recipe" --device cpu
-      boostnerf build-moe -w "$W" --recipe "$recipe" --device cpu
-      boostnerf finetune -w "$W" --recipe "$recipe" --baseline --device cpu
+      recipe="$(variant hires "${HIRES[@]}")" W="$OUT/hires"
+      prepare "$W" "$recipe"
       boostnerf finetune -w "$W" --recipe "$recipe" --topk 2 --device cpu
       boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
       boostnerf eval -w "$W" --report --device cpu ;;
     seed1-hires)
-      recipe="$(variant hires "96, 112, 128" "96: 64, 112: 96, 128: 128" 96)"
-      for v in base top1; do
-        W="$OUT/hires-$v-s1"
-        from_size hires "$W"
-        case $v in
-          base) boostnerf finetune -w "$W" --recipe "$recipe" --baseline --seed 1 --device cpu; model=baseline ;;
-          top1) boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --seed 1 --device cpu; model=top1 ;;
-        esac
-        boostnerf eval -w "$W" --report --no-costs --device cpu --model $model
-      done ;;
+      recipe="$(variant hires "${HIRES[@]}")"
+      seed1_model hires "$recipe" base baseline --baseline
+      seed1_model hires "$recipe" top1 top1 --topk 1 --no-renormalize ;;
     hires-base96) alone hires-base96 "88, 96" "88: 64, 96: 64" 88 ;;
     m3-alone)
       alone m3-alone64 "56, 64" "56: 64, 64: 64" 56
@@ -141,16 +142,9 @@ PY
         boostnerf eval -w "$W" --report --device cpu --model top1
       done ;;
     seed1)
-      for v in base st raw; do
-        W="$OUT/m3-$v-s1"
-        from_size m3 "$W"
-        case $v in
-          base) boostnerf finetune -w "$W" --recipe "$OFFICIAL" --baseline --seed 1 --device cpu; model=baseline ;;
-          st) boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --seed 1 --device cpu; model=top1 ;;
-          raw) boostnerf finetune -w "$W" --recipe "$OFFICIAL" --topk 1 --no-renormalize --seed 1 --device cpu; model=top1 ;;
-        esac
-        boostnerf eval -w "$W" --report --no-costs --device cpu --model $model
-      done ;;
+      seed1_model m3 "$OFFICIAL" base baseline --baseline
+      seed1_model m3 "$OFFICIAL" st top1 --topk 1
+      seed1_model m3 "$OFFICIAL" raw top1 --topk 1 --no-renormalize ;;
     ens|ens-m3|ens-m4|ens-m5)
       sizes="m3 m4 m5"
       [ $what = ens ] || sizes="${what#ens-}"
@@ -192,15 +186,8 @@ PY
       m="${what#seed1-}"
       recipe="$OUT/official-$m.yaml"
       [ $m = m3 ] && recipe="$OFFICIAL"
-      for v in base top2; do
-        W="$OUT/$m-$v-s1"
-        from_size $m "$W"
-        case $v in
-          base) boostnerf finetune -w "$W" --recipe "$recipe" --baseline --seed 1 --device cpu; model=baseline ;;
-          top2) boostnerf finetune -w "$W" --recipe "$recipe" --topk 2 --seed 1 --device cpu; model=top2 ;;
-        esac
-        boostnerf eval -w "$W" --report --no-costs --device cpu --model $model
-      done ;;
+      seed1_model $m "$recipe" base baseline --baseline
+      seed1_model $m "$recipe" top2 top2 --topk 2 ;;
     collect)
       python - "$OUT" "$HERE/docs/data" "${TAG:-}" <<'PY'
 import json, sys
