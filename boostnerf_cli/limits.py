@@ -58,6 +58,33 @@ class OneOf:
         return f"one of {', '.join(self.choices)}"
 
 
+def comma_numbers(v: Any) -> list[float] | None:
+    """The numbers of a text "1, 1.5, 2.23" (one or more, separated by commas), or None when it is not such a text."""
+    if not isinstance(v, str):
+        return None
+    try:
+        return [float(x) for x in v.split(",")]
+    except ValueError:
+        return None
+
+
+@dataclass(frozen=True)
+class OneOfOrNumbers:
+    """One of `choices`, or numbers separated by commas, each allowed by `each` (explicit per-expert weights)."""
+
+    choices: tuple[str, ...]
+    each: Range
+
+    def allows(self, v: Any) -> bool:
+        if v in self.choices:
+            return True
+        numbers = comma_numbers(v)
+        return numbers is not None and all(self.each.allows(x) for x in numbers)
+
+    def __str__(self) -> str:
+        return f"one of {', '.join(self.choices)}, or numbers {self.each} separated by commas"
+
+
 def at_least(lo: int | float) -> Range:
     return Range(lo)
 

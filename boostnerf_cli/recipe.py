@@ -32,8 +32,8 @@ from boostnerf_cli.limits import (
     rule_of,
 )
 from boostnerf_cli.moe.gate import GATE_GRIDS, TRAINABLE_GATES
-from boostnerf_cli.moe.mixture import MIX_MODES
-from boostnerf_cli.moe.router import AUX_NORMS, AUX_SAMPLES, PENALTIES
+from boostnerf_cli.moe.mixture import MIX_MODES, VD_FILTERS, VD_SOURCES
+from boostnerf_cli.moe.router import AUX_NORMS, AUX_SAMPLES, PENALTY_RULE
 from boostnerf_cli.scenes import FORMATS
 
 # Seeds feed numpy's generator (the procedural scene: no negative seeds) and torch's (64 bits, seed + res).
@@ -126,9 +126,11 @@ class MoERecipe:
     step_from: str = limit("largest", OneOf(("smallest", "largest")))  # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
     topk: int = limit(2, at_least(1))  # at most the number of experts (checked by build-moe)
     lam: float = limit(1e-3, NON_NEGATIVE)
-    penalty: str = limit("geometric", OneOf(PENALTIES))  # geometric | linear | quadratic | none
+    penalty: str = limit("geometric", PENALTY_RULE)  # geometric | linear | quadratic | none | weights "1, 1.5, 2.23" (one per expert)
     aux_norm: str = limit("batch", OneOf(AUX_NORMS))  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 = k^2 |B|^2 (official code)
     aux_samples: str = limit("all", OneOf(AUX_SAMPLES))  # auxiliary loss over every routed sample | visible: those whose V_D opacity and V_D rendering weight pass moe.train.color_threshold (official code)
+    vd_source: str = limit("smallest", OneOf(VD_SOURCES))  # V_D: fitted to the smallest expert, frozen | largest: the largest expert's own density as it trains (official code)
+    vd_filter: str = limit("opacity", OneOf(VD_FILTERS))  # V_D drops samples by its opacity over one step | visible: also those its rendering weight along the ray puts at or below the colour threshold (official code)
     mix: str = limit("density", OneOf(MIX_MODES))  # the routing weights mix density (paper's equation) | alpha: each expert's opacity over one render step (official code)
     renormalize: bool = True  # top-k weights sum to 1 (k = 1: straight-through 1); False: raw probabilities (docs/results.md)
     wide_start: float = limit(0.0, THRESHOLD)  # fraction of the joint steps routed to k + 1 experts (renormalised) before narrowing to k: the gate compares experts before the partition sets (not in the paper; docs/paper-map.md)

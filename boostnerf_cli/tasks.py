@@ -177,7 +177,7 @@ def visible_samples(mix: Mixture, bundle: RayBundle, origins: Tensor, dirs: Tens
     ray = rows // s
     xyz = origins[ray] + t.reshape(-1)[rows, None] * dirs[ray]  # the renderer's sample positions
     sigma = torch.zeros(r * s, device=t.device, dtype=t.dtype)
-    sigma[rows] = mix.vd.density(xyz).to(t.dtype)
+    sigma[rows] = mix.vd_density(xyz).to(t.dtype)
     weights, alpha, _ = render_weights(sigma.reshape(r, s), torch.full((r, s), step, device=t.device, dtype=t.dtype))
     return (alpha.reshape(-1)[rows] > threshold) & (weights.reshape(-1)[rows] > threshold)
 

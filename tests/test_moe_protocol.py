@@ -326,9 +326,104 @@ def test_the_official_recipe_selects_every_official_option():
     assert (d.gate_init, d.aux_norm, d.aux_samples, d.mix) == ("random", "batch", "all", "density")
 
 
+# --- the official penalty list and V_D (session 16) -----------------------------------------------------
+OFFICIAL_WEIGHTS = "1, 1.5, 2.23"  # EIDOSLAB/boost-your-nerf, instant-ngp/moe_main.py: weights[:3]
+
+
+def test_explicit_penalty_weights_are_used_as_listed_in_the_official_loss():
+    assert penalty_weights(3, OFFICIAL_WEIGHTS).tolist() == pytest.approx([1.0, 1.5, 2.23], rel=1e-7)
+    mix = _mixture(m=3, k=1, scale=3.0)
+    mix.configure(penalty=OFFICIAL_WEIGHTS, aux_norm="counts")
+    assert mix.cfg.penalty == OFFICIAL_WEIGHTS and mix.penalty.tolist() == pytest.approx([1.0, 1.5, 2.23], rel=1e-7)
+    stats = RoutingStats()
+    render_rays(mix.with_stats(stats), *_rays(32), _settings())
+    probs, idx = torch.cat(stats.probs).detach(), torch.cat(stats.idx)
+    aux, value, _ = batch_routing(stats, mix.penalty.double(), 3, "counts")
+    expected = _aux_reference(probs, idx, torch.tensor([1.0, 1.5, 2.23], dtype=torch.float64), "counts")
+    assert value == pytest.approx(expected, rel=1e-7) and float(aux.detach()) == pytest.approx(expected, rel=1e-7)
+    geometric = _aux_reference(probs, idx, penalty_weights(3, "geometric").double(), "counts")
+    assert abs(geometric - expected) > 1e-3 * expected  # another loss than the default geometric weights
+
+
+def test_explicit_penalty_weights_are_checked_in_one_line(tmp_path):
+    (tmp_path / "ok.yaml").write_text(f"moe:\n  penalty: {OFFICIAL_WEIGHTS}\n")  # plain YAML text, no quotes
+    assert load_recipe(tmp_path / "ok.yaml").moe.penalty == OFFICIAL_WEIGHTS
+    for bad, says in (("1, 0, 2", "numbers > 0"), ("1, x", "one of geometric"), ("1, nan, 2", "numbers > 0"),
+                      ("steep", "one of geometric")):
+        with pytest.raises(BoostNerfError, match=says):
+            (tmp_path / "r.yaml").write_text(f"moe:\n  penalty: '{bad}'\n")
+            load_recipe(tmp_path / "r.yaml")
+    mix = _mixture(m=3, k=2)
+    with pytest.raises(BoostNerfError, match="lists 2 weights but the mixture has 3 experts"):
+        mix.configure(penalty="1, 1.5")
+    assert mix.cfg.penalty == "geometric"  # refused before anything changed
+
+
+def test_vd_source_largest_reads_the_largest_experts_density_as_it_trains():
+    mix = _mixture(m=3, k=2, scale=3.0)
+    xyz = torch.rand(500, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 1.8 - 0.9
+    frozen = mix.skip(xyz)
+    assert torch.equal(mix.vd_density(xyz), mix.vd.density(xyz))
+    mix.configure(vd_source="largest")
+    largest = mix.experts[-1]
+    assert torch.equal(mix.vd_density(xyz), largest.density(xyz))
+    with torch.no_grad():
+        largest.density_table.add_(-4.0)  # as if the largest expert had trained its density down
+    sigma = largest.density(xyz).detach()
+    expected = torch.tensor([1.0 - math.exp(-float(v) * STEP) > mix.cfg.threshold for v in sigma])
+    now = mix.skip(xyz)
+    assert torch.equal(now, expected) and torch.equal(mix.vd_density(xyz), sigma)
+    assert not torch.equal(now, frozen) and now.sum() < frozen.sum()
+    mix.configure(vd_source="smallest")
+    assert torch.equal(mix.skip(xyz), frozen)  # the frozen copy did not move
+
+
+def _visible_rows_reference(mix, origins, dirs, settings, threshold):
+    """The samples the official filters keep, ray by ray in float64: V_D opacity over the step above T, then
+    V_D's rendering weight (composited over the samples that pass T) above `threshold`. -> flat sample indices."""
+    t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter=False)
+    s = t.shape[1]
+    rows = []
+    for ray in range(t.shape[0]):
+        tr = 1.0
+        for j in range(s):
+            if not valid[ray, j]:
+                continue
+            alpha = 1.0 - math.exp(-float(mix.vd_density(xyz[ray, j][None])[0]) * step)
+            if alpha <= mix.cfg.threshold:
+                continue
+            if tr * alpha > threshold:
+                rows.append(ray * s + j)
+            tr *= 1.0 - alpha
+    return torch.tensor(rows, dtype=torch.long)
+
+
+@pytest.mark.parametrize("source", ["smallest", "largest"])
+def test_the_visible_filter_drops_what_V_D_hides_as_a_per_ray_reference_does(source):
+    mix = _mixture(m=3, k=1, scale=3.0)
+    with torch.no_grad():  # V_D opaque enough that surfaces hide what lies behind them
+        mix.vd.table.add_(10.0)
+        mix.experts[-1].density_table.add_(10.0)
+    mix.configure(vd_source=source)
+    origins, dirs = _rays(40)
+    settings = _settings(color_threshold=1e-4)
+    opacity_only = render_rays(mix, origins, dirs, settings, mix.skip).extras["rows"]
+    mix.configure(vd_filter="visible")
+    bundle = render_rays(mix, origins, dirs, settings, mix.skip)
+    rows = bundle.extras["rows"]
+    assert torch.equal(rows, _visible_rows_reference(mix, origins, dirs, settings, 1e-4))
+    assert 0 < rows.numel() < opacity_only.numel()  # hidden samples reach neither the gate nor the experts
+    assert torch.isin(rows, opacity_only).all()
+    everything = render_rays(mix, origins, dirs, settings, mix.skip, color_threshold=0.0).extras["rows"]
+    assert torch.equal(everything, opacity_only)  # the terminated skip off (threshold 0): nothing more is dropped
+    mix.configure(vd_filter="opacity")
+    assert torch.equal(render_rays(mix, origins, dirs, settings, mix.skip).extras["rows"], opacity_only)
+
+
 # --- the chain through the CLI --------------------------------------------------------------------------
 OFFICIAL = {"gate_res": 12, "gate_init": "expert", "aux_norm": "counts", "aux_samples": "visible", "mix": "alpha",
-            "lam": 0.01, "lr_gate": 0.1}  # the tiny recipe's moe section with every official option
+            "lam": 0.01, "lr_gate": 0.1, "penalty": "1, 1.5", "vd_source": "largest", "vd_filter": "visible"}
+# the tiny recipe's moe section with every official option (the penalty: the official list's first two weights)
 
 
 def test_build_finetune_and_eval_with_every_official_option(trained_ws, tmp_path):
@@ -346,11 +441,13 @@ def test_build_finetune_and_eval_with_every_official_option(trained_ws, tmp_path
     run_cli("finetune", "--workspace", str(ws), "--recipe", str(recipe), "--topk", "2", "--device", "cpu", check=True)
     report = json.loads((ws / "moe" / "top2.json").read_text())
     assert (report["mix"], report["aux_norm"], report["aux_samples"]) == ("alpha", "counts", "visible")
+    assert (report["penalty"], report["vd_source"], report["vd_filter"]) == ("1, 1.5", "largest", "visible")
     auxes = [h["aux"] for h in report["history"] if "aux" in h]
     # lambda * M / (sum c)^2 sum c m w with k = 2: at most M * max(w) / k = 2 * 2 / 2
     assert auxes and all(0 < a <= 2.0 for a in auxes)
     top2, meta = load_mixture(ws / "moe" / "top2.safetensors")
     assert (top2.cfg.mix, top2.cfg.aux_norm, top2.cfg.aux_samples) == ("alpha", "counts", "visible")
+    assert (top2.cfg.vd_source, top2.cfg.vd_filter) == ("largest", "visible")
     assert not torch.equal(top2.gate.table, expert.feature_table)  # trained
 
     proc = run_cli("eval", "--workspace", str(ws), "--model", "top2", "--views", "1", "--no-costs", "--report",

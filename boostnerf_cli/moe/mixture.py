@@ -1,6 +1,7 @@
 """The mixture of experts is itself a Field (the paper's Sec. 3 and Algorithm 1).
 
-    skip(x)   = alpha_D(x) > T      V_D: a density volume initialised from the smallest expert
+    skip(x)   = alpha_D(x) > T      V_D: a density volume initialised from the smallest expert (vd_source:
+                                    smallest), or the largest expert's own density (largest, the official code)
     G(x)      = gate probabilities over the M experts
     K         = top-k(G(x))
     sigma_f   = sum_{i in K} g_i sigma_i(x),   c_f = sum_{i in K} g_i c_i(x, d)     (mix: density, the paper)
@@ -13,6 +14,10 @@ instead: alpha_f = sum_{i in K} g_i alpha_i, alpha_i = 1 - exp(-sigma_i delta) o
 delta = `step`. The renderer is unchanged: the mixture returns the density that has opacity alpha_f
 over that step (`alpha_mix_density`), so a step of `step` composites alpha_f exactly (a longer step,
 when a ray needs more than the renderer's max_samples, composites 1 - (1 - alpha_f)^(step'/step)).
+
+vd_filter: visible (the official code) also drops, before the gate, the samples whose rendering weight under
+V_D alone (V_D composited along the ray over the samples that pass T) is at most the renderer's colour
+threshold: samples hidden behind V_D's surfaces reach neither the gate nor the experts (`MixtureSkip.visible`).
 """
 
 from __future__ import annotations
@@ -27,10 +32,13 @@ from boostnerf_cli import flops
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig, softmax
-from boostnerf_cli.moe.router import aux_loss, check_topk, dispatch, penalty_weights, top_k
+from boostnerf_cli.moe.router import aux_loss, check_penalty, check_topk, dispatch, penalty_weights, top_k
 from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.render.volrend import render_weights
 
 MIX_MODES = ("density", "alpha")
+VD_SOURCES = ("smallest", "largest")  # V_D: the frozen density volume fitted to the smallest expert | the largest's density
+VD_FILTERS = ("opacity", "visible")  # V_D drops samples by its opacity over one step | and by its weight along the ray
 # Smallest one-step transmittance of a mixed sample (alpha_f <= 1 - 1e-30, optical depth <= 69): keeps the
 # optical depth and its gradient finite when every chosen expert is opaque.
 MIN_TRANSMITTANCE = 1e-30
@@ -50,12 +58,18 @@ class MixtureConfig:
     aux_norm: str = "batch"  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 (official code)
     aux_samples: str = "all"  # auxiliary loss over every routed sample | visible: V_D opacity and weight pass
                               # the colour threshold (official code)
+    vd_source: str = "smallest"  # V_D: the density volume fitted to the smallest expert at build-moe, frozen |
+                                 # largest: the largest expert's own density, read as it trains (official code)
+    vd_filter: str = "opacity"  # V_D drops samples by opacity over one step | visible: also those it hides (official)
 
 
 def check_config(cfg: MixtureConfig, m: int) -> None:
-    """A mixture of `m` experts can use `cfg`: a known mixing and 1 <= k <= m."""
-    if cfg.mix not in MIX_MODES:
-        raise BoostNerfError(f"unknown mixing {cfg.mix!r}: one of {', '.join(MIX_MODES)}")
+    """A mixture of `m` experts can use `cfg`: known mixing and V_D options, 1 <= k <= m, a penalty for m experts."""
+    for name, value, choices in (("mixing", cfg.mix, MIX_MODES), ("V_D source", cfg.vd_source, VD_SOURCES),
+                                 ("V_D filter", cfg.vd_filter, VD_FILTERS)):
+        if value not in choices:
+            raise BoostNerfError(f"unknown {name} {value!r}: one of {', '.join(choices)}")
+    check_penalty(cfg.penalty, m)
     names = cfg.expert_names if len(cfg.expert_names) == m else [f"expert {i}" for i in range(m)]
     check_topk(cfg.topk, names, "moe.topk")
 
@@ -129,16 +143,16 @@ class Mixture(nn.Module):
         return self.vd.bbox
 
     # --- filtering ------------------------------------------------------------------------------
-    def skip(self, xyz: Tensor) -> Tensor:
-        """(N, 3) -> keep mask: occupied cell and V_D opacity over one step above T."""
-        keep = self.occupancy(xyz) if self.occupancy is not None else torch.ones(xyz.shape[0], dtype=torch.bool,
-                                                                                 device=xyz.device)
-        if keep.any():
-            with torch.no_grad():
-                alpha = -torch.expm1(-self.vd.density(xyz[keep]) * self.cfg.step)
-            keep = keep.clone()
-            keep[keep.clone()] = alpha > self.cfg.threshold
-        return keep
+    @torch.no_grad()
+    def vd_density(self, xyz: Tensor) -> Tensor:
+        """V_D's density at (N, 3) points: the frozen density volume, or the largest expert's density as it is now
+        (vd_source: largest, the official code: its V_D is the largest model's density grid, trained with it)."""
+        return self.experts[-1].density(xyz) if self.cfg.vd_source == "largest" else self.vd.density(xyz)
+
+    @property
+    def skip(self) -> "MixtureSkip":
+        """The renderer's empty-space filter: called on (N, 3) points, and along the rays (`MixtureSkip.visible`)."""
+        return MixtureSkip(self)
 
     # --- routing --------------------------------------------------------------------------------
     def route(self, xyz: Tensor, need_probs: bool = True, noise: float = 0.0) -> tuple[Tensor | None, Tensor, Tensor]:
@@ -224,6 +238,39 @@ class Mixture(nn.Module):
         if self.gate.mlp is not None:
             groups.append({"params": list(self.gate.mlp.parameters()), "lr": lr_gate_mlp})
         return groups
+
+
+class MixtureSkip:
+    """A mixture's empty-space filter for the renderer (`render.renderer.render_rays`'s `skip`).
+
+    Called on (N, 3) points: keep those in an occupied cell whose V_D opacity over one step exceeds T.
+    `visible` (None unless vd_filter is visible): the renderer then keeps, of those, the samples whose
+    rendering weight under V_D alone exceeds its colour threshold (the official code's second filter)."""
+
+    def __init__(self, mixture: Mixture):
+        self.mixture = mixture
+        self.visible = self._visible if mixture.cfg.vd_filter == "visible" else None
+
+    def __call__(self, xyz: Tensor) -> Tensor:
+        mix = self.mixture
+        keep = mix.occupancy(xyz) if mix.occupancy is not None else torch.ones(xyz.shape[0], dtype=torch.bool,
+                                                                               device=xyz.device)
+        if keep.any():
+            alpha = -torch.expm1(-mix.vd_density(xyz[keep]) * mix.cfg.step)
+            keep = keep.clone()
+            keep[keep.clone()] = alpha > mix.cfg.threshold
+        return keep
+
+    @torch.no_grad()
+    def _visible(self, xyz: Tensor, keep: Tensor, step: float, threshold: float) -> Tensor:
+        """xyz (R, S, 3) samples, keep (R, S) those that passed the filter, `step` the sampling step ->
+        keep and V_D's rendering weight (V_D composited over the kept samples) > `threshold` (0: keep as is)."""
+        if threshold <= 0 or not keep.any():
+            return keep
+        sigma = torch.zeros(keep.shape, device=xyz.device, dtype=xyz.dtype)
+        sigma[keep] = self.mixture.vd_density(xyz[keep]).to(sigma.dtype)
+        weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
+        return keep & (weights > threshold)
 
 
 class RoutedMixture:

@@ -12,8 +12,27 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.limits import POSITIVE, OneOfOrNumbers, comma_numbers
 
 PENALTIES = ("geometric", "linear", "quadratic", "none")
+# moe.penalty: a named scheme, or explicit weights "w_0, w_1, ..." (`penalty_weights`)
+PENALTY_RULE = OneOfOrNumbers(PENALTIES, POSITIVE)
+
+
+def explicit_weights(kind: str) -> list[float] | None:
+    """The weights a penalty of the form "1, 1.5, 2.23" lists (one per expert, smallest first), or None for a
+    named scheme (or text that is not numbers)."""
+    return None if kind in PENALTIES else comma_numbers(kind)
+
+
+def check_penalty(kind: str, m: int) -> None:
+    """A penalty is a named scheme or one positive, finite weight per expert (of the mixture's `m`)."""
+    if not PENALTY_RULE.allows(kind):
+        raise BoostNerfError(f"moe.penalty = {kind!r}: must be {PENALTY_RULE}, one per expert, e.g. \"1, 1.5, 2.23\"")
+    weights = explicit_weights(kind)
+    if weights is not None and len(weights) != m:
+        raise BoostNerfError(f"moe.penalty = {kind!r} lists {len(weights)} weights but the mixture has {m} experts: "
+                             f"give one weight per expert, smallest expert first")
 
 
 def penalty_weights(m: int, kind: str, device=None) -> Tensor:
@@ -23,11 +42,15 @@ def penalty_weights(m: int, kind: str, device=None) -> Tensor:
     linear:    w_{i+1} = w_i + 1, w_0 = 1
     quadratic: w_{i+1} = 2 w_i,   w_0 = 1   (the supplementary's name for a doubling progression)
     none:      w_i = 1
-    With M = 1 every scheme gives w = [1].
+    "w_0, w_1, ...": these weights, one per expert (the official code's list is [1, 1.5, 2.23, 3, ...], its
+    first M entries: "1, 1.5, 2.23" for M = 3; docs/paper-map.md)
+    With M = 1 every named scheme gives w = [1].
     """
+    check_penalty(kind, m)
+    explicit = explicit_weights(kind)
+    if explicit is not None:
+        return torch.tensor(explicit, dtype=torch.float32, device=device)
     i = torch.arange(m, dtype=torch.float32, device=device)
-    if kind not in PENALTIES:
-        raise ValueError(f"unknown penalty {kind!r}")
     if m == 1 or kind == "none":
         return torch.ones(m, device=device)
     if kind == "geometric":

@@ -2,7 +2,8 @@
 
 Two passes per batch of rays:
 1. density pass: samples at a fixed step inside the scene box, minus those the skip filter (an
-   occupancy grid or the mixture's density volume) marks empty, go through `field.density`;
+   occupancy grid or the mixture's density volume) marks empty, go through `field.density`; a skip
+   with a `visible` filter (a mixture's, moe.vd_filter: visible) also drops samples it hides;
 2. colour pass: only samples whose rendering weight exceeds `color_threshold` go through
    `field.color`. This drops samples behind terminated rays (their transmittance, hence weight,
    is ~0) and samples in near-empty space, which together hold almost none of the pixel's colour.
@@ -84,9 +85,13 @@ def render_rays(
     r, s = t.shape
     if hasattr(field, "batch_view"):  # shares the density pass's work with the colour pass
         field = field.batch_view()
+    thr = settings.color_threshold if color_threshold is None else color_threshold
     if skip is not None and valid.any():
         keep = valid.clone()
         keep[valid] = skip(xyz[valid])
+        visible = getattr(skip, "visible", None)  # a filter along the rays too (a mixture's MixtureSkip)
+        if visible is not None:
+            keep = visible(xyz, keep, step, thr)
     else:
         keep = valid
     flat = keep.reshape(-1).nonzero().squeeze(-1)
@@ -97,7 +102,6 @@ def render_rays(
     sigma = sigma.reshape(r, s)
     weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
 
-    thr = settings.color_threshold if color_threshold is None else color_threshold
     wk = weights.reshape(-1)[flat]
     sel = wk.detach() > thr if thr > 0 else torch.ones_like(wk, dtype=torch.bool)
     cflat = flat[sel]

@@ -63,7 +63,7 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     cfg = MixtureConfig(topk=rec.topk, renormalize=rec.renormalize, threshold=rec.density_threshold,
                         penalty=rec.penalty, vd_res=vd_res, step=step, bake_res=rec.bake_res,
                         expert_names=[e[1] for e in experts], mix=rec.mix, aux_norm=rec.aux_norm,
-                        aux_samples=rec.aux_samples)
+                        aux_samples=rec.aux_samples, vd_source=rec.vd_source, vd_filter=rec.vd_filter)
     mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
     save_mixture(ws.model_path("init"), mix, {"name": "init", "inputs": inputs})
     report = {
@@ -74,7 +74,7 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
         "gate_params": count_params(gate),
         "gate_init": "random" if source is None else source[1],
         "density_volume": {"res": vd_res, "threshold": rec.density_threshold, "from": cfg.expert_names[0],
-                           "occupied_fraction": occ.fraction()},
+                           "occupied_fraction": occ.fraction(), "source": rec.vd_source, "filter": rec.vd_filter},
         "step": step,
     }
     write_json(ws.moe_dir / "init.json", report)

@@ -80,7 +80,8 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     source = _source_digest(ws, name, init_meta)
     if name == "baseline":
         return _baseline(ws, scene, mix, rec, sched, device, log, source)
-    mix.configure(mix=rec.mix, aux_norm=rec.aux_norm, aux_samples=rec.aux_samples)
+    mix.configure(mix=rec.mix, aux_norm=rec.aux_norm, aux_samples=rec.aux_samples, vd_source=rec.vd_source,
+                  vd_filter=rec.vd_filter)
     if name == "ens":
         mix.make_ensemble()
     else:
@@ -91,7 +92,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     signature = {"stage": "finetune", "model": name, "from": source, "iters": rec.iters, "seed": rec.seed,
                  "topk": mix.cfg.topk, "renormalize": mix.cfg.renormalize, "penalty": mix.cfg.penalty}
     defaults = MixtureConfig()
-    for key in ("mix", "aux_norm", "aux_samples"):  # named only when not the default: older checkpoints still resume
+    for key in ("mix", "aux_norm", "aux_samples", "vd_source", "vd_filter"):  # named only when not the default: older checkpoints still resume
         if getattr(mix.cfg, key) != getattr(defaults, key):
             signature[key] = getattr(mix.cfg, key)
     if task.wide_steps:
@@ -112,6 +113,8 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         "mix": mix.cfg.mix,
         "aux_norm": mix.cfg.aux_norm,
         "aux_samples": mix.cfg.aux_samples,
+        "vd_source": mix.cfg.vd_source,
+        "vd_filter": mix.cfg.vd_filter,
         "wide_steps": task.wide_steps,
         "gate_noise": task.gate_noise,
         "gate": mix.gate.cfg.kind,
