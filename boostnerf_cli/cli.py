@@ -167,7 +167,7 @@ def finetune(
     recipe: RecipeOpt = None,
     iters: Annotated[Optional[int], typer.Option("--iters", min=1)] = None,
     lam: Annotated[Optional[float], typer.Option("--lambda", min=0.0, help="Weight of the resolution-weighted auxiliary loss (1e-3 in the paper).")] = None,
-    penalty: Annotated[Optional[str], typer.Option("--penalty", help="geometric (paper), linear, quadratic or none.")] = None,
+    penalty: Annotated[Optional[str], typer.Option("--penalty", help="geometric (paper), linear, quadratic, none, or one weight per expert, smallest first: '1, 1.5, 2.23' (the official code's).")] = None,
     renormalize: Annotated[Optional[bool], typer.Option("--renormalize/--no-renormalize", help="Renormalise the top-k weights to sum to 1 (default; for k = 1 a straight-through 1). Off: raw gate probabilities.")] = None,
     wide_start: Annotated[Optional[float], typer.Option("--wide-start", help="Fraction of the steps routed to k + 1 experts (renormalised) before narrowing to k (not in the paper; docs/paper-map.md).")] = None,
     gate_noise: Annotated[Optional[float], typer.Option("--gate-noise", help="Training chooses experts by log p + F * N(0, 1), noisy top-k (not in the paper; docs/paper-map.md).")] = None,

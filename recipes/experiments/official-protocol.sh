@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -23,6 +23,8 @@
 #               code's weights "1, 1.5, 2.23") on m3's experts and moe/init -> OUT/m3-raw-penalty-P
 #   vd-official M = 3 Top-1 with the raw-probability weight and the official code's V_D (moe.vd_source: largest,
 #               moe.vd_filter: visible) on m3's experts and moe/init -> OUT/m3-raw-vd-official
+#   vd-largest, vd-visible  the same with one of the two: moe.vd_source: largest alone, moe.vd_filter: visible alone
+#               -> OUT/m3-raw-vd-largest, m3-raw-vd-visible
 #   all-official, all-official-top2  M = 3 Top-1 (raw weight) / Top-2 with both (the official V_D and penalty weights)
 #               on m3's experts and moe/init -> OUT/m3-raw-all-official, m3-top2-all-official
 #   long-base, long-top1  M = 3's baseline, and Top-1 with the raw weight and a 0.3 wide start, trained for $LONG
@@ -64,9 +66,12 @@ raw_top1() {  # raw_top1 W FLAG...: M = 3 Top-1 with the raw-probability weight 
   boostnerf eval -w "$W" --report --device cpu --model top1
 }
 OFFICIAL_PENALTY="1, 1.5, 2.23"  # the official code's penalty weights for 3 experts (docs/paper-map.md)
-official_vd() {  # the official recipe with the official code's V_D: the largest expert's density, and the visible filter
-  sed -e 's/^  mix: alpha$/  mix: alpha\n  vd_source: largest\n  vd_filter: visible/' "$OFFICIAL" > "$OUT/official-vd.yaml"
-  echo "$OUT/official-vd.yaml"
+official_vd() {  # official_vd [SOURCE FILTER]: the official recipe with moe.vd_source SOURCE and moe.vd_filter FILTER,
+  # by default the official code's V_D (the largest expert's density, and the visible filter)
+  local source="${1:-largest}" filter="${2:-visible}"
+  sed -e "s/^  mix: alpha\$/  mix: alpha\n  vd_source: $source\n  vd_filter: $filter/" "$OFFICIAL" \
+    > "$OUT/official-vd-$source-$filter.yaml"
+  echo "$OUT/official-vd-$source-$filter.yaml"
 }
 variant() {  # variant NAME RES HIDDEN GATE_RES: the official recipe with other experts
   sed -e "s/res: \[64, 72, 80\]/res: [$2]/" -e "s/hidden: {64: 64, 72: 96, 80: 128}/hidden: {$3}/" \
@@ -182,6 +187,8 @@ PY
     penalty-official) raw_top1 "$OUT/m3-raw-$what" --penalty "$OFFICIAL_PENALTY" ;;
     penalty-*) raw_top1 "$OUT/m3-raw-$what" --penalty "${what#penalty-}" ;;
     vd-official) RECIPE="$(official_vd)" raw_top1 "$OUT/m3-raw-$what" ;;
+    vd-largest) RECIPE="$(official_vd largest opacity)" raw_top1 "$OUT/m3-raw-$what" ;;
+    vd-visible) RECIPE="$(official_vd smallest visible)" raw_top1 "$OUT/m3-raw-$what" ;;
     all-official) RECIPE="$(official_vd)" raw_top1 "$OUT/m3-raw-$what" --penalty "$OFFICIAL_PENALTY" ;;
     all-official-top2)
       W="$OUT/m3-top2-all-official"
@@ -225,6 +232,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, collect)" >&2; exit 2 ;;
   esac
 done
