@@ -121,6 +121,7 @@ class MoERecipe:
     gate_hidden: int = limit(64, at_least(1))
     gate_layers: int = limit(2, NON_NEGATIVE)
     gate_init: str = limit("random", OneOf(("random", "expert")))  # the gate's dense feature grid: random, or expert: the smallest (dvgo) expert's feature grid, copied (same lattice) or resampled trilinearly, gate_channels then = its channels (the official code's)
+    gate_from: str = ""  # with gate_init expert: the expert whose feature grid the gate copies, by name, in the mixture or not (the official code copies a 128^3 model it leaves out of the mixture); empty: the mixture's smallest expert
     vd_res: int | None = limit(None, GRID_RES)  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
     density_threshold: float = limit(1e-3, THRESHOLD)  # T: samples whose V_D opacity over one step is below it are filtered
     step_from: str = limit("largest", OneOf(("smallest", "largest")))  # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's

@@ -283,10 +283,15 @@ def test_gate_init_resamples_another_lattice_trilinearly():
 def test_gate_init_names_its_requirements():
     rec = MoERecipe(gate_init="expert")
     tensorf = [(10, "tensorf-8", SimpleNamespace(family="tensorf"), 0.1)]
-    with pytest.raises(BoostNerfError, match="needs dvgo experts"):
+    with pytest.raises(BoostNerfError, match="needs a dvgo expert"):
         gate_source(rec, "tensorf", tensorf)
     dvgo = [(10, "dvgo-8", SimpleNamespace(family="dvgo"), 0.1), (20, "dvgo-9", SimpleNamespace(family="dvgo"), 0.1)]
     assert gate_source(rec, "dense", dvgo)[1] == "dvgo-8"  # the smallest, as the official code's
+    assert gate_source(MoERecipe(gate_init="expert", gate_from="dvgo-9"), "dense", dvgo)[1] == "dvgo-9"
+    outside = (5, "dvgo-6", SimpleNamespace(family="dvgo"), 0.1)
+    assert gate_source(MoERecipe(gate_init="expert", gate_from="dvgo-6"), "dense", dvgo, outside)[1] == "dvgo-6"
+    with pytest.raises(BoostNerfError, match="moe.gate_from = 'dvgo-6' needs moe.gate_init = expert"):
+        gate_source(MoERecipe(gate_from="dvgo-6"), "dense", dvgo, outside)
     with pytest.raises(BoostNerfError, match="dense feature grid"):
         gate_source(MoERecipe(gate_init="expert", gate_type="switch"), "dense", dvgo)
     assert gate_source(MoERecipe(), "dense", dvgo) is None
@@ -467,6 +472,28 @@ def test_build_finetune_and_eval_with_every_official_option(trained_ws, tmp_path
     assert evaluate_model(model, scene, scene.split("test"), "cpu", None, views=1)["psnr"] == row["psnr"]
     model.field.cfg.mix = "density"
     assert evaluate_model(model, scene, scene.split("test"), "cpu", None, views=1)["psnr"] != row["psnr"]
+
+
+def test_the_gate_can_start_from_an_expert_left_out_of_the_mixture(trained_ws, tmp_path):
+    """The official layout: the gate's grid is a copy of a model that is not one of the mixture's experts."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    recipe = make_recipe(tmp_path / "outside.yaml", moe={**OFFICIAL, "topk": 1, "penalty": "geometric",
+                                                         "gate_from": "dvgo-12"})
+    run_cli("build-moe", "--workspace", str(ws), "--recipe", str(recipe), "--experts", "dvgo-16", "--device", "cpu",
+            check=True)
+    init = json.loads((ws / "moe" / "init.json").read_text())
+    assert init["experts"] == ["dvgo-16"] and init["gate_init"] == "dvgo-12"
+    mix, meta = load_mixture(ws / "moe" / "init.safetensors")
+    expert, _, _ = load_expert(ws / "experts" / "dvgo-12.safetensors")
+    assert mix.m == 1 and torch.equal(mix.gate.table, expert.feature_table)  # an exact copy, from outside
+    assert set(meta["inputs"]) == {"dvgo-12", "dvgo-16"}  # retraining the gate's source makes moe/init stale
+
+    shutil.rmtree(ws / "moe")
+    bad = make_recipe(tmp_path / "bad.yaml", moe={**OFFICIAL, "topk": 1, "gate_from": "dvgo-99"})
+    proc = run_cli("build-moe", "--workspace", str(ws), "--recipe", str(bad), "--experts", "dvgo-16", "--device", "cpu")
+    assert proc.returncode != 0 and "moe.gate_from = 'dvgo-99': no pretrained expert" in proc.stderr
+    assert not (ws / "moe" / "init.safetensors").exists()
 
 
 def test_wide_start_routes_to_one_expert_more_then_narrows_by_step():

@@ -44,6 +44,15 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
             "`boostnerf pretrain --force`, or pass --experts with experts of one scene"
         )
     experts.sort(key=lambda e: (e[0], e[1]))
+    outside = None  # moe.gate_from: an expert of the workspace left out of the mixture
+    if rec.gate_from and rec.gate_from not in names:
+        if rec.gate_from not in available:
+            raise BoostNerfError(f"moe.gate_from = {rec.gate_from!r}: no pretrained expert of that name in {ws.root} "
+                                 f"(experts: {', '.join(available)})")
+        inputs[rec.gate_from] = read_meta(ws.expert_path(rec.gate_from)).get("digest")  # stale if it is retrained
+        model, _, meta = load_expert(ws.expert_path(rec.gate_from), device)
+        outside = (count_params(model), rec.gate_from, model, meta["step"])
+        scenes.add(meta.get("scene"))
     smallest = experts[0][2]
     bbox = smallest.bbox
     step = experts[0][3] if rec.step_from == "smallest" else experts[-1][3]
@@ -52,7 +61,7 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     vd.init_from(smallest.density)
     occ = OccupancyGrid.from_density(vd.density, bbox, vd.shape, step, rec.density_threshold)
     gate_grid = resolve_gate_grid(rec.gate_grid, [e[2].family for e in experts])
-    source = gate_source(rec, gate_grid, experts)
+    source = gate_source(rec, gate_grid, experts, outside)
     channels = rec.gate_channels if source is None else source[2].feature_table.shape[1]
     torch.manual_seed(rec.seed)  # the gate's random initialisation: the same for the same recipe
     gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=channels, hidden=rec.gate_hidden,
@@ -85,23 +94,28 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
         same = tuple(source[2].shape) == tuple(gate.shape)
         grid_text += f" started from {source[1]}'s feature grid ({'copied' if same else 'resampled trilinearly'})"
     log(f"built a mixture of {len(experts)} experts ({', '.join(cfg.expert_names)}), gate {rec.gate_type}{grid_text} "
-        f"{'x'.join(map(str, gate.shape))}, V_D from {cfg.expert_names[0]} keeps {100 * occ.fraction():.1f}% of cells")
+        f"{'x'.join(map(str, gate.shape))}, V_D from {cfg.expert_names[0]} keeps {100 * occ.fraction():.1f}% of cells"
+        + (f" (its filter then reads {cfg.expert_names[-1]}'s density as it trains)" if rec.vd_source == "largest" else ""))
     return report
 
 
-def gate_source(rec: MoERecipe, gate_grid: str, experts: list[tuple]) -> tuple | None:
+def gate_source(rec: MoERecipe, gate_grid: str, experts: list[tuple], outside: tuple | None = None) -> tuple | None:
     """The expert whose feature grid starts the gate's (moe.gate_init: expert), or None (random).
 
-    The smallest expert, as in the official code (EIDOSLAB/boost-your-nerf, instant-ngp/moe_main.py: the gate's
-    k0 feature grid is a copy of the lowest-resolution, 128^3, model's; its density grid is copied too but never
-    read by the gate's forward, so only the feature grid is copied here). `experts` are (params, name, model,
-    step) tuples, smallest first. Needs a grid or linear gate with a dense grid and a dvgo smallest expert."""
+    The smallest expert, or the one `moe.gate_from` names (`outside`: one left out of the mixture). The official
+    code (EIDOSLAB/boost-your-nerf, instant-ngp/moe_main.py) copies the gate's k0 feature grid from the
+    lowest-resolution, 128^3, model and then leaves that model out of the mixture; its density grid is copied too
+    but never read by the gate's forward, so only the feature grid is copied here. `experts` are (params, name,
+    model, step) tuples, smallest first. Needs a grid or linear gate with a dense grid and a dvgo source expert."""
     if rec.gate_init == "random":
+        if rec.gate_from:
+            raise BoostNerfError(f"moe.gate_from = {rec.gate_from!r} needs moe.gate_init = expert (the gate is random "
+                                 f"now): set moe.gate_init to expert, or moe.gate_from to ''")
         return None
-    source = experts[0]
+    source = outside or next((e for e in experts if e[1] == rec.gate_from), experts[0])
     if source[2].family != "dvgo":
-        raise BoostNerfError(f"moe.gate_init = expert needs dvgo experts (the gate copies a dense feature grid); "
-                             f"the smallest expert {source[1]} is {source[2].family}: set moe.gate_init to random")
+        raise BoostNerfError(f"moe.gate_init = expert needs a dvgo expert (the gate copies a dense feature grid); "
+                             f"{source[1]} is {source[2].family}: set moe.gate_init to random")
     if rec.gate_type not in ("grid", "linear") or gate_grid != "dense":
         raise BoostNerfError(f"moe.gate_init = expert needs a grid or linear gate with a dense feature grid (moe.gate_type "
                              f"= {rec.gate_type}, gate grid {gate_grid}): set moe.gate_init to random or moe.gate_grid to dense")

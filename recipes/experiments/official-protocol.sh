@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -25,6 +25,10 @@
 #               moe.vd_filter: visible) on m3's experts and moe/init -> OUT/m3-raw-vd-official
 #   vd-largest, vd-visible  the same with one of the two: moe.vd_source: largest alone, moe.vd_filter: visible alone
 #               -> OUT/m3-raw-vd-largest, m3-raw-vd-visible
+#   gate-outside, gate-inside  M = 3 with experts 72/80/88 (m4's, and its moe recipe), Top-1 with the raw-probability
+#               weight: gate-outside copies the gate's grid from dvgo-64, left out of the mixture (the official code's
+#               layout: its 128^3 gate model is not an expert), gate-inside from dvgo-72, the mixture's smallest
+#               (boostnerf's) -> OUT/m3-88-gate64, m3-88-gate72 (baseline: m4's, dvgo-88)
 #   all-official, all-official-top2  M = 3 Top-1 (raw weight) / Top-2 with both (the official V_D and penalty weights)
 #               on m3's experts and moe/init -> OUT/m3-raw-all-official, m3-top2-all-official
 #   long-base, long-top1  M = 3's baseline, and Top-1 with the raw weight and a 0.3 wide start, trained for $LONG
@@ -77,6 +81,16 @@ variant() {  # variant NAME RES HIDDEN GATE_RES: the official recipe with other 
   sed -e "s/res: \[64, 72, 80\]/res: [$2]/" -e "s/hidden: {64: 64, 72: 96, 80: 128}/hidden: {$3}/" \
       -e "s/gate_res: 64/gate_res: $4/" "$OFFICIAL" > "$OUT/official-$1.yaml"
   echo "$OUT/official-$1.yaml"
+}
+gate_layout() {  # gate_layout SRC RES: M = 3 with m4's experts 72/80/88, the gate copied from SRC at gate_res RES,
+  # Top-1 with the raw-probability weight -> OUT/m3-88-gateRES
+  local W="$OUT/m3-88-gate$2" recipe
+  recipe="$(variant "m4-gate$2" "64, 72, 80, 88" "64: 64, 72: 96, 80: 128, 88: 128" "$2")"
+  sed -e "s/^  gate_init: expert\$/  gate_init: expert\n  gate_from: $1/" "$recipe" > "$OUT/official-gate-$1.yaml"
+  mkdir -p "$W" && cp -r "$OUT/m4/experts" "$OUT/m4/manifest.json" "$W/"
+  boostnerf build-moe -w "$W" --recipe "$OUT/official-gate-$1.yaml" --experts dvgo-72,dvgo-80,dvgo-88 --device cpu
+  boostnerf finetune -w "$W" --recipe "$OUT/official-gate-$1.yaml" --topk 1 --no-renormalize --device cpu
+  boostnerf eval -w "$W" --report --device cpu --model top1
 }
 HIRES=("96, 112, 128" "96: 64, 112: 96, 128: 128" 96)  # hires' experts: variant's RES HIDDEN GATE_RES
 prepare() {  # prepare W RECIPE: pretrain W's experts, build its mixture and train its baseline
@@ -189,6 +203,8 @@ PY
     vd-official) RECIPE="$(official_vd)" raw_top1 "$OUT/m3-raw-$what" ;;
     vd-largest) RECIPE="$(official_vd largest opacity)" raw_top1 "$OUT/m3-raw-$what" ;;
     vd-visible) RECIPE="$(official_vd smallest visible)" raw_top1 "$OUT/m3-raw-$what" ;;
+    gate-outside) gate_layout dvgo-64 64 ;;
+    gate-inside) gate_layout dvgo-72 72 ;;
     all-official) RECIPE="$(official_vd)" raw_top1 "$OUT/m3-raw-$what" --penalty "$OFFICIAL_PENALTY" ;;
     all-official-top2)
       W="$OUT/m3-top2-all-official"
@@ -232,6 +248,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, collect)" >&2; exit 2 ;;
   esac
 done
