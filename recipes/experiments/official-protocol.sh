@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -25,6 +25,8 @@
 #               moe.vd_filter: visible) on m3's experts and moe/init -> OUT/m3-raw-vd-official
 #   vd-largest, vd-visible  the same with one of the two: moe.vd_source: largest alone, moe.vd_filter: visible alone
 #               -> OUT/m3-raw-vd-largest, m3-raw-vd-visible
+#   seed1-vd-official, seed1-all-official  vd-official and all-official with finetuning seed 1
+#               -> OUT/m3-raw-vd-official-s1, m3-raw-all-official-s1
 #   gate-outside, gate-inside  M = 3 with experts 72/80/88 (m4's, and its moe recipe), Top-1 with the raw-probability
 #               weight: gate-outside copies the gate's grid from dvgo-64, left out of the mixture (the official code's
 #               layout: its 128^3 gate model is not an expert), gate-inside from dvgo-72, the mixture's smallest
@@ -203,6 +205,8 @@ PY
     vd-official) RECIPE="$(official_vd)" raw_top1 "$OUT/m3-raw-$what" ;;
     vd-largest) RECIPE="$(official_vd largest opacity)" raw_top1 "$OUT/m3-raw-$what" ;;
     vd-visible) RECIPE="$(official_vd smallest visible)" raw_top1 "$OUT/m3-raw-$what" ;;
+    seed1-vd-official) RECIPE="$(official_vd)" raw_top1 "$OUT/m3-raw-vd-official-s1" --seed 1 ;;
+    seed1-all-official) RECIPE="$(official_vd)" raw_top1 "$OUT/m3-raw-all-official-s1" --penalty "$OFFICIAL_PENALTY" --seed 1 ;;
     gate-outside) gate_layout dvgo-64 64 ;;
     gate-inside) gate_layout dvgo-72 72 ;;
     all-official) RECIPE="$(official_vd)" raw_top1 "$OUT/m3-raw-$what" --penalty "$OFFICIAL_PENALTY" ;;
@@ -248,6 +252,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, collect)" >&2; exit 2 ;;
   esac
 done
