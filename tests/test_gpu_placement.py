@@ -128,6 +128,14 @@ def test_other_families_on_the_simulated_gpu(tmp_path, tiny_scene, family):
         _invoke("build-moe", "-w", ws, "--device", "cuda")
         _invoke("finetune", "-w", ws, "--topk", "2", "--iters", "10", "--device", "cuda")
         _invoke("eval", "-w", ws, "--model", "top2", "--device", "cuda")
+        # the official code's V_D (the largest expert's density, the visible filter) and explicit penalty weights,
+        # which read the largest expert of any family inside the filter
+        official = make_recipe(tmp_path / f"{family}-vd.yaml", pretrain=FAMILY_CHANGES[family],
+                               moe={"vd_source": "largest", "vd_filter": "visible", "penalty": "1, 1.5"})
+        _invoke("finetune", "-w", ws, "--recipe", str(official), "--topk", "1", "--iters", "10", "--device", "cuda")
+        _invoke("eval", "-w", ws, "--model", "top1", "--device", "cuda")
+    report = json.loads((tmp_path / "ws" / "moe" / "top1.json").read_text())
+    assert (report["vd_source"], report["vd_filter"], report["penalty"]) == ("largest", "visible", "1, 1.5")
 
 
 def test_a_run_interrupted_on_the_gpu_resumes_there(tmp_path, tiny_scene, monkeypatch):
