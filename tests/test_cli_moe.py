@@ -5,7 +5,7 @@ import os
 import shutil
 
 import pytest
-from conftest import PSNR_MARGIN, TINY_MOE_PSNR_2_VIEWS, assert_clean_failure, no_temp_files, run_cli
+from conftest import PSNR_MARGIN, TINY_MOE_PSNR_2_VIEWS, assert_clean_failure, make_recipe, no_temp_files, run_cli
 
 
 @pytest.fixture(scope="module")
@@ -83,6 +83,11 @@ def test_build_moe_refuses_experts_of_different_scenes(trained_ws, tmp_path, tin
     assert_clean_failure(proc, "different scenes")
     proc = run_cli("build-moe", "--workspace", str(ws), "--experts", "dvgo-99", "--device", "cpu")
     assert_clean_failure(proc, "dvgo-99")
+    # nor a gate copied from an expert of another scene that the mixture leaves out (moe.gate_from)
+    recipe = make_recipe(tmp_path / "gate-from.yaml", moe={"gate_init": "expert", "gate_from": "dvgo-12", "topk": 1})
+    proc = run_cli("build-moe", "--workspace", str(ws), "--recipe", str(recipe), "--experts", "dvgo-16",
+                   "--device", "cpu")
+    assert_clean_failure(proc, "different scenes")
 
 
 def test_render_per_expert_and_gate_maps(moe_ws):

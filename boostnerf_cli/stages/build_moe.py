@@ -32,27 +32,23 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
         raise BoostNerfError(f"no pretrained expert {missing[0]!r} in {ws.root} (experts: {', '.join(available)})")
     check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
     check_topk(rec.topk, names, "moe.topk")
-    experts, scenes, inputs = [], set(), {}
-    for n in names:
+    extra = [rec.gate_from] if rec.gate_from and rec.gate_from not in names else []  # the gate's source, left out
+    if extra and extra[0] not in available:
+        raise BoostNerfError(f"moe.gate_from = {rec.gate_from!r}: no pretrained expert of that name in {ws.root} "
+                             f"(experts: {', '.join(available)})")
+    loaded, scenes, inputs = {}, set(), {}
+    for n in names + extra:  # the gate's source is an input too: retraining it makes moe/init stale
         inputs[n] = read_meta(ws.expert_path(n)).get("digest")
         model, occ, meta = load_expert(ws.expert_path(n), device)
-        experts.append((count_params(model), n, model, meta["step"]))
+        loaded[n] = (count_params(model), n, model, meta["step"])
         scenes.add(meta.get("scene"))
     if len(scenes) > 1 or (manifest.get("scene_id") and scenes != {manifest["scene_id"]}):
         raise BoostNerfError(
             "the experts were trained on different scenes or image sizes: retrain them in one workspace with "
             "`boostnerf pretrain --force`, or pass --experts with experts of one scene"
         )
-    experts.sort(key=lambda e: (e[0], e[1]))
-    outside = None  # moe.gate_from: an expert of the workspace left out of the mixture
-    if rec.gate_from and rec.gate_from not in names:
-        if rec.gate_from not in available:
-            raise BoostNerfError(f"moe.gate_from = {rec.gate_from!r}: no pretrained expert of that name in {ws.root} "
-                                 f"(experts: {', '.join(available)})")
-        inputs[rec.gate_from] = read_meta(ws.expert_path(rec.gate_from)).get("digest")  # stale if it is retrained
-        model, _, meta = load_expert(ws.expert_path(rec.gate_from), device)
-        outside = (count_params(model), rec.gate_from, model, meta["step"])
-        scenes.add(meta.get("scene"))
+    experts = sorted((loaded[n] for n in names), key=lambda e: (e[0], e[1]))
+    outside = loaded[extra[0]] if extra else None  # moe.gate_from: an expert of the workspace left out of the mixture
     smallest = experts[0][2]
     bbox = smallest.bbox
     step = experts[0][3] if rec.step_from == "smallest" else experts[-1][3]
