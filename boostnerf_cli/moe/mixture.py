@@ -244,32 +244,42 @@ class MixtureSkip:
     """A mixture's empty-space filter for the renderer (`render.renderer.render_rays`'s `skip`).
 
     Called on (N, 3) points: keep those in an occupied cell whose V_D opacity over one step exceeds T.
-    `visible` (None unless vd_filter is visible): the renderer then keeps, of those, the samples whose
-    rendering weight under V_D alone exceeds its colour threshold (the official code's second filter)."""
+    `visible` (None unless vd_filter is visible): the renderer calls it instead, on the (R, S) samples along the
+    rays, and it keeps, of the samples that pass, those whose rendering weight under V_D alone exceeds the
+    renderer's colour threshold (the official code's second filter), reading V_D once per sample."""
 
     def __init__(self, mixture: Mixture):
         self.mixture = mixture
         self.visible = self._visible if mixture.cfg.vd_filter == "visible" else None
 
-    def __call__(self, xyz: Tensor) -> Tensor:
+    def _pass(self, xyz: Tensor) -> tuple[Tensor, Tensor]:
+        """(N, 3) -> keep mask (N,), and V_D's density at the kept points (in their order)."""
         mix = self.mixture
         keep = mix.occupancy(xyz) if mix.occupancy is not None else torch.ones(xyz.shape[0], dtype=torch.bool,
                                                                                device=xyz.device)
-        if keep.any():
-            alpha = -torch.expm1(-mix.vd_density(xyz[keep]) * mix.cfg.step)
-            keep = keep.clone()
-            keep[keep.clone()] = alpha > mix.cfg.threshold
-        return keep
+        if not keep.any():
+            return keep, xyz.new_zeros(0)
+        sigma = mix.vd_density(xyz[keep])
+        opaque = -torch.expm1(-sigma * mix.cfg.step) > mix.cfg.threshold
+        keep = keep.clone()
+        keep[keep.clone()] = opaque
+        return keep, sigma[opaque]
+
+    def __call__(self, xyz: Tensor) -> Tensor:
+        return self._pass(xyz)[0]
 
     @torch.no_grad()
-    def _visible(self, xyz: Tensor, keep: Tensor, step: float, threshold: float) -> Tensor:
-        """xyz (R, S, 3) samples, keep (R, S) those that passed the filter, `step` the sampling step ->
-        keep and V_D's rendering weight (V_D composited over the kept samples) > `threshold` (0: keep as is)."""
+    def _visible(self, xyz: Tensor, valid: Tensor, step: float, threshold: float) -> Tensor:
+        """xyz (R, S, 3) samples, valid (R, S) those inside the box, `step` the sampling step -> (R, S) the
+        samples that pass the filter and whose V_D rendering weight (V_D composited over the samples that pass)
+        exceeds `threshold` (0: the filter alone)."""
+        keep = valid.clone()
+        keep[valid], sigma = self._pass(xyz[valid])
         if threshold <= 0 or not keep.any():
             return keep
-        sigma = torch.zeros(keep.shape, device=xyz.device, dtype=xyz.dtype)
-        sigma[keep] = self.mixture.vd_density(xyz[keep]).to(sigma.dtype)
-        weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
+        density = torch.zeros(keep.shape, device=xyz.device, dtype=xyz.dtype)
+        density[keep] = sigma.to(density.dtype)
+        weights, _, _ = render_weights(density, torch.full_like(density, step))
         return keep & (weights > threshold)
 
 

@@ -3,7 +3,8 @@
 Two passes per batch of rays:
 1. density pass: samples at a fixed step inside the scene box, minus those the skip filter (an
    occupancy grid or the mixture's density volume) marks empty, go through `field.density`; a skip
-   with a `visible` filter (a mixture's, moe.vd_filter: visible) also drops samples it hides;
+   with a `visible` filter (a mixture's, moe.vd_filter: visible) filters along the rays instead, and also
+   drops samples it hides;
 2. colour pass: only samples whose rendering weight exceeds `color_threshold` go through
    `field.color`. This drops samples behind terminated rays (their transmittance, hence weight,
    is ~0) and samples in near-empty space, which together hold almost none of the pixel's colour.
@@ -86,12 +87,12 @@ def render_rays(
     if hasattr(field, "batch_view"):  # shares the density pass's work with the colour pass
         field = field.batch_view()
     thr = settings.color_threshold if color_threshold is None else color_threshold
-    if skip is not None and valid.any():
+    visible = getattr(skip, "visible", None)  # a filter along the rays (a mixture's MixtureSkip), else per point
+    if skip is not None and valid.any() and visible is not None:
+        keep = visible(xyz, valid, step, thr)
+    elif skip is not None and valid.any():
         keep = valid.clone()
         keep[valid] = skip(xyz[valid])
-        visible = getattr(skip, "visible", None)  # a filter along the rays too (a mixture's MixtureSkip)
-        if visible is not None:
-            keep = visible(xyz, keep, step, thr)
     else:
         keep = valid
     flat = keep.reshape(-1).nonzero().squeeze(-1)
