@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|ladder|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -44,6 +44,12 @@
 #   hires       M = 3 with experts 96/112/128 (gate 96^3, a copy of the smallest): grids finer than the 100 px
 #               views resolve, as the paper's 160^3..384^3 are at 800 px; the baseline, Top-2, and Top-1 with the
 #               raw-probability weight -> OUT/hires
+#   same-mlp    M = 3 with experts 64/72/80 that all have m3's largest colour MLP (2 x 128): the paper's and the official
+#               code's experts differ only in their grids (docs/paper-map.md); the recipe widens the MLP with the grid
+#               (64/96/128). Top-1 (raw weight), Top-2, then the baseline (dvgo-80, as m3's) -> OUT/m3-mlp128
+#   ladder      M = 3 with experts 50/64/80, 2 x 128 MLPs each: the paper's ladder (each expert about twice the
+#               parameters of the one before, the same MLP) ending at m3's largest expert; the baseline is m3's
+#               (dvgo-80), not retrained -> OUT/ladder (Top-1 raw weight, Top-2)
 #   seed1-hires hires again with finetuning seed 1, on its experts and moe/init: the baseline and Top-1 (raw weight)
 #               -> OUT/hires-base-s1, hires-top1-s1
 #   hires-base96  the control for hires: its smallest expert (dvgo-96) alone for 1,000 + 5,000 steps, as the baseline
@@ -100,6 +106,17 @@ prepare() {  # prepare W RECIPE: pretrain W's experts, build its mixture and tra
   boostnerf build-moe -w "$1" --recipe "$2" --device cpu
   boostnerf finetune -w "$1" --recipe "$2" --baseline --device cpu
 }
+mixtures() {  # mixtures W RECIPE: W's experts, moe/init, Top-2 and Top-1 with the raw-probability weight, and the
+  # baseline (first; BASELINE=last: after the mixtures; BASELINE=none: not trained, when another workspace has it)
+  local b="${BASELINE:-first}"
+  boostnerf pretrain -w "$1" --data "$LEGO" --recipe "$2" --device cpu
+  boostnerf build-moe -w "$1" --recipe "$2" --device cpu
+  [ "$b" = first ] && boostnerf finetune -w "$1" --recipe "$2" --baseline --device cpu
+  boostnerf finetune -w "$1" --recipe "$2" --topk 1 --no-renormalize --device cpu
+  boostnerf finetune -w "$1" --recipe "$2" --topk 2 --device cpu
+  [ "$b" = last ] && boostnerf finetune -w "$1" --recipe "$2" --baseline --device cpu
+  boostnerf eval -w "$1" --report --device cpu
+}
 alone() {  # alone NAME RES HIDDEN GATE_RES: the larger of two experts alone for the baseline's steps -> OUT/NAME
   prepare "$OUT/$1" "$(variant "$@")"
   boostnerf eval -w "$OUT/$1" --report --device cpu --model baseline
@@ -119,12 +136,9 @@ for what in "$@"; do
           "$(variant m4 "64, 72, 80, 88" "64: 64, 72: 96, 80: 128, 88: 128" 64)" "$LEGO" "$OUT/m4" ;;
     m5) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" \
           "$(variant m5 "56, 64, 72, 80, 88" "56: 64, 64: 64, 72: 96, 80: 128, 88: 128" 56)" "$LEGO" "$OUT/m5" ;;
-    hires)
-      recipe="$(variant hires "${HIRES[@]}")" W="$OUT/hires"
-      prepare "$W" "$recipe"
-      boostnerf finetune -w "$W" --recipe "$recipe" --topk 2 --device cpu
-      boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
-      boostnerf eval -w "$W" --report --device cpu ;;
+    hires) mixtures "$OUT/hires" "$(variant hires "${HIRES[@]}")" ;;
+    same-mlp) BASELINE=last mixtures "$OUT/m3-mlp128" "$(variant m3-mlp128 "64, 72, 80" "64: 128, 72: 128, 80: 128" 64)" ;;
+    ladder) BASELINE=none mixtures "$OUT/ladder" "$(variant ladder "50, 64, 80" "50: 128, 64: 128, 80: 128" 50)" ;;
     seed1-hires)
       recipe="$(variant hires "${HIRES[@]}")"
       seed1_model hires "$recipe" base baseline --baseline
@@ -252,6 +266,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, ladder, collect)" >&2; exit 2 ;;
   esac
 done
