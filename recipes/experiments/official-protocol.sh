@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|ladder|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|ladder|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -48,6 +48,8 @@
 #               code's experts differ only in their grids (docs/paper-map.md); the recipe widens the MLP with the grid
 #               (64/96/128). Top-1 (raw weight), Top-2, then the baseline (dvgo-80, as m3's) -> OUT/m3-mlp128
 #   seed1-same-mlp  same-mlp's Top-1 (raw weight) with finetuning seed 1 -> OUT/m3-mlp128-top1-s1
+#   same-mlp-step64  same-mlp's experts, the mixture sampling at its smallest expert's step (moe.step_from: smallest;
+#               the official code samples at the largest's), Top-1 with the raw weight -> OUT/m3-mlp128-step64
 #   ladder      M = 3 with experts 50/64/80, 2 x 128 MLPs each: the paper's ladder (each expert about twice the
 #               parameters of the one before, the same MLP) ending at m3's largest expert; the baseline is m3's
 #               (dvgo-80), not retrained -> OUT/ladder (Top-1 raw weight, Top-2)
@@ -141,6 +143,13 @@ for what in "$@"; do
     same-mlp) BASELINE=last mixtures "$OUT/m3-mlp128" "$(variant m3-mlp128 "64, 72, 80" "64: 128, 72: 128, 80: 128" 64)" ;;
     seed1-same-mlp) seed1_model m3-mlp128 "$(variant m3-mlp128 "64, 72, 80" "64: 128, 72: 128, 80: 128" 64)" top1 top1 \
       --topk 1 --no-renormalize ;;
+    same-mlp-step64)
+      recipe="$(variant m3-mlp128 "64, 72, 80" "64: 128, 72: 128, 80: 128" 64)" W="$OUT/m3-mlp128-step64"
+      sed -e "s/^  gate_init: expert\$/  gate_init: expert\n  step_from: smallest/" "$recipe" > "$OUT/official-m3-mlp128-step64.yaml"
+      mkdir -p "$W" && cp -r "$OUT/m3-mlp128/experts" "$OUT/m3-mlp128/manifest.json" "$W/"
+      boostnerf build-moe -w "$W" --recipe "$OUT/official-m3-mlp128-step64.yaml" --device cpu
+      boostnerf finetune -w "$W" --recipe "$OUT/official-m3-mlp128-step64.yaml" --topk 1 --no-renormalize --device cpu
+      boostnerf eval -w "$W" --report --device cpu --model top1 ;;
     ladder) BASELINE=none mixtures "$OUT/ladder" "$(variant ladder "50, 64, 80" "50: 128, 64: 128, 80: 128" 50)" ;;
     seed1-hires)
       recipe="$(variant hires "${HIRES[@]}")"
@@ -269,6 +278,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, ladder, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, ladder, collect)" >&2; exit 2 ;;
   esac
 done
