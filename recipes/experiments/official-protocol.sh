@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|ladder|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
@@ -52,7 +52,8 @@
 #               the official code samples at the largest's), Top-1 with the raw weight -> OUT/m3-mlp128-step64
 #   same-mlp-tuned, same-mlp-step64-tuned  Top-1 (raw weight) on same-mlp's (or same-mlp-step64's) experts and moe/init
 #               with the two settings that raised Top-1 most in session 10, a 0.3 wide start and lambda 1e-4
-#               -> OUT/m3-mlp128-tuned, m3-mlp128-step64-tuned
+#               -> OUT/m3-mlp128-tuned, m3-mlp128-step64-tuned (seed1-same-mlp-step64-tuned: the second with finetuning
+#               seed 1, evaluated without costs -> OUT/m3-mlp128-step64-tuned-s1)
 #   ladder      M = 3 with experts 50/64/80, 2 x 128 MLPs each: the paper's ladder (each expert about twice the
 #               parameters of the one before, the same MLP) ending at m3's largest expert; the baseline is m3's
 #               (dvgo-80), not retrained -> OUT/ladder (Top-1 raw weight, Top-2)
@@ -153,13 +154,16 @@ for what in "$@"; do
       boostnerf build-moe -w "$W" --recipe "$OUT/official-m3-mlp128-step64.yaml" --device cpu
       boostnerf finetune -w "$W" --recipe "$OUT/official-m3-mlp128-step64.yaml" --topk 1 --no-renormalize --device cpu
       boostnerf eval -w "$W" --report --device cpu --model top1 ;;
-    same-mlp-tuned|same-mlp-step64-tuned)
-      src="${what%-tuned}"; src="m3-mlp128${src#same-mlp}" W="$OUT/${what/same-mlp/m3-mlp128}"
+    same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned)
+      base="${what#seed1-}" seed=() costs=()
+      src="${base%-tuned}"; src="m3-mlp128${src#same-mlp}" W="$OUT/${base/same-mlp/m3-mlp128}"
+      [ "$base" = "$what" ] || { seed=(--seed 1); costs=(--no-costs); W="$W-s1"; }
       recipe="$(variant m3-mlp128 "64, 72, 80" "64: 128, 72: 128, 80: 128" 64)"
       [ "$src" = m3-mlp128 ] || recipe="$OUT/official-m3-mlp128-step64.yaml"  # written by same-mlp-step64
       from_size "$src" "$W"
-      boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --wide-start 0.3 --lambda 1e-4 --device cpu
-      boostnerf eval -w "$W" --report --device cpu --model top1 ;;
+      boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --wide-start 0.3 --lambda 1e-4 \
+        "${seed[@]}" --device cpu
+      boostnerf eval -w "$W" --report "${costs[@]}" --device cpu --model top1 ;;
     ladder) BASELINE=none mixtures "$OUT/ladder" "$(variant ladder "50, 64, 80" "50: 128, 64: 128, 80: 128" 50)" ;;
     seed1-hires)
       recipe="$(variant hires "${HIRES[@]}")"
@@ -288,6 +292,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, ladder, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, collect)" >&2; exit 2 ;;
   esac
 done
