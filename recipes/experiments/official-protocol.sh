@@ -84,24 +84,39 @@ raw_top1() {  # raw_top1 W FLAG...: M = 3 Top-1 with the raw-probability weight 
   boostnerf finetune -w "$W" --recipe "${RECIPE:-$OFFICIAL}" --topk 1 --no-renormalize "$@" --device cpu
   boostnerf eval -w "$W" --report --device cpu --model top1
 }
+recipe_with() {  # recipe_with SRC DEST KEY=VALUE...: write recipe SRC with each dotted KEY (moe.gate_res,
+  # pretrain.dvgo.hidden, ...) set to VALUE read as YAML ("[50, 64]", "{50: 128}", "largest") to DEST; print DEST
+  python - "$@" <<'PY'
+import sys, yaml
+src, dest, *pairs = sys.argv[1:]
+recipe = yaml.safe_load(open(src))
+for pair in pairs:
+    key, value = pair.split("=", 1)
+    *sections, last = key.split(".")
+    node = recipe
+    for name in sections:
+        if not isinstance(node.get(name), dict):
+            sys.exit(f"recipe_with: {src} has no section {name} (in {key})")
+        node = node[name]
+    node[last] = yaml.safe_load(value)
+yaml.safe_dump(recipe, open(dest, "w"), sort_keys=False)
+PY
+  echo "$2"
+}
 OFFICIAL_PENALTY="1, 1.5, 2.23"  # the official code's penalty weights for 3 experts (docs/paper-map.md)
 official_vd() {  # official_vd [SOURCE FILTER]: the official recipe with moe.vd_source SOURCE and moe.vd_filter FILTER,
   # by default the official code's V_D (the largest expert's density, and the visible filter)
   local source="${1:-largest}" filter="${2:-visible}"
-  sed -e "s/^  mix: alpha\$/  mix: alpha\n  vd_source: $source\n  vd_filter: $filter/" "$OFFICIAL" \
-    > "$OUT/official-vd-$source-$filter.yaml"
-  echo "$OUT/official-vd-$source-$filter.yaml"
+  recipe_with "$OFFICIAL" "$OUT/official-vd-$source-$filter.yaml" "moe.vd_source=$source" "moe.vd_filter=$filter"
 }
 variant() {  # variant NAME RES HIDDEN GATE_RES: the official recipe with other experts
-  sed -e "s/res: \[64, 72, 80\]/res: [$2]/" -e "s/hidden: {64: 64, 72: 96, 80: 128}/hidden: {$3}/" \
-      -e "s/gate_res: 64/gate_res: $4/" "$OFFICIAL" > "$OUT/official-$1.yaml"
-  echo "$OUT/official-$1.yaml"
+  recipe_with "$OFFICIAL" "$OUT/official-$1.yaml" "pretrain.res=[$2]" "pretrain.dvgo.hidden={$3}" "moe.gate_res=$4"
 }
 gate_layout() {  # gate_layout SRC RES: M = 3 with m4's experts 72/80/88, the gate copied from SRC at gate_res RES,
   # Top-1 with the raw-probability weight -> OUT/m3-88-gateRES
   local W="$OUT/m3-88-gate$2" recipe
   recipe="$(variant "m4-gate$2" "64, 72, 80, 88" "64: 64, 72: 96, 80: 128, 88: 128" "$2")"
-  sed -e "s/^  gate_init: expert\$/  gate_init: expert\n  gate_from: $1/" "$recipe" > "$OUT/official-gate-$1.yaml"
+  recipe_with "$recipe" "$OUT/official-gate-$1.yaml" "moe.gate_from=$1" > /dev/null
   mkdir -p "$W" && cp -r "$OUT/m4/experts" "$OUT/m4/manifest.json" "$W/"
   boostnerf build-moe -w "$W" --recipe "$OUT/official-gate-$1.yaml" --experts dvgo-72,dvgo-80,dvgo-88 --device cpu
   boostnerf finetune -w "$W" --recipe "$OUT/official-gate-$1.yaml" --topk 1 --no-renormalize --device cpu
@@ -149,7 +164,7 @@ for what in "$@"; do
       --topk 1 --no-renormalize ;;
     same-mlp-step64)
       recipe="$(variant m3-mlp128 "64, 72, 80" "64: 128, 72: 128, 80: 128" 64)" W="$OUT/m3-mlp128-step64"
-      sed -e "s/^  gate_init: expert\$/  gate_init: expert\n  step_from: smallest/" "$recipe" > "$OUT/official-m3-mlp128-step64.yaml"
+      recipe_with "$recipe" "$OUT/official-m3-mlp128-step64.yaml" moe.step_from=smallest > /dev/null
       mkdir -p "$W" && cp -r "$OUT/m3-mlp128/experts" "$OUT/m3-mlp128/manifest.json" "$W/"
       boostnerf build-moe -w "$W" --recipe "$OUT/official-m3-mlp128-step64.yaml" --device cpu
       boostnerf finetune -w "$W" --recipe "$OUT/official-m3-mlp128-step64.yaml" --topk 1 --no-renormalize --device cpu
@@ -229,11 +244,7 @@ PY
       done ;;
     ablation-budget)
       W="$OUT/abl-budget"
-      python - "$OUT/abl-official.yaml" "$OUT/abl-budget.yaml" <<'PY'
-import sys, yaml
-r = yaml.safe_load(open(sys.argv[1])); r["pretrain"]["iters"] = 4000
-yaml.safe_dump(r, open(sys.argv[2], "w"), sort_keys=False)
-PY
+      recipe_with "$OUT/abl-official.yaml" "$OUT/abl-budget.yaml" pretrain.iters=4000 > /dev/null
       boostnerf pretrain -w "$W" --data "$LEGO" --recipe "$OUT/abl-budget.yaml" --device cpu
       boostnerf build-moe -w "$W" --recipe "$OUT/abl-budget.yaml" --device cpu
       boostnerf finetune -w "$W" --recipe "$OUT/abl-budget.yaml" --topk 1 --device cpu

@@ -1,0 +1,97 @@
+"""The experiment scripts behind docs/results.md: they parse, and the recipes they derive are the ones asked for.
+
+`recipes/experiments/official-protocol.sh` writes each variant of the official recipe (other experts, the official
+V_D, a gate source, a step) with `recipe_with`, then trains on it. A variant that silently kept the official
+recipe's values would train and report the wrong thing, so these tests run the script's own recipe functions
+(extracted from the script, without training anything) and read back what they wrote.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+from boostnerf_cli.recipe import load_recipe
+
+ROOT = Path(__file__).parent.parent
+SCRIPT = ROOT / "recipes" / "experiments" / "official-protocol.sh"
+OFFICIAL = ROOT / "recipes" / "blender-dvgo-cpu-official.yaml"
+SHELL_SCRIPTS = sorted((ROOT / "recipes").rglob("*.sh")) + sorted((ROOT / "scripts").glob("*.sh"))
+
+
+@pytest.mark.parametrize("script", SHELL_SCRIPTS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_shell_script_parses(script):
+    proc = subprocess.run(["bash", "-n", str(script)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+
+
+def _functions(*names: str) -> str:
+    """The bash definitions of the named functions of official-protocol.sh."""
+    text = SCRIPT.read_text()
+    found = [re.search(rf"^{name}\(\) {{.*?^}}$", text, re.S | re.M) for name in names]
+    assert all(found), f"official-protocol.sh defines {[n for n, f in zip(names, found) if not f]} no longer"
+    return "\n".join(f.group(0) for f in found)
+
+
+def _run(out: Path, calls: str) -> subprocess.CompletedProcess:
+    body = f"set -euo pipefail\nOUT={out}\nOFFICIAL={OFFICIAL}\n"
+    body += _functions("recipe_with", "official_vd", "variant") + "\n" + calls
+    return subprocess.run(["bash", "-c", body], capture_output=True, text=True)
+
+
+def _changed(recipe: dict, official: dict, prefix: str = "") -> set[str]:
+    """Dotted keys whose values differ between two parsed recipes."""
+    keys = set(recipe) | set(official)
+    out = set()
+    for k in keys:
+        a, b = recipe.get(k), official.get(k)
+        if isinstance(a, dict) and isinstance(b, dict) and k != "hidden":
+            out |= _changed(a, b, f"{prefix}{k}.")
+        elif a != b:
+            out.add(prefix + k)
+    return out
+
+
+def test_variants_change_exactly_the_keys_asked_for(tmp_path):
+    proc = _run(tmp_path, 'variant ladder "50, 64, 80" "50: 128, 64: 128, 80: 128" 50\n'
+                          'recipe_with "$OUT/official-ladder.yaml" "$OUT/step.yaml" moe.step_from=smallest\n'
+                          'official_vd\n'
+                          'recipe_with "$OFFICIAL" "$OUT/penalty.yaml" "moe.penalty=1, 1.5, 2.23"\n')
+    assert proc.returncode == 0, proc.stderr
+    written = proc.stdout.split("\n")
+    assert written[:4] == [f"{tmp_path}/official-ladder.yaml", f"{tmp_path}/step.yaml",
+                           f"{tmp_path}/official-vd-largest-visible.yaml", f"{tmp_path}/penalty.yaml"]
+    official = yaml.safe_load(OFFICIAL.read_text())
+
+    ladder = yaml.safe_load((tmp_path / "official-ladder.yaml").read_text())
+    assert _changed(ladder, official) == {"pretrain.res", "pretrain.dvgo.hidden", "moe.gate_res"}
+    rec = load_recipe(tmp_path / "official-ladder.yaml")  # a valid recipe, read as boostnerf reads it
+    assert rec.pretrain.res == [50, 64, 80] and rec.moe.gate_res == 50
+    assert rec.pretrain.dvgo["hidden"] == {50: 128, 64: 128, 80: 128}
+
+    step = yaml.safe_load((tmp_path / "step.yaml").read_text())
+    assert _changed(step, ladder) == {"moe.step_from"} and load_recipe(tmp_path / "step.yaml").moe.step_from == "smallest"
+
+    vd = load_recipe(tmp_path / "official-vd-largest-visible.yaml")
+    assert (vd.moe.vd_source, vd.moe.vd_filter) == ("largest", "visible")
+    assert _changed(yaml.safe_load((tmp_path / "official-vd-largest-visible.yaml").read_text()), official) == {
+        "moe.vd_source", "moe.vd_filter"}
+    assert load_recipe(tmp_path / "penalty.yaml").moe.penalty == "1, 1.5, 2.23"
+
+
+def test_recipe_with_refuses_a_section_the_recipe_lacks(tmp_path):
+    proc = _run(tmp_path, 'recipe_with "$OFFICIAL" "$OUT/bad.yaml" pretrain.tensorf.hidden=8\n')
+    assert proc.returncode != 0
+    assert proc.stderr.strip().splitlines() == [f"recipe_with: {OFFICIAL} has no section tensorf (in pretrain.tensorf.hidden)"]
+    assert not (tmp_path / "bad.yaml").exists()
+
+
+def test_an_unknown_step_is_refused_with_the_steps_there_are(tmp_path):
+    proc = subprocess.run(["bash", str(SCRIPT), str(tmp_path / "lego"), str(tmp_path / "out"), "no-such-step"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert proc.stderr.startswith("unknown step no-such-step (m3, m4, m5,") and len(proc.stderr.splitlines()) == 1
