@@ -32,6 +32,20 @@ OUTSIDE_THRESHOLD = st.one_of(st.floats(max_value=-1e-12, allow_nan=False), st.f
                               st.just(math.nan))
 BAD_WORD = st.text(min_size=1, max_size=12)
 
+
+def _positive_weights(text: str) -> bool:
+    """Whether `text` lists explicit penalty weights: finite numbers > 0 separated by commas (e.g. "1, 1.5")."""
+    try:
+        return all(0 < float(x) < math.inf for x in text.split(","))
+    except ValueError:
+        return False
+
+
+# neither a named scheme nor a list of positive, finite weights ("1" is one weight: a one-expert mixture's)
+BAD_PENALTY = st.one_of(
+    BAD_WORD.filter(lambda w: w not in ("geometric", "linear", "quadratic", "none") and not _positive_weights(w)),
+    st.sampled_from(["1, 0", "1, -2", "1, inf", "1, nan", "1,,2", "1, x", "1.5 2"]))
+
 # key -> out-of-range values (what the code using the value cannot work with)
 BAD: dict[str, st.SearchStrategy] = {
     "data.image_size": INT_BELOW(1),
@@ -81,7 +95,7 @@ BAD: dict[str, st.SearchStrategy] = {
     "moe.step_from": BAD_WORD.filter(lambda w: w not in ("smallest", "largest")),
     "moe.topk": INT_BELOW(1),
     "moe.lam": NEGATIVE,
-    "moe.penalty": BAD_WORD.filter(lambda w: w not in ("geometric", "linear", "quadratic", "none")),
+    "moe.penalty": BAD_PENALTY,
     "moe.bake_res": GRID_OUTSIDE(0),
     "moe.iters": INT_BELOW(1),
     "moe.lr_gate": NOT_POSITIVE,
