@@ -73,8 +73,11 @@ HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 export OMP_NUM_THREADS=1 DEVICE=cpu
 OFFICIAL="$HERE/recipes/blender-dvgo-cpu-official.yaml"
 mkdir -p "$OUT"
-from_size() {  # from_size SIZE W: a new workspace W holding SIZE's (m3, m4, m5) experts and its moe/init
-  mkdir -p "$2/moe" && cp -r "$OUT/$1/experts" "$OUT/$1/manifest.json" "$2/" && cp "$OUT/$1/moe/init."* "$2/moe/"
+experts_of() {  # experts_of SIZE W: a new workspace W holding the experts of OUT/SIZE (m3, m4, ...)
+  mkdir -p "$2" && cp -r "$OUT/$1/experts" "$OUT/$1/manifest.json" "$2/"
+}
+from_size() {  # from_size SIZE W: a new workspace W holding SIZE's experts and its moe/init
+  experts_of "$1" "$2" && mkdir -p "$2/moe" && cp "$OUT/$1/moe/init."* "$2/moe/"
 }
 raw_top1() {  # raw_top1 W FLAG...: M = 3 Top-1 with the raw-probability weight and FLAG... on m3's experts and moe/init
   # (recipe $RECIPE, by default the official one)
@@ -117,23 +120,25 @@ gate_layout() {  # gate_layout SRC RES: M = 3 with m4's experts 72/80/88, the ga
   local W="$OUT/m3-88-gate$2" recipe
   recipe="$(variant "m4-gate$2" "64, 72, 80, 88" "64: 64, 72: 96, 80: 128, 88: 128" "$2")"
   recipe_with "$recipe" "$OUT/official-gate-$1.yaml" "moe.gate_from=$1" > /dev/null
-  mkdir -p "$W" && cp -r "$OUT/m4/experts" "$OUT/m4/manifest.json" "$W/"
+  experts_of m4 "$W"
   boostnerf build-moe -w "$W" --recipe "$OUT/official-gate-$1.yaml" --experts dvgo-72,dvgo-80,dvgo-88 --device cpu
   boostnerf finetune -w "$W" --recipe "$OUT/official-gate-$1.yaml" --topk 1 --no-renormalize --device cpu
   boostnerf eval -w "$W" --report --device cpu --model top1
 }
 HIRES=("96, 112, 128" "96: 64, 112: 96, 128: 128" 96)  # hires' experts: variant's RES HIDDEN GATE_RES
-prepare() {  # prepare W RECIPE: pretrain W's experts, build its mixture and train its baseline
+MLP128=("64, 72, 80" "64: 128, 72: 128, 80: 128" 64)  # same-mlp's: m3's experts, each with a 2 x 128 colour MLP
+experts_and_moe() {  # experts_and_moe W RECIPE: pretrain W's experts and build its mixture
   boostnerf pretrain -w "$1" --data "$LEGO" --recipe "$2" --device cpu
   boostnerf build-moe -w "$1" --recipe "$2" --device cpu
+}
+prepare() {  # prepare W RECIPE: pretrain W's experts, build its mixture and train its baseline
+  experts_and_moe "$@"
   boostnerf finetune -w "$1" --recipe "$2" --baseline --device cpu
 }
-mixtures() {  # mixtures W RECIPE: W's experts, moe/init, Top-2 and Top-1 with the raw-probability weight, and the
+mixtures() {  # mixtures W RECIPE: W's experts, moe/init, Top-1 with the raw-probability weight and Top-2, and the
   # baseline (first; BASELINE=last: after the mixtures; BASELINE=none: not trained, when another workspace has it)
   local b="${BASELINE:-first}"
-  boostnerf pretrain -w "$1" --data "$LEGO" --recipe "$2" --device cpu
-  boostnerf build-moe -w "$1" --recipe "$2" --device cpu
-  [ "$b" = first ] && boostnerf finetune -w "$1" --recipe "$2" --baseline --device cpu
+  if [ "$b" = first ]; then prepare "$@"; else experts_and_moe "$@"; fi
   boostnerf finetune -w "$1" --recipe "$2" --topk 1 --no-renormalize --device cpu
   boostnerf finetune -w "$1" --recipe "$2" --topk 2 --device cpu
   [ "$b" = last ] && boostnerf finetune -w "$1" --recipe "$2" --baseline --device cpu
@@ -159,13 +164,13 @@ for what in "$@"; do
     m5) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" \
           "$(variant m5 "56, 64, 72, 80, 88" "56: 64, 64: 64, 72: 96, 80: 128, 88: 128" 56)" "$LEGO" "$OUT/m5" ;;
     hires) mixtures "$OUT/hires" "$(variant hires "${HIRES[@]}")" ;;
-    same-mlp) BASELINE=last mixtures "$OUT/m3-mlp128" "$(variant m3-mlp128 "64, 72, 80" "64: 128, 72: 128, 80: 128" 64)" ;;
-    seed1-same-mlp) seed1_model m3-mlp128 "$(variant m3-mlp128 "64, 72, 80" "64: 128, 72: 128, 80: 128" 64)" top1 top1 \
+    same-mlp) BASELINE=last mixtures "$OUT/m3-mlp128" "$(variant m3-mlp128 "${MLP128[@]}")" ;;
+    seed1-same-mlp) seed1_model m3-mlp128 "$(variant m3-mlp128 "${MLP128[@]}")" top1 top1 \
       --topk 1 --no-renormalize ;;
     same-mlp-step64)
-      recipe="$(variant m3-mlp128 "64, 72, 80" "64: 128, 72: 128, 80: 128" 64)" W="$OUT/m3-mlp128-step64"
+      recipe="$(variant m3-mlp128 "${MLP128[@]}")" W="$OUT/m3-mlp128-step64"
       recipe_with "$recipe" "$OUT/official-m3-mlp128-step64.yaml" moe.step_from=smallest > /dev/null
-      mkdir -p "$W" && cp -r "$OUT/m3-mlp128/experts" "$OUT/m3-mlp128/manifest.json" "$W/"
+      experts_of m3-mlp128 "$W"
       boostnerf build-moe -w "$W" --recipe "$OUT/official-m3-mlp128-step64.yaml" --device cpu
       boostnerf finetune -w "$W" --recipe "$OUT/official-m3-mlp128-step64.yaml" --topk 1 --no-renormalize --device cpu
       boostnerf eval -w "$W" --report --device cpu --model top1 ;;
@@ -173,7 +178,7 @@ for what in "$@"; do
       base="${what#seed1-}" seed=() costs=()
       src="${base%-tuned}"; src="m3-mlp128${src#same-mlp}" W="$OUT/${base/same-mlp/m3-mlp128}"
       [ "$base" = "$what" ] || { seed=(--seed 1); costs=(--no-costs); W="$W-s1"; }
-      recipe="$(variant m3-mlp128 "64, 72, 80" "64: 128, 72: 128, 80: 128" 64)"
+      recipe="$(variant m3-mlp128 "${MLP128[@]}")"
       [ "$src" = m3-mlp128 ] || recipe="$OUT/official-m3-mlp128-step64.yaml"  # written by same-mlp-step64
       from_size "$src" "$W"
       boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --wide-start 0.3 --lambda 1e-4 \
@@ -204,7 +209,7 @@ PY
       cp "$OUT/abl-official.yaml" "$OUT/abl-raw-prob.yaml"
       for v in official gate-random aux-batch-all mix-density rates-0.3x raw-prob; do
         W="$OUT/abl-$v"
-        mkdir -p "$W" && cp -r "$OUT/m3/experts" "$OUT/m3/manifest.json" "$W/"
+        experts_of m3 "$W"
         boostnerf build-moe -w "$W" --recipe "$OUT/abl-$v.yaml" --device cpu
         weight=()
         [ $v = raw-prob ] && weight=(--no-renormalize)
