@@ -88,13 +88,13 @@ def render_rays(
         field = field.batch_view()
     thr = settings.color_threshold if color_threshold is None else color_threshold
     visible = getattr(skip, "visible", None)  # a filter along the rays (a mixture's MixtureSkip), else per point
-    if skip is not None and valid.any() and visible is not None:
+    if skip is None or not valid.any():
+        keep = valid
+    elif visible is not None:
         keep = visible(xyz, valid, step, thr)
-    elif skip is not None and valid.any():
+    else:
         keep = valid.clone()
         keep[valid] = skip(xyz[valid])
-    else:
-        keep = valid
     flat = keep.reshape(-1).nonzero().squeeze(-1)
     pts = xyz.reshape(-1, 3)[flat]
     sigma = torch.zeros(r * s, device=origins.device, dtype=origins.dtype)
