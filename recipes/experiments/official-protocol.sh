@@ -1,9 +1,13 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|paper|paper-m3|paper-m4|paper-m5|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
+#   paper       the paper's appendix table at CPU size, one workspace per M, nothing shared between them: paper-m3,
+#               paper-m4, paper-m5 each pretrain m3's (m4's, m5's) experts, build the mixture and train the baseline,
+#               Top-1 with the raw-probability weight (the official code's), Top-2 and the ensemble -> OUT/paper-mM
+#               (run them one at a time for their seconds)
 #   ablation    on m3's experts: the official recipe with one factor at a time set back to boostnerf's
 #               default, 2000 joint steps, Top-1 (and the baseline once)
 #               (last row: the official raw-probability Top-1 weight, finetune --no-renormalize)
@@ -125,6 +129,8 @@ gate_layout() {  # gate_layout SRC RES: M = 3 with m4's experts 72/80/88, the ga
   boostnerf finetune -w "$W" --recipe "$OUT/official-gate-$1.yaml" --topk 1 --no-renormalize --device cpu
   boostnerf eval -w "$W" --report --device cpu --model top1
 }
+M4=("64, 72, 80, 88" "64: 64, 72: 96, 80: 128, 88: 128" 64)  # m4's experts: variant's RES HIDDEN GATE_RES
+M5=("56, 64, 72, 80, 88" "56: 64, 64: 64, 72: 96, 80: 128, 88: 128" 56)  # m5's
 HIRES=("96, 112, 128" "96: 64, 112: 96, 128: 128" 96)  # hires' experts: variant's RES HIDDEN GATE_RES
 MLP128=("64, 72, 80" "64: 128, 72: 128, 80: 128" 64)  # same-mlp's: m3's experts, each with a 2 x 128 colour MLP
 experts_and_moe() {  # experts_and_moe W RECIPE: pretrain W's experts and build its mixture
@@ -135,12 +141,14 @@ prepare() {  # prepare W RECIPE: pretrain W's experts, build its mixture and tra
   experts_and_moe "$@"
   boostnerf finetune -w "$1" --recipe "$2" --baseline --device cpu
 }
-mixtures() {  # mixtures W RECIPE: W's experts, moe/init, Top-1 with the raw-probability weight and Top-2, and the
-  # baseline (first; BASELINE=last: after the mixtures; BASELINE=none: not trained, when another workspace has it)
+mixtures() {  # mixtures W RECIPE: W's experts, moe/init, Top-1 with the raw-probability weight and Top-2 (ENS=1: and
+  # the ensemble), and the baseline (first; BASELINE=last: after the mixtures; BASELINE=none: not trained, when
+  # another workspace has it)
   local b="${BASELINE:-first}"
   if [ "$b" = first ]; then prepare "$@"; else experts_and_moe "$@"; fi
   boostnerf finetune -w "$1" --recipe "$2" --topk 1 --no-renormalize --device cpu
   boostnerf finetune -w "$1" --recipe "$2" --topk 2 --device cpu
+  [ "${ENS:-0}" = 1 ] && boostnerf finetune -w "$1" --recipe "$2" --ensemble --device cpu
   [ "$b" = last ] && boostnerf finetune -w "$1" --recipe "$2" --baseline --device cpu
   boostnerf eval -w "$1" --report --device cpu
 }
@@ -159,10 +167,12 @@ seed1_model() {  # seed1_model SIZE RECIPE V MODEL FLAG...: finetune MODEL (FLAG
 for what in "$@"; do
   case $what in
     m3) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" "$OFFICIAL" "$LEGO" "$OUT/m3" ;;
-    m4) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" \
-          "$(variant m4 "64, 72, 80, 88" "64: 64, 72: 96, 80: 128, 88: 128" 64)" "$LEGO" "$OUT/m4" ;;
-    m5) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" \
-          "$(variant m5 "56, 64, 72, 80, 88" "56: 64, 64: 64, 72: 96, 80: 128, 88: 128" 56)" "$LEGO" "$OUT/m5" ;;
+    m4) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" "$(variant m4 "${M4[@]}")" "$LEGO" "$OUT/m4" ;;
+    m5) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" "$(variant m5 "${M5[@]}")" "$LEGO" "$OUT/m5" ;;
+    paper) for m in m3 m4 m5; do bash "${BASH_SOURCE[0]}" "$LEGO" "$OUT" "paper-$m"; done ;;
+    paper-m3) ENS=1 mixtures "$OUT/paper-m3" "$OFFICIAL" ;;
+    paper-m4) ENS=1 mixtures "$OUT/paper-m4" "$(variant m4 "${M4[@]}")" ;;
+    paper-m5) ENS=1 mixtures "$OUT/paper-m5" "$(variant m5 "${M5[@]}")" ;;
     hires) mixtures "$OUT/hires" "$(variant hires "${HIRES[@]}")" ;;
     same-mlp) BASELINE=last mixtures "$OUT/m3-mlp128" "$(variant m3-mlp128 "${MLP128[@]}")" ;;
     seed1-same-mlp) seed1_model m3-mlp128 "$(variant m3-mlp128 "${MLP128[@]}")" top1 top1 \
@@ -308,6 +318,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, paper, paper-m3, paper-m4, paper-m5, collect)" >&2; exit 2 ;;
   esac
 done
