@@ -19,6 +19,13 @@ one of:
   or {"label": str, "models": [rows]} with rows of the eval report's schema (name, psnr, ssim, w0,
   gflops_per_image; null when not measured) transcribed by hand, plus "extra": {column: text}.
 
+- a table in the paper's appendix layout {"sizes": [{"label": "M = 3", "report": FILE or [FILEs]}, ...],
+  "models": [[name, header], ...], "reference": [{"label": str, "cells": [str, ...]}, ...]}: one column per size
+  and model (the paper's baseline / Top-1 / Top-2 / Ens under each M), one row per measure (PSNR, its
+  difference to the size's baseline, SSIM, ||w||_0, GFLOPs per image and their ratio to the baseline's, and
+  training minutes from the reports' "train s" extra), then the reference rows printed as written (the
+  paper's own figures);
+
 - a generic table {"columns": [header, ...], "rows": [[cell, ...], ...]} for a table that is neither a
   model nor a bench table (a transcribed comparison, a list of targets): every cell is a string printed
   exactly as written (bold `**...**`, units and all), and each row has as many cells as there are columns.
@@ -82,6 +89,22 @@ def _group(label: str, models: list[dict], every: list[dict], baseline: str) -> 
     return {"label": label, "models": models, "base": next((m for m in every if m["name"] == baseline), None)}
 
 
+def _files(group: dict) -> list[str]:
+    """The report files a group (or a size) reads: "report" as one name or a list of them."""
+    report = group.get("report", [])
+    return report if isinstance(report, list) else [report]
+
+
+def reports_of(spec: dict) -> list[str]:
+    """Every docs/data file that a table spec reads."""
+    return [f for g in spec.get("groups", []) + spec.get("sizes", []) for f in _files(g)]
+
+
+def _read(files: list[str]) -> dict:
+    """The models of one report, or of several read as one (a later file's model replaces a same-named one)."""
+    return {m["name"]: m for f in files for m in json.loads((DATA / f).read_text())["models"]}
+
+
 def _groups(spec: dict) -> list[dict]:
     """The table's groups, each {"label", "base": the baseline's eval-report row or None, "models": [rows]}.
 
@@ -93,8 +116,7 @@ def _groups(spec: dict) -> list[dict]:
     for g in spec["groups"]:
         models = every = g.get("models")
         if "report" in g:  # one report, or several whose models are read as one (later names win)
-            files = g["report"] if isinstance(g["report"], list) else [g["report"]]
-            by_name = {m["name"]: m for f in files for m in json.loads((DATA / f).read_text())["models"]}
+            by_name = _read(_files(g))
             every = list(by_name.values())
             models = [by_name[n] for n in models] if models else every
         groups.append(_group(g.get("label", ""), models, every, g.get("baseline", "baseline")))
@@ -115,6 +137,36 @@ def model_table(spec: dict) -> str:
                          _num(m.get("ssim"), 4), _count(m.get("w0"), compact), _num(m.get("gflops_per_image"), 3),
                          *(str(m.get("extra", {}).get(c, "")) for c in extra)])
     return _table(MODEL_COLUMNS + extra, rows)
+
+
+def size_table(spec: dict) -> str:
+    """The paper's appendix layout: a column per (size, model), a row per measure."""
+    columns, cells = [""], {k: [] for k in ("PSNR", "vs baseline", "SSIM", "‖w‖₀", "GFLOPs / image",
+                                             "GFLOPs vs baseline", "train, minutes")}
+    for size in spec["sizes"]:
+        by_name = _read(_files(size))
+        base = by_name.get(size.get("baseline", "baseline"))
+        for name, header in spec["models"]:
+            m = by_name[name]
+            columns.append(f"{size['label']}: {header}")
+            psnr, flops = _psnr(m.get("psnr")), m.get("gflops_per_image")
+            ref_psnr = _psnr(base.get("psnr")) if base else None
+            ref_flops = base.get("gflops_per_image") if base else None
+            compare = m is not base and base is not None
+            seconds = m.get("extra", {}).get("train s")
+            cells["PSNR"].append(_num(psnr, 3))
+            cells["vs baseline"].append(f"{psnr - ref_psnr:+.2f}" if compare and None not in (psnr, ref_psnr) else "")
+            cells["SSIM"].append(_num(m.get("ssim"), 4))
+            cells["‖w‖₀"].append(_count(m.get("w0"), True))
+            cells["GFLOPs / image"].append(_num(flops, 3))
+            cells["GFLOPs vs baseline"].append(f"{flops / ref_flops:.2f}x" if compare and flops and ref_flops else "")
+            cells["train, minutes"].append("-" if seconds is None else f"{float(seconds) / 60:.1f}")
+    rows = [[k, *v] for k, v in cells.items()]
+    for ref in spec.get("reference", []):
+        if len(ref["cells"]) != len(columns) - 1 or not all(isinstance(c, str) for c in ref["cells"]):
+            raise ValueError(f"reference row {ref['label']!r}: want {len(columns) - 1} string cells")
+        rows.append([ref["label"], *ref["cells"]])
+    return _table(columns, rows)
 
 
 def bench_table(spec: dict) -> str:
@@ -138,6 +190,8 @@ def render(name: str) -> str:
         return bench_table(spec)
     if "columns" in spec:
         return generic_table(spec)
+    if "sizes" in spec:
+        return size_table(spec)
     return model_table(spec)
 
 

@@ -32,8 +32,7 @@ def test_every_data_file_has_a_table_and_a_provenance_line():
     names = {n for _, n in _marked()}
     files = sorted((ROOT / "docs" / "data").glob("*.json"))
     specs = [json.loads(p.read_text()) for p in files]
-    reports = {f for spec in specs for g in spec.get("groups", []) if "report" in g
-               for f in (g["report"] if isinstance(g["report"], list) else [g["report"]])}
+    reports = {f for spec in specs for f in tables.reports_of(spec)}
     readme = (ROOT / "docs" / "data" / "README.md").read_text()
     for path in files:
         assert path.stem in names or path.name in reports, f"{path.name} is used by no table"
@@ -117,3 +116,42 @@ def test_a_generic_table_prints_its_cells_as_written(tmp_path, monkeypatch):
     (data / "bad.json").write_text(json.dumps({"columns": ["a", "b"], "rows": [["1"]]}))
     with pytest.raises(ValueError):
         tables.render("bad")
+
+
+def test_the_paper_layout_puts_each_size_and_model_in_a_column(tmp_path, monkeypatch):
+    """The paper's appendix tables: measures as rows, M = 3 / 4 ... x baseline / Top-1 / ... as columns."""
+    def report(base, top1, seconds):
+        return {"models": [
+            {"name": "dvgo-64", "psnr": 31.0, "ssim": 0.97, "w0": 900_000, "gflops_per_image": 1.5},
+            {"name": "baseline", "psnr": base, "ssim": 0.98594, "w0": 2_246_310, "gflops_per_image": 2.834,
+             "extra": {"train s": str(seconds[0])}},
+            {"name": "top1", "psnr": top1, "ssim": 0.98431, "w0": 4_329_470, "gflops_per_image": 1.739,
+             "extra": {"train s": str(seconds[1])}}]}
+
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "m3.json").write_text(json.dumps(report(34.6712, 34.2874, (376, 650))))
+    (data / "m4.json").write_text(json.dumps(report(34.4271, 34.5, (391, 702))))
+    (data / "m4-top1.json").write_text(json.dumps({"models": [
+        {"name": "top1", "psnr": 34.9, "ssim": 0.9875, "w0": 3_000_000, "gflops_per_image": 2.0}]}))
+    spec = {"sizes": [{"label": "M = 3", "report": "m3.json"}, {"label": "M = 4", "report": ["m4.json", "m4-top1.json"]}],
+            "models": [["baseline", "baseline"], ["top1", "Top-1"]],
+            "reference": [{"label": "paper: PSNR", "cells": ["32.97", "33.17", "33.07", "33.34"]}]}
+    (data / "paper.json").write_text(json.dumps(spec))
+    monkeypatch.setattr(tables, "DATA", data)
+    assert tables.render("paper") == (
+        "|  | M = 3: baseline | M = 3: Top-1 | M = 4: baseline | M = 4: Top-1 |\n"
+        "|---|---|---|---|---|\n"
+        "| PSNR | 34.671 | 34.287 | 34.427 | 34.900 |\n"
+        "| vs baseline |  | -0.38 |  | +0.47 |\n"
+        "| SSIM | 0.9859 | 0.9843 | 0.9859 | 0.9875 |\n"
+        "| ‖w‖₀ | 2.25M | 4.33M | 2.25M | 3M |\n"
+        "| GFLOPs / image | 2.834 | 1.739 | 2.834 | 2.000 |\n"
+        "| GFLOPs vs baseline |  | 0.61x |  | 0.71x |\n"
+        "| train, minutes | 6.3 | 10.8 | 6.5 | - |\n"
+        "| paper: PSNR | 32.97 | 33.17 | 33.07 | 33.34 |\n")
+    assert tables.reports_of(spec) == ["m3.json", "m4.json", "m4-top1.json"]
+    spec["reference"][0]["cells"].pop()
+    (data / "paper.json").write_text(json.dumps(spec))
+    with pytest.raises(ValueError, match="want 4 string cells"):
+        tables.render("paper")
