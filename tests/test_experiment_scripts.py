@@ -8,8 +8,10 @@ recipe's values would train and report the wrong thing, so these tests run the s
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -95,3 +97,31 @@ def test_an_unknown_step_is_refused_with_the_steps_there_are(tmp_path):
                           capture_output=True, text=True)
     assert proc.returncode == 2
     assert proc.stderr.startswith("unknown step no-such-step (m3, m4, m5,") and len(proc.stderr.splitlines()) == 1
+
+
+def test_the_paper_table_trains_every_column_of_each_size_in_its_own_workspace(tmp_path):
+    """`paper` (docs/results.md, the paper's appendix table at CPU size): with a stand-in `boostnerf` that only
+    writes down its arguments, each size gets its own workspace, its own experts and the four models."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    log = tmp_path / "calls"
+    (bin_dir / "boostnerf").write_text(f'#!/bin/sh\necho "$*" >> {log}\n')
+    (bin_dir / "boostnerf").chmod(0o755)
+    out = tmp_path / "out"
+    env = {"PATH": f"{bin_dir}:/usr/bin:/bin", "HOME": str(tmp_path)}
+    env["PATH"] += ":" + os.path.dirname(sys.executable)  # the python that runs recipe_with
+    proc = subprocess.run(["bash", str(SCRIPT), "LEGO", str(out), "paper"], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    calls = log.read_text().splitlines()
+    recipes = {3: str(OFFICIAL), 4: f"{out}/official-m4.yaml", 5: f"{out}/official-m5.yaml"}
+    expected = []
+    for m, recipe in recipes.items():
+        ws = f"-w {out}/paper-m{m}"
+        expected += [f"pretrain {ws} --data LEGO --recipe {recipe} --device cpu",
+                     f"build-moe {ws} --recipe {recipe} --device cpu",
+                     *(f"finetune {ws} --recipe {recipe} {flags} --device cpu"
+                       for flags in ("--baseline", "--topk 1 --no-renormalize", "--topk 2", "--ensemble")),
+                     f"eval {ws} --report --device cpu"]
+    assert calls == expected
+    assert load_recipe(recipes[4]).pretrain.res == [64, 72, 80, 88]
+    assert load_recipe(recipes[5]).pretrain.res == [56, 64, 72, 80, 88] and load_recipe(recipes[5]).moe.gate_res == 56
