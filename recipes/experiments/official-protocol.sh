@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|paper|paper-m3|paper-m4|paper-m5|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   paper       the paper's appendix table at CPU size, one workspace per M, nothing shared between them: paper-m3,
@@ -63,6 +63,9 @@
 #               (dvgo-80), not retrained -> OUT/ladder (Top-1 raw weight, Top-2)
 #   seed1-hires hires again with finetuning seed 1, on its experts and moe/init: the baseline and Top-1 (raw weight)
 #               -> OUT/hires-base-s1, hires-top1-s1
+#   px200       hires' experts (96/112/128) on 200 px views: the baseline (dvgo-128), Top-1 with the raw-probability
+#               weight -> OUT/px200; px200-alone: its smaller experts dvgo-96 and dvgo-112 each alone for the baseline's
+#               1,000 + 5,000 steps (two-expert recipes 88/96, 96/112) -> OUT/px200-alone96, px200-alone112
 #   hires-base96  the control for hires: its smallest expert (dvgo-96) alone for 1,000 + 5,000 steps, as the baseline
 #               of a two-expert recipe 88/96 -> OUT/hires-base96
 #   m3-alone    the same control for m3: its smaller experts dvgo-64 and dvgo-72 each alone for 1,000 + 5,000 steps
@@ -116,8 +119,11 @@ official_vd() {  # official_vd [SOURCE FILTER]: the official recipe with moe.vd_
   local source="${1:-largest}" filter="${2:-visible}"
   recipe_with "$OFFICIAL" "$OUT/official-vd-$source-$filter.yaml" "moe.vd_source=$source" "moe.vd_filter=$filter"
 }
-variant() {  # variant NAME RES HIDDEN GATE_RES: the official recipe with other experts
-  recipe_with "$OFFICIAL" "$OUT/official-$1.yaml" "pretrain.res=[$2]" "pretrain.dvgo.hidden={$3}" "moe.gate_res=$4"
+variant() {  # variant NAME RES HIDDEN GATE_RES [KEY=VALUE...]: the official recipe with other experts (and KEYs)
+  local name="$1" res="$2" hidden="$3" gate="$4"
+  shift 4
+  recipe_with "$OFFICIAL" "$OUT/official-$name.yaml" "pretrain.res=[$res]" "pretrain.dvgo.hidden={$hidden}" \
+    "moe.gate_res=$gate" "$@"
 }
 gate_layout() {  # gate_layout SRC RES: M = 3 with m4's experts 72/80/88, the gate copied from SRC at gate_res RES,
   # Top-1 with the raw-probability weight -> OUT/m3-88-gateRES
@@ -152,7 +158,8 @@ mixtures() {  # mixtures W RECIPE: W's experts, moe/init, Top-1 with the raw-pro
   [ "$b" = last ] && boostnerf finetune -w "$1" --recipe "$2" --baseline --device cpu
   boostnerf eval -w "$1" --report --device cpu
 }
-alone() {  # alone NAME RES HIDDEN GATE_RES: the larger of two experts alone for the baseline's steps -> OUT/NAME
+alone() {  # alone NAME RES HIDDEN GATE_RES [KEY=VALUE...]: the larger of two experts alone for the baseline's steps
+  # -> OUT/NAME
   prepare "$OUT/$1" "$(variant "$@")"
   boostnerf eval -w "$OUT/$1" --report --device cpu --model baseline
 }
@@ -199,6 +206,15 @@ for what in "$@"; do
       recipe="$(variant hires "${HIRES[@]}")"
       seed1_model hires "$recipe" base baseline --baseline
       seed1_model hires "$recipe" top1 top1 --topk 1 --no-renormalize ;;
+    px200)
+      W="$OUT/px200"
+      recipe="$(variant px200 "${HIRES[@]}" data.image_size=200)"
+      prepare "$W" "$recipe"
+      boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
+      boostnerf eval -w "$W" --report --device cpu ;;
+    px200-alone)
+      alone px200-alone96 "88, 96" "88: 64, 96: 64" 88 data.image_size=200
+      alone px200-alone112 "96, 112" "96: 64, 112: 96" 96 data.image_size=200 ;;
     hires-base96) alone hires-base96 "88, 96" "88: 64, 96: 64" 88 ;;
     m3-alone)
       alone m3-alone64 "56, 64" "56: 64, 64: 64" 56
@@ -318,6 +334,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, paper, paper-m3, paper-m4, paper-m5, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, collect)" >&2; exit 2 ;;
   esac
 done
