@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   paper       the paper's appendix table at CPU size, one workspace per M, nothing shared between them: paper-m3,
@@ -66,6 +66,9 @@
 #   px200       hires' experts (96/112/128) on 200 px views: the baseline (dvgo-128), Top-1 with the raw-probability
 #               weight -> OUT/px200; px200-alone: its smaller experts dvgo-96 and dvgo-112 each alone for the baseline's
 #               1,000 + 5,000 steps (two-expert recipes 88/96, 96/112) -> OUT/px200-alone96, px200-alone112
+#   below       M = 3 with every expert below the resolution where one model stops improving at 100 px (80^3): experts
+#               40/50/64, each with a 2 x 128 colour MLP (the paper's named ladder 160/200/256 in proportion, its experts'
+#               equal MLPs, docs/paper-map.md); the baseline (dvgo-64) and Top-1 with the raw-probability weight -> OUT/below
 #   hires-base96  the control for hires: its smallest expert (dvgo-96) alone for 1,000 + 5,000 steps, as the baseline
 #               of a two-expert recipe 88/96 -> OUT/hires-base96
 #   m3-alone    the same control for m3: its smaller experts dvgo-64 and dvgo-72 each alone for 1,000 + 5,000 steps
@@ -212,6 +215,12 @@ for what in "$@"; do
       prepare "$W" "$recipe"
       boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
       boostnerf eval -w "$W" --report --device cpu ;;
+    below)
+      W="$OUT/below"
+      recipe="$(variant below "40, 50, 64" "40: 128, 50: 128, 64: 128" 40)"
+      prepare "$W" "$recipe"
+      boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
+      boostnerf eval -w "$W" --report --device cpu ;;
     px200-alone)
       alone px200-alone96 "88, 96" "88: 64, 96: 64" 88 data.image_size=200
       alone px200-alone112 "96, 112" "96: 64, 112: 96" 96 data.image_size=200 ;;
@@ -334,6 +343,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, collect)" >&2; exit 2 ;;
   esac
 done
