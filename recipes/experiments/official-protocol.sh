@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|collect]...
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   paper       the paper's appendix table at CPU size, one workspace per M, nothing shared between them: paper-m3,
@@ -69,6 +69,10 @@
 #   below       M = 3 with every expert below the resolution where one model stops improving at 100 px (80^3): experts
 #               40/50/64, each with a 2 x 128 colour MLP (the paper's named ladder 160/200/256 in proportion, its experts'
 #               equal MLPs, docs/paper-map.md); the baseline (dvgo-64) and Top-1 with the raw-probability weight -> OUT/below
+#   seed1-below  below's baseline and Top-1 (raw weight) with finetuning seed 1 on its experts and moe/init, evaluated
+#               without costs -> OUT/below-base-s1, below-top1-s1
+#   below-step40  below's experts, the mixture sampling at its smallest expert's step (moe.step_from: smallest), Top-1
+#               with the raw weight -> OUT/below-step40
 #   hires-base96  the control for hires: its smallest expert (dvgo-96) alone for 1,000 + 5,000 steps, as the baseline
 #               of a two-expert recipe 88/96 -> OUT/hires-base96
 #   m3-alone    the same control for m3: its smaller experts dvgo-64 and dvgo-72 each alone for 1,000 + 5,000 steps
@@ -141,6 +145,7 @@ gate_layout() {  # gate_layout SRC RES: M = 3 with m4's experts 72/80/88, the ga
 M4=("64, 72, 80, 88" "64: 64, 72: 96, 80: 128, 88: 128" 64)  # m4's experts: variant's RES HIDDEN GATE_RES
 M5=("56, 64, 72, 80, 88" "56: 64, 64: 64, 72: 96, 80: 128, 88: 128" 56)  # m5's
 HIRES=("96, 112, 128" "96: 64, 112: 96, 128: 128" 96)  # hires' experts: variant's RES HIDDEN GATE_RES
+BELOW=("40, 50, 64" "40: 128, 50: 128, 64: 128" 40)  # below's: every expert under the 100 px plateau, 2 x 128 MLPs
 MLP128=("64, 72, 80" "64: 128, 72: 128, 80: 128" 64)  # same-mlp's: m3's experts, each with a 2 x 128 colour MLP
 experts_and_moe() {  # experts_and_moe W RECIPE: pretrain W's experts and build its mixture
   boostnerf pretrain -w "$1" --data "$LEGO" --recipe "$2" --device cpu
@@ -217,10 +222,21 @@ for what in "$@"; do
       boostnerf eval -w "$W" --report --device cpu ;;
     below)
       W="$OUT/below"
-      recipe="$(variant below "40, 50, 64" "40: 128, 50: 128, 64: 128" 40)"
+      recipe="$(variant below "${BELOW[@]}")"
       prepare "$W" "$recipe"
       boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
       boostnerf eval -w "$W" --report --device cpu ;;
+    seed1-below)
+      recipe="$(variant below "${BELOW[@]}")"
+      seed1_model below "$recipe" base baseline --baseline
+      seed1_model below "$recipe" top1 top1 --topk 1 --no-renormalize ;;
+    below-step40)
+      W="$OUT/below-step40"
+      recipe="$(recipe_with "$(variant below "${BELOW[@]}")" "$OUT/official-below-step40.yaml" moe.step_from=smallest)"
+      experts_of below "$W"
+      boostnerf build-moe -w "$W" --recipe "$recipe" --device cpu
+      boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
+      boostnerf eval -w "$W" --report --device cpu --model top1 ;;
     px200-alone)
       alone px200-alone96 "88, 96" "88: 64, 96: 64" 88 data.image_size=200
       alone px200-alone112 "96, 112" "96: 64, 112: 96" 96 data.image_size=200 ;;
@@ -343,6 +359,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, seed1-below, below-step40, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, collect)" >&2; exit 2 ;;
   esac
 done
