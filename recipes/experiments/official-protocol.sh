@@ -166,6 +166,12 @@ mixtures() {  # mixtures W RECIPE: W's experts, moe/init, Top-1 with the raw-pro
   [ "$b" = last ] && boostnerf finetune -w "$1" --recipe "$2" --baseline --device cpu
   boostnerf eval -w "$1" --report --device cpu
 }
+baseline_top1() {  # baseline_top1 W RECIPE: W's experts, moe/init and baseline, then Top-1 with the raw-probability
+  # weight; every model evaluated
+  prepare "$@"
+  boostnerf finetune -w "$1" --recipe "$2" --topk 1 --no-renormalize --device cpu
+  boostnerf eval -w "$1" --report --device cpu
+}
 alone() {  # alone NAME RES HIDDEN GATE_RES [KEY=VALUE...]: the larger of two experts alone for the baseline's steps
   # -> OUT/NAME
   prepare "$OUT/$1" "$(variant "$@")"
@@ -214,18 +220,8 @@ for what in "$@"; do
       recipe="$(variant hires "${HIRES[@]}")"
       seed1_model hires "$recipe" base baseline --baseline
       seed1_model hires "$recipe" top1 top1 --topk 1 --no-renormalize ;;
-    px200)
-      W="$OUT/px200"
-      recipe="$(variant px200 "${HIRES[@]}" data.image_size=200)"
-      prepare "$W" "$recipe"
-      boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
-      boostnerf eval -w "$W" --report --device cpu ;;
-    below)
-      W="$OUT/below"
-      recipe="$(variant below "${BELOW[@]}")"
-      prepare "$W" "$recipe"
-      boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
-      boostnerf eval -w "$W" --report --device cpu ;;
+    px200) baseline_top1 "$OUT/px200" "$(variant px200 "${HIRES[@]}" data.image_size=200)" ;;
+    below) baseline_top1 "$OUT/below" "$(variant below "${BELOW[@]}")" ;;
     seed1-below)
       recipe="$(variant below "${BELOW[@]}")"
       seed1_model below "$recipe" base baseline --baseline
