@@ -172,6 +172,16 @@ baseline_top1() {  # baseline_top1 W RECIPE: W's experts, moe/init and baseline,
   boostnerf finetune -w "$1" --recipe "$2" --topk 1 --no-renormalize --device cpu
   boostnerf eval -w "$1" --report --device cpu
 }
+smallest_step() {  # smallest_step SIZE NAME RECIPE: SIZE's experts, a mixture that samples at its smallest expert's
+  # step (RECIPE with moe.step_from: smallest, written to OUT/official-NAME.yaml), Top-1 with the raw-probability
+  # weight -> OUT/NAME
+  local W="$OUT/$2" recipe
+  recipe="$(recipe_with "$3" "$OUT/official-$2.yaml" moe.step_from=smallest)"
+  experts_of "$1" "$W"
+  boostnerf build-moe -w "$W" --recipe "$recipe" --device cpu
+  boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
+  boostnerf eval -w "$W" --report --device cpu --model top1
+}
 alone() {  # alone NAME RES HIDDEN GATE_RES [KEY=VALUE...]: the larger of two experts alone for the baseline's steps
   # -> OUT/NAME
   prepare "$OUT/$1" "$(variant "$@")"
@@ -198,13 +208,7 @@ for what in "$@"; do
     same-mlp) BASELINE=last mixtures "$OUT/m3-mlp128" "$(variant m3-mlp128 "${MLP128[@]}")" ;;
     seed1-same-mlp) seed1_model m3-mlp128 "$(variant m3-mlp128 "${MLP128[@]}")" top1 top1 \
       --topk 1 --no-renormalize ;;
-    same-mlp-step64)
-      recipe="$(variant m3-mlp128 "${MLP128[@]}")" W="$OUT/m3-mlp128-step64"
-      recipe_with "$recipe" "$OUT/official-m3-mlp128-step64.yaml" moe.step_from=smallest > /dev/null
-      experts_of m3-mlp128 "$W"
-      boostnerf build-moe -w "$W" --recipe "$OUT/official-m3-mlp128-step64.yaml" --device cpu
-      boostnerf finetune -w "$W" --recipe "$OUT/official-m3-mlp128-step64.yaml" --topk 1 --no-renormalize --device cpu
-      boostnerf eval -w "$W" --report --device cpu --model top1 ;;
+    same-mlp-step64) smallest_step m3-mlp128 m3-mlp128-step64 "$(variant m3-mlp128 "${MLP128[@]}")" ;;
     same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned)
       base="${what#seed1-}" seed=() costs=()
       src="${base%-tuned}"; src="m3-mlp128${src#same-mlp}" W="$OUT/${base/same-mlp/m3-mlp128}"
@@ -226,13 +230,7 @@ for what in "$@"; do
       recipe="$(variant below "${BELOW[@]}")"
       seed1_model below "$recipe" base baseline --baseline
       seed1_model below "$recipe" top1 top1 --topk 1 --no-renormalize ;;
-    below-step40)
-      W="$OUT/below-step40"
-      recipe="$(recipe_with "$(variant below "${BELOW[@]}")" "$OUT/official-below-step40.yaml" moe.step_from=smallest)"
-      experts_of below "$W"
-      boostnerf build-moe -w "$W" --recipe "$recipe" --device cpu
-      boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
-      boostnerf eval -w "$W" --report --device cpu --model top1 ;;
+    below-step40) smallest_step below below-step40 "$(variant below "${BELOW[@]}")" ;;
     px200-alone)
       alone px200-alone96 "88, 96" "88: 64, 96: 64" 88 data.image_size=200
       alone px200-alone112 "96, 112" "96: 64, 112: 96" 96 data.image_size=200 ;;
