@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh LEGO OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh DATA OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|llff-m3|collect]...
+#   DATA        the scene folder: lego's (../shared/data/lego) for every step but llff-m3, which takes fern's
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
 #   paper       the paper's appendix table at CPU size, one workspace per M, nothing shared between them: paper-m3,
@@ -77,11 +78,16 @@
 #               of a two-expert recipe 88/96 -> OUT/hires-base96
 #   m3-alone    the same control for m3: its smaller experts dvgo-64 and dvgo-72 each alone for 1,000 + 5,000 steps
 #               (two-expert recipes 56/64 and 64/72) -> OUT/m3-alone64, m3-alone72
+#   llff-m3     M = 3 away from lego: a LLFF forward-facing scene (fern, ../shared/data/fern, in NDC) at 252 px wide
+#               (images_8 halved), m3's experts and the official recipe otherwise, 3,000 joint steps (a fern step
+#               costs ~5x a lego one: ~88 samples per ray, nearly all coloured); the baseline (dvgo-80, 1,000 + 3,000
+#               steps), Top-1 with the raw-probability weight and Top-2 -> OUT/llff-m3 (the paper's LLFF row is its
+#               one where Top-1 is below its baseline at M = 3, with every family)
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds, as
 #               issue18-$TAG<workspace>.json (TAG empty by default)
 # One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
 set -euo pipefail
-LEGO="$1" OUT="$2"
+DATA="$1" OUT="$2"
 shift 2
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 export OMP_NUM_THREADS=1 DEVICE=cpu
@@ -148,7 +154,7 @@ HIRES=("96, 112, 128" "96: 64, 112: 96, 128: 128" 96)  # hires' experts: variant
 BELOW=("40, 50, 64" "40: 128, 50: 128, 64: 128" 40)  # below's: every expert under the 100 px plateau, 2 x 128 MLPs
 MLP128=("64, 72, 80" "64: 128, 72: 128, 80: 128" 64)  # same-mlp's: m3's experts, each with a 2 x 128 colour MLP
 experts_and_moe() {  # experts_and_moe W RECIPE: pretrain W's experts and build its mixture
-  boostnerf pretrain -w "$1" --data "$LEGO" --recipe "$2" --device cpu
+  boostnerf pretrain -w "$1" --data "$DATA" --recipe "$2" --device cpu
   boostnerf build-moe -w "$1" --recipe "$2" --device cpu
 }
 prepare() {  # prepare W RECIPE: pretrain W's experts, build its mixture and train its baseline
@@ -197,13 +203,15 @@ seed1_model() {  # seed1_model SIZE RECIPE V MODEL FLAG...: finetune MODEL (FLAG
 }
 for what in "$@"; do
   case $what in
-    m3) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" "$OFFICIAL" "$LEGO" "$OUT/m3" ;;
-    m4) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" "$(variant m4 "${M4[@]}")" "$LEGO" "$OUT/m4" ;;
-    m5) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" "$(variant m5 "${M5[@]}")" "$LEGO" "$OUT/m5" ;;
-    paper) for m in m3 m4 m5; do bash "${BASH_SOURCE[0]}" "$LEGO" "$OUT" "paper-$m"; done ;;
+    m3) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" "$OFFICIAL" "$DATA" "$OUT/m3" ;;
+    m4) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" "$(variant m4 "${M4[@]}")" "$DATA" "$OUT/m4" ;;
+    m5) MODELS="${MODELS:-baseline top1 top2}" bash "$HERE/recipes/chain.sh" "$(variant m5 "${M5[@]}")" "$DATA" "$OUT/m5" ;;
+    paper) for m in m3 m4 m5; do bash "${BASH_SOURCE[0]}" "$DATA" "$OUT" "paper-$m"; done ;;
     paper-m3) ENS=1 mixtures "$OUT/paper-m3" "$OFFICIAL" ;;
     paper-m4) ENS=1 mixtures "$OUT/paper-m4" "$(variant m4 "${M4[@]}")" ;;
     paper-m5) ENS=1 mixtures "$OUT/paper-m5" "$(variant m5 "${M5[@]}")" ;;
+    llff-m3) mixtures "$OUT/llff-m3" "$(variant llff-m3 "64, 72, 80" "64: 64, 72: 96, 80: 128" 64 moe.iters=3000 \
+      "data={image_size: 252, holdout_every: 8, format: llff}")" ;;
     hires) mixtures "$OUT/hires" "$(variant hires "${HIRES[@]}")" ;;
     same-mlp) BASELINE=last mixtures "$OUT/m3-mlp128" "$(variant m3-mlp128 "${MLP128[@]}")" ;;
     seed1-same-mlp) seed1_model m3-mlp128 "$(variant m3-mlp128 "${MLP128[@]}")" top1 top1 \
@@ -295,7 +303,7 @@ PY
     ablation-budget)
       W="$OUT/abl-budget"
       recipe_with "$OUT/abl-official.yaml" "$OUT/abl-budget.yaml" pretrain.iters=4000 > /dev/null
-      boostnerf pretrain -w "$W" --data "$LEGO" --recipe "$OUT/abl-budget.yaml" --device cpu
+      boostnerf pretrain -w "$W" --data "$DATA" --recipe "$OUT/abl-budget.yaml" --device cpu
       boostnerf build-moe -w "$W" --recipe "$OUT/abl-budget.yaml" --device cpu
       boostnerf finetune -w "$W" --recipe "$OUT/abl-budget.yaml" --topk 1 --device cpu
       boostnerf finetune -w "$W" --recipe "$OUT/abl-budget.yaml" --baseline --device cpu
@@ -353,6 +361,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, seed1-below, below-step40, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, seed1-below, below-step40, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, llff-m3, collect)" >&2; exit 2 ;;
   esac
 done
