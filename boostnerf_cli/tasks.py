@@ -147,9 +147,10 @@ class MixtureTask:
             reg = ex.regularization()
             if reg is not None:
                 loss = loss + reg
-        keep = None
-        if self.mix.cfg.aux_samples == "visible":
-            keep = visible_samples(self.mix, bundle, origins, dirs, self.settings.color_threshold)
+        keep = None  # the auxiliary loss's batch: every routed sample, or (aux_samples: visible) the visible ones
+        routed_visible = self.mix.cfg.vd_filter == "visible" and self.settings.color_threshold > 0
+        if self.mix.cfg.aux_samples == "visible" and not routed_visible:  # with the visible V_D filter the gate saw
+            keep = visible_samples(self.mix, bundle, origins, dirs, self.settings.color_threshold)  # only those
         aux, aux_value, load = batch_routing(stats, self.mix.penalty, self.mix.m, self.mix.cfg.aux_norm, keep)
         if self.rec.lam > 0 and self.mix.gate.cfg.kind != "uniform":
             loss = loss + self.rec.lam * aux

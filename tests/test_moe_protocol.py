@@ -425,6 +425,36 @@ def test_the_visible_filter_drops_what_V_D_hides_as_a_per_ray_reference_does(sou
     assert torch.equal(render_rays(mix, origins, dirs, settings, mix.skip).extras["rows"], opacity_only)
 
 
+
+def test_with_the_visible_filter_the_official_aux_counts_every_routed_sample_and_reads_V_D_once():
+    """With moe.vd_filter: visible the gate sees only what V_D leaves visible, so the official auxiliary loss over
+    the visible samples (moe.aux_samples: visible) is the loss over every routed sample: V_D is read and composited
+    once per step, by the filter, not a second time for the loss."""
+    from boostnerf_cli.recipe import TrainRecipe
+    from boostnerf_cli.tasks import MixtureTask
+
+    mix = _mixture(m=3, k=1, scale=3.0)
+    with torch.no_grad():  # V_D opaque enough that surfaces hide what lies behind them
+        mix.vd.table.add_(10.0)
+    mix.configure(vd_filter="visible", aux_samples="visible", aux_norm="counts")
+    origins, dirs = _rays(40)
+    settings = _settings(color_threshold=1e-4)
+    task = MixtureTask(mix, settings, TrainRecipe(), MoERecipe(lam=1.0, topk=1))
+    reads = []
+    vd_density = mix.vd_density
+    mix.vd_density = lambda xyz: reads.append(xyz.shape[0]) or vd_density(xyz)
+    rgb = torch.rand(40, 3, dtype=torch.float64)
+    torch.manual_seed(5)
+    _, logs = task.loss(origins, dirs, rgb, 0)
+    assert len(reads) == 1  # the filter's read; before the fix the loss composited V_D a second time
+    torch.manual_seed(5)  # the same jitter: the same samples and routing
+    stats = RoutingStats()
+    bundle = render_rays(mix.with_stats(stats), origins, dirs, settings, mix.skip, jitter=True)
+    assert visible_samples(mix, bundle, origins, dirs, 1e-4).all()  # the second composite dropped nothing: same loss
+    probs, idx = torch.cat(stats.probs), torch.cat(stats.idx)
+    expected = _aux_reference(probs.detach(), idx, mix.penalty, "counts")
+    assert 0 < expected and logs["aux"] == pytest.approx(expected, rel=1e-12)
+
 # --- the chain through the CLI --------------------------------------------------------------------------
 OFFICIAL = {"gate_res": 12, "gate_init": "expert", "aux_norm": "counts", "aux_samples": "visible", "mix": "alpha",
             "lam": 0.01, "lr_gate": 0.1, "penalty": "1, 1.5", "vd_source": "largest", "vd_filter": "visible"}
