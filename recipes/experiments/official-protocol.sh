@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh DATA OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|llff-m3|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh DATA OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|below-vd-official|seed1-below-vd-official|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|llff-m3|collect]...
 #   DATA        the scene folder: lego's (../shared/data/lego) for every step but llff-m3, which takes fern's
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
@@ -74,6 +74,9 @@
 #               without costs -> OUT/below-base-s1, below-top1-s1
 #   below-step40  below's experts, the mixture sampling at its smallest expert's step (moe.step_from: smallest), Top-1
 #               with the raw weight -> OUT/below-step40
+#   below-vd-official  below's experts and moe/init, Top-1 with the raw weight and the official code's V_D (moe.vd_source:
+#               largest, moe.vd_filter: visible: fewer samples reach the gate and the experts) -> OUT/below-raw-vd-official
+#               (seed1-below-vd-official: with finetuning seed 1, evaluated without costs -> OUT/below-raw-vd-official-s1)
 #   hires-base96  the control for hires: its smallest expert (dvgo-96) alone for 1,000 + 5,000 steps, as the baseline
 #               of a two-expert recipe 88/96 -> OUT/hires-base96
 #   m3-alone    the same control for m3: its smaller experts dvgo-64 and dvgo-72 each alone for 1,000 + 5,000 steps
@@ -239,6 +242,16 @@ for what in "$@"; do
       seed1_model below "$recipe" base baseline --baseline
       seed1_model below "$recipe" top1 top1 --topk 1 --no-renormalize ;;
     below-step40) smallest_step below below-step40 "$(variant below "${BELOW[@]}")" ;;
+    below-vd-official|seed1-below-vd-official)
+      recipe="$(variant below-vd-official "${BELOW[@]}" moe.vd_source=largest moe.vd_filter=visible)"
+      if [ $what = below-vd-official ]; then
+        W="$OUT/below-raw-vd-official"
+        from_size below "$W"
+        boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
+        boostnerf eval -w "$W" --report --device cpu --model top1
+      else
+        seed1_model below "$recipe" raw-vd-official top1 --topk 1 --no-renormalize
+      fi ;;
     px200-alone)
       alone px200-alone96 "88, 96" "88: 64, 96: 64" 88 data.image_size=200
       alone px200-alone112 "96, 112" "96: 64, 112: 96" 96 data.image_size=200 ;;
@@ -361,6 +374,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, seed1-below, below-step40, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, llff-m3, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, seed1-below, below-step40, below-vd-official, seed1-below-vd-official, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, llff-m3, collect)" >&2; exit 2 ;;
   esac
 done
