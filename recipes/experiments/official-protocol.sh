@@ -84,7 +84,7 @@
 #   llff-m3     M = 3 away from lego: a LLFF forward-facing scene (fern, ../shared/data/fern, in NDC) at 252 px wide
 #               (images_8 halved), m3's experts and the official recipe otherwise, 3,000 joint steps (a fern step
 #               costs ~5x a lego one: ~88 samples per ray, nearly all coloured); the baseline (dvgo-80, 1,000 + 3,000
-#               steps), Top-1 with the raw-probability weight and Top-2 -> OUT/llff-m3 (the paper's LLFF row is its
+#               steps), Top-1 with the raw-probability weight, Top-2 and the ensemble -> OUT/llff-m3 (the paper's LLFF row is its
 #               one where Top-1 is below its baseline at M = 3, with every family)
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds, as
 #               issue18-$TAG<workspace>.json (TAG empty by default)
@@ -213,7 +213,7 @@ for what in "$@"; do
     paper-m3) ENS=1 mixtures "$OUT/paper-m3" "$OFFICIAL" ;;
     paper-m4) ENS=1 mixtures "$OUT/paper-m4" "$(variant m4 "${M4[@]}")" ;;
     paper-m5) ENS=1 mixtures "$OUT/paper-m5" "$(variant m5 "${M5[@]}")" ;;
-    llff-m3) mixtures "$OUT/llff-m3" "$(variant llff-m3 "64, 72, 80" "64: 64, 72: 96, 80: 128" 64 moe.iters=3000 \
+    llff-m3) ENS=1 mixtures "$OUT/llff-m3" "$(variant llff-m3 "64, 72, 80" "64: 64, 72: 96, 80: 128" 64 moe.iters=3000 \
       "data={image_size: 252, holdout_every: 8, format: llff}")" ;;
     hires) mixtures "$OUT/hires" "$(variant hires "${HIRES[@]}")" ;;
     same-mlp) BASELINE=last mixtures "$OUT/m3-mlp128" "$(variant m3-mlp128 "${MLP128[@]}")" ;;
