@@ -76,6 +76,8 @@ class TrainRecipe:
     growth: list[float] = limit(rule=OPEN_UNIT, factory=lambda: [0.1, 0.2, 0.3])  # fractions of iters; voxels x2 each
     occupancy_every: int = limit(500, NON_NEGATIVE)  # steps between occupancy refreshes (0 = never)
     occupancy_threshold: float = limit(1e-4, THRESHOLD)  # alpha per step below which a cell is skipped
+    random_background: bool = False  # composite each training ray on a random colour, not the scene's background
+    # (for captures whose every pixel is opaque, LLFF: empty space can then fake no colour; docs/datasets.md)
     log_every: int = limit(100, at_least(1))
     checkpoint_every: int = limit(500, at_least(1))
 

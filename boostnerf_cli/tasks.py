@@ -31,9 +31,30 @@ def train_rays(scene: Scene, bbox: Tensor, device: str) -> RayData:
     return RayData.from_split(scene.splits["train"], bbox.cpu(), scene.near, scene.far, scene.ndc).to(device)
 
 
-def photometric_loss(bundle, rgb: Tensor, tcfg: TrainRecipe) -> tuple[Tensor, dict[str, float]]:
-    """MSE + DVGO's per-sample colour loss and background entropy loss."""
-    mse = torch.mean((bundle.color - rgb) ** 2)
+def random_background(n: int, step: int, device: torch.device | str) -> Tensor:
+    """(n, 3) colours in [0, 1) for this process's n training rays of step `step` (`train.random_background`).
+
+    Drawn from a generator seeded by the step alone, for the whole global batch, of which this rank takes its
+    shard's rows: one process and N data-parallel ranks composite the same rays on the same colours, a resumed
+    run draws what an uninterrupted one does, and torch's own random stream (the renderer's jitter) is untouched."""
+    gen = torch.Generator().manual_seed(1_000_003 + step)
+    colours = torch.rand(dist.world_size() * n, 3, generator=gen)
+    return colours[dist.rank() * n : (dist.rank() + 1) * n].to(device)
+
+
+def photometric_loss(bundle, rgb: Tensor, tcfg: TrainRecipe, background=(1.0, 1.0, 1.0),
+                     step: int = 0) -> tuple[Tensor, dict[str, float]]:
+    """MSE + DVGO's per-sample colour loss and background entropy loss.
+
+    With `tcfg.random_background` each ray's colour is composited on a random colour instead of `background`
+    (the scene's, which `bundle.color` was composited on): a scene whose every pixel is opaque then leaves no
+    colour that empty space in front of the background could fake."""
+    color = bundle.color
+    if tcfg.random_background:
+        bg = torch.as_tensor(background, dtype=color.dtype, device=color.device)
+        color = color + (1.0 - bundle.acc)[:, None] * (random_background(color.shape[0], step, color.device)
+                                                       .to(color.dtype) - bg)
+    mse = torch.mean((color - rgb) ** 2)
     loss = mse
     if tcfg.weight_rgbper > 0:
         w, c = bundle.extras["weights"], bundle.extras["rgb"]
@@ -81,7 +102,7 @@ class FieldTask:
 
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):
         bundle = render_rays(self.model, origins, dirs, self.settings, self.skip, jitter=True)
-        loss, logs = photometric_loss(bundle, rgb, self.tcfg)
+        loss, logs = photometric_loss(bundle, rgb, self.tcfg, self.settings.background, step)
         reg = self.model.regularization()
         if reg is not None:
             loss = loss + reg
@@ -142,7 +163,7 @@ class MixtureTask:
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):
         stats = RoutingStats()
         bundle = render_rays(self.mix.with_stats(stats, self.gate_noise), origins, dirs, self.settings, self.mix.skip, jitter=True)
-        loss, logs = photometric_loss(bundle, rgb, self.tcfg)
+        loss, logs = photometric_loss(bundle, rgb, self.tcfg, self.settings.background, step)
         for ex in self.mix.experts:  # family-specific terms (TensoRF's L1), as in pretraining
             reg = ex.regularization()
             if reg is not None:

@@ -95,6 +95,8 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     for key in ("mix", "aux_norm", "aux_samples", "vd_source", "vd_filter"):  # named only when not the default: older checkpoints still resume
         if getattr(mix.cfg, key) != getattr(defaults, key):
             signature[key] = getattr(mix.cfg, key)
+    if rec.train.random_background:
+        signature["random_background"] = True
     if task.wide_steps:
         signature["wide_steps"] = task.wide_steps
     if task.gate_noise:
@@ -151,7 +153,8 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
     result = train(task, train_rays(scene, model.bbox, device), sched, rec.seed, "baseline",
                    checkpoint=ws.checkpoint_path("baseline"),
                    signature={"stage": "finetune", "model": "baseline", "from": source, "iters": rec.iters,
-                              "seed": rec.seed}, data_parallel=True)
+                              "seed": rec.seed, **({"random_background": True} if rec.train.random_background else {})},
+                   data_parallel=True)
     model.eval()
     final = result.history[-1] if result.history else {}
     report = {

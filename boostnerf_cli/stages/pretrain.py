@@ -199,6 +199,8 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
                  rec.model: rec.family_config(), "iters": rec.iters, "skip": rec.skip, "growth": list(tcfg.growth),
                  "seed": rec.seed + res,
                  "geometry": read_meta(ws.geometry_path).get("digest")}
+    if tcfg.random_background:  # named only when set: older checkpoints still resume
+        signature["random_background"] = True
     result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt, signature=signature)
     model.eval()
     task.refresh_occupancy()

@@ -1,0 +1,87 @@
+"""train.random_background: each training ray composited on a random colour instead of the scene's background.
+
+For captures whose every pixel is opaque (LLFF): against a fixed white background a white wall can be learned as
+empty space (right colour, depth 0; docs/datasets.md). Checked against a float64 reference, across data-parallel
+shards, and on a toy scene where the white background lets the wall stay empty.
+"""
+
+import pytest
+import torch
+
+from boostnerf_cli import distributed as dist
+from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.recipe import TrainRecipe
+from boostnerf_cli.render.renderer import RayBundle, RenderSettings, render_rays
+from boostnerf_cli.tasks import photometric_loss, random_background
+
+BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+
+def _bundle(n, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    acc = torch.rand(n, generator=g, dtype=torch.float64)
+    fore = torch.rand(n, 3, generator=g, dtype=torch.float64) * acc[:, None]  # premultiplied colour of the samples
+    white = torch.ones(3, dtype=torch.float64)
+    return RayBundle(fore + (1 - acc)[:, None] * white, torch.zeros(n), acc, 0, 0, {}), fore
+
+
+def test_each_ray_is_composited_on_its_own_random_colour():
+    bundle, fore = _bundle(64)
+    rgb = torch.rand(64, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    tcfg = TrainRecipe(random_background=True, weight_rgbper=0.0, weight_entropy=0.0)
+    loss, _ = photometric_loss(bundle, rgb, tcfg, (1.0, 1.0, 1.0), step=7)
+    bg = random_background(64, 7, "cpu").double()
+    ref = sum(float(((fore[i] + (1 - bundle.acc[i]) * bg[i] - rgb[i]) ** 2).sum()) for i in range(64)) / (64 * 3)
+    assert float(loss) == pytest.approx(ref, rel=1e-12)
+    assert 0.2 < float(bg.mean()) < 0.8 and float(bg.std()) > 0.2  # colours, not one grey
+    off, _ = photometric_loss(bundle, rgb, TrainRecipe(weight_rgbper=0.0, weight_entropy=0.0), (1.0, 1.0, 1.0), 7)
+    assert float(off) == pytest.approx(float(((bundle.color - rgb) ** 2).mean()), rel=1e-12)  # off: as before
+
+
+def test_the_colours_depend_on_the_step_alone_and_leave_torchs_random_stream_alone():
+    torch.manual_seed(3)
+    before = torch.rand(5)
+    torch.manual_seed(3)
+    a = random_background(16, 11, "cpu")
+    after = torch.rand(5)
+    assert torch.equal(before, after)  # the renderer's jitter draws what it drew without the option
+    assert torch.equal(a, random_background(16, 11, "cpu"))  # a resumed run composites on the same colours
+    assert not torch.equal(a, random_background(16, 12, "cpu"))
+
+
+def test_data_parallel_shards_get_the_rows_of_the_global_batch(monkeypatch):
+    whole = random_background(12, 5, "cpu")  # one process, the global batch of 12 rays
+    monkeypatch.setattr(dist, "world_size", lambda: 3)
+    shards = []
+    for r in range(3):
+        monkeypatch.setattr(dist, "rank", lambda r=r: r)
+        shards.append(random_background(4, 5, "cpu"))
+    assert torch.equal(torch.cat(shards), whole)
+
+
+@pytest.mark.parametrize("random", [False, True])
+def test_a_white_wall_is_learned_as_a_surface_only_against_a_random_background(random):
+    """A white wall behind empty space, seen head-on against the white background: the target is white
+    everywhere. With the fixed background nothing asks for density and the rays stay mostly empty (depth 0);
+    with a random one only an opaque white surface matches every draw."""
+    torch.manual_seed(0)
+    field = DVGOExpert(DVGOConfig(res=12, hidden=0, alpha_init=0.01), BOX)
+    settings = RenderSettings(step=0.08, near=0.0, far=6.0, bbox=BOX, background=(1.0, 1.0, 1.0), color_threshold=0.0)
+    tcfg = TrainRecipe(random_background=random, weight_rgbper=0.0, weight_entropy=0.0)
+    g = torch.Generator().manual_seed(0)
+    opt = torch.optim.Adam(field.parameters(), lr=0.1)
+    for step in range(60):
+        xy = torch.rand(256, 2, generator=g) * 1.6 - 0.8
+        origins = torch.cat([xy, torch.full((256, 1), 3.0)], dim=-1)
+        dirs = torch.tensor([0.0, 0.0, -1.0]).expand(256, 3)
+        bundle = render_rays(field, origins, dirs, settings, jitter=True)
+        loss, _ = photometric_loss(bundle, torch.ones(256, 3), tcfg, settings.background, step)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        acc = render_rays(field, origins, dirs, settings).acc
+    if random:
+        assert float(acc.mean()) > 0.9
+    else:
+        assert float(acc.mean()) < 0.5
