@@ -42,8 +42,8 @@ def random_background(n: int, step: int, device: torch.device | str) -> Tensor:
     return colours[dist.rank() * n : (dist.rank() + 1) * n].to(device)
 
 
-def photometric_loss(bundle, rgb: Tensor, tcfg: TrainRecipe, background=(1.0, 1.0, 1.0),
-                     step: int = 0) -> tuple[Tensor, dict[str, float]]:
+def photometric_loss(bundle, rgb: Tensor, tcfg: TrainRecipe, background: tuple[float, float, float],
+                     step: int) -> tuple[Tensor, dict[str, float]]:
     """MSE + DVGO's per-sample colour loss and background entropy loss.
 
     With `tcfg.random_background` each ray's colour is composited on a random colour instead of `background`

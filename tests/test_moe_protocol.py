@@ -425,7 +425,6 @@ def test_the_visible_filter_drops_what_V_D_hides_as_a_per_ray_reference_does(sou
     assert torch.equal(render_rays(mix, origins, dirs, settings, mix.skip).extras["rows"], opacity_only)
 
 
-
 def test_with_the_visible_filter_the_official_aux_counts_every_routed_sample_and_reads_V_D_once():
     """With moe.vd_filter: visible the gate sees only what V_D leaves visible, so the official auxiliary loss over
     the visible samples (moe.aux_samples: visible) is the loss over every routed sample: V_D is read and composited

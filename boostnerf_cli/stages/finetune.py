@@ -150,11 +150,11 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
     model.train()
     settings = scene.render_settings(meta["step"], model.bbox, rec.train.color_threshold)
     task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
+    signature = {"stage": "finetune", "model": "baseline", "from": source, "iters": rec.iters, "seed": rec.seed}
+    if rec.train.random_background:  # named only when set: older checkpoints still resume
+        signature["random_background"] = True
     result = train(task, train_rays(scene, model.bbox, device), sched, rec.seed, "baseline",
-                   checkpoint=ws.checkpoint_path("baseline"),
-                   signature={"stage": "finetune", "model": "baseline", "from": source, "iters": rec.iters,
-                              "seed": rec.seed, **({"random_background": True} if rec.train.random_background else {})},
-                   data_parallel=True)
+                   checkpoint=ws.checkpoint_path("baseline"), signature=signature, data_parallel=True)
     model.eval()
     final = result.history[-1] if result.history else {}
     report = {

@@ -83,7 +83,7 @@
 #               (two-expert recipes 56/64 and 64/72) -> OUT/m3-alone64, m3-alone72
 #   llff-m3     M = 3 away from lego: a LLFF forward-facing scene (fern, ../shared/data/fern, in NDC) at 252 px wide
 #               (images_8 halved), m3's experts and the official recipe otherwise, 3,000 joint steps (a fern step
-#               costs ~5x a lego one: ~88 samples per ray, nearly all coloured); the baseline (dvgo-80, 1,000 + 3,000
+#               costs ~5x a lego one: ~120 samples per ray pass the occupancy grid, ~50 are coloured); the baseline (dvgo-80, 1,000 + 3,000
 #               steps), Top-1 with the raw-probability weight, Top-2 and the ensemble -> OUT/llff-m3 (the paper's LLFF row is its
 #               one where Top-1 is below its baseline at M = 3, with every family)
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds, as
@@ -103,10 +103,10 @@ from_size() {  # from_size SIZE W: a new workspace W holding SIZE's experts and 
   experts_of "$1" "$2" && mkdir -p "$2/moe" && cp "$OUT/$1/moe/init."* "$2/moe/"
 }
 raw_top1() {  # raw_top1 W FLAG...: M = 3 Top-1 with the raw-probability weight and FLAG... on m3's experts and moe/init
-  # (recipe $RECIPE, by default the official one)
+  # (recipe $RECIPE, by default the official one; $SIZE's experts and moe/init instead of m3's)
   local W="$1"
   shift
-  from_size m3 "$W"
+  from_size "${SIZE:-m3}" "$W"
   boostnerf finetune -w "$W" --recipe "${RECIPE:-$OFFICIAL}" --topk 1 --no-renormalize "$@" --device cpu
   boostnerf eval -w "$W" --report --device cpu --model top1
 }
@@ -245,10 +245,7 @@ for what in "$@"; do
     below-vd-official|seed1-below-vd-official)
       recipe="$(variant below-vd-official "${BELOW[@]}" moe.vd_source=largest moe.vd_filter=visible)"
       if [ $what = below-vd-official ]; then
-        W="$OUT/below-raw-vd-official"
-        from_size below "$W"
-        boostnerf finetune -w "$W" --recipe "$recipe" --topk 1 --no-renormalize --device cpu
-        boostnerf eval -w "$W" --report --device cpu --model top1
+        SIZE=below RECIPE="$recipe" raw_top1 "$OUT/below-raw-vd-official"
       else
         seed1_model below "$recipe" raw-vd-official top1 --topk 1 --no-renormalize
       fi ;;
