@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh DATA OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|below-vd-official|seed1-below-vd-official|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|llff-m3|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh DATA OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|below-vd-official|seed1-below-vd-official|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|llff-m3|tensorf-m3|ngp-m3|collect]...
 #   DATA        the scene folder: lego's (../shared/data/lego) for every step but llff-m3, which takes fern's
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
@@ -86,6 +86,12 @@
 #               costs ~5x a lego one: ~120 samples per ray pass the occupancy grid, ~50 are coloured); the baseline (dvgo-80, 1,000 + 3,000
 #               steps), Top-1 with the raw-probability weight, Top-2 and the ensemble -> OUT/llff-m3 (the paper's LLFF row is its
 #               one where Top-1 is below its baseline at M = 3, with every family)
+#   tensorf-m3, ngp-m3  M = 3 with the other families: blender-tensorf-cpu.yaml's experts (64/80/96) or
+#               blender-ngp-cpu.yaml's (L = 6/8/10) and its gate (random: the official code has no TensoRF or
+#               Instant-NGP mixture, and moe.gate_init: expert copies a dense grid), with the official protocol
+#               otherwise: 1,000 pretraining steps, 5,000 joint steps at the family's pretraining rates decaying x0.1,
+#               lambda 1e-3 over (sum c_i)^2 and visible samples, opacities mixed; the baseline, Top-1 with the
+#               raw-probability weight and Top-2 (ENS=1: and the ensemble) -> OUT/tensorf-m3, OUT/ngp-m3
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds, as
 #               issue18-$TAG<workspace>.json (TAG empty by default)
 # One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
@@ -151,6 +157,14 @@ gate_layout() {  # gate_layout SRC RES: M = 3 with m4's experts 72/80/88, the ga
   boostnerf finetune -w "$W" --recipe "$OUT/official-gate-$1.yaml" --topk 1 --no-renormalize --device cpu
   boostnerf eval -w "$W" --report --device cpu --model top1
 }
+family_official() {  # family_official FAMILY: blender-FAMILY-cpu.yaml with the official protocol's budget and mixture
+  # training (its gate kept); print the recipe's path
+  local src="$HERE/recipes/blender-$1-cpu.yaml" lrs
+  lrs="$(python -c 'import sys, yaml; t = yaml.safe_load(open(sys.argv[1]))["pretrain"]["train"]; print(t["lr_grid"], t["lr_mlp"])' "$src")"
+  recipe_with "$src" "$OUT/official-$1-m3.yaml" pretrain.iters=1000 moe.iters=5000 moe.lam=0.001 moe.penalty=geometric \
+    moe.aux_norm=counts moe.aux_samples=visible moe.mix=alpha \
+    "moe.train={batch_rays: 1024, lr_grid: ${lrs% *}, lr_mlp: ${lrs#* }, lr_decay: 0.1, log_every: 250, checkpoint_every: 500}"
+}
 M4=("64, 72, 80, 88" "64: 64, 72: 96, 80: 128, 88: 128" 64)  # m4's experts: variant's RES HIDDEN GATE_RES
 M5=("56, 64, 72, 80, 88" "56: 64, 64: 64, 72: 96, 80: 128, 88: 128" 56)  # m5's
 HIRES=("96, 112, 128" "96: 64, 112: 96, 128: 128" 96)  # hires' experts: variant's RES HIDDEN GATE_RES
@@ -215,6 +229,7 @@ for what in "$@"; do
     paper-m5) ENS=1 mixtures "$OUT/paper-m5" "$(variant m5 "${M5[@]}")" ;;
     llff-m3) ENS=1 mixtures "$OUT/llff-m3" "$(variant llff-m3 "64, 72, 80" "64: 64, 72: 96, 80: 128" 64 moe.iters=3000 \
       "data={image_size: 252, holdout_every: 8, format: llff}")" ;;
+    tensorf-m3|ngp-m3) mixtures "$OUT/$what" "$(family_official "${what%-m3}")" ;;
     hires) mixtures "$OUT/hires" "$(variant hires "${HIRES[@]}")" ;;
     same-mlp) BASELINE=last mixtures "$OUT/m3-mlp128" "$(variant m3-mlp128 "${MLP128[@]}")" ;;
     seed1-same-mlp) seed1_model m3-mlp128 "$(variant m3-mlp128 "${MLP128[@]}")" top1 top1 \
@@ -371,6 +386,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, seed1-below, below-step40, below-vd-official, seed1-below-vd-official, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, llff-m3, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, seed1-below, below-step40, below-vd-official, seed1-below-vd-official, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, llff-m3, tensorf-m3, ngp-m3, collect)" >&2; exit 2 ;;
   esac
 done
