@@ -1,7 +1,7 @@
 """Training tasks: what one training step of a field computes, for the loop in `train.py`.
 
 `train.train(task, rays, schedule, ...)` draws a batch of training rays and calls `task.loss(origins, dirs,
-rgb, step)`; a task renders the batch through its field (`render.renderer.render_rays`) and returns the loss
+rgb, alpha, step)`; a task renders the batch through its field (`render.renderer.render_rays`) and returns the loss
 and what to log. `FieldTask` trains one expert (pretrain, the geometry stage, the finetuned baseline);
 `MixtureTask` a mixture of experts (finetune: photometric loss plus lambda times the auxiliary loss).
 """
@@ -26,9 +26,11 @@ from boostnerf_cli.scenes import Scene
 from boostnerf_cli.train import RayData
 
 
-def train_rays(scene: Scene, bbox: Tensor, device: str) -> RayData:
-    """Every training ray of `scene` that crosses `bbox`, with its pixel colour, on `device`."""
-    return RayData.from_split(scene.splits["train"], bbox.cpu(), scene.near, scene.far, scene.ndc).to(device)
+def train_rays(scene: Scene, bbox: Tensor, device: str, tcfg: TrainRecipe) -> RayData:
+    """Every training ray of `scene` that crosses `bbox`, with its pixel colour (and, for `tcfg.random_background`,
+    its alpha when the images had one), on `device`."""
+    return RayData.from_split(scene.splits["train"], bbox.cpu(), scene.near, scene.far, scene.ndc,
+                              alpha=tcfg.random_background).to(device)
 
 
 def random_background(n: int, step: int, device: torch.device | str) -> Tensor:
@@ -42,18 +44,22 @@ def random_background(n: int, step: int, device: torch.device | str) -> Tensor:
     return colours[dist.rank() * n : (dist.rank() + 1) * n].to(device)
 
 
-def photometric_loss(bundle, rgb: Tensor, tcfg: TrainRecipe, background: tuple[float, float, float],
-                     step: int) -> tuple[Tensor, dict[str, float]]:
+def photometric_loss(bundle, rgb: Tensor, alpha: Tensor | None, tcfg: TrainRecipe,
+                     background: tuple[float, float, float], step: int) -> tuple[Tensor, dict[str, float]]:
     """MSE + DVGO's per-sample colour loss and background entropy loss.
 
     With `tcfg.random_background` each ray's colour is composited on a random colour instead of `background`
     (the scene's, which `bundle.color` was composited on): a scene whose every pixel is opaque then leaves no
-    colour that empty space in front of the background could fake."""
+    colour that empty space in front of the background could fake. The pixel `rgb` (composited on `background`)
+    moves to the same colour by its `alpha` (None: opaque pixels, which stay as they are), as the rendered
+    colour does by its opacity: on a scene with alpha (Blender) empty space still matches a transparent pixel."""
     color = bundle.color
     if tcfg.random_background:
         bg = torch.as_tensor(background, dtype=color.dtype, device=color.device)
-        color = color + (1.0 - bundle.acc)[:, None] * (random_background(color.shape[0], step, color.device)
-                                                       .to(color.dtype) - bg)
+        shift = random_background(color.shape[0], step, color.device).to(color.dtype) - bg
+        color = color + (1.0 - bundle.acc)[:, None] * shift
+        if alpha is not None:
+            rgb = rgb + (1.0 - alpha.to(rgb.dtype))[:, None] * shift.to(rgb.dtype)
     mse = torch.mean((color - rgb) ** 2)
     loss = mse
     if tcfg.weight_rgbper > 0:
@@ -100,9 +106,9 @@ class FieldTask:
             grid = OccupancyGrid(grid.occupied & self.base_mask.sample_cells(grid), grid.bbox)
         self.skip = grid
 
-    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):
+    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, alpha: Tensor | None, step: int):
         bundle = render_rays(self.model, origins, dirs, self.settings, self.skip, jitter=True)
-        loss, logs = photometric_loss(bundle, rgb, self.tcfg, self.settings.background, step)
+        loss, logs = photometric_loss(bundle, rgb, alpha, self.tcfg, self.settings.background, step)
         reg = self.model.regularization()
         if reg is not None:
             loss = loss + reg
@@ -160,10 +166,10 @@ class MixtureTask:
             self.mix.configure(**routing)
         return False
 
-    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int):
+    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, alpha: Tensor | None, step: int):
         stats = RoutingStats()
         bundle = render_rays(self.mix.with_stats(stats, self.gate_noise), origins, dirs, self.settings, self.mix.skip, jitter=True)
-        loss, logs = photometric_loss(bundle, rgb, self.tcfg, self.settings.background, step)
+        loss, logs = photometric_loss(bundle, rgb, alpha, self.tcfg, self.settings.background, step)
         for ex in self.mix.experts:  # family-specific terms (TensoRF's L1), as in pretraining
             reg = ex.regularization()
             if reg is not None:

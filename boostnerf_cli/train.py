@@ -28,29 +28,34 @@ from boostnerf_cli.workspace import MALFORMED, kill_point_for_tests, malformed, 
 
 @dataclass
 class RayData:
-    """All training rays of a split that hit the box: origins, dirs, rgb, each (N, 3), on the split's device
-    (the CPU) until `.to(device)`."""
+    """All training rays of a split that hit the box: origins, dirs, rgb, each (N, 3), and the pixels' alpha (N,)
+    (None: opaque images, or not asked for), on the split's device (the CPU) until `.to(device)`."""
 
     origins: Tensor
     dirs: Tensor
     rgb: Tensor
+    alpha: Tensor | None = None
 
     @staticmethod
-    def from_split(split: Split, bbox: Tensor, near: float, far: float, ndc: NDC | None = None) -> "RayData":
-        os_, ds, cs = [], [], []
+    def from_split(split: Split, bbox: Tensor, near: float, far: float, ndc: NDC | None = None,
+                   alpha: bool = False) -> "RayData":
+        """`alpha`: keep the split's alpha (when its images had one), for a loss that composites the pixels on
+        another colour than the scene's background (`train.random_background`)."""
+        os_, ds = [], []
         for i in range(len(split)):
             o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, ndc)
             os_.append(o)
             ds.append(d)
-            cs.append(split.images[i].reshape(-1, 3))
-        o, d, c = torch.cat(os_), torch.cat(ds), torch.cat(cs)
+        o, d, c = torch.cat(os_), torch.cat(ds), split.images.reshape(-1, 3)
         # The split's rays are built where its images are (the CPU); the box may be on the model's device.
         _, _, hit = intersect_box(o, d, bbox.to(o.device), near, far)
         # A ray that misses the box renders the background exactly: nothing to learn from it.
-        return RayData(o[hit], d[hit], c[hit])
+        a = split.alpha.reshape(-1)[hit] if alpha and split.alpha is not None else None
+        return RayData(o[hit], d[hit], c[hit], a)
 
     def to(self, device: torch.device | str) -> "RayData":
-        return RayData(self.origins.to(device), self.dirs.to(device), self.rgb.to(device))
+        return RayData(self.origins.to(device), self.dirs.to(device), self.rgb.to(device),
+                       None if self.alpha is None else self.alpha.to(device))
 
     def __len__(self) -> int:
         return self.origins.shape[0]
@@ -73,7 +78,8 @@ class TrainTask(Protocol):
 
     def param_groups(self) -> list[dict]: ...
 
-    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, step: int) -> tuple[Tensor, dict[str, float]]: ...
+    def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, alpha: Tensor | None,
+             step: int) -> tuple[Tensor, dict[str, float]]: ...
 
     def before_step(self, step: int) -> bool:
         """Called before each step; True when the parameters changed (the optimiser is rebuilt)."""
@@ -225,7 +231,8 @@ def batch_gradients(task: TrainTask, rays: RayData, idx: Tensor, step: int,
     if parallel:
         idx = dist.shard(idx)
     with dist.rng_share(len(idx), rays.origins.device) if parallel else nullcontext():
-        loss, logs = task.loss(rays.origins[idx], rays.dirs[idx], rays.rgb[idx], step)
+        alpha = None if rays.alpha is None else rays.alpha[idx]
+        loss, logs = task.loss(rays.origins[idx], rays.dirs[idx], rays.rgb[idx], alpha, step)
     finite = bool(torch.isfinite(loss))
     if loss.requires_grad and finite:
         loss.backward()

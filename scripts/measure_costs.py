@@ -168,7 +168,7 @@ def measure_step(ws: Workspace, scene, rec: Recipe, expert: str, steps: int, dev
     task = tasks["step"]
     rec_model = task.model
     opt = make_optimizer(task)
-    rays = train_rays(scene, model.bbox, device)
+    rays = train_rays(scene, model.bbox, device, tcfg)
     gen = torch.Generator().manual_seed(0)
     step_s, bare_s, samples = [], [], []
     for i in range(steps + 2):
@@ -196,7 +196,7 @@ def measure_view(ws: Workspace, scene, rec: Recipe, expert: str, steps: int, dev
     if not hasattr(model, "batch_view"):
         return None
     opt = make_optimizer(tasks["view"])
-    rays = train_rays(scene, model.bbox, device)
+    rays = train_rays(scene, model.bbox, device, tcfg)
     gens = {name: torch.Generator().manual_seed(0) for name in tasks}  # the same batches for both
     secs: dict[str, list[float]] = {name: [] for name in tasks}
     for i in range(steps + 2):
@@ -216,7 +216,7 @@ def measure_mixture(ws: Workspace, scene, rec: Recipe, name: str, steps: int, de
     settings = scene.render_settings(mix.cfg.step, mix.bbox, rec.moe.train.color_threshold)
     task = MixtureTask(mix, settings, rec.moe.train, rec.moe)
     opt = make_optimizer(task)
-    rays = train_rays(scene, mix.bbox, device)
+    rays = train_rays(scene, mix.bbox, device, rec.moe.train)
     gen = torch.Generator().manual_seed(0)
     captured = {}
     orig_density, orig_color_rows = RoutedMixture.density, RoutedMixture.color_rows

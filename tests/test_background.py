@@ -2,7 +2,8 @@
 
 For captures whose every pixel is opaque (LLFF): against a fixed white background a white wall can be learned as
 empty space (right colour, depth 0; docs/datasets.md). Checked against a float64 reference, across data-parallel
-shards, and on a toy scene where the white background lets the wall stay empty.
+shards, and on a toy scene where the white background lets the wall stay empty. For scenes with alpha (Blender) the
+pixel moves to the same colour by its alpha, so a transparent pixel still asks for empty space.
 """
 
 import pytest
@@ -12,7 +13,9 @@ from boostnerf_cli import distributed as dist
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.recipe import TrainRecipe
 from boostnerf_cli.render.renderer import RayBundle, RenderSettings, render_rays
-from boostnerf_cli.tasks import photometric_loss, random_background
+from boostnerf_cli.scenes import load_scene, make_scene
+from boostnerf_cli.tasks import photometric_loss, random_background, train_rays
+from boostnerf_cli.train import RayData
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -29,13 +32,51 @@ def test_each_ray_is_composited_on_its_own_random_colour():
     bundle, fore = _bundle(64)
     rgb = torch.rand(64, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     tcfg = TrainRecipe(random_background=True, weight_rgbper=0.0, weight_entropy=0.0)
-    loss, _ = photometric_loss(bundle, rgb, tcfg, (1.0, 1.0, 1.0), step=7)
+    loss, _ = photometric_loss(bundle, rgb, None, tcfg, (1.0, 1.0, 1.0), step=7)
     bg = random_background(64, 7, "cpu").double()
     ref = sum(float(((fore[i] + (1 - bundle.acc[i]) * bg[i] - rgb[i]) ** 2).sum()) for i in range(64)) / (64 * 3)
     assert float(loss) == pytest.approx(ref, rel=1e-12)
     assert 0.2 < float(bg.mean()) < 0.8 and float(bg.std()) > 0.2  # colours, not one grey
-    off, _ = photometric_loss(bundle, rgb, TrainRecipe(weight_rgbper=0.0, weight_entropy=0.0), (1.0, 1.0, 1.0), 7)
+    off, _ = photometric_loss(bundle, rgb, None, TrainRecipe(weight_rgbper=0.0, weight_entropy=0.0), (1.0, 1.0, 1.0), 7)
     assert float(off) == pytest.approx(float(((bundle.color - rgb) ** 2).mean()), rel=1e-12)  # off: as before
+
+
+def test_a_pixel_with_alpha_moves_to_the_random_colour_by_its_alpha():
+    """float64 reference: target = premultiplied colour + (1 - alpha) * random colour, i.e. the pixel composited
+    on white moved by (1 - alpha) * (random - white); alpha 1 leaves the pixel, as no alpha does."""
+    bundle, fore = _bundle(64)
+    g = torch.Generator().manual_seed(2)
+    alpha = torch.rand(64, generator=g, dtype=torch.float64)
+    alpha[:8], alpha[8:16] = 0.0, 1.0
+    pixel = torch.rand(64, 3, generator=g, dtype=torch.float64) * alpha[:, None]  # premultiplied
+    on_white = pixel + (1 - alpha)[:, None]
+    tcfg = TrainRecipe(random_background=True, weight_rgbper=0.0, weight_entropy=0.0)
+    loss, _ = photometric_loss(bundle, on_white, alpha, tcfg, (1.0, 1.0, 1.0), step=7)
+    bg = random_background(64, 7, "cpu").double()
+    ref = sum(float(((fore[i] + (1 - bundle.acc[i]) * bg[i] - pixel[i] - (1 - alpha[i]) * bg[i]) ** 2).sum())
+              for i in range(64)) / (64 * 3)
+    assert float(loss) == pytest.approx(ref, rel=1e-12)
+    opaque, _ = photometric_loss(bundle, on_white, torch.ones(64, dtype=torch.float64), tcfg, (1.0, 1.0, 1.0), 7)
+    none, _ = photometric_loss(bundle, on_white, None, tcfg, (1.0, 1.0, 1.0), 7)
+    assert float(opaque) == pytest.approx(float(none), rel=1e-12)
+
+
+def test_scenes_keep_their_alpha_and_training_rays_carry_it_only_when_asked(tmp_path):
+    blender = load_scene(make_scene(tmp_path / "b", size=24, n_train=8, n_test=2), holdout_every=4)
+    train, test = blender.splits["train"], blender.splits["test"]
+    assert train.alpha is not None and train.alpha.shape == train.images.shape[:3]
+    assert test.alpha is not None and test.alpha.shape == test.images.shape[:3]  # held out with their images
+    assert float(train.alpha.min()) == 0.0 and float(train.alpha.max()) == 1.0
+    empty = train.alpha == 0  # where nothing covers a pixel it is the background, white
+    assert torch.allclose(train.images[empty], torch.ones(3))
+    on = RayData.from_split(train, blender.bbox, blender.near, blender.far, alpha=True)
+    assert on.alpha is not None and on.alpha.shape == (len(on),)
+    assert RayData.from_split(train, blender.bbox, blender.near, blender.far).alpha is None  # not asked: not kept
+    assert train_rays(blender, blender.bbox, "cpu", TrainRecipe(random_background=True)).alpha is not None
+    assert train_rays(blender, blender.bbox, "cpu", TrainRecipe()).alpha is None
+    llff = load_scene(make_scene(tmp_path / "l", size=24, n_train=8, n_test=2, layout="llff"), holdout_every=4)
+    assert llff.splits["train"].alpha is None  # opaque photographs: nothing to move
+    assert train_rays(llff, llff.bbox, "cpu", TrainRecipe(random_background=True)).alpha is None
 
 
 def test_the_colours_depend_on_the_step_alone_and_leave_torchs_random_stream_alone():
@@ -75,7 +116,7 @@ def test_a_white_wall_is_learned_as_a_surface_only_against_a_random_background(r
         origins = torch.cat([xy, torch.full((256, 1), 3.0)], dim=-1)
         dirs = torch.tensor([0.0, 0.0, -1.0]).expand(256, 3)
         bundle = render_rays(field, origins, dirs, settings, jitter=True)
-        loss, _ = photometric_loss(bundle, torch.ones(256, 3), tcfg, settings.background, step)
+        loss, _ = photometric_loss(bundle, torch.ones(256, 3), None, tcfg, settings.background, step)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -85,3 +126,27 @@ def test_a_white_wall_is_learned_as_a_surface_only_against_a_random_background(r
         assert float(acc.mean()) > 0.9
     else:
         assert float(acc.mean()) < 0.5
+
+
+def test_empty_space_in_front_of_a_transparent_background_stays_empty_against_random_colours():
+    """Blender's case: the pixels are transparent (alpha 0), composited on the white background. Against random
+    colours the pixel moves with them, so empty space still matches every draw and the rays stay empty; a loss that
+    kept the pixel white would ask for an opaque white surface (the white wall of the test above)."""
+    torch.manual_seed(0)
+    field = DVGOExpert(DVGOConfig(res=12, hidden=0, alpha_init=0.01), BOX)
+    settings = RenderSettings(step=0.08, near=0.0, far=6.0, bbox=BOX, background=(1.0, 1.0, 1.0), color_threshold=0.0)
+    tcfg = TrainRecipe(random_background=True, weight_rgbper=0.0, weight_entropy=0.0)
+    g = torch.Generator().manual_seed(0)
+    opt = torch.optim.Adam(field.parameters(), lr=0.1)
+    for step in range(60):
+        xy = torch.rand(256, 2, generator=g) * 1.6 - 0.8
+        origins = torch.cat([xy, torch.full((256, 1), 3.0)], dim=-1)
+        dirs = torch.tensor([0.0, 0.0, -1.0]).expand(256, 3)
+        bundle = render_rays(field, origins, dirs, settings, jitter=True)
+        loss, _ = photometric_loss(bundle, torch.ones(256, 3), torch.zeros(256), tcfg, settings.background, step)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        acc = render_rays(field, origins, dirs, settings).acc
+    assert float(acc.mean()) < 0.1

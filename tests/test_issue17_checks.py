@@ -51,7 +51,7 @@ class _FallingTask:
     def param_groups(self):
         return [{"params": [self.w], "lr": 1e-3}]
 
-    def loss(self, origins, dirs, rgb, step):
+    def loss(self, origins, dirs, rgb, alpha, step):
         return (self.w ** 2).sum() + 0 * origins.sum(), {"psnr": 30.0 - step // 10}
 
     def before_step(self, step):

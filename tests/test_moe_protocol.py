@@ -444,7 +444,7 @@ def test_with_the_visible_filter_the_official_aux_counts_every_routed_sample_and
     mix.vd_density = lambda xyz: reads.append(xyz.shape[0]) or vd_density(xyz)
     rgb = torch.rand(40, 3, dtype=torch.float64)
     torch.manual_seed(5)
-    _, logs = task.loss(origins, dirs, rgb, 0)
+    _, logs = task.loss(origins, dirs, rgb, None, 0)
     assert len(reads) == 1  # the filter's read; before the fix the loss composited V_D a second time
     torch.manual_seed(5)  # the same jitter: the same samples and routing
     stats = RoutingStats()

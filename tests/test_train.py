@@ -39,10 +39,10 @@ def test_resume_after_a_crash_matches_an_uninterrupted_run(tiny_scene, tmp_path)
     crashing = _task(scene, 24)
     real_loss = crashing.loss
 
-    def loss(o, d, c, step):
+    def loss(o, d, c, a, step):
         if step == 13:
             raise Interrupt()
-        return real_loss(o, d, c, step)
+        return real_loss(o, d, c, a, step)
 
     crashing.loss = loss
     with pytest.raises(Interrupt):
@@ -64,7 +64,7 @@ def test_repeated_non_finite_steps_stop_the_run(tiny_scene):
     rays = RayData.from_split(scene.splits["train"], scene.bbox, scene.near, scene.far)
     task = _task(scene, 50)
     real_loss = task.loss
-    task.loss = lambda o, d, c, step: (real_loss(o, d, c, step)[0] * float("nan"), {})
+    task.loss = lambda o, d, c, a, step: (real_loss(o, d, c, a, step)[0] * float("nan"), {})
     with pytest.raises(BoostNerfError, match="training diverged"):
         train(task, rays, Schedule(iters=50, batch_rays=64, max_bad_steps=5), seed=0, title="nan")
 
@@ -75,8 +75,8 @@ def test_isolated_non_finite_steps_are_skipped_and_counted(tiny_scene):
     task = _task(scene, 12)
     real_loss = task.loss
 
-    def loss(o, d, c, step):
-        value, logs = real_loss(o, d, c, step)
+    def loss(o, d, c, a, step):
+        value, logs = real_loss(o, d, c, a, step)
         return (value * float("inf"), logs) if step in (3, 7) else (value, logs)
 
     task.loss = loss
@@ -97,8 +97,8 @@ def test_skipped_steps_are_counted_warned_and_in_the_stage_report(tmp_path, tiny
     rec.pretrain.res, rec.pretrain.iters, rec.pretrain.geometry.iters = [12], 12, 10
     real = FieldTask.loss
 
-    def loss(self, o, d, c, step):
-        value, logs = real(self, o, d, c, step)
+    def loss(self, o, d, c, a, step):
+        value, logs = real(self, o, d, c, a, step)
         return (value * float("nan"), logs) if step in (3, 8) else (value, logs)
 
     monkeypatch.setattr(FieldTask, "loss", loss)
@@ -117,8 +117,8 @@ def test_non_finite_gradient_is_skipped_like_a_non_finite_loss(tiny_scene):
     task = _task(scene, 10)
     real_loss = task.loss
 
-    def loss(o, d, c, step):
-        value, logs = real_loss(o, d, c, step)
+    def loss(o, d, c, a, step):
+        value, logs = real_loss(o, d, c, a, step)
         if step == 4:  # finite loss whose gradient is infinite: d/dx sqrt(x) at 0
             value = value + torch.sqrt(task.model.density_table[0, 0] * 0.0)
         return value, logs
@@ -137,11 +137,11 @@ def test_a_state_with_non_finite_values_is_never_checkpointed(tiny_scene, tmp_pa
     task = _task(scene, 20)
     real_loss = task.loss
 
-    def loss(o, d, c, step):
+    def loss(o, d, c, a, step):
         if step == 7:  # an optimiser step that overflowed, in a cell no ray of the batch reaches
             with torch.no_grad():
                 task.model.feature_table[0, 0] = float("inf")
-        return real_loss(o, d, c, step)
+        return real_loss(o, d, c, a, step)
 
     task.loss = loss
     ckpt = tmp_path / "run.pt"

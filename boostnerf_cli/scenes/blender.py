@@ -107,14 +107,15 @@ def load_blender(
     parsed = {s: _parse_split(folder, s) for s in found}
     frames = [f for s in found for f in parsed[s][0]]
     bg = torch.tensor(background, dtype=torch.float32)
-    images, native = load_frames(frames, image_size, bg)
+    images, alpha, native = load_frames(frames, image_size, bg)
     size = tuple(images.shape[1:3])
     splits, start = {}, 0
     for s in found:
         fs = parsed[s][0]
         k = torch.tensor([frame_intrinsics(f.camera, native, size, f"{f.source} in {folder}") for f in fs])
         poses = torch.tensor(np.stack([f.pose for f in fs]), dtype=torch.float32)
-        splits[s] = Split(images[start : start + len(fs)], poses, k.float(), tuple(f.name for f in fs))
+        splits[s] = Split(images[start : start + len(fs)], poses, k.float(), tuple(f.name for f in fs),
+                          None if alpha is None else alpha[start : start + len(fs)])
         start += len(fs)
     holdout = ""
     if found == ["train"] and holdout_every:

@@ -114,9 +114,9 @@ def composite(image: Tensor, background: Tensor) -> Tensor:
     return colour.clamp(0.0, 1.0)
 
 
-def load_image(path: Path, size: tuple[int, int], native: tuple[int, int], background: Tensor) -> Tensor:
+def load_image(path: Path, size: tuple[int, int], native: tuple[int, int], background: Tensor) -> tuple[Tensor, Tensor | None]:
     """Read one image, area-downscale its premultiplied colour and alpha to `size` (h, w), then
-    composite on `background` (3,) -> (h, w, 3) float32.
+    composite on `background` (3,) -> (h, w, 3) float32, and its downscaled alpha (h, w) (None when it has none).
 
     Raises BoostNerfError when the image's (H, W) differs from `native`.
     """
@@ -128,11 +128,14 @@ def load_image(path: Path, size: tuple[int, int], native: tuple[int, int], backg
         )
     if img.shape[-1] in (2, 4):
         img[..., :-1].mul_(img[..., -1:])  # premultiply in place
-    return composite(area_downscale(img, *size), background)
+    small = area_downscale(img, *size)
+    return composite(small, background), (small[..., -1].clamp(0.0, 1.0) if img.shape[-1] in (2, 4) else None)
 
 
-def load_frames(frames: list[Frame], image_size: int | None, background: Tensor) -> tuple[Tensor, tuple[int, int]]:
-    """Load every frame's image, in order, with a small thread pool -> (N, h, w, 3), native (H, W).
+def load_frames(frames: list[Frame], image_size: int | None,
+                background: Tensor) -> tuple[Tensor, Tensor | None, tuple[int, int]]:
+    """Load every frame's image, in order, with a small thread pool -> (N, h, w, 3) composited on `background`,
+    alpha (N, h, w) (None when no image has an alpha channel; 1 for those without one), native (H, W).
 
     The first image's size is the scene's native size (every other image must match it);
     (h, w) is `target_size(H, W, image_size)`.
@@ -141,8 +144,12 @@ def load_frames(frames: list[Frame], image_size: int | None, background: Tensor)
     size = target_size(*native, image_size)
     workers = max(1, min(8, os.cpu_count() or 1))
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        images = list(pool.map(lambda f: load_image(f.image, size, native, background), frames))
-    return torch.stack(images), native
+        loaded = list(pool.map(lambda f: load_image(f.image, size, native, background), frames))
+    images = torch.stack([rgb for rgb, _ in loaded])
+    if all(a is None for _, a in loaded):
+        return images, None, native
+    alpha = torch.stack([torch.ones(size) if a is None else a for _, a in loaded])
+    return images, alpha, native
 
 
 # ----------------------------------------------------------------------------- transforms JSON

@@ -180,13 +180,13 @@ def load_llff(
     world_from_data = to_scene @ np.diag([scale, scale, scale, 1.0])
     frames = [Frame(f, f.stem, p, {}, f"{sub.name}/{f.name}") for f, p in zip(files, poses)]
     bg = torch.tensor(background, dtype=torch.float32)
-    images, native = load_frames(frames, image_size, bg)
+    images, alpha, native = load_frames(frames, image_size, bg)
     size = tuple(images.shape[1:3])
     # hwf is for the full-resolution images; scale per axis to the images actually stored
     k = np.stack([hwf[:, 2] * size[1] / hwf[:, 1], hwf[:, 2] * size[0] / hwf[:, 0],
                   np.full(len(hwf), size[1] / 2), np.full(len(hwf), size[0] / 2)], axis=1)
     splits = {"train": Split(images, torch.tensor(poses, dtype=torch.float32), torch.tensor(k, dtype=torch.float32),
-                             tuple(f.name for f in frames))}
+                             tuple(f.name for f in frames), alpha)}
     holdout = ""
     if holdout_every:
         splits["train"], splits["test"], holdout = hold_out(splits["train"], holdout_every)

@@ -92,11 +92,11 @@ def load_nerfstudio(
         name = str(image.relative_to(folder).with_suffix("")) if image.is_relative_to(folder) else image.stem
         frames.append(Frame(image, name, parse_pose(frame["transform_matrix"], source), camera, source))
     bg = torch.tensor(background, dtype=torch.float32)
-    images, native = load_frames(frames, image_size, bg)
+    images, alpha, native = load_frames(frames, image_size, bg)
     size = tuple(images.shape[1:3])
     k = torch.tensor([_intrinsics(f, native, size) for f in frames], dtype=torch.float32)
     poses = torch.tensor(np.stack([f.pose for f in frames]), dtype=torch.float32)
-    splits = {"train": Split(images, poses, k, tuple(f.name for f in frames))}
+    splits = {"train": Split(images, poses, k, tuple(f.name for f in frames), alpha)}
     holdout = ""
     if holdout_every:
         splits["train"], splits["test"], holdout = hold_out(splits["train"], holdout_every)

@@ -182,7 +182,7 @@ def load_nsvf(
     fx, fy, cx, cy = read_intrinsics(folder)
     order = list(frames)
     bg = torch.tensor(background, dtype=torch.float32)
-    images, native = load_frames([f for s in order for f in frames[s]], image_size, bg)
+    images, alpha, native = load_frames([f for s in order for f in frames[s]], image_size, bg)
     size = tuple(images.shape[1:3])
     sx, sy = size[1] / native[1], size[0] / native[0]
     k = torch.tensor([fx * sx, fy * sy, cx * sx, cy * sy], dtype=torch.float32)
@@ -190,7 +190,8 @@ def load_nsvf(
     for s in order:
         fs = frames[s]
         poses = torch.tensor(np.stack([f.pose for f in fs]), dtype=torch.float32)
-        splits[s] = Split(images[start : start + len(fs)], poses, k.expand(len(fs), 4).clone(), tuple(f.name for f in fs))
+        splits[s] = Split(images[start : start + len(fs)], poses, k.expand(len(fs), 4).clone(), tuple(f.name for f in fs),
+                          None if alpha is None else alpha[start : start + len(fs)])
         start += len(fs)
     holdout = ""
     if order == ["train"] and holdout_every:

@@ -5,7 +5,8 @@ Conventions (the same for every dataset format):
   down its -z axis, +y is up in the image, +x is right;
 - intrinsics are per view, `(fx, fy, cx, cy)` in pixels of the stored (possibly downscaled)
   images, with pixel centres at integer + 0.5;
-- images are float32 RGB in [0, 1], already composited on `background` when they had alpha;
+- images are float32 RGB in [0, 1], already composited on `background` when they had alpha; a split keeps
+  that alpha (`Split.alpha`) so that training can composite a pixel on another colour (`train.random_background`);
 - `bbox`, `near` and `far` are where the renderer samples. For forward-facing scenes (`ndc` set,
   LLFF) they are in normalized device coordinates: every camera ray is warped by `ndc` first
   (render/rays.py `NDC`), while `poses` stay world cameras.
@@ -31,6 +32,7 @@ class Split:
     poses: Tensor  # (N, 4, 4) float32 camera-to-world
     intrinsics: Tensor  # (N, 4) float32: fx, fy, cx, cy in pixels
     names: tuple[str, ...]
+    alpha: Tensor | None = None  # (N, H, W) float32 in [0, 1], the images' coverage; None: every pixel opaque
 
     def __post_init__(self) -> None:
         n = self.images.shape[0]
@@ -40,6 +42,8 @@ class Split:
             raise BoostNerfError(f"expected {n} poses of shape 4x4, got {tuple(self.poses.shape)}")
         if self.intrinsics.shape != (n, 4):
             raise BoostNerfError(f"expected {n} intrinsics (fx, fy, cx, cy), got {tuple(self.intrinsics.shape)}")
+        if self.alpha is not None and self.alpha.shape != self.images.shape[:3]:
+            raise BoostNerfError(f"split alpha must be (N, H, W) = {tuple(self.images.shape[:3])}, got {tuple(self.alpha.shape)}")
         if len(self.names) != n:
             raise BoostNerfError(f"expected {n} view names, got {len(self.names)}")
         if not torch.isfinite(self.poses).all():
@@ -60,7 +64,8 @@ class Split:
 
     def subset(self, index: list[int]) -> "Split":
         idx = torch.as_tensor(index, dtype=torch.long)
-        return Split(self.images[idx], self.poses[idx], self.intrinsics[idx], tuple(self.names[i] for i in index))
+        return Split(self.images[idx], self.poses[idx], self.intrinsics[idx], tuple(self.names[i] for i in index),
+                     None if self.alpha is None else self.alpha[idx])
 
 
 @dataclass(frozen=True)

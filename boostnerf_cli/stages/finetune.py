@@ -101,7 +101,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         signature["wide_steps"] = task.wide_steps
     if task.gate_noise:
         signature["gate_noise"] = task.gate_noise
-    result = train(task, train_rays(scene, mix.bbox, device), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
+    result = train(task, train_rays(scene, mix.bbox, device, rec.train), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
                    signature=signature, data_parallel=True)
     mix.eval()
     final = result.history[-1] if result.history else {}
@@ -153,7 +153,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
     signature = {"stage": "finetune", "model": "baseline", "from": source, "iters": rec.iters, "seed": rec.seed}
     if rec.train.random_background:  # named only when set: older checkpoints still resume
         signature["random_background"] = True
-    result = train(task, train_rays(scene, model.bbox, device), sched, rec.seed, "baseline",
+    result = train(task, train_rays(scene, model.bbox, device, rec.train), sched, rec.seed, "baseline",
                    checkpoint=ws.checkpoint_path("baseline"), signature=signature, data_parallel=True)
     model.eval()
     final = result.history[-1] if result.history else {}

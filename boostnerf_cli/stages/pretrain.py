@@ -103,7 +103,7 @@ def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor
     settings = scene.render_settings(step, bbox)
     tcfg = TrainRecipe(lr_grid=rec.lr, weight_rgbper=0.0, weight_entropy=rec.weight_entropy, occupancy_every=0)
     task = FieldTask(model, settings, tcfg, skip=None, base_mask=None)
-    rays = train_rays(scene, bbox, device)
+    rays = train_rays(scene, bbox, device, tcfg)
     ckpt = ws.checkpoint_path(name)  # removed once the geometry is saved
     train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5),
                                checkpoint_every=checkpoint_every), seed, name, checkpoint=ckpt,
@@ -192,7 +192,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     model.init_density(prior.density)  # warm start: colour is then computed near surfaces only
     settings = scene.render_settings(tcfg.step_ratio * model.unit, box, tcfg.color_threshold)
     task = FieldTask(model, settings, tcfg, skip=geom, base_mask=geom, growth_steps=growth, final_voxels=final_voxels)
-    rays = train_rays(scene, box, device)
+    rays = train_rays(scene, box, device, tcfg)
     sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
     signature = {"stage": "pretrain", "scene": scene_tag, "model": rec.model, "res": res,
