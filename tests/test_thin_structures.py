@@ -210,3 +210,30 @@ def test_the_box_leaves_out_floaters_outside_the_visual_hull_but_covers_every_fo
     assert stats["missed_after"] == 0
     # without a known background the hull says nothing: the grid is kept whole
     assert hull_cells(full, tr.images, tr.poses, tr.intrinsics, None) is full
+
+
+def test_in_a_forward_facing_scene_every_pixel_is_foreground_even_the_background_coloured_ones(tmp_path):
+    """A forward-facing capture (NDC, LLFF) has no background to tell from: a white wall or sky is content. Every
+    training ray, white ones too, must cross kept space (before, pixels within 0.03 of white were left out: on fern,
+    32,000 rays of the white ceiling)."""
+    scene = load_scene(make_scene(tmp_path / "llff", size=24, n_train=6, n_test=0, layout="llff"))
+    tr = scene.splits["train"]
+    assert scene.ndc is not None and scene.background == (1.0, 1.0, 1.0)
+    white = ~foreground_masks(tr.images, scene.background)
+    assert int(white.sum()) > 100  # the procedural scene shows white behind its objects
+    empty = OccupancyGrid(torch.zeros(16, 16, 16, dtype=torch.bool), scene.bbox)
+    grown, _, stats = cover_foreground(empty, lambda x: torch.zeros(x.shape[0]), tr.images, tr.poses, tr.intrinsics,
+                                       scene.background, scene.near, scene.far, scene.ndc)
+    assert stats["foreground_rays"] == tr.images.shape[0] * tr.height * tr.width
+    assert stats["missed_before"] == stats["foreground_rays"] and stats["missed_after"] == 0
+    # each white pixel's ray crosses a kept cell
+    for i in range(tr.images.shape[0]):
+        o, d = image_rays(tr.poses[i], tr.intrinsics[i], tr.height, tr.width, scene.ndc)
+        fg = white[i].reshape(-1)
+        xyz, valid, _ = ray_cells(o[fg], d[fg], grown, scene.near, scene.far)
+        idx = grown.cell_index(xyz)
+        ok = valid & (idx >= 0)
+        hit = torch.zeros_like(ok)
+        hit[ok] = grown.occupied.reshape(-1)[idx[ok]]
+        assert bool(hit.any(-1).all())
+

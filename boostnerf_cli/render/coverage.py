@@ -6,7 +6,8 @@ pixel wide) ends up with too little density to pass the threshold, and would the
 good. `cover_foreground` makes the mask and the box conservative by construction:
 
 1. foreground rays: training pixels whose colour differs from the scene's known background colour
-   by more than `tol` (for a scene with no known background, every pixel is foreground);
+   by more than `tol` (for a scene with no known background, or a forward-facing one in NDC, whose white walls
+   and sky are content, every pixel is foreground);
 2. each foreground ray gets one point: where its visible surface starts, the first sample at which the
    opacity gathered in the occupied cells of the views' visual hull reaches `SURFACE_OPACITY`, or, on a ray
    that gathers less than twice that in all, `PARTIAL_SHARE` of what it gathers (a pixel the surface only
@@ -155,8 +156,9 @@ def cover_foreground(
     """
     n, h, w = images.shape[:3]
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
-    masks = foreground_masks(images, background).to(device)
     known = background is not None and ndc is None
+    # a forward-facing capture (NDC) has no background to tell from: a white wall or sky is foreground too
+    masks = foreground_masks(images, background if known else None).to(device)
     hulls = None  # (tight, footprint) visual hulls, made when a first ray needs them (on most scenes none does)
     occupied = occ.occupied.clone()
     kept = occ.occupied.reshape(-1)
