@@ -85,6 +85,26 @@ def test_variants_change_exactly_the_keys_asked_for(tmp_path):
     assert load_recipe(tmp_path / "penalty.yaml").moe.penalty == "1, 1.5, 2.23"
 
 
+@pytest.mark.parametrize("family", ["tensorf", "ngp"])
+def test_the_other_families_get_the_official_protocol_and_keep_their_experts_and_gate(tmp_path, family):
+    """tensorf-m3 / ngp-m3: the family's CPU recipe with the official budget and mixture training; the joint rates
+    are that family's own pretraining rates (the official code trains the mixture at DVGO's)."""
+    proc = _run(tmp_path, f'HERE={ROOT}\n' + _functions("family_official") + f"\nfamily_official {family}\n")
+    assert proc.returncode == 0, proc.stderr
+    path = tmp_path / f"official-{family}-m3.yaml"
+    assert proc.stdout.strip() == str(path)
+    source = yaml.safe_load((ROOT / "recipes" / f"blender-{family}-cpu.yaml").read_text())
+    written = yaml.safe_load(path.read_text())
+    assert _changed(written, source) == {"pretrain.iters", "moe.iters", "moe.lam", "moe.aux_norm", "moe.aux_samples",
+                                         "moe.mix", "moe.train.lr_grid", "moe.train.lr_mlp", "moe.train.lr_decay"}
+    rec = load_recipe(path)
+    assert rec.pretrain.model == family and rec.pretrain.res == source["pretrain"]["res"]
+    assert (rec.pretrain.iters, rec.moe.iters, rec.moe.lam) == (1000, 5000, 0.001)
+    assert (rec.moe.aux_norm, rec.moe.aux_samples, rec.moe.mix, rec.moe.gate_init) == ("counts", "visible", "alpha", "random")
+    pre = source["pretrain"]["train"]
+    assert (rec.moe.train.lr_grid, rec.moe.train.lr_mlp, rec.moe.train.lr_decay) == (pre["lr_grid"], pre["lr_mlp"], 0.1)
+
+
 def test_recipe_with_refuses_a_section_the_recipe_lacks(tmp_path):
     proc = _run(tmp_path, 'recipe_with "$OFFICIAL" "$OUT/bad.yaml" pretrain.tensorf.hidden=8\n')
     assert proc.returncode != 0
