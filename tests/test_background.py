@@ -80,6 +80,20 @@ def test_scenes_keep_their_alpha_and_training_rays_carry_it_only_when_asked(tmp_
     assert train_rays(llff, llff.bbox, "cpu", TrainRecipe(random_background=True)).alpha is None
 
 
+@pytest.mark.parametrize("layout,has_alpha", [("blender", True), ("nsvf", True), ("nerfstudio", True),
+                                              ("tanks", False), ("llff", False)])
+def test_every_loader_keeps_the_alpha_its_images_have(tmp_path, layout, has_alpha):
+    """Every format's loader keeps its images' alpha with the split (and the held-out split), or None for images
+    without one (Tanks and Temples comes composited on white, LLFF photographs are opaque)."""
+    scene = load_scene(make_scene(tmp_path / layout, size=24, n_train=8, n_test=2, layout=layout))
+    for split in scene.splits.values():
+        if not has_alpha:
+            assert split.alpha is None
+            continue
+        assert split.alpha is not None and split.alpha.shape == split.images.shape[:3]
+        assert float(split.alpha.min()) == 0.0 and float(split.alpha.max()) == 1.0
+        assert torch.allclose(split.images[split.alpha == 0], torch.ones(3))  # transparent: the white background
+
 def test_the_colours_depend_on_the_step_alone_and_leave_torchs_random_stream_alone():
     torch.manual_seed(3)
     before = torch.rand(5)
