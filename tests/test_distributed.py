@@ -142,14 +142,14 @@ def _task(ws: Path, name: str):
                                   background=scene.background, color_threshold=rec.train.color_threshold,
                                   ndc=scene.ndc)
         task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
-        return task, train_rays(scene, model.bbox, "cpu"), rec
+        return task, train_rays(scene, model.bbox, "cpu", rec.train), rec
     mix, _ = load_mixture(w.model_path("init"))
     mix.cfg = dataclasses.replace(mix.cfg, topk=2, renormalize=rec.renormalize, penalty=rec.penalty)
     mix.penalty = penalty_weights(mix.m, rec.penalty)
     mix.train()
     settings = RenderSettings(step=mix.cfg.step, near=scene.near, far=scene.far, bbox=mix.bbox,
                               background=scene.background, color_threshold=rec.train.color_threshold, ndc=scene.ndc)
-    return MixtureTask(mix, settings, rec.train, rec), train_rays(scene, mix.bbox, "cpu"), rec
+    return MixtureTask(mix, settings, rec.train, rec), train_rays(scene, mix.bbox, "cpu", rec.train), rec
 
 
 def first_step(ws: Path, name: str, parallel: bool, lam: float | None = None,
