@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh DATA OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|below-vd-official|seed1-below-vd-official|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|llff-m3|tensorf-m3|ngp-m3|tensorf-m3-ens|ngp-m3-ens|tensorf-m3-st|ngp-m3-st|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh DATA OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|below-vd-official|seed1-below-vd-official|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|llff-m3|tensorf-m3|ngp-m3|tensorf-m3-ens|ngp-m3-ens|tensorf-m3-st|ngp-m3-st|tensorf-m3-fastgate|ngp-m3-fastgate|collect]...
 #   DATA        the scene folder: lego's (../shared/data/lego) for every step but llff-m3, which takes fern's
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
@@ -95,6 +95,9 @@
 #   tensorf-m3-ens, ngp-m3-ens  the ensemble on tensorf-m3's (ngp-m3's) experts and moe/init -> OUT/tensorf-m3-ens ...
 #   tensorf-m3-st, ngp-m3-st  Top-1 with boostnerf's straight-through weight (a chosen expert weighs 1) instead of the raw
 #               probability, on tensorf-m3's (ngp-m3's) experts and moe/init -> OUT/tensorf-m3-st ...
+#   tensorf-m3-fastgate, ngp-m3-fastgate  Top-1 with the raw-probability weight and the gate trained at the official
+#               gate's rate (moe.lr_gate 0.1, ten times the family recipes'), on tensorf-m3's (ngp-m3's) experts and
+#               moe/init -> OUT/tensorf-m3-fastgate ...
 #   collect     copy every workspace's reports/eval.json into docs/data/ with training seconds, as
 #               issue18-$TAG<workspace>.json (TAG empty by default)
 # One thread per process (OMP_NUM_THREADS=1); run chains one at a time for timings.
@@ -233,11 +236,15 @@ for what in "$@"; do
     llff-m3) ENS=1 mixtures "$OUT/llff-m3" "$(variant llff-m3 "64, 72, 80" "64: 64, 72: 96, 80: 128" 64 moe.iters=3000 \
       "data={image_size: 252, holdout_every: 8, format: llff}")" ;;
     tensorf-m3|ngp-m3) mixtures "$OUT/$what" "$(family_official "${what%-m3}")" ;;
-    tensorf-m3-ens|ngp-m3-ens|tensorf-m3-st|ngp-m3-st)
-      model=ens flags=(--ensemble)
+    tensorf-m3-ens|ngp-m3-ens|tensorf-m3-st|ngp-m3-st|tensorf-m3-fastgate|ngp-m3-fastgate)
+      model=ens flags=(--ensemble) recipe="$(family_official "${what%-m3-*}")"
       [ "${what##*-}" = st ] && model=top1 flags=(--topk 1)
+      if [ "${what##*-}" = fastgate ]; then
+        model=top1 flags=(--topk 1 --no-renormalize)
+        recipe="$(recipe_with "$recipe" "$OUT/official-$what.yaml" moe.lr_gate=0.1)"
+      fi
       from_size "${what%-*}" "$OUT/$what"
-      boostnerf finetune -w "$OUT/$what" --recipe "$(family_official "${what%-m3-*}")" "${flags[@]}" --device cpu
+      boostnerf finetune -w "$OUT/$what" --recipe "$recipe" "${flags[@]}" --device cpu
       boostnerf eval -w "$OUT/$what" --report --device cpu --model $model ;;
     hires) mixtures "$OUT/hires" "$(variant hires "${HIRES[@]}")" ;;
     same-mlp) BASELINE=last mixtures "$OUT/m3-mlp128" "$(variant m3-mlp128 "${MLP128[@]}")" ;;
@@ -395,6 +402,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, seed1-below, below-step40, below-vd-official, seed1-below-vd-official, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, llff-m3, tensorf-m3, ngp-m3, tensorf-m3-ens, ngp-m3-ens, tensorf-m3-st, ngp-m3-st, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, seed1-below, below-step40, below-vd-official, seed1-below-vd-official, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, llff-m3, tensorf-m3, ngp-m3, tensorf-m3-ens, ngp-m3-ens, tensorf-m3-st, ngp-m3-st, tensorf-m3-fastgate, ngp-m3-fastgate, collect)" >&2; exit 2 ;;
   esac
 done
