@@ -20,7 +20,7 @@ import sys
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.metrics import mse_to_psnr
+from boostnerf_cli.metrics import psnr
 from boostnerf_cli.models import ALL_SKIPS, load_model, render_split
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace
@@ -44,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--views", type=int, default=None, help="only the first N held-out views")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
+    if args.views is not None and args.views < 1:
+        print(f"error: --views must be at least 1, got {args.views}", file=sys.stderr)
+        return 2
     try:
         ws = Workspace(args.workspace)
         scene = workspace_scene(ws)
@@ -52,8 +55,8 @@ def main(argv: list[str] | None = None) -> int:
         rows = []
         for i, r in enumerate(render_split(model, scene, split, args.device, ALL_SKIPS, args.views)):
             alpha = None if split.alpha is None else split.alpha[i].reshape(-1)
-            mse = float(torch.mean((r["rgb"].cpu() - split.images[i]) ** 2))
-            rows.append({"psnr": mse_to_psnr(mse), **opacity_errors(r["acc"].cpu().reshape(-1), alpha)})
+            rows.append({"psnr": psnr(r["rgb"].cpu(), split.images[i]),
+                         **opacity_errors(r["acc"].cpu().reshape(-1), alpha)})
     except BoostNerfError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

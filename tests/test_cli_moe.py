@@ -253,6 +253,9 @@ def test_opacity_check_script_compares_rendered_opacity_with_the_scenes_alpha(mo
     proc = subprocess.run([sys.executable, str(script), str(moe_ws), "nope"], capture_output=True, text=True,
                           timeout=300, env=env)
     assert proc.returncode == 2 and proc.stderr.strip().startswith("error: no model named 'nope'"), proc.stderr
+    proc = subprocess.run([sys.executable, str(script), str(moe_ws), "dvgo-16", "--views", "0"], capture_output=True,
+                          text=True, timeout=300, env=env)
+    assert proc.returncode == 2 and proc.stderr.strip() == "error: --views must be at least 1, got 0", proc.stderr
 
 
 def _without_top1(moe_ws, folder):
