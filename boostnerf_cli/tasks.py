@@ -30,7 +30,7 @@ def train_rays(scene: Scene, bbox: Tensor, device: str, tcfg: TrainRecipe) -> Ra
     """Every training ray of `scene` that crosses `bbox`, with its pixel colour (and, for `tcfg.random_background`,
     its alpha when the images had one), on `device`."""
     return RayData.from_split(scene.splits["train"], bbox.cpu(), scene.near, scene.far, scene.ndc,
-                              alpha=tcfg.random_background).to(device)
+                              keep_alpha=tcfg.random_background).to(device)
 
 
 def random_background(n: int, step: int, device: torch.device | str) -> Tensor:

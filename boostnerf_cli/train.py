@@ -38,8 +38,8 @@ class RayData:
 
     @staticmethod
     def from_split(split: Split, bbox: Tensor, near: float, far: float, ndc: NDC | None = None,
-                   alpha: bool = False) -> "RayData":
-        """`alpha`: keep the split's alpha (when its images had one), for a loss that composites the pixels on
+                   keep_alpha: bool = False) -> "RayData":
+        """`keep_alpha`: keep the split's alpha (when its images had one), for a loss that composites the pixels on
         another colour than the scene's background (`train.random_background`)."""
         os_, ds = [], []
         for i in range(len(split)):
@@ -50,7 +50,7 @@ class RayData:
         # The split's rays are built where its images are (the CPU); the box may be on the model's device.
         _, _, hit = intersect_box(o, d, bbox.to(o.device), near, far)
         # A ray that misses the box renders the background exactly: nothing to learn from it.
-        a = split.alpha.reshape(-1)[hit] if alpha and split.alpha is not None else None
+        a = split.alpha.reshape(-1)[hit] if keep_alpha and split.alpha is not None else None
         return RayData(o[hit], d[hit], c[hit], a)
 
     def to(self, device: torch.device | str) -> "RayData":

@@ -70,7 +70,7 @@ def test_scenes_keep_their_alpha_and_training_rays_carry_it_only_when_asked(tmp_
     assert float(train.alpha.min()) == 0.0 and float(train.alpha.max()) == 1.0
     empty = train.alpha == 0  # where nothing covers a pixel it is the background, white
     assert torch.allclose(train.images[empty], torch.ones(3))
-    on = RayData.from_split(train, blender.bbox, blender.near, blender.far, alpha=True)
+    on = RayData.from_split(train, blender.bbox, blender.near, blender.far, keep_alpha=True)
     assert on.alpha is not None and on.alpha.shape == (len(on),)
     assert RayData.from_split(train, blender.bbox, blender.near, blender.far).alpha is None  # not asked: not kept
     assert train_rays(blender, blender.bbox, "cpu", TrainRecipe(random_background=True)).alpha is not None
