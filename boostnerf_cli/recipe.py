@@ -45,6 +45,9 @@ class DataRecipe:
     image_size: int | None = limit(None, at_least(1))  # longer side in pixels after area downscaling; None = native
     holdout_every: int = limit(8, Range(2, also=(0,)))  # datasets without a test split: every N-th train view is held out
     format: str = limit("auto", OneOf(("auto", *FORMATS)))  # auto | blender | nsvf | tanks | llff | nerfstudio (docs/datasets.md)
+    # the scene box [xmin, ymin, zmin, xmax, ymax, zmax] in world units, instead of the one the loader gives (bbox.txt,
+    # or the region most cameras see): for content that reaches past it (docs/datasets.md, "The scene box")
+    bbox: list[float] | None = limit(None, Range())
 
 
 @dataclass
@@ -289,8 +292,12 @@ def _family_value(section: dict, key: str, res: int, default: Any) -> Any:
 
 def check_recipe(recipe: Recipe, source: str = "recipe key") -> Recipe:
     """Every value of `recipe` in its declared range (see `check_section`), plus the one rule between two keys:
-    an ngp expert's coarsest hash level is no finer than its finest (base_res <= max_res)."""
+    an ngp expert's coarsest hash level is no finer than its finest (base_res <= max_res), and data.bbox is a box."""
     check_section(recipe, "", source)
+    box = recipe.data.bbox
+    if box is not None and (len(box) != 6 or not all(box[i + 3] > box[i] for i in range(3))):
+        raise BoostNerfError(f"{source} data.bbox = {box!r}: must be six numbers, xmin, ymin, zmin, xmax, ymax, "
+                             "zmax, each max above its min")
     pre = recipe.pretrain
     if pre.model == "ngp":
         defaults = CONFIGS["ngp"]()

@@ -4,6 +4,7 @@ import json
 import shutil
 
 import pytest
+import torch
 from conftest import PSNR_MARGIN, TINY_PSNR, assert_clean_failure, no_temp_files, run_cli
 from helpers import write_lpips_weights
 from safetensors import safe_open
@@ -140,6 +141,37 @@ def test_corrupt_png(tmp_path, tiny_scene, tiny_recipe):
     proc = run_cli("pretrain", "--data", str(scene), "--recipe", str(tiny_recipe), "--workspace", str(tmp_path / "ws"))
     assert_clean_failure(proc, victim.name)
     assert not (tmp_path / "ws" / "experts").exists()
+
+
+def test_a_scene_that_shows_only_its_background_is_one_line_and_writes_nothing(tmp_path, tiny_recipe):
+    """`make-scene --content empty`: every training pixel is the background (as with an all-transparent alpha
+    channel). Before the check the geometry stage found no surface, said "too few geometry.iters?", marked the
+    whole box occupied and trained experts to an infinite PSNR; now pretrain refuses before writing anything."""
+    from boostnerf_cli.scenes import make_scene
+
+    scene = make_scene(tmp_path / "scene", size=32, n_train=6, n_test=1, content="empty")
+    ws = tmp_path / "ws"
+    proc = run_cli("pretrain", "--data", str(scene), "--recipe", str(tiny_recipe), "--workspace", str(ws),
+                   "--device", "cpu")
+    assert_clean_failure(proc, "6 training views", "nothing but the background", "alpha")
+    assert not (ws / "manifest.json").exists() and not (ws / "experts").exists() and no_temp_files(tmp_path)
+
+
+def test_one_foreground_pixel_in_one_view_is_enough_to_train(tmp_path):
+    """The refusal above is for no foreground at all: a scene with one differing pixel (a small or distant
+    object) passes, and so does a forward-facing one, where a white wall or sky is content."""
+    from boostnerf_cli.errors import BoostNerfError
+    from boostnerf_cli.scenes import load_scene, make_scene
+    from boostnerf_cli.stages.pretrain import check_foreground
+
+    scene = load_scene(make_scene(tmp_path / "scene", size=16, n_train=3, n_test=1, content="empty"))
+    with pytest.raises(BoostNerfError, match="nothing but the background"):
+        check_foreground(scene, tmp_path / "scene")
+    scene.splits["train"].images[2, 7, 9] = torch.tensor([1.0, 1.0, 0.9])  # 0.1 from white in one channel
+    check_foreground(scene, tmp_path / "scene")
+    forward = load_scene(make_scene(tmp_path / "llff", size=16, n_train=3, n_test=1, content="empty", layout="llff"))
+    assert forward.ndc is not None and bool((forward.splits["train"].images == 1).all())  # all white
+    check_foreground(forward, tmp_path / "llff")
 
 
 def test_unknown_recipe_key(tmp_path, tiny_scene):

@@ -124,6 +124,25 @@ def test_bbox_contains_generated_objects(generated):
         assert (c - ext >= lo).all() and (c + ext <= hi).all(), o["kind"]
 
 
+def test_data_bbox_replaces_the_box_the_loader_gives_and_workspaces_reload_it(generated, tmp_path):
+    """`data.bbox` (a floor past the camera-derived box: make-scene --content large) replaces the loader's box, in
+    pretrain and in every later stage, which reloads the scene from the manifest; a forward-facing scene's NDC box
+    cannot be replaced."""
+    from boostnerf_cli.stages.common import workspace_scene
+    from boostnerf_cli.workspace import Workspace
+
+    wide = [-3.0, -3.0, -0.7, 3.0, 3.0, 0.5]
+    scene = load_scene(generated, bbox=wide)
+    assert torch.equal(scene.bbox, torch.tensor(wide).view(2, 3)) and scene.extra["bbox"] == "data.bbox"
+    assert not torch.equal(load_scene(generated).bbox, scene.bbox)
+    ws = Workspace(tmp_path / "ws")
+    ws.update_manifest(data={"path": str(generated), "image_size": None, "holdout_every": 8, "format": "auto",
+                             "bbox": wide})
+    assert torch.equal(workspace_scene(ws).bbox, scene.bbox)
+    llff = make_scene(tmp_path / "llff", size=16, n_train=3, n_test=0, layout="llff")
+    raises_one_line("data.bbox does not apply .* forward-facing", load_scene, llff, bbox=wide)
+
+
 def test_lattice_counts_match_projection():
     poses = torch.tensor(camera_poses(7, 0)[0]).float()
     k = torch.tensor([[30.0, 28.0, 15.0, 13.0]]).repeat(7, 1)

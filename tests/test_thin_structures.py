@@ -180,7 +180,7 @@ def test_a_box_file_gives_the_same_box_as_the_cameras(thin):
 def test_an_unknown_content_is_one_line_and_writes_nothing(tmp_path):
     proc = run_cli("make-scene", str(tmp_path / "s"), "--content", "wires")
     assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
-        "error: unknown scene content 'wires': use one of objects, thin"]
+        "error: unknown scene content 'wires': use one of objects, thin, large, empty"]
     assert not (tmp_path / "s").exists()
 
 
@@ -232,3 +232,35 @@ def test_in_a_forward_facing_scene_every_pixel_is_foreground_even_the_background
         fg = white[i].reshape(-1)
         assert bool(covered(o[fg], d[fg], grown, scene.near, scene.far).all())
 
+
+
+def test_content_past_the_scene_box_is_named_and_data_bbox_holds_it(tmp_path):
+    """`make-scene --content large`: the floor reaches radius 3, past the box of the region most cameras see (about
+    +-1.7), so the coarse model draws what lies beyond on the box's faces. The geometry stage says so and names
+    data.bbox; with that key the box holds the floor and the warning is gone. The objects scene gets no warning."""
+    recipe = {"pretrain": {"res": [8], "iters": 1, "geometry": {"res": 16, "iters": 150, "batch_rays": 512}},
+              "moe": REMOVE}
+    wide = [-3.3, -3.3, -0.9, 3.3, 3.3, 0.6]  # a coarse cell (0.22) of room around the content: nearer, it is on the faces
+    runs = {}
+    for name, content, data in (("large", "large", {}), ("large-box", "large", {"bbox": wide}),
+                                ("objects", "objects", {})):
+        scene = tmp_path / content
+        if not scene.exists():
+            make_scene(scene, size=32, n_train=12, n_test=0, content=content)
+        make_recipe(tmp_path / f"{name}.yaml", data=data, **recipe)
+        ws = tmp_path / f"ws-{name}"
+        proc = run_cli("pretrain", "-w", str(ws), "--data", str(scene), "--recipe", str(tmp_path / f"{name}.yaml"),
+                       "--device", "cpu", check=True)
+        meta = json.loads(__import__("safetensors").safe_open(str(ws / "experts" / "geometry.safetensors"), "pt")
+                          .metadata()["boostnerf"])
+        runs[name] = (proc.stdout + proc.stderr, meta)
+    text, meta = runs["large"]
+    first = meta["rounds"][0]
+    assert first["edge_rays"] > 0.05 * first["foreground_rays"], first
+    assert "warning:" in text and "find their surface on the faces of the scene box" in text and "data.bbox" in text
+    text, meta = runs["large-box"]
+    assert "faces of the scene box" not in text, text
+    box = torch.tensor(meta["fine_bbox"])
+    assert bool((box[0, :2] < -2.5).all() and (box[1, :2] > 2.5).all()), box  # the floor out to radius 3
+    text, meta = runs["objects"]
+    assert meta["rounds"][0]["edge_rays"] == 0 and "faces of the scene box" not in text

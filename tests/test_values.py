@@ -51,6 +51,12 @@ BAD: dict[str, st.SearchStrategy] = {
     "data.image_size": INT_BELOW(1),
     "data.holdout_every": st.one_of(st.integers(max_value=-1), st.just(1)),  # blender.py: 0 (off) or >= 2
     "data.format": BAD_WORD.filter(lambda w: w not in ("auto", "blender", "nsvf", "tanks", "llff", "nerfstudio")),
+    "data.bbox": st.one_of(  # a box: six finite numbers, each max above its min
+        st.lists(st.floats(-10, 10), max_size=12).filter(lambda b: len(b) != 6),
+        st.lists(st.floats(-10, 10), min_size=3, max_size=3).flatmap(
+            lambda lo: st.integers(0, 2).map(lambda axis: lo + [v - (i == axis) for i, v in enumerate(lo)])),
+        st.tuples(NAN_INF, st.integers(0, 5)).map(lambda t: [t[0] if i == t[1] else (-1.0 if i < 3 else 1.0)
+                                                             for i in range(6)])),
     "pretrain.model": BAD_WORD.filter(lambda w: w not in ("dvgo", "tensorf", "ngp")),
     "pretrain.iters": INT_BELOW(1),
     "pretrain.res": GRID_OUTSIDE(1).map(lambda r: [64, r]),  # one expert too large
@@ -107,6 +113,9 @@ BAD: dict[str, st.SearchStrategy] = {
 # key -> values the code works with (including the edges: 0 = off, 1 for lr_decay, ...)
 GOOD: dict[str, st.SearchStrategy] = {
     "data.holdout_every": st.one_of(st.just(0), st.integers(2, 100)),
+    "data.bbox": st.tuples(st.lists(st.floats(-100, 100), min_size=3, max_size=3),
+                           st.lists(st.floats(0.01, 100), min_size=3, max_size=3)).map(
+        lambda t: t[0] + [lo + size for lo, size in zip(*t)]),
     "pretrain.iters": st.integers(1, 10**6),
     "pretrain.train.lr_decay": st.one_of(st.just(1.0), st.floats(1e-9, 1.0)),
     "pretrain.train.occupancy_every": st.integers(0, 10**4),
@@ -213,6 +222,9 @@ def test_known_values_from_the_issue(tmp_path):
             "recipe key pretrain.ngp.max_res = 32: must be >= base_res (64) (expert ngp-8)",
         "pretrain:\n  dvgo: {width: 3}\n": "unknown recipe key pretrain.dvgo.width",
         "pretrain:\n  dvgo: {hidden: {abc: 3}}\n": "the keys of a per-expert mapping must be resolutions",
+        "data:\n  bbox: [-1, -1, 1, 1, 1, 1]\n": "recipe key data.bbox = [-1.0, -1.0, 1.0, 1.0, 1.0, 1.0]: must be six "
+                                              "numbers, xmin, ymin, zmin, xmax, ymax, zmax, each max above its min",
+        "data:\n  bbox: [-1, -1, -1, 1, 1]\n": "recipe key data.bbox = [-1.0, -1.0, -1.0, 1.0, 1.0]: must be six",
     }
     for text, expected in cases.items():
         path = tmp_path / "r.yaml"

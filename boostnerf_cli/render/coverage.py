@@ -152,7 +152,8 @@ def cover_foreground(
     -> (the grown grid, the box (2, 3): the points' bounds, each widened by half its pixel's footprint, clipped to
         the box of `occ` (the grown grid's occupied box without points), {"foreground_rays", "missed_before": rays on which the
         occupied cells never reach `SURFACE_OPACITY` (cross none, without a known background), "missed_after":
-        rays that get no point, "cells_added"}).
+        rays that get no point, "cells_added", "edge_rays": rays whose point lies within a cell of the box's faces, where
+        the coarse model draws content that reaches past the box; 0 without a known background}).
     """
     n, h, w = images.shape[:3]
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
@@ -164,8 +165,9 @@ def cover_foreground(
     kept = occ.occupied.reshape(-1)
     lo = torch.full((3,), math.inf, device=device)
     hi = torch.full((3,), -math.inf, device=device)
-    total = missed_before = missed_after = 0
+    total = missed_before = missed_after = edge = 0
     focal = intrinsics[:, :2].amin(-1).tolist()  # pixels per unit of depth, the smaller of fx and fy
+    cell = (occ.bbox[1] - occ.bbox[0]) / torch.tensor(occ.shape, device=device)
     for i in range(n):
         o, d = _fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i])
         total += o.shape[0]
@@ -216,11 +218,13 @@ def cover_foreground(
             if rows.numel():
                 if known:  # each point widened by half its pixel's footprint: where in the pixel the surface lies
                     pts = xyz[rows, choice[rows]]
+                    # a surface within a cell of the box's faces: what lies past the box is drawn there
+                    edge += int(((pts - occ.bbox[0] < cell) | (occ.bbox[1] - pts < cell)).any(-1).sum())
                     half = (pts - oc[rows]).norm(dim=-1, keepdim=True) * (0.5 / focal[i])
                     lo, hi = torch.minimum(lo, (pts - half).amin(0)), torch.maximum(hi, (pts + half).amax(0))
                 occupied.view(-1)[idx[rows, choice[rows]]] = True  # the point's own cell: the ray crosses kept space
     stats = {"foreground_rays": total, "missed_before": missed_before, "missed_after": missed_after,
-             "cells_added": int((occupied & ~occ.occupied).sum())}
+             "cells_added": int((occupied & ~occ.occupied).sum()), "edge_rays": edge}
     grid = OccupancyGrid(occupied, occ.bbox)
     if not known or not bool(torch.isfinite(lo).all()):
         return grid, grid.occupied_bbox(margin_cells=1), stats

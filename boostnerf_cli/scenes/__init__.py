@@ -7,8 +7,11 @@ entry to `FORMATS`. "auto" tries the detectors in order; docs/datasets.md descri
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Callable
+
+import torch
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.blender import is_blender, load_blender
@@ -38,10 +41,13 @@ def detect_format(folder: Path) -> tuple[str, str]:
     raise BoostNerfError(f"cannot tell the dataset format of {folder}: looked for {wanted}")
 
 
-def load_scene(path, image_size: int | None = None, holdout_every: int = 8, format: str = "auto") -> Scene:
+def load_scene(path, image_size: int | None = None, holdout_every: int = 8, format: str = "auto",
+               bbox: list[float] | None = None) -> Scene:
     """Load the scene at `path`; `format` is "auto" or a key of `FORMATS`.
 
-    With "auto", `scene.extra["detected"]` says which format was recognised from which files.
+    With "auto", `scene.extra["detected"]` says which format was recognised from which files. `bbox`
+    ([xmin, ymin, zmin, xmax, ymax, zmax], world units) replaces the box the loader gives, for content that
+    reaches past it; a forward-facing scene's box is NDC's and cannot be replaced.
     """
     folder = Path(path)
     if not folder.is_dir():
@@ -55,6 +61,12 @@ def load_scene(path, image_size: int | None = None, holdout_every: int = 8, form
     scene = FORMATS[format][1](folder, image_size=image_size, holdout_every=holdout_every)
     if detected:
         scene.extra["detected"] = detected
+    if bbox is not None:
+        if scene.ndc is not None:
+            raise BoostNerfError(f"data.bbox does not apply to {folder}: a forward-facing scene is sampled in normalized "
+                                 "device coordinates, whose box is fixed; remove the key")
+        scene = dataclasses.replace(scene, bbox=torch.tensor(bbox, dtype=torch.float32).view(2, 3),
+                                    extra={**scene.extra, "bbox": "data.bbox"})
     return scene
 
 

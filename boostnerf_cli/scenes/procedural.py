@@ -49,7 +49,8 @@ def _place(rng: np.random.Generator) -> np.ndarray:
     return quadrants * 0.45 + rng.uniform(-0.1, 0.1, (4, 2))
 
 
-CONTENTS = ("objects", "thin")
+CONTENTS = ("objects", "thin", "large", "empty")
+LARGE_FLOOR_RADIUS = 3.0  # the "large" content's floor: past the camera-derived box (about +-1.7) and out of every view
 THIN_RADIUS = 0.018  # rods and cable of the "thin" content: about 1.2 px wide at 100 px (2 px at 160 px)
 
 
@@ -78,11 +79,18 @@ def thin_objects(seed: int = 0) -> list[dict]:
 def scene_objects(seed: int = 0, content: str = "objects") -> list[dict]:
     """The seeded object list (JSON-able): kind, geometry, colours and texture of each object.
 
-    content: "objects" (the floor and four solids) or "thin" (the same, plus `thin_objects`)."""
+    content: "objects" (the floor and four solids), "thin" (the same, plus `thin_objects`), "large" (the same
+    with a floor of radius `LARGE_FLOOR_RADIUS`, which reaches past the scene box derived from the cameras and
+    leaves every view at its edge) or "empty" (nothing: every pixel is background)."""
     if content not in CONTENTS:
         raise BoostNerfError(f"unknown scene content {content!r}: use one of {', '.join(CONTENTS)}")
     if content == "thin":
         return scene_objects(seed) + thin_objects(seed)
+    if content == "large":
+        floor, *solids = scene_objects(seed)
+        return [{**floor, "radius": LARGE_FLOOR_RADIUS}, *solids]
+    if content == "empty":
+        return []
     rng = np.random.default_rng(seed)
     colour = lambda: [round(float(v), 4) for v in rng.uniform(0.15, 0.95, 3)]  # noqa: E731
     xy = _place(rng)
@@ -200,6 +208,8 @@ def render_view(objects: list[dict], pose: Tensor, intrinsics: Tensor, size: int
     o, d = image_rays(pose, intrinsics * s, size * s, size * s)
     o, d = o.double(), d.double()
     hits = [intersect(obj, o, d) for obj in objects]
+    if not hits:  # no object: every ray misses
+        return np.zeros((size, size, 4))
     t_all = torch.stack([h[0] for h in hits])  # (K, R)
     nearest = t_all.argmin(dim=0)
     alpha = torch.isfinite(t_all.min(dim=0).values).double()
@@ -296,11 +306,22 @@ Cameras: {rig_text} World z up.
 
 {layout_text}
 
-Content (inside about [-1, 1]^2 x [-0.5, 0.3]): a floor disc with a fine checkerboard (cell 0.05),
+{content_text} Free to use for any purpose.
+"""
+
+OBJECTS_TEXT = """Content (inside about [-1, 1]^2 x [-0.5, 0.3]): a floor disc with a fine checkerboard (cell 0.05),
 a sphere with a smooth colour gradient, a sphere with thin stripes (period 0.06), a rotated box with a
 fine 3-D checkerboard (cell 0.04) and a box with a smooth gradient; Lambertian shading under a fixed
-directional light, no shadows.{thin_text} Free to use for any purpose.
-"""
+directional light, no shadows."""
+CONTENT_TEXT = {
+    "objects": OBJECTS_TEXT,
+    "thin": OBJECTS_TEXT + f""" Thin structures (content 'thin'): a cable on the floor near its rim, two upright rods at
+the rim and a slanted wire to the far corner, capsules of radius {THIN_RADIUS}.""",
+    "large": OBJECTS_TEXT.replace("a floor disc", f"a floor disc of radius {LARGE_FLOOR_RADIUS}").replace(
+        "Content (inside about [-1, 1]^2 x [-0.5, 0.3])", "Content (content 'large': the floor reaches past every view's "
+        "edge)"),
+    "empty": "Content (content 'empty'): none; every pixel is background.",
+}
 
 RIG_TEXT = {
     "sphere": "radius {radius} on the upper hemisphere (elevation 10-70 deg, Fibonacci spiral) looking at the origin.",
@@ -431,8 +452,9 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     for llff, sphere otherwise. Every layout gets the same views for the same arguments. Blender:
     transforms_train.json, transforms_test.json (omitted when n_test = 0), train/r_*.png, test/r_*.png;
     the other layouts as `LAYOUT_TEXT` says. Always objects.json (the exact geometry) and README.txt.
-    content: "objects" (default) or "thin" (plus rods and a cable one to two pixels wide at 100 px,
-    reaching the content box's edge: the scene that checks that skipping never cuts thin structure).
+    content: "objects" (default), "thin" (plus rods and a cable one to two pixels wide at 100 px,
+    reaching the content box's edge: the scene that checks that skipping never cuts thin structure),
+    "large" (a floor reaching past the camera-derived box) or "empty" (`scene_objects`).
     Deterministic: the same arguments give byte-identical files.
     """
     if size < 4 or n_train < 1 or n_test < 0 or supersample < 1:
@@ -468,8 +490,6 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     (out_dir / "objects.json").write_text(json.dumps({"seed": seed, "content": content, "objects": objects}, indent=2))
     text = README.format(seed=seed, ss=supersample, n_train=n_train, n_test=n_test, size=size, angle=CAMERA_ANGLE_X,
                          rig_text=RIG_TEXT[rig].format(radius=RADIUS), layout_text=LAYOUT_TEXT[layout],
-                         thin_text="" if content == "objects" else
-                         f" Thin structures (content 'thin'): a cable on the floor near its rim, two upright rods at "
-                         f"the rim and a slanted wire to the far corner, capsules of radius {THIN_RADIUS}.")
+                         content_text=CONTENT_TEXT[content])
     (out_dir / "README.txt").write_text(text)
     return out_dir

@@ -33,7 +33,7 @@ def workspace_scene(ws: Workspace) -> Scene:
     if not path.exists():
         raise BoostNerfError(f"the workspace's scene {path} is gone: restore it or rerun pretrain in a new workspace")
     scene = load_scene(path, image_size=data.get("image_size"), holdout_every=data.get("holdout_every", 8),
-                       format=data.get("format", "auto"))
+                       format=data.get("format", "auto"), bbox=data.get("bbox"))
     if m.get("scene_digest") and scene_digest(scene) != m["scene_digest"]:
         raise BoostNerfError(
             f"the workspace's scene {path} changed since pretrain (its images or cameras differ): restore it, "

@@ -28,7 +28,7 @@ from boostnerf_cli.fields.registry import build_expert, count_params
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.models import load_expert, save_expert
 from boostnerf_cli.recipe import GeometryRecipe, PretrainRecipe, Recipe, TrainRecipe, check_recipe, recipe_dict
-from boostnerf_cli.render.coverage import cover_foreground, hull_cells
+from boostnerf_cli.render.coverage import FOREGROUND_TOL, cover_foreground, foreground_masks, hull_cells
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
@@ -51,6 +51,12 @@ def _test_psnr(model: nn.Module, split: Split, settings: RenderSettings, skip, d
     return sum(psnrs) / max(1, len(psnrs))
 
 
+# More than this share of the foreground training rays finding their surface within a coarse cell of the scene
+# box's faces means content reaches past the box (a floor out to radius 3: 14%; the procedural objects and thin
+# scenes: 0; lego: see docs/datasets.md, "The scene box").
+EDGE_WARN = 0.01
+
+
 # ----------------------------------------------------------------------------------------------
 def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int, device: str,
                     log: Callable[[str], None], checkpoint_every: int = 500,
@@ -70,7 +76,7 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     t0 = time.perf_counter()
     bbox = scene.bbox.to(device)
     box, occ, model, cover = _coarse_round(ws, scene, rec, bbox, "geometry", seed, device, log, checkpoint_every,
-                                           scene_tag)
+                                           scene_tag, bbox_is_scene_box=True)
     rounds = [cover]
     shrink = float((box[1] - box[0]).prod() / (bbox[1] - bbox[0]).prod())
     if rec.refine and cover is not None and shrink < 0.5:  # cells at least 1.26x finer: worth a second round
@@ -90,9 +96,10 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
 
 
 def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor, name: str, seed: int, device: str,
-                  log: Callable[[str], None], checkpoint_every: int,
-                  scene_tag: str) -> tuple[Tensor, OccupancyGrid, nn.Module, dict | None]:
-    """Train the coarse grid over `bbox` and find the box and the mask from it.
+                  log: Callable[[str], None], checkpoint_every: int, scene_tag: str,
+                  bbox_is_scene_box: bool = False) -> tuple[Tensor, OccupancyGrid, nn.Module, dict | None]:
+    """Train the coarse grid over `bbox` and find the box and the mask from it. Over the scene's own box (the first
+    round), say when the surface of many foreground rays lies on its faces: content reaches past it.
 
     -> (box (2, 3), occupancy over `bbox`, the coarse model, the covering's counts (None without cover_foreground))
     """
@@ -128,6 +135,12 @@ def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor
         log(f"{name}: {cover['missed_before']} of {cover['foreground_rays']} foreground training rays reach no surface "
             f"in occupied cells; {cover['cells_added']} cells added along them ({cover['missed_after']} missed); "
             "the box holds every ray's surface")
+        if bbox_is_scene_box and cover["edge_rays"] > EDGE_WARN * cover["foreground_rays"]:
+            log(f"{name}: warning: {cover['edge_rays']} of {cover['foreground_rays']} foreground training rays "
+                f"({100 * cover['edge_rays'] / cover['foreground_rays']:.1f}%) find their surface on the faces of the "
+                f"scene box {[round(v, 3) for v in bbox.flatten().tolist()]}: the scene reaches past it, and what lies "
+                "beyond is drawn on its faces; if that is content, give recipe key data.bbox a box that holds it "
+                "(docs/datasets.md, \"The scene box\")")
         occ = OccupancyGrid(occ.occupied | framed.occupied, bbox)  # the mask only grows
     else:
         box = occ.occupied_bbox(margin_cells=1)
@@ -229,8 +242,11 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
 
 def scene_inputs(data: Path, rec: Recipe) -> dict:
     """What identifies the scene a workspace is trained on (recorded in the manifest)."""
-    return {"path": str(data.resolve()), "image_size": rec.data.image_size,
-            "holdout_every": rec.data.holdout_every, "format": rec.data.format}
+    inputs = {"path": str(data.resolve()), "image_size": rec.data.image_size,
+              "holdout_every": rec.data.holdout_every, "format": rec.data.format}
+    if rec.data.bbox is not None:  # named only when set: workspaces made before the key keep their scene id
+        inputs["bbox"] = list(rec.data.bbox)
+    return inputs
 
 
 def scene_id(inputs: dict) -> str:
@@ -281,6 +297,23 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
     return reports
 
 
+def check_foreground(scene: Scene, data: Path) -> None:
+    """Refuse, before anything is written, a scene whose training views show nothing but its known background
+    (every image's alpha transparent, a wrong folder): there is nothing to fit, and the geometry stage would
+    find no surface. One view with any foreground is enough (a small object is fine). A forward-facing scene (NDC)
+    has no background to tell from: its white wall or sky is content, as in the geometry stage's covering."""
+    train_split = scene.splits["train"]
+    if scene.background is None or scene.ndc is not None or any(bool(foreground_masks(image[None], scene.background).any())
+                                       for image in train_split.images):
+        return
+    colour = ", ".join(f"{c:g}" for c in scene.background)
+    raise BoostNerfError(
+        f"the {len(train_split)} training views of {data} show nothing but the background: no pixel differs from "
+        f"its colour ({colour}) by more than {FOREGROUND_TOL}; check that the images hold the scene (an all-"
+        "transparent alpha channel, a wrong folder)"
+    )
+
+
 def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
              log: Callable[[str], None]) -> tuple[Scene, str, Tensor, OccupancyGrid, nn.Module, list[int]]:
     """Check the inputs, record them, load the scene and the shared geometry (trained if missing).
@@ -306,14 +339,17 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     if previous and previous != inputs:
         if not force:
             raise BoostNerfError(
-                f"workspace {ws.root} was made for another scene or image size ({previous['path']}, "
-                f"image_size={previous['image_size']}): use a new --workspace, or --force to retrain everything"
+                f"workspace {ws.root} was made for another scene, image size or box ({previous['path']}, "
+                f"image_size={previous['image_size']}"
+                + (f", data.bbox={previous['bbox']}" if "bbox" in previous else "")
+                + "): use a new --workspace, or --force to retrain everything"
             )
         _forget_trained(ws)
     scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
-                       format=rec.data.format)
+                       format=rec.data.format, bbox=rec.data.bbox)
     for res in rec.pretrain.res:  # per-expert options are checked (and chosen, said once) before anything trains
         expert_options(rec.pretrain, res, log)
+    check_foreground(scene, data)
     digest = scene_digest(scene)
     recorded = ws.manifest().get("scene_digest")
     if recorded and recorded != digest and not force:
