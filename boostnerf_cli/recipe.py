@@ -291,7 +291,7 @@ def _family_value(section: dict, key: str, res: int, default: Any) -> Any:
 
 
 def check_recipe(recipe: Recipe, source: str = "recipe key") -> Recipe:
-    """Every value of `recipe` in its declared range (see `check_section`), plus the one rule between two keys:
+    """Every value of `recipe` in its declared range (see `check_section`), plus the rules between keys:
     an ngp expert's coarsest hash level is no finer than its finest (base_res <= max_res), and data.bbox is a box."""
     check_section(recipe, "", source)
     box = recipe.data.bbox
