@@ -141,6 +141,10 @@ def test_data_bbox_replaces_the_box_the_loader_gives_and_workspaces_reload_it(ge
     assert torch.equal(workspace_scene(ws).bbox, scene.bbox)
     llff = make_scene(tmp_path / "llff", size=16, n_train=3, n_test=0, layout="llff")
     raises_one_line("data.bbox does not apply .* forward-facing", load_scene, llff, bbox=wide)
+    # a box edited by hand in a manifest: one line, not a traceback
+    raises_one_line("bounding box must be", load_scene, generated, bbox=[1.0, 2.0])
+    raises_one_line("bounding box must be", load_scene, generated, bbox=[0, 0, 0, -1, 1, 1])
+    raises_one_line("data.bbox = .* must be six numbers", load_scene, generated, bbox=["a", 1, 1, 1, 1, 1])
 
 
 def test_lattice_counts_match_projection():

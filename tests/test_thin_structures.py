@@ -20,6 +20,7 @@ from boostnerf_cli.render.coverage import cover_foreground, foreground_masks, ra
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.scenes import load_scene, make_scene
+from boostnerf_cli.workspace import read_meta
 
 # the tiny recipe's changes: one larger expert, 80 px images, the default geometry alpha_init, no moe section
 RECIPE_CHANGES = {
@@ -233,7 +234,6 @@ def test_in_a_forward_facing_scene_every_pixel_is_foreground_even_the_background
         assert bool(covered(o[fg], d[fg], grown, scene.near, scene.far).all())
 
 
-
 def test_content_past_the_scene_box_is_named_and_data_bbox_holds_it(tmp_path):
     """`make-scene --content large`: the floor reaches radius 3, past the box of the region most cameras see (about
     +-1.7), so the coarse model draws what lies beyond on the box's faces. The geometry stage says so and names
@@ -251,9 +251,7 @@ def test_content_past_the_scene_box_is_named_and_data_bbox_holds_it(tmp_path):
         ws = tmp_path / f"ws-{name}"
         proc = run_cli("pretrain", "-w", str(ws), "--data", str(scene), "--recipe", str(tmp_path / f"{name}.yaml"),
                        "--device", "cpu", check=True)
-        meta = json.loads(__import__("safetensors").safe_open(str(ws / "experts" / "geometry.safetensors"), "pt")
-                          .metadata()["boostnerf"])
-        runs[name] = (proc.stdout + proc.stderr, meta)
+        runs[name] = (proc.stdout + proc.stderr, read_meta(ws / "experts" / "geometry.safetensors"))
     text, meta = runs["large"]
     first = meta["rounds"][0]
     assert first["edge_rays"] > 0.05 * first["foreground_rays"], first

@@ -76,7 +76,13 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     t0 = time.perf_counter()
     bbox = scene.bbox.to(device)
     box, occ, model, cover = _coarse_round(ws, scene, rec, bbox, "geometry", seed, device, log, checkpoint_every,
-                                           scene_tag, bbox_is_scene_box=True)
+                                           scene_tag)
+    if cover is not None and cover["edge_rays"] > EDGE_WARN * cover["foreground_rays"]:  # over the scene's own box
+        log(f"geometry: warning: {cover['edge_rays']} of {cover['foreground_rays']} foreground training rays "
+            f"({100 * cover['edge_rays'] / cover['foreground_rays']:.1f}%) find their surface on the faces of the "
+            f"scene box {[round(v, 3) for v in bbox.flatten().tolist()]}: the scene reaches past it, and what lies "
+            "beyond is drawn on its faces; if that is content, give recipe key data.bbox a box that holds it "
+            "(docs/datasets.md, \"The scene box\")")
     rounds = [cover]
     shrink = float((box[1] - box[0]).prod() / (bbox[1] - bbox[0]).prod())
     if rec.refine and cover is not None and shrink < 0.5:  # cells at least 1.26x finer: worth a second round
@@ -96,10 +102,9 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
 
 
 def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor, name: str, seed: int, device: str,
-                  log: Callable[[str], None], checkpoint_every: int, scene_tag: str,
-                  bbox_is_scene_box: bool = False) -> tuple[Tensor, OccupancyGrid, nn.Module, dict | None]:
-    """Train the coarse grid over `bbox` and find the box and the mask from it. Over the scene's own box (the first
-    round), say when the surface of many foreground rays lies on its faces: content reaches past it.
+                  log: Callable[[str], None], checkpoint_every: int,
+                  scene_tag: str) -> tuple[Tensor, OccupancyGrid, nn.Module, dict | None]:
+    """Train the coarse grid over `bbox` and find the box and the mask from it.
 
     -> (box (2, 3), occupancy over `bbox`, the coarse model, the covering's counts (None without cover_foreground))
     """
@@ -135,12 +140,6 @@ def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor
         log(f"{name}: {cover['missed_before']} of {cover['foreground_rays']} foreground training rays reach no surface "
             f"in occupied cells; {cover['cells_added']} cells added along them ({cover['missed_after']} missed); "
             "the box holds every ray's surface")
-        if bbox_is_scene_box and cover["edge_rays"] > EDGE_WARN * cover["foreground_rays"]:
-            log(f"{name}: warning: {cover['edge_rays']} of {cover['foreground_rays']} foreground training rays "
-                f"({100 * cover['edge_rays'] / cover['foreground_rays']:.1f}%) find their surface on the faces of the "
-                f"scene box {[round(v, 3) for v in bbox.flatten().tolist()]}: the scene reaches past it, and what lies "
-                "beyond is drawn on its faces; if that is content, give recipe key data.bbox a box that holds it "
-                "(docs/datasets.md, \"The scene box\")")
         occ = OccupancyGrid(occ.occupied | framed.occupied, bbox)  # the mask only grows
     else:
         box = occ.occupied_bbox(margin_cells=1)
@@ -303,8 +302,9 @@ def check_foreground(scene: Scene, data: Path) -> None:
     find no surface. One view with any foreground is enough (a small object is fine). A forward-facing scene (NDC)
     has no background to tell from: its white wall or sky is content, as in the geometry stage's covering."""
     train_split = scene.splits["train"]
-    if scene.background is None or scene.ndc is not None or any(bool(foreground_masks(image[None], scene.background).any())
-                                       for image in train_split.images):
+    if scene.background is None or scene.ndc is not None:
+        return
+    if any(bool(foreground_masks(image[None], scene.background).any()) for image in train_split.images):
         return
     colour = ", ".join(f"{c:g}" for c in scene.background)
     raise BoostNerfError(
