@@ -107,6 +107,7 @@ def pretrain(
     from boostnerf_cli.recipe import load_recipe
     from boostnerf_cli.stages import pretrain as stage
     from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.workspace import number
 
     rec = load_recipe(recipe).override({
         "pretrain.model": model, "pretrain.res": _int_list(res, "--res") if res is not None else None,
@@ -120,7 +121,7 @@ def pretrain(
     table = Table("expert", "params", "steps", "seconds", "train PSNR", "held-out PSNR")
     for r in reports:
         table.add_row(r["name"], f"{r['params']:,}", str(r["iterations"]), f"{r['seconds']:.0f}",
-                      f"{r['train_psnr']:.2f}", f"{r['test_psnr']:.2f}" if r.get("test_psnr") is not None else "-")
+                      number(r["train_psnr"], ".2f"), number(r.get("test_psnr"), ".2f"))
     out.print(table)
 
 
@@ -244,6 +245,7 @@ def eval_cmd(
     from boostnerf_cli.models import Skips
     from boostnerf_cli.stages import evaluate as stage
     from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.workspace import number
 
     skips = Skips.from_flags(no_skip, skip_off)
     ws, lock = _writer(workspace)
@@ -252,8 +254,7 @@ def eval_cmd(
                           exact_gate=exact_gate)
     table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")
     for r in result["models"]:
-        table.add_row(r["name"], f"{r['psnr']:.3f}", f"{r['ssim']:.4f}",
-                      "n/a" if r["lpips"] is None else f"{r['lpips']:.4f}",
+        table.add_row(r["name"], number(r["psnr"], ".3f"), f"{r['ssim']:.4f}", number(r["lpips"], ".4f"),
                       f"{r['w0']:,}" if "w0" in r else "-", f"{r['gflops_per_image']:.3f}" if "w0" in r else "-",
                       f"{r['seconds_per_image']:.3f}", f"{r['params']:,}")
     out.print(table)
@@ -292,13 +293,14 @@ def prune(
     """Drop the grid entries no training view uses (zero gradient): -> WS/moe/NAME-pruned.safetensors + .json."""
     from boostnerf_cli.stages import prune as stage
     from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.workspace import number
 
     ws, lock = _writer(workspace)
     with lock:
         r = stage.run(ws, model, split, resolve_device(device), views, force, log)
     table = Table("model", "params", "file MB", "test PSNR", "train views max |diff|")
-    table.add_row(r["from"], f"{r['params_before']:,}", f"{r['file_bytes_before'] / 1e6:.2f}", f"{r['test_psnr_before']:.3f}", "")
-    table.add_row(r["name"], f"{r['params_after']:,}", f"{r['file_bytes_after'] / 1e6:.2f}", f"{r['test_psnr_after']:.3f}",
+    table.add_row(r["from"], f"{r['params_before']:,}", f"{r['file_bytes_before'] / 1e6:.2f}", number(r["test_psnr_before"], ".3f"), "")
+    table.add_row(r["name"], f"{r['params_after']:,}", f"{r['file_bytes_after'] / 1e6:.2f}", number(r["test_psnr_after"], ".3f"),
                   f"{r['train_max_abs_diff']:.1e}")
     out.print(table)
 
@@ -329,13 +331,13 @@ def bench(
             table.add_row(r.name, r.group, f"variants/{r.setup}", r.model, "yes" if done else "no")
         out.print(table)
         return
-    from boostnerf_cli.workspace import Workspace
+    from boostnerf_cli.workspace import Workspace, number
 
     with Workspace(workspace).lock():
         result = stage.run(workspace, data, rec, suite, names, resolve_device(device), views, log)
     table = Table(*stage.COLUMNS)
     for r in result["rows"]:
-        table.add_row(r["name"], r["group"], f"{r['psnr']:.3f}", f"{r['ssim']:.4f}", f"{r['train_seconds']:.0f}",
+        table.add_row(r["name"], r["group"], number(r["psnr"], ".3f"), f"{r['ssim']:.4f}", f"{r['train_seconds']:.0f}",
                       f"{r['seconds_per_image']:.3f}", f"{r['gflops_per_image']:.3f}", f"{r['params']:,}", f"{r['w0']:,}")
     out.print(table)
     log(f"wrote {workspace / 'reports' / 'bench.json'} and bench.csv"

@@ -22,6 +22,7 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import json
+import math
 import os
 import socket
 import tempfile
@@ -124,9 +125,27 @@ def _umask() -> int:
     return mask
 
 
+def json_ready(data: Any) -> Any:
+    """`data` with every float that is not finite replaced by None. JSON has no inf or nan (RFC 8259); null is
+    what JavaScript's JSON.stringify writes for them. A PSNR is inf where a render matches its image exactly."""
+    if isinstance(data, float):
+        return data if math.isfinite(data) else None
+    if isinstance(data, dict):
+        return {k: json_ready(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [json_ready(v) for v in data]
+    return data
+
+
 def write_json(path: Path, data: Any) -> None:
+    """Strict JSON (a value that is not finite is written as null; see `json_ready`), written atomically."""
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
+        tmp.write_text(json.dumps(json_ready(data), indent=2, sort_keys=False, allow_nan=False) + "\n")
+
+
+def number(value: float | int | None, spec: str) -> str:
+    """A report value for display: "-" for null (not available, or not finite when it was written)."""
+    return "-" if value is None else format(value, spec)
 
 
 def read_json(path: Path, what: str = "file") -> dict:

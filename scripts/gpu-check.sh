@@ -121,6 +121,7 @@ check "400px eval" "${BN[@]}" eval -w "$W" --report --device $DEV
 import json, sys, datetime, torch
 from pathlib import Path
 import yaml
+from boostnerf_cli.workspace import number
 ws, recipe, out = Path(sys.argv[1]), yaml.safe_load(Path(sys.argv[2]).read_text()), Path(sys.argv[3])
 ev = {r["name"]: r for r in json.loads((ws / "reports" / "eval.json").read_text())["models"]}
 rays = lambda it, secs, batch: it * batch / secs / 1e6 if secs else float("nan")
@@ -132,7 +133,7 @@ for name, r in ev.items():
     tr = json.loads(rep.read_text()) if rep.exists() else {}
     batch = (recipe["pretrain"]["train"] if rep.parent.name == "experts" else recipe["moe"]["train"])["batch_rays"]
     speed = rays(tr.get("iterations", 0), tr.get("seconds", 0), batch) if tr else float("nan")
-    lines.append(f"| {name} | {r['psnr']:.2f} | {r.get('gflops_per_image', float('nan')):.1f} | {speed:.3f} | "
+    lines.append(f"| {name} | {number(r['psnr'], '.2f')} | {r.get('gflops_per_image', float('nan')):.1f} | {speed:.3f} | "
                  f"{r['seconds_per_image']:.3f} |")
 out.write_text("\n".join(lines) + "\n")
 print("\n".join(lines))

@@ -3,6 +3,7 @@
 import csv
 import json
 import math
+from pathlib import Path
 
 import imageio.v3 as iio
 import pytest
@@ -106,6 +107,13 @@ def test_quick_suite_writes_a_finite_table(quick_bench):
     for p in plots:
         img = iio.imread(root / "reports" / p)
         assert img.shape[:2] == (600, 840) and img[..., :3].std() > 10  # 7x5 in at 120 dpi, not blank
+
+
+def test_bench_plots_leave_out_rows_whose_psnr_was_not_finite(tmp_path):
+    """A bench row read back holds null for a PSNR of inf (a pixel-perfect render): the plots leave it out."""
+    rows = [{"name": "top1", "group": "moe", "psnr": 20.0, "gflops_per_image": 1.0, "seconds_per_image": 0.1},
+            {"name": "sky", "group": "expert", "psnr": None, "gflops_per_image": 0.0, "seconds_per_image": 0.1}]
+    assert [Path(p).name for p in bench.plot(rows, tmp_path, print)] == ["bench-psnr-gflops.png", "bench-psnr-time.png"]
 
 
 def test_bench_plots_are_skipped_with_one_line_without_matplotlib(tmp_path, monkeypatch):

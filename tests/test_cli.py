@@ -117,6 +117,41 @@ def test_eval_reports_lpips_when_its_weights_are_on_disk(trained_ws, tmp_path):
 
 
 
+def test_a_view_of_empty_sky_scores_an_infinite_psnr_that_the_reports_write_as_null(tmp_path, tiny_scene, tiny_recipe):
+    """Every test camera turned round to look away from the scene, with a transparent image: each render is the
+    white background, exactly as its image, so the PSNR is inf. The reports held Python's `Infinity`, which is not
+    JSON (jq 1.6 read it as 1.8e308); now they hold null, and the tables print "-"."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    meta = json.loads((scene / "transforms_test.json").read_text())
+    for frame in meta["frames"]:
+        for row in frame["transform_matrix"][:3]:  # half a turn about the camera's up axis, in place
+            row[0], row[2] = -row[0], -row[2]
+        iio.imwrite(scene / f"{frame['file_path']}.png", np.zeros((32, 32, 4), np.uint8))
+    (scene / "transforms_test.json").write_text(json.dumps(meta))
+
+    def strict(path):
+        return json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"{path} holds {c}: not JSON"))
+
+    ws = tmp_path / "ws"
+    run_cli("pretrain", "--data", str(scene), "--recipe", str(tiny_recipe), "--workspace", str(ws), "--device", "cpu",
+            check=True)
+    for name in ("dvgo-12", "dvgo-16"):
+        report = strict(ws / "experts" / f"{name}.json")
+        assert report["test_psnr"] is None and report["train_psnr"] > 10
+    proc = run_cli("eval", "--workspace", str(ws), "--report", "--device", "cpu", check=True)
+    rows = {r["name"]: r for r in strict(ws / "reports" / "eval.json")["models"]}
+    assert rows["dvgo-16"]["psnr"] is None and rows["dvgo-16"]["ssim"] == pytest.approx(1.0)
+    assert "| dvgo-16 | inf | 1.0000 |" in (ws / "reports" / "eval.md").read_text()  # what this run computed
+    assert "inf" in proc.stdout
+    rerun = run_cli("pretrain", "--data", str(scene), "--recipe", str(tiny_recipe), "--workspace", str(ws),
+                    "--device", "cpu", check=True)  # finished: its table is read back from the reports
+    assert "inf" not in rerun.stdout and [line for line in rerun.stdout.splitlines() if "dvgo-16" in line and " - " in line]
+
+
 def test_missing_data_path(tmp_path):
     proc = run_cli("pretrain", "--data", str(tmp_path / "nope"), "--workspace", str(tmp_path / "ws"))
     assert_clean_failure(proc, "does not exist")

@@ -30,6 +30,16 @@ def test_failed_write_keeps_the_previous_file(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
 
 
+def test_reports_are_strict_json_with_null_for_values_that_are_not_finite(tmp_path):
+    """JSON has no inf or nan: write_json writes null for them, at any depth, and never Python's `Infinity`."""
+    data = {"psnr": float("inf"), "rows": [{"a": float("-inf"), "b": (1.5, float("nan"))}], "n": 3, "s": "inf"}
+    write_json(tmp_path / "r.json", data)
+    text = (tmp_path / "r.json").read_text()
+    assert json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} is not JSON")) == {
+        "psnr": None, "rows": [{"a": None, "b": [1.5, None]}], "n": 3, "s": "inf"}
+    assert data["psnr"] == float("inf")  # the caller's values are left as they were
+
+
 def test_non_finite_tensors_are_never_written(tmp_path):
     with pytest.raises(BoostNerfError, match="non-finite"):
         save_tensors(tmp_path / "x.safetensors", {"a": torch.tensor([1.0, float("nan")])}, {})

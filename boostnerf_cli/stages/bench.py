@@ -355,6 +355,9 @@ GROUP_STYLE = {"expert": "o", "baseline": "s", "moe": "*", "naive": "^", "topk":
 
 def plot(rows: list[dict], folder: Path, log: Callable[[str], None]) -> list[str]:
     """PSNR against GFLOPs per image and against seconds per image; [] without matplotlib."""
+    def finite(v: float | None) -> bool:  # a row read back holds null for a value that was not finite
+        return v is not None and math.isfinite(v)
+
     try:
         import matplotlib
 
@@ -368,7 +371,7 @@ def plot(rows: list[dict], folder: Path, log: Callable[[str], None]) -> list[str
                              ("seconds_per_image", "seconds per image (render)", "bench-psnr-time")):
         fig, ax = plt.subplots(figsize=(7, 5), dpi=120)
         for group in dict.fromkeys(r["group"] for r in rows):
-            pts = [r for r in rows if r["group"] == group and math.isfinite(r[key]) and math.isfinite(r["psnr"])]
+            pts = [r for r in rows if r["group"] == group and finite(r[key]) and finite(r["psnr"])]
             ax.scatter([r[key] for r in pts], [r["psnr"] for r in pts], marker=GROUP_STYLE.get(group, "o"),
                        s=60 if group == "moe" else 36, label=group)
             for r in pts:

@@ -16,7 +16,7 @@ from boostnerf_cli.metrics import image_metrics, load_lpips
 from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, all_model_names, load_model, n_views, render_split
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
-from boostnerf_cli.workspace import Workspace, atomic_path, write_json
+from boostnerf_cli.workspace import Workspace, atomic_path, number, write_json
 
 
 def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, lpips_model, skips: Skips = ALL_SKIPS,
@@ -73,9 +73,6 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
 
 def markdown_table(result: dict) -> str:
     """The eval report as a Markdown table, in the paper's Table 1 columns."""
-    def num(v, fmt):
-        return "n/a" if v is None else format(v, fmt)
-
     lines = [
         f"Split `{result['split']}`, {result['views']} views, skips {Skips(**result['skips']).describe()}.",
         "",
@@ -84,8 +81,8 @@ def markdown_table(result: dict) -> str:
     ]
     for r in result["models"]:
         lines.append(
-            f"| {r['name']} | {r['psnr']:.3f} | {r['ssim']:.4f} | {num(r['lpips'], '.4f')} | {r['params']:,} | "
-            f"{num(r.get('w0'), ',')} | {num(r.get('gflops_per_image'), '.3f')} | {r['seconds_per_image']:.3f} |"
+            f"| {r['name']} | {number(r['psnr'], '.3f')} | {r['ssim']:.4f} | {number(r['lpips'], '.4f')} | {r['params']:,} | "
+            f"{number(r.get('w0'), ',')} | {number(r.get('gflops_per_image'), '.3f')} | {r['seconds_per_image']:.3f} |"
         )
     if result.get("lpips_note"):
         lines += ["", f"LPIPS: {result['lpips_note']}"]
