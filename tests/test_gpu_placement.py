@@ -11,6 +11,7 @@ back to the CPU for part of its work, or moved the wrong thing, would show.
 from __future__ import annotations
 
 import json
+from contextlib import nullcontext
 from pathlib import Path
 
 import pytest
@@ -90,11 +91,12 @@ def _recipe(tmp_path: Path, family: str = "dvgo") -> Path:
 
 
 def test_every_stage_on_the_simulated_gpu_gives_the_cpu_numbers(tmp_path, tiny_scene):
+    """The reference is a plain CPU run, outside the simulator (whose dispatch mode makes a run ~4x slower)."""
     recipe = _recipe(tmp_path)
     for where in ("cpu", "gpu"):
         ws = str(tmp_path / where)
         device = "cpu" if where == "cpu" else "cuda"
-        with simulated_gpu():
+        with simulated_gpu() if where == "gpu" else nullcontext():
             _invoke("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "-w", ws, "--device", device)
             _invoke("build-moe", "-w", ws, "--device", device)
             for flags in (["--topk", "1"], ["--topk", "2"], ["--baseline"], ["--ensemble"]):
@@ -140,13 +142,14 @@ def test_other_families_on_the_simulated_gpu(tmp_path, tiny_scene, family):
 
 def test_a_run_interrupted_on_the_gpu_resumes_there(tmp_path, tiny_scene, monkeypatch):
     """A checkpoint written from the GPU (read back with map_location=cpu) resumes on the GPU: model, Adam
-    state and random state go back to the device, and the result equals an uninterrupted run."""
+    state and random state go back to the device, and the result equals an uninterrupted run. That run is on
+    the CPU, outside the simulator (~4x faster): the simulated GPU gives the CPU's numbers (the test above)."""
     from boostnerf_cli import train as train_mod
 
     recipe = _recipe(tmp_path)
+    _invoke("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "-w", str(tmp_path / "whole"),
+            "--device", "cpu")
     with simulated_gpu():
-        _invoke("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "-w", str(tmp_path / "whole"),
-                "--device", "cuda")
         real_save, saves = train_mod._save_checkpoint, []
 
         def save_then_stop(path, *args, **kwargs):
