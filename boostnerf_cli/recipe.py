@@ -292,13 +292,18 @@ def _family_value(section: dict, key: str, res: int, default: Any) -> Any:
 
 def check_recipe(recipe: Recipe, source: str = "recipe key") -> Recipe:
     """Every value of `recipe` in its declared range (see `check_section`), plus the rules between keys:
-    an ngp expert's coarsest hash level is no finer than its finest (base_res <= max_res), and data.bbox is a box."""
+    the resolutions of pretrain.res are distinct (they name the experts), an ngp expert's coarsest hash level is no
+    finer than its finest (base_res <= max_res), and data.bbox is a box."""
     check_section(recipe, "", source)
     box = recipe.data.bbox
     if box is not None and (len(box) != 6 or not all(box[i + 3] > box[i] for i in range(3))):
         raise BoostNerfError(f"{source} data.bbox = {box!r}: must be six numbers, xmin, ymin, zmin, xmax, ymax, "
                              "zmax, each max above its min")
     pre = recipe.pretrain
+    twice = sorted({r for r in pre.res if pre.res.count(r) > 1})
+    if twice:
+        raise BoostNerfError(f"{source} pretrain.res = {pre.res!r} lists {twice[0]} more than once: each expert is "
+                             "named by its resolution, so give each its own")
     if pre.model == "ngp":
         defaults = CONFIGS["ngp"]()
         for res in pre.res:

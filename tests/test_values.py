@@ -218,6 +218,8 @@ def test_known_values_from_the_issue(tmp_path):
         "pretrain:\n  res: [64, 4096]\n": "recipe key pretrain.res = 4096: must be in [1, 1024]",
         "moe:\n  penalty: cubic\n": "recipe key moe.penalty = 'cubic': must be one of geometric, linear, quadratic, none",
         "pretrain:\n  res: []\n": "recipe key pretrain.res = []: needs at least 1 value(s)",
+        "pretrain:\n  res: [64, 96, 64]\n": "recipe key pretrain.res = [64, 96, 64] lists 64 more than once: each "
+                                          "expert is named by its resolution",  # build-moe's topk error, before
         "pretrain:\n  model: ngp\n  res: [8]\n  ngp: {base_res: 64, max_res: 32}\n":
             "recipe key pretrain.ngp.max_res = 32: must be >= base_res (64) (expert ngp-8)",
         "pretrain:\n  dvgo: {width: 3}\n": "unknown recipe key pretrain.dvgo.width",
