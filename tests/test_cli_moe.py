@@ -91,6 +91,15 @@ def test_build_moe_refuses_experts_of_different_scenes(trained_ws, tmp_path, tin
     assert_clean_failure(proc, "different scenes")
 
 
+def test_build_moe_refuses_an_expert_named_twice(trained_ws, tmp_path):
+    """`--experts dvgo-12,dvgo-12` was a traceback from safetensors (two experts sharing their tensors)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    proc = run_cli("build-moe", "--workspace", str(ws), "--experts", "dvgo-12,dvgo-16,dvgo-12", "--device", "cpu")
+    assert_clean_failure(proc, "--experts names dvgo-12 more than once")
+    assert not (ws / "moe").exists() and no_temp_files(ws)
+
+
 def test_render_per_expert_and_gate_maps(moe_ws):
     import imageio.v3 as iio
 

@@ -30,6 +30,9 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     missing = [n for n in names if n not in available]
     if missing:
         raise BoostNerfError(f"no pretrained expert {missing[0]!r} in {ws.root} (experts: {', '.join(available)})")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise BoostNerfError(f"--experts names {twice[0]} more than once: a mixture holds each expert once")
     check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
     check_topk(rec.topk, names, "moe.topk")
     extra = [rec.gate_from] if rec.gate_from and rec.gate_from not in names else []  # the gate's source, left out
