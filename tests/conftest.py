@@ -33,6 +33,7 @@ TINY_RECIPE = {
     },
     "moe": {
         "gate_res": 8,
+        "bake_res": 16,  # the 8^3 gate baked on 16^3, not 128^3: each mixture loads ~0.6 s sooner (suite -1 min)
         "iters": 20,
         "train": {"batch_rays": 256, "log_every": 10, "checkpoint_every": 10},
     },
