@@ -3,6 +3,7 @@
 
 import json
 import os
+import shutil
 
 import pytest
 from conftest import PSNR_MARGIN, REMOVE, assert_clean_failure, make_recipe, run_cli
@@ -151,3 +152,17 @@ def test_a_fourth_family_is_one_file_and_one_registry_entry(tmp_path, tiny_scene
     assert "pretrain.toy.hidden lists no value for res 16: using 8" in logs[0]  # its own recipe section
     assert (ws / "moe" / "top1.safetensors").exists()
     assert sys.modules["boostnerf_cli"].__file__ != str(src / "boostnerf_cli" / "__init__.py")  # the copy ran apart
+
+
+def test_prune_drops_unused_hash_rows_and_refuses_a_model_with_no_table_to_prune(family_ws, tmp_path):
+    """Away from DVGO: an NGP expert's hash table is pruned with its training views unchanged; a TensoRF expert has
+    no dense table (VM factors), and prune wrote an identical copy under a new name without a word, before."""
+    ws = tmp_path / "ws"
+    shutil.copytree(family_ws, ws)
+    proc = run_cli("prune", "--workspace", str(ws), "--model", "tensorf-10", "--device", "cpu")
+    assert_clean_failure(proc, "tensorf-10 has no dense grid or hash table to prune", "nothing written")
+    assert not list(ws.glob("moe/tensorf-10-pruned*"))
+    run_cli("prune", "--workspace", str(ws), "--model", "ngp-3", "--device", "cpu", check=True)
+    report = json.loads((ws / "moe" / "ngp-3-pruned.json").read_text())
+    assert [t["name"] for t in report["tables"]] == ["encoding.table"] and report["train_max_abs_diff"] == 0
+    assert report["params_after"] <= report["params_before"]  # this tiny table: every row is read

@@ -108,6 +108,9 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
         log(f"{out_name}: already pruned, skipping (use --force to redo it)")
         return read_json(report_path, "prune report")
     before = load_model(ws, name, device)  # also: a clear error for an unknown name, before any work
+    if not grid_tables(before.field):
+        raise BoostNerfError(f"{name} has no dense grid or hash table to prune: prune drops the rows of those that no "
+                             "training view reads, and TensoRF's factor planes and lines are not pruned; nothing written")
     src = model_file(ws, name)
     scene = workspace_scene(ws)
     split = scene.split(split_name)
