@@ -231,6 +231,32 @@ def test_rgb_images_and_near_far_keys(tmp_path):
     assert torch.allclose(scene.split("train").images[0], torch.from_numpy(rgba(4, 4)[..., :3] / 255).float())
 
 
+def test_palette_colour_keyed_and_cmyk_images_keep_their_transparency_and_colours(tmp_path):
+    """A palette PNG with transparency (what pngquant writes) loaded its transparent pixels black instead of the
+    background (a scene trained to 1.7 dB), and so did an RGB PNG with a colour key; a CMYK JPEG's K was alpha."""
+    from PIL import Image
+
+    from boostnerf_cli.scenes.frames import read_image
+
+    colours = np.array([[0, 0, 0, 0], [200, 30, 30, 255], [20, 180, 60, 255], [40, 40, 220, 255]], np.uint8)
+    images = [colours[np.random.default_rng(i).integers(0, 4, (6, 6))] for i in range(2)]
+    plain = load_blender(write_blender(tmp_path / "rgba", {"train": images}), holdout_every=0).split("train").images
+    folder = write_blender(tmp_path / "palette", {"train": images})
+    for png in (folder / "train").glob("*.png"):
+        Image.open(png).quantize(8).save(png)  # mode P, the transparent colour in its tRNS chunk
+        assert Image.open(png).mode == "P" and "transparency" in Image.open(png).info
+    assert torch.allclose(load_blender(folder, holdout_every=0).split("train").images, plain, atol=1 / 255)
+    assert float(plain[0][images[0][..., 3] == 0].min()) == 1.0  # the transparent pixels: the white background
+
+    keyed = tmp_path / "keyed.png"
+    Image.fromarray(images[0][..., :3]).save(keyed, transparency=(0, 0, 0))  # black: transparent
+    assert torch.equal(read_image(keyed)[..., 3] == 0, torch.from_numpy(images[0][..., 3] == 0))
+    jpeg = tmp_path / "cmyk.jpg"
+    Image.new("RGB", (8, 8), (200, 30, 30)).convert("CMYK").save(jpeg, quality=95)
+    img = read_image(jpeg)
+    assert img.shape == (8, 8, 3) and torch.allclose(img[0, 0], torch.tensor([200, 30, 30]) / 255, atol=0.05)
+
+
 def test_a_blender_scene_at_another_scale_gives_the_scaled_bounds(generated, tmp_path):
     """The same capture with every camera 4x farther out (a scene modelled in other units): near, far and the
     box scale with it. With the old fixed near 2 / far 6 the cameras 16 units out saw nothing (far 6 ends

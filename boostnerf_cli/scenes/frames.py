@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -90,10 +91,28 @@ def target_size(height: int, width: int, image_size: int | None) -> tuple[int, i
 # ----------------------------------------------------------------------------- images
 
 
+def _read_mode(path: Path) -> str | None:
+    """The Pillow mode to read an image in so that its colours and transparency survive, or None (as stored).
+    A palette image (what pngquant writes) or a colour-keyed grey or RGB PNG may carry transparency, which a
+    plain read drops (its transparent pixels came back black); CMYK, YCbCr, LAB and HSV read as RGB (a CMYK
+    JPEG's K came back as alpha); a 1-bit image reads as grey."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        mode, transparent = im.mode, "transparency" in im.info
+    if mode in ("P", "PA"):
+        return "RGBA" if mode == "PA" or transparent else "RGB"
+    if transparent and mode in ("L", "RGB"):
+        return "LA" if mode == "L" else "RGBA"
+    return {"CMYK": "RGB", "YCbCr": "RGB", "LAB": "RGB", "HSV": "RGB", "1": "L"}.get(mode)
+
+
 def read_image(path: Path) -> Tensor:
-    """Read an image as float32 (H, W, C) in [0, 1]: C = 1 grey, 2 grey+alpha, 3 RGB, 4 RGBA."""
+    """Read an image as float32 (H, W, C) in [0, 1]: C = 1 grey, 2 grey+alpha, 3 RGB, 4 RGBA (`_read_mode`)."""
     try:
-        data = iio.imread(path, plugin="pillow")
+        with warnings.catch_warnings():  # Pillow's advice to convert palette transparency to RGBA: done
+            warnings.simplefilter("ignore", UserWarning)
+            data = iio.imread(path, plugin="pillow", mode=_read_mode(path))
     except Exception as err:  # imageio/PIL raise many types for corrupt files
         raise BoostNerfError(f"cannot read image {path} (corrupt or not an image: {one_line(err)}); replace or re-export it") from None
     if data.ndim == 2:
