@@ -75,6 +75,18 @@ def test_lattice_shape_has_about_n_voxels_and_isotropic_spacing():
     assert abs(shape[0] / shape[1] - 2.0) < 0.1
 
 
+def test_a_box_flatter_than_its_lattice_keeps_about_n_voxels():
+    """A flat data.bbox ([3, 3, 1e-6]) with the 8^3 geometry grid gave 2.7 M vertices (466 MB, like a hang), and a
+    camera box stretched by a wild cx one of 1e9 x 3 x 3: the sides held at 2 now leave the budget to the others."""
+    flat = G.lattice_shape(torch.tensor([[-1.5, -1.5, 0.0], [1.5, 1.5, 1e-6]]), 512)
+    assert flat == (16, 16, 2)
+    assert G.lattice_shape(torch.tensor([[0.0, 0.0, 0.0], [1e9, 3.0, 3.0]]), 512) == (128, 2, 2)
+    for box in ([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]], [[-1.3, -1.2, -0.4], [1.2, 1.3, 1.1]]):  # unchanged
+        size = torch.tensor(box, dtype=torch.float64).diff(dim=0)[0]
+        plain = (size / (size.prod() / 160**3) ** (1 / 3)).round().long().tolist()
+        assert list(G.lattice_shape(torch.tensor(box), 160**3)) == plain
+
+
 def test_rays_and_projection_are_inverse():
     pose = torch.eye(4)
     pose[:3, 3] = torch.tensor([0.3, -0.2, 4.0])

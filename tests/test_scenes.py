@@ -317,6 +317,25 @@ def test_error_unknown_layout(tmp_path):
     raises_one_line("unknown scene format", load_scene, tmp_path, format="colmap2000")
 
 
+def test_error_bad_camera_values_and_a_singular_rotation(tmp_path):
+    """Each was a traceback: ZeroDivisionError, ValueError, TypeError from float(), linalg.eigh not converging."""
+    folder = write_blender(tmp_path / "cam", {"train": [rgba(4, 4)] * 2})
+    meta_path = folder / "transforms_train.json"
+    good = json.loads(meta_path.read_text())
+    for key, value, message in [("camera_angle_x", 0, r"camera_angle_x = 0.0: a field of view must be in \(0, pi\)"),
+                                ("camera_angle_x", 3.2, r"camera_angle_x = 3.2: a field of view"),
+                                ("camera_angle_x", "abc", r"camera_angle_x = 'abc' is not a number"),
+                                ("camera_angle_x", [0.7], r"camera_angle_x = \[0.7\] is not a number"),
+                                ("w", "abc", r"w = 'abc' is not a number"),
+                                ("fl_x", True, r"fl_x = True is not a number")]:
+        meta_path.write_text(json.dumps({**good, key: value}))
+        raises_one_line(message, load_scene, folder)
+    singular = json.loads(json.dumps(good))
+    singular["frames"][1]["transform_matrix"] = [[0, 0, 0, 1], [0, 0, 0, 2], [0, 0, 0, 3], [0, 0, 0, 1]]
+    meta_path.write_text(json.dumps(singular))
+    raises_one_line(r"frame 1.*rotation .* is singular", load_scene, folder)
+
+
 def test_error_missing_image(tmp_path):
     folder = write_blender(tmp_path / "m", {"train": [rgba(4, 4)] * 2})
     (folder / "train" / "r_1.png").unlink()

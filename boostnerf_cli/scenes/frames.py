@@ -210,6 +210,10 @@ def parse_pose(matrix, source: str) -> np.ndarray:
         raise BoostNerfError(f"{source}: transform_matrix must be a 4x4 matrix of numbers, got shape {pose.shape}")
     if not np.isfinite(pose).all():
         raise BoostNerfError(f"{source}: transform_matrix contains NaN or infinite values; fix the pose")
+    det = float(np.linalg.det(pose[:3, :3]))
+    if abs(det) < 1e-6:
+        raise BoostNerfError(f"{source}: transform_matrix's rotation (its 3x3 block) is singular (determinant {det:.2g}), "
+                             "not a camera orientation; fix the pose")
     return pose
 
 
@@ -219,22 +223,39 @@ def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int
     The JSON values refer to an image of `w` x `h` pixels (default: the native image size); every
     value is scaled per axis by stored / JSON size.
     """
-    h_json = float(camera["h"] or native[0])
-    w_json = float(camera["w"] or native[1])
+    def number(key: str) -> float | None:
+        value = camera[key]
+        if value is None:
+            return None
+        try:
+            if isinstance(value, bool):
+                raise TypeError
+            return float(value)
+        except (TypeError, ValueError):
+            raise BoostNerfError(f"{source}: {key} = {value!r} is not a number; fix the transforms file") from None
+
+    def focal(angle_key: str, size: float) -> float:
+        angle = number(angle_key)
+        if not 0 < angle < math.pi:
+            raise BoostNerfError(f"{source}: {angle_key} = {angle!r}: a field of view must be in (0, pi) radians")
+        return 0.5 * size / math.tan(0.5 * angle)
+
+    h_json = number("h") or float(native[0])
+    w_json = number("w") or float(native[1])
     if camera["fl_x"] is not None:
-        fx = float(camera["fl_x"])
+        fx = number("fl_x")
     elif camera["camera_angle_x"] is not None:
-        fx = 0.5 * w_json / math.tan(0.5 * float(camera["camera_angle_x"]))
+        fx = focal("camera_angle_x", w_json)
     else:
         raise BoostNerfError(f"{source}: no camera_angle_x and no fl_x; add one of them to the transforms file")
     if camera["fl_y"] is not None:
-        fy = float(camera["fl_y"])
+        fy = number("fl_y")
     elif camera["camera_angle_y"] is not None:
-        fy = 0.5 * h_json / math.tan(0.5 * float(camera["camera_angle_y"]))
+        fy = focal("camera_angle_y", h_json)
     else:
         fy = fx
-    cx = float(camera["cx"]) if camera["cx"] is not None else w_json / 2
-    cy = float(camera["cy"]) if camera["cy"] is not None else h_json / 2
+    cx = number("cx") if camera["cx"] is not None else w_json / 2
+    cy = number("cy") if camera["cy"] is not None else h_json / 2
     sx, sy = size[1] / w_json, size[0] / h_json
     return [fx * sx, fy * sy, cx * sx, cy * sy]
 
