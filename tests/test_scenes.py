@@ -336,6 +336,23 @@ def test_error_bad_camera_values_and_a_singular_rotation(tmp_path):
     raises_one_line(r"frame 1.*rotation .* is singular", load_scene, folder)
 
 
+def test_make_scene_refuses_a_folder_with_files_a_file_and_a_negative_seed(tmp_path):
+    """make-scene over an existing blender scene with --format llff wrote the llff files beside the old ones, and
+    pretrain then found transforms_train.json and trained on the old scene; a smaller rerun left old views behind.
+    A file as the folder and a negative seed were tracebacks (FileExistsError, numpy's ValueError)."""
+    make_scene(tmp_path / "s", size=8, n_train=2, n_test=0)
+    before = sorted(p.name for p in (tmp_path / "s").rglob("*"))
+    raises_one_line(r"already holds files: .*choose a new folder", make_scene, tmp_path / "s", size=8, n_train=2,
+                    n_test=0, layout="llff")
+    assert sorted(p.name for p in (tmp_path / "s").rglob("*")) == before
+    (tmp_path / "f.yaml").write_text("x")
+    raises_one_line(r"f\.yaml is a file", make_scene, tmp_path / "f.yaml", size=8, n_train=2, n_test=0)
+    raises_one_line(r"seed >= 0 .*seed=-1", make_scene, tmp_path / "n", size=8, n_train=2, n_test=0, seed=-1)
+    assert not (tmp_path / "n").exists()
+    (tmp_path / "empty").mkdir()
+    make_scene(tmp_path / "empty", size=8, n_train=2, n_test=0)  # an empty folder is fine
+
+
 def test_error_missing_image(tmp_path):
     folder = write_blender(tmp_path / "m", {"train": [rgba(4, 4)] * 2})
     (folder / "train" / "r_1.png").unlink()

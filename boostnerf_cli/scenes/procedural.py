@@ -455,12 +455,12 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     content: "objects" (default), "thin" (plus rods and a cable one to two pixels wide at 100 px,
     reaching the content box's edge: the scene that checks that skipping never cuts thin structure),
     "large" (a floor reaching past the camera-derived box) or "empty" (`scene_objects`).
-    Deterministic: the same arguments give byte-identical files.
+    Deterministic: the same arguments give byte-identical files. Refuses a folder that already holds files.
     """
-    if size < 4 or n_train < 1 or n_test < 0 or supersample < 1:
+    if size < 4 or n_train < 1 or n_test < 0 or supersample < 1 or seed < 0:
         raise BoostNerfError(
-            f"make-scene needs size >= 4, n_train >= 1, n_test >= 0, supersample >= 1 "
-            f"(got size={size}, n_train={n_train}, n_test={n_test}, supersample={supersample})"
+            f"make-scene needs size >= 4, n_train >= 1, n_test >= 0, supersample >= 1, seed >= 0 "
+            f"(got size={size}, n_train={n_train}, n_test={n_test}, supersample={supersample}, seed={seed})"
         )
     if layout not in LAYOUTS:
         raise BoostNerfError(f"unknown scene layout {layout!r}: use one of {', '.join(LAYOUTS)}")
@@ -469,6 +469,11 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         raise BoostNerfError(f"unknown camera rig {rig!r}: use one of {', '.join(RIGS)}")
     objects = scene_objects(seed, content)  # checks `content`, before anything is written
     out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise BoostNerfError(f"{out_dir} is a file: make-scene writes a scene folder; choose a new folder")
+    if out_dir.is_dir() and any(out_dir.iterdir()):
+        raise BoostNerfError(f"{out_dir} already holds files: make-scene writes into a new or empty folder (another "
+                             "scene's files would mix with this one's); choose a new folder or delete this one")
     out_dir.mkdir(parents=True, exist_ok=True)
     train, test = (forward_poses if rig == "forward" else camera_poses)(n_train, n_test)
     focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
