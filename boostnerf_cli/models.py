@@ -124,8 +124,8 @@ def save_pruned(src: Path, dst: Path, keep: dict[str, Tensor], fill: Callable[[s
         tables.append({"name": tname, "rows": table.shape[0], "kept_rows": kept, "channels": table.shape[1],
                        "fill": values})
     meta = {k: v for k, v in meta.items() if k != "format_version"}
-    save_tensors(dst, tensors, {**meta, "name": name, "pruned_from": pruned_from, "packed": packed,
-                                "stored_params": params - dropped})
+    save_tensors(dst, tensors, {**meta, "name": name, "pruned_from": pruned_from, "pruned_from_digest": meta["digest"],
+                                "packed": packed, "stored_params": params - dropped})
     return tables, dropped
 
 

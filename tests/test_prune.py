@@ -130,3 +130,16 @@ def test_prune_skips_finished_work_and_refuses_bad_input(pruned_ws, tmp_path):
                           "no model named 'nope'")
     assert_clean_failure(run_cli("prune", "--workspace", str(tmp_path / "empty"), "--model", "top1"),
                           "boostnerf pretrain")
+
+
+def test_a_model_finetuned_again_after_prune_is_not_silently_kept(pruned_ws, tmp_path):
+    """top1 finetuned again with --force: prune said "already pruned, skipping", and top1-pruned (12.13 dB) was
+    still the old top1's (12.20 dB). Now the pruned file records the digest it came from, as finetune does."""
+    ws = tmp_path / "ws"
+    shutil.copytree(pruned_ws, ws)
+    run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--force", "--iters", "2", "--device", "cpu", check=True)
+    proc = run_cli("prune", "--workspace", str(ws), "--model", "top1", "--device", "cpu")
+    assert_clean_failure(proc, "top1 changed since it was pruned", "--force")
+    run_cli("prune", "--workspace", str(ws), "--model", "top1", "--force", "--device", "cpu", check=True)
+    proc = run_cli("prune", "--workspace", str(ws), "--model", "top1", "--device", "cpu", check=True)
+    assert "already pruned" in proc.stderr
