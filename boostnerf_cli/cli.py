@@ -29,7 +29,9 @@ WorkspaceOpt = Annotated[Path, typer.Option("--workspace", "-w", help="Workspace
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto (CUDA when available), cpu or cuda.")]
 RecipeOpt = Annotated[Optional[Path], typer.Option("--recipe", help="YAML recipe supplying defaults; flags override it.")]
 SplitOpt = Annotated[str, typer.Option("--split", help="Split to use: test (falls back to val), val or train.")]
-ModelsOpt = Annotated[Optional[list[str]], typer.Option("--model", help="Model name(s); default: every model of the workspace.")]
+ModelsOpt = Annotated[Optional[list[str]], typer.Option(
+    "--model", help="Model name(s); default: every model of the workspace.",
+    callback=lambda names: list(dict.fromkeys(names)) if names else names)]  # a name given twice counts once
 NoSkipOpt = Annotated[bool, typer.Option("--no-skip", help="Turn every skip off: dense sampling, every sample evaluated.")]
 SkipOffOpt = Annotated[Optional[list[str]], typer.Option("--skip-off", help="Turn one skip off (repeatable): empty (occupancy grid and density volume V_D) or terminated (colour only where the rendering weight > 1e-4).")]
 ExactGateOpt = Annotated[bool, typer.Option("--exact-gate", help="Mixtures: run the gate's grid + MLP on every sample instead of its baked logits (moe.bake_res).")]

@@ -100,6 +100,15 @@ def test_build_moe_refuses_an_expert_named_twice(trained_ws, tmp_path):
     assert not (ws / "moe").exists() and no_temp_files(ws)
 
 
+def test_a_model_named_twice_counts_once_and_each_model_says_its_own_image_count(moe_ws):
+    """`render --model dvgo-12 --model top1 --model dvgo-12` rendered dvgo-12 twice, and the second model's line
+    counted the first one's images too ("top1: wrote 2 images" for one view)."""
+    proc = run_cli("render", "--workspace", str(moe_ws), "--model", "dvgo-12", "--model", "top1", "--model", "dvgo-12",
+                   "--views", "1", "--device", "cpu", check=True)
+    said = [line.split(" to ")[0] for line in proc.stderr.splitlines() if "wrote" in line]
+    assert said == ["dvgo-12: wrote 1 images", "top1: wrote 1 images"], proc.stderr
+
+
 def test_render_per_expert_and_gate_maps(moe_ws):
     import imageio.v3 as iio
 

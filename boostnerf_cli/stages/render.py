@@ -50,14 +50,16 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
     for name in names or all_model_names(ws):
         model = load_model(ws, name, device, exact_gate)
         folder = ws.renders_dir(name, split_name)
+        mine = []
         for i, r in enumerate(render_split(model, scene, split, device, skips, views)):
             stem = Path(split.names[i]).name
             write_png(folder / f"{stem}.png", to_uint8(r["rgb"]))
             write_png(folder / f"{stem}_depth.png", depth_to_uint16(r["depth"], scene.far))
-            written.append(folder / f"{stem}.png")
+            mine.append(folder / f"{stem}.png")
         if per_expert and model.kind == "mixture":
-            written += render_experts_and_gate(model, scene, split, folder, device, skips, views, log)
-        log(f"{name}: wrote {len(written)} images to {folder}")
+            mine += render_experts_and_gate(model, scene, split, folder, device, skips, views, log)
+        log(f"{name}: wrote {len(mine)} images to {folder}")
+        written += mine
     return written
 
 
