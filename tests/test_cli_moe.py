@@ -109,6 +109,17 @@ def test_a_model_named_twice_counts_once_and_each_model_says_its_own_image_count
     assert said == ["dvgo-12: wrote 1 images", "top1: wrote 1 images"], proc.stderr
 
 
+def test_build_moe_names_an_expert_it_leaves_out_for_want_of_its_report(trained_ws, tmp_path):
+    """An expert whose report is missing (pretrain stopped between its two files) was left out without a word, and
+    build-moe's next line blamed moe.topk."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    (ws / "experts" / "dvgo-12.json").unlink()
+    proc = run_cli("build-moe", "--workspace", str(ws), "--device", "cpu")
+    assert "leaving out dvgo-12: weights without a training report" in proc.stderr
+    assert_clean_failure(proc, "moe.topk = 2 but the mixture has 1 experts")
+
+
 def test_render_per_expert_and_gate_maps(moe_ws):
     import imageio.v3 as iio
 
