@@ -24,7 +24,7 @@ def lattice_shape(bbox: Tensor, n_voxels: int) -> tuple[int, int, int]:
     A side is at least 2 vertices. A side that the rule would give fewer (a box flatter than the lattice is
     fine) is set to 2 and the other sides share the rest of the budget, still isotropic among themselves: a
     [3, 3, 1e-6] box at 8^3 gets 16 x 16 x 2, where the plain rule gave 2.7 M vertices."""
-    size = (bbox[1] - bbox[0]).double()
+    size = (bbox[1] - bbox[0]).double().cpu()  # a few numbers: on the CPU, whatever device the box is on
     fixed = torch.zeros(3, dtype=torch.bool)
     while True:
         free = ~fixed
