@@ -368,6 +368,12 @@ def main() -> None:
     except (Interrupted, KeyboardInterrupt):  # the stage's cleanup (lock, temporary files) has run
         err.print("interrupted: finished files are kept; rerun the same command to resume", markup=False)
         sys.exit(130)
+    except (NotADirectoryError, IsADirectoryError, FileExistsError, PermissionError) as e:
+        if e.filename is None:  # a path in the workspace or scene is in the way: the user's to move
+            raise
+        err.print(f"error: {e.filename}: {e.strerror or type(e).__name__}: a file or folder is in the way or not "
+                  "writable; move it or fix its permissions and rerun", markup=False)
+        sys.exit(2)
     except (MemoryError, RuntimeError) as e:  # RuntimeError: torch's allocators (OutOfMemoryError is one)
         if not out_of_memory(e):
             raise
