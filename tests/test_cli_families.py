@@ -154,15 +154,23 @@ def test_a_fourth_family_is_one_file_and_one_registry_entry(tmp_path, tiny_scene
     assert sys.modules["boostnerf_cli"].__file__ != str(src / "boostnerf_cli" / "__init__.py")  # the copy ran apart
 
 
-def test_prune_drops_unused_hash_rows_and_refuses_a_model_with_no_table_to_prune(family_ws, tmp_path):
-    """Away from DVGO: an NGP expert's hash table is pruned with its training views unchanged; a TensoRF expert has
-    no dense table (VM factors), and prune wrote an identical copy under a new name without a word, before."""
+def test_prune_drops_unused_rows_of_every_family_and_refuses_a_model_with_nothing_to_prune(family_ws, tmp_path,
+                                                                                          monkeypatch):
+    """Away from DVGO: an NGP expert's hash table and a TensoRF expert's VM planes and lines are pruned, their
+    training views unchanged. Before, TensoRF's factors were not tables to prune: prune wrote an identical copy
+    (1.00x) under the new name without a word."""
+    from boostnerf_cli.errors import BoostNerfError
+    from boostnerf_cli.stages import prune
+    from boostnerf_cli.workspace import Workspace
+
     ws = tmp_path / "ws"
     shutil.copytree(family_ws, ws)
-    proc = run_cli("prune", "--workspace", str(ws), "--model", "tensorf-10", "--device", "cpu")
-    assert_clean_failure(proc, "tensorf-10 has no dense grid or hash table to prune", "nothing written")
-    assert not list(ws.glob("moe/tensorf-10-pruned*"))
-    run_cli("prune", "--workspace", str(ws), "--model", "ngp-3", "--device", "cpu", check=True)
-    report = json.loads((ws / "moe" / "ngp-3-pruned.json").read_text())
-    assert [t["name"] for t in report["tables"]] == ["encoding.table"] and report["train_max_abs_diff"] == 0
-    assert report["params_after"] <= report["params_before"]  # this tiny table: every row is read
+    for model, first in (("tensorf-10", "density_vm.planes.0"), ("ngp-3", "encoding.table")):
+        run_cli("prune", "--workspace", str(ws), "--model", model, "--device", "cpu", check=True)
+        report = json.loads((ws / "moe" / f"{model}-pruned.json").read_text())
+        assert first in [t["name"] for t in report["tables"]] and report["train_max_abs_diff"] == 0, report["tables"]
+        assert report["params_after"] <= report["params_before"]  # these tiny tables: nearly every row is read
+    monkeypatch.setattr(prune, "grid_tables", lambda field: {})  # a model with no such table (a future family)
+    with pytest.raises(BoostNerfError, match="tensorf-14 has no grid, hash table or VM factor to prune"):
+        prune.run(Workspace(ws), "tensorf-14", "train", "cpu", None, False, print)
+    assert not list(ws.glob("moe/tensorf-14-pruned*"))

@@ -1,7 +1,8 @@
 """`boostnerf prune`: keep only the grid entries the training views use; write a compact model.
 
-For each dense grid table of the model (a 2-D parameter whose name ends in `table`: the experts' density
-and feature grids, the gate's feature grid) the rows (lattice vertices) kept are those where the
+For each table of the model whose rows are places in space (`grid_tables`: a 2-D parameter whose name ends
+in `table`, the experts' density and feature grids or hash tables and the gate's grid; or a TensoRF VM
+plane or line) the rows (lattice vertices, hash entries, texels) kept are those where the
 photometric loss of the training views has a non-zero gradient in any channel, through the exact gate
 and through the baked gate that render and eval use (`usage_masks`). MLPs stay dense. The result,
 `moe/<name>-pruned.safetensors` (`models.save_pruned`), renders and evaluates like any model under the
@@ -12,6 +13,7 @@ Why these rows and this fill, and what pruning saves: docs/benchmarks.md, "Pruni
 
 from __future__ import annotations
 
+import re
 import time
 from typing import Callable
 
@@ -31,9 +33,14 @@ SUFFIX = "-pruned"
 CHECK_VIEWS = 4  # training views rendered before and after to check they are unchanged
 
 
+VM_FACTOR = re.compile(r"(^|\.)(planes|lines)\.\d+$")  # fields/vm.py: (texels, rank) planes, (cells, rank) lines
+
+
 def grid_tables(field: torch.nn.Module) -> dict[str, Tensor]:
-    """The dense grids of a model: 2-D parameters whose name ends in `table`."""
-    return {n: p for n, p in field.named_parameters() if n.endswith("table") and p.dim() == 2}
+    """The tables of a model whose rows are places in space: 2-D parameters whose name ends in `table` (dense
+    grids, hash tables) and TensoRF's VM factors (a plane's rows are its texels, a line's its cells)."""
+    return {n: p for n, p in field.named_parameters()
+            if p.dim() == 2 and (n.endswith("table") or VM_FACTOR.search(n))}
 
 
 def _rows_used(grad: Tensor | None, rows: int, device) -> Tensor:
@@ -113,8 +120,8 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
         return read_json(report_path, "prune report")
     before = load_model(ws, name, device)  # also: a clear error for an unknown name, before any work
     if not grid_tables(before.field):
-        raise BoostNerfError(f"{name} has no dense grid or hash table to prune: prune drops the rows of those that no "
-                             "training view reads, and TensoRF's factor planes and lines are not pruned; nothing written")
+        raise BoostNerfError(f"{name} has no grid, hash table or VM factor to prune (prune drops the rows of those that "
+                             "no training view reads): nothing written")
     src = model_file(ws, name)
     scene = workspace_scene(ws)
     split = scene.split(split_name)
