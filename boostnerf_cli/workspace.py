@@ -19,6 +19,7 @@ One process writes a workspace at a time (`Workspace.lock`).
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import json
@@ -88,10 +89,12 @@ def atomic_path(target: Path) -> Iterator[Path]:
         _fsync_dir(target.parent)
     except OSError as e:
         reason = e.strerror or str(e) or type(e).__name__
-        raise BoostNerfError(
-            f"could not write {target} ({reason}); the previous version, if any, is unchanged: "
-            "free disk space or fix the folder's permissions and rerun the same command"
-        ) from None
+        if e.errno in (errno.EEXIST, errno.ENOTDIR, errno.EISDIR):  # a file where a folder goes, or the reverse
+            advice = f"a file or folder is in the way (at {e.filename or target}): move it and rerun the same command"
+        else:
+            advice = "free disk space or fix the folder's permissions and rerun the same command"
+        raise BoostNerfError(f"could not write {target} ({reason}); the previous version, if any, is unchanged: "
+                             + advice) from None
     finally:
         if tmp_path is not None and tmp_path.exists():
             tmp_path.unlink()

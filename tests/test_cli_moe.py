@@ -121,13 +121,18 @@ def test_build_moe_names_an_expert_it_leaves_out_for_want_of_its_report(trained_
 
 
 def test_a_file_in_the_way_of_the_checkpoints_folder_is_one_line(moe_ws, tmp_path):
-    """WS/checkpoints made a file: `finetune --force` ended in a NotADirectoryError traceback."""
+    """WS/checkpoints made a file: `finetune --force` ended in a NotADirectoryError traceback, and a first finetune
+    said "free disk space or fix the folder's permissions"."""
     ws = tmp_path / "ws"
     shutil.copytree(moe_ws, ws)
     shutil.rmtree(ws / "checkpoints", ignore_errors=True)
     (ws / "checkpoints").write_text("not a folder")
     proc = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--force", "--iters", "2", "--device", "cpu")
     assert_clean_failure(proc, "checkpoints/top1.pt: Not a directory", "move it")
+    for f in (ws / "moe").glob("top2.*"):  # a model not finetuned yet: the first checkpoint cannot be written
+        f.unlink()
+    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--iters", "2", "--device", "cpu")
+    assert_clean_failure(proc, "could not write", "a file or folder is in the way (at ", "move it")
 
 
 def test_render_per_expert_and_gate_maps(moe_ws):
