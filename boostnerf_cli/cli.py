@@ -64,9 +64,9 @@ def _int_list(text: str, what: str) -> list[int]:
         values = [int(v) for v in text.replace(" ", "").split(",") if v]
     except ValueError:
         raise BoostNerfError(f"{what} must be comma-separated whole numbers, e.g. 160,200,256 (got {text!r})") from None
-    if not values or any(v < 2 for v in values):
-        raise BoostNerfError(f"{what} needs at least one value, each >= 2 (got {text!r})")
-    return values
+    if not values:
+        raise BoostNerfError(f"{what} needs at least one value (got {text!r})")
+    return values  # each value's range: the recipe's check (pretrain.res), as for a YAML recipe
 
 
 @app.command("make-scene")

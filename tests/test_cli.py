@@ -232,6 +232,10 @@ def test_truncated_checkpoint_is_refused_and_kept(tmp_path, trained_ws):
 def test_bad_res_flag_and_unknown_model(tmp_path, trained_ws):
     proc = run_cli("pretrain", "--workspace", str(tmp_path / "ws"), "--res", "64,abc")
     assert_clean_failure(proc, "--res")
+    # the flag's range is the recipe's (it said "each >= 2" where a recipe allows 1, an NGP expert of one level)
+    proc = run_cli("pretrain", "--workspace", str(tmp_path / "ws"), "--res", "64,0")
+    assert_clean_failure(proc, "setting pretrain.res = 0: must be in [1, 1024]")
+    assert not (tmp_path / "ws").exists()
     proc = run_cli("eval", "--workspace", str(trained_ws), "--model", "top7", "--device", "cpu")
     assert_clean_failure(proc, "top7", "dvgo-12")
 
