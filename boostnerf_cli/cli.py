@@ -360,6 +360,14 @@ def main() -> None:
 
     signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
+    args = sys.argv[1:]
+    empty = next((i for i, a in enumerate(args) if a == "" or (a.startswith("--") and a.endswith("="))), None)
+    if empty is not None:  # an unset shell variable: `-w ""` would mean the current folder
+        what = (f"an empty value for {args[empty].rstrip('=')}" if args[empty] else
+                f"an empty argument after {args[empty - 1]}" if empty else "an empty command")
+        err.print(f"error: {what} (an unset shell variable?): give it a value, or '.' for the current folder",
+                  markup=False)
+        sys.exit(2)
     try:
         app()
     except BoostNerfError as e:

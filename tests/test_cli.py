@@ -240,6 +240,16 @@ def test_bad_res_flag_and_unknown_model(tmp_path, trained_ws):
     assert_clean_failure(proc, "top7", "dvgo-12")
 
 
+def test_an_empty_argument_is_refused_not_taken_for_the_current_folder(tmp_path):
+    """`pretrain -w "$WS"` with WS unset wrote manifest.json and experts/ into the current folder."""
+    for args, needle in ((["pretrain", "-w", "", "--data", "scene"], "an empty argument after -w"),
+                         (["eval", "--workspace="], "an empty value for --workspace"),
+                         (["make-scene", ""], "an empty argument after make-scene")):
+        proc = run_cli(*args, cwd=tmp_path)
+        assert_clean_failure(proc, needle, "unset shell variable")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_eval_on_an_empty_folder_says_what_to_run(tmp_path):
     proc = run_cli("eval", "--workspace", str(tmp_path), "--device", "cpu")
     assert_clean_failure(proc, "boostnerf pretrain")
