@@ -172,6 +172,11 @@ class Recipe:
         return check_recipe(self, "setting")
 
 
+def _key_text(key: Any) -> str:
+    """A YAML key as an error message shows it: as written, or its repr when that would break the line ("\\n")."""
+    return key if isinstance(key, str) and key.isprintable() else repr(key)
+
+
 def _build(cls: type, data: Any, where: str) -> Any:
     if not isinstance(data, dict):
         raise BoostNerfError(f"recipe section {where or 'top level'} must be a mapping, got {type(data).__name__}")
@@ -179,9 +184,8 @@ def _build(cls: type, data: Any, where: str) -> Any:
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted((k for k in data if k not in fields), key=str)
     if unknown:
-        raise BoostNerfError(
-            f"unknown recipe key {where + '.' if where else ''}{unknown[0]}: known keys here are {', '.join(sorted(fields))}"
-        )
+        raise BoostNerfError(f"unknown recipe key {where + '.' if where else ''}{_key_text(unknown[0])}: known keys "
+                             f"here are {', '.join(sorted(fields))}")
     kwargs = {}
     for key, value in data.items():
         path = f"{where + '.' if where else ''}{key}"
@@ -263,7 +267,8 @@ def _check_family(family: str, section: dict, where: str, source: str) -> None:
     for key, value in section.items():
         if key not in fields:
             extra = " (the resolutions are pretrain.res)" if key == "res" else ""
-            raise BoostNerfError(f"unknown {source} {where}.{key}{extra}: known keys here are {', '.join(sorted(fields))}")
+            raise BoostNerfError(f"unknown {source} {where}.{_key_text(key)}{extra}: known keys here are "
+                                 f"{', '.join(sorted(fields))}")
         per_res = value.items() if isinstance(value, dict) else [(None, value)]
         for res, v in per_res:
             path = f"{where}.{key}" if res is None else f"{where}.{key}[{res}]"

@@ -13,7 +13,7 @@ import os
 import pytest
 import torch
 import yaml
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from boostnerf_cli.errors import BoostNerfError
@@ -196,6 +196,7 @@ ANY_VALUE = st.recursive(st.one_of(st.none(), st.booleans(), st.integers(), st.f
 @given(key=st.sampled_from(sorted(set(BAD) | set(GOOD) | {"pretrain.res", "pretrain.train.growth", "moe.renormalize",
                                                            "pretrain.dvgo", "moe.train", "name"})),
        value=ANY_VALUE)
+@example(key="pretrain.dvgo", value={"\n": None})  # a key that is a newline: the message spanned two lines
 def test_any_value_loads_or_is_one_line(tmp_path, key, value):
     """Whatever YAML holds at a key: the recipe loads, or one BoostNerfError line naming the key; never another exception."""
     try:
