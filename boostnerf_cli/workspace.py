@@ -457,12 +457,13 @@ class Workspace:
         write_json(self.manifest_path, m)
         return m
 
+    def expert_files(self) -> list[str]:
+        """Every expert with a weights file, finished or not (the geometry stage's file is not an expert), by name."""
+        return sorted(p.stem for p in self.experts_dir.glob("*.safetensors") if p.stem != "geometry")
+
     def expert_names(self) -> list[str]:
-        """Finished experts, smallest first (by parameter count from their reports)."""
-        names = []
-        for p in sorted(self.experts_dir.glob("*.safetensors")):
-            if p.stem != "geometry" and self.expert_report_path(p.stem).exists():
-                names.append(p.stem)
+        """Finished experts (weights and report), smallest first (by parameter count from their reports)."""
+        names = [n for n in self.expert_files() if self.expert_report_path(n).exists()]
         params = {n: read_json(self.expert_report_path(n), "expert report").get("params", 0) for n in names}
         return sorted(names, key=lambda n: (params[n], n))
 

@@ -26,8 +26,7 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     available = ws.expert_names()
     if not available:
         raise BoostNerfError(f"{ws.root} has no pretrained experts: run `boostnerf pretrain --workspace {ws.root}` first")
-    unfinished = sorted(p.stem for p in ws.experts_dir.glob("*.safetensors")
-                        if p.stem != "geometry" and p.stem not in available)
+    unfinished = [n for n in ws.expert_files() if n not in available]
     if unfinished and not names:
         log(f"build-moe: leaving out {', '.join(unfinished)}: weights without a training report (pretrain did not "
             "finish them; rerun pretrain to)")

@@ -111,9 +111,9 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
         raise BoostNerfError(f"{name!r} is already pruned: prune the model it came from")
     out_name = name + SUFFIX
     out_path, report_path = ws.model_path(out_name), ws.moe_dir / f"{out_name}.json"
+    src = model_file(ws, name)
     if out_path.exists() and report_path.exists() and not force:
         made_from = read_meta(out_path).get("pruned_from_digest")
-        src = model_file(ws, name)
         if made_from is not None and src.exists() and made_from != read_meta(src).get("digest"):
             raise BoostNerfError(f"{name} changed since it was pruned (trained again): add --force to prune it again")
         log(f"{out_name}: already pruned, skipping (use --force to redo it)")
@@ -122,7 +122,6 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
     if not grid_tables(before.field):
         raise BoostNerfError(f"{name} has no grid, hash table or VM factor to prune (prune drops the rows of those that "
                              "no training view reads): nothing written")
-    src = model_file(ws, name)
     scene = workspace_scene(ws)
     split = scene.split(split_name)
     t0 = time.perf_counter()
