@@ -319,6 +319,19 @@ def _unpack_tensors(tensors: dict[str, torch.Tensor], packed: dict, path: Path) 
     return out
 
 
+def _remove_empty(root: Path, top: Path) -> None:
+    """Remove the empty folders under `root`, then `root` and its parents up to `top` while they are empty."""
+    with suppress(OSError):  # a folder that holds a file (or cannot be read) stays
+        for sub in sorted((p for p in root.rglob("*") if p.is_dir() and not p.is_symlink()),
+                          key=lambda p: len(p.parts), reverse=True):
+            with suppress(OSError):
+                sub.rmdir()
+        for folder in (root, *root.parents):
+            folder.rmdir()
+            if folder == top:
+                break
+
+
 class Workspace:
     """Paths and manifest of one workspace directory."""
 
@@ -332,7 +345,20 @@ class Workspace:
         The kernel releases the lock when its process ends, however it ends (also `kill -9`), so a
         lock file left behind by a dead process is stale by construction and is taken over; a lock
         held by a live process is refused with one clear line.
+
+        A workspace folder this call creates is removed again if the command leaves it empty (it failed
+        before writing anything): the empty folders under it, then it and the parents it made.
         """
+        made = [p for p in (self.root, *self.root.parents) if not p.exists()]
+        try:
+            with self._locked():
+                yield
+        finally:
+            if made:
+                _remove_empty(self.root, made[-1])
+
+    @contextmanager
+    def _locked(self) -> Iterator[None]:
         try:
             self.root.mkdir(parents=True, exist_ok=True)
         except OSError as e:

@@ -60,6 +60,29 @@ def test_second_writer_is_refused_and_the_lock_is_released(tmp_path):
         pass
 
 
+def test_a_refused_command_leaves_no_empty_workspace_behind(tmp_path):
+    """A first command that fails before writing anything (a folder that is not a dataset) leaves no empty
+    workspace folder (or the parents it made); a workspace that existed before is kept, even empty."""
+    from conftest import assert_clean_failure, run_cli
+
+    (tmp_path / "notdata").mkdir()
+    new = tmp_path / "runs" / "scene" / "ws"
+    assert_clean_failure(run_cli("pretrain", "--data", str(tmp_path / "notdata"), "--workspace", str(new)),
+                         "cannot tell the dataset format")
+    assert not (tmp_path / "runs").exists()
+    (tmp_path / "kept").mkdir()
+    assert_clean_failure(run_cli("pretrain", "--data", str(tmp_path / "notdata"), "--workspace",
+                                 str(tmp_path / "kept")), "cannot tell the dataset format")
+    assert (tmp_path / "kept").is_dir() and not list((tmp_path / "kept").iterdir())
+    ws = Workspace(tmp_path / "made")
+    with ws.lock():
+        (ws.root / "experts").mkdir()  # an empty folder a stage made before it failed
+    assert not ws.root.exists()
+    with ws.lock():
+        (ws.root / "manifest.json").write_text("{}")
+    assert (ws.root / "manifest.json").exists()  # written: kept
+
+
 def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     (tmp_path / ".lock").write_text(f"{socket.gethostname()} {int(dead.stdout)}")
