@@ -117,6 +117,28 @@ def test_eval_reports_lpips_when_its_weights_are_on_disk(trained_ws, tmp_path):
 
 
 
+def test_views_of_one_name_in_different_folders_render_to_different_files(tmp_path, tiny_scene, tiny_recipe):
+    """Frames `test/a/r_0` and `test/b/r_0` (a capture with one folder per camera) render to two files each, not
+    one file written twice: render, --compare and --per-expert name files by the shortest unique path suffix."""
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    meta = json.loads((scene / "transforms_test.json").read_text())
+    for i, frame in enumerate(meta["frames"]):  # 3 views: test/a/r_0, test/b/r_0, test/a/r_1
+        sub = "ab"[i % 2]
+        (scene / "test" / sub).mkdir(exist_ok=True)
+        old = scene / (frame["file_path"] + ("" if frame["file_path"].endswith(".png") else ".png"))
+        old.rename(scene / "test" / sub / f"r_{i // 2}.png")
+        frame["file_path"] = f"./test/{sub}/r_{i // 2}.png"
+    (scene / "transforms_test.json").write_text(json.dumps(meta))
+    ws = tmp_path / "ws"
+    run_cli("pretrain", "--data", str(scene), "--recipe", str(tiny_recipe), "--workspace", str(ws), "--device", "cpu",
+            "--res", "12", check=True)
+    proc = run_cli("render", "--workspace", str(ws), "--device", "cpu", check=True)
+    assert "wrote 3 images" in proc.stderr
+    names = sorted(p.name for p in (ws / "renders" / "dvgo-12" / "test").glob("*.png") if "depth" not in p.name)
+    assert names == ["a_r_0.png", "a_r_1.png", "b_r_0.png"], names
+
+
 def test_a_view_of_empty_sky_scores_an_infinite_psnr_that_the_reports_write_as_null(tmp_path, tiny_scene, tiny_recipe):
     """Every test camera turned round to look away from the scene, with a transparent image: each render is the
     white background, exactly as its image, so the PSNR is inf. The reports held Python's `Infinity`, which is not

@@ -396,3 +396,18 @@ def test_error_bad_holdout(tmp_path):
     folder = write_blender(tmp_path / "o", {"train": [rgba(4, 4)]})
     raises_one_line("holdout_every=0", load_scene, folder)
     raises_one_line("at least 2", load_scene, folder, holdout_every=1)
+
+
+def test_output_stems_tell_every_view_apart():
+    """A view's output file stem: its last path part, a longer suffix where two views share it, a counter where
+    whole names repeat."""
+    from boostnerf_cli.scenes.scene import Split
+
+    def stems(*names):
+        n = len(names)
+        return Split(torch.zeros(n, 2, 2, 3), torch.eye(4).repeat(n, 1, 1), torch.ones(n, 4), names).stems
+
+    assert stems("train/r_0", "train/r_8") == ("r_0", "r_8")  # unique last parts: unchanged names
+    assert stems("images/cam0/0000", "images/cam1/0000", "images/cam1/0001") == ("cam0_0000", "cam1_0000", "cam1_0001")
+    assert stems("a\\x", "b\\x") == ("a_x", "b_x")
+    assert stems("./x", "x", "y") == ("x", "x_2", "y")

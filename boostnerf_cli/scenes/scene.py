@@ -62,6 +62,23 @@ class Split:
     def width(self) -> int:
         return int(self.images.shape[2])
 
+    @property
+    def stems(self) -> tuple[str, ...]:
+        """File stems for the views' outputs (renders): each name's last path part, or, where two views share it
+        (one folder per camera: `cam0/0000`, `cam1/0000`), the shortest suffix of parts that tells every view
+        apart, joined by `_` (`cam0_0000`). Views whose whole names repeat get `_2`, `_3`, ..."""
+        parts = [tuple(p for p in n.replace("\\", "/").split("/") if p not in ("", ".")) or ("view",) for n in self.names]
+        for k in range(1, max(len(p) for p in parts) + 1):
+            stems = ["_".join(p[-k:]) for p in parts]
+            if len(set(stems)) == len(stems):
+                return tuple(stems)
+        seen: dict[str, int] = {}
+        out = []
+        for s in stems:
+            seen[s] = seen.get(s, 0) + 1
+            out.append(s if seen[s] == 1 else f"{s}_{seen[s]}")
+        return tuple(out)
+
     def subset(self, index: list[int]) -> "Split":
         idx = torch.as_tensor(index, dtype=torch.long)
         return Split(self.images[idx], self.poses[idx], self.intrinsics[idx], tuple(self.names[i] for i in index),

@@ -52,7 +52,7 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
         folder = ws.renders_dir(name, split_name)
         mine = []
         for i, r in enumerate(render_split(model, scene, split, device, skips, views)):
-            stem = Path(split.names[i]).name
+            stem = split.stems[i]
             write_png(folder / f"{stem}.png", to_uint8(r["rgb"]))
             write_png(folder / f"{stem}_depth.png", depth_to_uint16(r["depth"], scene.far))
             mine.append(folder / f"{stem}.png")
@@ -139,7 +139,7 @@ def run_compare(ws: Workspace, names: list[str] | None, split_name: str, device:
             psnr = -10.0 * np.log10(max(mse, 1e-10))
             top.append((f"{name}  {psnr:.2f} dB", to_uint8(renders[name][i])))
             bottom.append((f"{name} error", heat(errors[name], 0.0, hi)))
-        path = folder / f"{Path(split.names[i]).name}.png"
+        path = folder / f"{split.stems[i]}.png"
         write_png(path, panel_grid([top, bottom], caption=f"{scene.name}, {split_name} view {split.names[i]}"))
         written.append(path)
     log(f"compared {', '.join(names)}: wrote {len(written)} images to {folder}")
@@ -193,7 +193,7 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
     black = replace(settings, background=(0.0, 0.0, 0.0))
     written = []
     for i in range(n_views(split, views)):
-        stem = Path(split.names[i]).name
+        stem = split.stems[i]
 
         def draw(field, s, i=i):
             return render_view(field, split, i, s, skip, device)
