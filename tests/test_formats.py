@@ -314,3 +314,34 @@ def test_llff_pretrain_and_render_end_to_end(tmp_path, tiny_recipe):
     assert [p.name for p in out] == ["image000.png", "image000_depth.png", "image008.png", "image008_depth.png"]
     img = iio.imread(out[0])
     assert img.shape == (24, 24, 3) and img.std() > 5
+
+
+INTRINSICS_FORMS = {  # intrinsics.txt texts that all say fx 40, fy 42, cx 16, cy 12
+    "3x3": "40 0 16\n0 42 12\n0 0 1\n",
+    "4x4": "40 0 16 0\n0 42 12 0\n0 0 1 0\n0 0 0 1\n",
+    "3x4": "40 0 16 0\n0 42 12 0\n0 0 1 0\n",
+    "3x3 on one line": "40 0 16 0 42 12 0 0 1\n",
+    "4x4 on one line": "40 0 16 0 0 42 12 0 0 0 1 0 0 0 0 1\n",
+    "3x3 and a row of zeros": "40 0 16\n0 42 12\n0 0 1\n0 0 0\n",
+}
+
+
+@pytest.mark.parametrize("form", INTRINSICS_FORMS, ids=list(INTRINSICS_FORMS))
+def test_every_layout_of_a_k_matrix_reads_the_same_camera(tmp_path, form):
+    """A K matrix as 3x3, 3x4 or 4x4, on separate lines or one, reads as K (a 3x4 K was read as the DeepVoxels
+    line `f cx cy`: cx 0, cy 16, held-out PSNR 10.7 instead of 24.8, silently)."""
+    from boostnerf_cli.scenes.nsvf import read_intrinsics
+
+    (tmp_path / "intrinsics.txt").write_text(INTRINSICS_FORMS[form])
+    assert read_intrinsics(tmp_path) == [40.0, 42.0, 16.0, 12.0]
+
+
+def test_deepvoxels_intrinsics_and_what_is_neither(tmp_path):
+    from boostnerf_cli.scenes.nsvf import read_intrinsics
+
+    (tmp_path / "intrinsics.txt").write_text("40 16 12 0.\n0. 0. 0.\n1.\n32 32\n")
+    assert read_intrinsics(tmp_path) == [40.0, 40.0, 16.0, 12.0]
+    for text in ("40 0 16\n0 42 12\n0.5 0 1\n", "40 0 16 0 42 12 0 0\n", "1 2\n3 4\n"):
+        (tmp_path / "intrinsics.txt").write_text(text)
+        with pytest.raises(BoostNerfError, match="intrinsics.txt: expected"):
+            read_intrinsics(tmp_path)

@@ -90,7 +90,8 @@ def _numbers(path: Path, what: str) -> list[list[float]]:
 
 
 def read_intrinsics(folder: Path) -> list[float]:
-    """fx, fy, cx, cy from `intrinsics.txt` (a K matrix, or a first line `f cx cy [0]`)."""
+    """fx, fy, cx, cy from `intrinsics.txt`: a K matrix (3x3, 3x4 or 4x4, as rows or on one line; its top-left 3x3
+    must end in the row 0 0 1), or the DeepVoxels layout whose first line is `f cx cy [0]`."""
     path = folder / "intrinsics.txt"
     if not path.is_file():
         raise BoostNerfError(
@@ -98,13 +99,19 @@ def read_intrinsics(folder: Path) -> list[float]:
         )
     rows = _numbers(path, "intrinsics file")
     flat = [v for r in rows for v in r]
-    if len(rows) in (3, 4) and all(len(r) == len(rows) for r in rows):
-        k = np.array(rows)
+    expected = f"{path}: expected a 3x3, 3x4 or 4x4 matrix K or a first line 'f cx cy 0'"
+    shape = {9: (3, 3), 12: (3, 4), 16: (4, 4)}.get(len(flat)) if len(rows) == 1 else None
+    if len(rows) in (3, 4) and len({len(r) for r in rows}) == 1 and len(rows[0]) in (3, 4):
+        shape = (len(rows), len(rows[0]))
+    if shape:
+        k = np.array(flat).reshape(shape)[:3, :3]
+        if not np.allclose(k[2], [0, 0, 1]) or k[1, 0] != 0:
+            raise BoostNerfError(f"{expected}; its matrix {k.tolist()} is not a K (rows fx s cx / 0 fy cy / 0 0 1)")
         values = [k[0, 0], k[1, 1], k[0, 2], k[1, 2]]
-    elif rows and len(rows[0]) >= 3:
+    elif rows and (len(rows[0]) == 3 or (len(rows[0]) == 4 and rows[0][3] == 0)):
         values = [rows[0][0], rows[0][0], rows[0][1], rows[0][2]]
     else:
-        raise BoostNerfError(f"{path}: expected a 3x3/4x4 matrix K or a first line 'f cx cy 0', got {len(flat)} numbers")
+        raise BoostNerfError(f"{expected}, got {len(flat)} numbers in {len(rows)} lines")
     if not np.isfinite(values).all() or values[0] <= 0 or values[1] <= 0:
         raise BoostNerfError(f"{path}: focal lengths must be positive finite numbers, got fx={values[0]} fy={values[1]}")
     return [float(v) for v in values]
