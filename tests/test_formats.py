@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
@@ -242,6 +243,24 @@ def _break_ns_distortion(f):
     (f / "transforms.json").write_text(json.dumps(meta))
 
 
+def _break_ns_zero_size(f):
+    meta = json.loads((f / "transforms.json").read_text())
+    meta.update(w=0, h=0)
+    (f / "transforms.json").write_text(json.dumps(meta))
+
+
+def _break_ns_size_text(f):
+    meta = json.loads((f / "transforms.json").read_text())
+    meta.update(w="32px", h="32px")
+    (f / "transforms.json").write_text(json.dumps(meta))
+
+
+def _break_blender_empty_train(f):
+    meta = json.loads((f / "transforms_train.json").read_text())
+    meta["frames"] = []
+    (f / "transforms_train.json").write_text(json.dumps(meta))
+
+
 def _break_ns_sizes(f):
     iio.imwrite(f / "images" / "frame_00003.png", np.zeros((SIZE, SIZE + 4, 4), np.uint8))
 
@@ -256,6 +275,9 @@ MALFORMED = [
     ("nerfstudio", _break_ns_intrinsics, "no fl_x"),
     ("nerfstudio", _break_ns_distortion, "distortion k1=0.05 is not zero"),
     ("nerfstudio", _break_ns_sizes, "all views must have the same size"),
+    ("nerfstudio", _break_ns_zero_size, "w = 0 must be a positive number"),
+    ("nerfstudio", _break_ns_size_text, "w = '32px' is not a number"),
+    ("blender", _break_blender_empty_train, "transforms_train.json has an empty 'frames' list"),
 ]
 
 
@@ -345,3 +367,36 @@ def test_deepvoxels_intrinsics_and_what_is_neither(tmp_path):
         (tmp_path / "intrinsics.txt").write_text(text)
         with pytest.raises(BoostNerfError, match="intrinsics.txt: expected"):
             read_intrinsics(tmp_path)
+
+
+def test_what_real_transforms_files_do_loads_as_the_plain_file(forward, tmp_path):
+    """Shapes real transforms files take that mean the same cameras: an empty val split (left out), a frame's
+    intrinsics set to null (the top-level value applies), a 3x4 transform_matrix, a file_path without its .jpg."""
+    import shutil
+
+    ref = load_scene(forward["blender"], holdout_every=0)
+    folder = tmp_path / "blender"
+    shutil.copytree(forward["blender"], folder)
+    (folder / "transforms_val.json").write_text(json.dumps({"camera_angle_x": CAMERA_ANGLE_X, "frames": []}))
+    meta = json.loads((folder / "transforms_train.json").read_text())
+    meta["frames"][0]["transform_matrix"] = meta["frames"][0]["transform_matrix"][:3]
+    meta["frames"][1]["camera_angle_x"] = None
+    first = folder / (meta["frames"][2]["file_path"] + ".png")
+    iio.imwrite(first.with_suffix(".jpg"), iio.imread(first)[..., :3], quality=100)
+    first.unlink()
+    meta["frames"][2]["file_path"] = str(Path(meta["frames"][2]["file_path"]).with_suffix(""))
+    (folder / "transforms_train.json").write_text(json.dumps(meta))
+    got = load_scene(folder, holdout_every=0)
+    assert sorted(got.splits) == sorted(ref.splits)
+    for s in ref.splits:
+        torch.testing.assert_close(got.splits[s].poses, ref.splits[s].poses)
+        torch.testing.assert_close(got.splits[s].intrinsics, ref.splits[s].intrinsics)
+
+    ns = tmp_path / "ns"
+    shutil.copytree(forward["nerfstudio"], ns)
+    meta = json.loads((ns / "transforms.json").read_text())
+    for frame in meta["frames"]:
+        frame.update(fl_x=None, cx=None)
+    (ns / "transforms.json").write_text(json.dumps(meta))
+    torch.testing.assert_close(load_scene(ns, holdout_every=0).splits["train"].intrinsics,
+                               load_scene(forward["nerfstudio"], holdout_every=0).splits["train"].intrinsics)

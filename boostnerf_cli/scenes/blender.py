@@ -23,8 +23,8 @@ import torch
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
-    CAMERA_KEYS,
     Frame,
+    frame_camera,
     frame_intrinsics,
     hold_out,
     load_frames,
@@ -50,14 +50,14 @@ def is_blender(path: Path) -> str:
 def _parse_split(folder: Path, split: str) -> tuple[list[Frame], dict]:
     """Frames of `transforms_<split>.json` and the file's top-level metadata."""
     path = folder / f"transforms_{split}.json"
-    meta = read_transforms(path)
+    meta = read_transforms(path, may_be_empty=split != "train")
     frames = []
     for i, frame in enumerate(meta["frames"]):
         source = f"{path.name} frame {i}"
         if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
             raise BoostNerfError(f"{source} in {folder}: needs 'file_path' and 'transform_matrix'")
         image = resolve_image(folder, str(frame["file_path"]), f"{source} in {folder}")
-        camera = {k: frame.get(k, meta.get(k)) for k in CAMERA_KEYS}
+        camera = frame_camera(frame, meta)
         name = str(image.relative_to(folder).with_suffix("")) if image.is_relative_to(folder) else image.stem
         frames.append(Frame(image, name, parse_pose(frame["transform_matrix"], f"{source} in {folder}"), camera, source))
     return frames, meta
@@ -105,6 +105,7 @@ def load_blender(
     if "train" not in found:
         raise BoostNerfError(f"{folder} has {', '.join(f'transforms_{s}.json' for s in found)} but no transforms_train.json")
     parsed = {s: _parse_split(folder, s) for s in found}
+    found = [s for s in found if parsed[s][0]]  # a val / test file with no frames: no such split
     frames = [f for s in found for f in parsed[s][0]]
     bg = torch.tensor(background, dtype=torch.float32)
     images, alpha, native = load_frames(frames, image_size, bg)

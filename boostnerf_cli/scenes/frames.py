@@ -177,26 +177,38 @@ def load_frames(frames: list[Frame], image_size: int | None,
 CAMERA_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
 
 
-def read_transforms(path: Path) -> dict:
+def read_transforms(path: Path, may_be_empty: bool = False) -> dict:
     """The top-level object of a transforms JSON file (Blender, nerfstudio); raises unless it parses
-    and has a non-empty `frames` list."""
+    and has a `frames` list, which must not be empty unless `may_be_empty` (a Blender val / test split)."""
     try:
         meta = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise BoostNerfError(f"cannot parse {path}: {one_line(err)}; fix or regenerate the file") from None
-    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
         raise BoostNerfError(f"{path} has no 'frames' list: expected a transforms file with one entry per view")
+    if not meta["frames"] and not may_be_empty:
+        raise BoostNerfError(f"{path} has an empty 'frames' list: it needs one entry per view")
     return meta
 
 
+def frame_camera(frame: dict, meta: dict) -> dict:
+    """A frame's camera values (`CAMERA_KEYS`): its own where it sets them (not null), else the file's."""
+    return {k: frame[k] if frame.get(k) is not None else meta.get(k) for k in CAMERA_KEYS}
+
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+
+
 def resolve_image(folder: Path, file_path: str, source: str) -> Path:
-    """The image a frame's `file_path` names: `folder / file_path`, else the same with `.png` added;
-    raises (prefixed with `source`) when neither is a file."""
+    """The image a frame's `file_path` names: `folder / file_path`, else the same with an image suffix added
+    (`IMAGE_SUFFIXES`: the Blender release writes `./train/r_0` for `train/r_0.png`); raises (prefixed with
+    `source`) when none is a file."""
     base = folder / file_path
-    for candidate in (base, base.with_name(base.name + ".png")):
+    for candidate in (base, *(base.with_name(base.name + s) for s in IMAGE_SUFFIXES)):
         if candidate.is_file():
             return candidate
-    raise BoostNerfError(f"{source}: image {file_path!r} not found (looked for {base} and {base}.png)")
+    raise BoostNerfError(f"{source}: image {file_path!r} not found (looked for {base} and {base} with "
+                         f"{', '.join(IMAGE_SUFFIXES)})")
 
 
 def parse_pose(matrix, source: str) -> np.ndarray:
@@ -206,8 +218,10 @@ def parse_pose(matrix, source: str) -> np.ndarray:
         pose = np.asarray(matrix, dtype=np.float64)
     except (TypeError, ValueError):
         pose = np.zeros(0)
+    if pose.shape == (3, 4):  # the last row 0 0 0 1 left out
+        pose = np.vstack([pose, [0.0, 0.0, 0.0, 1.0]])
     if pose.shape != (4, 4):
-        raise BoostNerfError(f"{source}: transform_matrix must be a 4x4 matrix of numbers, got shape {pose.shape}")
+        raise BoostNerfError(f"{source}: transform_matrix must be a 4x4 (or 3x4) matrix of numbers, got shape {pose.shape}")
     if not np.isfinite(pose).all():
         raise BoostNerfError(f"{source}: transform_matrix contains NaN or infinite values; fix the pose")
     det = float(np.linalg.det(pose[:3, :3]))
@@ -217,6 +231,24 @@ def parse_pose(matrix, source: str) -> np.ndarray:
     return pose
 
 
+def camera_number(camera: dict, key: str, source: str) -> float | None:
+    """`camera[key]` as a float (None when unset); raises (prefixed with `source`) unless it is a number, and for
+    the image size `w` / `h` unless it is positive."""
+    value = camera[key]
+    if value is None:
+        return None
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        number = float(value)
+    except (TypeError, ValueError):
+        raise BoostNerfError(f"{source}: {key} = {value!r} is not a number; fix the transforms file") from None
+    if key in ("w", "h") and not 0 < number < math.inf:
+        raise BoostNerfError(f"{source}: {key} = {value!r} must be a positive number (the image size in pixels the "
+                             "intrinsics refer to); fix or remove it")
+    return number
+
+
 def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int], source: str) -> list[float]:
     """fx, fy, cx, cy in pixels of the stored (downscaled) image.
 
@@ -224,15 +256,7 @@ def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int
     value is scaled per axis by stored / JSON size.
     """
     def number(key: str) -> float | None:
-        value = camera[key]
-        if value is None:
-            return None
-        try:
-            if isinstance(value, bool):
-                raise TypeError
-            return float(value)
-        except (TypeError, ValueError):
-            raise BoostNerfError(f"{source}: {key} = {value!r} is not a number; fix the transforms file") from None
+        return camera_number(camera, key, source)
 
     def focal(angle_key: str, size: float) -> float:
         angle = number(angle_key)

@@ -23,8 +23,9 @@ import torch
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
-    CAMERA_KEYS,
     Frame,
+    camera_number,
+    frame_camera,
     frame_intrinsics,
     hold_out,
     load_frames,
@@ -86,7 +87,7 @@ def load_nerfstudio(
             raise BoostNerfError(f"{source}: needs 'file_path' and 'transform_matrix'")
         _check_pinhole(frame, source)
         image = resolve_image(folder, str(frame["file_path"]), source)
-        camera = {k: frame.get(k, meta.get(k)) for k in CAMERA_KEYS}
+        camera = frame_camera(frame, meta)
         if camera["fl_x"] is None and camera["camera_angle_x"] is None:
             raise BoostNerfError(f"{source}: no fl_x, neither in the frame nor at the top level; add the intrinsics")
         name = str(image.relative_to(folder).with_suffix("")) if image.is_relative_to(folder) else image.stem
@@ -108,8 +109,8 @@ def load_nerfstudio(
 
 def _intrinsics(frame: Frame, native: tuple[int, int], size: tuple[int, int]) -> list[float]:
     """`frame_intrinsics`, after checking that the frame's w / h (when given) have the image's aspect."""
-    w, h = frame.camera["w"], frame.camera["h"]
-    if w is not None and h is not None and not math.isclose(float(w) / float(h), native[1] / native[0], rel_tol=0.02):
+    w, h = (camera_number(frame.camera, k, frame.source) for k in ("w", "h"))
+    if w is not None and h is not None and not math.isclose(w / h, native[1] / native[0], rel_tol=0.02):
         raise BoostNerfError(
             f"{frame.source}: w x h = {w} x {h} does not match the image's {native[1]} x {native[0]} aspect; "
             f"fix w and h or the image"
