@@ -400,3 +400,44 @@ def test_what_real_transforms_files_do_loads_as_the_plain_file(forward, tmp_path
     (ns / "transforms.json").write_text(json.dumps(meta))
     torch.testing.assert_close(load_scene(ns, holdout_every=0).splits["train"].intrinsics,
                                load_scene(forward["nerfstudio"], holdout_every=0).splits["train"].intrinsics)
+
+
+def _tag_orientation(path: Path, turn: int = 6) -> None:
+    """Store `path`'s pixels turned a quarter and tagged with EXIF orientation `turn` (a phone's portrait shot)."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        turned = im.transpose(Image.Transpose.ROTATE_90)
+    exif = Image.Exif()
+    exif[0x0112] = turn
+    turned.save(path, exif=exif)
+
+
+def test_llff_images_of_another_aspect_than_hwf_are_refused_and_an_exif_turn_is_named(forward, tmp_path):
+    """hwf says 16 x 12 (h x w) but the images are square: refused, not trained with fx != fy stretched per axis. A
+    portrait image whose EXIF tag turns it is named: boostnerf, like COLMAP, reads the pixels as stored."""
+    import shutil
+
+    folder = shutil.copytree(forward["llff"], tmp_path / "llff")
+    arr = np.load(folder / "poses_bounds.npy")
+    arr[:, 9] *= 0.75  # row-major 3x5: hwf's w is element (1, 4)
+    np.save(folder / "poses_bounds.npy", arr)
+    with pytest.raises(BoostNerfError, match="does not match the images' aspect"):
+        load_scene(folder)
+    shutil.rmtree(folder / "images_2", ignore_errors=True)
+    for image in sorted((folder / "images").iterdir()):
+        _tag_orientation(image)
+    with pytest.raises(BoostNerfError, match="EXIF orientation 6"):
+        load_scene(folder)
+
+
+def test_an_aspect_mismatch_in_nerfstudio_names_the_exif_turn(forward, tmp_path):
+    import shutil
+
+    folder = shutil.copytree(forward["nerfstudio"], tmp_path / "ns")
+    meta = json.loads((folder / "transforms.json").read_text())
+    meta.update(h=meta["h"] * 0.75, cy=meta["cy"] * 0.75)
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    _tag_orientation(folder / meta["frames"][0]["file_path"])
+    with pytest.raises(BoostNerfError, match="aspect.*EXIF orientation 6.*reads the pixels as stored"):
+        load_scene(folder)

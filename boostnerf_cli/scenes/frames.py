@@ -125,6 +125,24 @@ def read_image(path: Path) -> Tensor:
     return img
 
 
+def orientation_note(path: Path) -> str:
+    """"" or, for an image whose EXIF orientation tag turns or mirrors it (a phone's portrait shot), a note for an
+    error about its size: boostnerf reads the pixels as stored, as COLMAP and nerfstudio do (so poses they computed
+    match them), and does not apply the tag."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            tag = im.getexif().get(0x0112, 1)
+    except (OSError, ValueError):
+        return ""
+    if tag in (None, 0, 1):
+        return ""
+    return (f"; {path.name} carries EXIF orientation {tag}, which boostnerf does not apply (it reads the pixels as "
+            "stored, as COLMAP and nerfstudio do): if the cameras were computed on the turned images, turn the files "
+            "themselves (e.g. mogrify -auto-orient)")
+
+
 def composite(image: Tensor, background: Tensor) -> Tensor:
     """(h, w, C) premultiplied colour (+ alpha when C is 2 or 4) -> (h, w, 3) RGB on `background` (3,)."""
     colour = image[..., :3] if image.shape[-1] >= 3 else image[..., :1].expand(*image.shape[:2], 3)

@@ -34,7 +34,7 @@ from PIL import Image
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC
-from boostnerf_cli.scenes.frames import Frame, hold_out, load_frames, one_line, scene_from_splits
+from boostnerf_cli.scenes.frames import Frame, hold_out, load_frames, one_line, orientation_note, scene_from_splits
 from boostnerf_cli.scenes.scene import Scene, Split
 
 BOUND_FACTOR = 0.75
@@ -182,6 +182,12 @@ def load_llff(
     bg = torch.tensor(background, dtype=torch.float32)
     images, alpha, native = load_frames(frames, image_size, bg)
     size = tuple(images.shape[1:3])
+    bad = np.flatnonzero(~np.isclose(hwf[:, 1] / hwf[:, 0], native[1] / native[0], rtol=0.02))
+    if bad.size:
+        i = int(bad[0])
+        raise BoostNerfError(
+            f"{pb.name} row {i}: hwf's w x h = {hwf[i, 1]:g} x {hwf[i, 0]:g} does not match the images' aspect "
+            f"({native[1]} x {native[0]} in {sub.name}/): fix the poses or the images{orientation_note(files[i])}")
     # hwf is for the full-resolution images; scale per axis to the images actually stored
     k = np.stack([hwf[:, 2] * size[1] / hwf[:, 1], hwf[:, 2] * size[0] / hwf[:, 0],
                   np.full(len(hwf), size[1] / 2), np.full(len(hwf), size[0] / 2)], axis=1)

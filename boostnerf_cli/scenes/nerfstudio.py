@@ -29,6 +29,7 @@ from boostnerf_cli.scenes.frames import (
     frame_intrinsics,
     hold_out,
     load_frames,
+    orientation_note,
     parse_pose,
     read_transforms,
     resolve_image,
@@ -112,7 +113,7 @@ def _intrinsics(frame: Frame, native: tuple[int, int], size: tuple[int, int]) ->
     w, h = (camera_number(frame.camera, k, frame.source) for k in ("w", "h"))
     if w is not None and h is not None and not math.isclose(w / h, native[1] / native[0], rel_tol=0.02):
         raise BoostNerfError(
-            f"{frame.source}: w x h = {w} x {h} does not match the image's {native[1]} x {native[0]} aspect; "
-            f"fix w and h or the image"
+            f"{frame.source}: w x h = {w:g} x {h:g} does not match the image's {native[1]} x {native[0]} aspect; "
+            f"fix w and h or the image{orientation_note(frame.image)}"
         )
     return frame_intrinsics(frame.camera, native, size, frame.source)
