@@ -9,8 +9,9 @@ cameras' distance to the point they look at), as for nerfstudio and NSVF folders
 original NeRF loader's fixed 2 / 6 suit only cameras about 4 units from the subject: cameras 16 units
 away would see nothing at all through them, and the box and the coarse stage's samples depended on them.
 
-Images: RGB or RGBA, 8 or 16 bit. Downscaling is area averaging (`frames.area_downscale`) of the
-premultiplied colour and of alpha; the result is then composited on the background colour.
+Images: RGB or RGBA, 8 or 16 bit (Pillow reads 16-bit colour at 8-bit precision; grey keeps 16). Downscaling is
+area averaging (`frames.area_downscale`) of the premultiplied colour and of alpha; the result is then composited
+on the background colour.
 """
 
 from __future__ import annotations
