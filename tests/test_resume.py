@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import make_recipe, run_cli
+from conftest import assert_clean_failure, make_recipe, merge, run_cli
 
 from boostnerf_cli.workspace import TEST_KILL_ENV, load_tensors
 
@@ -128,3 +128,26 @@ def test_finetune_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupt
     want = json.loads((ref / "moe" / f"{name}.json").read_text())
     assert _without_timing(got) == _without_timing(want)
     assert_clean(ws)
+
+
+def test_a_checkpoint_is_not_resumed_with_other_training_settings(setup, tmp_path):
+    """A checkpoint resumes only with the settings that shape what is trained: a finetune killed at --lambda 0.5
+    resumed at --lambda 0 (its report said 0 for a model half trained at 0.5), and a pretrain resumed with another
+    pretrain.train.batch_rays, silently, before. log_every and checkpoint_every change nothing and may differ, and
+    the learning rates may (a diverged run resumes from its last good checkpoint with lower ones)."""
+    root, recipe, ref, args = setup
+    ws = tmp_path / "ws"
+    args = [a if a != str(ref) else str(ws) for a in args]
+    run_killed(args, "checkpoint:14")  # inside dvgo-10 (step 8), after both geometry rounds (6 checkpoints each)
+    changed = make_recipe(tmp_path / "changed.yaml", **merge(RECIPE_CHANGES, {"pretrain": {"train": {"batch_rays": 96}}}))
+    assert_clean_failure(run_cli(*[a if a != str(recipe) else str(changed) for a in args]),
+                         "other settings", "batch_rays")
+    quiet = make_recipe(tmp_path / "quiet.yaml", **merge(RECIPE_CHANGES, {"pretrain": {"train": {"log_every": 3, "lr_grid": 0.05}}}))
+    proc = run_cli(*[a if a != str(recipe) else str(quiet) for a in args], check=True)
+    assert "resuming from" in proc.stderr
+    run_cli("build-moe", "--workspace", str(ws), "--device", "cpu", check=True)
+    finetune = ["finetune", "--workspace", str(ws), "--topk", "2", "--device", "cpu"]
+    run_killed([*finetune, "--lambda", "0.5"], "checkpoint:1")
+    assert_clean_failure(run_cli(*finetune, "--lambda", "0"), "other settings", "lam")
+    run_cli(*finetune, "--lambda", "0.5", check=True)
+    assert json.loads((ws / "moe" / "top2.json").read_text())["lambda"] == 0.5

@@ -18,7 +18,7 @@ from boostnerf_cli.fields.registry import count_params
 from boostnerf_cli.models import load_expert, load_mixture, save_expert, save_mixture
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
 from boostnerf_cli.moe.router import check_topk
-from boostnerf_cli.recipe import MoERecipe, check_section
+from boostnerf_cli.recipe import MoERecipe, check_section, shaping_changes
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.tasks import FieldTask, MixtureTask, train_rays
@@ -101,6 +101,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         signature["wide_steps"] = task.wide_steps
     if task.gate_noise:
         signature["gate_noise"] = task.gate_noise
+    signature.update(_shaping(rec, ("lam",)))
     result = train(task, train_rays(scene, mix.bbox, device, rec.train), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
                    signature=signature, data_parallel=True)
     mix.eval()
@@ -142,6 +143,16 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     return report
 
 
+def _shaping(rec: MoERecipe, keys: tuple[str, ...]) -> dict:
+    """The signature's entries for the joint training settings that differ from the defaults (`shaping_changes`):
+    `train` (batch, thresholds, loss weights; not the learning rates), and the MoE section's `keys` (lambda)."""
+    default = MoERecipe()
+    out = {k: getattr(rec, k) for k in keys if getattr(rec, k) != getattr(default, k)}
+    if changed := shaping_changes(rec.train, default.train, leave_out=("random_background",)):
+        out["train"] = changed
+    return out
+
+
 def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: Schedule, device: str,
               log: Callable[[str], None], source: str | None) -> dict:
     """The largest expert alone, trained for the same finetuning iterations and schedule."""
@@ -153,6 +164,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
     signature = {"stage": "finetune", "model": "baseline", "from": source, "iters": rec.iters, "seed": rec.seed}
     if rec.train.random_background:  # named only when set: older checkpoints still resume
         signature["random_background"] = True
+    signature.update(_shaping(rec, ()))
     result = train(task, train_rays(scene, model.bbox, device, rec.train), sched, rec.seed, "baseline",
                    checkpoint=ws.checkpoint_path("baseline"), signature=signature, data_parallel=True)
     model.eval()

@@ -27,7 +27,15 @@ from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.fields.registry import build_expert, count_params
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.models import load_expert, save_expert
-from boostnerf_cli.recipe import GeometryRecipe, PretrainRecipe, Recipe, TrainRecipe, check_recipe, recipe_dict
+from boostnerf_cli.recipe import (
+    GeometryRecipe,
+    PretrainRecipe,
+    Recipe,
+    TrainRecipe,
+    check_recipe,
+    recipe_dict,
+    shaping_changes,
+)
 from boostnerf_cli.render.coverage import FOREGROUND_TOL, cover_foreground, foreground_masks, hull_cells
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
@@ -213,6 +221,8 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
                  "geometry": read_meta(ws.geometry_path).get("digest")}
     if tcfg.random_background:  # named only when set: older checkpoints still resume
         signature["random_background"] = True
+    if changed := shaping_changes(tcfg, TrainRecipe(), leave_out=("growth", "random_background")):
+        signature["train"] = changed
     result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt, signature=signature)
     model.eval()
     task.refresh_occupancy()
