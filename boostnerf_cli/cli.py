@@ -42,6 +42,15 @@ def log(msg: str) -> None:
     err.print(msg)
 
 
+def _one_process() -> None:
+    """Refuse to run under torchrun (a command other than pretrain and finetune: its ranks would race)."""
+    from boostnerf_cli import distributed as dist
+
+    if dist.launched():
+        raise BoostNerfError("only pretrain and finetune run under torchrun (docs/distributed.md): "
+                             "run this command as one process")
+
+
 def _writer(workspace: Path, must_exist: bool = True, distributed: bool = False):
     """The workspace, locked against a second writer (and checked to be one, unless it is being made).
 
@@ -50,9 +59,8 @@ def _writer(workspace: Path, must_exist: bool = True, distributed: bool = False)
     from boostnerf_cli import distributed as dist
     from boostnerf_cli.workspace import Workspace
 
-    if dist.launched() and not distributed:
-        raise BoostNerfError("only pretrain and finetune run under torchrun (docs/distributed.md): "
-                             "run this command as one process")
+    if not distributed:
+        _one_process()
     ws = Workspace(workspace)
     if must_exist:
         ws.require_manifest()
@@ -83,6 +91,7 @@ def make_scene_cmd(
     """Write a small procedural scene (exact analytic ray casting) in any dataset layout boostnerf reads."""
     from boostnerf_cli.scenes import make_scene
 
+    _one_process()
     path = make_scene(out_dir, size=size, n_train=n_train, n_test=n_test, seed=seed, layout=layout, rig=rig,
                       content=content)
     log(f"wrote a {size}x{size} {layout} scene with {n_train} train and {n_test} test views to {path}")
@@ -333,9 +342,10 @@ def bench(
             table.add_row(r.name, r.group, f"variants/{r.setup}", r.model, "yes" if done else "no")
         out.print(table)
         return
-    from boostnerf_cli.workspace import Workspace, number
+    from boostnerf_cli.workspace import number
 
-    with Workspace(workspace).lock():
+    _, lock = _writer(workspace, must_exist=False)
+    with lock:
         result = stage.run(workspace, data, rec, suite, names, resolve_device(device), views, log)
     table = Table(*stage.COLUMNS)
     for r in result["rows"]:

@@ -92,3 +92,16 @@ def test_manifest_that_is_a_folder_and_a_lock_that_is_a_folder(tmp_path, trained
     (ws / "manifest.json").mkdir()
     proc = run_cli("eval", "--workspace", str(ws), "--device", "cpu")
     assert_clean_failure(proc, "workspace manifest", "manifest.json is a folder")
+
+
+@pytest.mark.parametrize("command", ["bench", "eval", "render", "count-params", "prune", "build-moe", "make-scene"])
+def test_commands_that_run_as_one_process_are_refused_under_torchrun(tmp_path, command):
+    """Under torchrun (WORLD_SIZE > 1) only pretrain and finetune run; any other command is refused in one line
+    before it touches anything (bench ran: its ranks fought over the workspace lock and torchrun printed a
+    ChildFailedError traceback)."""
+    args = {"make-scene": [str(tmp_path / "scene")], "prune": ["-w", str(tmp_path / "ws"), "--model", "top1"],
+            "bench": ["-w", str(tmp_path / "ws"), "--data", str(tmp_path / "none")]}
+    proc = run_cli(command, *args.get(command, ["-w", str(tmp_path / "ws")]),
+                   env_extra={"WORLD_SIZE": "2", "RANK": "1", "LOCAL_RANK": "1"})
+    assert_clean_failure(proc, "only pretrain and finetune run under torchrun")
+    assert not list(tmp_path.iterdir())
