@@ -7,8 +7,6 @@ written as GIF.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -146,11 +144,7 @@ def write_video(path: Path, frames: list[np.ndarray], fps: int, fmt: str) -> Non
     """Frames (uint8 RGB, same size) -> `path` as MP4 (H.264, yuv420p) or looping GIF, atomically."""
     if not frames:
         raise BoostNerfError("no frames to write")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # a temporary file with the real suffix, in the same folder, renamed over the target when complete
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path, keep_suffix=True) as tmp:  # ffmpeg chooses the container by the suffix
         if fmt == "mp4":
             import imageio.v2 as iio2
 
@@ -166,10 +160,3 @@ def write_video(path: Path, frames: list[np.ndarray], fps: int, fmt: str) -> Non
             iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=round(1000 / fps), loop=0)
         else:
             raise BoostNerfError(f"unknown video format {fmt!r}")
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)

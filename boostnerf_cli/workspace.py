@@ -66,9 +66,17 @@ def kill_point_for_tests(kind: str, name: str = "") -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
+def is_temporary(path: Path) -> bool:
+    """A temporary file of `atomic_path`: `.NAME.XXXX.tmp`, or `.NAME.XXXX.tmp.mp4` for a writer that needs the
+    suffix (ffmpeg)."""
+    name = path.name
+    return name.startswith(".") and (name.endswith(".tmp") or ".tmp." in name)
+
+
 @contextmanager
-def atomic_path(target: Path) -> Iterator[Path]:
-    """Yield a temporary path next to `target`; rename it over `target` only if the block succeeds.
+def atomic_path(target: Path, keep_suffix: bool = False) -> Iterator[Path]:
+    """Yield a temporary path next to `target` (ending in `target`'s suffix too with `keep_suffix`, for writers
+    that choose the format by it); rename it over `target` only if the block succeeds.
 
     The data is flushed to disk before the rename, so after a crash or power loss `target` is
     either the previous version or the complete new one. A failing write (disk full, read-only
@@ -78,7 +86,8 @@ def atomic_path(target: Path) -> Iterator[Path]:
     tmp_path: Path | None = None
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+        suffix = ".tmp" + (target.suffix if keep_suffix else "")
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix, dir=target.parent)
         os.close(fd)
         tmp_path = Path(tmp)
         yield tmp_path
@@ -407,8 +416,8 @@ class Workspace:
             os.write(fd, me.encode())
             # Temporary files of `atomic_path` left by a writer that was killed mid-write: never artifacts
             # (they were not renamed into place), and no other writer can be using them now.
-            for tmp in self.root.rglob(".*.tmp"):
-                if tmp.is_file():
+            for tmp in self.root.rglob(".*.tmp*"):
+                if tmp.is_file() and is_temporary(tmp):
                     tmp.unlink(missing_ok=True)
         except OSError:
             with suppress(OSError):

@@ -105,8 +105,10 @@ def assert_clean_failure(proc: subprocess.CompletedProcess, *needles: str) -> No
 
 
 def no_temp_files(folder: Path) -> bool:
-    """True when no `*.tmp` file (an unfinished atomic write) is left anywhere under `folder`."""
-    return not [p for p in folder.rglob("*") if p.name.endswith(".tmp")]
+    """True when no temporary file of an unfinished atomic write (`workspace.is_temporary`) is left under `folder`."""
+    from boostnerf_cli.workspace import is_temporary
+
+    return not [p for p in folder.rglob("*") if is_temporary(p)]
 
 
 @pytest.fixture(scope="session")

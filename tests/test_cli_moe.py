@@ -186,6 +186,22 @@ def test_render_orbit_video(moe_ws, tmp_path):
     assert_clean_failure(proc, "--path")
 
 
+def test_a_video_killed_mid_write_leaves_no_temporary_file_once_the_workspace_is_used_again(moe_ws, tmp_path):
+    """A render --path killed while writing its video leaves its temporary file (never the video); the next command
+    on the workspace removes it, as it removes every killed writer's (it was left there for good)."""
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(moe_ws, ws, ignore=shutil.ignore_patterns("renders", "reports"))
+    args = ["render", "--workspace", str(ws), "--model", "dvgo-12", "--path", "orbit", "--frames", "2", "--device", "cpu"]
+    killed = run_cli(*args, env_extra={"BOOSTNERF_TEST_KILL": "write:orbit.mp4"})
+    folder = ws / "renders" / "dvgo-12"
+    assert killed.returncode == -9 and [p.name for p in folder.iterdir() if p.name.startswith(".orbit")], killed.stderr
+    assert not (folder / "orbit.mp4").exists()
+    run_cli(*args, check=True)
+    assert sorted(p.name for p in folder.iterdir()) == ["orbit.mp4", "orbit_depth.mp4"]
+
+
 def test_render_mp4_without_the_ffmpeg_backend_fails_in_one_line_and_writes_nothing(moe_ws, tmp_path, monkeypatch):
     """A user who asks for NAME.mp4 gets that file or an error, never a GIF under another name."""
     fake = tmp_path / "site"

@@ -21,7 +21,7 @@ import pytest
 import torch
 from conftest import make_recipe
 
-from boostnerf_cli.workspace import load_tensors
+from boostnerf_cli.workspace import is_temporary, load_tensors
 
 GRAD_RTOL = 1e-5  # of max |gradient| of each parameter; observed: 1.8e-6 (top2), 9.4e-7 (baseline)
 LOSS_RTOL = 1e-6  # logged loss, PSNR, aux, load; observed: 1e-7
@@ -74,7 +74,7 @@ def files(ws: Path) -> dict[str, bytes]:
 
 
 def assert_clean(ws: Path) -> None:
-    assert not [p for p in ws.rglob("*") if p.name.endswith(".tmp") or p.name == ".lock"]
+    assert not [p for p in ws.rglob("*") if is_temporary(p) or p.name == ".lock"]
     assert not list((ws / "checkpoints").glob("*"))
 
 
@@ -268,4 +268,4 @@ def test_a_failing_rank_stops_every_rank_with_its_message_and_keeps_finished_fil
     assert json.loads(after["manifest.json"])["experts"] == json.loads(before["manifest.json"])["experts"]
     load_tensors(ws / "experts" / "dvgo-12.safetensors")  # rank 0's expert is complete
     assert (ws / "experts" / "dvgo-12.json").exists()
-    assert not [p for p in ws.rglob("*") if p.name.endswith(".tmp") or p.name == ".lock"]
+    assert not [p for p in ws.rglob("*") if is_temporary(p) or p.name == ".lock"]

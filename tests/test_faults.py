@@ -24,11 +24,11 @@ from boostnerf_cli.models import load_expert, save_expert
 from boostnerf_cli.recipe import load_recipe
 from boostnerf_cli.stages import build_moe, pretrain
 from boostnerf_cli.stages.common import workspace_scene
-from boostnerf_cli.workspace import Workspace
+from boostnerf_cli.workspace import Workspace, is_temporary
 
 
 def _tmp_files(root: Path) -> list[Path]:
-    return [p for p in root.rglob("*") if p.name.endswith(".tmp")]
+    return [p for p in root.rglob("*") if is_temporary(p)]
 
 
 @pytest.fixture()

@@ -21,7 +21,7 @@ import pytest
 import torch
 from conftest import assert_clean_failure, make_recipe, merge, run_cli
 
-from boostnerf_cli.workspace import TEST_KILL_ENV, load_tensors
+from boostnerf_cli.workspace import TEST_KILL_ENV, is_temporary, load_tensors
 
 RESUME_ATOL = 1e-5  # documented in docs/reliability.md; observed difference: exactly 0
 
@@ -80,7 +80,7 @@ def _without_timing(report: dict) -> dict:
 
 def assert_clean(ws: Path) -> None:
     """No temporary file, leftover training checkpoint or lock after the command completed."""
-    leftovers = [p for p in ws.rglob("*") if p.name.endswith(".tmp") or p.name == ".lock"]
+    leftovers = [p for p in ws.rglob("*") if is_temporary(p) or p.name == ".lock"]
     assert not leftovers, leftovers
     ckpts = ws / "checkpoints"
     assert not ckpts.exists() or not list(ckpts.iterdir())
