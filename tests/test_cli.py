@@ -117,6 +117,20 @@ def test_eval_reports_lpips_when_its_weights_are_on_disk(trained_ws, tmp_path):
 
 
 
+def test_images_too_small_for_lpips_leave_it_out_with_a_note_not_the_whole_table(tmp_path, tiny_scene, tiny_recipe):
+    """AlexNet needs 31 px a side: at --image-size 24 eval reports PSNR and SSIM, LPIPS null and why (it stopped
+    with `error: lpips: need ... H, W >= 31` after the first model's costs, and wrote no table)."""
+    ws = tmp_path / "ws"
+    run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws), "--device", "cpu",
+            "--res", "12", "--image-size", "24", check=True)
+    proc = run_cli("eval", "--workspace", str(ws), "--report", "--no-costs", "--device", "cpu", check=True,
+                   env_extra=write_lpips_weights(tmp_path))
+    report = json.loads((ws / "reports" / "eval.json").read_text())
+    (row,) = report["models"]
+    assert row["lpips"] is None and row["psnr"] > 5
+    assert "31" in report["lpips_note"] and "24 x 24" in report["lpips_note"] and "24 x 24" in proc.stderr
+
+
 def test_views_of_one_name_in_different_folders_render_to_different_files(tmp_path, tiny_scene, tiny_recipe):
     """Frames `test/a/r_0` and `test/b/r_0` (a capture with one folder per camera) render to two files each, not
     one file written twice: render, --compare and --per-expert name files by the shortest unique path suffix."""

@@ -13,6 +13,7 @@ from typing import Callable
 from boostnerf_cli.costs import model_costs
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.metrics import image_metrics, load_lpips
+from boostnerf_cli.metrics.image import LPIPS_MIN_SIZE
 from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, all_model_names, load_model, n_views, render_split
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
@@ -49,6 +50,10 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
     if not names:
         raise BoostNerfError(f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
     lpips_model, lpips_note = load_lpips(device)
+    if lpips_model is not None and min(split.height, split.width) < LPIPS_MIN_SIZE:
+        lpips_model, lpips_note = None, (
+            f"LPIPS left out: its AlexNet needs images of at least {LPIPS_MIN_SIZE} px a side, these are "
+            f"{split.width} x {split.height} (pretrain at a larger --image-size to have it)")
     if lpips_model is None:
         log(lpips_note)
     rows = []
