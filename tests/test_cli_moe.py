@@ -19,6 +19,16 @@ def moe_ws(trained_ws, tmp_path_factory):
     return ws
 
 
+def test_a_density_volume_that_keeps_no_cell_is_refused(trained_ws, tmp_path):
+    """A V_D threshold no cell passes (or experts that learnt no density) filters every sample: such a mixture could
+    never train (it was built, then finetuned with the load [0, 0] and evaluated at 0 GFLOPs, without a word)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("moe", "reports", "renders"))
+    assert_clean_failure(run_cli("build-moe", "--workspace", str(ws), "--threshold", "0.99999", "--device", "cpu"),
+                         "keeps no cell", "--threshold")
+    assert not (ws / "moe").exists() or not list((ws / "moe").iterdir())
+
+
 def test_build_moe_writes_an_untrained_mixture(moe_ws):
     report = json.loads((moe_ws / "moe" / "init.json").read_text())
     assert report["experts"] == ["dvgo-12", "dvgo-16"]  # ordered by size
