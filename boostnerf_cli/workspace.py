@@ -25,6 +25,7 @@ import hashlib
 import json
 import math
 import os
+import shutil
 import socket
 import tempfile
 from contextlib import contextmanager, suppress
@@ -67,8 +68,8 @@ def kill_point_for_tests(kind: str, name: str = "") -> None:
 
 
 def is_temporary(path: Path) -> bool:
-    """A temporary file of `atomic_path`: `.NAME.XXXX.tmp`, or `.NAME.XXXX.tmp.mp4` for a writer that needs the
-    suffix (ffmpeg)."""
+    """A temporary file of `atomic_path` (`.NAME.XXXX.tmp`, or `.NAME.XXXX.tmp.mp4` for a writer that needs the
+    suffix: ffmpeg) or folder of `make_scene` (`.NAME.tmp`)."""
     name = path.name
     return name.startswith(".") and (name.endswith(".tmp") or ".tmp." in name)
 
@@ -416,8 +417,12 @@ class Workspace:
             os.write(fd, me.encode())
             # Temporary files of `atomic_path` left by a writer that was killed mid-write: never artifacts
             # (they were not renamed into place), and no other writer can be using them now.
-            for tmp in self.root.rglob(".*.tmp*"):
-                if tmp.is_file() and is_temporary(tmp):
+            for tmp in sorted(self.root.rglob(".*.tmp*")):
+                if not is_temporary(tmp):
+                    continue
+                if tmp.is_dir() and not tmp.is_symlink():  # a procedural scene being generated (`make_scene`)
+                    shutil.rmtree(tmp, ignore_errors=True)
+                else:
                     tmp.unlink(missing_ok=True)
         except OSError:
             with suppress(OSError):

@@ -71,9 +71,12 @@ def test_lock_of_a_killed_process_is_stale_and_taken_over(tmp_path):
     assert str(holder.pid) in (ws / ".lock").read_text()  # the dead writer's lock file is still there
     (ws / "experts").mkdir()
     (ws / "experts" / ".dvgo-12.safetensors.abc.tmp").write_bytes(b"half")  # and a file it was writing
+    (ws / "renders").mkdir()
+    (ws / "renders" / ".orbit.mp4.abc.tmp.mp4").write_bytes(b"half")  # a video (ffmpeg needs the suffix)
+    (ws / ".scene.tmp" / "train").mkdir(parents=True)  # a scene being generated
     with Workspace(ws).lock():
         assert (ws / ".lock").read_text().endswith(f" {os.getpid()}")
-    assert not _tmp_files(ws) and not (ws / ".lock").exists()
+    assert not _tmp_files(ws) and not (ws / ".lock").exists() and not (ws / ".scene.tmp").exists()
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
@@ -153,30 +156,43 @@ def test_unwritable_workspace_is_one_clear_line(tmp_path, monkeypatch):
         wsmod.write_json(tmp_path / "r.json", {"a": 1})
 
 
-def test_generating_the_default_scene_is_atomic(tmp_path, monkeypatch):
-    ws = Workspace(tmp_path / "ws")
-    rec = load_recipe(None)
-    rec.data.image_size = 16
-    real = pretrain.make_scene
+@pytest.mark.parametrize("who", ["make-scene", "pretrain", "bench"])
+def test_generating_a_scene_is_atomic(tmp_path, monkeypatch, who):
+    """A scene is written to `.NAME.tmp` beside its folder and renamed when complete: a run stopped half way leaves
+    no half scene that a rerun would take for a finished one (bench's default scene lost its test views that way:
+    the rerun held out 3 train views instead), and the next run generates it whole."""
+    from boostnerf_cli.scenes import make_scene, procedural
+    from boostnerf_cli.stages import bench
 
-    def dies_half_way(out, **kw):
-        (Path(out) / "train").mkdir(parents=True)
-        (Path(out) / "transforms_train.json").write_text("{}")  # written before the crash
+    real = procedural._write_blender
+
+    def dies_half_way(out, views, *args):
+        real(out, {"train": views["train"]}, *args)  # train written, then stopped before the test split
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pretrain, "make_scene", dies_half_way)
+    rec = load_recipe(None)
+    rec.data.image_size = 16
+    ws = Workspace(tmp_path / "ws")
+    scene = {"make-scene": tmp_path / "scene", "pretrain": ws.root / "scene", "bench": ws.root / "scene"}[who]
+    run = {"make-scene": lambda: make_scene(scene, size=16, n_train=3, n_test=1),
+           "pretrain": lambda: pretrain.run(ws, None, rec, "cpu", False, lambda m: None),
+           "bench": lambda: bench.run(ws.root, None, rec, "quick", None, "cpu", 1, lambda m: None)}[who]
+    monkeypatch.setattr(procedural, "_write_blender", dies_half_way)
     with pytest.raises(KeyboardInterrupt):
-        pretrain.run(ws, None, rec, "cpu", False, lambda m: None)
-    assert not (ws.root / "scene").exists()  # no half scene a rerun would take for a finished one
+        run()
+    assert not scene.exists()  # no half scene a rerun would take for a finished one
+    monkeypatch.setattr(procedural, "_write_blender", real)
 
     class Stop(Exception):
         pass
 
-    monkeypatch.setattr(pretrain, "make_scene", lambda out, **kw: real(out, n_train=3, n_test=1, **kw))
-    monkeypatch.setattr(pretrain, "ensure_geometry", lambda *a, **k: (_ for _ in ()).throw(Stop()))
-    with pytest.raises(Stop):
-        pretrain.run(ws, None, rec, "cpu", False, lambda m: None)
-    assert (ws.root / "scene" / "transforms_test.json").exists() and not (ws.root / ".scene.tmp").exists()
+    for stage in (pretrain, bench):  # the scene is made, then the run stops: no training needed here
+        if hasattr(stage, "ensure_geometry"):
+            monkeypatch.setattr(stage, "ensure_geometry", lambda *a, **k: (_ for _ in ()).throw(Stop()))
+    monkeypatch.setattr(bench, "bench_config", lambda *a, **k: (_ for _ in ()).throw(Stop()))
+    with pytest.raises(Stop) if who != "make-scene" else __import__("contextlib").nullcontext():
+        run()
+    assert (scene / "transforms_test.json").exists() and not (scene.parent / ".scene.tmp").exists()
 
 
 # --- damaged inputs ----------------------------------------------------------------------------

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -474,7 +475,6 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     if out_dir.is_dir() and any(out_dir.iterdir()):
         raise BoostNerfError(f"{out_dir} already holds files: make-scene writes into a new or empty folder (another "
                              "scene's files would mix with this one's); choose a new folder or delete this one")
-    out_dir.mkdir(parents=True, exist_ok=True)
     train, test = (forward_poses if rig == "forward" else camera_poses)(n_train, n_test)
     focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
     k = torch.tensor([focal, focal, size / 2, size / 2])
@@ -484,17 +484,29 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
             if len(poses):
                 views[split] = (poses, [render_view(objects, torch.from_numpy(p).float(), k, size, supersample)
                                         for p in poses])
-    if layout == "blender":
-        _write_blender(out_dir, views, focal, size)
-    elif layout in ("nsvf", "tanks"):
-        _write_nsvf(out_dir, views, focal, size, masked=layout == "tanks")
-    elif layout == "llff":
-        _write_llff(out_dir, views, focal, size)
-    else:
-        _write_nerfstudio(out_dir, views, focal, size)
-    (out_dir / "objects.json").write_text(json.dumps({"seed": seed, "content": content, "objects": objects}, indent=2))
-    text = README.format(seed=seed, ss=supersample, n_train=n_train, n_test=n_test, size=size, angle=CAMERA_ANGLE_X,
-                         rig_text=RIG_TEXT[rig].format(radius=RADIUS), layout_text=LAYOUT_TEXT[layout],
-                         content_text=CONTENT_TEXT[content])
-    (out_dir / "README.txt").write_text(text)
+    # Written to `.NAME.tmp` beside the folder and renamed when complete: a run stopped half way never leaves a
+    # half-written scene that a later run would take for a complete one (a workspace's lock removes the leftover).
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir.parent / f".{out_dir.name}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    try:
+        if layout == "blender":
+            _write_blender(tmp, views, focal, size)
+        elif layout in ("nsvf", "tanks"):
+            _write_nsvf(tmp, views, focal, size, masked=layout == "tanks")
+        elif layout == "llff":
+            _write_llff(tmp, views, focal, size)
+        else:
+            _write_nerfstudio(tmp, views, focal, size)
+        (tmp / "objects.json").write_text(json.dumps({"seed": seed, "content": content, "objects": objects}, indent=2))
+        text = README.format(seed=seed, ss=supersample, n_train=n_train, n_test=n_test, size=size,
+                             angle=CAMERA_ANGLE_X, rig_text=RIG_TEXT[rig].format(radius=RADIUS),
+                             layout_text=LAYOUT_TEXT[layout], content_text=CONTENT_TEXT[content])
+        (tmp / "README.txt").write_text(text)
+        if out_dir.is_dir():
+            out_dir.rmdir()  # empty (checked above)
+        tmp.rename(out_dir)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return out_dir

@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import shutil
 import time
 from pathlib import Path
 from typing import Callable
@@ -337,13 +336,7 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
         data = ws.root / "scene"
         if not (data / "transforms_train.json").exists():
             log(f"no --data given: generating the default procedural scene in {data}")
-            # Written to a temporary folder and renamed: a run killed while generating never leaves a
-            # half-written scene that a rerun would take for a complete one.
-            tmp = ws.root / ".scene.tmp"
-            shutil.rmtree(tmp, ignore_errors=True)
-            make_scene(tmp, size=rec.data.image_size or 64, seed=rec.pretrain.seed)
-            shutil.rmtree(data, ignore_errors=True)
-            tmp.rename(data)
+            make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)  # atomic: never half a scene
     inputs = scene_inputs(Path(data), rec)
     previous = ws.manifest().get("data")
     if previous and previous != inputs:
