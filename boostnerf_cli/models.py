@@ -215,6 +215,62 @@ def load_model(ws: Workspace, name: str, device: str, exact_gate: bool = False) 
                        model.bbox, meta.get("stored_params", count_params(model)))
 
 
+def _finetune_flag(name: str) -> str:
+    return {"baseline": "--baseline", "ens": "--ensemble"}.get(name, f"--topk {name[3:]}" if name[3:].isdigit() else name)
+
+
+def stale_reason(ws: Workspace, name: str) -> tuple[str, str] | None:
+    """Why model `name` is stale, as (what changed, the command that makes it again), or None when it is current:
+    it was made from a model (moe/init from its experts, a finetuned mixture from moe/init, the baseline from the
+    largest expert, a pruned model from its source) that changed since. The first stale link from the experts up
+    is named, since remaking it comes first. An expert (or a missing file) is never stale here."""
+    path = model_file(ws, name)
+    if not path.exists():
+        return None
+    meta = read_meta(path)
+    root = ws.root
+    if name == "init":
+        for expert, digest in (meta.get("inputs") or {}).items():
+            src = ws.expert_path(expert)
+            now = read_meta(src).get("digest") if src.exists() else None
+            if now != digest:
+                return (f"expert {expert} was {'removed' if now is None else 'retrained'} after build-moe",
+                        f"`boostnerf build-moe -w {root}`, then finetune the mixtures again with --force")
+        return None
+    source, digest = meta.get("pruned_from"), meta.get("pruned_from_digest")
+    if source is None:
+        source, digest = meta.get("from"), meta.get("from_digest")
+    if source is None or digest is None:
+        return None
+    if (earlier := stale_reason(ws, source)) is not None:  # the source's own staleness is remade first
+        return earlier
+    src = model_file(ws, source)
+    now = read_meta(src).get("digest") if src.exists() else None
+    if now == digest:
+        return None
+    change = "removed" if now is None else "changed"
+    if "pruned_from" in meta:
+        return (f"{source} was {change} after {name} was pruned from it",
+                f"`boostnerf prune -w {root} --model {source} --force`")
+    what = f"moe/{source} was rebuilt" if source == "init" else f"expert {source} was {'removed' if now is None else 'retrained'}"
+    return f"{what} after {name} was finetuned from it", f"`boostnerf finetune -w {root} {_finetune_flag(name)} --force`"
+
+
+def current_models(ws: Workspace, names: list[str] | None = None) -> list[str]:
+    """`names` (default: every model of the workspace), refused in one line when one is stale (`stale_reason`):
+    a table or picture of a model made from an expert since retrained would compare it with what it no longer is."""
+    names = names or all_model_names(ws)
+    stale = {n: r for n in names if (r := stale_reason(ws, n)) is not None}
+    if stale:
+        first = next(iter(stale))
+        what, remedy = stale[first]
+        others = [n for n in all_model_names(ws) if n not in stale and stale_reason(ws, n) is None]
+        raise BoostNerfError(
+            f"{', '.join(stale)} {'is' if len(stale) == 1 else 'are'} stale: {what}; make {first} again with "
+            f"{remedy}" + (f" (or name current models: {' '.join('--model ' + n for n in others)})" if others else ""))
+    return names
+
+
 def all_model_names(ws: Workspace) -> list[str]:
     """Experts smallest first, then mixtures in the paper's order."""
     order = {"baseline": 0, "top1": 1, "top2": 2, "ens": 9}

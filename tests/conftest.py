@@ -93,6 +93,18 @@ def run_cli(*args: str, cwd: Path | None = None, check: bool = False,
     return proc
 
 
+def cli_in_process(monkeypatch, capsys, *args: str) -> tuple[int, str]:
+    """Run the CLI entry point (`boostnerf_cli.cli.main`, what the `boostnerf` script calls) in this
+    process -> (exit code, stderr). Same code path as a subprocess, without paying torch's import again."""
+    from boostnerf_cli.cli import main
+
+    monkeypatch.setattr("sys.argv", ["boostnerf", *args])
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    return exit_info.value.code, capsys.readouterr().err
+
+
 def assert_clean_failure(proc: subprocess.CompletedProcess, *needles: str) -> None:
     """The CLI refused cleanly: exit code 2, no traceback, the last stderr line is `error: ...` and holds
     every one of `needles`."""

@@ -6,7 +6,15 @@ import shutil
 
 import pytest
 import torch
-from conftest import PSNR_MARGIN, TINY_MOE_PSNR_2_VIEWS, assert_clean_failure, make_recipe, no_temp_files, run_cli
+from conftest import (
+    PSNR_MARGIN,
+    TINY_MOE_PSNR_2_VIEWS,
+    assert_clean_failure,
+    cli_in_process,
+    make_recipe,
+    no_temp_files,
+    run_cli,
+)
 
 
 @pytest.fixture(scope="module")
@@ -27,6 +35,36 @@ def test_a_density_volume_that_keeps_no_cell_is_refused(trained_ws, tmp_path):
     assert_clean_failure(run_cli("build-moe", "--workspace", str(ws), "--threshold", "0.99999", "--device", "cpu"),
                          "keeps no cell", "--threshold")
     assert not (ws / "moe").exists() or not list((ws / "moe").iterdir())
+
+
+def test_models_made_from_a_retrained_expert_are_refused_until_made_again(moe_ws, tmp_path, tiny_scene, tiny_recipe,
+                                                                         monkeypatch, capsys):
+    """eval, render, count-params and prune refuse a model made from what changed since (an expert retrained after
+    build-moe, a mixture finetuned again after prune), naming it and what to run; the current models still go.
+    They evaluated and tabulated such stale models beside the new experts, without a word."""
+    ws = tmp_path / "ws"
+    shutil.copytree(moe_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
+    run_cli("prune", "--workspace", str(ws), "--model", "top1", "--device", "cpu", check=True)
+    w = ["--workspace", str(ws), "--device", "cpu"]
+    for f in (ws / "experts").glob("dvgo-16.*"):  # dvgo-16 retrained (with one more step: other weights)
+        f.unlink()
+    run_cli("pretrain", *w, "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--res", "16", "--iters", "31",
+            check=True)
+    for args in (["eval"], ["eval", "--model", "top2"], ["render", "--views", "1"], ["render", "--compare"],
+                 ["render", "--model", "baseline", "--path", "orbit", "--frames", "2"], ["count-params"],
+                 ["prune", "--model", "top2"], ["eval", "--model", "top1-pruned"]):
+        code, err = cli_in_process(monkeypatch, capsys, *args, *w)
+        assert code == 2 and err.startswith("error: ") and "stale" in err and "dvgo-16 was retrained" in err, err
+    for name, needle in (("top2", "build-moe"), ("baseline", "--baseline --force")):
+        code, err = cli_in_process(monkeypatch, capsys, "eval", "--model", name, *w)
+        assert code == 2 and f"{name} is stale" in err and needle in err, err
+    proc = run_cli("eval", "--model", "dvgo-12", "--model", "dvgo-16", "--views", "1", "--no-costs", *w, check=True)
+    assert "PSNR" in proc.stderr
+    run_cli("build-moe", *w, check=True)
+    run_cli("finetune", "--topk", "1", "--force", *w, check=True)
+    proc = run_cli("eval", "--model", "top1-pruned", *w)
+    assert_clean_failure(proc, "top1-pruned is stale", "boostnerf prune", "--model top1 --force")
+    assert_clean_failure(run_cli("eval", "--model", "top2", *w), "top2 is stale", "finetune", "--topk 2 --force")
 
 
 def test_build_moe_writes_an_untrained_mixture(moe_ws):

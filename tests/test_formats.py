@@ -15,7 +15,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC, image_rays, project_points
 from boostnerf_cli.scenes import LAYOUTS, detect_format, load_scene, make_scene
 from boostnerf_cli.scenes.procedural import CAMERA_ANGLE_X, camera_poses, forward_poses, sequence_order
-from tests.conftest import run_cli
+from tests.conftest import cli_in_process, run_cli
 
 SIZE, N_TRAIN, N_TEST = 16, 9, 3
 # layouts that store 8-bit RGBA (compared exactly) vs RGB composited on white before quantising
@@ -281,24 +281,12 @@ MALFORMED = [
 ]
 
 
-def _cli_in_process(monkeypatch, capsys, *args: str) -> tuple[int, str]:
-    """Run the CLI entry point (`boostnerf_cli.cli.main`, what the `boostnerf` script calls) in this
-    process -> (exit code, stderr). Same code path as a subprocess, without paying torch's import again."""
-    from boostnerf_cli.cli import main
-
-    monkeypatch.setattr("sys.argv", ["boostnerf", *args])
-    capsys.readouterr()
-    with pytest.raises(SystemExit) as exit_info:
-        main()
-    return exit_info.value.code, capsys.readouterr().err
-
-
 @pytest.mark.parametrize("layout,breaker,message", MALFORMED, ids=[m[1].__name__[7:] for m in MALFORMED])
 def test_malformed_input_is_one_clear_line_through_the_cli(forward, tmp_path, monkeypatch, capsys, layout, breaker,
                                                            message):
     folder = _copy(forward[layout], tmp_path / layout)
     breaker(folder)
-    code, stderr = _cli_in_process(monkeypatch, capsys, "pretrain", "--data", str(folder), "--workspace",
+    code, stderr = cli_in_process(monkeypatch, capsys, "pretrain", "--data", str(folder), "--workspace",
                                    str(tmp_path / "ws"), "--device", "cpu")
     assert code == 2, stderr
     lines = [line for line in stderr.splitlines() if line.strip()]
@@ -307,7 +295,7 @@ def test_malformed_input_is_one_clear_line_through_the_cli(forward, tmp_path, mo
 
 def test_unknown_layout_through_the_cli(tmp_path, monkeypatch, capsys):
     (tmp_path / "empty").mkdir()
-    code, stderr = _cli_in_process(monkeypatch, capsys, "pretrain", "--data", str(tmp_path / "empty"),
+    code, stderr = cli_in_process(monkeypatch, capsys, "pretrain", "--data", str(tmp_path / "empty"),
                                    "--workspace", str(tmp_path / "ws"), "--device", "cpu")
     assert code == 2
     (line,) = stderr.strip().splitlines()

@@ -24,7 +24,7 @@ from boostnerf_cli.costs import photometric_grads
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import grid as G
 from boostnerf_cli.metrics import mse_to_psnr
-from boostnerf_cli.models import LoadedModel, load_model, model_file, n_views, render_split, save_pruned
+from boostnerf_cli.models import LoadedModel, current_models, load_model, model_file, n_views, render_split, save_pruned
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
@@ -109,6 +109,7 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
     ws.require_manifest()
     if name.endswith(SUFFIX):
         raise BoostNerfError(f"{name!r} is already pruned: prune the model it came from")
+    current_models(ws, [name])  # a model made from what changed since is made again first
     out_name = name + SUFFIX
     out_path, report_path = ws.model_path(out_name), ws.moe_dir / f"{out_name}.json"
     src = model_file(ws, name)

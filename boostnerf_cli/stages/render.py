@@ -31,7 +31,7 @@ from boostnerf_cli.images import (
     write_png,
     write_video,
 )
-from boostnerf_cli.models import LoadedModel, Skips, all_model_names, load_model, n_views, render_split
+from boostnerf_cli.models import LoadedModel, Skips, all_model_names, current_models, load_model, n_views, render_split
 from boostnerf_cli.moe.mixture import GateView
 from boostnerf_cli.render.paths import camera_path
 from boostnerf_cli.render.renderer import render_image, render_view
@@ -47,7 +47,7 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
     scene = workspace_scene(ws)
     split = scene.split(split_name)
     written = []
-    for name in names or all_model_names(ws):
+    for name in current_models(ws, names):
         model = load_model(ws, name, device, exact_gate)
         folder = ws.renders_dir(name, split_name)
         mine = []
@@ -70,7 +70,7 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
     if not names or len(names) != 1:
         raise BoostNerfError(f"--path renders one model: add --model NAME (models: {', '.join(all_model_names(ws)) or 'none yet'})")
     scene = workspace_scene(ws)
-    model = load_model(ws, names[0], device)
+    model = load_model(ws, current_models(ws, names)[0], device)
     target, fmt = video_target(video or ws.renders_dir(model.name) / f"{kind}.mp4")  # refused before rendering
     train = scene.split("train")
     facing = float(torch.linalg.norm(train.poses[:, :3, 2].mean(0)))  # 1: all cameras look the same way
@@ -104,12 +104,12 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
 def compared_models(ws: Workspace, names: list[str] | None) -> list[str]:
     """`names`, else the paper's comparison models the workspace has, else every model it has."""
     if names:
-        return names
+        return current_models(ws, names)
     have = all_model_names(ws)
     chosen = [n for n in COMPARED if n in have] or have
     if not chosen:
         raise BoostNerfError(f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
-    return chosen
+    return current_models(ws, chosen)
 
 
 def pixel_error(rgb: np.ndarray, gt: np.ndarray) -> np.ndarray:
