@@ -131,6 +131,17 @@ def test_images_too_small_for_lpips_leave_it_out_with_a_note_not_the_whole_table
     assert "31" in report["lpips_note"] and "24 x 24" in report["lpips_note"] and "24 x 24" in proc.stderr
 
 
+def test_pretrain_without_data_on_a_workspace_of_another_scene_is_refused_before_generating_one(trained_ws, tmp_path,
+                                                                                                tiny_recipe):
+    """`--data` left out on a workspace made for a real scene: refused at once, with no procedural scene generated
+    into WS/scene first (it was written, then the run refused: a scene folder left in the workspace)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
+    proc = run_cli("pretrain", "--workspace", str(ws), "--recipe", str(tiny_recipe), "--device", "cpu")
+    assert_clean_failure(proc, "was made for another scene")
+    assert not (ws / "scene").exists() and "generating" not in proc.stderr
+
+
 def test_views_of_one_name_in_different_folders_render_to_different_files(tmp_path, tiny_scene, tiny_recipe):
     """Frames `test/a/r_0` and `test/b/r_0` (a capture with one folder per camera) render to two files each, not
     one file written twice: render, --compare and --per-expert name files by the shortest unique path suffix."""

@@ -332,14 +332,11 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     """
     main = dist.is_main()
     check_recipe(rec, "setting")  # the recipe was checked when read; flags may have changed it since
-    if data is None:
-        data = ws.root / "scene"
-        if not (data / "transforms_train.json").exists():
-            log(f"no --data given: generating the default procedural scene in {data}")
-            make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)  # atomic: never half a scene
+    generate = data is None and not (ws.root / "scene" / "transforms_train.json").exists()
+    data = ws.root / "scene" if data is None else data
     inputs = scene_inputs(Path(data), rec)
     previous = ws.manifest().get("data")
-    if previous and previous != inputs:
+    if previous and previous != inputs:  # checked before a default scene is generated: nothing written if refused
         if not force:
             raise BoostNerfError(
                 f"workspace {ws.root} was made for another scene, image size or box ({previous['path']}, "
@@ -348,6 +345,9 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
                 + "): use a new --workspace, or --force to retrain everything"
             )
         _forget_trained(ws)
+    if generate:
+        log(f"no --data given: generating the default procedural scene in {data}")
+        make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)  # atomic: never half a scene
     scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
                        format=rec.data.format, bbox=rec.data.bbox)
     for res in rec.pretrain.res:  # per-expert options are checked (and chosen, said once) before anything trains
