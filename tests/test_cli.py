@@ -5,7 +5,7 @@ import shutil
 
 import pytest
 import torch
-from conftest import PSNR_MARGIN, TINY_PSNR, assert_clean_failure, no_temp_files, run_cli
+from conftest import PSNR_MARGIN, TINY_PSNR, assert_clean_failure, make_recipe, no_temp_files, run_cli
 from helpers import write_lpips_weights
 from safetensors import safe_open
 
@@ -61,6 +61,23 @@ def test_pretrain_skips_finished_experts(trained_ws, tiny_scene, tiny_recipe):
                    str(trained_ws), "--device", "cpu", "--res", "12", check=True)
     assert "already trained" in proc.stderr
     assert (trained_ws / "experts" / "dvgo-12.safetensors").stat().st_mtime_ns == before
+
+
+def test_a_finished_expert_is_not_skipped_under_other_training_settings(tmp_path, tiny_scene, tiny_recipe):
+    """pretrain skips a finished expert only when the recipe would train it the same way; otherwise one line says
+    which setting differs (it said "already trained, skipping" and recorded the new recipe in the manifest, which
+    later stages reuse, beside experts trained with the old one). A setting that trains nothing the same way
+    (log_every) still skips."""
+    ws = tmp_path / "ws"
+    args = ["pretrain", "--data", str(tiny_scene), "--workspace", str(ws), "--device", "cpu", "--res", "12"]
+    run_cli(*args, "--recipe", str(tiny_recipe), check=True)
+    manifest = (ws / "manifest.json").read_text()
+    more = make_recipe(tmp_path / "more.yaml", pretrain={"iters": 50})
+    assert_clean_failure(run_cli(*args, "--recipe", str(more)), "dvgo-12 was trained with other settings",
+                         "iters: 30, now 50", "--force")
+    assert (ws / "manifest.json").read_text() == manifest
+    quiet = make_recipe(tmp_path / "quiet.yaml", pretrain={"train": {"log_every": 7}})
+    assert "already trained" in run_cli(*args, "--recipe", str(quiet), check=True).stderr
 
 
 def test_eval_report_schema_and_render_outputs(trained_ws, tmp_path):

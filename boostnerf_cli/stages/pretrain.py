@@ -190,6 +190,41 @@ def expert_options(rec: PretrainRecipe, res: int, log: Callable[[str], None] | N
     return {**opts, "res": res}
 
 
+def expert_signature(rec: PretrainRecipe, res: int, scene_tag: str, geometry: str | None) -> dict:
+    """The settings that define the expert at `res` (its training checkpoint's signature, also stored in the finished
+    expert): scene, family and its section, steps, seed, skipping, growth, the geometry it started from, and the
+    training settings that shape it (`shaping_changes`), in JSON's types."""
+    tcfg = rec.train if rec.skip else dataclasses.replace(rec.train, occupancy_every=0)
+    signature = {"stage": "pretrain", "scene": scene_tag, "model": rec.model, "res": res,
+                 rec.model: rec.family_config(), "iters": rec.iters, "skip": rec.skip, "growth": list(tcfg.growth),
+                 "seed": rec.seed + res, "geometry": geometry}
+    if tcfg.random_background:  # named only when set: older checkpoints still resume
+        signature["random_background"] = True
+    if changed := shaping_changes(tcfg, TrainRecipe(), leave_out=("growth", "random_background")):
+        signature["train"] = changed
+    return json.loads(json.dumps(signature))
+
+
+def _check_finished(ws: Workspace, rec: PretrainRecipe, scene_tag: str, force: bool) -> None:
+    """Refuse to skip a finished expert that the recipe would train differently (another family section, steps,
+    batch, ...): its report would stand for settings it was not trained with. The geometry it started from is
+    not compared (the geometry stage checks its own settings)."""
+    for res in rec.res:
+        name = expert_name(rec.model, res)
+        path = ws.expert_path(name)
+        if force or not path.exists() or not ws.expert_report_path(name).exists():
+            continue
+        stored = read_meta(path).get("signature")
+        if stored is None:  # an expert saved before its signature was stored: skipped as before
+            continue
+        now = expert_signature(rec, res, scene_tag, stored.get("geometry"))
+        for key in sorted(set(stored) | set(now)):
+            if stored.get(key) != now.get(key):
+                raise BoostNerfError(
+                    f"{name} was trained with other settings ({key}: {stored.get(key)!r}, now {now.get(key)!r}): "
+                    "add --force to retrain it, or rerun with the recipe it was trained with")
+
+
 def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, box: Tensor, geom: OccupancyGrid,
                     prior: nn.Module, device: str, scene_tag: str = "") -> dict:
     """Train one expert at `res` and write its safetensors file and JSON report (with `rec.skip` off: on the
@@ -214,14 +249,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     rays = train_rays(scene, box, device, tcfg)
     sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
-    signature = {"stage": "pretrain", "scene": scene_tag, "model": rec.model, "res": res,
-                 rec.model: rec.family_config(), "iters": rec.iters, "skip": rec.skip, "growth": list(tcfg.growth),
-                 "seed": rec.seed + res,
-                 "geometry": read_meta(ws.geometry_path).get("digest")}
-    if tcfg.random_background:  # named only when set: older checkpoints still resume
-        signature["random_background"] = True
-    if changed := shaping_changes(tcfg, TrainRecipe(), leave_out=("growth", "random_background")):
-        signature["train"] = changed
+    signature = expert_signature(rec, res, scene_tag, read_meta(ws.geometry_path).get("digest"))
     result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt, signature=signature)
     model.eval()
     task.refresh_occupancy()
@@ -242,7 +270,8 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     test = scene.split("test") if any(k in scene.splits for k in ("test", "val")) else None
     if test is not None:
         report["test_psnr"] = round(_test_psnr(model, test, settings, task.skip, device), 3)
-    save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step, "scene": scene_tag})
+    save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step, "scene": scene_tag,
+                                                         "signature": signature})
     write_json(ws.expert_report_path(name), report)
     ckpt.unlink(missing_ok=True)
     return report
@@ -362,6 +391,7 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
         )
     if recorded and recorded != digest:
         _forget_trained(ws)
+    _check_finished(ws, rec.pretrain, scene_id(inputs), force)
     if main:
         ws.update_manifest(data=inputs, scene_id=scene_id(inputs), scene_digest=digest, scene=scene.describe(),
                            recipe=recipe_dict(rec))
