@@ -3,7 +3,7 @@
 #   recipes/chain.sh with recipes/demo-dvgo-cpu.yaml (pretrain -> build-moe -> finetune baseline, top1,
 #   top2, ens -> eval --report -> count-params), a comparison image, per-expert and gate images, an orbit video.
 # Usage: bash recipes/quickstart.sh [WORKSPACE]   (default: ./ws-demo)
-# Stops at the first failing stage; rerunning skips every stage that already finished.
+# Stops at the first failing stage; rerunning skips every model that already finished.
 set -euo pipefail
 WS="${1:-ws-demo}"
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
