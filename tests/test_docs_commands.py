@@ -190,7 +190,8 @@ def test_chain_skips_finished_models_redoes_the_reports_and_stops_at_the_first_f
     ws = cwd / "ws"
     init, first = (ws / "moe" / "init.safetensors").read_bytes(), json.loads((ws / "reports" / "eval.json").read_text())
     subprocess.run(["boostnerf", "eval", "-w", str(ws), "--model", "top2", "--views", "1", "--report", "--no-costs",
-                    "--device", "cpu"], cwd=cwd, env=env, check=True, capture_output=True)
+                    "--device", "cpu"], cwd=cwd, env={**env, "DOCS_LOG": str(cwd / "eval.log")}, check=True,
+                   capture_output=True)
     proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", "-", "ws")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stderr.count("already finetuned, skipping") == 4 and "already trained, skipping" in proc.stderr
