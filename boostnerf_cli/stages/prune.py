@@ -24,10 +24,19 @@ from boostnerf_cli.costs import photometric_grads
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import grid as G
 from boostnerf_cli.metrics import mse_to_psnr
-from boostnerf_cli.models import LoadedModel, current_models, load_model, model_file, n_views, render_split, save_pruned
+from boostnerf_cli.models import (
+    LoadedModel,
+    current_models,
+    load_model,
+    model_file,
+    n_views,
+    render_split,
+    save_pruned,
+    stale_reason,
+)
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
-from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
+from boostnerf_cli.workspace import Workspace, read_json, write_json
 
 SUFFIX = "-pruned"
 CHECK_VIEWS = 4  # training views rendered before and after to check they are unchanged
@@ -114,8 +123,7 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
     out_path, report_path = ws.model_path(out_name), ws.moe_dir / f"{out_name}.json"
     src = model_file(ws, name)
     if out_path.exists() and report_path.exists() and not force:
-        made_from = read_meta(out_path).get("pruned_from_digest")
-        if made_from is not None and src.exists() and made_from != read_meta(src).get("digest"):
+        if stale_reason(ws, out_name) is not None:  # its source is current (above), so: pruned before it changed
             raise BoostNerfError(f"{name} changed since it was pruned (trained again): add --force to prune it again")
         log(f"{out_name}: already pruned, skipping (use --force to redo it)")
         return read_json(report_path, "prune report")
