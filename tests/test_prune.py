@@ -143,3 +143,14 @@ def test_a_model_finetuned_again_after_prune_is_not_silently_kept(pruned_ws, tmp
     run_cli("prune", "--workspace", str(ws), "--model", "top1", "--force", "--device", "cpu", check=True)
     proc = run_cli("prune", "--workspace", str(ws), "--model", "top1", "--device", "cpu", check=True)
     assert "already pruned" in proc.stderr
+
+
+def test_a_prune_on_the_first_views_checks_those_views(pruned_ws, tmp_path):
+    """`--views 2` keeps the rows the first 2 training views use, so those are the views the check renders: their
+    difference is 0. It rendered 4 views and reported the rows the other 2 lost as a difference (3e-1 on fern)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(pruned_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
+    run_cli("prune", "--workspace", str(ws), "--model", "top1", "--views", "2", "--force", "--device", "cpu",
+            check=True)
+    report = json.loads((ws / "moe" / "top1-pruned.json").read_text())
+    assert report["views"] == 2 and report["train_check_views"] == 2 and report["train_max_abs_diff"] <= 1e-5

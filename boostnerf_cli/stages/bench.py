@@ -316,7 +316,7 @@ def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] 
         previous = read_json(config_path, "bench config")
         if previous != config:
             changed = next(k for k in config if previous.get(k) != config[k])
-            raise BoostNerfError(f"{root} holds a bench of another {changed} ({config_path}): "
+            raise BoostNerfError(f"{root} holds a bench made with another {changed} ({config_path}): "
                                  "use a new --workspace, or delete it to start over")
     else:
         write_json(config_path, config)

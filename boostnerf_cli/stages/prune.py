@@ -39,7 +39,7 @@ from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, read_json, write_json
 
 SUFFIX = "-pruned"
-CHECK_VIEWS = 4  # training views rendered before and after to check they are unchanged
+CHECK_VIEWS = 4  # at most this many of the views pruned on are rendered before and after: unchanged
 
 
 VM_FACTOR = re.compile(r"(^|\.)(planes|lines)\.\d+$")  # fields/vm.py: (texels, rank) planes, (cells, rank) lines
@@ -138,8 +138,9 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
     params_before = before.params
     tables, dropped = save_pruned(src, out_path, masks, fill_row, out_name, name, params_before)
     after = load_model(ws, out_name, device)
-    train_before = _renders(before, scene, split, device, CHECK_VIEWS)
-    train_after = _renders(after, scene, split, device, CHECK_VIEWS)
+    check = min(CHECK_VIEWS, n_views(split, views))  # views the rows were kept for (--views N: the first N)
+    train_before = _renders(before, scene, split, device, check)
+    train_after = _renders(after, scene, split, device, check)
     diff = max(float((a - b).abs().max()) for a, b in zip(train_before, train_after))
     test = scene.split("test")
     test_before = _psnr(_renders(before, scene, test, device, len(test)), test)
