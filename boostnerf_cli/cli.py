@@ -336,6 +336,7 @@ def bench(
     names = [n for n in only.replace(" ", "").split(",") if n] if only else None
     if list_rows:
         _, rows = stage.catalogue(rec, suite)
+        stage.check_config(workspace, data, views, rec, listing=True)  # rows of a bench made with another recipe are not "finished"
         table = Table("row", "group", "workspace", "model", "finished")
         for r in stage.select(rows, names, suite):
             done = stage.row_path(workspace, r.name).exists()

@@ -153,7 +153,7 @@ def test_bench_refuses_bad_input(quick_bench, tiny_scene, bench_recipe, tmp_path
     root, _ = quick_bench
     proc = run_cli("bench", "--data", str(tiny_scene), "--recipe", str(bench_recipe), "--workspace", str(root),
                    "--views", "1", "--device", "cpu")
-    assert_clean_failure(proc, "another views")
+    assert_clean_failure(proc, "made with another views")
     proc = run_cli("bench", "--data", str(tiny_scene), "--workspace", str(tmp_path / "b"), "--only", "top9")
     assert_clean_failure(proc, "no row or group 'top9'")
     proc = run_cli("bench", "--data", str(tmp_path / "missing"), "--workspace", str(tmp_path / "c"))
@@ -162,6 +162,9 @@ def test_bench_refuses_bad_input(quick_bench, tiny_scene, bench_recipe, tmp_path
     assert_clean_failure(proc, "unknown suite")
     proc = run_cli("bench", "--workspace", str(root), "--recipe", str(bench_recipe), "--list", "--only", "naive")
     assert proc.returncode == 0 and "naive-step" in proc.stdout and "top1" not in proc.stdout
+    # --list under another recipe: refused as the run is, not "finished: yes" for rows of the other recipe
+    proc = run_cli("bench", "--workspace", str(root), "--list", "--views", "1")
+    assert_clean_failure(proc, "made with another")
 
 
 def test_bench_config_of_a_recipe_with_per_resolution_options_reads_back_equal(tmp_path):

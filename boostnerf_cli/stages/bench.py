@@ -297,6 +297,23 @@ def bench_config(data: Path, views: int | None, rec: Recipe) -> dict:
     return json.loads(json.dumps({"data": str(Path(data).resolve()), "views": views, "recipe": recipe_dict(rec)}))
 
 
+def check_config(root: Path, data: Path | None, views: int | None, rec: Recipe, listing: bool = False) -> dict:
+    """The bench's config (`bench_config`; data None: the default scene WS/scene, or when `listing` the folder's own
+    scene), refused when the folder holds a bench made with another one (`run`, and `--list`, whose "finished"
+    would otherwise stand for another recipe)."""
+    config_path = root / "bench-config.json"
+    previous = read_json(config_path, "bench config") if config_path.exists() else None
+    if data is None:
+        data = Path(previous["data"]) if listing and previous and "data" in previous else root / "scene"
+    config = bench_config(data, views, rec)
+    if previous is not None:
+        if previous != config:
+            changed = next(k for k in config if previous.get(k) != config[k])
+            raise BoostNerfError(f"{root} holds a bench made with another {changed} ({config_path}): "
+                                 "use a new --workspace, or delete it to start over")
+    return config
+
+
 def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] | None, device: str,
         views: int | None, log: Callable[[str], None]) -> dict:
     setups, rows = catalogue(rec, suite)
@@ -310,15 +327,9 @@ def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] 
             make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)
     if not Path(data).exists():
         raise BoostNerfError(f"--data {data} does not exist")
-    config = bench_config(data, views, rec)
+    config = check_config(root, data, views, rec)
     config_path = root / "bench-config.json"
-    if config_path.exists():
-        previous = read_json(config_path, "bench config")
-        if previous != config:
-            changed = next(k for k in config if previous.get(k) != config[k])
-            raise BoostNerfError(f"{root} holds a bench made with another {changed} ({config_path}): "
-                                 "use a new --workspace, or delete it to start over")
-    else:
+    if not config_path.exists():
         write_json(config_path, config)
     bench = Bench(root, Path(data), setups, device, views, log)
     for i, row in enumerate(chosen, 1):
