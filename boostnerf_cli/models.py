@@ -259,12 +259,14 @@ def stale_reason(ws: Workspace, name: str) -> tuple[str, str] | None:
 def current_models(ws: Workspace, names: list[str] | None = None) -> list[str]:
     """`names` (default: every model of the workspace), refused in one line when one is stale (`stale_reason`):
     a table or picture of a model made from an expert since retrained would compare it with what it no longer is."""
-    names = names or all_model_names(ws)
-    stale = {n: r for n in names if (r := stale_reason(ws, n)) is not None}
+    have = all_model_names(ws)
+    names = names or have
+    reasons = {n: stale_reason(ws, n) for n in dict.fromkeys([*names, *have])}
+    stale = {n: reasons[n] for n in names if reasons[n] is not None}
     if stale:
         first = next(iter(stale))
         what, remedy = stale[first]
-        others = [n for n in all_model_names(ws) if n not in stale and stale_reason(ws, n) is None]
+        others = [n for n in have if reasons[n] is None]
         raise BoostNerfError(
             f"{', '.join(stale)} {'is' if len(stale) == 1 else 'are'} stale: {what}; make {first} again with "
             f"{remedy}" + (f" (or name current models: {' '.join('--model ' + n for n in others)})" if others else ""))

@@ -214,19 +214,20 @@ def frame_camera(frame: dict, meta: dict) -> dict:
     return {k: frame[k] if frame.get(k) is not None else meta.get(k) for k in CAMERA_KEYS}
 
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # the image files the loaders read (in either case)
 
 
 def resolve_image(folder: Path, file_path: str, source: str) -> Path:
     """The image a frame's `file_path` names: `folder / file_path`, else the same with an image suffix added
-    (`IMAGE_SUFFIXES`: the Blender release writes `./train/r_0` for `train/r_0.png`); raises (prefixed with
-    `source`) when none is a file."""
+    (`IMAGE_SUFFIXES` in lower, then upper case: the Blender release writes `./train/r_0` for `train/r_0.png`);
+    raises (prefixed with `source`) when none is a file."""
     base = folder / file_path
-    for candidate in (base, *(base.with_name(base.name + s) for s in IMAGE_SUFFIXES)):
+    suffixes = (*IMAGE_SUFFIXES, *(s.upper() for s in IMAGE_SUFFIXES))
+    for candidate in (base, *(base.with_name(base.name + s) for s in suffixes)):
         if candidate.is_file():
             return candidate
     raise BoostNerfError(f"{source}: image {file_path!r} not found (looked for {base} and {base} with "
-                         f"{', '.join(IMAGE_SUFFIXES)})")
+                         f"{', '.join(suffixes)})")
 
 
 def parse_pose(matrix, source: str) -> np.ndarray:

@@ -34,12 +34,19 @@ from PIL import Image
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC
-from boostnerf_cli.scenes.frames import Frame, hold_out, load_frames, one_line, orientation_note, scene_from_splits
+from boostnerf_cli.scenes.frames import (
+    IMAGE_SUFFIXES,
+    Frame,
+    hold_out,
+    load_frames,
+    one_line,
+    orientation_note,
+    scene_from_splits,
+)
 from boostnerf_cli.scenes.scene import Scene, Split
 
 BOUND_FACTOR = 0.75
 NDC_NEAR = 1.0
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 FOLDER = re.compile(r"^images(_\d+)?$")
 
 

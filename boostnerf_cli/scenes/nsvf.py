@@ -32,11 +32,10 @@ from boostnerf_cli.scenes.bounds import (
     camera_near_far,
     frustum_overlap_bbox,
 )
-from boostnerf_cli.scenes.frames import Frame, hold_out, load_frames, one_line, scene_from_splits
+from boostnerf_cli.scenes.frames import IMAGE_SUFFIXES, Frame, hold_out, load_frames, one_line, scene_from_splits
 from boostnerf_cli.scenes.scene import Scene, Split
 
 PREFIXES = {"0": "train", "1": "val", "2": "test"}
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 

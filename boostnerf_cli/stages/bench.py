@@ -306,11 +306,10 @@ def check_config(root: Path, data: Path | None, views: int | None, rec: Recipe, 
     if data is None:
         data = Path(previous["data"]) if listing and previous and "data" in previous else root / "scene"
     config = bench_config(data, views, rec)
-    if previous is not None:
-        if previous != config:
-            changed = next(k for k in config if previous.get(k) != config[k])
-            raise BoostNerfError(f"{root} holds a bench made with another {changed} ({config_path}): "
-                                 "use a new --workspace, or delete it to start over")
+    if previous is not None and previous != config:
+        changed = next(k for k in config if previous.get(k) != config[k])
+        raise BoostNerfError(f"{root} holds a bench made with another {changed} ({config_path}): "
+                             "use a new --workspace, or delete it to start over")
     return config
 
 

@@ -15,7 +15,7 @@ from typing import Callable
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import count_params
-from boostnerf_cli.models import load_expert, load_mixture, save_expert, save_mixture
+from boostnerf_cli.models import load_expert, load_mixture, save_expert, save_mixture, stale_reason
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
 from boostnerf_cli.moe.router import check_topk
 from boostnerf_cli.recipe import MoERecipe, check_section, shaping_changes
@@ -33,17 +33,11 @@ def model_name(topk: int | None, ensemble: bool, baseline: bool) -> str:
     return "ens" if ensemble else "baseline" if baseline else f"top{topk}"
 
 
-def check_inputs(ws: Workspace, init_meta: dict) -> None:
+def check_inputs(ws: Workspace) -> None:
     """Refuse a moe/init built from experts that have been retrained or removed since build-moe."""
-    for expert, digest in (init_meta.get("inputs") or {}).items():
-        path = ws.expert_path(expert)
-        now = read_meta(path).get("digest") if path.exists() else None
-        if now != digest:
-            what = "removed" if now is None else "retrained"
-            raise BoostNerfError(
-                f"expert {expert} was {what} after build-moe, so moe/init is stale: rerun "
-                f"`boostnerf build-moe --workspace {ws.root}`, then finetune with --force"
-            )
+    if (stale := stale_reason(ws, "init")) is not None:
+        what, remedy = stale
+        raise BoostNerfError(f"{what}, so moe/init is stale: rerun {remedy}")
 
 
 def _source_digest(ws: Workspace, name: str, init_meta: dict) -> str | None:
@@ -61,10 +55,9 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     if not init.exists():
         raise BoostNerfError(f"no mixture to finetune in {ws.root}: run `boostnerf build-moe --workspace {ws.root}` first")
     init_meta = read_meta(init)
-    check_inputs(ws, init_meta)
+    check_inputs(ws)
     if ws.model_path(name).exists() and (ws.moe_dir / f"{name}.json").exists() and not force:
-        made_from = read_meta(ws.model_path(name)).get("from_digest")
-        if made_from is not None and made_from != _source_digest(ws, name, init_meta):
+        if stale_reason(ws, name) is not None:  # moe/init is current (above), so: finetuned from an older one
             raise BoostNerfError(
                 f"{name} was finetuned from an older {'expert' if name == 'baseline' else 'moe/init'} "
                 f"(build-moe or pretrain ran again since): add --force to finetune it again"
