@@ -93,6 +93,10 @@ POSITIVE = Range(0, lo_open=True)  # > 0 (learning rates, step sizes)
 OPEN_UNIT = Range(0, 1, lo_open=True, hi_open=True)  # (0, 1): opacities, growth fractions
 THRESHOLD = Range(0, 1, hi_open=True)  # [0, 1): opacity / weight thresholds (0 = keep everything)
 NON_NEGATIVE = Range(0)
+# loss weights: past this a float32 loss term overflows to inf on the first step (1e39 is finite as a Python float);
+# the paper's lambda is 1e-3 and its penalties are about 1 to 3
+MAX_LOSS_WEIGHT = 1e6
+LOSS_WEIGHT = Range(0, MAX_LOSS_WEIGHT)
 # cells along one side of a dense 3D grid (experts, gate, density volume, occupancy): 1024^3 cells of one float32
 # channel are 4 GiB, and every grid holds several channels, so a larger value can only fail for lack of memory
 MAX_GRID_RES = 1024

@@ -20,6 +20,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import CONFIGS, FAMILIES
 from boostnerf_cli.limits import (
     GRID_RES,
+    LOSS_WEIGHT,
     MAX_GRID_RES,
     NON_NEGATIVE,
     OPEN_UNIT,
@@ -44,7 +45,7 @@ SEED = Range(0, 2**63 - 1)
 class DataRecipe:
     image_size: int | None = limit(None, at_least(1))  # longer side in pixels after area downscaling; None = native
     holdout_every: int = limit(8, Range(2, also=(0,)))  # datasets without a test split: every N-th train view is held out
-    format: str = limit("auto", OneOf(("auto", *FORMATS)))  # auto | blender | nsvf | tanks | llff | nerfstudio (docs/datasets.md)
+    format: str = limit("auto", OneOf(("auto", *FORMATS)))  # the dataset layout (docs/datasets.md); auto: told by the files the folder holds
     # the scene box [xmin, ymin, zmin, xmax, ymax, zmax] in world units, instead of the one the loader gives (bbox.txt,
     # or the region most cameras see): for content that reaches past it (docs/datasets.md, "The scene box")
     bbox: list[float] | None = limit(None, Range())
@@ -54,13 +55,13 @@ class DataRecipe:
 class GeometryRecipe:
     """The shared coarse stage that finds the occupied box and the occupancy mask."""
 
-    res: int = limit(32, GRID_RES)
-    iters: int = limit(600, at_least(1))
-    batch_rays: int = limit(1024, at_least(1))
-    lr: float = limit(0.1, POSITIVE)
-    alpha_init: float = limit(1e-4, OPEN_UNIT)
+    res: int = limit(32, GRID_RES)  # the coarse grid has about res^3 voxels over the scene box
+    iters: int = limit(600, at_least(1))  # training steps of the coarse grid
+    batch_rays: int = limit(1024, at_least(1))  # rays per step
+    lr: float = limit(0.1, POSITIVE)  # learning rate of the coarse density grid
+    alpha_init: float = limit(1e-4, OPEN_UNIT)  # opacity over one voxel of the coarse grid before training
     alpha_threshold: float = limit(1e-3, THRESHOLD)  # per coarse step: cells below it are empty
-    weight_entropy: float = limit(0.1, NON_NEGATIVE)  # pushes ray opacity to 0 or 1: clears floaters against the background
+    weight_entropy: float = limit(0.1, LOSS_WEIGHT)  # pushes ray opacity to 0 or 1: clears floaters against the background
     cover_foreground: bool = True  # grow the mask until every foreground training ray crosses it (render/coverage.py)
     hull_box: bool = True  # with cover_foreground: only occupied cells in the views' visual hull count as surface
     refine: bool = True  # with cover_foreground: a second coarse grid trains inside the box the first found (if < half)
@@ -68,21 +69,22 @@ class GeometryRecipe:
 
 @dataclass
 class TrainRecipe:
-    batch_rays: int = limit(4096, at_least(1))
-    lr_grid: float = limit(0.1, POSITIVE)
-    lr_mlp: float = limit(1e-3, POSITIVE)
+    batch_rays: int = limit(4096, at_least(1))  # rays per step
+    lr_grid: float = limit(0.1, POSITIVE)  # learning rate of the grids (hash tables, VM factors)
+    lr_mlp: float = limit(1e-3, POSITIVE)  # learning rate of the MLPs
     lr_decay: float = limit(0.1, Range(0, 1, lo_open=True))  # learning rates fall to this fraction at the last step
-    step_ratio: float = limit(0.5, POSITIVE)  # sampling step in voxels of the final grid
+    step_ratio: float = limit(0.5, POSITIVE)  # sampling step in voxels of the final grid (pretrain only: finetuning samples at the experts' step, moe.step_from)
     color_threshold: float = limit(1e-4, THRESHOLD)  # samples with a smaller weight skip the colour MLP
-    weight_rgbper: float = limit(0.01, NON_NEGATIVE)
-    weight_entropy: float = limit(1e-3, NON_NEGATIVE)
-    growth: list[float] = limit(rule=OPEN_UNIT, factory=lambda: [0.1, 0.2, 0.3])  # fractions of iters; voxels x2 each
-    occupancy_every: int = limit(500, NON_NEGATIVE)  # steps between occupancy refreshes (0 = never)
+    weight_rgbper: float = limit(0.01, LOSS_WEIGHT)  # weight of the per-sample colour loss (each sample's colour against the pixel, by its rendering weight; DVGO's rgbper)
+    weight_entropy: float = limit(1e-3, LOSS_WEIGHT)  # weight of the ray-opacity entropy loss, which pushes each ray to fully opaque or empty
+    growth: list[float] = limit(rule=OPEN_UNIT, factory=lambda: [0.1, 0.2, 0.3])  # progressive growth (pretrain only): the grid starts at 1/2^n of its voxels and doubles them at each of these n fractions of iters
+    occupancy_every: int = limit(500, NON_NEGATIVE)  # steps between refreshes of the occupancy mask from the density (0 = never; while finetuning only the baseline has one, the mixtures skip by V_D)
     occupancy_threshold: float = limit(1e-4, THRESHOLD)  # alpha per step below which a cell is skipped
-    random_background: bool = False  # composite each training ray on a random colour, not the scene's background
-    # (for captures whose every pixel is opaque, LLFF: empty space can then fake no colour; docs/datasets.md)
-    log_every: int = limit(100, at_least(1))
-    checkpoint_every: int = limit(500, at_least(1))
+    # composite each training ray on a random colour, not the scene's background (for captures whose every pixel is
+    # opaque, LLFF: empty space can then fake no colour; docs/datasets.md)
+    random_background: bool = False
+    log_every: int = limit(100, at_least(1))  # steps between log lines (and entries of the report's history)
+    checkpoint_every: int = limit(500, at_least(1))  # steps between training checkpoints (an interrupted run resumes from the last)
 
 
 def family_sections(cls: type) -> type:
@@ -97,10 +99,10 @@ def family_sections(cls: type) -> type:
 @dataclass
 @family_sections
 class PretrainRecipe:
-    model: str = limit("dvgo", OneOf(tuple(FAMILIES)))
-    res: list[int] = limit(rule=GRID_RES, factory=lambda: [64, 96, 128], min_items=1)
-    iters: int = limit(3000, at_least(1))
-    seed: int = limit(0, SEED)
+    model: str = limit("dvgo", OneOf(tuple(FAMILIES)))  # the experts' family (its architecture: the section of that name)
+    res: list[int] = limit(rule=GRID_RES, factory=lambda: [64, 96, 128], min_items=1)  # one expert per value: its grid has res^3 voxels (ngp: res levels)
+    iters: int = limit(3000, at_least(1))  # training steps of each expert
+    seed: int = limit(0, SEED)  # expert at res trains with seed + res (also the procedural scene's seed)
     skip: bool = True  # False (--no-skip): experts train on the whole scene box, no occupancy mask
     geometry: GeometryRecipe = field(default_factory=GeometryRecipe)
     train: TrainRecipe = field(default_factory=TrainRecipe)
@@ -132,19 +134,19 @@ def _finetune_train() -> TrainRecipe:
 
 @dataclass
 class MoERecipe:
-    gate_type: str = limit("grid", OneOf(TRAINABLE_GATES))  # grid | linear | switch
+    gate_type: str = limit("grid", OneOf(TRAINABLE_GATES))  # grid: softmax(MLP(grid features)) (paper); linear: softmax of a linear map of them (the paper's ablation); switch: an MLP on encoded positions, no grid (Switch-NeRF)
     gate_grid: str = limit("auto", OneOf(("auto", *GATE_GRIDS)))  # dense | tensorf | hash | auto (the experts' family: dvgo dense, tensorf VM, ngp hash)
     gate_res: int = limit(32, Range(2, MAX_GRID_RES))  # the gate grid has gate_res^3 voxels (128 in the paper)
-    gate_channels: int = limit(8, at_least(1))
-    gate_hidden: int = limit(64, at_least(1))
-    gate_layers: int = limit(2, NON_NEGATIVE)
+    gate_channels: int = limit(8, at_least(1))  # features per vertex of the gate's grid
+    gate_hidden: int = limit(64, at_least(1))  # width of the gate's MLP
+    gate_layers: int = limit(2, NON_NEGATIVE)  # hidden layers of the gate's MLP (0: a linear map to the M logits)
     gate_init: str = limit("random", OneOf(("random", "expert")))  # the gate's dense feature grid: random, or expert: the smallest (dvgo) expert's feature grid, copied (same lattice) or resampled trilinearly, gate_channels then = its channels (the official code's)
     gate_from: str = ""  # with gate_init expert: the expert whose feature grid the gate copies, by name, in the mixture or not (the official code copies a 128^3 model it leaves out of the mixture); empty: the mixture's smallest expert
     vd_res: int | None = limit(None, GRID_RES)  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
     density_threshold: float = limit(1e-3, THRESHOLD)  # T: samples whose V_D opacity over one step is below it are filtered
     step_from: str = limit("largest", OneOf(("smallest", "largest")))  # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
     topk: int = limit(2, at_least(1))  # at most the number of experts (checked by build-moe)
-    lam: float = limit(1e-3, NON_NEGATIVE)
+    lam: float = limit(1e-3, LOSS_WEIGHT)  # lambda: weight of the resolution-weighted auxiliary loss (L_tot = L_nerf + lambda L_rw-aux; the paper uses 1e-3)
     penalty: str = limit("geometric", PENALTY_RULE)  # geometric | linear | quadratic | none | weights "1, 1.5, 2.23" (one per expert)
     aux_norm: str = limit("batch", OneOf(AUX_NORMS))  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 = k^2 |B|^2 (official code)
     aux_samples: str = limit("all", OneOf(AUX_SAMPLES))  # auxiliary loss over every routed sample | visible: those whose V_D opacity and V_D rendering weight pass moe.train.color_threshold (official code)
@@ -155,10 +157,10 @@ class MoERecipe:
     wide_start: float = limit(0.0, THRESHOLD)  # fraction of the joint steps routed to k + 1 experts (renormalised) before narrowing to k: the gate compares experts before the partition sets (not in the paper; docs/paper-map.md)
     gate_noise: float = limit(0.0, Range(0.0, 10.0))  # noisy top-k: training chooses experts by log p + gate_noise * N(0, 1) (Shazeer et al. 2017), so a Top-1 gate sees other experts too; rendering never adds it (not in the paper; docs/paper-map.md)
     bake_res: int = limit(128, Range(0, MAX_GRID_RES))  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
-    iters: int = limit(1000, at_least(1))
-    lr_gate: float = limit(1e-2, POSITIVE)
-    lr_gate_mlp: float = limit(1e-3, POSITIVE)
-    seed: int = limit(0, SEED)
+    iters: int = limit(1000, at_least(1))  # joint training steps of each mixture, the ensemble and the baseline
+    lr_gate: float = limit(1e-2, POSITIVE)  # learning rate of the gate's grid
+    lr_gate_mlp: float = limit(1e-3, POSITIVE)  # learning rate of the gate's MLP
+    seed: int = limit(0, SEED)  # the gate's initialisation (build-moe) and the finetuning batches
     train: TrainRecipe = field(default_factory=_finetune_train)
 
 
@@ -167,7 +169,7 @@ class Recipe:
     data: DataRecipe = field(default_factory=DataRecipe)
     pretrain: PretrainRecipe = field(default_factory=PretrainRecipe)
     moe: MoERecipe = field(default_factory=MoERecipe)
-    name: str = "defaults"
+    name: str = "defaults"  # the recipe's name in reports (a recipe file without one: its file name)
 
     def override(self, changes: dict[str, Any]) -> "Recipe":
         """Set the keys `changes` names by their dotted path (`"pretrain.iters"`) to its values, skipping None
@@ -317,6 +319,13 @@ def check_recipe(recipe: Recipe, source: str = "recipe key") -> Recipe:
     if box is not None and (len(box) != 6 or not all(box[i + 3] > box[i] for i in range(3))):
         raise BoostNerfError(f"{source} data.bbox = {box!r}: must be six numbers, xmin, ymin, zmin, xmax, ymax, "
                              "zmax, each max above its min")
+    unused = _finetune_train()
+    for key in ("step_ratio", "growth"):
+        value = getattr(recipe.moe.train, key)
+        if value != getattr(unused, key):
+            raise BoostNerfError(f"{source} moe.train.{key} = {value!r}: finetuning does not use it (the mixtures and the "
+                                 "baseline sample at their experts' step, moe.step_from, and no grid grows while "
+                                 f"finetuning): remove it (pretrain.train.{key} sets it for the experts)")
     pre = recipe.pretrain
     twice = sorted({r for r in pre.res if pre.res.count(r) > 1})
     if twice:

@@ -27,6 +27,22 @@ def test_cli_reference_lists_every_command_and_option():
                     assert opt in section, f"{name}: {opt} missing from docs/cli.md (regenerate it)"
 
 
+def test_the_recipe_key_reference_lists_every_key_the_code_accepts():
+    """docs/recipe-keys.md is what scripts/recipe_keys.py makes of the recipe dataclasses: every key, its default,
+    its allowed values and its comment (keys such as pretrain.geometry.lr and moe.gate_hidden were documented
+    nowhere before it)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("recipe_keys", DOCS.parent / "scripts" / "recipe_keys.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.main(["--check"]) == 0, "run python scripts/recipe_keys.py"
+    text = (DOCS / "recipe-keys.md").read_text()
+    for key in ("pretrain.geometry.lr", "moe.gate_hidden", "moe.gate_channels", "moe.vd_res", "pretrain.ngp.grid_res",
+                "pretrain.tensorf.fit_steps", "pretrain.dvgo.view_pe", "pretrain.seed", "moe.seed", "name"):
+        assert f"| `{key}` |" in text, key
+
+
 def test_stage_guide_mentions_every_command():
     text = (DOCS / "stages.md").read_text()
     for name in _commands():

@@ -87,6 +87,17 @@ def test_a_box_flatter_than_its_lattice_keeps_about_n_voxels():
         assert list(G.lattice_shape(torch.tensor(box), 160**3)) == plain
 
 
+def test_a_budget_of_a_few_voxels_gives_every_side_two_vertices():
+    """`--res 2` or `--res 3` (growth starts such an expert at 4 or 3 voxels) and `--res 1` on an elongated box ended
+    in a ZeroDivisionError: once the sides left free came out thin too, every side was held and none was left to
+    share the budget."""
+    for box in ([[-1.096, -1.048, -1.049], [1.056, 1.07, 0.328]], [[0.0, 0.0, 0.0], [4.0, 1.0, 0.5]],
+                [[0.0, 0.0, 0.0], [10.0, 1.0, 1.0]], [[0.0, 0.0, 0.0], [3.0, 3.0, 0.3]]):
+        for n in (1, 2, 3, 4, 8):
+            assert G.lattice_shape(torch.tensor(box), n) == (2, 2, 2), (box, n)
+    assert G.lattice_shape(torch.tensor([[-1.096, -1.048, -1.049], [1.056, 1.07, 0.328]]), 27) == (3, 3, 2)
+
+
 def test_rays_and_projection_are_inverse():
     pose = torch.eye(4)
     pose[:3, 3] = torch.tensor([0.3, -0.2, 4.0])

@@ -27,6 +27,16 @@ def _task(scene, iters):
     return FieldTask(model, settings, tcfg, skip=None, base_mask=None, growth_steps=growth, final_voxels=12**3)
 
 
+def test_the_grid_reaches_its_final_size_however_few_the_steps():
+    """`pretrain --iters 1` saved dvgo-8 with 7 x 7 x 5 vertices, half its voxels: the one growth step fell on step 1,
+    which a run of steps 0 .. iters - 1 never reaches. Every growth step now lies inside the run."""
+    for iters in range(1, 40):
+        steps = growth_schedule(iters, [0.1, 0.2, 0.3])
+        assert all(0 < s < iters for s in steps), (iters, steps)
+        assert len(steps) == len(set(steps))
+    assert growth_schedule(1, [0.1, 0.2, 0.3]) == () and growth_schedule(100, [0.1, 0.2, 0.3]) == (10, 20, 30)
+
+
 def test_resume_after_a_crash_matches_an_uninterrupted_run(tiny_scene, tmp_path):
     scene = load_scene(tiny_scene)
     rays = RayData.from_split(scene.splits["train"], scene.bbox, scene.near, scene.far)

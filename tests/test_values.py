@@ -237,6 +237,27 @@ def test_known_values_from_the_issue(tmp_path):
         assert expected in str(e.value) and "\n" not in str(e.value), (text, str(e.value))
 
 
+def test_loss_weights_that_overflow_float32_and_finetuning_keys_finetuning_ignores_are_refused(tmp_path):
+    """`--penalty 1,1e39,2` passed the check (finite as a Python float) and every step's float32 loss was inf: the
+    run stopped as "diverged", with advice to lower the learning rates. `moe.train.step_ratio` and `moe.train.growth`
+    were accepted and did nothing (finetuning samples at the experts' step and grows no grid)."""
+    cases = {
+        "moe:\n  penalty: '1, 1e39, 2'\n": "recipe key moe.penalty = '1, 1e39, 2': must be one of geometric, linear, "
+                                          "quadratic, none, or numbers in (0, 1e+06]",
+        "moe:\n  lam: 1.0e+39\n": "recipe key moe.lam = 1e+39: must be in [0, 1e+06]",
+        "pretrain:\n  train: {weight_entropy: 1.0e+39}\n": "pretrain.train.weight_entropy = 1e+39: must be in [0, 1e+06]",
+        "moe:\n  train: {step_ratio: 0.25}\n": "recipe key moe.train.step_ratio = 0.25: finetuning does not use it",
+        "moe:\n  train: {growth: [0.5]}\n": "recipe key moe.train.growth = [0.5]: finetuning does not use it",
+    }
+    for text, expected in cases.items():
+        (tmp_path / "r.yaml").write_text(text)
+        with pytest.raises(BoostNerfError) as e:
+            load_recipe(tmp_path / "r.yaml")
+        assert expected in str(e.value) and "\n" not in str(e.value), (text, str(e.value))
+    (tmp_path / "r.yaml").write_text("moe:\n  lam: 1.0e+6\n  penalty: '1, 1e6'\n  train: {step_ratio: 0.5, growth: []}\n")
+    assert load_recipe(tmp_path / "r.yaml").moe.lam == 1e6  # the bounds and the defaults themselves load
+
+
 def test_a_bad_value_in_a_workspace_manifest_is_refused():
     data = recipe_dict(load_recipe(None))
     data["moe"]["topk"] = 0

@@ -29,11 +29,11 @@ class DVGOConfig:
     """Architecture of a DVGO-style expert. `res`: the final grid has res^3 voxels."""
 
     res: int = limit(128, GRID_RES)
-    feat_dim: int = limit(12, at_least(1))
+    feat_dim: int = limit(12, at_least(1))  # feature channels of the colour grid (with hidden 0: 3, the colour itself)
     hidden: int = limit(128, NON_NEGATIVE)  # width of the colour MLP; 0 = no MLP, colour = sigmoid of 3 grid channels
     layers: int = limit(2, NON_NEGATIVE)  # hidden layers of the colour MLP
     view_pe: int = limit(4, NON_NEGATIVE)  # frequencies of the view-direction encoding
-    alpha_init: float = limit(1e-2, OPEN_UNIT)  # log(1/(1 - a) - 1): a in (0, 1)
+    alpha_init: float = limit(1e-2, OPEN_UNIT)  # opacity over one voxel before training (the density's shift is log(1/(1 - a) - 1))
 
 
 def direction_encoding(dirs: Tensor, n_freq: int) -> Tensor:

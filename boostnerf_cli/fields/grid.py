@@ -31,7 +31,7 @@ def lattice_shape(bbox: Tensor, n_voxels: int) -> tuple[int, int, int]:
         voxel = (size[free].prod() / (n_voxels / 2 ** int(fixed.sum()))) ** (1.0 / int(free.sum()))
         sides = torch.where(fixed, 2, (size / voxel).round().long())
         thin = free & (sides < 2)
-        if not thin.any() or thin.all():
+        if not thin.any() or bool(thin.eq(free).all()):  # every side left is thin too: each gets 2
             break
         fixed |= thin
     sides = torch.clamp(sides, min=2)

@@ -45,10 +45,10 @@ class NGPConfig:
     grid_res: int = limit(128, GRID_RES)  # occupancy grid (and density unit) cells along the longest side
     hidden: int = limit(64, at_least(1))  # density MLP: one hidden layer
     geo_feat: int = limit(15, NON_NEGATIVE)  # features passed from the density MLP to the colour MLP
-    color_hidden: int = limit(64, at_least(1))
-    color_layers: int = limit(2, NON_NEGATIVE)
-    view_pe: int = limit(4, NON_NEGATIVE)
-    alpha_init: float = limit(1e-4, OPEN_UNIT)
+    color_hidden: int = limit(64, at_least(1))  # width of the colour MLP
+    color_layers: int = limit(2, NON_NEGATIVE)  # hidden layers of the colour MLP
+    view_pe: int = limit(4, NON_NEGATIVE)  # frequencies of the view-direction encoding
+    alpha_init: float = limit(1e-4, OPEN_UNIT)  # opacity over one unit before training (where the density MLP gives 0)
     fit_steps: int = limit(200, NON_NEGATIVE)  # Adam steps of the warm start from the coarse geometry
 
 

@@ -12,11 +12,11 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.limits import POSITIVE, OneOfOrNumbers, comma_numbers
+from boostnerf_cli.limits import MAX_LOSS_WEIGHT, OneOfOrNumbers, Range, comma_numbers
 
 PENALTIES = ("geometric", "linear", "quadratic", "none")
 # moe.penalty: a named scheme, or explicit weights "w_0, w_1, ..." (`penalty_weights`)
-PENALTY_RULE = OneOfOrNumbers(PENALTIES, POSITIVE)
+PENALTY_RULE = OneOfOrNumbers(PENALTIES, Range(0, MAX_LOSS_WEIGHT, lo_open=True))
 
 
 def explicit_weights(kind: str) -> list[float] | None:

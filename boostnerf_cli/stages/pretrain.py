@@ -46,7 +46,10 @@ from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
 
 def growth_schedule(iters: int, fractions: list[float]) -> tuple[int, ...]:
-    return tuple(sorted({max(1, int(round(f * iters))) for f in fractions if 0 < f < 1}))
+    """The steps (of 0 .. iters - 1) at which the grid doubles its voxels: one per fraction, those that fall on the
+    same step or past the last one dropped, so that the grid always reaches its final size."""
+    steps = {max(1, int(round(f * iters))) for f in fractions if 0 < f < 1}
+    return tuple(sorted(s for s in steps if s < iters))
 
 
 def _test_psnr(model: nn.Module, split: Split, settings: RenderSettings, skip, device, max_views: int = 1000) -> float:
