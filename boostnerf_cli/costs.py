@@ -52,10 +52,26 @@ def active_parameters(model: LoadedModel, scene: Scene, split: Split, device: st
     grads = photometric_grads(model.field, model.skip, model.settings(scene), split, device, views)
     per_module: dict[str, int] = {}
     for name, g in grads.items():
+        if g is not None and name in model.dropped:  # a row a pruned file does not store is a constant now
+            g = g[~model.dropped[name].to(g.device)]
         nz = int((g != 0).sum()) if g is not None else 0
-        top = ".".join(name.split(".")[:2]) if name.startswith("experts.") else name.split(".")[0]
+        top = _module(name)
         per_module[top] = per_module.get(top, 0) + nz
     return {"w0": sum(per_module.values()), "per_module": per_module}
+
+
+def _module(name: str) -> str:
+    """The part of a model a parameter belongs to: `experts.I` or the first name (`gate`, ...)."""
+    return ".".join(name.split(".")[:2]) if name.startswith("experts.") else name.split(".")[0]
+
+
+def _params(module: torch.nn.Module, prefix: str, dropped: dict[str, torch.Tensor]) -> int:
+    """Parameters of `module` (named `prefix` in the model), less the rows a pruned file does not store."""
+    total = sum(p.numel() for p in module.parameters())
+    for name, rows in dropped.items():
+        if _module(name) == prefix:
+            total -= int(rows.sum()) * dict(module.named_parameters())[name[len(prefix) + 1:]].shape[1]
+    return total
 
 
 @torch.no_grad()
@@ -82,11 +98,11 @@ def model_costs(model: LoadedModel, scene: Scene, split: Split, device: str, vie
     if model.kind == "mixture":
         mix = model.field
         row["experts"] = [
-            {"name": n, "params": sum(p.numel() for p in mix.experts[i].parameters()),
+            {"name": n, "params": _params(mix.experts[i], f"experts.{i}", model.dropped),
              "w0": active["per_module"].get(f"experts.{i}", 0)}
             for i, n in enumerate(mix.cfg.expert_names)
         ]
-        row["gate"] = {"params": sum(p.numel() for p in mix.gate.parameters()), "w0": active["per_module"].get("gate", 0)}
+        row["gate"] = {"params": _params(mix.gate, "gate", model.dropped), "w0": active["per_module"].get("gate", 0)}
     row["gflops_per_image"] = round(gflops_per_image(model.for_rendering(exact_gate), scene, split, device, views), 4)
     return row
 

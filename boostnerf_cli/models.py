@@ -10,7 +10,7 @@ writing stage adds: name, render step, digests). `load_model` turns any model of
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -25,7 +25,16 @@ from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split
-from boostnerf_cli.workspace import MALFORMED, Workspace, load_tensors, malformed, pack_rows, read_meta, save_tensors
+from boostnerf_cli.workspace import (
+    MALFORMED,
+    Workspace,
+    dropped_rows,
+    load_tensors,
+    malformed,
+    pack_rows,
+    read_meta,
+    save_tensors,
+)
 
 
 # --- experts --------------------------------------------------------------------------------------
@@ -177,6 +186,9 @@ class LoadedModel:
     step: float
     bbox: Tensor
     params: int
+    # a pruned model: {parameter name: (V,) bool, the rows its file does not store}; they read back as a constant,
+    # so they are no longer parameters (not in `params`, nor in ||w||_0)
+    dropped: dict[str, Tensor] = field(default_factory=dict)
 
     def for_rendering(self, exact_gate: bool = False) -> "LoadedModel":
         """Ready to render: a mixture's gate baked (`Mixture.for_rendering`) unless `exact_gate`."""
@@ -209,10 +221,11 @@ def load_model(ws: Workspace, name: str, device: str, exact_gate: bool = False) 
     if read_meta(path).get("family") == "mixture":
         mix, meta = load_mixture(path, device)
         params = meta.get("stored_params", count_params(mix))  # the trained model's, before baking (pruned: stored)
-        return LoadedModel(name, "mixture", mix, mix.skip, meta["step"], mix.bbox, params).for_rendering(exact_gate)
+        return LoadedModel(name, "mixture", mix, mix.skip, meta["step"], mix.bbox, params,
+                           dropped_rows(path, meta)).for_rendering(exact_gate)
     model, occ, meta = load_expert(path, device)
     return LoadedModel(name, "expert", model, occ.to(device) if occ is not None else None, meta["step"],
-                       model.bbox, meta.get("stored_params", count_params(model)))
+                       model.bbox, meta.get("stored_params", count_params(model)), dropped_rows(path, meta))
 
 
 def _finetune_flag(name: str) -> str:

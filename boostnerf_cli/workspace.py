@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import torch
-from safetensors import SafetensorError
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
 from boostnerf_cli.errors import BoostNerfError
@@ -251,8 +251,6 @@ def malformed(e: BaseException) -> str:
 
 def read_meta(path: Path) -> dict[str, Any]:
     """Only the metadata of a file written by `save_tensors` (cheap: reads the header)."""
-    from safetensors import safe_open
-
     try:
         with safe_open(str(path), framework="pt") as f:
             meta = json.loads((f.metadata() or {})["boostnerf"])
@@ -315,6 +313,18 @@ def unpack_rows(values: torch.Tensor, mask: torch.Tensor, rows: int, fill: list[
     dense = torch.tensor(fill, dtype=values.dtype).expand(rows, values.shape[1]).clone()
     dense[keep] = values.cpu()
     return dense
+
+
+def dropped_rows(path: Path, meta: dict[str, Any]) -> dict[str, torch.Tensor]:
+    """{table name: (V,) bool, True where the pruned file `path` stores no row} ({} for a file that is not pruned)."""
+    import numpy as np
+
+    out = {}
+    for name, info in (meta.get("packed") or {}).items():
+        with safe_open(str(path), "pt") as f:
+            mask = f.get_tensor(f"{name}@mask")
+        out[name] = ~torch.from_numpy(np.unpackbits(mask.numpy(), count=int(info["rows"])).astype(bool))
+    return out
 
 
 def _unpack_tensors(tensors: dict[str, torch.Tensor], packed: dict, path: Path) -> dict[str, torch.Tensor]:

@@ -154,3 +154,21 @@ def test_a_prune_on_the_first_views_checks_those_views(pruned_ws, tmp_path):
             check=True)
     report = json.loads((ws / "moe" / "top1-pruned.json").read_text())
     assert report["views"] == 2 and report["train_check_views"] == 2 and report["train_max_abs_diff"] <= 1e-5
+
+
+def test_count_params_of_a_pruned_mixture_counts_what_its_file_stores(pruned_ws):
+    """A pruned mixture's row said params 56,373 (what the file stores) while its experts and gate said the dense
+    94,310, and its ||w||_0 counted gradients in rows the file no longer stores (constants now): the parts add up
+    to the model and ||w||_0 stays within what is stored."""
+    run_cli("count-params", "--workspace", str(pruned_ws), "--model", "top1", "--model", "top1-pruned",
+            "--device", "cpu", check=True)
+    dense, pruned = json.loads((pruned_ws / "reports" / "count-params.json").read_text())["models"]
+    tables = json.loads((pruned_ws / "moe" / "top1-pruned.json").read_text())["tables"]
+    assert any(t["kept_rows"] < t["rows"] for t in tables)
+    for row in (dense, pruned):
+        parts = row["experts"] + [row["gate"]]
+        assert sum(p["params"] for p in parts) == row["params"], row
+        assert sum(p["w0"] for p in parts) == row["w0"] and all(p["w0"] <= p["params"] for p in parts), row
+    assert pruned["params"] < dense["params"] and pruned["w0"] <= dense["w0"]
+    assert [p["params"] for p in pruned["experts"]] < [p["params"] for p in dense["experts"]] or \
+        pruned["gate"]["params"] < dense["gate"]["params"]
