@@ -8,8 +8,9 @@ counting costs a single ContextVar lookup):
   trilinear corners   40 flops per point   (normalise 3x3, floor/clamp 3x3, 8 weights x 2 + 6)
   trilinear blend     16 C per point       (8 corners x C channels x multiply-add)
   hash indices        see fields that hash (documented there)
-  compositing         14 per sample slot   (tau, expm1, cumsum, exp, weight, 3-channel colour and
-                                            depth multiply-adds)
+  compositing          8 per sample slot   (tau, expm1, cumsum, exp, weight, opacity sum, depth
+                                            multiply-add; the 3-channel colour's 6 multiply-adds are an
+                                            einsum, which FlopCounterMode counts: 14 in all)
   softmax / top-k     4 M per routed sample
 Method documented in docs/flops.md.
 """
@@ -24,7 +25,7 @@ from typing import Iterator
 from torch.utils.flop_counter import FlopCounterMode
 
 CORNER_FLOPS = 40
-COMPOSITE_FLOPS = 14
+COMPOSITE_FLOPS = 8  # the other 6 of a slot's 14, the colour's weighted sum, is a matrix product FlopCounterMode counts
 
 
 @dataclass

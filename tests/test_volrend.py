@@ -84,3 +84,26 @@ def test_empty_batch_and_zero_density():
     w, _, _ = render_weights(torch.zeros(2, 4), torch.ones(2, 4))
     color, _, acc = composite(w, torch.rand(2, 4, 3), torch.ones(2, 4), (0.2, 0.3, 0.4))
     assert torch.allclose(color, torch.tensor([[0.2, 0.3, 0.4]] * 2)) and (acc == 0).all()
+
+
+def test_compositing_is_counted_once_at_14_flops_per_slot():
+    """docs/flops.md: compositing costs 14 flops per (ray, sample) slot. The colour's weighted sum is an einsum that
+    FlopCounterMode counts, and the analytic 14 counted it again: 20 per slot (about 1% of a model's GFLOPs)."""
+    from boostnerf_cli.flops import count_flops
+    from boostnerf_cli.render.renderer import RenderSettings, render_rays
+
+    class Flat(torch.nn.Module):  # no flops of its own: what is counted is the renderer's
+        def density(self, x):
+            return torch.full(x.shape[:1], 5.0)
+
+        def color(self, x, d):
+            return torch.full((x.shape[0], 3), 0.5)
+
+    settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    origins = torch.tensor([[0.0, 0.0, -3.0]]).repeat(10, 1)
+    dirs = torch.nn.functional.normalize(torch.randn(10, 3, generator=torch.Generator().manual_seed(0)) * 0.1
+                                         + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    with count_flops() as fc:
+        bundle = render_rays(Flat(), origins, dirs, settings, None)
+    r, s = bundle.extras["weights"].shape
+    assert s > 1 and fc.total == 14 * r * s, (fc.matmul, fc.analytic, r, s)
