@@ -106,7 +106,7 @@ def pretrain(
     res: Annotated[Optional[str], typer.Option("--res", help="Comma-separated resolutions, one expert each. For dvgo and tensorf, --res 160 means a final grid of 160^3 voxels (isotropic voxels over the scene box); for ngp, --res 16 means L = 16 hash-grid levels (the paper's 6, 8, 10, 16, 24).")] = None,
     iters: Annotated[Optional[int], typer.Option("--iters", min=1, help="Training steps per expert.")] = None,
     image_size: Annotated[Optional[int], typer.Option("--image-size", min=8, help="Longer image side in pixels after area downscaling.")] = None,
-    holdout_every: Annotated[Optional[int], typer.Option("--holdout-every", min=0, help="Datasets with no test split: hold out every N-th train view (0: none).")] = None,
+    holdout_every: Annotated[Optional[int], typer.Option("--holdout-every", help="Datasets with no test split: hold out every N-th train view, N >= 2 (0: none).")] = None,
     data_format: Annotated[str | None, typer.Option("--format", help="Dataset format: auto (detect), blender, nsvf, tanks, llff or nerfstudio.")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",

@@ -411,3 +411,24 @@ def test_output_stems_tell_every_view_apart():
     assert stems("images/cam0/0000", "images/cam1/0000", "images/cam1/0001") == ("cam0_0000", "cam1_0000", "cam1_0001")
     assert stems("a\\x", "b\\x") == ("a_x", "b_x")
     assert stems("./x", "x", "y") == ("x", "x_2", "y")
+
+
+@pytest.mark.parametrize("content", ["thin", "large"])
+def test_llff_depth_bounds_hold_every_object(tmp_path, content):
+    """make-scene's poses_bounds.npy bounded every view's depth by the default content's radius (1.25): the thin
+    content's wire (1.57 from the origin) and the large content's floor (radius 3) lay past `far`, wrong for any
+    other tool that reads the bounds. Points on each object, from the object list, lie within every view's bounds."""
+    out = make_scene(tmp_path / content, size=16, n_train=4, n_test=0, layout="llff", content=content)
+    bounds = np.load(out / "poses_bounds.npy")
+    centres = bounds[:, :15].reshape(-1, 3, 5)[:, :, 3]
+    points = []
+    for obj in scene_objects(0, content):
+        if obj["kind"] == "capsule":
+            points += [obj["a"], obj["b"]]
+        elif obj["kind"] == "disc":
+            cx, cy, cz = obj["centre"]
+            points += [[cx + obj["radius"] * math.cos(a), cy + obj["radius"] * math.sin(a), cz]
+                       for a in np.linspace(0, 2 * math.pi, 64, endpoint=False)]
+    dist = np.linalg.norm(np.asarray(points)[None] - centres[:, None], axis=-1)  # (views, points)
+    assert (dist <= bounds[:, 16:17]).all(), (dist.max(1), bounds[:, 16])
+    assert (dist >= bounds[:, 15:16]).all()

@@ -279,7 +279,28 @@ def camera_poses(n_train: int, n_test: int, radius: float = RADIUS) -> tuple[np.
 LAYOUTS = ("blender", "nsvf", "tanks", "llff", "nerfstudio")
 RIGS = ("sphere", "forward")
 CONTENT_BOX = [[-1.1, -1.1, -0.6], [1.1, 1.1, 0.4]]  # holds every object of every seed (bbox.txt)
-CONTENT_RADIUS = 1.25  # every object lies within this distance of the origin (LLFF depth bounds)
+CONTENT_RADIUS = 1.25  # every object of the default content lies within this distance of the origin
+
+
+def content_radius(objects: list[dict]) -> float:
+    """A distance from the origin that every point of `objects` lies within (the LLFF depth bounds): the thin
+    content's wire reaches 1.57, the large content's floor 3.04. `CONTENT_RADIUS` for no object."""
+    norm = lambda v: math.sqrt(sum(float(x) ** 2 for x in v))  # noqa: E731
+    reach = [CONTENT_RADIUS]
+    for obj in objects:
+        kind = obj["kind"]
+        if kind == "disc":
+            c = obj["centre"]
+            reach.append(math.hypot(norm(c[:2]) + obj["radius"], c[2]))
+        elif kind == "sphere":
+            reach.append(norm(obj["centre"]) + obj["radius"])
+        elif kind == "box":
+            reach.append(norm(obj["centre"]) + norm(obj["half"]))
+        elif kind == "capsule":
+            reach.append(max(norm(obj["a"]), norm(obj["b"])) + obj["radius"])
+        else:
+            raise ValueError(f"content_radius: unknown object kind {kind!r}")
+    return max(reach)
 
 LAYOUT_TEXT = {
     "blender": "Blender / nerf_synthetic layout: transforms_train.json and transforms_test.json, train/r_*.png and "
@@ -408,7 +429,7 @@ def _all_views(views: dict) -> tuple[np.ndarray, list[np.ndarray]]:
     return np.stack([views[s][0][i] for s, i in order]), [views[s][1][i] for s, i in order]
 
 
-def _write_llff(out: Path, views: dict, focal: float, size: int) -> None:
+def _write_llff(out: Path, views: dict, focal: float, size: int, radius: float) -> None:
     poses, rgbas = _all_views(views)
     for folder, factor in (("images", 1), ("images_2", 2)):
         (out / folder).mkdir(parents=True, exist_ok=True)
@@ -419,7 +440,7 @@ def _write_llff(out: Path, views: dict, focal: float, size: int) -> None:
     for pose in poses:
         llff = np.stack([-pose[:3, 1], pose[:3, 0], pose[:3, 2], pose[:3, 3]], axis=1)  # down, right, back, t
         depth = float(np.linalg.norm(pose[:3, 3]))  # the cameras look at the origin
-        near, far = max(0.05, depth - CONTENT_RADIUS), depth + CONTENT_RADIUS
+        near, far = max(0.05, depth - radius), depth + radius
         hwf = np.array([[size], [size], [focal]], dtype=np.float64)
         rows.append(np.concatenate([np.concatenate([llff, hwf], axis=1).ravel(), [near, far]]))
     np.save(out / "poses_bounds.npy", np.stack(rows))
@@ -496,7 +517,7 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         elif layout in ("nsvf", "tanks"):
             _write_nsvf(tmp, views, focal, size, masked=layout == "tanks")
         elif layout == "llff":
-            _write_llff(tmp, views, focal, size)
+            _write_llff(tmp, views, focal, size, content_radius(objects))
         else:
             _write_nerfstudio(tmp, views, focal, size)
         (tmp / "objects.json").write_text(json.dumps({"seed": seed, "content": content, "objects": objects}, indent=2))

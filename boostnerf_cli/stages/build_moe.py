@@ -67,7 +67,8 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
         raise BoostNerfError(
             f"V_D from {experts[0][1]} keeps no cell: its opacity over one render step is at most moe.density_threshold "
             f"= {rec.density_threshold:g} everywhere, so every sample would be filtered and the mixture could not "
-            "train; lower it (--threshold) or train the experts longer (pretrain --iters N --force)")
+            "train; lower it (--threshold) or train the experts longer (pretrain --iters N --force), unless the scene "
+            "shows nothing but empty space")
     gate_grid = resolve_gate_grid(rec.gate_grid, [e[2].family for e in experts])
     source = gate_source(rec, gate_grid, experts, outside)
     channels = rec.gate_channels if source is None else source[2].feature_table.shape[1]
