@@ -121,13 +121,21 @@ class FieldTask:
             "meta": self.model.config_dict(),
             "model": self.model.state_dict(),
             "skip": None if self.skip is None else self.skip.occupied,
+            "skip_bbox": None if self.skip is None else self.skip.bbox,  # the geometry's box until the first refresh
         }
 
     def load_state(self, state: dict) -> None:
         self.model.resize_to(tuple(state["meta"]["shape"]))
         self.model.load_state_dict(state["model"])
         if state["skip"] is not None:
-            self.skip = OccupancyGrid(state["skip"], self.model.bbox)
+            # Until its first refresh the mask is the geometry stage's grid, over the geometry's own box, not the
+            # expert's (a checkpoint of then resumed the mask stretched over the expert's box). A checkpoint written
+            # before the box was stored: the base mask's box when the mask has its shape, as only it can.
+            box = state.get("skip_bbox")
+            if box is None:
+                same = self.base_mask is not None and tuple(state["skip"].shape) == tuple(self.base_mask.occupied.shape)
+                box = self.base_mask.bbox if same else self.model.bbox
+            self.skip = OccupancyGrid(state["skip"], box.to(self.model.bbox.device))
 
 
 def occupancy_shape(model: nn.Module) -> tuple[int, int, int]:

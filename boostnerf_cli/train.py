@@ -106,6 +106,14 @@ class PsnrTrend:
         self.intervals, self.min_drop = intervals, min_drop
         self.total, self.count, self.means, self.warned = 0.0, 0, [], False
 
+    def state(self) -> dict:
+        """What a checkpoint keeps, so that a resumed run logs the same means and warns at the same step."""
+        return {"total": self.total, "count": self.count, "means": list(self.means), "warned": self.warned}
+
+    def load_state(self, state: dict) -> None:
+        self.total, self.count = float(state["total"]), int(state["count"])
+        self.means, self.warned = [float(m) for m in state["means"]], bool(state["warned"])
+
     def add(self, psnr: float | None) -> None:
         if psnr is not None and math.isfinite(psnr):
             self.total, self.count = self.total + psnr, self.count + 1
@@ -270,6 +278,7 @@ def train(
     gen = torch.Generator(device="cpu").manual_seed(seed)
     torch.manual_seed(seed)
     start, elapsed, skipped, history = 0, 0.0, 0, []
+    trend = PsnrTrend()
     opt: torch.optim.Optimizer | None = None
     if checkpoint is not None and checkpoint.exists():
         try:
@@ -286,6 +295,8 @@ def train(
             opt.load_state_dict(state["optim"])
             start, elapsed, skipped, history = (int(state["step"]), float(state["seconds"]), int(state["skipped"]),
                                                 list(state["history"]))
+            if state.get("trend") is not None:  # checkpoints before session 24 did not keep it
+                trend.load_state(state["trend"])
             gen.set_state(state["gen"])
             torch.set_rng_state(state["rng"])
             if state.get("cuda_rng") and torch.cuda.is_available():
@@ -297,7 +308,6 @@ def train(
     if start > 0:
         progress.warn(f"resuming from {checkpoint} at step {start}/{sched.iters}")
     bad_run = 0
-    trend = PsnrTrend()
     t0 = time.perf_counter() - elapsed
     try:
         for step in range(start, sched.iters):
@@ -354,7 +364,7 @@ def train(
             progress.update(done, logs)
             if checkpoint is not None and (done % sched.checkpoint_every == 0 or done == sched.iters):
                 save = partial(_save_checkpoint, checkpoint, task, opt, done, time.perf_counter() - t0, skipped,
-                               history, gen, signature)
+                               history, gen, signature, trend)
                 if parallel:
                     dist.on_main(save)  # one file for all ranks (they hold the same state)
                 else:
@@ -365,7 +375,8 @@ def train(
 
 
 def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, step: int, seconds: float,
-                     skipped: int, history: list, gen: torch.Generator, signature: dict | None = None) -> None:
+                     skipped: int, history: list, gen: torch.Generator, signature: dict | None = None,
+                     trend: PsnrTrend | None = None) -> None:
     """Write the resumable state atomically; a state with NaN or infinity stops the run instead
     (the previous checkpoint stays, so nothing before it is lost)."""
     task_state, optim_state = task.state(), opt.state_dict()
@@ -386,6 +397,7 @@ def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, st
         "rng": torch.get_rng_state(),
         "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
         "signature": signature,
+        "trend": None if trend is None else trend.state(),
     }
     save_torch(path, state)
     kill_point_for_tests("checkpoint")  # inert unless a resume test asks for it (workspace.TEST_KILL_ENV)

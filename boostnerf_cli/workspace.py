@@ -100,7 +100,9 @@ def atomic_path(target: Path, keep_suffix: bool = False) -> Iterator[Path]:
     except OSError as e:
         reason = e.strerror or str(e) or type(e).__name__
         if e.errno in (errno.EEXIST, errno.ENOTDIR, errno.EISDIR):  # a file where a folder goes, or the reverse
-            advice = f"a file or folder is in the way (at {e.filename or target}): move it and rerun the same command"
+            # the rename's error names the temporary file (gone by now) as its source: name what is in its way
+            where = target if tmp_path is not None and e.filename == str(tmp_path) else e.filename or target
+            advice = f"a file or folder is in the way (at {where}): move it and rerun the same command"
         else:
             advice = "free disk space or fix the folder's permissions and rerun the same command"
         raise BoostNerfError(f"could not write {target} ({reason}); the previous version, if any, is unchanged: "

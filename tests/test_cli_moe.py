@@ -181,6 +181,11 @@ def test_a_file_in_the_way_of_the_checkpoints_folder_is_one_line(moe_ws, tmp_pat
         f.unlink()
     proc = run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--iters", "2", "--device", "cpu")
     assert_clean_failure(proc, "could not write", "a file or folder is in the way (at ", "move it")
+    # a folder where the finished model goes: named, not the temporary file the rename came from (gone by then)
+    (ws / "checkpoints").unlink()
+    (ws / "moe" / "top2.safetensors").mkdir()
+    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--iters", "2", "--device", "cpu")
+    assert_clean_failure(proc, f"a file or folder is in the way (at {ws / 'moe' / 'top2.safetensors'}): move it")
 
 
 def test_render_per_expert_and_gate_maps(moe_ws):

@@ -32,10 +32,11 @@ RECIPE_CHANGES = {
         "res": [10, 14],
         "iters": 24,
         "geometry": {"res": 10, "iters": 24, "batch_rays": 128},
-        "train": {"batch_rays": 128, "log_every": 1, "checkpoint_every": 4, "occupancy_every": 8, "growth": [0.25]},
+        # log_every 3: a logging interval spans each kill at a checkpoint (its psnr_mean must survive the resume)
+        "train": {"batch_rays": 128, "log_every": 3, "checkpoint_every": 4, "occupancy_every": 8, "growth": [0.25]},
         "dvgo": {"hidden": 8},
     },
-    "moe": {"gate_res": 6, "iters": 24, "train": {"batch_rays": 128, "log_every": 1, "checkpoint_every": 4}},
+    "moe": {"gate_res": 6, "iters": 24, "train": {"batch_rays": 128, "log_every": 3, "checkpoint_every": 4}},
 }
 
 def _cli(*args: str) -> list[str]:
@@ -100,9 +101,11 @@ def test_pretrain_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupt
     root, _, ref, args = setup
     ws = root / "killed-pretrain"
     args = [a if a != str(ref) else str(ws) for a in args]
-    # after the geometry stage's 2nd checkpoint (step 8/24); on the rerun, 4 more geometry checkpoints and 3 of
-    # dvgo-10 (step 12/24); then inside the write of dvgo-10's weights, after its last checkpoint
-    kill_at(args, ["checkpoint:2", "checkpoint:7", "write:dvgo-10.safetensors"], ws)
+    # after the geometry stage's 2nd checkpoint (step 8/24); on the rerun, 4 more of its first round and 6 of its
+    # second, then dvgo-10's first (step 4/24: before its first growth and refresh, its mask still the geometry's
+    # grid over the geometry's box, which a resume stretched over the expert's box until session 24); then 2 more
+    # (step 12/24); then inside the write of dvgo-10's weights, after its last checkpoint
+    kill_at(args, ["checkpoint:2", "checkpoint:11", "checkpoint:2", "write:dvgo-10.safetensors"], ws)
     for p in sorted((ref / "experts").glob("*.safetensors")):
         assert_same_tensors(p, ws / "experts" / p.name)
     for p in sorted((ref / "experts").glob("dvgo-*.json")):
@@ -142,7 +145,7 @@ def test_a_checkpoint_is_not_resumed_with_other_training_settings(setup, tmp_pat
     changed = make_recipe(tmp_path / "changed.yaml", **merge(RECIPE_CHANGES, {"pretrain": {"train": {"batch_rays": 96}}}))
     assert_clean_failure(run_cli(*[a if a != str(recipe) else str(changed) for a in args]),
                          "other settings", "batch_rays")
-    quiet = make_recipe(tmp_path / "quiet.yaml", **merge(RECIPE_CHANGES, {"pretrain": {"train": {"log_every": 3, "lr_grid": 0.05}}}))
+    quiet = make_recipe(tmp_path / "quiet.yaml", **merge(RECIPE_CHANGES, {"pretrain": {"train": {"log_every": 5, "lr_grid": 0.05}}}))
     proc = run_cli(*[a if a != str(recipe) else str(quiet) for a in args], check=True)
     assert "resuming from" in proc.stderr
     run_cli("build-moe", "--workspace", str(ws), "--device", "cpu", check=True)
