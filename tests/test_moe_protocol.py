@@ -353,7 +353,7 @@ def test_explicit_penalty_weights_are_used_as_listed_in_the_official_loss():
 def test_explicit_penalty_weights_are_checked_in_one_line(tmp_path):
     (tmp_path / "ok.yaml").write_text(f"moe:\n  penalty: {OFFICIAL_WEIGHTS}\n")  # plain YAML text, no quotes
     assert load_recipe(tmp_path / "ok.yaml").moe.penalty == OFFICIAL_WEIGHTS
-    for bad, says in (("1, 0, 2", "numbers > 0"), ("1, x", "one of geometric"), ("1, nan, 2", "numbers > 0"),
+    for bad, says in (("1, 0, 2", r"numbers in \(0, 1e\+06\]"), ("1, x", "one of geometric"), ("1, nan, 2", r"numbers in \(0, 1e\+06\]"),
                       ("steep", "one of geometric")):
         with pytest.raises(BoostNerfError, match=says):
             (tmp_path / "r.yaml").write_text(f"moe:\n  penalty: '{bad}'\n")
