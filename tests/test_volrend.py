@@ -88,7 +88,7 @@ def test_empty_batch_and_zero_density():
 
 def test_compositing_is_counted_once_at_14_flops_per_slot():
     """docs/flops.md: compositing costs 14 flops per (ray, sample) slot. The colour's weighted sum is an einsum that
-    FlopCounterMode counts, and the analytic 14 counted it again: 20 per slot (about 1% of a model's GFLOPs)."""
+    FlopCounterMode counts, and the analytic 14 counted it again: 20 per slot (1.2% of a tiny expert's GFLOPs)."""
     from boostnerf_cli.flops import count_flops
     from boostnerf_cli.render.renderer import RenderSettings, render_rays
 
