@@ -319,13 +319,6 @@ def check_recipe(recipe: Recipe, source: str = "recipe key") -> Recipe:
     if box is not None and (len(box) != 6 or not all(box[i + 3] > box[i] for i in range(3))):
         raise BoostNerfError(f"{source} data.bbox = {box!r}: must be six numbers, xmin, ymin, zmin, xmax, ymax, "
                              "zmax, each max above its min")
-    unused = _finetune_train()
-    for key in ("step_ratio", "growth"):
-        value = getattr(recipe.moe.train, key)
-        if value != getattr(unused, key):
-            raise BoostNerfError(f"{source} moe.train.{key} = {value!r}: finetuning does not use it (the mixtures and the "
-                                 "baseline sample at their experts' step, moe.step_from, and no grid grows while "
-                                 f"finetuning): remove it (pretrain.train.{key} sets it for the experts)")
     pre = recipe.pretrain
     twice = sorted({r for r in pre.res if pre.res.count(r) > 1})
     if twice:
@@ -340,6 +333,18 @@ def check_recipe(recipe: Recipe, source: str = "recipe key") -> Recipe:
                 raise BoostNerfError(f"{source} pretrain.ngp.max_res = {hi!r}: must be >= base_res ({lo!r}) "
                                      f"(expert ngp-{res})")
     return recipe
+
+
+def _check_unused(recipe: Recipe) -> None:
+    """Refuse a recipe file that sets a key finetuning ignores (a workspace's manifest that records one still loads:
+    the key never changed what was trained)."""
+    unused = _finetune_train()
+    for key in ("step_ratio", "growth"):
+        value = getattr(recipe.moe.train, key)
+        if value != getattr(unused, key):
+            raise BoostNerfError(f"recipe key moe.train.{key} = {value!r}: finetuning does not use it (the mixtures and "
+                                 "the baseline sample at their experts' step, moe.step_from, and no grid grows while "
+                                 f"finetuning): remove it (pretrain.train.{key} sets it for the experts)")
 
 
 def load_recipe(path: Path | None) -> Recipe:
@@ -362,6 +367,7 @@ def load_recipe(path: Path | None) -> Recipe:
     except (yaml.YAMLError, ValueError) as e:  # ValueError: an integer of more than 4300 digits
         raise BoostNerfError(f"recipe {path} is not valid YAML: {str(e).splitlines()[0]}") from None
     recipe = check_recipe(_build(Recipe, data, ""))
+    _check_unused(recipe)
     if recipe.name == "defaults":
         recipe.name = path.stem
     return recipe
