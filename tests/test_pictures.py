@@ -187,3 +187,20 @@ def test_gate_by_detail_splits_pixels_at_the_median_detail():
     detailed, smooth = gate_by_detail(probs, gt, np.ones((8, 8), bool))
     assert detailed[1] > 0.7 and smooth[0] > 0.7
     assert np.allclose(detailed.sum(), 1.0) and np.allclose(smooth.sum(), 1.0)
+
+
+def test_a_spiral_on_a_forward_facing_scene_looks_where_its_cameras_look(tmp_path):
+    """`render --path spiral` on an LLFF scene (NDC) wrote all-white videos: the focus depth was read off the NDC box
+    as if in world units (0.0006 in front of the mean camera), so every frame looked sideways. Every frame now looks
+    within a few degrees of the training cameras' direction, at a focus past the NDC near plane."""
+    from boostnerf_cli.render.paths import camera_path
+    from boostnerf_cli.scenes import load_scene, make_scene
+
+    scene = load_scene(make_scene(tmp_path / "llff", size=24, n_train=8, n_test=0, layout="llff"))
+    train = scene.split("train")
+    box = scene.bbox.clone()
+    box[:, 2] = torch.tensor([-1.002, 1.0])  # an expert's NDC box, its content reaching to infinity
+    path = camera_path("spiral", train.poses, box, scene.near, scene.far, 12, scene.ndc)
+    look = torch.nn.functional.normalize(train.poses[:, :3, 2].mean(0), dim=0)  # cameras look down -z
+    cosines = path[:, :3, 2] @ look
+    assert bool((cosines > math.cos(math.radians(15))).all()), cosines

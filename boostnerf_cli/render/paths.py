@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.render.rays import NDC
 
 
 def _normalize(v: Tensor) -> Tensor:
@@ -100,11 +101,11 @@ def mean_pose(poses: Tensor) -> Tensor:
 
 
 def spiral_path(poses: Tensor, bbox: Tensor, near: float, far: float, n_frames: int, rotations: float = 2.0,
-                radius_percentile: float = 90.0) -> Tensor:
+                radius_percentile: float = 90.0, focus: float | None = None) -> Tensor:
     """`n_frames` poses (n_frames, 4, 4) on a spiral around the mean pose, looking at a focus point.
 
     Focus depth: the distance of the scene box's centre along the mean viewing axis (the middle of
-    [near, far] when the box centre is not in front of the cameras). Radii along the mean camera's
+    [near, far] when the box centre is not in front of the cameras), or `focus` when given. Radii along the mean camera's
     x, y, z: the `radius_percentile` of the training cameras' offsets from the mean position (a
     twentieth of the focus depth where the cameras do not move along an axis). The path turns
     `rotations` times in x-y while moving once forward and back along z.
@@ -116,7 +117,7 @@ def spiral_path(poses: Tensor, bbox: Tensor, near: float, far: float, n_frames: 
     rot, centre = c[:3, :3], c[:3, 3]
     forward = -rot[:, 2]
     box_centre = bbox.double().mean(0)
-    focus = float((box_centre - centre) @ forward)
+    focus = float((box_centre - centre) @ forward) if focus is None else focus
     if not near < focus < far:
         focus = 0.5 * (near + far)
     offsets = (p[:, :3, 3] - centre) @ rot  # in the mean camera's frame
@@ -135,9 +136,17 @@ def spiral_path(poses: Tensor, bbox: Tensor, near: float, far: float, n_frames: 
 PATHS = ("orbit", "spiral")
 
 
-def camera_path(kind: str, poses: Tensor, bbox: Tensor, near: float, far: float, n_frames: int) -> Tensor:
+def camera_path(kind: str, poses: Tensor, bbox: Tensor, near: float, far: float, n_frames: int,
+                ndc: NDC | None = None) -> Tensor:
+    """Poses along path `kind`. With `ndc` (a forward-facing scene), `bbox`, `near` and `far` are in NDC while the
+    poses are in world units: the spiral's focus is the world depth of the box centre's NDC depth (z = 1 - 2 near /
+    depth; the middle of NDC's [-1, 1] is depth 2 near), not a distance read off the NDC box as if it were world
+    units (that put the focus beside the mean camera, and every frame looked sideways at empty space)."""
     if kind == "orbit":
         return orbit_path(poses, n_frames)
     if kind == "spiral":
+        if ndc is not None:
+            z = min(float(bbox[:, 2].double().mean()), 0.9)  # NDC z -> 1 means infinitely far
+            return spiral_path(poses, bbox, ndc.near, math.inf, n_frames, focus=2.0 * ndc.near / (1.0 - z))
         return spiral_path(poses, bbox, near, far, n_frames)
     raise BoostNerfError(f"unknown camera path {kind!r}: use {' or '.join(PATHS)}")

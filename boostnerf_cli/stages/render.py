@@ -78,7 +78,7 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
         log("note: the training cameras look in many directions (a 360-degree capture?): --path orbit suits it better")
     if kind == "orbit" and facing > 0.9:
         log("note: the training cameras all look one way (a forward-facing capture?): --path spiral suits it better")
-    poses = camera_path(kind, train.poses, model.bbox.cpu(), scene.near, scene.far, n_frames)
+    poses = camera_path(kind, train.poses, model.bbox.cpu(), scene.near, scene.far, n_frames, scene.ndc)
     settings, skip = model.render_setup(scene, skips)
     rgb, depth, acc = [], [], []
     for i, pose in enumerate(poses):
