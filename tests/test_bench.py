@@ -10,6 +10,7 @@ import pytest
 from conftest import assert_clean_failure, make_recipe, run_cli
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields.registry import CONFIGS
 from boostnerf_cli.recipe import Recipe, load_recipe
 from boostnerf_cli.stages import bench
 
@@ -55,6 +56,28 @@ def test_ladder_and_suites():
         bench.select(quick, ["nope"], "quick")
     with pytest.raises(BoostNerfError, match="unknown suite"):
         bench.catalogue(rec, "medium")
+
+
+def test_every_family_gets_its_own_wider_mlp_and_the_experts_pretrain_would_train():
+    """naive-wide of a TensoRF or Instant-NGP recipe wrote the doubled width into an unused `dvgo` section: the row was
+    the plain largest expert, labelled and plotted as a 2x wider one. And a resolution between two listed ones took
+    the smaller's options in the bench, the larger's in `pretrain` (its tie rule): the same name, another expert."""
+    from boostnerf_cli.stages.pretrain import expert_options
+
+    for family, key, section in (("tensorf", "hidden", {"hidden": 32}), ("ngp", "color_hidden", {}),
+                                 ("dvgo", "hidden", {"hidden": {64: 64, 72: 96, 80: 128}})):
+        rec = Recipe()
+        rec.pretrain.model, rec.pretrain.res = family, [64, 72, 80]
+        setattr(rec.pretrain, family, section)
+        setups, full = bench.catalogue(rec, "full")
+        wide = getattr(setups["naive-wide"].recipe.pretrain, family)
+        base = expert_options(rec.pretrain, 80)[key] if key in section else getattr(CONFIGS[family](), key)
+        assert wide[key] == {80: 2 * base}, (family, wide)
+        assert not setups["naive-wide"].recipe.pretrain.dvgo or family == "dvgo"
+        for name in ("m4", "m5"):  # the ladders' experts get exactly pretrain's options
+            variant = setups[name].recipe.pretrain
+            for r in variant.res:
+                assert expert_options(variant, r) == expert_options(rec.pretrain, r), (family, name, r)
 
 
 def test_bench_recipe_is_a_valid_recipe(bench_recipe):

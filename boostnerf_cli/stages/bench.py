@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Callable
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields.registry import CONFIGS
 from boostnerf_cli.models import Skips
 from boostnerf_cli.moe.router import PENALTIES
 from boostnerf_cli.recipe import Recipe, recipe_dict
@@ -69,24 +70,25 @@ class Row:
     extra: dict = field(default_factory=dict)
 
 
-def _nearest(mapping: dict, res: int):
-    keys = sorted(int(k) for k in mapping)
-    best = min(keys, key=lambda k: (abs(k - res), k))
-    return mapping[best] if best in mapping else mapping[str(best)]
-
-
 def _options_for(rec: Recipe, resolutions: list[int]) -> dict:
-    """The recipe's per-expert family options for other resolutions: a per-resolution mapping takes the
-    value of the nearest resolution it has."""
-    out = {}
-    for key, value in rec.pretrain.dvgo.items():
-        out[key] = {r: _nearest(value, r) for r in resolutions} if isinstance(value, dict) else value
-    return out
+    """The recipe's family options (its own family's section) for other resolutions: a per-resolution mapping takes
+    the value of the nearest resolution it has, by `pretrain.expert_options`'s rule (the larger on a tie), so a
+    bench expert is the expert `pretrain --res` trains."""
+    from boostnerf_cli.stages.pretrain import expert_options
+
+    section = rec.pretrain.family_config()
+    per_res = {r: expert_options(rec.pretrain, r) for r in resolutions}
+    return {key: {r: per_res[r][key] for r in resolutions} if isinstance(value, dict) else value
+            for key, value in section.items()}
+
+
+# the option that widens each family's colour MLP (naive-wide; its default is the family config's)
+WIDTH_KEY = {"dvgo": "hidden", "tensorf": "hidden", "ngp": "color_hidden"}
 
 
 def _variant(rec: Recipe, res: list[int], **train) -> Recipe:
     r = copy.deepcopy(rec)
-    r.pretrain.dvgo = _options_for(rec, res)
+    setattr(r.pretrain, r.pretrain.model, _options_for(rec, res))
     r.pretrain.res = list(res)
     for k, v in train.items():
         setattr(r.pretrain.train, k, v)
@@ -116,14 +118,15 @@ def catalogue(rec: Recipe, suite: str) -> tuple[dict[str, Setup], list[Row]]:
     total = rec.pretrain.iters + rec.moe.iters
     big = max(largest + 1, round(1.25 * largest))
     wide = _options_for(rec, [largest])
-    hidden = wide.get("hidden", 128)
-    wide["hidden"] = {largest: 2 * (hidden[largest] if isinstance(hidden, dict) else hidden)}
+    key = WIDTH_KEY[family]
+    hidden = wide.get(key, getattr(CONFIGS[family](), key))
+    wide[key] = {largest: 2 * (hidden[largest] if isinstance(hidden, dict) else hidden)}
     naive = {
         "naive-res": (_variant(rec, [big]), big),
         "naive-step": (_variant(rec, [largest], step_ratio=rec.pretrain.train.step_ratio / 2), largest),
         "naive-wide": (_variant(rec, [largest]), largest),
     }
-    naive["naive-wide"][0].pretrain.dvgo = wide
+    setattr(naive["naive-wide"][0].pretrain, family, wide)
     for name, (r, size) in naive.items():
         r.pretrain.iters = total
         setups[name] = Setup(name, "naive", r)

@@ -182,7 +182,7 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
     - `<view>_gate<i>-<name>.png`: greyscale probability G(x)_i averaged along each ray with the rendering
       weights (white = every visible sample prefers expert i); black where the ray hits nothing (opacity < 0.1);
     - `<view>_experts.png`: the mixture's render, the expert shares and the gate maps side by side, and a
-      routing map (each pixel coloured by the gate's probabilities: blue = smallest expert ... red = largest).
+      routing map (each pixel coloured by the gate's probabilities: blue = smallest expert, then cyan, green, orange, red = the fifth).
     `log` (when given) gets, per view, the mean gate probability of each expert over the more detailed
     and the smoother half of the object's pixels (`gate_by_detail`).
     """
@@ -218,7 +218,7 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
                 f"{[round(float(v), 2) for v in hi]}, on smooth pixels {[round(float(v), 2) for v in lo]}")
         routing = to_uint8(probs @ _palette(m))
         top = [("mixture", to_uint8(full["rgb"]))] + [(f"{names[e]} share", shares[e]) for e in range(m)]
-        bottom = [("routing (blue=small .. red=large)", routing)] + [
+        bottom = [("routing (smallest first: blue, cyan, green, orange, red)", routing)] + [
             (f"gate p({names[e]})", to_uint8(np.repeat(gates[e][..., None], 3, -1))) for e in range(m)]
         path = folder / f"{stem}_experts.png"
         write_png(path, panel_grid([top, bottom], caption=f"{model.name}, {split.names[i]}: experts smallest first; "
