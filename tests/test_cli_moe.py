@@ -213,6 +213,10 @@ def test_render_expert_montage_and_comparison(moe_ws):
             "--device", "cpu", check=True)
     montages = list((moe_ws / "renders" / "top1" / "test").glob("*_experts.png"))
     assert len(montages) == 1 and iio.imread(montages[0]).shape[2] == 3
+    # an expert has no shares or gate: said, not silently only its views (before: "wrote 1 images" and nothing else)
+    proc = run_cli("render", "--workspace", str(moe_ws), "--model", "dvgo-12", "--views", "1", "--per-expert",
+                   "--device", "cpu", check=True)
+    assert "dvgo-12 is not a mixture, so --per-expert draws nothing more" in proc.stderr
     run_cli("render", "--workspace", str(moe_ws), "--compare", "--views", "2", "--device", "cpu", check=True)
     compared = sorted((moe_ws / "renders" / "compare" / "test").glob("*.png"))
     assert len(compared) == 2

@@ -58,6 +58,8 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
             mine.append(folder / f"{stem}.png")
         if per_expert and model.kind == "mixture":
             mine += render_experts_and_gate(model, scene, split, folder, device, skips, views, log)
+        elif per_expert:
+            log(f"note: {name} is not a mixture, so --per-expert draws nothing more for it (it has no gate or shares)")
         log(f"{name}: wrote {len(mine)} images to {folder}")
         written += mine
     return written
