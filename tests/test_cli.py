@@ -103,6 +103,10 @@ def test_eval_report_schema_and_render_outputs(trained_ws, tmp_path):
     rgb = iio.imread([p for p in pngs if "depth" not in p.name][0])
     depth = iio.imread([p for p in pngs if "depth" in p.name][0])
     assert rgb.shape == (32, 32, 3) and depth.dtype.name == "uint16"
+    # a path with two models: the refusal names them (it said "add --model NAME" to a user who had given two)
+    proc = run_cli("render", "--workspace", str(trained_ws), "--path", "orbit", "--model", "dvgo-12", "--model",
+                   "dvgo-16", "--device", "cpu")
+    assert_clean_failure(proc, "--path renders one model: keep one of dvgo-12, dvgo-16")
 
 
 def test_eval_reports_lpips_when_its_weights_are_on_disk(trained_ws, tmp_path):

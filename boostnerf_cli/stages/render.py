@@ -70,7 +70,8 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
               device: str, skips: Skips, log: Callable[[str], None]) -> list[Path]:
     """Render one model along a camera path derived from the training cameras -> colour and depth videos."""
     if not names or len(names) != 1:
-        raise BoostNerfError(f"--path renders one model: add --model NAME (models: {', '.join(all_model_names(ws)) or 'none yet'})")
+        fix = f"keep one of {', '.join(names)}" if names else "add --model NAME"
+        raise BoostNerfError(f"--path renders one model: {fix} (models: {', '.join(all_model_names(ws)) or 'none yet'})")
     scene = workspace_scene(ws)
     model = load_model(ws, current_models(ws, names)[0], device)
     target, fmt = video_target(video or ws.renders_dir(model.name) / f"{kind}.mp4")  # refused before rendering
@@ -98,7 +99,7 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
     write_video(target, rgb, fps, fmt)
     write_video(depth_target, depth_frames, fps, fmt)
     log(f"{model.name}: wrote {fmt.upper()} {target} and {depth_target} ({len(poses)} frames, {fps} fps, "
-        f"{kind} path; depth: near bright, far dark, {lo:.3g} .. {hi:.3g} world units)")
+        f"{kind} path; depth: near bright, far dark, {lo:.3g} .. {hi:.3g} {'NDC' if scene.ndc is not None else 'world'} units)")
     return [target, depth_target]
 
 
