@@ -67,10 +67,11 @@ def _module(name: str) -> str:
 
 def _params(module: torch.nn.Module, prefix: str, dropped: dict[str, torch.Tensor]) -> int:
     """Parameters of `module` (named `prefix` in the model), less the rows a pruned file does not store."""
-    total = sum(p.numel() for p in module.parameters())
+    params = dict(module.named_parameters())
+    total = sum(p.numel() for p in params.values())
     for name, rows in dropped.items():
         if _module(name) == prefix:
-            total -= int(rows.sum()) * dict(module.named_parameters())[name[len(prefix) + 1:]].shape[1]
+            total -= int(rows.sum()) * params[name[len(prefix) + 1:]].shape[1]
     return total
 
 

@@ -305,11 +305,16 @@ def pack_rows(table: torch.Tensor, keep: torch.Tensor) -> dict[str, torch.Tensor
     return {"values": table.detach().cpu()[keep].contiguous(), "mask": torch.from_numpy(bits)}
 
 
-def unpack_rows(values: torch.Tensor, mask: torch.Tensor, rows: int, fill: list[float]) -> torch.Tensor:
-    """Inverse of `pack_rows`: the dense (rows, C) table, dropped rows set to `fill`."""
+def _kept(mask: torch.Tensor, rows: int) -> torch.Tensor:
+    """A packed table's `<name>@mask` bits -> (rows,) bool, True for the rows it stores."""
     import numpy as np
 
-    keep = torch.from_numpy(np.unpackbits(mask.cpu().numpy(), count=rows).astype(bool))
+    return torch.from_numpy(np.unpackbits(mask.cpu().numpy(), count=rows).astype(bool))
+
+
+def unpack_rows(values: torch.Tensor, mask: torch.Tensor, rows: int, fill: list[float]) -> torch.Tensor:
+    """Inverse of `pack_rows`: the dense (rows, C) table, dropped rows set to `fill`."""
+    keep = _kept(mask, rows)
     if int(keep.sum()) != values.shape[0] or len(fill) != values.shape[1]:
         raise ValueError("packed table does not match its mask")
     dense = torch.tensor(fill, dtype=values.dtype).expand(rows, values.shape[1]).clone()
@@ -319,14 +324,11 @@ def unpack_rows(values: torch.Tensor, mask: torch.Tensor, rows: int, fill: list[
 
 def dropped_rows(path: Path, meta: dict[str, Any]) -> dict[str, torch.Tensor]:
     """{table name: (V,) bool, True where the pruned file `path` stores no row} ({} for a file that is not pruned)."""
-    import numpy as np
-
-    out = {}
-    for name, info in (meta.get("packed") or {}).items():
-        with safe_open(str(path), "pt") as f:
-            mask = f.get_tensor(f"{name}@mask")
-        out[name] = ~torch.from_numpy(np.unpackbits(mask.numpy(), count=int(info["rows"])).astype(bool))
-    return out
+    packed = meta.get("packed") or {}
+    if not packed:
+        return {}
+    with safe_open(str(path), "pt") as f:
+        return {name: ~_kept(f.get_tensor(f"{name}@mask"), int(info["rows"])) for name, info in packed.items()}
 
 
 def _unpack_tensors(tensors: dict[str, torch.Tensor], packed: dict, path: Path) -> dict[str, torch.Tensor]:

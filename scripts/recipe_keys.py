@@ -54,7 +54,7 @@ def comments(cls: type) -> dict[str, str]:
         row = next((i for i, line in enumerate(lines, 1) if line.strip().startswith(f"{name}:")), None)
         if row is None:
             continue
-        if row in trailing and not lines[row - 1].strip().startswith("#"):
+        if row in trailing:  # a comment on the field's own line
             found[name] = trailing[row]
             continue
         above, i = [], row - 1
@@ -116,8 +116,9 @@ def rows(cls: type, default: typing.Any, where: str) -> list[tuple[str, str, str
             raise SystemExit(f"{cls.__module__}.{cls.__name__}.{f.name} has no comment to describe it: add one on "
                              "its line")
         out.append((path, _default(value), _allowed(f, hints[f.name]), text[f.name]))
-    sections = [(p, sub) for cls_, value, p in later for sub in [rows(cls_, value, p)]]
-    return out + [r for _, sub in sections for r in sub]
+    for section_cls, value, path in later:
+        out += rows(section_cls, value, path)
+    return out
 
 
 def page() -> str:
