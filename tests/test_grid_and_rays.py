@@ -1,6 +1,7 @@
 """Trilinear grids against grid_sample in float64; rays, projection and box clipping."""
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -9,6 +10,8 @@ import torch.nn.functional as F
 from boostnerf_cli.fields import grid as G
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.rays import image_rays, intersect_box, pixel_directions, project_points
+from boostnerf_cli.render.renderer import sample_rays
+from boostnerf_cli.scenes import load_scene
 
 BOX = torch.tensor([[-1.0, -0.5, -2.0], [1.0, 1.5, 0.0]], dtype=torch.float64)
 
@@ -179,3 +182,18 @@ def test_cell_index_names_the_cell_the_occupancy_lookup_reads():
     assert torch.equal(grid(pts), (idx >= 0) & grid.occupied.reshape(-1)[idx.clamp_min(0)])
     centres = grid.cell_centers()
     assert torch.equal(grid.cell_index(centres), torch.arange(5 * 4 * 6))  # [x, y, z] order
+
+
+def test_a_model_samples_at_its_own_step_however_many_steps_its_box_holds(tiny_scene):
+    """A paper-size expert (384^3 at step ratio 0.5) needs ~1,330 samples across its box's diagonal. The renderer
+    lengthened the step of every ray of a batch (a whole chunk of an image) to fit 1,024 samples, silently, by up to
+    1.3x; a scene's settings now take as many samples as the model's box holds at its step, as DVGO does."""
+    scene = load_scene(tiny_scene)
+    bbox = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    step = 0.5 * 2.0 / 384  # half a voxel of a 384^3 grid over the box
+    settings = scene.render_settings(step, bbox)
+    corner = torch.tensor([[-1.5, -1.5, -1.5]])  # one ray along the box's diagonal, from outside it
+    direction = torch.nn.functional.normalize(torch.ones(1, 3), dim=-1)
+    t, valid, _, used = sample_rays(corner, direction, replace(settings, near=0.0, far=10.0), jitter=False)
+    assert used == step
+    assert abs(int(valid.sum()) - 2 * math.sqrt(3) / step) <= 1 and int(valid.sum()) > 1024

@@ -35,7 +35,7 @@ class RenderSettings:
     bbox: Tensor  # (2, 3)
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     color_threshold: float = 1e-4  # weight below which a sample's colour is not computed
-    max_samples: int = 1024  # per ray; the step grows if a ray would need more
+    max_samples: int = 1024  # per ray; the step grows if a ray would need more (never with Scene.render_settings)
     chunk: int = 8192  # rays per chunk when rendering whole images
     ndc: NDC | None = None  # forward-facing scenes: camera rays are warped to NDC (step, near, far, bbox in NDC)
 
