@@ -1,12 +1,16 @@
-"""A fork server for the docs test: imports torch and the CLI once, then runs each `boostnerf ...` call
-in a forked child, so the dozens of documented commands do not each pay torch's import (seconds).
+"""A fork server for the tests: imports torch and the CLI once, then runs each `boostnerf ...` call in a
+forked child, so the hundreds of CLI calls of the suite (`conftest.run_cli`) and the documented commands
+(the docs test's `boostnerf` shim) do not each pay torch's import (seconds).
 
     python tests/cli_server.py SOCKET          # serve until killed
     python tests/cli_server.py --client SOCKET ARGS...   # what the `boostnerf` shim runs
 
 The client sends its arguments, working folder and environment as JSON and its stdin, stdout and
 stderr as file descriptors; the child adopts them, runs `boostnerf_cli.cli.main()` and the client
-exits with the child's exit code. One command at a time (the docs run sequentially).
+exits with the child's exit code. One command at a time (each xdist worker starts its own server). The
+child is a fresh process as far as the CLI can tell: its own pid (a kill test's SIGKILL ends the child
+only), folder, environment and file descriptors; the server never runs a parallel region before forking,
+so the child's OpenMP threads start fresh.
 """
 
 from __future__ import annotations
@@ -21,16 +25,19 @@ def serve(path: str) -> None:
     import torch
 
     import boostnerf_cli.cli
+    import boostnerf_cli.scenes  # noqa: F401
     from boostnerf_cli.stages import (  # noqa: F401
+        bench,
         build_moe,
         count_params,
         evaluate,
         finetune,
         pretrain,
+        prune,
         render,
     )
 
-    torch.set_num_threads(1)
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))  # no parallel region before a fork
     torch.optim.Adam([torch.zeros(1, requires_grad=True)], fused=True)  # loads the optimiser's lazy imports
     srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     srv.bind(path)
@@ -61,21 +68,30 @@ def serve(path: str) -> None:
                 code = 1
             sys.stdout.flush()
             sys.stderr.flush()
-            conn.sendall(str(code).encode())
             os._exit(code)
         for fd in fds:
             os.close(fd)
-        os.waitpid(pid, 0)
+        _, status = os.waitpid(pid, 0)
+        # the exit code as subprocess gives it: -N when signal N ended the child (a kill test's SIGKILL)
+        conn.sendall(str(os.waitstatus_to_exitcode(status)).encode())
         conn.close()
 
 
-def client(path: str, args: list[str]) -> int:
-    conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    conn.connect(path)
-    request = json.dumps({"args": args, "cwd": os.getcwd(), "env": dict(os.environ)}).encode()
-    socket.send_fds(conn, [request], [0, 1, 2])
-    reply = conn.recv(16)
+def request(path: str, args: list[str], cwd: str, env: dict[str, str], fds: list[int],
+            timeout: float | None = None) -> int:
+    """Run `boostnerf ARGS` in a child of the server at `path`, in folder `cwd` with environment `env` and
+    `fds` as its stdin, stdout and stderr -> its exit code (-N when signal N ended it)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn:
+        conn.settimeout(timeout)
+        conn.connect(path)
+        socket.send_fds(conn, [json.dumps({"args": args, "cwd": cwd, "env": env}).encode()], fds)
+        reply = conn.recv(16)
     return int(reply or b"1")
+
+
+def client(path: str, args: list[str]) -> int:
+    code = request(path, args, os.getcwd(), dict(os.environ), [0, 1, 2])
+    return code if code >= 0 else 128 - code  # a shell's code for a signalled command
 
 
 if __name__ == "__main__":
