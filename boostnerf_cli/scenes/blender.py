@@ -114,7 +114,7 @@ def load_blender(
     splits, start = {}, 0
     for s in found:
         fs = parsed[s][0]
-        k = torch.tensor([frame_intrinsics(f.camera, native, size, f"{f.source} in {folder}") for f in fs])
+        k = torch.tensor([frame_intrinsics(f.camera, native, size, f"{f.source} in {folder}", f.image) for f in fs])
         poses = torch.tensor(np.stack([f.pose for f in fs]), dtype=torch.float32)
         splits[s] = Split(images[start : start + len(fs)], poses, k.float(), tuple(f.name for f in fs),
                           None if alpha is None else alpha[start : start + len(fs)])

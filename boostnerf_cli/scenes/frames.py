@@ -209,9 +209,17 @@ def read_transforms(path: Path, may_be_empty: bool = False) -> dict:
     return meta
 
 
+FOCAL_KEYS = (("fl_x", "camera_angle_x"), ("fl_y", "camera_angle_y"))  # two ways to give each axis's focal length
+
+
 def frame_camera(frame: dict, meta: dict) -> dict:
-    """A frame's camera values (`CAMERA_KEYS`): its own where it sets them (not null), else the file's."""
-    return {k: frame[k] if frame.get(k) is not None else meta.get(k) for k in CAMERA_KEYS}
+    """A frame's camera values (`CAMERA_KEYS`): its own where it sets them (not null), else the file's. A frame that
+    gives an axis's focal length either way (`FOCAL_KEYS`) takes none of the file's for that axis."""
+    camera = {k: frame[k] if frame.get(k) is not None else meta.get(k) for k in CAMERA_KEYS}
+    for keys in FOCAL_KEYS:
+        if any(frame.get(k) is not None for k in keys):
+            camera.update({k: frame.get(k) for k in keys})
+    return camera
 
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # the image files the loaders read (in either case)
@@ -268,14 +276,26 @@ def camera_number(camera: dict, key: str, source: str) -> float | None:
     return number
 
 
-def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int], source: str) -> list[float]:
+def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int], source: str,
+                     image: Path | None = None) -> list[float]:
     """fx, fy, cx, cy in pixels of the stored (downscaled) image.
 
-    The JSON values refer to an image of `w` x `h` pixels (default: the native image size); every
-    value is scaled per axis by stored / JSON size.
+    The JSON values refer to an image of `w` x `h` pixels (default, both unset: the native image size); every
+    value is scaled per axis by stored / JSON size. `w` and `h` must come together and have the native image's
+    aspect (`image`, when given, is named if an EXIF tag turns it).
     """
     def number(key: str) -> float | None:
         return camera_number(camera, key, source)
+
+    w, h = number("w"), number("h")
+    if (w is None) != (h is None):
+        given, missing = ("w", "h") if h is None else ("h", "w")
+        raise BoostNerfError(f"{source}: {given} is given without {missing}: give both (the image size in pixels the "
+                             "intrinsics refer to) or neither")
+    if w is not None and not math.isclose(w / h, native[1] / native[0], rel_tol=0.02):
+        note = orientation_note(image) if image is not None else ""
+        raise BoostNerfError(f"{source}: w x h = {w:g} x {h:g} does not match the image's {native[1]} x {native[0]} "
+                             f"aspect; fix w and h or the image{note}")
 
     def focal(angle_key: str, size: float) -> float:
         angle = number(angle_key)
@@ -283,8 +303,8 @@ def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int
             raise BoostNerfError(f"{source}: {angle_key} = {angle!r}: a field of view must be in (0, pi) radians")
         return 0.5 * size / math.tan(0.5 * angle)
 
-    h_json = number("h") or float(native[0])
-    w_json = number("w") or float(native[1])
+    h_json = h or float(native[0])
+    w_json = w or float(native[1])
     if camera["fl_x"] is not None:
         fx = number("fl_x")
     elif camera["camera_angle_x"] is not None:

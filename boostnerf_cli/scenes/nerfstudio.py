@@ -14,7 +14,6 @@ records no near / far or scene box; they are derived from the cameras (`camera_n
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -24,12 +23,10 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
     Frame,
-    camera_number,
     frame_camera,
     frame_intrinsics,
     hold_out,
     load_frames,
-    orientation_note,
     parse_pose,
     read_transforms,
     resolve_image,
@@ -96,7 +93,8 @@ def load_nerfstudio(
     bg = torch.tensor(background, dtype=torch.float32)
     images, alpha, native = load_frames(frames, image_size, bg)
     size = tuple(images.shape[1:3])
-    k = torch.tensor([_intrinsics(f, native, size) for f in frames], dtype=torch.float32)
+    k = torch.tensor([frame_intrinsics(f.camera, native, size, f.source, f.image) for f in frames],
+                     dtype=torch.float32)
     poses = torch.tensor(np.stack([f.pose for f in frames]), dtype=torch.float32)
     splits = {"train": Split(images, poses, k, tuple(f.name for f in frames), alpha)}
     holdout = ""
@@ -108,12 +106,3 @@ def load_nerfstudio(
     return scene_from_splits(folder, splits, near, far, bbox, background, "nerfstudio", holdout, native, size)
 
 
-def _intrinsics(frame: Frame, native: tuple[int, int], size: tuple[int, int]) -> list[float]:
-    """`frame_intrinsics`, after checking that the frame's w / h (when given) have the image's aspect."""
-    w, h = (camera_number(frame.camera, k, frame.source) for k in ("w", "h"))
-    if w is not None and h is not None and not math.isclose(w / h, native[1] / native[0], rel_tol=0.02):
-        raise BoostNerfError(
-            f"{frame.source}: w x h = {w:g} x {h:g} does not match the image's {native[1]} x {native[0]} aspect; "
-            f"fix w and h or the image{orientation_note(frame.image)}"
-        )
-    return frame_intrinsics(frame.camera, native, size, frame.source)
