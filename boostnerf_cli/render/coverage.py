@@ -83,8 +83,8 @@ def ray_cells(origins: Tensor, dirs: Tensor, occ: OccupancyGrid, near: float,
 def visual_hull(occ: OccupancyGrid, poses: Tensor, intrinsics: Tensor, masks: Tensor, footprint: bool = True,
                 min_views: int = 1) -> Tensor:
     """Cells (occupancy grid shape, bool) that at least one training view sees and that every view seeing
-    them shows as foreground somewhere in their footprint: with `footprint`, the square of half-side
-    focal * (half the cell's diagonal) / depth pixels around the centre's projection, so a cell holding a
+    them shows as foreground somewhere in their footprint: with `footprint`, the rectangle of half-sides
+    fx, fy * (half the cell's diagonal) / depth pixels around the centre's projection, so a cell holding a
     thin structure anywhere inside is kept; without, the 3 x 3 pixels around the centre's projection (the
     cells a surface passes through near their centre). A cell seen by fewer than `min_views` views is left
     out (one view's hull is a whole cone: the space just in front of a camera passes it)."""
@@ -102,12 +102,15 @@ def visual_hull(occ: OccupancyGrid, poses: Tensor, intrinsics: Tensor, masks: Te
             continue
         # foreground pixels in each footprint: a summed-area table of the mask, one box sum per cell
         sat = F.pad(mask.double().cumsum(0).cumsum(1), (1, 0, 1, 0))
-        r = (float(k[0]) * half_diag / depth[seen].clamp_min(1e-6)).ceil() if footprint else torch.ones_like(depth[seen])
+        if footprint:  # each axis by its own focal length (fy != fx: pixels that are not square in the scene)
+            ru, rv = ((float(f) * half_diag / depth[seen].clamp_min(1e-6)).ceil() for f in k[:2])
+        else:
+            ru = rv = torch.ones_like(depth[seen])
         u, v = uv[seen, 0], uv[seen, 1]
-        u0 = (u - r).floor().clamp(0, w).long()
-        u1 = (u + r).floor().add(1).clamp(0, w).long()
-        v0 = (v - r).floor().clamp(0, h).long()
-        v1 = (v + r).floor().add(1).clamp(0, h).long()
+        u0 = (u - ru).floor().clamp(0, w).long()
+        u1 = (u + ru).floor().add(1).clamp(0, w).long()
+        v0 = (v - rv).floor().clamp(0, h).long()
+        v1 = (v + rv).floor().add(1).clamp(0, h).long()
         count = sat[v1, u1] - sat[v0, u1] - sat[v1, u0] + sat[v0, u0]
         fg = torch.ones_like(keep)
         fg[seen] = count > 0.5
