@@ -90,11 +90,15 @@ def make_scene_cmd(
 ) -> None:
     """Write a small procedural scene (exact analytic ray casting) in any dataset layout boostnerf reads."""
     from boostnerf_cli.scenes import make_scene
+    from boostnerf_cli.scenes.procedural import written_test_views
 
     _one_process()
     path = make_scene(out_dir, size=size, n_train=n_train, n_test=n_test, seed=seed, layout=layout, rig=rig,
                       content=content)
-    log(f"wrote a {size}x{size} {layout} scene with {n_train} train and {n_test} test views to {path}")
+    written = written_test_views(layout, n_train, n_test)
+    note = (f" ({layout} holds out every 8th view: {n_train} train views leave room for {written} of the {n_test} "
+            "test views asked for)") if written < n_test else ""
+    log(f"wrote a {size}x{size} {layout} scene with {n_train} train and {written} test views to {path}{note}")
 
 
 @app.command()

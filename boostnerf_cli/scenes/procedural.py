@@ -407,6 +407,16 @@ def _write_nsvf(out: Path, views: dict, focal: float, size: int, masked: bool) -
 HOLDOUT_EVERY = 8  # the loaders' default hold-out for layouts without a test split
 
 
+SEQUENCE_LAYOUTS = ("llff", "nerfstudio")  # one sequence of views, no split files: the loader holds views out
+
+
+def written_test_views(layout: str, n_train: int, n_test: int) -> int:
+    """How many of `n_test` test views `make_scene` writes in `layout`. A layout without splits holds out every
+    8th view, so a test view needs a place at 0, 8, 16, ... among the views written: 1 + n_train // 7 of them
+    at most (24 train views hold 4 test views). The others would be trained on, so they are not written."""
+    return min(n_test, 1 + n_train // (HOLDOUT_EVERY - 1)) if layout in SEQUENCE_LAYOUTS and n_test else n_test
+
+
 def sequence_order(n_train: int, n_test: int) -> list[tuple[str, int]]:
     """The order of the views in layouts without splits (LLFF, nerfstudio): test view j at position
     8 j while test views last, the train views in order around them, so that the loaders' every-8th
@@ -497,6 +507,8 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         raise BoostNerfError(f"{out_dir} already holds files: make-scene writes into a new or empty folder (another "
                              "scene's files would mix with this one's); choose a new folder or delete this one")
     train, test = (forward_poses if rig == "forward" else camera_poses)(n_train, n_test)
+    n_test = written_test_views(layout, n_train, n_test)
+    test = test[:n_test]  # the first test views of every layout are the same views
     focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
     k = torch.tensor([focal, focal, size / 2, size / 2])
     views = {}
