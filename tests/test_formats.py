@@ -14,10 +14,11 @@ import torch
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC, image_rays, project_points
 from boostnerf_cli.scenes import LAYOUTS, detect_format, load_scene, make_scene
+from boostnerf_cli.scenes.frames import resolve_image
 from boostnerf_cli.scenes.procedural import CAMERA_ANGLE_X, camera_poses, forward_poses, sequence_order
 from tests.conftest import cli_in_process, run_cli
 
-SIZE, N_TRAIN, N_TEST = 16, 9, 3
+SIZE, N_TRAIN, N_TEST = 16, 14, 3  # 14 train views leave room for 3 test views at every 8th place
 # layouts that store 8-bit RGBA (compared exactly) vs RGB composited on white before quantising
 COMPOSITED = {"tanks", "llff"}
 SEQUENCE = {"llff", "nerfstudio"}  # one sequence of views, test views at every 8th place (sequence_order)
@@ -150,7 +151,7 @@ def test_llff_ndc_box_holds_every_training_ray(forward):
             assert bool(((pts >= scene.bbox[0] - 1e-4) & (pts <= scene.bbox[1] + 1e-4)).all())
     assert scene.near == 0 and scene.far >= float((scene.bbox[1] - scene.bbox[0]).norm()) - 1e-6
     assert scene.holdout.startswith("every 8th")
-    assert scene.splits["test"].names == ("image000", "image008")
+    assert scene.splits["test"].names == ("image000", "image008", "image016")
 
 
 def test_llff_axis_convention_bounds_and_recentring(forward):
@@ -266,12 +267,12 @@ def _break_ns_sizes(f):
 
 
 MALFORMED = [
-    ("llff", _break_llff_count, "has 12 poses but images/ holds 11 images"),
+    ("llff", _break_llff_count, "has 17 poses but images/ holds 16 images"),
     ("llff", _break_llff_nan, "row 3 (image 3) contains NaN"),
     ("llff", _break_llff_sizes, "all views must have the same size"),
     ("nsvf", _break_nsvf_intrinsics, "has no intrinsics.txt"),
     ("nsvf", _break_nsvf_nan, "contains NaN or infinite values"),
-    ("tanks", _break_tanks_count, "has 9 images but 10 poses"),
+    ("tanks", _break_tanks_count, "has 14 images but 15 poses"),
     ("nerfstudio", _break_ns_intrinsics, "no fl_x"),
     ("nerfstudio", _break_ns_distortion, "distortion k1=0.05 is not zero"),
     ("nerfstudio", _break_ns_sizes, "all views must have the same size"),
@@ -429,3 +430,73 @@ def test_an_aspect_mismatch_in_nerfstudio_names_the_exif_turn(forward, tmp_path)
     _tag_orientation(folder / meta["frames"][0]["file_path"])
     with pytest.raises(BoostNerfError, match="aspect.*EXIF orientation 6.*reads the pixels as stored"):
         load_scene(folder)
+
+
+def test_a_k_matrix_with_skew_is_refused(tmp_path):
+    """Pixels are square and axes orthogonal in every camera boostnerf renders: a skew s != 0 in K was dropped
+    without a word (rays up to 1.8 px off on a 40 px image with s = 5)."""
+    from boostnerf_cli.scenes.nsvf import read_intrinsics
+
+    (tmp_path / "intrinsics.txt").write_text("40 5 16\n0 42 12\n0 0 1\n")
+    with pytest.raises(BoostNerfError, match=r"skew s = 5 .*not zero.*skew-free"):
+        read_intrinsics(tmp_path)
+
+
+def _crop_blender(folder: Path, keep_wh: bool) -> None:
+    """Crop every image of a Blender copy to 37 x 27 (from the 40 x 40 of `make-scene --size 40`) with the principal
+    point moved by the crop: still an exact pinhole camera of the same scene, if `w` / `h` follow the crop."""
+    for split in ("train", "test"):
+        path = folder / f"transforms_{split}.json"
+        meta = json.loads(path.read_text())
+        focal = 0.5 * 40 / math.tan(0.5 * meta.pop("camera_angle_x"))
+        meta.update(fl_x=focal, fl_y=focal, cx=20 - 3, cy=20 - 5, w=37 if keep_wh else 40, h=27 if keep_wh else 40)
+        path.write_text(json.dumps(meta))
+        for frame in meta["frames"]:
+            image = resolve_image(folder, frame["file_path"], "")
+            iio.imwrite(image, iio.imread(image)[5:32, 3:40])
+
+
+def test_blender_w_and_h_that_do_not_match_the_image_are_refused(tmp_path):
+    """A cropped Blender scene whose transforms kept the old w and h (40 x 40 for 37 x 27 images) was read with its
+    intrinsics squeezed per axis, silently (held-out PSNR 15.0 dB against 21.2 with w and h right); nerfstudio
+    refused the same file. Both loaders now check one way (`frame_intrinsics`)."""
+    import shutil
+
+    scene = make_scene(tmp_path / "b", size=40, n_train=4, n_test=1, layout="blender")
+    good = shutil.copytree(scene, tmp_path / "good")
+    _crop_blender(good, keep_wh=True)
+    k = load_scene(good).splits["train"].intrinsics[0].tolist()
+    focal = 0.5 * 40 / math.tan(0.5 * json.loads((scene / "transforms_train.json").read_text())["camera_angle_x"])
+    assert k == pytest.approx([focal, focal, 17.0, 15.0])
+    _crop_blender(scene, keep_wh=False)
+    with pytest.raises(BoostNerfError, match=r"w x h = 40 x 40 does not match the image's 37 x 27 aspect"):
+        load_scene(scene)
+
+
+def test_w_without_h_is_refused(forward, tmp_path):
+    """nerfstudio `w` without `h`: only x was scaled from w, y kept the image's height (fy doubled, cy on the bottom
+    edge: 15.9 dB against 21.4), silently."""
+    import shutil
+
+    folder = shutil.copytree(forward["nerfstudio"], tmp_path / "ns")
+    meta = json.loads((folder / "transforms.json").read_text())
+    meta.update(w=meta["w"] * 2, fl_x=meta["fl_x"] * 2, fl_y=meta["fl_y"] * 2, cx=meta["cx"] * 2, cy=meta["cy"] * 2)
+    del meta["h"]
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(BoostNerfError, match=r"w is given without h: give both"):
+        load_scene(folder)
+
+
+def test_a_frames_own_field_of_view_wins_over_the_files_focal_length(forward, tmp_path):
+    """A frame that gives its own camera_angle_x takes it, even where the file's top level gives fl_x: the frame's
+    value merged with the file's made the file's fl_x win (fl_x is read before any angle), silently."""
+    import shutil
+
+    folder = shutil.copytree(forward["nerfstudio"], tmp_path / "ns")
+    meta = json.loads((folder / "transforms.json").read_text())
+    frame = meta["frames"][0]
+    frame["camera_angle_x"] = 2 * math.atan(0.5 * meta["w"] / (2 * meta["fl_x"]))  # twice the file's focal length
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    k = load_scene(folder, holdout_every=0).splits["train"].intrinsics
+    assert float(k[0, 0]) == pytest.approx(2 * float(k[1, 0]), rel=1e-5)
+    assert float(k[0, 1]) == pytest.approx(float(k[1, 1]))  # fl_y: no frame value, the file's

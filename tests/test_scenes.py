@@ -10,6 +10,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 import torch
+from conftest import run_cli
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -432,3 +433,20 @@ def test_llff_depth_bounds_hold_every_object(tmp_path, content):
     dist = np.linalg.norm(np.asarray(points)[None] - centres[:, None], axis=-1)  # (views, points)
     assert (dist <= bounds[:, 16:17]).all(), (dist.max(1), bounds[:, 16])
     assert (dist >= bounds[:, 15:16]).all()
+
+
+def test_layouts_without_splits_hold_out_exactly_the_test_views_they_write(tmp_path):
+    """LLFF and nerfstudio keep one sequence of views, of which the loaders hold out every 8th. Test views that found
+    no such place (the 3rd of 3 beside 12 train views; 4 of the default 8 beside 24) were written after the train
+    views and trained on: 13 train views where 12 were asked for. Now only the test views that fit are written, and
+    make-scene says how many."""
+    blender = load_scene(make_scene(tmp_path / "blender", size=16, n_train=12, n_test=3))
+    ns = load_scene(make_scene(tmp_path / "ns", size=16, n_train=12, n_test=3, layout="nerfstudio"))
+    assert len(ns.splits["train"]) == 12 and len(ns.splits["test"]) == 2
+    torch.testing.assert_close(ns.splits["train"].poses, blender.splits["train"].poses)
+    torch.testing.assert_close(ns.splits["test"].poses, blender.splits["test"].poses[:2])
+    proc = run_cli("make-scene", str(tmp_path / "llff"), "--format", "llff", "--size", "16", "--train-views", "24")
+    assert proc.returncode == 0, proc.stderr
+    assert "24 train and 4 test views" in proc.stdout + proc.stderr and "room for 4 of the 8" in proc.stdout + proc.stderr
+    llff = load_scene(tmp_path / "llff")
+    assert len(llff.splits["train"]) == 24 and len(llff.splits["test"]) == 4

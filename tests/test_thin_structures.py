@@ -133,6 +133,26 @@ def test_the_box_holds_the_visible_surface_not_the_space_hidden_under_it(thin):
     assert stats["missed_before"] == stats["missed_after"] == 0
 
 
+def test_a_cells_footprint_in_the_hull_follows_each_axis_focal_length():
+    """One 0.2-wide cell 4 units in front of a camera with fy = 2 fx (pixels twice as tall as they are wide in the
+    scene: anamorphic, or resampled along one axis): a foreground pixel 4 px under the cell's centre lies inside its
+    footprint (4.3 px tall), so the hull keeps the cell. The footprint was a square of fx's size (2.2 px): cut."""
+    from boostnerf_cli.render.coverage import visual_hull
+
+    occ = OccupancyGrid(torch.ones(1, 1, 1, dtype=torch.bool), torch.tensor([[-0.1, -0.1, -0.1], [0.1, 0.1, 0.1]]))
+    pose = torch.eye(4)
+    pose[2, 3] = 4.0  # at z = 4, looking down -z at the cell
+    for fx, fy, below in ((50.0, 100.0, 4), (100.0, 50.0, 2)):
+        mask = torch.zeros(1, 40, 40, dtype=torch.bool)
+        mask[0, 20 + below, 20] = True
+        assert bool(visual_hull(occ, pose[None], torch.tensor([[fx, fy, 20.0, 20.0]]), mask).all()), (fx, fy)
+        mask = mask.transpose(1, 2)  # the same pixel to the right of the centre: fx's footprint, not fy's
+        assert bool(visual_hull(occ, pose[None], torch.tensor([[fy, fx, 20.0, 20.0]]), mask).all()), (fy, fx)
+    mask = torch.zeros(1, 40, 40, dtype=torch.bool)
+    mask[0, 20 + 4, 20] = True  # outside a square fx = fy = 50 footprint (2.2 px): left out
+    assert not bool(visual_hull(occ, pose[None], torch.tensor([[50.0, 50.0, 20.0, 20.0]]), mask).any())
+
+
 def test_a_scene_without_a_known_background_covers_every_ray():
     from boostnerf_cli.render.coverage import foreground_masks as fm
 
