@@ -221,3 +221,23 @@ def test_load_lpips_reports_unreadable_file(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv(LPIPS_ENV, str(backbone))
     model, reason = load_lpips("cpu")
     assert model is None and str(backbone) in reason
+
+
+def test_load_lpips_reports_heads_of_another_network(tmp_path, monkeypatch) -> None:
+    """The lpips package's vgg.pth (or squeeze.pth) heads, or a backbone of the right keys and other shapes: one
+    line naming the files, not a 50-line traceback of load_state_dict's size mismatch."""
+    src = LPIPSModel.random()
+    backbone, heads = tmp_path / "alexnet.pth", tmp_path / "vgg.pth"
+    torch.save(torchvision_alexnet_layout(src), backbone)
+    vgg = {f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1) for i, c in enumerate((64, 128, 256, 512, 512))}
+    torch.save(vgg, heads)
+    monkeypatch.setenv(ALEXNET_ENV, str(backbone))
+    monkeypatch.setenv(LPIPS_ENV, str(heads))
+    model, reason = load_lpips("cpu")
+    assert model is None and "shapes do not match" in reason and str(heads) in reason and "\n" not in reason
+
+
+def test_load_lpips_names_a_folder_given_for_a_file(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv(ALEXNET_ENV, str(tmp_path))
+    model, reason = load_lpips("cpu")
+    assert model is None and f"{ALEXNET_ENV}={tmp_path} is a folder, not a file" in reason

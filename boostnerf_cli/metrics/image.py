@@ -226,6 +226,11 @@ def _hub_checkpoint_dirs() -> list[Path]:
     return list(dict.fromkeys(dirs))
 
 
+def _not_a_file(path: str) -> str:
+    """Why `path`, named by an environment variable, is no weights file."""
+    return "is a folder, not a file" if Path(path).is_dir() else "does not exist"
+
+
 def _find_alexnet_file() -> tuple[Path | None, str]:
     """The AlexNet state-dict path, or None with a one-line reason naming what was not found."""
     env = os.environ.get(ALEXNET_ENV)
@@ -233,7 +238,7 @@ def _find_alexnet_file() -> tuple[Path | None, str]:
         if Path(env).is_file():
             return Path(env), ""
         return None, (
-            f"LPIPS unavailable: {ALEXNET_ENV}={env} does not exist; point it to a torchvision "
+            f"LPIPS unavailable: {ALEXNET_ENV}={env} {_not_a_file(env)}; point it to a torchvision "
             f"{ALEXNET_FILE} file"
         )
     candidates = [d / ALEXNET_FILE for d in _hub_checkpoint_dirs()]
@@ -254,7 +259,7 @@ def _find_head_file() -> tuple[Path | None, str]:
         if Path(env).is_file():
             return Path(env), ""
         return None, (
-            f"LPIPS unavailable: {LPIPS_ENV}={env} does not exist; point it to the file "
+            f"LPIPS unavailable: {LPIPS_ENV}={env} {_not_a_file(env)}; point it to the file "
             "lpips/weights/v0.1/alex.pth of the lpips package"
         )
     spec = importlib.util.find_spec("lpips")
@@ -307,6 +312,13 @@ def lpips_from_files(alexnet_path: Path, head_path: Path) -> tuple[LPIPSModel | 
     model = LPIPSModel()
     sd = _merged_state_dict(backbone, heads)
     sd.update({"shift": model.shift, "scale": model.scale})
+    wrong = [f"{k} {tuple(v.shape)} for {tuple(model.state_dict()[k].shape)}" for k, v in sd.items()
+             if k in model.state_dict() and v.shape != model.state_dict()[k].shape]
+    if wrong:
+        return None, (
+            f"LPIPS unavailable: weight shapes do not match ({alexnet_path}, {head_path}): {', '.join(wrong[:2])}; "
+            "provide torchvision AlexNet and lpips v0.1 alex.pth files (not another network's)"
+        )
     missing, unexpected = model.load_state_dict(sd, strict=False)
     if missing or unexpected:
         return None, (
