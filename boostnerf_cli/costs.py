@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 
 from boostnerf_cli.flops import count_flops
-from boostnerf_cli.models import LoadedModel, n_views
+from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, n_views
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.render.renderer import render_rays, render_view
 from boostnerf_cli.scenes import Scene, Split
@@ -76,23 +76,25 @@ def _params(module: torch.nn.Module, prefix: str, dropped: dict[str, torch.Tenso
 
 
 @torch.no_grad()
-def gflops_per_image(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None) -> float:
-    settings = model.settings(scene)
+def gflops_per_image(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None,
+                     skips: Skips = ALL_SKIPS) -> float:
+    settings, skip = model.render_setup(scene, skips)
     n = n_views(split, views)
     total = 0
     for i in range(n):
         with count_flops() as fc:
-            render_view(model.field, split, i, settings, model.skip, device)
+            render_view(model.field, split, i, settings, skip, device)
         total += fc.total
     return total / max(1, n) / 1e9
 
 
 def model_costs(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None,
-                exact_gate: bool = False) -> dict:
+                exact_gate: bool = False, skips: Skips = ALL_SKIPS) -> dict:
     """||w||_0 and GFLOPs per image of `model`, loaded with its exact (trainable) gate.
 
     ||w||_0 is counted on the model as trained; then `model` is made ready to render in place (a
-    mixture's gate baked unless `exact_gate`) and the GFLOPs are those of what render and eval run.
+    mixture's gate baked unless `exact_gate`) and the GFLOPs are those of what render and eval run
+    with `skips`.
     """
     active = active_parameters(model, scene, split, device, views)
     row = {"name": model.name, "kind": model.kind, "params": model.params, "w0": active["w0"]}
@@ -104,6 +106,7 @@ def model_costs(model: LoadedModel, scene: Scene, split: Split, device: str, vie
             for i, n in enumerate(mix.cfg.expert_names)
         ]
         row["gate"] = {"params": _params(mix.gate, "gate", model.dropped), "w0": active["per_module"].get("gate", 0)}
-    row["gflops_per_image"] = round(gflops_per_image(model.for_rendering(exact_gate), scene, split, device, views), 4)
+    ready = model.for_rendering(exact_gate)
+    row["gflops_per_image"] = round(gflops_per_image(ready, scene, split, device, views, skips), 4)
     return row
 

@@ -315,6 +315,21 @@ def test_skip_flags_through_the_cli(moe_ws):
     assert_clean_failure(proc, "empty, terminated")
 
 
+def test_eval_costs_are_those_of_the_render_it_ran(moe_ws):
+    """`eval --no-skip` renders every sample of the box through density and colour; its GFLOPs per image were those
+    of the skipping render all the same (a probe's expert: 4.8x the samples, the same GFLOPs), while the row said
+    skips all off. This tiny mixture's V_D keeps most of its box: 8% more samples."""
+    rows = {}
+    for flags in ((), ("--no-skip",)):
+        run_cli("eval", "--workspace", str(moe_ws), "--model", "top1", "--views", "1", "--report", *flags,
+                "--device", "cpu", check=True)
+        rows[flags] = json.loads((moe_ws / "reports" / "eval.json").read_text())["models"][0]
+    on, off = rows[()], rows[("--no-skip",)]
+    assert off["samples_per_image"] > 1.05 * on["samples_per_image"], (on, off)
+    assert off["gflops_per_image"] > 1.02 * on["gflops_per_image"], (on, off)
+    assert off["params"] == on["params"]
+
+
 def test_measure_costs_script_reports_every_measurement(moe_ws):
     """scripts/measure_costs.py (issue 6's benchmark) runs on a workspace and writes reports/costs.json;
     its timings are for docs/benchmarks.md, so only their presence and consistency are checked here."""

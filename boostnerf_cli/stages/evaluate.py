@@ -61,7 +61,7 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
         model = load_model(ws, name, device, exact_gate=True)  # ||w||_0 needs the trainable gate
         cost = {}
         if costs:
-            c = model_costs(model, scene, split, device, views, exact_gate)  # leaves it ready to render
+            c = model_costs(model, scene, split, device, views, exact_gate, skips)  # leaves it ready to render
             cost = {"w0": c["w0"], "gflops_per_image": c["gflops_per_image"]}
         row = {**evaluate_model(model.for_rendering(exact_gate), scene, split, device, lpips_model, skips, views), **cost}
         log(f"{name}: PSNR {row['psnr']:.3f}  SSIM {row['ssim']:.4f}  {row['seconds_per_image']:.3f}s/image")
