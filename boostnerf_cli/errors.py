@@ -12,6 +12,11 @@ class BoostNerfError(Exception):
     exit_code = 2
 
 
+class DataWarning(UserWarning):
+    """Input that loads but may not mean what its author meant: one line, what and what to do. `load_scene` keeps
+    them in `Scene.extra["warnings"]`; `pretrain` prints them."""
+
+
 # what the allocators say when a tensor does not fit (CPU, CUDA, and sizes past what can be addressed)
 _OUT_OF_MEMORY = ("can't allocate memory", "out of memory", "storage size calculation overflowed")
 

@@ -8,12 +8,13 @@ entry to `FORMATS`. "auto" tries the detectors in order; docs/datasets.md descri
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
 from typing import Callable
 
 import torch
 
-from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.errors import BoostNerfError, DataWarning
 from boostnerf_cli.scenes.blender import is_blender, load_blender
 from boostnerf_cli.scenes.llff import is_llff, load_llff
 from boostnerf_cli.scenes.nerfstudio import is_nerfstudio, load_nerfstudio
@@ -45,7 +46,8 @@ def load_scene(path, image_size: int | None = None, holdout_every: int = 8, form
                bbox: list[float] | None = None) -> Scene:
     """Load the scene at `path`; `format` is "auto" or a key of `FORMATS`.
 
-    With "auto", `scene.extra["detected"]` says which format was recognised from which files. `bbox`
+    With "auto", `scene.extra["detected"]` says which format was recognised from which files; `scene.extra["warnings"]`
+    holds what the loader found doubtful (`DataWarning`, one line each). `bbox`
     ([xmin, ymin, zmin, xmax, ymax, zmax], world units) replaces the box the loader gives, for content that
     reaches past it; a forward-facing scene's box is NDC's and cannot be replaced.
     """
@@ -58,7 +60,14 @@ def load_scene(path, image_size: int | None = None, holdout_every: int = 8, form
         detected = f"{format} (found {found})"
     if format not in FORMATS:
         raise BoostNerfError(f"unknown scene format {format!r}: use auto or one of {', '.join(FORMATS)}")
-    scene = FORMATS[format][1](folder, image_size=image_size, holdout_every=holdout_every)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DataWarning)
+        scene = FORMATS[format][1](folder, image_size=image_size, holdout_every=holdout_every)
+    for w in caught:
+        if issubclass(w.category, DataWarning):
+            scene.extra.setdefault("warnings", []).append(str(w.message))
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     if detected:
         scene.extra["detected"] = detected
     if bbox is not None:

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.errors import BoostNerfError, DataWarning
 from boostnerf_cli.render.rays import NDC
 from boostnerf_cli.scenes.scene import Scene, Split
 
@@ -91,6 +91,12 @@ def target_size(height: int, width: int, image_size: int | None) -> tuple[int, i
 # ----------------------------------------------------------------------------- images
 
 
+# Pillow's advice to convert palette transparency to RGBA: `_read_mode` does. A filter set once, for this message
+# alone: `warnings.catch_warnings` around each read is not thread-safe (`load_frames` reads in threads), and its
+# exits left other threads' filters in place, an "ignore UserWarning" that silenced the loaders' `DataWarning`s.
+warnings.filterwarnings("ignore", message="Palette images with Transparency", category=UserWarning)
+
+
 def _read_mode(path: Path) -> str | None:
     """The Pillow mode to read an image in so that its colours and transparency survive, or None (as stored).
     A palette image (what pngquant writes) or a colour-keyed grey or RGB PNG may carry transparency, which a
@@ -110,9 +116,7 @@ def _read_mode(path: Path) -> str | None:
 def read_image(path: Path) -> Tensor:
     """Read an image as float32 (H, W, C) in [0, 1]: C = 1 grey, 2 grey+alpha, 3 RGB, 4 RGBA (`_read_mode`)."""
     try:
-        with warnings.catch_warnings():  # Pillow's advice to convert palette transparency to RGBA: done
-            warnings.simplefilter("ignore", UserWarning)
-            data = iio.imread(path, plugin="pillow", mode=_read_mode(path))
+        data = iio.imread(path, plugin="pillow", mode=_read_mode(path))
     except Exception as err:  # imageio/PIL raise many types for corrupt files
         raise BoostNerfError(f"cannot read image {path} (corrupt or not an image: {one_line(err)}); replace or re-export it") from None
     if data.ndim == 2:
@@ -185,6 +189,12 @@ def load_frames(frames: list[Frame], image_size: int | None,
     images = torch.stack([rgb for rgb, _ in loaded])
     if all(a is None for _, a in loaded):
         return images, None, native
+    plain = [f.image for f, (_, a) in zip(frames, loaded) if a is None]
+    if plain:
+        warnings.warn(DataWarning(
+            f"{len(plain)} of {len(frames)} images have no alpha channel while the others have one "
+            f"({plain[0]}{', ...' if len(plain) > 1 else ''}): they are used as they are, not composited on the "
+            "background colour; save them with their alpha, or composited on that colour"), stacklevel=2)
     alpha = torch.stack([torch.ones(size) if a is None else a for _, a in loaded])
     return images, alpha, native
 

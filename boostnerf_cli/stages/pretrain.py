@@ -400,6 +400,8 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
                            recipe=recipe_dict(rec))
     if "detected" in scene.extra:
         log(f"format: {scene.extra['detected']}")
+    for warning in scene.extra.get("warnings", []):
+        log(f"warning: {warning}")
     log(f"scene {scene.name}: {len(scene.splits['train'])} train views "
         f"{scene.splits['train'].width}x{scene.splits['train'].height}"
         + (f", {scene.holdout}" if scene.holdout else ""))
