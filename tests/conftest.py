@@ -83,6 +83,7 @@ TINY_MOE_PSNR_2_VIEWS = {"dvgo-12": 17.48, "dvgo-16": 18.01, "baseline": 18.44, 
 
 
 _SERVER: dict = {}  # this worker's CLI fork server (tests/cli_server.py): its process and socket, started once
+_BASE_ENV = dict(os.environ)  # the worker's environment before any test changes it: the server's
 
 
 def _cli_server() -> str:
@@ -92,7 +93,7 @@ def _cli_server() -> str:
         import tempfile
 
         sock = Path(tempfile.mkdtemp(prefix="boostnerf-cli-")) / "cli.sock"
-        env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+        env = {**_BASE_ENV, "PYTHONWARNINGS": "ignore"}
         server = subprocess.Popen([sys.executable, str(Path(__file__).parent / "cli_server.py"), str(sock)], env=env,
                                   stdout=subprocess.PIPE, text=True)
         if server.stdout.readline().strip() != "ready":
@@ -105,18 +106,23 @@ def _cli_server() -> str:
 def run_cli(*args: str, cwd: Path | None = None, check: bool = False,
             env_extra: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     """Run the real CLI (`boostnerf ARGS`) in a process of its own, with `env_extra` set: a child forked from this
-    worker's CLI server (tests/cli_server.py), which has imported torch already."""
+    worker's CLI server (tests/cli_server.py), which has imported torch already; a fresh `python -m boostnerf_cli`
+    when the test changed PYTHONPATH (a stand-in module or a plugin the server's imports cannot see)."""
     import tempfile
 
     from cli_server import request
 
     env = {**os.environ, "PYTHONWARNINGS": "ignore", **(env_extra or {})}
-    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, open(os.devnull, "rb") as null:
-        code = request(_cli_server(), list(args), str(cwd or Path.cwd()), env, [null.fileno(), out.fileno(),
-                       err.fileno()], timeout=600)
-        out.seek(0)
-        err.seek(0)
-        proc = subprocess.CompletedProcess(["boostnerf", *args], code, out.read().decode(), err.read().decode())
+    if env.get("PYTHONPATH") != _BASE_ENV.get("PYTHONPATH"):
+        proc = subprocess.run([sys.executable, "-m", "boostnerf_cli", *args], capture_output=True, text=True,
+                              cwd=cwd, env=env, timeout=600)
+    else:
+        with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, open(os.devnull, "rb") as null:
+            code = request(_cli_server(), list(args), str(cwd or Path.cwd()), env,
+                           [null.fileno(), out.fileno(), err.fileno()], timeout=600)
+            out.seek(0)
+            err.seek(0)
+            proc = subprocess.CompletedProcess(["boostnerf", *args], code, out.read().decode(), err.read().decode())
     if check and proc.returncode != 0:
         raise AssertionError(f"boostnerf {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
     return proc
