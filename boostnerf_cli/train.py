@@ -299,8 +299,7 @@ def train(
                 trend.load_state(state["trend"])
             gen.set_state(state["gen"])
             torch.set_rng_state(state["rng"])
-            if state.get("cuda_rng") and torch.cuda.is_available():
-                torch.cuda.set_rng_state_all(state["cuda_rng"])
+            restore_cuda_rng(state.get("cuda_rng"), rays.origins.device)
         except MALFORMED as e:
             raise BoostNerfError(f"training checkpoint {checkpoint} does not hold this model's training state "
                                  f"({malformed(e)}); delete it to restart this model") from None
@@ -364,7 +363,7 @@ def train(
             progress.update(done, logs)
             if checkpoint is not None and (done % sched.checkpoint_every == 0 or done == sched.iters):
                 save = partial(_save_checkpoint, checkpoint, task, opt, done, time.perf_counter() - t0, skipped,
-                               history, gen, signature, trend)
+                               history, gen, signature, trend, rays.origins.device)
                 if parallel:
                     dist.on_main(save)  # one file for all ranks (they hold the same state)
                 else:
@@ -374,9 +373,29 @@ def train(
     return TrainResult(sched.iters, time.perf_counter() - t0, skipped, history)
 
 
+def cuda_rng_state(device: torch.device) -> Tensor | None:
+    """The random state of the CUDA device training draws on (each ray's jitter), for a checkpoint; None off CUDA.
+    Only this device's: a checkpoint must resume on a machine with fewer GPUs visible."""
+    return torch.cuda.get_rng_state(device) if device.type == "cuda" else None
+
+
+def restore_cuda_rng(state: Tensor | list | None, device: torch.device) -> None:
+    """Give `device` the state `cuda_rng_state` saved. A checkpoint from before session 25 holds every visible GPU's
+    state (`get_rng_state_all`, which `set_rng_state_all` cannot put back with fewer GPUs): the entry of `device`'s
+    index, if there is one. Nothing off CUDA."""
+    if state is None or device.type != "cuda":
+        return
+    if isinstance(state, (list, tuple)):
+        index = device.index if device.index is not None else torch.cuda.current_device()
+        if index >= len(state):
+            return
+        state = state[index]
+    torch.cuda.set_rng_state(state, device)
+
+
 def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, step: int, seconds: float,
                      skipped: int, history: list, gen: torch.Generator, signature: dict | None = None,
-                     trend: PsnrTrend | None = None) -> None:
+                     trend: PsnrTrend | None = None, device: torch.device = torch.device("cpu")) -> None:
     """Write the resumable state atomically; a state with NaN or infinity stops the run instead
     (the previous checkpoint stays, so nothing before it is lost)."""
     task_state, optim_state = task.state(), opt.state_dict()
@@ -395,7 +414,7 @@ def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, st
         "history": history,
         "gen": gen.get_state(),
         "rng": torch.get_rng_state(),
-        "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+        "cuda_rng": cuda_rng_state(device),
         "signature": signature,
         "trend": None if trend is None else trend.state(),
     }
