@@ -389,7 +389,8 @@ def main() -> None:
         err.print(f"error: {e}", markup=False)
         sys.exit(e.exit_code)
     except (Interrupted, KeyboardInterrupt):  # the stage's cleanup (lock, temporary files) has run
-        err.print("interrupted: finished files are kept; rerun the same command to resume", markup=False)
+        err.print("interrupted: finished files are kept; rerun the same command to go on (the model in training "
+                  "resumes from its last checkpoint, or starts again if it had none yet)", markup=False)
         sys.exit(130)
     except (NotADirectoryError, IsADirectoryError, FileExistsError, PermissionError) as e:
         if e.filename is None:  # a path in the workspace or scene is in the way: the user's to move

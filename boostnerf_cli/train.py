@@ -395,7 +395,7 @@ def restore_cuda_rng(state: Tensor | list | None, device: torch.device) -> None:
 
 def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, step: int, seconds: float,
                      skipped: int, history: list, gen: torch.Generator, signature: dict | None = None,
-                     trend: PsnrTrend | None = None, device: torch.device = torch.device("cpu")) -> None:
+                     trend: PsnrTrend | None = None, device: torch.device | None = None) -> None:
     """Write the resumable state atomically; a state with NaN or infinity stops the run instead
     (the previous checkpoint stays, so nothing before it is lost)."""
     task_state, optim_state = task.state(), opt.state_dict()
@@ -414,7 +414,7 @@ def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, st
         "history": history,
         "gen": gen.get_state(),
         "rng": torch.get_rng_state(),
-        "cuda_rng": cuda_rng_state(device),
+        "cuda_rng": None if device is None else cuda_rng_state(device),
         "signature": signature,
         "trend": None if trend is None else trend.state(),
     }

@@ -97,7 +97,7 @@ def test_interrupt_stops_cleanly_and_the_rerun_resumes(tmp_path, tiny_scene, sig
             break
     err = proc.stderr.read()
     assert proc.wait(timeout=120) == 130
-    assert err.strip().splitlines()[-1] == "interrupted: finished files are kept; rerun the same command to resume"
+    assert err.strip().splitlines()[-1] == "interrupted: finished files are kept; rerun the same command to go on (the model in training resumes from its last checkpoint, or starts again if it had none yet)"
     assert "Traceback" not in err
     assert not (ws / ".lock").exists() and not _tmp_files(ws)
     step = torch.load(ws / "checkpoints" / "dvgo-10.pt", weights_only=True)["step"]
