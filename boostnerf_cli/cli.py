@@ -25,6 +25,22 @@ app = typer.Typer(
 err = Console(stderr=True, highlight=False, soft_wrap=True)
 out = Console(highlight=False)
 
+
+def show(table: Table) -> None:
+    """Print `table` on stdout: fitted to a terminal, and as wide as its cells in a file or pipe (Rich lays out
+    80 columns there and cuts what does not fit)."""
+    if out.is_terminal:
+        out.print(table)
+        return
+    from rich.measure import Measurement
+
+    width = out.width
+    out.width = max(width, Measurement.get(out, out.options.update_width(10_000), table).maximum)
+    try:
+        out.print(table)
+    finally:
+        out.width = width
+
 WorkspaceOpt = Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory (created if missing).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto (CUDA when available), cpu or cuda.")]
 RecipeOpt = Annotated[Optional[Path], typer.Option("--recipe", help="YAML recipe supplying defaults; flags override it.")]
@@ -137,7 +153,7 @@ def pretrain(
     for r in reports:
         table.add_row(r["name"], f"{r['params']:,}", str(r["iterations"]), f"{r['seconds']:.0f}",
                       number(r["train_psnr"], ".2f"), number(r.get("test_psnr"), ".2f"))
-    out.print(table)
+    show(table)
 
 
 def _moe_recipe(workspace: Path, recipe: Optional[Path]):
@@ -272,7 +288,7 @@ def eval_cmd(
         table.add_row(r["name"], number(r["psnr"], ".3f"), f"{r['ssim']:.4f}", number(r["lpips"], ".4f"),
                       f"{r['w0']:,}" if "w0" in r else "-", f"{r['gflops_per_image']:.3f}" if "w0" in r else "-",
                       f"{r['seconds_per_image']:.3f}", f"{r['params']:,}")
-    out.print(table)
+    show(table)
 
 
 @app.command("count-params")
@@ -293,7 +309,7 @@ def count_params_cmd(
     table = Table("model", "params", "||w||_0", "GFLOPs/image")
     for r in result["models"]:
         table.add_row(r["name"], f"{r['params']:,}", f"{r['w0']:,}", f"{r['gflops_per_image']:.3f}")
-    out.print(table)
+    show(table)
 
 
 @app.command()
@@ -317,7 +333,7 @@ def prune(
     table.add_row(r["from"], f"{r['params_before']:,}", f"{r['file_bytes_before'] / 1e6:.2f}", number(r["test_psnr_before"], ".3f"), "")
     table.add_row(r["name"], f"{r['params_after']:,}", f"{r['file_bytes_after'] / 1e6:.2f}", number(r["test_psnr_after"], ".3f"),
                   f"{r['train_max_abs_diff']:.1e}")
-    out.print(table)
+    show(table)
 
 
 @app.command()
@@ -345,7 +361,7 @@ def bench(
         for r in stage.select(rows, names, suite):
             done = stage.row_path(workspace, r.name).exists()
             table.add_row(r.name, r.group, f"variants/{r.setup}", r.model, "yes" if done else "no")
-        out.print(table)
+        show(table)
         return
     from boostnerf_cli.workspace import number
 
@@ -356,7 +372,7 @@ def bench(
     for r in result["rows"]:
         table.add_row(r["name"], r["group"], number(r["psnr"], ".3f"), f"{r['ssim']:.4f}", f"{r['train_seconds']:.0f}",
                       f"{r['seconds_per_image']:.3f}", f"{r['gflops_per_image']:.3f}", f"{r['params']:,}", f"{r['w0']:,}")
-    out.print(table)
+    show(table)
     log(f"wrote {workspace / 'reports' / 'bench.json'} and bench.csv"
         + (f" and {len(result['plots'])} plots" if result["plots"] else ""))
 

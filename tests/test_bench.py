@@ -199,3 +199,12 @@ def test_bench_config_of_a_recipe_with_per_resolution_options_reads_back_equal(t
     config = bench.bench_config(tmp_path, None, rec)
     write_json(tmp_path / "bench-config.json", config)
     assert read_json(tmp_path / "bench-config.json", "bench config") == bench.bench_config(tmp_path, None, rec)
+
+
+def test_tables_written_to_a_file_or_pipe_keep_every_name_whole(bench_recipe, tmp_path):
+    """Out of a terminal (a log, a pipe) Rich laid tables out at 80 columns and cut what did not fit:
+    `variants/penalty-l…`. They are now as wide as their cells."""
+    proc = run_cli("bench", "--workspace", str(tmp_path / "b"), "--recipe", str(bench_recipe), "--list", "--suite",
+                   "full")
+    assert proc.returncode == 0, proc.stderr
+    assert "…" not in proc.stdout and "variants/penalty-quadratic " in proc.stdout, proc.stdout
