@@ -112,8 +112,8 @@ def make_scene_cmd(
     path = make_scene(out_dir, size=size, n_train=n_train, n_test=n_test, seed=seed, layout=layout, rig=rig,
                       content=content)
     written = written_test_views(layout, n_train, n_test)
-    note = (f" ({layout} holds out every 8th view: {n_train} train views leave room for {written} of the {n_test} "
-            "test views asked for)") if written < n_test else ""
+    note = (f" ({layout} holds out every 8th view: with {n_train} train views that is {written} test views, not the "
+            f"{n_test} asked for)") if written != n_test else ""
     log(f"wrote a {size}x{size} {layout} scene with {n_train} train and {written} test views to {path}{note}")
 
 

@@ -438,15 +438,19 @@ def test_llff_depth_bounds_hold_every_object(tmp_path, content):
 def test_layouts_without_splits_hold_out_exactly_the_test_views_they_write(tmp_path):
     """LLFF and nerfstudio keep one sequence of views, of which the loaders hold out every 8th. Test views that found
     no such place (the 3rd of 3 beside 12 train views; 4 of the default 8 beside 24) were written after the train
-    views and trained on: 13 train views where 12 were asked for. Now only the test views that fit are written, and
-    make-scene says how many."""
-    blender = load_scene(make_scene(tmp_path / "blender", size=16, n_train=12, n_test=3))
-    ns = load_scene(make_scene(tmp_path / "ns", size=16, n_train=12, n_test=3, layout="nerfstudio"))
-    assert len(ns.splits["train"]) == 12 and len(ns.splits["test"]) == 2
-    torch.testing.assert_close(ns.splits["train"].poses, blender.splits["train"].poses)
-    torch.testing.assert_close(ns.splits["test"].poses, blender.splits["test"].poses[:2])
+    views and trained on: 13 train views where 12 were asked for. With fewer test views than places (1 beside 16),
+    train views were held out: 14 train views and 3 test views, 2 of them Blender's train views. Now these layouts
+    write the test views that fill the places, the views of a Blender scene with that many, and make-scene says so."""
+    for n_train, n_test, written in ((12, 3, 2), (16, 1, 3)):
+        blender = load_scene(make_scene(tmp_path / f"b{n_train}", size=16, n_train=n_train, n_test=written))
+        ns = load_scene(make_scene(tmp_path / f"ns{n_train}", size=16, n_train=n_train, n_test=n_test,
+                                   layout="nerfstudio"))
+        assert len(ns.splits["train"]) == n_train and len(ns.splits["test"]) == written
+        torch.testing.assert_close(ns.splits["train"].poses, blender.splits["train"].poses)
+        torch.testing.assert_close(ns.splits["test"].poses, blender.splits["test"].poses)
     proc = run_cli("make-scene", str(tmp_path / "llff"), "--format", "llff", "--size", "16", "--train-views", "24")
     assert proc.returncode == 0, proc.stderr
-    assert "24 train and 4 test views" in proc.stdout + proc.stderr and "room for 4 of the 8" in proc.stdout + proc.stderr
+    text = proc.stdout + proc.stderr
+    assert "24 train and 4 test views" in text and "that is 4 test views, not the 8 asked for" in text, text
     llff = load_scene(tmp_path / "llff")
     assert len(llff.splits["train"]) == 24 and len(llff.splits["test"]) == 4

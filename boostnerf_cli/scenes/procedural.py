@@ -411,10 +411,11 @@ SEQUENCE_LAYOUTS = ("llff", "nerfstudio")  # one sequence of views, no split fil
 
 
 def written_test_views(layout: str, n_train: int, n_test: int) -> int:
-    """How many of `n_test` test views `make_scene` writes in `layout`. A layout without splits holds out every
-    8th view, so a test view needs a place at 0, 8, 16, ... among the views written: 1 + n_train // 7 of them
-    at most (24 train views hold 4 test views). The others would be trained on, so they are not written."""
-    return min(n_test, 1 + n_train // (HOLDOUT_EVERY - 1)) if layout in SEQUENCE_LAYOUTS and n_test else n_test
+    """How many test views `make_scene` writes in `layout` when `n_test` are asked for. A layout without splits
+    holds out every 8th view (places 0, 8, 16, ...), so its test split is exactly its test views only when they
+    fill those places: t = 1 + n_train // 7 of them (the t with t = ceil((n_train + t) / 8); 24 train views take 4).
+    More test views would be trained on; fewer would leave train views held out. None stay none."""
+    return 1 + n_train // (HOLDOUT_EVERY - 1) if layout in SEQUENCE_LAYOUTS and n_test else n_test
 
 
 def sequence_order(n_train: int, n_test: int) -> list[tuple[str, int]]:
@@ -506,9 +507,8 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     if out_dir.is_dir() and any(out_dir.iterdir()):
         raise BoostNerfError(f"{out_dir} already holds files: make-scene writes into a new or empty folder (another "
                              "scene's files would mix with this one's); choose a new folder or delete this one")
+    n_test = written_test_views(layout, n_train, n_test)  # the views of a Blender scene with that many test views
     train, test = (forward_poses if rig == "forward" else camera_poses)(n_train, n_test)
-    n_test = written_test_views(layout, n_train, n_test)
-    test = test[:n_test]  # the first test views of every layout are the same views
     focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
     k = torch.tensor([focal, focal, size / 2, size / 2])
     views = {}
