@@ -500,3 +500,24 @@ def test_a_frames_own_field_of_view_wins_over_the_files_focal_length(forward, tm
     k = load_scene(folder, holdout_every=0).splits["train"].intrinsics
     assert float(k[0, 0]) == pytest.approx(2 * float(k[1, 0]), rel=1e-5)
     assert float(k[0, 1]) == pytest.approx(float(k[1, 1]))  # fl_y: no frame value, the file's
+
+
+def test_a_blender_transforms_file_with_lens_distortion_is_refused(tmp_path):
+    """instant-ngp writes k1 k2 p1 p2 and camera_model into Blender-layout transforms, and applies them: such a camera
+    is not a pinhole. The Blender loader rendered it as one, silently; nerfstudio's refused the same keys."""
+    import shutil
+
+    scene = make_scene(tmp_path / "b", size=16, n_train=3, n_test=1)
+    for name, change in (("k1", {"k1": -0.2, "k2": 0.05, "camera_model": "OPENCV"}),
+                         ("fisheye", {"camera_model": "OPENCV_FISHEYE"})):
+        folder = shutil.copytree(scene, tmp_path / name)
+        meta = json.loads((folder / "transforms_train.json").read_text())
+        meta.update(change)
+        (folder / "transforms_train.json").write_text(json.dumps(meta))
+        with pytest.raises(BoostNerfError, match="pinhole cameras only"):
+            load_scene(folder)
+    meta = json.loads((scene / "transforms_test.json").read_text())
+    meta["frames"][0]["p1"] = 0.001  # one frame's own
+    (scene / "transforms_test.json").write_text(json.dumps(meta))
+    with pytest.raises(BoostNerfError, match=r"transforms_test.json frame 0.*distortion p1=0.001 is not zero"):
+        load_scene(scene)

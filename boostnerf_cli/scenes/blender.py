@@ -25,6 +25,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
     Frame,
+    check_pinhole,
     frame_camera,
     frame_intrinsics,
     hold_out,
@@ -52,11 +53,13 @@ def _parse_split(folder: Path, split: str) -> tuple[list[Frame], dict]:
     """Frames of `transforms_<split>.json` and the file's top-level metadata."""
     path = folder / f"transforms_{split}.json"
     meta = read_transforms(path, may_be_empty=split != "train")
+    check_pinhole(meta, str(path))
     frames = []
     for i, frame in enumerate(meta["frames"]):
         source = f"{path.name} frame {i}"
         if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
             raise BoostNerfError(f"{source} in {folder}: needs 'file_path' and 'transform_matrix'")
+        check_pinhole(frame, f"{source} in {folder}")
         image = resolve_image(folder, str(frame["file_path"]), f"{source} in {folder}")
         camera = frame_camera(frame, meta)
         name = str(image.relative_to(folder).with_suffix("")) if image.is_relative_to(folder) else image.stem

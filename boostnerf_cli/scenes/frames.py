@@ -219,6 +219,33 @@ def read_transforms(path: Path, may_be_empty: bool = False) -> dict:
     return meta
 
 
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
+
+
+def check_pinhole(entry: dict, source: str) -> None:
+    """Refuse a transforms entry (the file's top level or a frame) that describes no pinhole camera: a camera_model
+    other than `PINHOLE_MODELS` or a non-zero distortion coefficient (instant-ngp and nerfstudio write, and apply,
+    both)."""
+    model = entry.get("camera_model")
+    if model is not None and str(model).upper() not in PINHOLE_MODELS:
+        raise BoostNerfError(
+            f"{source}: camera_model {model} is not a pinhole camera; boostnerf renders pinhole cameras only: "
+            f"undistort the images and write camera_model OPENCV with zero distortion"
+        )
+    for key in DISTORTION_KEYS:
+        value = entry.get(key)
+        try:
+            nonzero = value is not None and float(value) != 0.0
+        except (TypeError, ValueError):
+            raise BoostNerfError(f"{source}: distortion {key} must be a number, got {value!r}") from None
+        if nonzero:
+            raise BoostNerfError(
+                f"{source}: distortion {key}={value} is not zero; boostnerf renders pinhole cameras only: "
+                f"undistort the images first (e.g. ns-process-data, or COLMAP image_undistorter) and set it to 0"
+            )
+
+
 FOCAL_KEYS = (("fl_x", "camera_angle_x"), ("fl_y", "camera_angle_y"))  # two ways to give each axis's focal length
 
 

@@ -23,6 +23,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
     Frame,
+    check_pinhole,
     frame_camera,
     frame_intrinsics,
     hold_out,
@@ -34,33 +35,10 @@ from boostnerf_cli.scenes.frames import (
 )
 from boostnerf_cli.scenes.scene import Scene, Split
 
-DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
-
 
 def is_nerfstudio(path: Path) -> str:
     """What was found when `path` holds a nerfstudio `transforms.json`, else ""."""
     return "transforms.json" if (Path(path) / "transforms.json").is_file() else ""
-
-
-def _check_pinhole(entry: dict, source: str) -> None:
-    model = entry.get("camera_model")
-    if model is not None and str(model).upper() not in PINHOLE_MODELS:
-        raise BoostNerfError(
-            f"{source}: camera_model {model} is not a pinhole camera; boostnerf renders pinhole cameras only: "
-            f"undistort the images and write camera_model OPENCV with zero distortion"
-        )
-    for key in DISTORTION_KEYS:
-        value = entry.get(key)
-        try:
-            nonzero = value is not None and float(value) != 0.0
-        except (TypeError, ValueError):
-            raise BoostNerfError(f"{source}: distortion {key} must be a number, got {value!r}") from None
-        if nonzero:
-            raise BoostNerfError(
-                f"{source}: distortion {key}={value} is not zero; boostnerf renders pinhole cameras only: "
-                f"undistort the images first (e.g. ns-process-data, or COLMAP image_undistorter) and set it to 0"
-            )
 
 
 def load_nerfstudio(
@@ -77,13 +55,13 @@ def load_nerfstudio(
     if not path.is_file():
         raise BoostNerfError(f"no transforms.json in {folder}: not a nerfstudio scene")
     meta = read_transforms(path)
-    _check_pinhole(meta, str(path))
+    check_pinhole(meta, str(path))
     frames = []
     for i, frame in enumerate(meta["frames"]):
         source = f"{path} frame {i}"
         if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
             raise BoostNerfError(f"{source}: needs 'file_path' and 'transform_matrix'")
-        _check_pinhole(frame, source)
+        check_pinhole(frame, source)
         image = resolve_image(folder, str(frame["file_path"]), source)
         camera = frame_camera(frame, meta)
         if camera["fl_x"] is None and camera["camera_angle_x"] is None:
