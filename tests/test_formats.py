@@ -521,3 +521,33 @@ def test_a_blender_transforms_file_with_lens_distortion_is_refused(tmp_path):
     (scene / "transforms_test.json").write_text(json.dumps(meta))
     with pytest.raises(BoostNerfError, match=r"transforms_test.json frame 0.*distortion p1=0.001 is not zero"):
         load_scene(scene)
+
+
+def test_w_and_h_are_checked_to_a_pixel_of_rounding_not_to_2_percent():
+    """`w` x `h` against the image's own aspect: a stored image may be a pixel off from a downscale's rounding (a
+    1297 x 731 capture cut by 32 is 40 x 22, 2.5% off: refused before), but a 960 x 540 image with w x h 960 x 550
+    (1.9% off, its principal point 5 px out) passed the old 2% check and was rendered squeezed."""
+    from boostnerf_cli.scenes.frames import frame_intrinsics
+
+    camera = {k: None for k in ("camera_angle_x", "camera_angle_y", "fl_y", "cx", "cy")}
+    k = frame_intrinsics({**camera, "fl_x": 1000.0, "w": 1297, "h": 731}, (22, 40), (22, 40), "f")
+    assert k[0] == pytest.approx(1000 * 40 / 1297) and k[1] == pytest.approx(1000 * 22 / 731)
+    with pytest.raises(BoostNerfError, match="w x h = 960 x 550 does not match the image's 960 x 540 aspect"):
+        frame_intrinsics({**camera, "fl_x": 1000.0, "w": 960, "h": 550}, (540, 960), (540, 960), "f")
+
+
+def test_a_principal_point_far_from_the_image_centre_is_named(forward, tmp_path):
+    """Images downscaled after the transforms were written, without `w` / `h`: the intrinsics are the full size's, so
+    the principal point lands on the images' corner (held-out 9.9 dB against 23.1 with w and h), silently. A scene
+    whose principal point lies more than a quarter of the image from its centre now carries a warning."""
+    import shutil
+
+    folder = shutil.copytree(forward["nerfstudio"], tmp_path / "ns")
+    meta = json.loads((folder / "transforms.json").read_text())
+    for key in ("fl_x", "fl_y", "cx", "cy"):
+        meta[key] *= 2  # a capture twice the size, its images halved afterwards
+    del meta["w"], meta["h"]
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    (warning,) = load_scene(folder).extra["warnings"]
+    assert "principal point" in warning and "w and h" in warning, warning
+    assert "warnings" not in load_scene(forward["nerfstudio"]).extra

@@ -42,6 +42,23 @@ def detect_format(folder: Path) -> tuple[str, str]:
     raise BoostNerfError(f"cannot tell the dataset format of {folder}: looked for {wanted}")
 
 
+def _off_centre(scene: Scene) -> str:
+    """A warning when a view's principal point lies more than a quarter of the image from its centre: intrinsics of
+    another image size (images downscaled after the cameras were written, without `w` / `h`), or "" ."""
+    for name, split in scene.splits.items():
+        centre = torch.tensor([split.width, split.height], dtype=torch.float32) / 2
+        off = ((split.intrinsics[:, 2:4] - centre).abs() > centre / 2).any(-1)
+        if bool(off.any()):
+            i = int(off.nonzero()[0])
+            cx, cy = (float(v) for v in split.intrinsics[i, 2:4])
+            fix = ("give w and h, that size, in the transforms file" if scene.format in ("blender", "nerfstudio")
+                   else "scale them to these images")
+            return (f"view {split.names[i]} ({name}) has its principal point at ({cx:g}, {cy:g}), far from the centre "
+                    f"of its {split.width} x {split.height} image ({int(off.sum())} of {len(split)} views): do the "
+                    f"intrinsics refer to images of another size? Then {fix}")
+    return ""
+
+
 def load_scene(path, image_size: int | None = None, holdout_every: int = 8, format: str = "auto",
                bbox: list[float] | None = None) -> Scene:
     """Load the scene at `path`; `format` is "auto" or a key of `FORMATS`.
@@ -68,6 +85,9 @@ def load_scene(path, image_size: int | None = None, holdout_every: int = 8, form
             scene.extra.setdefault("warnings", []).append(str(w.message))
         else:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    off = _off_centre(scene)
+    if off:
+        scene.extra.setdefault("warnings", []).append(off)
     if detected:
         scene.extra["detected"] = detected
     if bbox is not None:

@@ -329,10 +329,13 @@ def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int
         given, missing = ("w", "h") if h is None else ("h", "w")
         raise BoostNerfError(f"{source}: {given} is given without {missing}: give both (the image size in pixels the "
                              "intrinsics refer to) or neither")
-    if w is not None and not math.isclose(w / h, native[1] / native[0], rel_tol=0.02):
+    # the image may be a pixel off per axis from a downscale's rounding: 0.5% at least, more for tiny images
+    tolerance = max(0.005, 1 / native[0] + 1 / native[1])
+    if w is not None and not math.isclose(w / h, native[1] / native[0], rel_tol=tolerance):
         note = orientation_note(image) if image is not None else ""
         raise BoostNerfError(f"{source}: w x h = {w:g} x {h:g} does not match the image's {native[1]} x {native[0]} "
-                             f"aspect; fix w and h or the image{note}")
+                             f"aspect; w and h are the size of the image the intrinsics refer to: fix them, or the "
+                             f"image{note}")
 
     def focal(angle_key: str, size: float) -> float:
         angle = number(angle_key)
