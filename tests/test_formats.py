@@ -551,3 +551,17 @@ def test_a_principal_point_far_from_the_image_centre_is_named(forward, tmp_path)
     (warning,) = load_scene(folder).extra["warnings"]
     assert "principal point" in warning and "w and h" in warning, warning
     assert "warnings" not in load_scene(forward["nerfstudio"]).extra
+
+
+def test_a_focal_length_given_for_y_alone_serves_both_axes():
+    """A transforms file with camera_angle_y (or fl_y) and nothing for x, as some exporters write for portrait
+    images: refused before ("no camera_angle_x and no fl_x"); instant-ngp reads it as square pixels, and so now does
+    boostnerf."""
+    from boostnerf_cli.scenes.frames import frame_intrinsics
+
+    camera = {k: None for k in ("camera_angle_x", "fl_x", "fl_y", "cx", "cy", "w", "h")}
+    k = frame_intrinsics({**camera, "camera_angle_y": 2 * math.atan(0.5)}, (40, 20), (40, 20), "f")
+    assert k == pytest.approx([40.0, 40.0, 10.0, 20.0])
+    assert frame_intrinsics({**camera, "fl_y": 33.0}, (40, 20), (40, 20), "f") == pytest.approx([33, 33, 10, 20])
+    with pytest.raises(BoostNerfError, match="no focal length"):
+        frame_intrinsics(camera, (40, 20), (40, 20), "f")

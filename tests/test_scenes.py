@@ -388,7 +388,7 @@ def test_error_bad_json_and_missing_focal(tmp_path):
     meta_path = folder / "transforms_train.json"
     meta = json.loads(meta_path.read_text())
     meta_path.write_text(json.dumps({"frames": meta["frames"]}))
-    raises_one_line("no camera_angle_x and no fl_x", load_scene, folder)
+    raises_one_line("no focal length", load_scene, folder)
     meta_path.write_text("{ not json")
     raises_one_line(r"cannot parse .*transforms_train\.json", load_scene, folder)
 

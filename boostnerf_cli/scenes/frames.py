@@ -345,18 +345,19 @@ def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int
 
     h_json = h or float(native[0])
     w_json = w or float(native[1])
+    fx = fy = None
     if camera["fl_x"] is not None:
         fx = number("fl_x")
     elif camera["camera_angle_x"] is not None:
         fx = focal("camera_angle_x", w_json)
-    else:
-        raise BoostNerfError(f"{source}: no camera_angle_x and no fl_x; add one of them to the transforms file")
     if camera["fl_y"] is not None:
         fy = number("fl_y")
     elif camera["camera_angle_y"] is not None:
         fy = focal("camera_angle_y", h_json)
-    else:
-        fy = fx
+    if fx is None and fy is None:
+        raise BoostNerfError(f"{source}: no focal length (camera_angle_x or fl_x, camera_angle_y or fl_y); add one to "
+                             "the transforms file")
+    fx, fy = (fy, fy) if fx is None else (fx, fx) if fy is None else (fx, fy)  # one axis given: square pixels
     cx = number("cx") if camera["cx"] is not None else w_json / 2
     cy = number("cy") if camera["cy"] is not None else h_json / 2
     sx, sy = size[1] / w_json, size[0] / h_json

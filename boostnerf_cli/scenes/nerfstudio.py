@@ -64,7 +64,7 @@ def load_nerfstudio(
         check_pinhole(frame, source)
         image = resolve_image(folder, str(frame["file_path"]), source)
         camera = frame_camera(frame, meta)
-        if camera["fl_x"] is None and camera["camera_angle_x"] is None:
+        if all(camera[k] is None for k in ("fl_x", "camera_angle_x", "fl_y", "camera_angle_y")):
             raise BoostNerfError(f"{source}: no fl_x, neither in the frame nor at the top level; add the intrinsics")
         name = str(image.relative_to(folder).with_suffix("")) if image.is_relative_to(folder) else image.stem
         frames.append(Frame(image, name, parse_pose(frame["transform_matrix"], source), camera, source))
