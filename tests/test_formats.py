@@ -440,6 +440,8 @@ def test_a_k_matrix_with_skew_is_refused(tmp_path):
     (tmp_path / "intrinsics.txt").write_text("40 5 16\n0 42 12\n0 0 1\n")
     with pytest.raises(BoostNerfError, match=r"skew s = 5 .*not zero.*skew-free"):
         read_intrinsics(tmp_path)
+    (tmp_path / "intrinsics.txt").write_text("40 1e-12 16\n-1e-13 42 12\n0 0 1.0000001\n")  # float noise: a K
+    assert read_intrinsics(tmp_path) == [40.0, 42.0, 16.0, 12.0]
 
 
 def _crop_blender(folder: Path, keep_wh: bool) -> None:
@@ -565,3 +567,16 @@ def test_a_focal_length_given_for_y_alone_serves_both_axes():
     assert frame_intrinsics({**camera, "fl_y": 33.0}, (40, 20), (40, 20), "f") == pytest.approx([33, 33, 10, 20])
     with pytest.raises(BoostNerfError, match="no focal length"):
         frame_intrinsics(camera, (40, 20), (40, 20), "f")
+
+
+def test_an_impossible_focal_length_names_the_view_and_its_values(forward, tmp_path):
+    """fl_x 0, negative, NaN or infinite: `camera intrinsics must be finite with positive focal lengths`, naming no
+    file, view or value."""
+    import shutil
+
+    folder = shutil.copytree(forward["nerfstudio"], tmp_path / "ns")
+    meta = json.loads((folder / "transforms.json").read_text())
+    meta["frames"][2]["fl_x"] = -20.0
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(BoostNerfError, match=r"intrinsics of view images/frame_\d+ are fx, fy, cx, cy = -20, "):
+        load_scene(folder)

@@ -49,8 +49,12 @@ class Split:
             raise BoostNerfError(f"expected {n} view names, got {len(self.names)}")
         if not torch.isfinite(self.poses).all():
             raise BoostNerfError("camera poses contain NaN or infinite values: fix the dataset's pose file")
-        if not torch.isfinite(self.intrinsics).all() or (self.intrinsics[:, :2] <= 0).any():
-            raise BoostNerfError("camera intrinsics must be finite with positive focal lengths")
+        bad = ~torch.isfinite(self.intrinsics).all(-1) | (self.intrinsics[:, :2] <= 0).any(-1)
+        if bool(bad.any()):
+            i = int(bad.nonzero()[0])
+            values = ", ".join(f"{float(v):g}" for v in self.intrinsics[i])
+            raise BoostNerfError(f"camera intrinsics of view {self.names[i]} are fx, fy, cx, cy = {values}: focal lengths "
+                                 "must be positive and every value finite; fix the dataset's camera file")
 
     def __len__(self) -> int:
         return self.images.shape[0]
