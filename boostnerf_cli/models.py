@@ -236,12 +236,16 @@ def stale_reason(ws: Workspace, name: str) -> tuple[str, str] | None:
     """Why model `name` is stale, as (what changed, the command that makes it again), or None when it is current:
     it was made from a model (moe/init from its experts, a finetuned mixture from moe/init, the baseline from the
     largest expert, a pruned model from its source) that changed since. The first stale link from the experts up
-    is named, since remaking it comes first. An expert (or a missing file) is never stale here."""
+    is named, since remaking it comes first. A pruned model without its report (a prune stopped before its check)
+    is stale too. An expert (or a missing file) is never stale here."""
     path = model_file(ws, name)
     if not path.exists():
         return None
     meta = read_meta(path)
     root = ws.root
+    if "pruned_from" in meta and not (ws.moe_dir / f"{name}.json").exists():  # written last, after prune's check
+        return (f"its prune did not finish (no moe/{name}.json, the check of its renders)",
+                f"`boostnerf prune -w {root} --model {meta['pruned_from']}`")
     if name == "init":
         for expert, digest in (meta.get("inputs") or {}).items():
             src = ws.expert_path(expert)

@@ -172,3 +172,19 @@ def test_count_params_of_a_pruned_mixture_counts_what_its_file_stores(pruned_ws)
     assert pruned["params"] < dense["params"] and pruned["w0"] <= dense["w0"]
     assert [p["params"] for p in pruned["experts"]] < [p["params"] for p in dense["experts"]] or \
         pruned["gate"]["params"] < dense["gate"]["params"]
+
+
+def test_a_prune_stopped_before_its_check_leaves_no_model_the_other_stages_take(pruned_ws, tmp_path):
+    """prune writes the pruned model, then renders the training views before and after, then writes its report. Killed
+    in between, it left a model never checked, which eval and render took like any other. Without its report a
+    pruned model is refused in one line that says how to finish it, and prune (no --force needed) makes it again."""
+    ws = tmp_path / "ws"
+    shutil.copytree(pruned_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
+    (ws / "moe" / "top1-pruned.json").unlink()
+    proc = run_cli("eval", "--workspace", str(ws), "--model", "top1-pruned", "--views", "1", "--no-costs", "--device",
+                   "cpu")
+    assert_clean_failure(proc, "top1-pruned", "prune did not finish", f"boostnerf prune -w {ws} --model top1`")
+    run_cli("prune", "--workspace", str(ws), "--model", "top1", "--device", "cpu", check=True)
+    assert (ws / "moe" / "top1-pruned.json").exists()
+    run_cli("eval", "--workspace", str(ws), "--model", "top1-pruned", "--views", "1", "--no-costs", "--device", "cpu",
+            check=True)
