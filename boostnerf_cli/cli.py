@@ -386,6 +386,17 @@ def _interrupt(signum, frame) -> None:
     raise Interrupted()
 
 
+def _during_interrupt(e: BaseException) -> bool:
+    """True when an interrupt (Ctrl-C, SIGTERM) is among the exceptions `e` was raised while handling."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, (Interrupted, KeyboardInterrupt)):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
+
+
 def main() -> None:
     import signal
 
@@ -400,13 +411,18 @@ def main() -> None:
                   markup=False)
         sys.exit(2)
     try:
-        app()
+        try:
+            app()
+        except Exception as e:  # an interrupt that unwound through cleanup which failed in turn (a torch.save's writer)
+            if _during_interrupt(e):
+                raise Interrupted() from None
+            raise
     except BoostNerfError as e:
         err.print(f"error: {e}", markup=False)
         sys.exit(e.exit_code)
     except (Interrupted, KeyboardInterrupt):  # the stage's cleanup (lock, temporary files) has run
-        err.print("interrupted: finished files are kept; rerun the same command to go on (the model in training "
-                  "resumes from its last checkpoint, or starts again if it had none yet)", markup=False)
+        err.print("interrupted: finished files are kept; rerun the same command to go on (a model in training "
+                  "resumes from its last checkpoint, if it had written one)", markup=False)
         sys.exit(130)
     except (NotADirectoryError, IsADirectoryError, FileExistsError, PermissionError) as e:
         if e.filename is None:  # a path in the workspace or scene is in the way: the user's to move
