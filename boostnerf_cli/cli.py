@@ -106,7 +106,7 @@ def make_scene_cmd(
 ) -> None:
     """Write a small procedural scene (exact analytic ray casting) in any dataset layout boostnerf reads."""
     from boostnerf_cli.scenes import make_scene
-    from boostnerf_cli.scenes.procedural import written_test_views
+    from boostnerf_cli.scenes.procedural import SEQUENCE_LAYOUTS, written_test_views
 
     _one_process()
     path = make_scene(out_dir, size=size, n_train=n_train, n_test=n_test, seed=seed, layout=layout, rig=rig,
@@ -114,6 +114,9 @@ def make_scene_cmd(
     written = written_test_views(layout, n_train, n_test)
     note = (f" ({layout} holds out every 8th view: with {n_train} train views that is {written} test views, not the "
             f"{n_test} asked for)") if written != n_test else ""
+    if written == 0 and layout in SEQUENCE_LAYOUTS and n_train > 1:
+        note = (f" ({layout} has no test split: its loader holds out every 8th of these train views unless the recipe "
+                "sets data.holdout_every: 0)")
     log(f"wrote a {size}x{size} {layout} scene with {n_train} train and {written} test views to {path}{note}")
 
 

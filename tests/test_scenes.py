@@ -454,3 +454,7 @@ def test_layouts_without_splits_hold_out_exactly_the_test_views_they_write(tmp_p
     assert "24 train and 4 test views" in text and "that is 4 test views, not the 8 asked for" in text, text
     llff = load_scene(tmp_path / "llff")
     assert len(llff.splits["train"]) == 24 and len(llff.splits["test"]) == 4
+    proc = run_cli("make-scene", str(tmp_path / "none"), "--format", "nerfstudio", "--size", "16", "--train-views", "8",
+                   "--test-views", "0")
+    assert "holds out every 8th of these train views unless the recipe sets data.holdout_every: 0" in proc.stderr + \
+        proc.stdout
