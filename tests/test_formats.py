@@ -561,7 +561,7 @@ def test_a_focal_length_given_for_y_alone_serves_both_axes():
     boostnerf."""
     from boostnerf_cli.scenes.frames import frame_intrinsics
 
-    camera = {k: None for k in ("camera_angle_x", "fl_x", "fl_y", "cx", "cy", "w", "h")}
+    camera = {k: None for k in ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")}
     k = frame_intrinsics({**camera, "camera_angle_y": 2 * math.atan(0.5)}, (40, 20), (40, 20), "f")
     assert k == pytest.approx([40.0, 40.0, 10.0, 20.0])
     assert frame_intrinsics({**camera, "fl_y": 33.0}, (40, 20), (40, 20), "f") == pytest.approx([33, 33, 10, 20])

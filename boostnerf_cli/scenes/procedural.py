@@ -413,9 +413,13 @@ SEQUENCE_LAYOUTS = ("llff", "nerfstudio")  # one sequence of views, no split fil
 def written_test_views(layout: str, n_train: int, n_test: int) -> int:
     """How many test views `make_scene` writes in `layout` when `n_test` are asked for. A layout without splits
     holds out every 8th view (places 0, 8, 16, ...), so its test split is exactly its test views only when they
-    fill those places: t = 1 + n_train // 7 of them (the t with t = ceil((n_train + t) / 8); 24 train views take 4).
-    More test views would be trained on; fewer would leave train views held out. None stay none."""
-    return 1 + n_train // (HOLDOUT_EVERY - 1) if layout in SEQUENCE_LAYOUTS and n_test else n_test
+    fill those places: t test views with t = ceil((n_train + t) / 8), that is ceil(n_train / 7) <= t <= 1 +
+    n_train // 7 (24 train views take 4; 28 take 4 or 5). `n_test` when it is such a t, else the nearest one:
+    more test views would be trained on, fewer would leave train views held out. None stay none."""
+    if layout not in SEQUENCE_LAYOUTS or not n_test:
+        return n_test
+    step = HOLDOUT_EVERY - 1
+    return min(max(n_test, -(-n_train // step)), 1 + n_train // step)
 
 
 def sequence_order(n_train: int, n_test: int) -> list[tuple[str, int]]:
