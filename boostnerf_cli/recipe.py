@@ -77,7 +77,7 @@ class TrainRecipe:
     color_threshold: float = limit(1e-4, THRESHOLD)  # samples with a smaller weight skip the colour MLP
     weight_rgbper: float = limit(0.01, LOSS_WEIGHT)  # weight of the per-sample colour loss (each sample's colour against the pixel, by its rendering weight; DVGO's rgbper)
     weight_entropy: float = limit(1e-3, LOSS_WEIGHT)  # weight of the ray-opacity entropy loss, which pushes each ray to fully opaque or empty
-    growth: list[float] = limit(rule=OPEN_UNIT, factory=lambda: [0.1, 0.2, 0.3])  # progressive growth (pretrain only): the grid starts at 1/2^n of its voxels and doubles them at each of these n fractions of iters
+    growth: list[float] = limit(rule=OPEN_UNIT, factory=lambda: [0.1, 0.2, 0.3])  # progressive growth (pretrain only; DVGO and TensoRF grids, not Instant-NGP hash grids, which keep their size): the grid starts at 1/2^n of its voxels and doubles them at each of these n fractions of iters
     occupancy_every: int = limit(500, NON_NEGATIVE)  # steps between refreshes of the occupancy mask from the density (0 = never; while finetuning only the baseline has one, the mixtures skip by V_D)
     occupancy_threshold: float = limit(1e-4, THRESHOLD)  # alpha per step below which a cell is skipped
     # composite each training ray on a random colour, not the scene's background (for captures whose every pixel is
