@@ -312,8 +312,9 @@ def lpips_from_files(alexnet_path: Path, head_path: Path) -> tuple[LPIPSModel | 
     model = LPIPSModel()
     sd = _merged_state_dict(backbone, heads)
     sd.update({"shift": model.shift, "scale": model.scale})
-    wrong = [f"{k} {tuple(v.shape)} for {tuple(model.state_dict()[k].shape)}" for k, v in sd.items()
-             if k in model.state_dict() and v.shape != model.state_dict()[k].shape]
+    expected = model.state_dict()
+    wrong = [f"{k} {tuple(v.shape)} for {tuple(expected[k].shape)}" for k, v in sd.items()
+             if k in expected and v.shape != expected[k].shape]
     if wrong:
         return None, (
             f"LPIPS unavailable: weight shapes do not match ({alexnet_path}, {head_path}): {', '.join(wrong[:2])}; "

@@ -357,7 +357,8 @@ def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int
     if fx is None and fy is None:
         raise BoostNerfError(f"{source}: no focal length (camera_angle_x or fl_x, camera_angle_y or fl_y); add one to "
                              "the transforms file")
-    fx, fy = (fy, fy) if fx is None else (fx, fx) if fy is None else (fx, fy)  # one axis given: square pixels
+    fx = fy if fx is None else fx  # one axis given: square pixels
+    fy = fx if fy is None else fy
     cx = number("cx") if camera["cx"] is not None else w_json / 2
     cy = number("cy") if camera["cy"] is not None else h_json / 2
     sx, sy = size[1] / w_json, size[0] / h_json

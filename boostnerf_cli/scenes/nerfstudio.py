@@ -22,6 +22,7 @@ import torch
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
+    FOCAL_KEYS,
     Frame,
     check_pinhole,
     frame_camera,
@@ -64,7 +65,7 @@ def load_nerfstudio(
         check_pinhole(frame, source)
         image = resolve_image(folder, str(frame["file_path"]), source)
         camera = frame_camera(frame, meta)
-        if all(camera[k] is None for k in ("fl_x", "camera_angle_x", "fl_y", "camera_angle_y")):
+        if all(camera[k] is None for keys in FOCAL_KEYS for k in keys):  # before the images are read
             raise BoostNerfError(f"{source}: no fl_x, neither in the frame nor at the top level; add the intrinsics")
         name = str(image.relative_to(folder).with_suffix("")) if image.is_relative_to(folder) else image.stem
         frames.append(Frame(image, name, parse_pose(frame["transform_matrix"], source), camera, source))
