@@ -114,6 +114,17 @@ class PretrainRecipe:
         return dict(getattr(self, self.model, {}))
 
 
+def unused_family_note(pre: PretrainRecipe) -> str | None:
+    """A note when the recipe sets another family's architecture but none for the chosen one (a dvgo recipe run with
+    `pretrain --model ngp`): those settings do not carry over, and the experts take their family's defaults."""
+    others = [name for name in FAMILIES if name != pre.model and getattr(pre, name)]
+    if not others or pre.family_config():
+        return None
+    sections = " and ".join(f"pretrain.{name}" for name in others)
+    return (f"note: the experts are {pre.model} and the recipe has no pretrain.{pre.model} section, so they take "
+            f"{pre.model}'s default architecture; its {sections} settings apply only to that family")
+
+
 UNSHAPING = ("log_every", "checkpoint_every")  # training settings that do not change what is trained
 
 

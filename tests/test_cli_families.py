@@ -174,3 +174,29 @@ def test_prune_drops_unused_rows_of_every_family_and_refuses_a_model_with_nothin
     with pytest.raises(BoostNerfError, match="tensorf-14 has no grid, hash table or VM factor to prune"):
         prune.run(Workspace(ws), "tensorf-14", "train", "cpu", None, False, print)
     assert not list(ws.glob("moe/tensorf-14-pruned*"))
+
+
+def test_a_family_switched_by_flag_says_the_other_familys_settings_do_not_apply(tmp_path):
+    """`pretrain --model ngp` over a DVGO recipe trained NGP experts at NGP's defaults without a word, so a user who
+    tuned the recipe's `pretrain.dvgo` section (width, features) believed it applied. The note comes before anything
+    trains: here an empty scene is refused right after it, so the test trains nothing."""
+    from pathlib import Path
+
+    from boostnerf_cli.recipe import load_recipe, unused_family_note
+
+    recipes = Path(__file__).resolve().parents[1] / "recipes"
+    rec = load_recipe(recipes / "demo-dvgo-cpu.yaml")
+    assert unused_family_note(rec.pretrain) is None  # its own family
+    scene = tmp_path / "empty"
+    run_cli("make-scene", str(scene), "--size", "48", "--train-views", "2", "--test-views", "0", "--content", "empty",
+            check=True)
+    proc = run_cli("pretrain", "--data", str(scene), "--recipe", str(recipes / "demo-dvgo-cpu.yaml"), "--model", "ngp",
+                   "--workspace", str(tmp_path / "ws"), "--device", "cpu")
+    assert ("note: the experts are ngp and the recipe has no pretrain.ngp section, so they take ngp's default "
+            "architecture; its pretrain.dvgo settings apply only to that family") in proc.stderr
+    assert_clean_failure(proc, "show nothing but the background")
+    # a recipe with a section for each family it may be switched to says nothing (the families test's recipe)
+    both = make_recipe(tmp_path / "both.yaml", **FAMILY_CHANGES)
+    proc = run_cli("pretrain", "--data", str(scene), "--recipe", str(both), "--model", "ngp",
+                   "--workspace", str(tmp_path / "ws2"), "--device", "cpu")
+    assert "note: the experts are" not in proc.stderr and proc.returncode != 0

@@ -153,8 +153,8 @@ def test_a_model_named_twice_counts_once_and_each_model_says_its_own_image_count
     counted the first one's images too ("top1: wrote 2 images" for one view)."""
     proc = run_cli("render", "--workspace", str(moe_ws), "--model", "dvgo-12", "--model", "top1", "--model", "dvgo-12",
                    "--views", "1", "--device", "cpu", check=True)
-    said = [line.split(" to ")[0] for line in proc.stderr.splitlines() if "wrote" in line]
-    assert said == ["dvgo-12: wrote 1 images", "top1: wrote 1 images"], proc.stderr
+    said = [line.split(" (")[0] for line in proc.stderr.splitlines() if "wrote" in line]
+    assert said == ["dvgo-12: wrote 1 view", "top1: wrote 1 view"], proc.stderr
 
 
 def test_build_moe_names_an_expert_it_leaves_out_for_want_of_its_report(trained_ws, tmp_path):
@@ -191,10 +191,14 @@ def test_a_file_in_the_way_of_the_checkpoints_folder_is_one_line(moe_ws, tmp_pat
 def test_render_per_expert_and_gate_maps(moe_ws):
     import imageio.v3 as iio
 
-    run_cli("render", "--workspace", str(moe_ws), "--model", "top2", "--views", "1", "--per-expert",
-            "--device", "cpu", check=True)
+    proc = run_cli("render", "--workspace", str(moe_ws), "--model", "top2", "--views", "1", "--per-expert",
+                   "--device", "cpu", check=True)
     folder = moe_ws / "renders" / "top2" / "test"
     names = sorted(p.name for p in folder.glob("*.png"))
+    # one line says what was written: the view's colour and depth, and 2 x 2 expert / gate images and a montage
+    # (before: "top2: wrote 6 images", which counted neither the depth image nor apart the extra pictures)
+    assert "top2: wrote 1 view (a colour and a 16-bit depth PNG each; and 5 per-expert and gate images)" in proc.stderr
+    assert len(names) == 7
     stem = names[0].split(".")[0]
     for expected in (f"{stem}_expert0-dvgo-12.png", f"{stem}_expert1-dvgo-16.png", f"{stem}_gate0-dvgo-12.png",
                      f"{stem}_gate1-dvgo-16.png"):

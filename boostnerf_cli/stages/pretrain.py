@@ -34,6 +34,7 @@ from boostnerf_cli.recipe import (
     check_recipe,
     recipe_dict,
     shaping_changes,
+    unused_family_note,
 )
 from boostnerf_cli.render.coverage import FOREGROUND_TOL, cover_foreground, foreground_masks, hull_cells
 from boostnerf_cli.render.occupancy import OccupancyGrid
@@ -384,6 +385,9 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
                        format=rec.data.format, bbox=rec.data.bbox)
     for res in rec.pretrain.res:  # per-expert options are checked (and chosen, said once) before anything trains
         expert_options(rec.pretrain, res, log)
+    note = unused_family_note(rec.pretrain)
+    if note:
+        log(note)
     check_foreground(scene, data)
     digest = scene_digest(scene)
     recorded = ws.manifest().get("scene_digest")

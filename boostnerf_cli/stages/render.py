@@ -56,11 +56,15 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
             write_png(folder / f"{stem}.png", to_uint8(r["rgb"]))
             write_png(folder / f"{stem}_depth.png", depth_to_uint16(r["depth"], scene.far))
             mine.append(folder / f"{stem}.png")
+        n_drawn = len(mine)
+        extra = []
         if per_expert and model.kind == "mixture":
-            mine += render_experts_and_gate(model, scene, split, folder, device, skips, views, log)
+            extra = render_experts_and_gate(model, scene, split, folder, device, skips, views, log)
         elif per_expert:
             log(f"note: {name} is not a mixture, so --per-expert draws nothing more for it (it has no gate or shares)")
-        log(f"{name}: wrote {len(mine)} images to {folder}")
+        log(f"{name}: wrote {n_drawn} view{'s' if n_drawn != 1 else ''} (a colour and a 16-bit depth PNG each"
+            + (f"; and {len(extra)} per-expert and gate images" if extra else "") + f") to {folder}")
+        mine += extra
         written += mine
     return written
 
