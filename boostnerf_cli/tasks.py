@@ -103,7 +103,12 @@ class FieldTask:
             self.tcfg.occupancy_threshold,
         )
         if self.base_mask is not None:
-            grid = OccupancyGrid(grid.occupied & self.base_mask.sample_cells(grid), grid.bbox)
+            base = self.base_mask.sample_cells(grid)
+            kept = grid.occupied & base
+            # Never prune to nothing: with no sample left, no gradient could raise the density again, and the model
+            # would train on no sample for the rest of its steps (a weak warm start refreshed after 3 steps: every
+            # step then evaluated 0 samples, exit 0). The geometry's cells stay until the density has learnt them.
+            grid = OccupancyGrid(kept if kept.any() else base, grid.bbox)
         self.skip = grid
 
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, alpha: Tensor | None, step: int):

@@ -251,3 +251,33 @@ def test_a_checkpoint_keeps_the_random_state_of_its_own_gpu_and_resumes_with_few
     restore_cuda_rng([torch.tensor([5])], torch.device("cuda:3"))  # no entry for this device: left as it is
     restore_cuda_rng(saved, torch.device("cpu"))
     assert calls == [(1, "cuda:0"), (5, "cuda:0")]
+
+
+def test_a_refresh_never_prunes_every_cell_the_geometry_keeps(tiny_scene):
+    """A weak warm start (the prior's density below the occupancy threshold on the expert's coarse starting lattice)
+    refreshed at the first growth step emptied the mask: every later step evaluated 0 samples, so no gradient could
+    raise the density, and pretrain reported an expert of background only, exit 0 (res 8, 30 steps)."""
+    scene = load_scene(tiny_scene)
+    task = _task(scene, 24)
+    occupied = torch.zeros(6, 6, 6, dtype=torch.bool)
+    occupied[2:4, 2:4, 1:3] = True
+    task.skip = task.base_mask = OccupancyGrid(occupied, scene.bbox.clone())
+    with torch.no_grad():
+        task.model.density_table.fill_(-30.0)  # alpha ~ 0 everywhere: below any threshold
+    task.refresh_occupancy()
+    assert task.skip.occupied.any()
+    assert torch.equal(task.skip.occupied, task.base_mask.sample_cells(task.skip))
+    # the next steps sample the kept cells again (the loss's sample count is what pretrain logs as samples=)
+    from boostnerf_cli.stages.pretrain import train_rays
+
+    data = train_rays(scene, scene.bbox, "cpu", task.tcfg)
+    _, logs = task.loss(data.origins, data.dirs, data.rgb, None, 0)
+    assert logs["samples"] > 0
+    # a density that keeps some of the geometry's cells prunes as before: the mask shrinks to those
+    lo, hi = scene.bbox[:, 0].tolist()
+    cut = lo + 0.42 * (hi - lo)  # the geometry keeps x in [1/3, 2/3] of the box; the density the part below 0.42
+    task.model.density = lambda x: torch.where(x[..., 0] < cut, 1e3, 0.0)
+    task.refresh_occupancy()
+    base = task.base_mask.sample_cells(task.skip)
+    assert task.skip.occupied.any() and (task.skip.occupied & ~base).sum() == 0
+    assert task.skip.occupied.sum() < base.sum()
