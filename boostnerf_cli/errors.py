@@ -17,6 +17,10 @@ class DataWarning(UserWarning):
     them in `Scene.extra["warnings"]`; `pretrain` prints them."""
 
 
+class BoxWarning(DataWarning):
+    """A doubt about the scene box or near / far derived from the cameras; moot (dropped) when data.bbox gives the box."""
+
+
 # what the allocators say when a tensor does not fit (CPU, CUDA, and sizes past what can be addressed)
 _OUT_OF_MEMORY = ("can't allocate memory", "out of memory", "storage size calculation overflowed")
 

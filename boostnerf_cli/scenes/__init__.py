@@ -14,8 +14,9 @@ from typing import Callable
 
 import torch
 
-from boostnerf_cli.errors import BoostNerfError, DataWarning
+from boostnerf_cli.errors import BoostNerfError, BoxWarning, DataWarning
 from boostnerf_cli.scenes.blender import is_blender, load_blender
+from boostnerf_cli.scenes.bounds import box_near_far
 from boostnerf_cli.scenes.llff import is_llff, load_llff
 from boostnerf_cli.scenes.nerfstudio import is_nerfstudio, load_nerfstudio
 from boostnerf_cli.scenes.nsvf import is_nsvf, is_tanks, load_nsvf, load_tanks
@@ -81,6 +82,8 @@ def load_scene(path, image_size: int | None = None, holdout_every: int = 8, form
         warnings.simplefilter("always", DataWarning)
         scene = FORMATS[format][1](folder, image_size=image_size, holdout_every=holdout_every)
     for w in caught:
+        if issubclass(w.category, BoxWarning) and bbox is not None:
+            continue  # a doubt about the derived box or near / far: data.bbox gives both (below)
         if issubclass(w.category, DataWarning):
             scene.extra.setdefault("warnings", []).append(str(w.message))
         else:
@@ -101,7 +104,23 @@ def load_scene(path, image_size: int | None = None, holdout_every: int = 8, form
         # `Scene` refuses any other shape, and a max not above its min, in one line
         scene = dataclasses.replace(scene, bbox=box.view(2, 3) if box.numel() == 6 else box,
                                     extra={**scene.extra, "bbox": "data.bbox"})
+        scene = _reach_box(scene)
     return scene
+
+
+def _reach_box(scene: Scene) -> Scene:
+    """near / far widened so that every training camera's rays reach all of a given box (data.bbox): a far derived
+    from cameras inside the content, or one the files record, could end rays short of it. A camera inside the box
+    keeps the scene's near."""
+    box_near, box_far = box_near_far(scene.splits["train"].poses, scene.bbox)
+    near = min(scene.near, box_near) if box_near > 0 else scene.near
+    far = max(scene.far, box_far)
+    if (near, far) == (scene.near, scene.far):
+        return scene
+    note = (f"data.bbox: near / far {scene.near:.4g} / {scene.far:.4g} widened to {near:.4g} / {far:.4g}, so that "
+            "every training camera's rays reach the whole box")
+    return dataclasses.replace(scene, near=near, far=far,
+                               extra={**scene.extra, "notes": [*scene.extra.get("notes", []), note]})
 
 
 __all__ = ["FORMATS", "LAYOUTS", "Scene", "Split", "detect_format", "load_blender", "load_llff", "load_nerfstudio",

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import torch
 from torch import Tensor
+
+from boostnerf_cli.errors import BoxWarning
 
 
 def frustum_corners(poses: Tensor, intrinsics: Tensor, height: int, width: int, near: float, far: float) -> Tensor:
@@ -98,15 +101,21 @@ def frustum_overlap_bbox(
        `min_fraction` of the cameras (the "frustum overlap");
     4. return the box of the kept points, grown by half a lattice cell (so a single kept point
        still gives a non-empty box) and then by `margin` times its size on every side.
-    If no point qualifies, the full frustum box of step 1 is returned.
+    If no point qualifies, the full frustum box of step 1 is returned, with a `BoxWarning`.
     """
     corners = frustum_corners(poses, intrinsics, height, width, near, far).reshape(-1, 3)
     lo, hi = corners.amin(0), corners.amax(0)
     step = (hi - lo) / grid
     axes = tuple(lo[i] + step[i] * (torch.arange(grid, dtype=torch.float32) + 0.5) for i in range(3))
     counts = lattice_visible_counts(axes, frustum_planes(poses, intrinsics, height, width, near, far))
-    keep = counts >= math.ceil(min_fraction * len(poses) - 1e-9)
+    need = math.ceil(min_fraction * len(poses) - 1e-9)
+    keep = counts >= need
     if not bool(keep.any()):
+        box = [round(v, 4) for v in torch.stack([lo, hi]).flatten().tolist()]
+        warnings.warn(f"no point between near {near:.4g} and far {far:.4g} is seen by {need} of the {len(poses)} "
+                      f"training cameras (at most {int(counts.max())}): the scene box is the extent of every camera's "
+                      f"view, {box}; if the content lies elsewhere, give recipe key data.bbox a box that holds it "
+                      "(docs/datasets.md, \"The scene box\")", BoxWarning, stacklevel=2)
         return torch.stack([lo, hi])
     index = keep.nonzero()  # (K, 3) lattice indices
     box_lo = torch.stack([axes[i][index[:, i].min()] for i in range(3)]) - step / 2
@@ -119,9 +128,12 @@ def camera_near_far(poses: Tensor) -> tuple[float, float]:
     """near / far for object-centric captures that record none, from the cameras alone.
 
     The subject is taken to sit at the point closest (least squares) to every camera's optical axis
-    (the -z axis of each camera-to-world pose); with r the median camera distance to it,
-    near = 0.1 r and far = 2 r. When the axes are (nearly) parallel there is no such point and
+    (the -z axis of each camera-to-world pose); with r the median camera distance to it and R the
+    largest, near = 0.1 r and far = R + r (2 r when every camera is as far: the subject's far side,
+    from the farthest camera too). When the axes are (nearly) parallel there is no such point and
     the camera centroid plus r along the mean viewing direction is used, r the camera spread (or 1).
+    Cameras that do not face that point (most of them turned more than 60 degrees away: a room
+    captured from inside, looking out) get a `BoxWarning`: near / far are then a guess.
     """
     p = poses.double()
     o, d = p[:, :3, 3], -p[:, :3, 2]
@@ -135,9 +147,17 @@ def camera_near_far(poses: Tensor) -> tuple[float, float]:
         spread = float((o - o.mean(0)).norm(dim=-1).max()) if len(poses) > 1 else 0.0
         mean_dir = d.mean(0)
         centre = o.mean(0) + max(spread, 1.0) * mean_dir / mean_dir.norm().clamp_min(1e-12)
-    r = float((o - centre).norm(dim=-1).median())
-    r = r if r > 1e-9 else 1.0
-    return 0.1 * r, 2.0 * r
+    dist = (o - centre).norm(dim=-1)
+    r, r_max = float(dist.median()), float(dist.max())
+    if r <= 1e-9:
+        r = r_max = 1.0
+    facing = ((centre - o) * d).sum(-1) / dist.clamp_min(1e-12)  # cosine between each axis and its way to the centre
+    if len(poses) > 1 and float(facing.median()) < 0.5:
+        warnings.warn(f"the training cameras do not face a common point (most look more than 60 degrees away from the "
+                      f"point nearest their axes, as from inside a room looking out): near {0.1 * r:.4g} and far "
+                      f"{r_max + r:.4g} are a guess; give recipe key data.bbox a box that holds the content (near and "
+                      "far then reach it)", BoxWarning, stacklevel=2)
+    return 0.1 * r, r_max + r
 
 
 def box_near_far(poses: Tensor, bbox: Tensor) -> tuple[float, float]:

@@ -486,7 +486,9 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     """Render the seeded procedural scene into `out_dir` in `layout` (one of `LAYOUTS`) and return `out_dir`.
 
     rig: "sphere" (cameras on the upper hemisphere) or "forward" (forward-facing); default forward
-    for llff, sphere otherwise. Every layout gets the same views for the same arguments. Blender:
+    for llff, sphere otherwise. Every layout gets the same views for the same arguments and the same number of
+    test views written (`written_test_views`: LLFF and nerfstudio may write another number than asked, and
+    then every camera moves along the spiral, which spans train and test views). Blender:
     transforms_train.json, transforms_test.json (omitted when n_test = 0), train/r_*.png, test/r_*.png;
     the other layouts as `LAYOUT_TEXT` says. Always objects.json (the exact geometry) and README.txt.
     content: "objects" (default), "thin" (plus rods and a cable one to two pixels wide at 100 px,

@@ -406,6 +406,8 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
         log(f"format: {scene.extra['detected']}")
     for warning in scene.extra.get("warnings", []):
         log(f"warning: {warning}")
+    for note in scene.extra.get("notes", []):
+        log(f"note: {note}")
     log(f"scene {scene.name}: {len(scene.splits['train'])} train views "
         f"{scene.splits['train'].width}x{scene.splits['train'].height}"
         + (f", {scene.holdout}" if scene.holdout else ""))
