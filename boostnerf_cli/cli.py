@@ -219,9 +219,12 @@ def finetune(
     rec = _moe_recipe(workspace, recipe).override({"moe.iters": iters, "moe.lam": lam, "moe.penalty": penalty,
                                                    "moe.renormalize": renormalize, "moe.seed": seed,
                                                    "moe.wide_start": wide_start, "moe.gate_noise": gate_noise})
+    given = {flag: value for flag, value in (("--lambda", lam), ("--penalty", penalty), ("--renormalize", renormalize),
+                                             ("--wide-start", wide_start), ("--gate-noise", gate_noise))
+             if value is not None}
     ws, lock = _writer(workspace, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock:
-        stage.run(ws, name, topk, rec.moe, dev, force, dist.main_log(log))
+        stage.run(ws, name, topk, rec.moe, dev, force, dist.main_log(log), given)
 
 
 @app.command()

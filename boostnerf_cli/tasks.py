@@ -150,6 +150,14 @@ def occupancy_shape(model: nn.Module) -> tuple[int, int, int]:
     return tuple(max(2, int(math.ceil(v / f))) for v in s)  # type: ignore[return-value]
 
 
+def sparse_options(gate_kind: str, topk: int, m: int, rec: MoERecipe) -> tuple[int, float]:
+    """(wide_steps, gate_noise) of a finetuning run: both options need a choice to make, a trained gate that leaves
+    some experts out (not the ensemble, not k = M); elsewhere they are 0. wide_steps < iters: the last step narrows;
+    gate_noise: the noisy top-k choice while training (router.top_k)."""
+    sparse = gate_kind != "uniform" and topk < m
+    return (int(rec.wide_start * rec.iters), rec.gate_noise) if sparse else (0, 0.0)
+
+
 @dataclass
 class MixtureTask:
     """One finetuning step of a mixture: render with routing stats, photometric + lambda * aux loss."""
@@ -165,10 +173,7 @@ class MixtureTask:
     def __post_init__(self) -> None:
         # the routing the task ends with; `rec.wide_start` of the steps route to one expert more before it
         self.final_routing = {"topk": self.mix.cfg.topk, "renormalize": self.mix.cfg.renormalize}
-        # both options need a choice to make: a trained gate that leaves some experts out (not the ensemble, not k = M)
-        sparse = self.mix.gate.cfg.kind != "uniform" and self.final_routing["topk"] < self.mix.m
-        self.wide_steps = int(self.rec.wide_start * self.rec.iters) if sparse else 0  # < iters: the last step narrows
-        self.gate_noise = self.rec.gate_noise if sparse else 0.0  # noisy top-k choice while training (router.top_k)
+        self.wide_steps, self.gate_noise = sparse_options(self.mix.gate.cfg.kind, self.mix.cfg.topk, self.mix.m, self.rec)
 
     def before_step(self, step: int) -> bool:
         """Set the step's routing (a function of the step alone, so a resumed run routes as an uninterrupted one)."""

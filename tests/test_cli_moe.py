@@ -437,3 +437,49 @@ def test_gate_noise_reaches_the_report_and_a_bad_value_is_one_line(moe_ws, tmp_p
             "--device", "cpu", check=True)
     report = json.loads((ws / "moe" / "top1.json").read_text())
     assert report["gate_noise"] == 0.5 and report["iterations"] == 10
+
+
+def test_a_finished_model_asked_for_with_other_settings_is_refused_not_skipped(moe_ws, tmp_path):
+    """`finetune --topk 2 --no-renormalize` (or another --lambda, --iters, --seed) over a finished top2 said "already
+    finetuned, skipping" and exited 0: a script got the old model, whose report still said renormalize true. pretrain
+    refuses the same case; so does finetune now, for every model. The same settings still skip."""
+    ws = tmp_path / "ws"
+    shutil.copytree(moe_ws, ws)
+    for model, flags, key in ((["--topk", "2"], ["--no-renormalize"], "renormalize: True, now False"),
+                              (["--topk", "2"], ["--lambda", "0.5"], "lam"),
+                              (["--topk", "1"], ["--iters", "3"], "iters"),
+                              (["--ensemble"], ["--seed", "5"], "seed: 0, now 5"),
+                              (["--baseline"], ["--iters", "3"], "iters")):
+        proc = run_cli("finetune", "--workspace", str(ws), *model, *flags, "--device", "cpu")
+        assert_clean_failure(proc, "was finetuned with other settings", key, "--force")
+    before = {p.name: p.stat().st_mtime_ns for p in (ws / "moe").iterdir()}
+    for model in (["--topk", "1"], ["--topk", "2"], ["--ensemble"], ["--baseline"]):
+        proc = run_cli("finetune", "--workspace", str(ws), *model, "--device", "cpu", check=True)
+        assert "already finetuned, skipping" in proc.stderr
+    assert {p.name: p.stat().st_mtime_ns for p in (ws / "moe").iterdir()} == before
+    # with --force the new settings train, and a rerun with them skips
+    run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--no-renormalize", "--iters", "2", "--force",
+            "--device", "cpu", check=True)
+    assert json.loads((ws / "moe" / "top2.json").read_text())["renormalize"] is False
+    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--no-renormalize", "--iters", "2",
+                   "--device", "cpu", check=True)
+    assert "already finetuned, skipping" in proc.stderr
+
+
+def test_options_that_cannot_change_a_model_are_named(moe_ws, tmp_path):
+    """--gate-noise, --wide-start, --penalty or --lambda on the ensemble or the baseline, or --wide-start at k = M,
+    were dropped without a word (the report recorded the defaults)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(moe_ws, ws, ignore=shutil.ignore_patterns("top*", "ens*", "baseline*"))
+    proc = run_cli("finetune", "--workspace", str(ws), "--ensemble", "--gate-noise", "2", "--penalty", "1,2",
+                   "--iters", "2", "--device", "cpu", check=True)
+    assert "note: --penalty, --gate-noise cannot change ens (every expert is used with equal weights)" in proc.stderr
+    proc = run_cli("finetune", "--workspace", str(ws), "--baseline", "--lambda", "3", "--wide-start", "0.5",
+                   "--iters", "2", "--device", "cpu", check=True)
+    assert "note: --lambda, --wide-start cannot change the baseline" in proc.stderr
+    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--wide-start", "0.5", "--no-renormalize",
+                   "--iters", "2", "--device", "cpu", check=True)  # two experts: k = M
+    assert "note: --wide-start, --no-renormalize cannot change top2 (at k = M every expert is used)" in proc.stderr
+    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--wide-start", "0.5", "--lambda", "0.1",
+                   "--iters", "2", "--device", "cpu", check=True)
+    assert "note:" not in proc.stderr

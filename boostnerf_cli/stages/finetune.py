@@ -10,18 +10,19 @@ by `tasks.batch_routing`); rank 0 alone writes the outputs (docs/distributed.md)
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable
 
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import count_params
 from boostnerf_cli.models import load_expert, load_mixture, save_expert, save_mixture, stale_reason
-from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
+from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, check_config
 from boostnerf_cli.moe.router import check_topk
 from boostnerf_cli.recipe import MoERecipe, check_section, shaping_changes
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.stages.common import workspace_scene
-from boostnerf_cli.tasks import FieldTask, MixtureTask, train_rays
+from boostnerf_cli.tasks import FieldTask, MixtureTask, sparse_options, train_rays
 from boostnerf_cli.train import Schedule, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
@@ -48,8 +49,88 @@ def _source_digest(ws: Workspace, name: str, init_meta: dict) -> str | None:
     return init_meta.get("digest")
 
 
+def routing(name: str, topk: int | None, rec: MoERecipe, cfg: MixtureConfig, gate_kind: str) -> tuple[MixtureConfig, str]:
+    """How finetuning configures moe/init's mixture (its config `cfg`, its gate's kind) for model `name`: the recipe's
+    mixing and V_D options, then the ensemble's uniform gate and k = M, or top-k's k, weights and penalty.
+    -> (the mixture's config, the gate's kind)."""
+    cfg = dataclasses.replace(cfg, mix=rec.mix, aux_norm=rec.aux_norm, aux_samples=rec.aux_samples,
+                              vd_source=rec.vd_source, vd_filter=rec.vd_filter)
+    m = len(cfg.expert_names)
+    if name == "ens":
+        return dataclasses.replace(cfg, topk=m), "uniform"
+    check_topk(topk, cfg.expert_names, "--topk")
+    cfg = dataclasses.replace(cfg, topk=topk, renormalize=rec.renormalize, penalty=rec.penalty, bake_res=rec.bake_res)
+    check_config(cfg, m)
+    return cfg, gate_kind
+
+
+def signature(name: str, rec: MoERecipe, source: str | None, cfg: MixtureConfig | None = None,
+              gate_kind: str = "") -> dict:
+    """What defines finetuned model `name` (its training checkpoint's signature, and stored in the finished model):
+    its source, steps, seed, routing (`routing`'s config; None for the baseline) and the shaping settings."""
+    sig = {"stage": "finetune", "model": name, "from": source, "iters": rec.iters, "seed": rec.seed}
+    if cfg is not None:
+        sig.update(topk=cfg.topk, renormalize=cfg.renormalize, penalty=cfg.penalty)
+        defaults = MixtureConfig()
+        for key in ("mix", "aux_norm", "aux_samples", "vd_source", "vd_filter"):  # named only when not the default: older checkpoints still resume
+            if getattr(cfg, key) != getattr(defaults, key):
+                sig[key] = getattr(cfg, key)
+    if rec.train.random_background:  # named only when set: older checkpoints still resume
+        sig["random_background"] = True
+    if cfg is not None:
+        wide_steps, gate_noise = sparse_options(gate_kind, cfg.topk, len(cfg.expert_names), rec)
+        if wide_steps:
+            sig["wide_steps"] = wide_steps
+        if gate_noise:
+            sig["gate_noise"] = gate_noise
+    sig.update(_shaping(rec, ("lam",) if cfg is not None else ()))
+    return sig
+
+
+def _planned_signature(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict) -> dict:
+    """The signature this run would give `name`, from moe/init's metadata alone (nothing loaded)."""
+    source = _source_digest(ws, name, init_meta)
+    if name == "baseline":
+        return signature(name, rec, source)
+    cfg, kind = routing(name, topk, rec, MixtureConfig(**init_meta["mixture"]), init_meta["gate"]["config"]["kind"])
+    return signature(name, rec, source, cfg, kind)
+
+
+def _check_finished(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict) -> None:
+    """Refuse to skip a finished model that this run would finetune differently (--lambda, --no-renormalize, --iters,
+    another recipe, ...): its report would stand for settings it was not trained with. A model saved before its
+    signature was stored is skipped as before."""
+    stored = read_meta(ws.model_path(name)).get("finetune_signature")
+    if stored is None:
+        return
+    now = _planned_signature(ws, name, topk, rec, init_meta)
+    for key in sorted(set(stored) | set(now)):
+        if stored.get(key) != now.get(key):
+            raise BoostNerfError(f"{name} was finetuned with other settings ({key}: {stored.get(key)!r}, now "
+                                 f"{now.get(key)!r}): add --force to finetune it again, or rerun with the settings it "
+                                 "was finetuned with")
+
+
+def _unused_flags(name: str, flags: dict, cfg: MixtureConfig | None, gate_kind: str) -> list[str]:
+    """The options given on the command line that cannot change model `name` (the baseline has no gate; the
+    ensemble's is uniform; at k = M every expert is used and the weights already sum to 1)."""
+    if name == "baseline":
+        return [f for f in flags]
+    m = len(cfg.expert_names)
+    unused = []
+    if name == "ens":
+        unused += [f for f in ("--lambda", "--penalty") if f in flags]
+    if gate_kind == "uniform" or cfg.topk >= m:
+        unused += [f for f in ("--wide-start", "--gate-noise") if f in flags]
+        if "--renormalize" in flags:
+            unused.append("--renormalize" if flags["--renormalize"] else "--no-renormalize")
+    return unused
+
+
 def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str, force: bool,
-        log: Callable[[str], None]) -> dict:
+        log: Callable[[str], None], flags: dict | None = None) -> dict:
+    """Finetune model `name` (skipped when finished with the same settings); `flags`: the options given on the command
+    line, {flag: value}, to name those that cannot change this model."""
     check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
     init = ws.model_path("init")
     if not init.exists():
@@ -62,6 +143,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
                 f"{name} was finetuned from an older {'expert' if name == 'baseline' else 'moe/init'} "
                 f"(build-moe or pretrain ran again since): add --force to finetune it again"
             )
+        _check_finished(ws, name, topk, rec, init_meta)
         log(f"{name}: already finetuned, skipping (use --force to redo it)")
         return read_json(ws.moe_dir / f"{name}.json", "finetune report")
     if force:
@@ -72,31 +154,21 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     sched = Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every, rec.train.checkpoint_every)
     source = _source_digest(ws, name, init_meta)
     if name == "baseline":
+        if unused := _unused_flags(name, flags or {}, None, ""):
+            log(f"note: {', '.join(unused)} cannot change the baseline (the largest expert alone, no gate): ignored")
         return _baseline(ws, scene, mix, rec, sched, device, log, source)
-    mix.configure(mix=rec.mix, aux_norm=rec.aux_norm, aux_samples=rec.aux_samples, vd_source=rec.vd_source,
-                  vd_filter=rec.vd_filter)
     if name == "ens":
         mix.make_ensemble()
-    else:
-        check_topk(topk, mix.cfg.expert_names, "--topk")
-        mix.configure(topk=topk, renormalize=rec.renormalize, penalty=rec.penalty, bake_res=rec.bake_res)
+    cfg, kind = routing(name, topk, rec, mix.cfg, mix.gate.cfg.kind)
+    mix.configure(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)})
+    if unused := _unused_flags(name, flags or {}, cfg, kind):
+        why = "every expert is used with equal weights" if name == "ens" else "at k = M every expert is used"
+        log(f"note: {', '.join(unused)} cannot change {name} ({why}): ignored")
     settings = scene.render_settings(mix.cfg.step, mix.bbox, rec.train.color_threshold)
     task = MixtureTask(mix, settings, rec.train, rec)
-    signature = {"stage": "finetune", "model": name, "from": source, "iters": rec.iters, "seed": rec.seed,
-                 "topk": mix.cfg.topk, "renormalize": mix.cfg.renormalize, "penalty": mix.cfg.penalty}
-    defaults = MixtureConfig()
-    for key in ("mix", "aux_norm", "aux_samples", "vd_source", "vd_filter"):  # named only when not the default: older checkpoints still resume
-        if getattr(mix.cfg, key) != getattr(defaults, key):
-            signature[key] = getattr(mix.cfg, key)
-    if rec.train.random_background:
-        signature["random_background"] = True
-    if task.wide_steps:
-        signature["wide_steps"] = task.wide_steps
-    if task.gate_noise:
-        signature["gate_noise"] = task.gate_noise
-    signature.update(_shaping(rec, ("lam",)))
+    sig = signature(name, rec, source, mix.cfg, mix.gate.cfg.kind)
     result = train(task, train_rays(scene, mix.bbox, device, rec.train), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
-                   signature=signature, data_parallel=True)
+                   signature=sig, data_parallel=True)
     mix.eval()
     final = result.history[-1] if result.history else {}
     report = {
@@ -125,7 +197,8 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     }
 
     def write() -> None:
-        save_mixture(ws.model_path(name), mix, {"name": name, "from": "init", "from_digest": source})
+        save_mixture(ws.model_path(name), mix, {"name": name, "from": "init", "from_digest": source,
+                                                "finetune_signature": sig})
         write_json(ws.moe_dir / f"{name}.json", report)
         ws.checkpoint_path(name).unlink(missing_ok=True)
         ws.update_manifest(moe={name: {"from": "init", "iterations": rec.iters}})
@@ -154,12 +227,9 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
     model.train()
     settings = scene.render_settings(meta["step"], model.bbox, rec.train.color_threshold)
     task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
-    signature = {"stage": "finetune", "model": "baseline", "from": source, "iters": rec.iters, "seed": rec.seed}
-    if rec.train.random_background:  # named only when set: older checkpoints still resume
-        signature["random_background"] = True
-    signature.update(_shaping(rec, ()))
+    sig = signature("baseline", rec, source)
     result = train(task, train_rays(scene, model.bbox, device, rec.train), sched, rec.seed, "baseline",
-                   checkpoint=ws.checkpoint_path("baseline"), signature=signature, data_parallel=True)
+                   checkpoint=ws.checkpoint_path("baseline"), signature=sig, data_parallel=True)
     model.eval()
     final = result.history[-1] if result.history else {}
     report = {
@@ -176,7 +246,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
 
     def write() -> None:
         save_expert(ws.model_path("baseline"), model, task.skip,
-                    {**meta, "name": "baseline", "from": largest, "from_digest": source})
+                    {**meta, "name": "baseline", "from": largest, "from_digest": source, "finetune_signature": sig})
         write_json(ws.moe_dir / "baseline.json", report)
         ws.checkpoint_path("baseline").unlink(missing_ok=True)
         ws.update_manifest(moe={"baseline": {"from": largest, "iterations": rec.iters}})
