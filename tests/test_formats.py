@@ -580,3 +580,15 @@ def test_an_impossible_focal_length_names_the_view_and_its_values(forward, tmp_p
     (folder / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(BoostNerfError, match=r"intrinsics of view images/frame_\d+ are fx, fy, cx, cy = -20, "):
         load_scene(folder)
+
+
+def test_a_folder_named_like_an_image_in_llff_images_is_not_an_image(forward, tmp_path):
+    """A folder `images/zzz.png` counted as an image: "poses_bounds.npy has 17 poses but images/ holds 18 images",
+    which sent the user looking for a missing pose."""
+    import shutil
+
+    folder = tmp_path / "llff"
+    shutil.copytree(forward["llff"], folder)
+    (folder / "images" / "zzz.png").mkdir()
+    scene = load_scene(folder, holdout_every=0)
+    assert len(scene.splits["train"]) == N_TRAIN + N_TEST

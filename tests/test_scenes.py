@@ -528,3 +528,76 @@ def test_cameras_inside_the_content_looking_out_are_named_and_data_bbox_gives_ne
     plain = load_scene(write_blender(tmp_path / "plain", {"train": images}), holdout_every=0)
     boxed = load_scene(tmp_path / "plain", holdout_every=0, bbox=[-1, -1, -1, 1, 1, 1])
     assert (boxed.near, boxed.far) == (plain.near, plain.far) and "notes" not in boxed.extra
+
+
+def test_image_kinds_real_captures_come_in(tmp_path):
+    """Probe Q (session 26): a 32-bit integer image (Pillow's mode "I": integer TIFFs, and 16-bit grey PNGs in some
+    Pillow releases) was divided by 2^31 and trained as black, exit 0; HDR float images were clipped without a word;
+    a folder named like an image was "not found"; an animated PNG got a bare shape error."""
+    from PIL import Image
+
+    from boostnerf_cli.scenes.frames import read_image
+
+    grey = np.random.default_rng(0).integers(0, 65536, (6, 6)).astype(np.int32)
+    Image.fromarray(grey).save(tmp_path / "i.tif")
+    assert Image.open(tmp_path / "i.tif").mode == "I"
+    assert torch.allclose(read_image(tmp_path / "i.tif")[..., 0], torch.from_numpy(grey / 65535).float())
+    Image.fromarray((grey * 2).astype(np.int32)).save(tmp_path / "wide.tif")  # past 16 bits: no scale to trust
+    raises_one_line("outside 16 bits", read_image, tmp_path / "wide.tif")
+    # float images: values past 0..1 are clipped when composited, and said once for the scene
+    folder = write_blender(tmp_path / "hdr", {"train": [rgba(4, 4)[..., :3]] * 3})
+    meta = json.loads((folder / "transforms_train.json").read_text())
+    for i, frame in enumerate(meta["frames"]):
+        Image.fromarray(np.full((4, 4), 4.0 if i else 0.5, np.float32)).save(folder / "train" / f"r_{i}.tif")
+        frame["file_path"] = f"./train/r_{i}.tif"
+    (folder / "transforms_train.json").write_text(json.dumps(meta))
+    said = load_scene(folder, holdout_every=0).extra["warnings"]
+    assert len(said) == 1 and "2 of 3 images hold floating-point values outside 0..1" in said[0], said
+    # a folder where an image should be; an animated image
+    folder = write_blender(tmp_path / "odd", {"train": [rgba(4, 4)] * 2})
+    (folder / "train" / "r_1.png").unlink()
+    (folder / "train" / "r_1.png").mkdir()
+    raises_one_line(r"frame 1.*r_1.* is a folder .*not an image file", load_scene, folder)
+    (folder / "train" / "r_1.png").rmdir()
+    frames = [Image.fromarray(rgba(4, 4, i)) for i in range(2)]
+    frames[0].save(folder / "train" / "r_1.png", save_all=True, append_images=frames[1:])
+    raises_one_line(r"r_1\.png holds 2 frames \(an animated image\)", load_scene, folder)
+
+
+def test_one_training_view_is_warned():
+    """One training view trained and evaluated as if normal (held-out PSNR of a white image, ||w||_0 0)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = write_blender(Path(tmp) / "one", {"train": [rgba(4, 4)], "test": [rgba(4, 4, 1)]})
+        said = load_scene(folder).extra["warnings"]
+        assert any("has 1 training view" in w for w in said), said
+        two = write_blender(Path(tmp) / "two", {"train": [rgba(4, 4)] * 2, "test": [rgba(4, 4, 1)]})
+        assert "warnings" not in load_scene(two).extra
+
+
+def test_jpeg_ringing_around_the_subject_is_not_foreground(tmp_path):
+    """The procedural scene saved as JPEG (q85, 4:2:0, on white): its ringing put 1,708 background pixels past the
+    lossless foreground tolerance, whose rays drew a surface on the box's faces (a data.bbox warning for content
+    that does not exist, and a box never shrunk). Lossy images get the looser tolerance."""
+    from PIL import Image
+
+    from boostnerf_cli.render.coverage import foreground_masks, foreground_tol
+
+    clean = make_scene(tmp_path / "clean", size=64, n_train=6, n_test=0)
+    jpeg = make_scene(tmp_path / "jpeg", size=64, n_train=6, n_test=0)
+    meta = json.loads((jpeg / "transforms_train.json").read_text())
+    for frame in meta["frames"]:
+        png = jpeg / (frame["file_path"] + ".png")
+        rgba_ = np.asarray(Image.open(png).convert("RGBA")).astype(np.float32) / 255
+        on_white = rgba_[..., :3] * rgba_[..., 3:] + (1 - rgba_[..., 3:])
+        Image.fromarray((on_white * 255 + 0.5).astype(np.uint8)).save(png.with_suffix(".jpg"), quality=85)
+        png.unlink()
+        frame["file_path"] += ".jpg"
+    (jpeg / "transforms_train.json").write_text(json.dumps(meta))
+    a, b = load_scene(clean, holdout_every=0), load_scene(jpeg, holdout_every=0)
+    assert b.extra.get("lossy") is True and "lossy" not in a.extra
+    truth = foreground_masks(a.split("train").images, a.background, foreground_tol(a.extra))
+    seen = foreground_masks(b.split("train").images, b.background, foreground_tol(b.extra))
+    assert int((seen & ~truth).sum()) < 0.01 * int(truth.sum()), (int((seen & ~truth).sum()), int(truth.sum()))
+    assert int((truth & ~seen).sum()) < 0.002 * int(truth.sum())

@@ -30,6 +30,7 @@ from boostnerf_cli.scenes.frames import (
     frame_intrinsics,
     hold_out,
     load_frames,
+    lossy_extra,
     parse_pose,
     read_transforms,
     resolve_image,
@@ -129,4 +130,4 @@ def load_blender(
     near, far, source = _near_far({s: parsed[s][1] for s in found}, folder, train.poses)
     bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
     return scene_from_splits(folder, splits, near, far, bbox, background, "blender", holdout, native, size,
-                             extra={"near_far_source": source})
+                             extra={"near_far_source": source, **lossy_extra(frames)})

@@ -113,19 +113,39 @@ def _read_mode(path: Path) -> str | None:
     return {"CMYK": "RGB", "YCbCr": "RGB", "LAB": "RGB", "HSV": "RGB", "1": "L"}.get(mode)
 
 
-def read_image(path: Path) -> Tensor:
-    """Read an image as float32 (H, W, C) in [0, 1]: C = 1 grey, 2 grey+alpha, 3 RGB, 4 RGBA (`_read_mode`)."""
+def read_image(path: Path, out_of_range: list | None = None) -> Tensor:
+    """Read an image as float32 (H, W, C) in [0, 1]: C = 1 grey, 2 grey+alpha, 3 RGB, 4 RGBA (`_read_mode`).
+
+    8- and 16-bit integers are scaled by their type's maximum; 32-bit integers (Pillow's mode "I", which is how
+    Pillow reads a 16-bit grey PNG in some releases, and how integer TIFFs come) hold 16-bit values and are scaled
+    by 65535 (beyond that range they are refused); float images are taken as they are: values past [0, 1] (HDR),
+    which compositing clips, add (path, min, max) to `out_of_range` when given (`load_frames` warns once)."""
     try:
         data = iio.imread(path, plugin="pillow", mode=_read_mode(path))
     except Exception as err:  # imageio/PIL raise many types for corrupt files
-        raise BoostNerfError(f"cannot read image {path} (corrupt or not an image: {one_line(err)}); replace or re-export it") from None
+        raise BoostNerfError(f"cannot read image {path} (corrupt, or a kind Pillow cannot read: {one_line(err)}); "
+                             "replace it, or re-export it as an 8- or 16-bit PNG or a JPEG") from None
+    if data.ndim == 4:
+        raise BoostNerfError(f"image {path} holds {data.shape[0]} frames (an animated image): save one still frame "
+                             "per view")
     if data.ndim == 2:
         data = data[..., None]
     if data.ndim != 3 or data.shape[-1] not in (1, 2, 3, 4):
         raise BoostNerfError(f"image {path} has shape {data.shape}: expected grey, RGB or RGBA")
-    img = torch.from_numpy(np.ascontiguousarray(data)).float()
+    scale = None
     if np.issubdtype(data.dtype, np.integer):
-        img.mul_(1.0 / np.iinfo(data.dtype).max)
+        scale = np.iinfo(data.dtype).max
+        if data.dtype.itemsize > 2:
+            lo, hi = int(data.min()), int(data.max())
+            if lo < 0 or hi > 65535:
+                raise BoostNerfError(f"image {path} holds {data.dtype} values in {lo}..{hi}, outside 16 bits: "
+                                     "re-export it as an 8- or 16-bit PNG")
+            scale = 65535
+    img = torch.from_numpy(np.ascontiguousarray(data)).float()
+    if scale is not None:
+        img.mul_(1.0 / scale)
+    elif out_of_range is not None and data.size and (float(img.max()) > 1.0 + 1e-6 or float(img.min()) < -1e-6):
+        out_of_range.append((path, float(img.min()), float(img.max())))
     return img
 
 
@@ -155,13 +175,14 @@ def composite(image: Tensor, background: Tensor) -> Tensor:
     return colour.clamp(0.0, 1.0)
 
 
-def load_image(path: Path, size: tuple[int, int], native: tuple[int, int], background: Tensor) -> tuple[Tensor, Tensor | None]:
+def load_image(path: Path, size: tuple[int, int], native: tuple[int, int], background: Tensor,
+               out_of_range: list | None = None) -> tuple[Tensor, Tensor | None]:
     """Read one image, area-downscale its premultiplied colour and alpha to `size` (h, w), then
     composite on `background` (3,) -> (h, w, 3) float32, and its downscaled alpha (h, w) (None when it has none).
 
     Raises BoostNerfError when the image's (H, W) differs from `native`.
     """
-    img = read_image(path)
+    img = read_image(path, out_of_range)
     if tuple(img.shape[:2]) != native:
         raise BoostNerfError(
             f"image {path} is {img.shape[1]}x{img.shape[0]} but the scene's images are "
@@ -184,8 +205,14 @@ def load_frames(frames: list[Frame], image_size: int | None,
     native = tuple(read_image(frames[0].image).shape[:2])
     size = target_size(*native, image_size)
     workers = max(1, min(8, os.cpu_count() or 1))
+    out_of_range: list = []  # list.append is atomic: the threads share it
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        loaded = list(pool.map(lambda f: load_image(f.image, size, native, background), frames))
+        loaded = list(pool.map(lambda f: load_image(f.image, size, native, background, out_of_range), frames))
+    if out_of_range:
+        first, lo, hi = min(out_of_range, key=lambda t: str(t[0]))
+        warnings.warn(DataWarning(
+            f"{len(out_of_range)} of {len(frames)} images hold floating-point values outside 0..1 (HDR? {first}: "
+            f"{lo:.3g}..{hi:.3g}): they are clipped to 0..1; tone-map the images to 8- or 16-bit first"), stacklevel=2)
     images = torch.stack([rgb for rgb, _ in loaded])
     if all(a is None for _, a in loaded):
         return images, None, native
@@ -197,6 +224,11 @@ def load_frames(frames: list[Frame], image_size: int | None,
             "background colour; save them with their alpha, or composited on that colour"), stacklevel=2)
     alpha = torch.stack([torch.ones(size) if a is None else a for _, a in loaded])
     return images, alpha, native
+
+
+def lossy_extra(frames) -> dict:
+    """`Scene.extra` entry for frames read from lossy files (JPEG): {"lossy": True}, else {} (`coverage.foreground_tol`)."""
+    return {"lossy": True} if any(Path(f.image).suffix.lower() in (".jpg", ".jpeg") for f in frames) else {}
 
 
 # ----------------------------------------------------------------------------- transforms JSON
@@ -268,9 +300,13 @@ def resolve_image(folder: Path, file_path: str, source: str) -> Path:
     raises (prefixed with `source`) when none is a file."""
     base = folder / file_path
     suffixes = (*IMAGE_SUFFIXES, *(s.upper() for s in IMAGE_SUFFIXES))
-    for candidate in (base, *(base.with_name(base.name + s) for s in suffixes)):
+    candidates = (base, *(base.with_name(base.name + s) for s in suffixes))
+    for candidate in candidates:
         if candidate.is_file():
             return candidate
+    folders = [c for c in candidates if c.is_dir()]
+    if folders:
+        raise BoostNerfError(f"{source}: image {file_path!r} is a folder ({folders[0]}), not an image file")
     raise BoostNerfError(f"{source}: image {file_path!r} not found (looked for {base} and {base} with "
                          f"{', '.join(suffixes)})")
 
@@ -405,6 +441,11 @@ def scene_from_splits(
     background: as floats. extra: `native_size` (the images' size on disk) and `image_size` (as
     stored), each [height, width], then the loader's own `extra` keys.
     """
+    if len(splits["train"]) == 1:
+        warnings.warn(DataWarning(
+            f"{folder} has 1 training view{' (after the hold-out: ' + holdout + ')' if holdout else ''}: one viewpoint "
+            "shows no depth, so other views render little but background; capture the subject from several "
+            "directions"), stacklevel=2)
     return Scene(
         name=folder.resolve().name,
         splits=splits,

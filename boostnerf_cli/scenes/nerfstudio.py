@@ -29,6 +29,7 @@ from boostnerf_cli.scenes.frames import (
     frame_intrinsics,
     hold_out,
     load_frames,
+    lossy_extra,
     parse_pose,
     read_transforms,
     resolve_image,
@@ -82,6 +83,7 @@ def load_nerfstudio(
     train = splits["train"]
     near, far = camera_near_far(train.poses)
     bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
-    return scene_from_splits(folder, splits, near, far, bbox, background, "nerfstudio", holdout, native, size)
+    return scene_from_splits(folder, splits, near, far, bbox, background, "nerfstudio", holdout, native, size,
+                             extra=lossy_extra(frames))
 
 

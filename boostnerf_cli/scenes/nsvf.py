@@ -32,7 +32,15 @@ from boostnerf_cli.scenes.bounds import (
     camera_near_far,
     frustum_overlap_bbox,
 )
-from boostnerf_cli.scenes.frames import IMAGE_SUFFIXES, Frame, hold_out, load_frames, one_line, scene_from_splits
+from boostnerf_cli.scenes.frames import (
+    IMAGE_SUFFIXES,
+    Frame,
+    hold_out,
+    load_frames,
+    lossy_extra,
+    one_line,
+    scene_from_splits,
+)
 from boostnerf_cli.scenes.scene import Scene, Split
 
 PREFIXES = {"0": "train", "1": "val", "2": "test"}
@@ -214,7 +222,8 @@ def load_nsvf(
         near, far = camera_near_far(train.poses)
         bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
     return scene_from_splits(folder, splits, near, far, bbox, background, format, holdout, native, size,
-                             extra={"bbox_source": "bbox.txt" if (folder / "bbox.txt").is_file() else "cameras"})
+                             extra={"bbox_source": "bbox.txt" if (folder / "bbox.txt").is_file() else "cameras",
+                                    **lossy_extra([f for s in order for f in frames[s]])})
 
 
 def load_tanks(path: Path, image_size: int | None = None, holdout_every: int = 8) -> Scene:

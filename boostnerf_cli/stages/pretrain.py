@@ -36,7 +36,7 @@ from boostnerf_cli.recipe import (
     shaping_changes,
     unused_family_note,
 )
-from boostnerf_cli.render.coverage import FOREGROUND_TOL, cover_foreground, foreground_masks, hull_cells
+from boostnerf_cli.render.coverage import cover_foreground, foreground_masks, foreground_tol, hull_cells
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
@@ -140,13 +140,14 @@ def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor
         framed = occ
         if rec.hull_box:
             framed = hull_cells(occ, train_split.images, train_split.poses, train_split.intrinsics, scene.background,
-                                scene.ndc)
+                                scene.ndc, foreground_tol(scene.extra))
         outside = int((occ.occupied & ~framed.occupied).sum())
         if outside:
             log(f"{name}: {outside} of {int(occ.occupied.sum())} occupied cells lie outside the training views' "
                 "visual hull (floaters, hidden space); they stay in the mask but do not count as surface")
         framed, box, cover = cover_foreground(framed, model.density, train_split.images, train_split.poses,
-                                              train_split.intrinsics, scene.background, scene.near, scene.far, scene.ndc)
+                                              train_split.intrinsics, scene.background, scene.near, scene.far, scene.ndc,
+                                              tol=foreground_tol(scene.extra))
         cover["outside_hull"] = outside
         log(f"{name}: {cover['missed_before']} of {cover['foreground_rays']} foreground training rays reach no surface "
             f"in occupied cells; {cover['cells_added']} cells added along them ({cover['missed_after']} missed); "
@@ -346,12 +347,13 @@ def check_foreground(scene: Scene, data: Path) -> None:
     train_split = scene.splits["train"]
     if scene.background is None or scene.ndc is not None:
         return
-    if any(bool(foreground_masks(image[None], scene.background).any()) for image in train_split.images):
+    tol = foreground_tol(scene.extra)
+    if any(bool(foreground_masks(image[None], scene.background, tol).any()) for image in train_split.images):
         return
     colour = ", ".join(f"{c:g}" for c in scene.background)
     raise BoostNerfError(
         f"the {len(train_split)} training views of {data} show nothing but the background: no pixel differs from "
-        f"its colour ({colour}) by more than {FOREGROUND_TOL}; check that the images hold the scene (an all-"
+        f"its colour ({colour}) by more than {tol}; check that the images hold the scene (an all-"
         "transparent alpha channel, a wrong folder)"
     )
 
