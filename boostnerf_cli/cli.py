@@ -84,8 +84,12 @@ def _writer(workspace: Path, must_exist: bool = True, distributed: bool = False)
 
 
 def _int_list(text: str, what: str) -> list[int]:
+    parts = text.replace(" ", "").split(",")
+    if "" in parts[:-1]:  # "8,,12" or ",8": a value lost (a trailing comma is tolerated)
+        raise BoostNerfError(f"{what} has an empty entry (got {text!r}): give comma-separated whole numbers, e.g. "
+                             "160,200,256")
     try:
-        values = [int(v) for v in text.replace(" ", "").split(",") if v]
+        values = [int(v) for v in parts if v]
     except ValueError:
         raise BoostNerfError(f"{what} must be comma-separated whole numbers, e.g. 160,200,256 (got {text!r})") from None
     if not values:
@@ -403,6 +407,9 @@ def _during_interrupt(e: BaseException) -> bool:
     return False
 
 
+PATH_OPTIONS = ("-w", "--workspace", "--data", "--recipe", "--video")  # the options that take a path
+
+
 def main() -> None:
     import signal
 
@@ -413,8 +420,10 @@ def main() -> None:
     if empty is not None:  # an unset shell variable: `-w ""` would mean the current folder
         what = (f"an empty value for {args[empty].rstrip('=')}" if args[empty] else
                 f"an empty argument after {args[empty - 1]}" if empty else "an empty command")
-        err.print(f"error: {what} (an unset shell variable?): give it a value, or '.' for the current folder",
-                  markup=False)
+        option = args[empty].rstrip("=") if args[empty] else args[empty - 1] if empty else ""
+        folder = not option.startswith("-") or option in PATH_OPTIONS  # a path: '.' may be what was meant
+        err.print(f"error: {what} (an unset shell variable?): give it a value"
+                  + (", or '.' for the current folder" if folder else ""), markup=False)
         sys.exit(2)
     try:
         try:

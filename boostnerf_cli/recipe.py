@@ -156,7 +156,7 @@ class MoERecipe:
     vd_res: int | None = limit(None, GRID_RES)  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
     density_threshold: float = limit(1e-3, THRESHOLD)  # T: samples whose V_D opacity over one step is below it are filtered
     step_from: str = limit("largest", OneOf(("smallest", "largest")))  # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
-    topk: int = limit(2, at_least(1))  # at most the number of experts (checked by build-moe)
+    topk: int = limit(2, at_least(1))  # the untrained mixture's k (moe/init; bench's untrained rows): build-moe fits it to the number of experts, with a note; finetune --topk K sets each model's
     lam: float = limit(1e-3, LOSS_WEIGHT)  # lambda: weight of the resolution-weighted auxiliary loss (L_tot = L_nerf + lambda L_rw-aux; the paper uses 1e-3)
     penalty: str = limit("geometric", PENALTY_RULE)  # geometric | linear | quadratic | none | weights "1, 1.5, 2.23" (one per expert)
     aux_norm: str = limit("batch", OneOf(AUX_NORMS))  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 = k^2 |B|^2 (official code)

@@ -163,9 +163,11 @@ def test_build_moe_names_an_expert_it_leaves_out_for_want_of_its_report(trained_
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws)
     (ws / "experts" / "dvgo-12.json").unlink()
-    proc = run_cli("build-moe", "--workspace", str(ws), "--device", "cpu")
+    proc = run_cli("build-moe", "--workspace", str(ws), "--device", "cpu", check=True)
     assert "leaving out dvgo-12: weights without a training report" in proc.stderr
-    assert_clean_failure(proc, "moe.topk = 2 but the mixture has 1 experts")
+    # one expert left: the untrained mixture routes to it (moe.topk = 2 was refused, and build-moe has no --topk)
+    assert "note: moe.topk = 2 but the mixture has 1 expert: moe/init routes to 1" in proc.stderr
+    assert json.loads((ws / "moe" / "init.json").read_text())["experts"] == ["dvgo-16"]
 
 
 def test_a_file_in_the_way_of_the_checkpoints_folder_is_one_line(moe_ws, tmp_path):
@@ -483,3 +485,13 @@ def test_options_that_cannot_change_a_model_are_named(moe_ws, tmp_path):
     proc = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--wide-start", "0.5", "--lambda", "0.1",
                    "--iters", "2", "--device", "cpu", check=True)
     assert "note:" not in proc.stderr
+
+
+def test_a_density_volume_too_coarse_to_keep_a_cell_names_moe_vd_res(trained_ws, tmp_path):
+    """With moe.vd_res 1 the V_D error blamed the threshold and the experts' training only; the cause was the
+    volume's two vertices per axis, which read the expert's density at the box's corners."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("moe", "reports", "renders"))
+    recipe = make_recipe(tmp_path / "vd1.yaml", moe={"vd_res": 1})
+    proc = run_cli("build-moe", "--workspace", str(ws), "--recipe", str(recipe), "--device", "cpu")
+    assert_clean_failure(proc, "keeps no cell", "raise moe.vd_res (= 1")

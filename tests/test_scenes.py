@@ -601,3 +601,13 @@ def test_jpeg_ringing_around_the_subject_is_not_foreground(tmp_path):
     seen = foreground_masks(b.split("train").images, b.background, foreground_tol(b.extra))
     assert int((seen & ~truth).sum()) < 0.01 * int(truth.sum()), (int((seen & ~truth).sum()), int(truth.sum()))
     assert int((truth & ~seen).sum()) < 0.002 * int(truth.sum())
+
+
+def test_boxes_in_messages_keep_their_digits_at_any_scale():
+    """The geometry log printed a 2 mm box as [-0.001, -0.001, -0.001, 0.001, 0.001, 0.0] (fixed 3 decimals)."""
+    from boostnerf_cli.scenes.bounds import box_text
+
+    box = torch.tensor([[-1.8406, -1.66, -2.04], [1.76, 1.73, 1.63]], dtype=torch.float64)
+    assert box_text(box) == [-1.841, -1.66, -2.04, 1.76, 1.73, 1.63]
+    assert box_text(box * 1e-3) == [-0.001841, -0.00166, -0.00204, 0.00176, 0.00173, 0.00163]
+    assert box_text(box * 1e3) == [-1841, -1660, -2040, 1760, 1730, 1630]

@@ -11,6 +11,15 @@ from torch import Tensor
 from boostnerf_cli.errors import BoxWarning
 
 
+def box_text(box: Tensor) -> list[float]:
+    """A box (2, 3) as six numbers for a message, to a thousandth of its longest side: a scene in millimetres
+    or kilometres, or far from the origin, keeps its digits (a fixed 3 decimals printed a 2 mm box as +-0.001)."""
+    values = box.flatten().tolist()
+    extent = max(hi - lo for lo, hi in zip(values[:3], values[3:]))
+    digits = max(0, 3 - math.floor(math.log10(extent))) if extent > 0 and math.isfinite(extent) else 3
+    return [round(v, digits) for v in values]
+
+
 def frustum_corners(poses: Tensor, intrinsics: Tensor, height: int, width: int, near: float, far: float) -> Tensor:
     """World positions of every camera's 4 image corners at depth `near` and at depth `far`.
 
@@ -111,7 +120,7 @@ def frustum_overlap_bbox(
     need = math.ceil(min_fraction * len(poses) - 1e-9)
     keep = counts >= need
     if not bool(keep.any()):
-        box = [round(v, 4) for v in torch.stack([lo, hi]).flatten().tolist()]
+        box = box_text(torch.stack([lo, hi]))
         warnings.warn(f"no point between near {near:.4g} and far {far:.4g} is seen by {need} of the {len(poses)} "
                       f"training cameras (at most {int(counts.max())}): the scene box is the extent of every camera's "
                       f"view, {box}; if the content lies elsewhere, give recipe key data.bbox a box that holds it "

@@ -15,7 +15,6 @@ from boostnerf_cli.models import load_expert, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
-from boostnerf_cli.moe.router import check_topk
 from boostnerf_cli.recipe import MoERecipe, check_section
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.workspace import Workspace, read_meta, write_json
@@ -38,7 +37,11 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     if twice:
         raise BoostNerfError(f"--experts names {twice[0]} more than once: a mixture holds each expert once")
     check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
-    check_topk(rec.topk, names, "moe.topk")
+    topk = rec.topk
+    if topk > len(names):  # the untrained mixture's k is used by nothing but bench's untrained rows: fit it, and say so
+        topk = len(names)
+        log(f"note: moe.topk = {rec.topk} but the mixture has {len(names)} expert{'s' if len(names) > 1 else ''}: "
+            f"moe/init routes to {topk} (finetune --topk K sets each finetuned model's k)")
     extra = [rec.gate_from] if rec.gate_from and rec.gate_from not in names else []  # the gate's source, left out
     if extra and extra[0] not in available:
         raise BoostNerfError(f"moe.gate_from = {rec.gate_from!r}: no pretrained expert of that name in {ws.root} "
@@ -67,8 +70,10 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
         raise BoostNerfError(
             f"V_D from {experts[0][1]} keeps no cell: its opacity over one render step is at most moe.density_threshold "
             f"= {rec.density_threshold:g} everywhere, so every sample would be filtered and the mixture could not "
-            "train; lower it (--threshold) or train the experts longer (pretrain --iters N --force), unless the scene "
-            "shows nothing but empty space")
+            "train; lower it (--threshold)"
+            + (f" or raise moe.vd_res (= {rec.vd_res}: a volume this coarse reads the expert's density at few points; "
+               f"unset, it is the smallest expert's {smallest.spatial_res})" if rec.vd_res and 2 * rec.vd_res <= smallest.spatial_res else "")
+            + " or train the experts longer (pretrain --iters N --force), unless the scene shows nothing but empty space")
     gate_grid = resolve_gate_grid(rec.gate_grid, [e[2].family for e in experts])
     source = gate_source(rec, gate_grid, experts, outside)
     channels = rec.gate_channels if source is None else source[2].feature_table.shape[1]
@@ -78,7 +83,7 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     if source is not None:
         gate.init_grid_from(source[2].feature_table, source[2].shape, source[2].bbox)
     gate = gate.to(device)
-    cfg = MixtureConfig(topk=rec.topk, renormalize=rec.renormalize, threshold=rec.density_threshold,
+    cfg = MixtureConfig(topk=topk, renormalize=rec.renormalize, threshold=rec.density_threshold,
                         penalty=rec.penalty, vd_res=vd_res, step=step, bake_res=rec.bake_res,
                         expert_names=[e[1] for e in experts], mix=rec.mix, aux_norm=rec.aux_norm,
                         aux_samples=rec.aux_samples, vd_source=rec.vd_source, vd_filter=rec.vd_filter)

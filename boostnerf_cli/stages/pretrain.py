@@ -40,6 +40,7 @@ from boostnerf_cli.render.coverage import cover_foreground, foreground_masks, fo
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
+from boostnerf_cli.scenes.bounds import box_text
 from boostnerf_cli.stages.common import scene_digest
 from boostnerf_cli.tasks import FieldTask, train_rays
 from boostnerf_cli.train import Schedule, train
@@ -91,7 +92,7 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     if cover is not None and cover["edge_rays"] > EDGE_WARN * cover["foreground_rays"]:  # over the scene's own box
         log(f"geometry: warning: {cover['edge_rays']} of {cover['foreground_rays']} foreground training rays "
             f"({100 * cover['edge_rays'] / cover['foreground_rays']:.1f}%) find their surface on the faces of the "
-            f"scene box {[round(v, 3) for v in bbox.flatten().tolist()]}: the scene reaches past it, and what lies "
+            f"scene box {box_text(bbox)}: the scene reaches past it, and what lies "
             "beyond is drawn on its faces; if that is content, give recipe key data.bbox a box that holds it "
             "(docs/datasets.md, \"The scene box\")")
     rounds = [cover]
@@ -107,7 +108,7 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
                                                "coverage": rounds[-1], "rounds": rounds})
     for name in ("geometry", "geometry-refine"):
         ws.checkpoint_path(name).unlink(missing_ok=True)
-    log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {[round(v, 3) for v in box.flatten().tolist()]} "
+    log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {box_text(box)} "
         f"({seconds:.1f}s)")
     return box, occ, model
 
