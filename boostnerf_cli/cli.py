@@ -366,6 +366,8 @@ def bench(
     names = [n for n in only.replace(" ", "").split(",") if n] if only else None
     if list_rows:
         _, rows = stage.catalogue(rec, suite)
+        for note in stage.catalogue_notes(rec, suite):
+            log(f"note: {note}")
         stage.check_config(workspace, data, views, rec, listing=True)  # rows of a bench made with another recipe are not "finished"
         table = Table("row", "group", "workspace", "model", "finished")
         for r in stage.select(rows, names, suite):

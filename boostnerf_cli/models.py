@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import torch
 from torch import Tensor, nn
@@ -303,14 +303,14 @@ def n_views(split: Split, views: int | None) -> int:
 
 
 def render_split(model: LoadedModel, scene: Scene, split: Split, device: str, skips: Skips = ALL_SKIPS,
-                 views: int | None = None) -> list[dict]:
-    """Render the first `views` views of a split (all by default) -> outputs with timings."""
+                 views: int | None = None) -> Iterator[dict]:
+    """Render the first `views` views of a split (all by default), one at a time -> outputs with timings.
+    A generator: a caller that writes or scores each view as it comes holds one view in memory, not the split
+    (200 Blender test views at 800 px held 2.6 GB per model)."""
     settings, skip = model.render_setup(scene, skips)
-    out = []
     for i in range(n_views(split, views)):
         t0 = time.perf_counter()
         r = render_view(model.field, split, i, settings, skip, device)
         r["seconds"] = time.perf_counter() - t0
-        out.append(r)
-    return out
+        yield r
 

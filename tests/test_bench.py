@@ -208,3 +208,54 @@ def test_tables_written_to_a_file_or_pipe_keep_every_name_whole(bench_recipe, tm
                    "full")
     assert proc.returncode == 0, proc.stderr
     assert "…" not in proc.stdout and "variants/penalty-quadratic " in proc.stdout, proc.stdout
+
+
+def test_rows_that_could_only_repeat_another_are_left_out_with_a_note():
+    """Probe W (session 26): at moe.lam 0 (blender-tensorf-cpu.yaml's) the six penalty rows were bit-identical
+    retrainings of top1 and top2, labelled as ablations; with one expert the gate rows too repeated top1; and a
+    moe.topk above M was clamped for the gate rows without a word."""
+    rec = Recipe()
+    rec.pretrain.res = [64, 80, 96]
+    rec.moe.lam = 0.0
+    _, full = bench.catalogue(rec, "full")
+    assert not [r for r in full if r.group == "penalty"] and [r for r in full if r.group == "gate-res"]
+    assert any("moe.lam = 0: the penalty rows are left out" in n for n in bench.catalogue_notes(rec, "full"))
+    assert bench.catalogue_notes(rec, "quick") == []
+    rec.moe.lam, rec.pretrain.res, rec.moe.topk = 1e-3, [64], 3
+    _, full = bench.catalogue(rec, "full")
+    assert not [r for r in full if r.group in ("gate-res", "gate-type", "penalty")]
+    notes = bench.catalogue_notes(rec, "full")
+    assert any("one expert: the gate-res, gate-type and penalty rows are left out" in n for n in notes)
+    assert any("moe.topk = 3 but the recipe has 1 expert" in n for n in notes)
+    rec.pretrain.res, rec.moe.topk = [64, 80, 96], 2  # the default: every row, no note
+    _, full = bench.catalogue(rec, "full")
+    assert len([r for r in full if r.group == "penalty"]) == 6 and bench.catalogue_notes(rec, "full") == []
+
+
+def test_an_interrupted_bench_leaves_the_table_of_what_it_finished(quick_bench, tiny_scene, bench_recipe, tmp_path,
+                                                                    monkeypatch):
+    """The table was written only when the whole run ended: a bench stopped after 8 rows left no bench.json or
+    bench.csv (or the previous run's, stale), though docs/reports.md calls it the table of every finished row."""
+    import shutil
+
+    from boostnerf_cli.recipe import load_recipe
+
+    root = tmp_path / "b"
+    shutil.copytree(quick_bench[0], root, symlinks=True)
+    shutil.rmtree(root / "reports")
+    for name in ("naive-step", "naive-wide"):
+        (root / "rows" / f"{name}.json").unlink()
+    real, ran = bench.Bench.run_row, []
+
+    def stop_at_the_second(self, row):
+        ran.append(row.name)
+        if len(ran) == 2:
+            raise KeyboardInterrupt
+        return real(self, row)
+
+    monkeypatch.setattr(bench.Bench, "run_row", stop_at_the_second)
+    with pytest.raises(KeyboardInterrupt):
+        bench.run(root, tiny_scene, load_recipe(bench_recipe), "quick", None, "cpu", None, lambda _: None)
+    table = json.loads((root / "reports" / "bench.json").read_text())
+    assert len(table["rows"]) == 8 and table["missing"] == ["naive-wide"]
+    assert len((root / "reports" / "bench.csv").read_text().splitlines()) == 1 + 8

@@ -281,3 +281,27 @@ def test_a_refresh_never_prunes_every_cell_the_geometry_keeps(tiny_scene):
     base = task.base_mask.sample_cells(task.skip)
     assert task.skip.occupied.any() and (task.skip.occupied & ~base).sum() == 0
     assert task.skip.occupied.sum() < base.sum()
+
+
+def test_the_ray_table_is_every_view_s_box_hitting_rays_in_order(tiny_scene, tmp_path):
+    """The training-ray table, now filled in place (its build peaked at 83 bytes per training pixel, 2.4x the table:
+    300 views at 800 px would need 16 GB), holds exactly what concatenating every view's rays and keeping those that
+    hit the box gave: same rays, same order, same colours and alpha; also for a forward-facing (NDC) scene."""
+    from boostnerf_cli.render.rays import image_rays, intersect_box
+    from boostnerf_cli.scenes import make_scene
+
+    llff = make_scene(tmp_path / "llff", size=16, n_train=5, n_test=0, layout="llff")
+    for scene in (load_scene(tiny_scene), load_scene(llff, holdout_every=0)):
+        split = scene.splits["train"]
+        box = scene.bbox.clone()
+        box[1, 0] = box[0, 0] + 0.4 * (box[1, 0] - box[0, 0])  # a narrower box: some rays miss it
+        rays = [image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, scene.ndc)
+                for i in range(len(split))]
+        o, d = torch.cat([r[0] for r in rays]), torch.cat([r[1] for r in rays])
+        hit = intersect_box(o, d, box, scene.near, scene.far)[2]
+        assert 0 < int(hit.sum()) < len(hit)
+        table = RayData.from_split(split, box, scene.near, scene.far, scene.ndc, keep_alpha=True)
+        assert torch.equal(table.origins, o[hit]) and torch.equal(table.dirs, d[hit])
+        assert torch.equal(table.rgb, split.images.reshape(-1, 3)[hit])
+        if split.alpha is not None:
+            assert torch.equal(table.alpha, split.alpha.reshape(-1)[hit])

@@ -60,6 +60,22 @@ def _off_centre(scene: Scene) -> str:
     return ""
 
 
+def _far_from_origin(scene: Scene) -> str:
+    """"" or a warning for cameras far from the world's origin compared with their spread (georeferenced or UTM
+    coordinates): float32, which rays and grids use, keeps about 7 digits, so at 1000x the spread a position is
+    known to about 1e-4 of the spread (a twentieth of a 384^3 voxel), and worse beyond."""
+    if scene.ndc is not None:
+        return ""
+    centres = scene.splits["train"].poses[:, :3, 3].double()
+    spread = float((centres - centres.mean(0)).norm(dim=-1).max())
+    reach = float(centres.abs().max())
+    if spread <= 0 or reach <= 1000 * spread:
+        return ""
+    return (f"the training cameras sit up to {reach:.4g} from the world's origin, {reach / spread:.0f}x their spread "
+            f"({spread:.4g}): float32 positions there are coarse; recentre the poses (subtract their mean centre) "
+            "before training")
+
+
 def load_scene(path, image_size: int | None = None, holdout_every: int = 8, format: str = "auto",
                bbox: list[float] | None = None) -> Scene:
     """Load the scene at `path`; `format` is "auto" or a key of `FORMATS`.
@@ -88,9 +104,9 @@ def load_scene(path, image_size: int | None = None, holdout_every: int = 8, form
             scene.extra.setdefault("warnings", []).append(str(w.message))
         else:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    off = _off_centre(scene)
-    if off:
-        scene.extra.setdefault("warnings", []).append(off)
+    for doubt in (_off_centre(scene), _far_from_origin(scene)):
+        if doubt:
+            scene.extra.setdefault("warnings", []).append(doubt)
     if detected:
         scene.extra["detected"] = detected
     if bbox is not None:

@@ -15,7 +15,9 @@ Workspaces (experts are trained once and hard-linked between workspaces, never r
   gate-res-R      gate grid of R^3 (half and twice the recipe's), top-k of the recipe
   gate-linear, gate-switch   the other gate types (switch with top-1, as Switch-NeRF)
   penalty-P       the other auxiliary-loss penalties, from main's untrained mixture, top1 and top2
-The quick suite is main + naive; the full suite adds the ablations.
+The quick suite is main + naive; the full suite adds the ablations. Rows that could only repeat another are left
+out, with a note (`catalogue_notes`): the gate and penalty rows for one expert (the gate has no choice to make),
+and the penalty rows at moe.lam 0 (no auxiliary loss to weigh).
 
 train_seconds: the training wall time of everything a model needs, the shared geometry stage
 excluded (it is the same for every variant): an expert's pretraining; for a mixture the sum of
@@ -145,6 +147,8 @@ def catalogue(rec: Recipe, suite: str) -> tuple[dict[str, Setup], list[Row]]:
             if name == "main" and k <= 2:
                 continue  # the main rows top1, top2
             rows.append(Row(f"M{m}-top{k}", "topk", name, f"top{k}", f"top{k}", m, k, {"res": experts}))
+    if m0 < 2:  # one expert: every gate routes to it, so the gate and penalty rows would repeat top1
+        return setups, rows
     for gr in sorted({max(2, rec.moe.gate_res // 2), rec.moe.gate_res * 2} - {rec.moe.gate_res}):
         r = copy.deepcopy(setups["main"].recipe)
         r.moe.gate_res = gr
@@ -158,7 +162,7 @@ def catalogue(rec: Recipe, suite: str) -> tuple[dict[str, Setup], list[Row]]:
         setups[f"gate-{gt}"] = Setup(f"gate-{gt}", "link", r)
         rows.append(Row(f"gate-{gt}", "gate-type", f"gate-{gt}", f"top{k}", f"top{k}", m0, k))
     for p in PENALTIES:
-        if p == rec.moe.penalty:
+        if p == rec.moe.penalty or rec.moe.lam == 0:  # at lambda 0 no penalty weighs anything: rows = top1, top2
             continue
         r = copy.deepcopy(setups["main"].recipe)
         r.moe.penalty = p
@@ -167,6 +171,21 @@ def catalogue(rec: Recipe, suite: str) -> tuple[dict[str, Setup], list[Row]]:
             if k <= m0:
                 rows.append(Row(f"penalty-{p}-top{k}", "penalty", f"penalty-{p}", f"top{k}", f"top{k}", m0, k))
     return setups, rows
+
+
+def catalogue_notes(rec: Recipe, suite: str) -> list[str]:
+    """What `catalogue` fits or leaves out of the recipe's suite, one line each (printed by bench and bench --list)."""
+    m0, notes = len(rec.pretrain.res), []
+    if rec.moe.topk > m0:
+        notes.append(f"moe.topk = {rec.moe.topk} but the recipe has {m0} expert{'s' if m0 > 1 else ''}: the rows that "
+                     f"use the recipe's k (gate-res, gate-linear) use {m0}")
+    if suite == "full" and m0 < 2:
+        notes.append("one expert: the gate-res, gate-type and penalty rows are left out (every gate routes to it, so "
+                     "they would repeat top1)")
+    elif suite == "full" and rec.moe.lam == 0:
+        notes.append("moe.lam = 0: the penalty rows are left out (without the auxiliary loss the penalty weighs "
+                     "nothing, so they would repeat top1 and top2)")
+    return notes
 
 
 def select(rows: list[Row], only: list[str] | None, suite: str) -> list[Row]:
@@ -320,6 +339,8 @@ def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] 
         views: int | None, log: Callable[[str], None]) -> dict:
     setups, rows = catalogue(rec, suite)
     chosen = select(rows, only, suite)
+    for note in catalogue_notes(rec, suite):
+        log(f"note: {note}")
     if data is None:
         from boostnerf_cli.scenes import make_scene
 
@@ -342,10 +363,12 @@ def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] 
         r = bench.run_row(row)
         log(f"bench [{i}/{len(chosen)}] {row.name}: PSNR {r['psnr']:.3f}, {r['gflops_per_image']:.3f} GFLOPs/image, "
             f"{r['seconds_per_image']:.3f} s/image, trained in {r['train_seconds']:.0f}s")
+        if i < len(chosen):  # the table of every finished row stays current: an interrupted bench leaves it too
+            write_table(root, suite, rows, lambda _: None, plots=False)
     return write_table(root, suite, rows, log)
 
 
-def write_table(root: Path, suite: str, rows: list[Row], log: Callable[[str], None]) -> dict:
+def write_table(root: Path, suite: str, rows: list[Row], log: Callable[[str], None], plots: bool = True) -> dict:
     """bench.json / bench.csv / plots of every finished row of the suite, in catalogue order."""
     done = [read_json(row_path(root, r.name), "bench row") for r in rows if row_path(root, r.name).exists()]
     reports = root / "reports"
@@ -358,7 +381,7 @@ def write_table(root: Path, suite: str, rows: list[Row], log: Callable[[str], No
         writer.writerow([r[c] for c in COLUMNS])
     with atomic_path(reports / "bench.csv") as tmp:
         tmp.write_text(buf.getvalue())
-    table["plots"] = plot(done, reports, log)
+    table["plots"] = plot(done, reports, log) if plots else []
     return table
 
 

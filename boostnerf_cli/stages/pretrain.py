@@ -146,6 +146,8 @@ def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor
         if outside:
             log(f"{name}: {outside} of {int(occ.occupied.sum())} occupied cells lie outside the training views' "
                 "visual hull (floaters, hidden space); they stay in the mask but do not count as surface")
+        log(f"{name}: checking that every foreground ray of the {len(train_split)} training views reaches kept "
+            "space")  # a pass over every training ray: minutes for a large capture
         framed, box, cover = cover_foreground(framed, model.density, train_split.images, train_split.poses,
                                               train_split.intrinsics, scene.background, scene.near, scene.far, scene.ndc,
                                               tol=foreground_tol(scene.extra))
@@ -384,6 +386,7 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     if generate:
         log(f"no --data given: generating the default procedural scene in {data}")
         make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)  # atomic: never half a scene
+    log(f"reading the scene at {data}" + (f" (images at {rec.data.image_size} px)" if rec.data.image_size else ""))
     scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
                        format=rec.data.format, bbox=rec.data.bbox)
     for res in rec.pretrain.res:  # per-expert options are checked (and chosen, said once) before anything trains
