@@ -423,7 +423,7 @@ def main() -> None:
         what = (f"an empty value for {args[empty].rstrip('=')}" if args[empty] else
                 f"an empty argument after {args[empty - 1]}" if empty else "an empty command")
         option = args[empty].rstrip("=") if args[empty] else args[empty - 1] if empty else ""
-        folder = not option.startswith("-") or option in PATH_OPTIONS  # a path: '.' may be what was meant
+        folder = option in PATH_OPTIONS or (empty == 1 and option == "make-scene")  # a path: '.' may be meant
         err.print(f"error: {what} (an unset shell variable?): give it a value"
                   + (", or '.' for the current folder" if folder else ""), markup=False)
         sys.exit(2)

@@ -224,9 +224,14 @@ def test_rows_that_could_only_repeat_another_are_left_out_with_a_note():
     rec.moe.lam, rec.pretrain.res, rec.moe.topk = 1e-3, [64], 3
     _, full = bench.catalogue(rec, "full")
     assert not [r for r in full if r.group in ("gate-res", "gate-type", "penalty")]
-    notes = bench.catalogue_notes(rec, "full")
-    assert any("one expert: the gate-res, gate-type and penalty rows are left out" in n for n in notes)
-    assert any("moe.topk = 3 but the recipe has 1 expert" in n for n in notes)
+    assert bench.catalogue_notes(rec, "full") == [
+        "one expert: the gate-res, gate-type and penalty rows are left out (every gate routes to it, so they would "
+        "repeat top1)"]  # and no word of a k for rows that are not there
+    rec.pretrain.res = [64, 80]
+    _, full = bench.catalogue(rec, "full")
+    assert {r.topk for r in full if r.group == "gate-res"} == {2}
+    assert any("moe.topk = 3 but the recipe has 2 experts" in n for n in bench.catalogue_notes(rec, "full"))
+    assert bench.catalogue_notes(rec, "quick") == []  # the quick suite has no row with the recipe's k
     rec.pretrain.res, rec.moe.topk = [64, 80, 96], 2  # the default: every row, no note
     _, full = bench.catalogue(rec, "full")
     assert len([r for r in full if r.group == "penalty"]) == 6 and bench.catalogue_notes(rec, "full") == []

@@ -316,9 +316,10 @@ def test_an_empty_argument_is_refused_not_taken_for_the_current_folder(tmp_path)
         proc = run_cli(*args, cwd=tmp_path)
         assert_clean_failure(proc, needle, "unset shell variable", "or '.' for the current folder")
     # a number list is no folder: no '.' hint; a list with an entry lost is refused, not shortened (8,,12 was [8, 12])
-    proc = run_cli("pretrain", "-w", "ws", "--res", "", cwd=tmp_path)
-    assert_clean_failure(proc, "an empty argument after --res", "unset shell variable")
-    assert "current folder" not in proc.stderr
+    for args, after in ((["--res", ""], "--res"), (["--res", "8", ""], "8")):
+        proc = run_cli("pretrain", "-w", "ws", *args, cwd=tmp_path)
+        assert_clean_failure(proc, f"an empty argument after {after}", "unset shell variable")
+        assert "current folder" not in proc.stderr
     for res in ("8,,12", ",8"):
         proc = run_cli("pretrain", "-w", "ws", "--res", res, cwd=tmp_path)
         assert_clean_failure(proc, f"--res has an empty entry (got '{res}')")

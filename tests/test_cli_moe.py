@@ -295,7 +295,7 @@ def test_each_render_skip_only_drops_work_and_changes_pixels_by_at_most_its_thre
     scene = workspace_scene(ws)
     model = load_model(ws, name, "cpu")
     split = scene.split("test")
-    out = {s: render_split(model, scene, split, "cpu", s, views=1)[0]
+    out = {s: next(render_split(model, scene, split, "cpu", s, views=1))
            for s in (Skips(), Skips(empty=False), Skips(terminated=False), Skips.from_flags(no_skip=True))}
     on, no_empty, no_term, off = out.values()
     assert on["n_samples"] < no_empty["n_samples"] == off["n_samples"]  # the empty-space filter drops samples
@@ -447,23 +447,26 @@ def test_a_finished_model_asked_for_with_other_settings_is_refused_not_skipped(m
     refuses the same case; so does finetune now, for every model. The same settings still skip."""
     ws = tmp_path / "ws"
     shutil.copytree(moe_ws, ws)
-    for model, flags, key in ((["--topk", "2"], ["--no-renormalize"], "renormalize: True, now False"),
-                              (["--topk", "2"], ["--lambda", "0.5"], "lam"),
-                              (["--topk", "1"], ["--iters", "3"], "iters"),
-                              (["--ensemble"], ["--seed", "5"], "seed: 0, now 5"),
-                              (["--baseline"], ["--iters", "3"], "iters")):
+    for model, flags, key in ((["--topk", "1"], ["--no-renormalize"], "(--renormalize: True, now False)"),
+                              (["--topk", "2"], ["--lambda", "0.5"], "(--lambda: the default, now 0.5)"),
+                              (["--topk", "1"], ["--iters", "3"], "--iters"),
+                              (["--ensemble"], ["--seed", "5"], "(--seed: 0, now 5)"),
+                              (["--baseline"], ["--iters", "3"], "--iters")):
         proc = run_cli("finetune", "--workspace", str(ws), *model, *flags, "--device", "cpu")
         assert_clean_failure(proc, "was finetuned with other settings", key, "--force")
     before = {p.name: p.stat().st_mtime_ns for p in (ws / "moe").iterdir()}
-    for model in (["--topk", "1"], ["--topk", "2"], ["--ensemble"], ["--baseline"]):
+    # the same settings skip, and so do settings that cannot change the model (ignored, so not refused: the
+    # ensemble's lambda and penalty, renormalising at k = M, which is top2 here)
+    for model in (["--topk", "1"], ["--topk", "2"], ["--ensemble"], ["--baseline"], ["--ensemble", "--lambda", "0.5"],
+                  ["--ensemble", "--penalty", "linear"], ["--topk", "2", "--no-renormalize"]):
         proc = run_cli("finetune", "--workspace", str(ws), *model, "--device", "cpu", check=True)
-        assert "already finetuned, skipping" in proc.stderr
+        assert "already finetuned, skipping" in proc.stderr, (model, proc.stderr)
     assert {p.name: p.stat().st_mtime_ns for p in (ws / "moe").iterdir()} == before
     # with --force the new settings train, and a rerun with them skips
-    run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--no-renormalize", "--iters", "2", "--force",
+    run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--no-renormalize", "--iters", "2", "--force",
             "--device", "cpu", check=True)
-    assert json.loads((ws / "moe" / "top2.json").read_text())["renormalize"] is False
-    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--no-renormalize", "--iters", "2",
+    assert json.loads((ws / "moe" / "top1.json").read_text())["renormalize"] is False
+    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--no-renormalize", "--iters", "2",
                    "--device", "cpu", check=True)
     assert "already finetuned, skipping" in proc.stderr
 

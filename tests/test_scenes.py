@@ -524,6 +524,14 @@ def test_cameras_inside_the_content_looking_out_are_named_and_data_bbox_gives_ne
     corner = math.dist((0.2, 0.0, 0.5), (-3.6, -3.6, -0.7))
     assert scene.far >= corner - 1e-3 and scene.near < 0.1, (scene.near, scene.far)
     assert "widened" in scene.extra["notes"][0]
+    # one camera inside the box does not keep a recorded near of 2 for a camera 0.05 above the box's top face
+    mixed = write_blender(tmp_path / "mixed", {"train": images[:2]}, near=2.0, far=6.0)
+    meta = json.loads((mixed / "transforms_train.json").read_text())
+    meta["frames"][0]["transform_matrix"] = _look_at(np.zeros(3), np.array([3.0, 0.0, 0.0])).tolist()
+    meta["frames"][1]["transform_matrix"] = _look_at(np.array([0.0, 0.3, 1.05]), np.zeros(3)).tolist()
+    (mixed / "transforms_train.json").write_text(json.dumps(meta))
+    scene = load_scene(mixed, holdout_every=0, bbox=[-1, -1, -1, 1, 1, 1])
+    assert scene.near <= 0.9 * 0.05 + 1e-6 and scene.far >= 6.0, (scene.near, scene.far)
     # a box inside what near / far already reach changes nothing and says nothing
     plain = load_scene(write_blender(tmp_path / "plain", {"train": images}), holdout_every=0)
     boxed = load_scene(tmp_path / "plain", holdout_every=0, bbox=[-1, -1, -1, 1, 1, 1])
@@ -562,6 +570,11 @@ def test_image_kinds_real_captures_come_in(tmp_path):
     frames = [Image.fromarray(rgba(4, 4, i)) for i in range(2)]
     frames[0].save(folder / "train" / "r_1.png", save_all=True, append_images=frames[1:])
     raises_one_line(r"r_1\.png holds 2 frames \(an animated image\)", load_scene, folder)
+    # a NaN passes every range test and survived clamping into the training images
+    nan = np.full((4, 4), 0.5, np.float32)
+    nan[1, 2] = np.nan
+    Image.fromarray(nan).save(tmp_path / "nan.tif")
+    raises_one_line("holds NaN or infinite values", read_image, tmp_path / "nan.tif")
 
 
 def test_one_training_view_is_warned():
@@ -628,3 +641,12 @@ def test_cameras_far_from_the_origin_are_warned(tmp_path):
         (folder / "transforms_train.json").write_text(json.dumps(meta))
         said = " | ".join(load_scene(folder, holdout_every=0).extra.get("warnings", []))
         assert ("recentre the poses" in said) == warned, (offset, said)
+    # cameras sharing one spot near the origin (a panorama from a tripod): nothing is coarse there
+    folder = write_blender(tmp_path / "tripod", {"train": images})
+    meta = json.loads((folder / "transforms_train.json").read_text())
+    for frame, pose in zip(meta["frames"], _ring(6, 1e-4, outward=True)):
+        pose[:3, 3] += (0.3, 0.0, 0.0)
+        frame["transform_matrix"] = pose.tolist()
+    (folder / "transforms_train.json").write_text(json.dumps(meta))
+    said = " | ".join(load_scene(folder, holdout_every=0).extra.get("warnings", []))
+    assert "recentre the poses" not in said, said

@@ -61,18 +61,20 @@ def _off_centre(scene: Scene) -> str:
 
 
 def _far_from_origin(scene: Scene) -> str:
-    """"" or a warning for cameras far from the world's origin compared with their spread (georeferenced or UTM
-    coordinates): float32, which rays and grids use, keeps about 7 digits, so at 1000x the spread a position is
-    known to about 1e-4 of the spread (a twentieth of a 384^3 voxel), and worse beyond."""
+    """"" or a warning for cameras far from the world's origin compared with the scene's size (georeferenced or
+    UTM coordinates): float32, which rays and grids use, keeps about 7 digits, so at 1000x the size (the larger of
+    the cameras' spread and the box's longest side) a position is known to about 1e-4 of it (a twentieth of a
+    384^3 voxel), and worse beyond. Cameras sharing one spot near the origin (a panorama) are no concern."""
     if scene.ndc is not None:
         return ""
     centres = scene.splits["train"].poses[:, :3, 3].double()
     spread = float((centres - centres.mean(0)).norm(dim=-1).max())
+    size = max(spread, float((scene.bbox[1] - scene.bbox[0]).max()))
     reach = float(centres.abs().max())
-    if spread <= 0 or reach <= 1000 * spread:
+    if size <= 0 or reach <= 1000 * size:
         return ""
-    return (f"the training cameras sit up to {reach:.4g} from the world's origin, {reach / spread:.0f}x their spread "
-            f"({spread:.4g}): float32 positions there are coarse; recentre the poses (subtract their mean centre) "
+    return (f"the training cameras sit up to {reach:.4g} from the world's origin, {reach / size:.0f}x the scene's "
+            f"size ({size:.4g}): float32 positions there are coarse; recentre the poses (subtract their mean centre) "
             "before training")
 
 
@@ -126,10 +128,14 @@ def load_scene(path, image_size: int | None = None, holdout_every: int = 8, form
 
 def _reach_box(scene: Scene) -> Scene:
     """near / far widened so that every training camera's rays reach all of a given box (data.bbox): a far derived
-    from cameras inside the content, or one the files record, could end rays short of it. A camera inside the box
-    keeps the scene's near."""
-    box_near, box_far = box_near_far(scene.splits["train"].poses, scene.bbox)
-    near = min(scene.near, box_near) if box_near > 0 else scene.near
+    from cameras inside the content, or one the files record, could end rays short of it. near comes down to 0.9x
+    the distance to the box of the nearest camera outside it (a camera inside the box does not pull it to 0)."""
+    poses = scene.splits["train"].poses
+    _, box_far = box_near_far(poses, scene.bbox)
+    o, lo, hi = poses[:, :3, 3].double(), scene.bbox[0].double(), scene.bbox[1].double()
+    gaps = (o - torch.maximum(torch.minimum(o, hi), lo)).norm(dim=-1)
+    outside = gaps[gaps > 0]
+    near = min(scene.near, 0.9 * float(outside.min())) if len(outside) else scene.near
     far = max(scene.far, box_far)
     if (near, far) == (scene.near, scene.far):
         return scene

@@ -4,8 +4,8 @@ Layout: a folder with `transforms_<split>.json` files. Each holds `camera_angle_
 optionally `fl_y`, `cx`, `cy`, `w`, `h`, also allowed per frame) and `frames`, each with a
 `file_path` (relative to the folder, `.png` optional) and a 4x4 camera-to-world
 `transform_matrix` in the OpenGL convention. Optional top-level `near` / `far` are honoured;
-a bound the files do not record comes from the cameras (`camera_near_far`: 0.1 r and 2 r, r the
-cameras' distance to the point they look at), as for nerfstudio and NSVF folders without a box. The
+a bound the files do not record comes from the cameras (`camera_near_far`: 0.1 r and R + r, r the median
+and R the largest camera distance to the point they look at), as for nerfstudio and NSVF folders without a box. The
 original NeRF loader's fixed 2 / 6 suit only cameras about 4 units from the subject: cameras 16 units
 away would see nothing at all through them, and the box and the coarse stage's samples depended on them.
 

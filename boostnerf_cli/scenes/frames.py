@@ -142,6 +142,8 @@ def read_image(path: Path, out_of_range: list | None = None) -> Tensor:
                                      "re-export it as an 8- or 16-bit PNG")
             scale = 65535
     img = torch.from_numpy(np.ascontiguousarray(data)).float()
+    if scale is None and not bool(torch.isfinite(img).all()):  # NaN passes every range test and survives clamping
+        raise BoostNerfError(f"image {path} holds NaN or infinite values: re-export it (tone-mapped, 8- or 16-bit)")
     if scale is not None:
         img.mul_(1.0 / scale)
     elif out_of_range is not None and data.size and (float(img.max()) > 1.0 + 1e-6 or float(img.min()) < -1e-6):

@@ -176,7 +176,7 @@ def catalogue(rec: Recipe, suite: str) -> tuple[dict[str, Setup], list[Row]]:
 def catalogue_notes(rec: Recipe, suite: str) -> list[str]:
     """What `catalogue` fits or leaves out of the recipe's suite, one line each (printed by bench and bench --list)."""
     m0, notes = len(rec.pretrain.res), []
-    if rec.moe.topk > m0:
+    if suite == "full" and 2 <= m0 < rec.moe.topk:  # the only rows that use the recipe's k
         notes.append(f"moe.topk = {rec.moe.topk} but the recipe has {m0} expert{'s' if m0 > 1 else ''}: the rows that "
                      f"use the recipe's k (gate-res, gate-linear) use {m0}")
     if suite == "full" and m0 < 2:

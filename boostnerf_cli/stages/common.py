@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import hashlib
+import threading
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Callable, Iterator
 
 import torch
 
@@ -51,3 +54,16 @@ def scene_digest(scene: Scene) -> str:
         for t in (s.images, s.poses, s.intrinsics):
             h.update(t.detach().cpu().contiguous().numpy().tobytes())
     return h.hexdigest()
+
+
+@contextmanager
+def slow_notice(log: Callable[[str], None], message: str, after: float = 5.0) -> Iterator[None]:
+    """Say `message` once if the block is still running after `after` seconds (reading a large capture takes
+    minutes); a block that ends sooner, or fails at once with its one-line error, prints nothing more."""
+    timer = threading.Timer(after, log, args=(message,))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()

@@ -58,9 +58,9 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
         log(lpips_note)
     rows = []
     for name in names:
+        model = load_model(ws, name, device, exact_gate=True)  # ||w||_0 needs the trainable gate
         log(f"{name}: rendering {n_views(split, views)} {split_name} view{'s' if n_views(split, views) != 1 else ''}"
             + (" (and again for its costs)" if costs else ""))  # minutes on a large split: say what runs
-        model = load_model(ws, name, device, exact_gate=True)  # ||w||_0 needs the trainable gate
         cost = {}
         if costs:
             c = model_costs(model, scene, split, device, views, exact_gate, skips)  # leaves it ready to render

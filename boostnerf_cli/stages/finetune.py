@@ -56,10 +56,12 @@ def routing(name: str, topk: int | None, rec: MoERecipe, cfg: MixtureConfig, gat
     cfg = dataclasses.replace(cfg, mix=rec.mix, aux_norm=rec.aux_norm, aux_samples=rec.aux_samples,
                               vd_source=rec.vd_source, vd_filter=rec.vd_filter)
     m = len(cfg.expert_names)
-    if name == "ens":
-        return dataclasses.replace(cfg, topk=m), "uniform"
+    if name == "ens":  # equal weights over every expert: renormalising and the penalty change nothing (`_unused_flags`)
+        return dataclasses.replace(cfg, topk=m, renormalize=True, penalty=MixtureConfig().penalty), "uniform"
     check_topk(topk, cfg.expert_names, "--topk")
-    cfg = dataclasses.replace(cfg, topk=topk, renormalize=rec.renormalize, penalty=rec.penalty, bake_res=rec.bake_res)
+    # at k = M every expert is used and the weights already sum to 1: renormalising changes nothing
+    renormalize = True if topk == m else rec.renormalize
+    cfg = dataclasses.replace(cfg, topk=topk, renormalize=renormalize, penalty=rec.penalty, bake_res=rec.bake_res)
     check_config(cfg, m)
     return cfg, gate_kind
 
@@ -83,8 +85,14 @@ def signature(name: str, rec: MoERecipe, source: str | None, cfg: MixtureConfig 
             sig["wide_steps"] = wide_steps
         if gate_noise:
             sig["gate_noise"] = gate_noise
-    sig.update(_shaping(rec, ("lam",) if cfg is not None else ()))
+    sig.update(_shaping(rec, ("lam",) if cfg is not None and name != "ens" else ()))  # no aux loss to weigh: ens
     return sig
+
+
+# how a setting of the signature is given, for messages
+SETTING_NAMES = {"iters": "--iters", "seed": "--seed", "lam": "--lambda", "penalty": "--penalty",
+                 "renormalize": "--renormalize", "wide_steps": "--wide-start (in steps)", "gate_noise": "--gate-noise",
+                 "topk": "--topk", "train": "moe.train", "from": "its source"}
 
 
 def _planned_signature(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict) -> dict:
@@ -106,16 +114,20 @@ def _check_finished(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, 
     now = _planned_signature(ws, name, topk, rec, init_meta)
     for key in sorted(set(stored) | set(now)):
         if stored.get(key) != now.get(key):
-            raise BoostNerfError(f"{name} was finetuned with other settings ({key}: {stored.get(key)!r}, now "
-                                 f"{now.get(key)!r}): add --force to finetune it again, or rerun with the settings it "
-                                 "was finetuned with")
+            was, is_ = (("the default" if v is None else repr(v)) for v in (stored.get(key), now.get(key)))
+            setting = SETTING_NAMES.get(key, f"moe.{key}")
+            raise BoostNerfError(f"{name} was finetuned with other settings ({setting}: {was}, now {is_}): add --force "
+                                 "to finetune it again, or rerun with the settings it was finetuned with")
 
 
 def _unused_flags(name: str, flags: dict, cfg: MixtureConfig | None, gate_kind: str) -> list[str]:
     """The options given on the command line that cannot change model `name` (the baseline has no gate; the
     ensemble's is uniform; at k = M every expert is used and the weights already sum to 1)."""
+    def typed(flag: str) -> str:  # --renormalize / --no-renormalize as given
+        return flag if flag != "--renormalize" or flags[flag] else "--no-renormalize"
+
     if name == "baseline":
-        return [f for f in flags]
+        return [typed(f) for f in flags]
     m = len(cfg.expert_names)
     unused = []
     if name == "ens":
@@ -123,7 +135,7 @@ def _unused_flags(name: str, flags: dict, cfg: MixtureConfig | None, gate_kind: 
     if gate_kind == "uniform" or cfg.topk >= m:
         unused += [f for f in ("--wide-start", "--gate-noise") if f in flags]
         if "--renormalize" in flags:
-            unused.append("--renormalize" if flags["--renormalize"] else "--no-renormalize")
+            unused.append(typed("--renormalize"))
     return unused
 
 

@@ -41,7 +41,7 @@ from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.scenes.bounds import box_text
-from boostnerf_cli.stages.common import scene_digest
+from boostnerf_cli.stages.common import scene_digest, slow_notice
 from boostnerf_cli.tasks import FieldTask, train_rays
 from boostnerf_cli.train import Schedule, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
@@ -386,9 +386,9 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     if generate:
         log(f"no --data given: generating the default procedural scene in {data}")
         make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)  # atomic: never half a scene
-    log(f"reading the scene at {data}" + (f" (images at {rec.data.image_size} px)" if rec.data.image_size else ""))
-    scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
-                       format=rec.data.format, bbox=rec.data.bbox)
+    with slow_notice(log, f"reading the scene at {data} (its images are read and scaled once per stage)"):
+        scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
+                           format=rec.data.format, bbox=rec.data.bbox)
     for res in rec.pretrain.res:  # per-expert options are checked (and chosen, said once) before anything trains
         expert_options(rec.pretrain, res, log)
     note = unused_family_note(rec.pretrain)
