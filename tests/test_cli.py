@@ -357,3 +357,22 @@ def test_render_writes_each_view_as_it_comes(trained_ws, tmp_path, monkeypatch):
         stage.run(Workspace(ws), ["dvgo-12"], "test", "cpu", ALL_SKIPS, None, lambda _: None)
     written = sorted(p.name for p in (ws / "renders" / "dvgo-12" / "test").glob("*.png"))
     assert len(written) == 2 and sum(n.endswith("_depth.png") for n in written) == 1, written  # view 1: colour, depth
+
+
+def test_a_slow_stage_says_what_it_is_doing_and_a_fast_one_stays_quiet():
+    """Reading 120 JPEGs at 4000 x 3000 (53 s) and scoring 200 held-out views (122 s) printed nothing; a line printed
+    up front, though, made every one-line refusal of a bad scene two lines. The notice comes only when it is slow."""
+    import time
+
+    from boostnerf_cli.stages.common import slow_notice
+
+    said = []
+    with slow_notice(said.append, "reading the scene", after=0.05):
+        time.sleep(0.3)
+    assert said == ["reading the scene"]
+    with slow_notice(said.append, "scoring", after=0.5):
+        pass
+    with pytest.raises(ValueError), slow_notice(said.append, "failing", after=0.05):
+        raise ValueError("at once")
+    time.sleep(0.2)
+    assert said == ["reading the scene"]

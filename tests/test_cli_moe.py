@@ -95,6 +95,10 @@ def test_eval_and_count_params_list_every_model(moe_ws):
     for m in report["models"]:
         assert m["w0"] > 0 and m["gflops_per_image"] > 0 and m["w0"] <= m["params"]
         assert m["psnr"] >= TINY_MOE_PSNR_2_VIEWS[m["name"]] - PSNR_MARGIN, (m["name"], m["psnr"])
+    # a mixture's row says how it routes (a top1 finetuned with --no-renormalize is another model of the same name)
+    routing = {m["name"]: m.get("routing") for m in report["models"]}
+    assert routing == {"dvgo-12": None, "dvgo-16": None, "baseline": None, "top1": {"topk": 1, "renormalize": True},
+                       "top2": {"topk": 2, "renormalize": True}, "ens": {"topk": 2, "renormalize": True}}
     table = (moe_ws / "reports" / "eval.md").read_text().splitlines()
     assert sum(1 for line in table if line.startswith("| top")) == 2
     run_cli("count-params", "--workspace", str(moe_ws), "--device", "cpu", "--views", "1", check=True)

@@ -39,6 +39,9 @@ def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, 
         "samples_per_image": round(mean("samples")),
         "colored_per_image": round(mean("colored")),
         "params": model.params,
+        # how a mixture routes: a top2 finetuned with --no-renormalize is another model than the default top2
+        **({"routing": {"topk": model.field.cfg.topk, "renormalize": model.field.cfg.renormalize}}
+           if model.kind == "mixture" else {}),
     }
 
 

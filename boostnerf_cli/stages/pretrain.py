@@ -234,7 +234,7 @@ def _check_finished(ws: Workspace, rec: PretrainRecipe, scene_tag: str, force: b
 
 
 def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, box: Tensor, geom: OccupancyGrid,
-                    prior: nn.Module, device: str, scene_tag: str = "") -> dict:
+                    prior: nn.Module, device: str, scene_tag: str = "", log: Callable[[str], None] | None = None) -> dict:
     """Train one expert at `res` and write its safetensors file and JSON report (with `rec.skip` off: on the
     scene's whole box instead of `box`, without `geom`)."""
     name = expert_name(rec.model, res)
@@ -277,7 +277,8 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     }
     test = scene.split("test") if any(k in scene.splits for k in ("test", "val")) else None
     if test is not None:
-        report["test_psnr"] = round(_test_psnr(model, test, settings, task.skip, device), 3)
+        with slow_notice(log or (lambda _: None), f"{name}: scoring its {len(test)} held-out views"):
+            report["test_psnr"] = round(_test_psnr(model, test, settings, task.skip, device), 3)
     save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step, "scene": scene_tag,
                                                          "signature": signature})
     write_json(ws.expert_report_path(name), report)
@@ -331,7 +332,7 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
                            "computed only where a sample's rendering weight exceeds train.color_threshold)")
     with dist.together():
         for res in assign(todo, dist.world_size())[dist.rank()]:
-            report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, tag)
+            report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, tag, log)
             log(f"{report['name']}: {report['iterations']} steps in {report['seconds']:.0f}s, train PSNR "
                 f"{report['train_psnr']:.2f}"
                 + (f", held-out PSNR {report['test_psnr']:.2f}" if "test_psnr" in report else ""))
