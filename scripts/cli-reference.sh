@@ -4,7 +4,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 {
   echo "# Command reference"; echo
-  echo "Generated from \`boostnerf COMMAND --help\` by scripts/cli-reference.sh (a test checks that every option listed by \`--help\` appears here)."; echo
+  echo "Generated from \`boostnerf COMMAND --help\` by scripts/cli-reference.sh (a test checks that each section is the command's \`--help\` as printed now)."; echo
   for c in make-scene pretrain build-moe finetune render eval count-params prune bench; do
     echo "## \`boostnerf $c\`"; echo; echo '```'
     COLUMNS=100 boostnerf "$c" --help 2>&1 | sed 's/[[:space:]]*$//'
