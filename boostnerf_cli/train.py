@@ -227,6 +227,18 @@ def _kept(checkpoint: Path | None) -> str:
     return "no checkpoint had been written yet"
 
 
+# how a setting of a training signature is given, for messages (others are named by their recipe key)
+SETTING_NAMES = {"iters": "--iters", "seed": "--seed", "lam": "--lambda", "penalty": "--penalty",
+                 "renormalize": "--renormalize", "wide_steps": "--wide-start (in steps)", "gate_noise": "--gate-noise",
+                 "topk": "--topk", "train": "the recipe's train section", "from": "its source"}
+
+
+def setting_change(key: str, was, now) -> str:
+    """`key: was, now now` for a message, with the flag's name and "the default" for a setting left at it."""
+    was, now = (("the default" if v is None else repr(v)) for v in (was, now))
+    return f"{SETTING_NAMES.get(key, key)}: {was}, now {now}"
+
+
 def _check_signature(path: Path, saved: dict | None, wanted: dict | None) -> None:
     """Refuse to resume a checkpoint written with settings that change what is being trained."""
     if saved is None or wanted is None or saved == wanted:
@@ -234,8 +246,9 @@ def _check_signature(path: Path, saved: dict | None, wanted: dict | None) -> Non
     for key in sorted(set(saved) | set(wanted)):
         if saved.get(key) != wanted.get(key):
             raise BoostNerfError(
-                f"training checkpoint {path} was written with other settings ({key}: {saved.get(key)!r}, now "
-                f"{wanted.get(key)!r}): rerun with the settings it was made with to resume, or delete it to restart this model"
+                f"training checkpoint {path} was written with other settings ({setting_change(key, saved.get(key), wanted.get(key))}): "
+                "rerun with the settings it was made with to resume, add --force to restart this model with these, or "
+                "delete it"
             )
 
 
@@ -269,12 +282,15 @@ def train(
     on_log: Callable[[int, dict], None] | None = None,
     signature: dict | None = None,
     data_parallel: bool = False,
+    restart_other: bool = False,
 ) -> TrainResult:
     """Run `sched.iters` steps of `task` on random batches of `rays`, resuming from `checkpoint`.
 
     `checkpoint` is written atomically every `sched.checkpoint_every` steps and after the last step
     (model, optimiser, step, skipped-step count, history, batch and global RNG states, `signature`);
-    a checkpoint whose `signature` (the settings that define what is trained) differs is refused.
+    a checkpoint whose `signature` (the settings that define what is trained) differs is refused, or with
+    `restart_other` (pretrain's and finetune's --force) dropped: the model trains from its first step. A checkpoint
+    of the same settings is resumed either way (an interrupted --force run goes on when rerun).
     A non-finite loss or gradient skips the step (counted, reported); `sched.max_bad_steps`
     consecutive ones stop the run. A state with non-finite values is never checkpointed.
 
@@ -292,6 +308,7 @@ def train(
     start, elapsed, skipped, history = 0, 0.0, 0, []
     trend = PsnrTrend()
     opt: torch.optim.Optimizer | None = None
+    state = None
     if checkpoint is not None and checkpoint.exists():
         try:
             state = torch.load(checkpoint, map_location="cpu", weights_only=True)
@@ -300,6 +317,9 @@ def train(
         if not isinstance(state, dict):
             raise BoostNerfError(f"training checkpoint {checkpoint} is not a boostnerf training state; "
                                  "delete it to restart this model")
+        if restart_other and state.get("signature") != signature:
+            state = None  # --force: a checkpoint of other settings is dropped (overwritten at the next checkpoint)
+    if state is not None:
         try:
             _check_signature(checkpoint, state.get("signature"), signature)
             task.load_state(state["task"])

@@ -154,3 +154,27 @@ def test_a_checkpoint_is_not_resumed_with_other_training_settings(setup, tmp_pat
     assert_clean_failure(run_cli(*finetune, "--lambda", "0"), "other settings", "lam")
     run_cli(*finetune, "--lambda", "0.5", check=True)
     assert json.loads((ws / "moe" / "top2.json").read_text())["lambda"] == 0.5
+
+
+def test_an_interrupted_force_run_resumes_and_force_drops_a_checkpoint_of_other_settings(setup, tmp_path):
+    """Probe Y (session 26): `finetune --force` (and `pretrain --force`) deleted the model's training checkpoint
+    before training, so an interrupted --force run restarted from step 0 on every rerun of the same command, though
+    the interrupt line says "rerun the same command to go on". A checkpoint of the same settings is resumed now;
+    --force drops one of other settings instead of refusing it."""
+    root, _, ref, _ = setup
+    ws = tmp_path / "ws"
+    shutil.copytree(ref, ws)
+    if not (ws / "moe" / "init.safetensors").exists():
+        run_cli("build-moe", "--workspace", str(ws), "--device", "cpu", check=True)
+    finetune = ["finetune", "--workspace", str(ws), "--topk", "2", "--device", "cpu"]
+    run_cli(*finetune, check=True)
+    forced = [*finetune, "--lambda", "0.5", "--force"]
+    run_killed(forced, "checkpoint:1")  # the forced run, killed after its first checkpoint (step 4/24)
+    proc = run_cli(*forced, check=True)
+    assert "resuming from" in proc.stderr and "at step 4/24" in proc.stderr
+    assert json.loads((ws / "moe" / "top2.json").read_text())["lambda"] == 0.5
+    run_killed(forced, "checkpoint:1")
+    proc = run_cli(*finetune, "--lambda", "0", "--force", check=True)  # other settings: starts over, no refusal
+    assert "resuming from" not in proc.stderr
+    assert json.loads((ws / "moe" / "top2.json").read_text())["lambda"] == 0.0
+    assert_clean(ws)

@@ -650,3 +650,24 @@ def test_cameras_far_from_the_origin_are_warned(tmp_path):
     (folder / "transforms_train.json").write_text(json.dumps(meta))
     said = " | ".join(load_scene(folder, holdout_every=0).extra.get("warnings", []))
     assert "recentre the poses" not in said, said
+
+
+def test_held_out_cameras_farther_than_the_training_ones_reach_the_box(tmp_path):
+    """Probe Z (session 26): near / far came from the training cameras alone, so test cameras 3x farther out ended
+    every ray before the box: each held-out view rendered as pure background, scored as if the model were at fault,
+    with no word. far now reaches the box from every split's cameras, with a note."""
+    images = [rgba(16, 16, i) for i in range(6)]
+    folder = write_blender(tmp_path / "far-test", {"train": images, "test": images[:2]})
+    plain = load_scene(folder)
+    meta = json.loads((folder / "transforms_test.json").read_text())
+    for frame in meta["frames"]:
+        m = np.array(frame["transform_matrix"])
+        m[:3, 3] *= 3
+        frame["transform_matrix"] = m.tolist()
+    (folder / "transforms_test.json").write_text(json.dumps(meta))
+    scene = load_scene(folder)
+    corners = scene.bbox[[0, 1]]
+    farthest = max(float((scene.splits["test"].poses[i, :3, 3] - torch.stack(
+        [corners[(k >> a) & 1, a] for a in range(3)])).norm()) for i in range(2) for k in range(8))
+    assert scene.far >= farthest - 1e-4 > plain.far, (scene.far, farthest, plain.far)
+    assert "train and test" in scene.extra["notes"][0] and "notes" not in plain.extra

@@ -122,15 +122,16 @@ def load_scene(path, image_size: int | None = None, holdout_every: int = 8, form
         # `Scene` refuses any other shape, and a max not above its min, in one line
         scene = dataclasses.replace(scene, bbox=box.view(2, 3) if box.numel() == 6 else box,
                                     extra={**scene.extra, "bbox": "data.bbox"})
-        scene = _reach_box(scene)
-    return scene
+    return _reach_box(scene) if scene.ndc is None else scene
 
 
 def _reach_box(scene: Scene) -> Scene:
-    """near / far widened so that every training camera's rays reach all of a given box (data.bbox): a far derived
-    from cameras inside the content, or one the files record, could end rays short of it. near comes down to 0.9x
-    the distance to the box of the nearest camera outside it (a camera inside the box does not pull it to 0)."""
-    poses = scene.splits["train"].poses
+    """near / far widened so that every camera's rays, of every split, reach all of the box: a far derived from the
+    training cameras (test cameras farther out rendered nothing but background, with no word), from cameras inside
+    the content, or one the files record, could end rays short of it, and so could a box given by data.bbox. near
+    comes down to 0.9x the distance to the box of the nearest camera outside it (a camera inside the box does not
+    pull it to 0)."""
+    poses = torch.cat([split.poses for split in scene.splits.values()])
     _, box_far = box_near_far(poses, scene.bbox)
     o, lo, hi = poses[:, :3, 3].double(), scene.bbox[0].double(), scene.bbox[1].double()
     gaps = (o - torch.maximum(torch.minimum(o, hi), lo)).norm(dim=-1)
@@ -139,8 +140,8 @@ def _reach_box(scene: Scene) -> Scene:
     far = max(scene.far, box_far)
     if (near, far) == (scene.near, scene.far):
         return scene
-    note = (f"data.bbox: near / far {scene.near:.4g} / {scene.far:.4g} widened to {near:.4g} / {far:.4g}, so that "
-            "every training camera's rays reach the whole box")
+    note = (f"near / far {scene.near:.4g} / {scene.far:.4g} widened to {near:.4g} / {far:.4g}, so that every camera's "
+            "rays (train and test) reach the whole scene box")
     return dataclasses.replace(scene, near=near, far=far,
                                extra={**scene.extra, "notes": [*scene.extra.get("notes", []), note]})
 

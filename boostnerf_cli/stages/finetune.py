@@ -23,7 +23,7 @@ from boostnerf_cli.recipe import MoERecipe, check_section, shaping_changes
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.tasks import FieldTask, MixtureTask, sparse_options, train_rays
-from boostnerf_cli.train import Schedule, train
+from boostnerf_cli.train import Schedule, setting_change, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
 
@@ -89,11 +89,6 @@ def signature(name: str, rec: MoERecipe, source: str | None, cfg: MixtureConfig 
     return sig
 
 
-# how a setting of the signature is given, for messages
-SETTING_NAMES = {"iters": "--iters", "seed": "--seed", "lam": "--lambda", "penalty": "--penalty",
-                 "renormalize": "--renormalize", "wide_steps": "--wide-start (in steps)", "gate_noise": "--gate-noise",
-                 "topk": "--topk", "train": "moe.train", "from": "its source"}
-
 
 def _planned_signature(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict) -> dict:
     """The signature this run would give `name`, from moe/init's metadata alone (nothing loaded)."""
@@ -114,10 +109,8 @@ def _check_finished(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, 
     now = _planned_signature(ws, name, topk, rec, init_meta)
     for key in sorted(set(stored) | set(now)):
         if stored.get(key) != now.get(key):
-            was, is_ = (("the default" if v is None else repr(v)) for v in (stored.get(key), now.get(key)))
-            setting = SETTING_NAMES.get(key, f"moe.{key}")
-            raise BoostNerfError(f"{name} was finetuned with other settings ({setting}: {was}, now {is_}): add --force "
-                                 "to finetune it again, or rerun with the settings it was finetuned with")
+            raise BoostNerfError(f"{name} was finetuned with other settings ({setting_change(key, stored.get(key), now.get(key))}): "
+                                 "add --force to finetune it again, or rerun with the settings it was finetuned with")
 
 
 def _unused_flags(name: str, flags: dict, cfg: MixtureConfig | None, gate_kind: str) -> list[str]:
@@ -158,8 +151,6 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         _check_finished(ws, name, topk, rec, init_meta)
         log(f"{name}: already finetuned, skipping (use --force to redo it)")
         return read_json(ws.moe_dir / f"{name}.json", "finetune report")
-    if force:
-        dist.on_main(lambda: ws.checkpoint_path(name).unlink(missing_ok=True))
     scene = workspace_scene(ws)
     mix, meta = load_mixture(init, device)
     mix.train()
@@ -168,7 +159,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     if name == "baseline":
         if unused := _unused_flags(name, flags or {}, None, ""):
             log(f"note: {', '.join(unused)} cannot change the baseline (the largest expert alone, no gate): ignored")
-        return _baseline(ws, scene, mix, rec, sched, device, log, source)
+        return _baseline(ws, scene, mix, rec, sched, device, log, source, force)
     if name == "ens":
         mix.make_ensemble()
     cfg, kind = routing(name, topk, rec, mix.cfg, mix.gate.cfg.kind)
@@ -180,7 +171,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     task = MixtureTask(mix, settings, rec.train, rec)
     sig = signature(name, rec, source, mix.cfg, mix.gate.cfg.kind)
     result = train(task, train_rays(scene, mix.bbox, device, rec.train), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
-                   signature=sig, data_parallel=True)
+                   signature=sig, data_parallel=True, restart_other=force)
     mix.eval()
     final = result.history[-1] if result.history else {}
     report = {
@@ -232,7 +223,7 @@ def _shaping(rec: MoERecipe, keys: tuple[str, ...]) -> dict:
 
 
 def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: Schedule, device: str,
-              log: Callable[[str], None], source: str | None) -> dict:
+              log: Callable[[str], None], source: str | None, force: bool = False) -> dict:
     """The largest expert alone, trained for the same finetuning iterations and schedule."""
     largest = mix.cfg.expert_names[-1]
     model, occ, meta = load_expert(ws.expert_path(largest), device)
@@ -241,7 +232,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
     task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
     sig = signature("baseline", rec, source)
     result = train(task, train_rays(scene, model.bbox, device, rec.train), sched, rec.seed, "baseline",
-                   checkpoint=ws.checkpoint_path("baseline"), signature=sig, data_parallel=True)
+                   checkpoint=ws.checkpoint_path("baseline"), signature=sig, data_parallel=True, restart_other=force)
     model.eval()
     final = result.history[-1] if result.history else {}
     report = {

@@ -234,7 +234,8 @@ def _check_finished(ws: Workspace, rec: PretrainRecipe, scene_tag: str, force: b
 
 
 def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, box: Tensor, geom: OccupancyGrid,
-                    prior: nn.Module, device: str, scene_tag: str = "", log: Callable[[str], None] | None = None) -> dict:
+                    prior: nn.Module, device: str, scene_tag: str = "", log: Callable[[str], None] | None = None,
+                    force: bool = False) -> dict:
     """Train one expert at `res` and write its safetensors file and JSON report (with `rec.skip` off: on the
     scene's whole box instead of `box`, without `geom`)."""
     name = expert_name(rec.model, res)
@@ -258,7 +259,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
     signature = expert_signature(rec, res, scene_tag, read_meta(ws.geometry_path).get("digest"))
-    result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt, signature=signature)
+    result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt, signature=signature, restart_other=force)
     model.eval()
     task.refresh_occupancy()
     report = {
@@ -332,7 +333,7 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
                            "computed only where a sample's rendering weight exceeds train.color_threshold)")
     with dist.together():
         for res in assign(todo, dist.world_size())[dist.rank()]:
-            report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, tag, log)
+            report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, tag, log, force)
             log(f"{report['name']}: {report['iterations']} steps in {report['seconds']:.0f}s, train PSNR "
                 f"{report['train_psnr']:.2f}"
                 + (f", held-out PSNR {report['test_psnr']:.2f}" if "test_psnr" in report else ""))
@@ -426,7 +427,5 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
         if ws.expert_path(name).exists() and ws.expert_report_path(name).exists() and not force:
             log(f"{name}: already trained, skipping (use --force to retrain)")
             continue
-        if force and main:
-            ws.checkpoint_path(name).unlink(missing_ok=True)
-        todo.append(res)
+        todo.append(res)  # with --force, a checkpoint of other settings is dropped when training starts
     return scene, scene_id(inputs), box, geom, prior, todo
