@@ -170,7 +170,7 @@ def test_a_checkpoint_made_with_other_settings_is_refused(tiny_scene, tmp_path):
     train(_task(scene, 6), rays, Schedule(iters=6, batch_rays=64, checkpoint_every=3), seed=0, title="a",
           checkpoint=ckpt, signature={"iters": 6, "seed": 0})
     assert torch.load(ckpt, weights_only=True)["step"] == 6  # also checkpointed after the last step
-    with pytest.raises(BoostNerfError, match=r"run.pt was written with other settings \(iters: 6, now 12\)"):
+    with pytest.raises(BoostNerfError, match=r"run.pt was written with other settings \(--iters: 6, now 12\)"):
         train(_task(scene, 12), rays, Schedule(iters=12, batch_rays=64), seed=0, title="b", checkpoint=ckpt,
               signature={"iters": 12, "seed": 0})
 
