@@ -239,17 +239,19 @@ def setting_change(key: str, was, now) -> str:
     return f"{SETTING_NAMES.get(key, key)}: {was}, now {now}"
 
 
+def first_difference(saved: dict, wanted: dict) -> str | None:
+    """The first key (in sorted order) whose value differs between two signatures, or None when they agree."""
+    return next((key for key in sorted(set(saved) | set(wanted)) if saved.get(key) != wanted.get(key)), None)
+
+
 def _check_signature(path: Path, saved: dict | None, wanted: dict | None) -> None:
     """Refuse to resume a checkpoint written with settings that change what is being trained."""
-    if saved is None or wanted is None or saved == wanted:
+    if saved is None or wanted is None or (key := first_difference(saved, wanted)) is None:
         return
-    for key in sorted(set(saved) | set(wanted)):
-        if saved.get(key) != wanted.get(key):
-            raise BoostNerfError(
-                f"training checkpoint {path} was written with other settings ({setting_change(key, saved.get(key), wanted.get(key))}): "
-                "rerun with the settings it was made with to resume, add --force to restart this model with these, or "
-                "delete it"
-            )
+    raise BoostNerfError(
+        f"training checkpoint {path} was written with other settings ({setting_change(key, saved.get(key), wanted.get(key))}): "
+        "rerun with the settings it was made with to resume, add --force to restart this model with these, or delete it"
+    )
 
 
 def batch_gradients(task: TrainTask, rays: RayData, idx: Tensor, step: int,

@@ -57,14 +57,14 @@ FOREGROUND_TOL = 0.03  # colour difference (max over channels, [0, 1]) from the 
 # and each such ray, beside the object, drew a "surface" on the box's faces: a misleading data.bbox warning, and a
 # box never shrunk. The lossless tolerance misses none of them at 0.1 either.
 LOSSY_FOREGROUND_TOL = 0.1
+SURFACE_OPACITY = 0.1  # a ray's visible surface starts where the opacity gathered along it reaches this
+PARTIAL_SHARE = 0.5  # ... or, on a ray that gathers less than twice that in all (through a pixel the surface
+# only partly covers: an anti-aliased rim), where it has gathered this share of all it gathers
 
 
 def foreground_tol(extra: dict) -> float:
     """The foreground tolerance for a scene's images (`Scene.extra["lossy"]`: some are JPEG)."""
     return LOSSY_FOREGROUND_TOL if extra.get("lossy") else FOREGROUND_TOL
-SURFACE_OPACITY = 0.1  # a ray's visible surface starts where the opacity gathered along it reaches this
-PARTIAL_SHARE = 0.5  # ... or, on a ray that gathers less than twice that in all (through a pixel the surface
-# only partly covers: an anti-aliased rim), where it has gathered this share of all it gathers
 
 
 def foreground_masks(images: Tensor, background: tuple[float, float, float] | None, tol: float = FOREGROUND_TOL) -> Tensor:

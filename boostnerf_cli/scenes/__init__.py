@@ -16,7 +16,7 @@ import torch
 
 from boostnerf_cli.errors import BoostNerfError, BoxWarning, DataWarning
 from boostnerf_cli.scenes.blender import is_blender, load_blender
-from boostnerf_cli.scenes.bounds import box_near_far
+from boostnerf_cli.scenes.bounds import box_gaps, box_near_far
 from boostnerf_cli.scenes.llff import is_llff, load_llff
 from boostnerf_cli.scenes.nerfstudio import is_nerfstudio, load_nerfstudio
 from boostnerf_cli.scenes.nsvf import is_nsvf, is_tanks, load_nsvf, load_tanks
@@ -133,8 +133,7 @@ def _reach_box(scene: Scene) -> Scene:
     pull it to 0)."""
     poses = torch.cat([split.poses for split in scene.splits.values()])
     _, box_far = box_near_far(poses, scene.bbox)
-    o, lo, hi = poses[:, :3, 3].double(), scene.bbox[0].double(), scene.bbox[1].double()
-    gaps = (o - torch.maximum(torch.minimum(o, hi), lo)).norm(dim=-1)
+    gaps = box_gaps(poses, scene.bbox)
     outside = gaps[gaps > 0]
     near = min(scene.near, 0.9 * float(outside.min())) if len(outside) else scene.near
     far = max(scene.far, box_far)

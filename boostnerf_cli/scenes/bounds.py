@@ -174,8 +174,13 @@ def box_near_far(poses: Tensor, bbox: Tensor) -> tuple[float, float]:
     centre to the box (0 when a camera is inside it) and the largest distance to a box corner."""
     o = poses[:, :3, 3].double()
     lo, hi = bbox[0].double(), bbox[1].double()
-    nearest = torch.maximum(torch.minimum(o, hi), lo)
-    near = float((o - nearest).norm(dim=-1).min())
+    near = float(box_gaps(poses, bbox).min())
     corners = torch.stack([torch.stack([(lo, hi)[(k >> i) & 1][i] for i in range(3)]) for k in range(8)])
     far = float((o[:, None] - corners[None]).norm(dim=-1).max())
     return 0.9 * near, far
+
+
+def box_gaps(poses: Tensor, bbox: Tensor) -> Tensor:
+    """Each camera centre's distance to the box (N,), float64: 0 for a camera inside it."""
+    o = poses[:, :3, 3].double()
+    return (o - torch.maximum(torch.minimum(o, bbox[1].double()), bbox[0].double())).norm(dim=-1)

@@ -200,7 +200,8 @@ def load_nsvf(
     fx, fy, cx, cy = read_intrinsics(folder)
     order = list(frames)
     bg = torch.tensor(background, dtype=torch.float32)
-    images, alpha, native = load_frames([f for s in order for f in frames[s]], image_size, bg)
+    ordered = [f for s in order for f in frames[s]]
+    images, alpha, native = load_frames(ordered, image_size, bg)
     size = tuple(images.shape[1:3])
     sx, sy = size[1] / native[1], size[0] / native[0]
     k = torch.tensor([fx * sx, fy * sy, cx * sx, cy * sy], dtype=torch.float32)
@@ -223,7 +224,7 @@ def load_nsvf(
         bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
     return scene_from_splits(folder, splits, near, far, bbox, background, format, holdout, native, size,
                              extra={"bbox_source": "bbox.txt" if (folder / "bbox.txt").is_file() else "cameras",
-                                    **lossy_extra([f for s in order for f in frames[s]])})
+                                    **lossy_extra(ordered)})
 
 
 def load_tanks(path: Path, image_size: int | None = None, holdout_every: int = 8) -> Scene:

@@ -161,8 +161,8 @@ def catalogue(rec: Recipe, suite: str) -> tuple[dict[str, Setup], list[Row]]:
         r.moe.gate_type = gt
         setups[f"gate-{gt}"] = Setup(f"gate-{gt}", "link", r)
         rows.append(Row(f"gate-{gt}", "gate-type", f"gate-{gt}", f"top{k}", f"top{k}", m0, k))
-    for p in PENALTIES:
-        if p == rec.moe.penalty or rec.moe.lam == 0:  # at lambda 0 no penalty weighs anything: rows = top1, top2
+    for p in PENALTIES if rec.moe.lam > 0 else ():  # at lambda 0 no penalty weighs anything: rows = top1, top2
+        if p == rec.moe.penalty:
             continue
         r = copy.deepcopy(setups["main"].recipe)
         r.moe.penalty = p

@@ -23,7 +23,7 @@ from boostnerf_cli.recipe import MoERecipe, check_section, shaping_changes
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.tasks import FieldTask, MixtureTask, sparse_options, train_rays
-from boostnerf_cli.train import Schedule, setting_change, train
+from boostnerf_cli.train import Schedule, first_difference, setting_change, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
 
@@ -71,15 +71,14 @@ def signature(name: str, rec: MoERecipe, source: str | None, cfg: MixtureConfig 
     """What defines finetuned model `name` (its training checkpoint's signature, and stored in the finished model):
     its source, steps, seed, routing (`routing`'s config; None for the baseline) and the shaping settings."""
     sig = {"stage": "finetune", "model": name, "from": source, "iters": rec.iters, "seed": rec.seed}
+    if rec.train.random_background:  # named only when set: older checkpoints still resume
+        sig["random_background"] = True
     if cfg is not None:
         sig.update(topk=cfg.topk, renormalize=cfg.renormalize, penalty=cfg.penalty)
         defaults = MixtureConfig()
         for key in ("mix", "aux_norm", "aux_samples", "vd_source", "vd_filter"):  # named only when not the default: older checkpoints still resume
             if getattr(cfg, key) != getattr(defaults, key):
                 sig[key] = getattr(cfg, key)
-    if rec.train.random_background:  # named only when set: older checkpoints still resume
-        sig["random_background"] = True
-    if cfg is not None:
         wide_steps, gate_noise = sparse_options(gate_kind, cfg.topk, len(cfg.expert_names), rec)
         if wide_steps:
             sig["wide_steps"] = wide_steps
@@ -87,7 +86,6 @@ def signature(name: str, rec: MoERecipe, source: str | None, cfg: MixtureConfig 
             sig["gate_noise"] = gate_noise
     sig.update(_shaping(rec, ("lam",) if cfg is not None and name != "ens" else ()))  # no aux loss to weigh: ens
     return sig
-
 
 
 def _planned_signature(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict) -> dict:
@@ -107,10 +105,9 @@ def _check_finished(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, 
     if stored is None:
         return
     now = _planned_signature(ws, name, topk, rec, init_meta)
-    for key in sorted(set(stored) | set(now)):
-        if stored.get(key) != now.get(key):
-            raise BoostNerfError(f"{name} was finetuned with other settings ({setting_change(key, stored.get(key), now.get(key))}): "
-                                 "add --force to finetune it again, or rerun with the settings it was finetuned with")
+    if (key := first_difference(stored, now)) is not None:
+        raise BoostNerfError(f"{name} was finetuned with other settings ({setting_change(key, stored.get(key), now.get(key))}): "
+                             "add --force to finetune it again, or rerun with the settings it was finetuned with")
 
 
 def _unused_flags(name: str, flags: dict, cfg: MixtureConfig | None, gate_kind: str) -> list[str]:

@@ -43,7 +43,7 @@ from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.scenes.bounds import box_text
 from boostnerf_cli.stages.common import scene_digest, slow_notice
 from boostnerf_cli.tasks import FieldTask, train_rays
-from boostnerf_cli.train import Schedule, train
+from boostnerf_cli.train import Schedule, first_difference, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
 
@@ -226,11 +226,10 @@ def _check_finished(ws: Workspace, rec: PretrainRecipe, scene_tag: str, force: b
         if stored is None:  # an expert saved before its signature was stored: skipped as before
             continue
         now = expert_signature(rec, res, scene_tag, stored.get("geometry"))
-        for key in sorted(set(stored) | set(now)):
-            if stored.get(key) != now.get(key):
-                raise BoostNerfError(
-                    f"{name} was trained with other settings ({key}: {stored.get(key)!r}, now {now.get(key)!r}): "
-                    "add --force to retrain it, or rerun with the recipe it was trained with")
+        if (key := first_difference(stored, now)) is not None:
+            raise BoostNerfError(
+                f"{name} was trained with other settings ({key}: {stored.get(key)!r}, now {now.get(key)!r}): "
+                "add --force to retrain it, or rerun with the recipe it was trained with")
 
 
 def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, box: Tensor, geom: OccupancyGrid,
