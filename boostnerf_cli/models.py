@@ -90,8 +90,21 @@ def load_mixture(path: Path, device: str | torch.device = "cpu") -> tuple[Mixtur
     try:
         return build_mixture(path, tensors, meta, device)
     except MALFORMED as e:
-        raise BoostNerfError(f"{path} does not hold a valid mixture ({malformed(e)}; written by another boostnerf "
-                             "version?): rerun build-moe and finetune") from None
+        raise invalid_mixture(path, e) from None
+
+
+def invalid_mixture(path: Path, e: BaseException) -> BoostNerfError:
+    """The one-line error for a mixture file whose contents do not make a mixture (`e`: what was wrong)."""
+    return BoostNerfError(f"{path} does not hold a valid mixture ({malformed(e)}; written by another boostnerf "
+                          "version?): rerun build-moe and finetune")
+
+
+def mixture_routing_meta(path: Path, meta: dict) -> tuple[MixtureConfig, str]:
+    """(the mixture's config, its gate's kind) from a mixture file's metadata `meta` alone, nothing loaded."""
+    try:
+        return MixtureConfig(**meta["mixture"]), meta["gate"]["config"]["kind"]
+    except MALFORMED as e:
+        raise invalid_mixture(path, e) from None
 
 
 def build_mixture(path: Path, tensors: dict, meta: dict, device) -> tuple[Mixture, dict]:

@@ -502,3 +502,19 @@ def test_a_density_volume_too_coarse_to_keep_a_cell_names_moe_vd_res(trained_ws,
     recipe = make_recipe(tmp_path / "vd1.yaml", moe={"vd_res": 1})
     proc = run_cli("build-moe", "--workspace", str(ws), "--recipe", str(recipe), "--device", "cpu")
     assert_clean_failure(proc, "keeps no cell", "raise moe.vd_res (= 1")
+
+
+def test_a_damaged_moe_init_is_one_line_when_a_finished_model_is_checked(moe_ws, tmp_path):
+    """The check of a finished model's settings read moe/init's mixture settings without a guard: an init whose
+    metadata a hand edit or another boostnerf left without a known field ended in a TypeError traceback."""
+    from boostnerf_cli.workspace import load_tensors, save_tensors
+
+    ws = tmp_path / "ws"
+    shutil.copytree(moe_ws, ws)
+    path = ws / "moe" / "init.safetensors"
+    tensors, meta = load_tensors(path)
+    meta = {k: v for k, v in meta.items() if k not in ("format_version", "digest")}
+    meta["mixture"] = {**meta["mixture"], "an_unknown_field": 1}
+    save_tensors(path, tensors, meta)  # the same tensors: the same digest, so the models made from it are current
+    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--device", "cpu")
+    assert_clean_failure(proc, "does not hold a valid mixture", "build-moe")

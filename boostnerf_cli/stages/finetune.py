@@ -16,7 +16,14 @@ from typing import Callable
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import count_params
-from boostnerf_cli.models import load_expert, load_mixture, save_expert, save_mixture, stale_reason
+from boostnerf_cli.models import (
+    load_expert,
+    load_mixture,
+    mixture_routing_meta,
+    save_expert,
+    save_mixture,
+    stale_reason,
+)
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, check_config
 from boostnerf_cli.moe.router import check_topk
 from boostnerf_cli.recipe import MoERecipe, check_section, shaping_changes
@@ -93,7 +100,7 @@ def _planned_signature(ws: Workspace, name: str, topk: int | None, rec: MoERecip
     source = _source_digest(ws, name, init_meta)
     if name == "baseline":
         return signature(name, rec, source)
-    cfg, kind = routing(name, topk, rec, MixtureConfig(**init_meta["mixture"]), init_meta["gate"]["config"]["kind"])
+    cfg, kind = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), init_meta))
     return signature(name, rec, source, cfg, kind)
 
 
