@@ -257,16 +257,18 @@ def test_in_a_forward_facing_scene_every_pixel_is_foreground_even_the_background
 def test_content_past_the_scene_box_is_named_and_data_bbox_holds_it(tmp_path):
     """`make-scene --content large`: the floor reaches radius 3, past the box of the region most cameras see (about
     +-1.7), so the coarse model draws what lies beyond on the box's faces. The geometry stage says so and names
-    data.bbox; with that key the box holds the floor and the warning is gone. The objects scene gets no warning."""
+    data.bbox; with that key the box holds the floor and the warning is gone. The objects scene gets no warning, nor
+    in the NSVF layout, whose bbox.txt make-scene writes with a coarse cell of room around the content (it was the
+    content's own box, and 4-5% of the rays, the floor's, lay within a cell of its bottom face)."""
     recipe = {"pretrain": {"res": [8], "iters": 1, "geometry": {"res": 16, "iters": 150, "batch_rays": 512}},
               "moe": REMOVE}
     wide = [-3.3, -3.3, -0.9, 3.3, 3.3, 0.6]  # a coarse cell (0.22) of room around the content: nearer, it is on the faces
     runs = {}
-    for name, content, data in (("large", "large", {}), ("large-box", "large", {"bbox": wide}),
-                                ("objects", "objects", {})):
-        scene = tmp_path / content
+    for name, content, data, layout in (("large", "large", {}, "blender"), ("large-box", "large", {"bbox": wide}, "blender"),
+                                        ("objects", "objects", {}, "blender"), ("objects-nsvf", "objects", {}, "nsvf")):
+        scene = tmp_path / f"{content}-{layout}"
         if not scene.exists():
-            make_scene(scene, size=32, n_train=12, n_test=0, content=content)
+            make_scene(scene, size=32, n_train=12, n_test=0, content=content, layout=layout)
         make_recipe(tmp_path / f"{name}.yaml", data=data, **recipe)
         ws = tmp_path / f"ws-{name}"
         proc = run_cli("pretrain", "-w", str(ws), "--data", str(scene), "--recipe", str(tmp_path / f"{name}.yaml"),
@@ -282,3 +284,5 @@ def test_content_past_the_scene_box_is_named_and_data_bbox_holds_it(tmp_path):
     assert bool((box[0, :2] < -2.5).all() and (box[1, :2] > 2.5).all()), box  # the floor out to radius 3
     text, meta = runs["objects"]
     assert meta["rounds"][0]["edge_rays"] == 0 and "faces of the scene box" not in text
+    text, meta = runs["objects-nsvf"]
+    assert "faces of the scene box" not in text, meta["rounds"]
