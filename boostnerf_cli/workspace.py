@@ -25,6 +25,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import shutil
 import socket
 import tempfile
@@ -72,6 +73,29 @@ def is_temporary(path: Path) -> bool:
     suffix: ffmpeg) or folder of `make_scene` (`.NAME.tmp`)."""
     name = path.name
     return name.startswith(".") and (name.endswith(".tmp") or ".tmp." in name)
+
+
+_TEMP_FILE = re.compile(r"\..+\.[a-z0-9_]+\.tmp(\.[A-Za-z0-9]+)?")  # `atomic_path`'s: mkstemp's random part
+# The folders a workspace's writers write in (bench adds rows/ and variants/, each variant a workspace), and the
+# embedded scene's folder while make_scene generates it (pretrain or bench without --data).
+WRITTEN_FOLDERS = ("experts", "moe", "reports", "checkpoints", "renders", "rows", "variants")
+SCENE_TMP = ".scene.tmp"
+
+
+def stale_temporaries(root: Path) -> list[Path]:
+    """What a writer killed mid-write can have left in workspace `root`, and nothing else: `atomic_path`'s
+    temporary files in `root` itself and at any depth of `WRITTEN_FOLDERS` (not in a hidden folder, nor in a folder
+    that holds its own `.lock`: another workspace, whose writer may be live), and the embedded scene being generated
+    (`SCENE_TMP`). A user's files elsewhere in the folder (`-w .`, `-w ~/project`) are never touched."""
+    found = [root / SCENE_TMP] if (root / SCENE_TMP).is_dir() and not (root / SCENE_TMP).is_symlink() else []
+    for top in (root, *(root / name for name in WRITTEN_FOLDERS)):
+        for folder, dirs, files in os.walk(top):  # symbolic links to folders are not followed
+            if top == root:
+                dirs.clear()  # root's own files only: its folders are the written ones above, or the user's
+            else:
+                dirs[:] = [d for d in dirs if not d.startswith(".") and not os.path.lexists(os.path.join(folder, d, ".lock"))]
+            found += [Path(folder, f) for f in files if _TEMP_FILE.fullmatch(f)]
+    return sorted(found)
 
 
 @contextmanager
@@ -431,9 +455,7 @@ class Workspace:
             os.write(fd, me.encode())
             # Temporary files of `atomic_path` left by a writer that was killed mid-write: never artifacts
             # (they were not renamed into place), and no other writer can be using them now.
-            for tmp in sorted(self.root.rglob(".*.tmp*")):
-                if not is_temporary(tmp):
-                    continue
+            for tmp in stale_temporaries(self.root):
                 if tmp.is_dir() and not tmp.is_symlink():  # a procedural scene being generated (`make_scene`)
                     shutil.rmtree(tmp, ignore_errors=True)
                 else:

@@ -79,6 +79,31 @@ def test_lock_of_a_killed_process_is_stale_and_taken_over(tmp_path):
     assert not _tmp_files(ws) and not (ws / ".lock").exists() and not (ws / ".scene.tmp").exists()
 
 
+def test_taking_the_lock_removes_only_what_a_killed_writer_left(tmp_path):
+    """The clean-up at the lock removes boostnerf's own temporaries and nothing else: it searched the whole folder
+    for `.*.tmp*`, so `pretrain -w .` or `-w ~/project` deleted a user's `.venv.tmp` folder, `.draft.tmp.txt` and
+    `notes/.x.abc.tmp`, even when the command then failed (not a scene), and a command on a parent workspace deleted
+    the file a nested workspace's live writer was writing."""
+    ws = tmp_path / "project"
+    user = [ws / ".draft.tmp.txt", ws / ".notes.tmp", ws / ".venv.tmp" / "keep", ws / "notes" / ".x.abc.tmp",
+            ws / "variants" / "child" / "experts" / ".dvgo-8.safetensors.k3j2abcd.tmp",  # a live nested writer's
+            ws / "experts" / ".hidden" / ".a.json.abc.tmp"]
+    ours = [ws / "experts" / ".dvgo-12.safetensors.k3j2abcd.tmp", ws / ".manifest.json.abc.tmp",
+            ws / "renders" / "top2" / "test" / ".r_0.png.abc.tmp", ws / "reports" / ".eval.json.x_1.tmp"]
+    for p in user + ours:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text("keep")
+    (ws / "variants" / "child" / ".lock").write_text("host 1")  # that workspace's writer holds its own lock
+    (ws / ".scene.tmp" / "train").mkdir(parents=True)  # the embedded scene, generation stopped half way
+    with Workspace(ws).lock():
+        pass
+    assert [p for p in user if not p.exists()] == []
+    assert [p for p in ours if p.exists()] == [] and not (ws / ".scene.tmp").exists()
+    proc = run_cli("pretrain", "-w", str(ws), "--data", str(tmp_path / "nothing"), "--device", "cpu")  # refused
+    assert_clean_failure(proc, "does not exist")
+    assert [p for p in user if not p.exists()] == []
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_interrupt_stops_cleanly_and_the_rerun_resumes(tmp_path, tiny_scene, sig):
     recipe = make_recipe(tmp_path / "r.yaml", data={"image_size": 24}, pretrain={
