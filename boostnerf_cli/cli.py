@@ -142,12 +142,11 @@ def pretrain(
 ) -> None:
     """Train one expert per resolution, independently (stage 1 of the paper)."""
     from boostnerf_cli import distributed as dist
-    from boostnerf_cli.recipe import load_recipe
     from boostnerf_cli.stages import pretrain as stage
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.workspace import number
 
-    rec = load_recipe(recipe).override({
+    rec = _moe_recipe(workspace, recipe).override({  # a rerun (a moved scene, one more expert) keeps the recipe
         "pretrain.model": model, "pretrain.res": _int_list(res, "--res") if res is not None else None,
         "pretrain.iters": iters, "pretrain.seed": seed, "pretrain.skip": False if no_skip else None,
         "data.image_size": image_size, "data.holdout_every": holdout_every, "data.format": data_format})
@@ -164,7 +163,7 @@ def pretrain(
 
 
 def _moe_recipe(workspace: Path, recipe: Optional[Path]):
-    """The recipe given, else the one recorded by pretrain in the workspace, else defaults."""
+    """The recipe given, else the one recorded by pretrain in the workspace, else defaults (every stage's)."""
     from boostnerf_cli.recipe import Recipe, load_recipe, recipe_from_dict
     from boostnerf_cli.workspace import Workspace
 

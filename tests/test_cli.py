@@ -10,6 +10,8 @@ from helpers import write_lpips_weights
 from safetensors import safe_open
 
 from boostnerf_cli.metrics import ALEXNET_ENV, LPIPS_ENV
+from boostnerf_cli.scenes import make_scene
+from boostnerf_cli.workspace import read_meta
 
 
 def test_pretrain_writes_experts_reports_and_manifest(trained_ws):
@@ -161,6 +163,34 @@ def test_pretrain_without_data_on_a_workspace_of_another_scene_is_refused_before
     proc = run_cli("pretrain", "--workspace", str(ws), "--recipe", str(tiny_recipe), "--device", "cpu")
     assert_clean_failure(proc, "was made for another scene")
     assert not (ws / "scene").exists() and "generating" not in proc.stderr
+
+
+def test_a_moved_scene_or_workspace_is_followed_not_retrained(trained_ws, tmp_path, tiny_scene):
+    """A scene inside the workspace (the generated default one) is recorded relative to it, so a renamed or copied
+    workspace keeps working; a scene that moved is pointed to once with `pretrain --data NEW` (the same images and
+    cameras: nothing retrains). Before: the resolved absolute path was part of the scene's identity, so a renamed
+    demo workspace said its scene "is gone" while it sat inside it, and `--data NEW` was refused as another scene."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
+    shutil.copytree(tiny_scene, ws / "scene")
+    digests = {p.name: read_meta(p)["digest"] for p in (ws / "experts").glob("*.safetensors")}
+    proc = run_cli("pretrain", "--workspace", str(ws), "--data", str(ws / "scene"), "--device", "cpu", check=True)
+    assert "note: the workspace's scene is now scene (it was " in proc.stderr, proc.stderr
+    assert "already trained, skipping" in proc.stderr and "step" not in proc.stderr
+    assert json.loads((ws / "manifest.json").read_text())["data"]["path"] == "scene"
+    moved = tmp_path / "renamed"
+    ws.rename(moved)
+    run_cli("count-params", "--workspace", str(moved), "--device", "cpu", check=True)  # the scene travelled with it
+    away = tmp_path / "elsewhere"
+    (moved / "scene").rename(away)
+    assert_clean_failure(run_cli("eval", "--workspace", str(moved), "--no-costs", "--device", "cpu"),
+                         "is gone", f"pretrain --workspace {moved} --data NEW_PLACE")
+    run_cli("pretrain", "--workspace", str(moved), "--data", str(away), "--device", "cpu", check=True)
+    run_cli("eval", "--workspace", str(moved), "--no-costs", "--device", "cpu", check=True)
+    assert {p.name: read_meta(p)["digest"] for p in (moved / "experts").glob("*.safetensors")} == digests
+    other = make_scene(tmp_path / "other", size=32, n_train=12, n_test=3, seed=1)  # another scene: still refused
+    assert_clean_failure(run_cli("pretrain", "--workspace", str(moved), "--data", str(other), "--device", "cpu"),
+                         "is not the one this workspace was trained on", "--force")
 
 
 def test_views_of_one_name_in_different_folders_render_to_different_files(tmp_path, tiny_scene, tiny_recipe):

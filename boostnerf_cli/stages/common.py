@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import threading
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Callable, Iterator
 
 import torch
@@ -32,9 +31,11 @@ def workspace_scene(ws: Workspace) -> Scene:
     data = m.get("data")
     if not data:
         raise BoostNerfError(f"{ws.manifest_path} records no scene: rerun `boostnerf pretrain --workspace {ws.root}`")
-    path = Path(data["path"])
+    path = ws.root / data["path"]  # relative: inside the workspace (the generated scene); else absolute
     if not path.exists():
-        raise BoostNerfError(f"the workspace's scene {path} is gone: restore it or rerun pretrain in a new workspace")
+        raise BoostNerfError(
+            f"the workspace's scene {path} is gone: restore it, or if it moved, say where to once with `boostnerf "
+            f"pretrain --workspace {ws.root} --data NEW_PLACE` (the same images and cameras: nothing is retrained)")
     scene = load_scene(path, image_size=data.get("image_size"), holdout_every=data.get("holdout_every", 8),
                        format=data.get("format", "auto"), bbox=data.get("bbox"))
     if m.get("scene_digest") and scene_digest(scene) != m["scene_digest"]:

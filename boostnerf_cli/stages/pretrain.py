@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
 import time
 from pathlib import Path
 from typing import Callable
@@ -286,9 +287,13 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     return report
 
 
-def scene_inputs(data: Path, rec: Recipe) -> dict:
-    """What identifies the scene a workspace is trained on (recorded in the manifest)."""
-    inputs = {"path": str(data.resolve()), "image_size": rec.data.image_size,
+def scene_inputs(data: Path, rec: Recipe, root: Path) -> dict:
+    """What identifies the scene a workspace is trained on (recorded in the manifest). The path is relative to the
+    workspace `root` for a scene inside it (the generated default scene: it travels with a moved or copied
+    workspace), else absolute, through any symbolic link as given (so repointing the link relocates the scene)."""
+    here, ws = data.resolve(), root.resolve()
+    path = os.path.relpath(here, ws) if here.is_relative_to(ws) else os.path.abspath(data)
+    inputs = {"path": path, "image_size": rec.data.image_size,
               "holdout_every": rec.data.holdout_every, "format": rec.data.format}
     if rec.data.bbox is not None:  # named only when set: workspaces made before the key keep their scene id
         inputs["bbox"] = list(rec.data.bbox)
@@ -373,9 +378,12 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     check_recipe(rec, "setting")  # the recipe was checked when read; flags may have changed it since
     generate = data is None and not (ws.root / "scene" / "transforms_train.json").exists()
     data = ws.root / "scene" if data is None else data
-    inputs = scene_inputs(Path(data), rec)
+    inputs = scene_inputs(Path(data), rec, ws.root)
     previous = ws.manifest().get("data")
-    if previous and previous != inputs:  # checked before a default scene is generated: nothing written if refused
+    # the same inputs at another path: the workspace or its scene was moved, if the images and cameras are the same
+    moved = (bool(previous) and previous != inputs and {**previous, "path": ""} == {**inputs, "path": ""}
+             and Path(data).exists())  # not a default scene to generate: that is another scene, refused first
+    if previous and previous != inputs and not moved:  # checked before a default scene is generated: nothing written if refused
         if not force:
             raise BoostNerfError(
                 f"workspace {ws.root} was made for another scene, image size or box ({previous['path']}, "
@@ -397,18 +405,27 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
         log(note)
     check_foreground(scene, data)
     digest = scene_digest(scene)
-    recorded = ws.manifest().get("scene_digest")
+    m = ws.manifest()
+    recorded = m.get("scene_digest")
     if recorded and recorded != digest and not force:
         raise BoostNerfError(
-            f"the scene at {data} changed since this workspace was trained on it (its images or cameras differ): "
-            "restore it, use a new --workspace, or --force to retrain everything"
+            (f"the scene at {data} is not the one this workspace was trained on, at {previous['path']} (its images "
+             "or cameras differ)" if moved else
+             f"the scene at {data} changed since this workspace was trained on it (its images or cameras differ)")
+            + ": restore it, use a new --workspace, or --force to retrain everything"
         )
     if recorded and recorded != digest:
         _forget_trained(ws)
-    _check_finished(ws, rec.pretrain, scene_id(inputs), force)
+    # the scene's id, recorded in every expert: kept when the scene moved (same content), new with new content
+    tag = m["scene_id"] if previous and m.get("scene_id") and (previous == inputs or moved) and (
+        not recorded or recorded == digest) else scene_id(inputs)
+    _check_finished(ws, rec.pretrain, tag, force)
     if main:
-        ws.update_manifest(data=inputs, scene_id=scene_id(inputs), scene_digest=digest, scene=scene.describe(),
+        ws.update_manifest(data=inputs, scene_id=tag, scene_digest=digest, scene=scene.describe(),
                            recipe=recipe_dict(rec))
+    if moved and tag == m.get("scene_id"):
+        log(f"note: the workspace's scene is now {inputs['path']} (it was {previous['path']}; the same images and "
+            "cameras): nothing is retrained for the move")
     if "detected" in scene.extra:
         log(f"format: {scene.extra['detected']}")
     for warning in scene.extra.get("warnings", []):
@@ -419,7 +436,7 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
         f"{scene.splits['train'].width}x{scene.splits['train'].height}"
         + (f", {scene.holdout}" if scene.holdout else ""))
     box, geom, prior = ensure_geometry(ws, scene, rec.pretrain.geometry, rec.pretrain.seed, device, log,
-                                       rec.pretrain.train.checkpoint_every, scene_id(inputs))
+                                       rec.pretrain.train.checkpoint_every, tag)
     todo = []
     for res in sorted(rec.pretrain.res):
         name = expert_name(rec.pretrain.model, res)
@@ -427,4 +444,4 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
             log(f"{name}: already trained, skipping (use --force to retrain)")
             continue
         todo.append(res)  # with --force, a checkpoint of other settings is dropped when training starts
-    return scene, scene_id(inputs), box, geom, prior, todo
+    return scene, tag, box, geom, prior, todo
