@@ -268,25 +268,31 @@ def test_a_model_finetuned_from_an_older_init_is_not_silently_kept(moe_copy, mon
 
 
 def test_a_different_or_changed_scene_is_refused(trained_ws, tiny_scene, tiny_recipe, tmp_path):
+    """Another scene given to pretrain is refused (an identical copy elsewhere is the same scene, moved:
+    test_cli.py::test_a_moved_scene_or_workspace_is_followed_not_retrained), and so is, by the later stages, the
+    workspace's scene edited after pretrain."""
+    import imageio.v3 as iio
+
     other = tmp_path / "other"
     shutil.copytree(tiny_scene, other)
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws)
-    proc = run_cli("pretrain", "--data", str(other), "--recipe", str(tiny_recipe), "--workspace", str(ws),
-                   "--device", "cpu")
-    assert_clean_failure(proc, "was made for another scene", "--force")
-    # the same path, its content edited after pretrain: later stages refuse it
     manifest = json.loads((ws / "manifest.json").read_text())
     manifest["data"]["path"] = str(other)
     (ws / "manifest.json").write_text(json.dumps(manifest))
     workspace_scene(Workspace(ws))  # an identical copy passes
-    import imageio.v3 as iio
-
     img = iio.imread(other / "train" / "r_0.png")
     img[5, 5] = [255, 0, 0, 255]  # one pixel now opaque red
     iio.imwrite(other / "train" / "r_0.png", img)
     proc = run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--device", "cpu")
     assert_clean_failure(proc, "changed since pretrain")
+    proc = run_cli("pretrain", "--data", str(other), "--recipe", str(tiny_recipe), "--workspace", str(ws),
+                   "--device", "cpu")
+    assert_clean_failure(proc, "changed since this workspace was trained on it", "--force")
+    shutil.copytree(other, tmp_path / "elsewhere")  # the edited scene at another path: not the one trained on
+    proc = run_cli("pretrain", "--data", str(tmp_path / "elsewhere"), "--recipe", str(tiny_recipe), "--workspace",
+                   str(ws), "--device", "cpu")
+    assert_clean_failure(proc, "is not the one this workspace was trained on", "--force")
 
 
 def test_disk_full_while_checkpointing_is_one_line_and_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
