@@ -55,7 +55,7 @@ ViewsOpt = Annotated[Optional[int], typer.Option("--views", min=1, help="Only th
 
 
 def log(msg: str) -> None:
-    err.print(msg)
+    err.print(msg, markup=False)  # text as written: "[0.34, 0.66]" or a path "ws[2]" is not a Rich markup tag
 
 
 def _one_process() -> None:
@@ -276,7 +276,7 @@ def eval_cmd(
     views: ViewsOpt = None,
     no_skip: NoSkipOpt = False,
     skip_off: SkipOffOpt = None,
-    report: Annotated[bool, typer.Option("--report", help="Write WS/reports/eval.json.")] = False,
+    report: Annotated[bool, typer.Option("--report", help="Write WS/reports/eval.json and eval.md (the table in Markdown).")] = False,
     no_costs: Annotated[bool, typer.Option("--no-costs", help="Skip ||w||_0 and GFLOPs (they need an extra pass).")] = False,
     exact_gate: ExactGateOpt = False,
     device: DeviceOpt = "auto",
@@ -294,7 +294,7 @@ def eval_cmd(
                           exact_gate=exact_gate)
     table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")
     for r in result["models"]:
-        table.add_row(r["name"], number(r["psnr"], ".3f"), f"{r['ssim']:.4f}", number(r["lpips"], ".4f"),
+        table.add_row(r["name"], number(r["psnr"], ".3f"), number(r["ssim"], ".4f"), number(r["lpips"], ".4f"),
                       f"{r['w0']:,}" if "w0" in r else "-", f"{r['gflops_per_image']:.3f}" if "w0" in r else "-",
                       f"{r['seconds_per_image']:.3f}", f"{r['params']:,}")
     show(table)
@@ -381,7 +381,7 @@ def bench(
         result = stage.run(workspace, data, rec, suite, names, resolve_device(device), views, log)
     table = Table(*stage.COLUMNS)
     for r in result["rows"]:
-        table.add_row(r["name"], r["group"], number(r["psnr"], ".3f"), f"{r['ssim']:.4f}", f"{r['train_seconds']:.0f}",
+        table.add_row(r["name"], r["group"], number(r["psnr"], ".3f"), number(r["ssim"], ".4f"), f"{r['train_seconds']:.0f}",
                       f"{r['seconds_per_image']:.3f}", f"{r['gflops_per_image']:.3f}", f"{r['params']:,}", f"{r['w0']:,}")
     show(table)
     log(f"wrote {workspace / 'reports' / 'bench.json'} and bench.csv"

@@ -183,8 +183,8 @@ def write_json(path: Path, data: Any) -> None:
 
 
 def number(value: float | int | None, spec: str) -> str:
-    """A report value for display: "-" for null (not available, or not finite when it was written)."""
-    return "-" if value is None else format(value, spec)
+    """A report value for display: "-" for null (not available, or not finite: written as null)."""
+    return "-" if value is None or not math.isfinite(value) else format(value, spec)
 
 
 def read_json(path: Path, what: str = "file") -> dict:

@@ -21,7 +21,7 @@ def test_pretrain_writes_experts_reports_and_manifest(trained_ws):
             meta = json.loads(f.metadata()["boostnerf"])
         assert meta["family"] == "dvgo" and meta["config"]["res"] == int(name.split("-")[1])
         report = json.loads((trained_ws / "experts" / f"{name}.json").read_text())
-        assert report["name"] == name and report["iterations"] == 30
+        assert report["name"] == name and report["iterations"] == 30 and report["seed"] == 0  # the seed, in the report too
         assert report["seconds"] > 0 and report["params"] > 0
         assert report["test_psnr"] >= TINY_PSNR[name] - PSNR_MARGIN, (name, report["test_psnr"])
     manifest = json.loads((trained_ws / "manifest.json").read_text())
@@ -138,6 +138,29 @@ def test_eval_reports_lpips_when_its_weights_are_on_disk(trained_ws, tmp_path):
     assert row["lpips"] == pytest.approx(direct[3], abs=2e-5)
     assert abs(direct[4] - direct[3]) > 1e-3  # another model's distance differs: the figure is the files' model's
 
+
+
+def test_images_too_small_for_ssim_leave_it_out_with_a_note_and_a_view_of_empty_sky_prints_a_dash(tmp_path, tiny_scene,
+                                                                                                 tiny_recipe):
+    """SSIM's window is 11 px: at --image-size 8 (which pretrain accepts) eval stopped with `error: ssim: image 8x8 is
+    smaller than the 11x11 window` after rendering, and wrote no report. Now SSIM is null with a note, as LPIPS under
+    31 px. And an infinite PSNR (a render equal to its image), null in the JSON, printed `inf` in the tables where
+    docs/reports.md says `-`."""
+    from boostnerf_cli.stages.evaluate import markdown_table
+    from boostnerf_cli.workspace import number
+
+    ws = tmp_path / "ws"
+    run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws), "--device", "cpu",
+            "--res", "12", "--image-size", "8", check=True)
+    proc = run_cli("eval", "--workspace", str(ws), "--report", "--no-costs", "--device", "cpu", check=True)
+    report = json.loads((ws / "reports" / "eval.json").read_text())
+    (row,) = report["models"]
+    assert row["ssim"] is None and row["psnr"] > 5
+    assert "11 px" in report["ssim_note"] and "8 x 8" in report["ssim_note"] and "8 x 8" in proc.stderr
+    assert "SSIM left out" in (ws / "reports" / "eval.md").read_text()
+    assert number(float("inf"), ".3f") == "-" and number(float("nan"), ".3f") == "-" and number(3.0, ".1f") == "3.0"
+    table = markdown_table({**report, "models": [{**row, "psnr": float("inf")}]})
+    assert "| dvgo-12 | - | - |" in table and "LPIPS: LPIPS" not in table
 
 
 def test_images_too_small_for_lpips_leave_it_out_with_a_note_not_the_whole_table(tmp_path, tiny_scene, tiny_recipe):
@@ -406,3 +429,13 @@ def test_a_slow_stage_says_what_it_is_doing_and_a_fast_one_stays_quiet():
         raise ValueError("at once")
     time.sleep(0.2)
     assert said == ["reading the scene"]
+
+
+def test_log_lines_print_brackets_as_written(capsys):
+    """Progress lines are plain text: Rich took "[0.34, 0.66]" or "[dvgo-8]" for a markup tag and dropped it, so
+    `render --per-expert` printed "on detailed pixels , on smooth pixels " and a path like ws[2] lost its part."""
+    from boostnerf_cli.cli import log
+
+    text = "on detailed pixels [0.34, 0.66], [nan, nan], [dvgo-8] and ws[x]/scene [bold]"
+    log(text)
+    assert capsys.readouterr().err.strip() == text

@@ -373,9 +373,10 @@ def _to_batch(img: Tensor, device: torch.device) -> Tensor:
 def image_metrics(
     pred: ImageLike, gt: ImageLike, lpips_model: LPIPSModel | None = None
 ) -> dict[str, float | None]:
-    """{"psnr", "ssim", "lpips"} for one (H, W, 3) image pair; lpips is None without a model."""
+    """{"psnr", "ssim", "lpips"} for one (H, W, 3) image pair; lpips is None without a model, ssim None for an image
+    smaller than its window (`SSIM_WINDOW` px a side)."""
     return {
         "psnr": psnr(pred, gt),
-        "ssim": ssim(pred, gt),
+        "ssim": ssim(pred, gt) if min(pred.shape[0], pred.shape[1]) >= SSIM_WINDOW else None,
         "lpips": None if lpips_model is None else lpips(pred, gt, lpips_model),
     }

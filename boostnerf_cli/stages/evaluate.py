@@ -1,8 +1,8 @@
 """`boostnerf eval`: one table of every model's quality and cost.
 
 reports/eval.json schema (documented in docs/reports.md):
-{"split": str, "views": int, "lpips_note": str | null,
- "models": [{"name", "kind", "psnr", "ssim", "lpips" (null when unavailable), "seconds_per_image",
+{"split": str, "views": int, "lpips_note": str | null, "ssim_note": str | null,
+ "models": [{"name", "kind", "psnr", "ssim" (null under 11 px), "lpips" (null when unavailable), "seconds_per_image",
              "samples_per_image", "colored_per_image", "params", "w0", "gflops_per_image"}, ...]}
 """
 
@@ -13,7 +13,7 @@ from typing import Callable
 from boostnerf_cli.costs import model_costs
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.metrics import image_metrics, load_lpips
-from boostnerf_cli.metrics.image import LPIPS_MIN_SIZE
+from boostnerf_cli.metrics.image import LPIPS_MIN_SIZE, SSIM_WINDOW
 from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, current_models, load_model, n_views, render_split
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
@@ -33,7 +33,7 @@ def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, 
         "name": model.name,
         "kind": model.kind,
         "psnr": round(mean("psnr"), 4),
-        "ssim": round(mean("ssim"), 5),
+        "ssim": round(mean("ssim"), 5) if rows[0]["ssim"] is not None else None,
         "lpips": round(mean("lpips"), 5) if lpips_model is not None else None,
         "seconds_per_image": round(mean("seconds"), 4),
         "samples_per_image": round(mean("samples")),
@@ -59,6 +59,11 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
             f"{split.width} x {split.height} (pretrain at a larger --image-size to have it)")
     if lpips_model is None:
         log(lpips_note)
+    ssim_note = None
+    if min(split.height, split.width) < SSIM_WINDOW:
+        ssim_note = (f"SSIM left out: its {SSIM_WINDOW} x {SSIM_WINDOW} window needs images of at least {SSIM_WINDOW} px "
+                     f"a side, these are {split.width} x {split.height} (pretrain at a larger --image-size to have it)")
+        log(ssim_note)
     rows = []
     for name in names:
         model = load_model(ws, name, device, exact_gate=True)  # ||w||_0 needs the trainable gate
@@ -69,11 +74,12 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
             c = model_costs(model, scene, split, device, views, exact_gate, skips)  # leaves it ready to render
             cost = {"w0": c["w0"], "gflops_per_image": c["gflops_per_image"]}
         row = {**evaluate_model(model.for_rendering(exact_gate), scene, split, device, lpips_model, skips, views), **cost}
-        log(f"{name}: PSNR {row['psnr']:.3f}  SSIM {row['ssim']:.4f}  {row['seconds_per_image']:.3f}s/image")
+        log(f"{name}: PSNR {number(row['psnr'], '.3f')}  SSIM {number(row['ssim'], '.4f')}  "
+            f"{row['seconds_per_image']:.3f}s/image")
         rows.append(row)
     result = {"split": split_name, "views": n_views(split, views), "skip": skips.empty and skips.terminated,
               "skips": {"empty": skips.empty, "terminated": skips.terminated},
-              "lpips_note": lpips_note or None, "models": rows}
+              "lpips_note": lpips_note or None, "ssim_note": ssim_note, "models": rows}
     if report:
         write_json(ws.reports_dir / "eval.json", result)
         with atomic_path(ws.reports_dir / "eval.md") as tmp:
@@ -91,9 +97,9 @@ def markdown_table(result: dict) -> str:
     ]
     for r in result["models"]:
         lines.append(
-            f"| {r['name']} | {number(r['psnr'], '.3f')} | {r['ssim']:.4f} | {number(r['lpips'], '.4f')} | {r['params']:,} | "
+            f"| {r['name']} | {number(r['psnr'], '.3f')} | {number(r['ssim'], '.4f')} | {number(r['lpips'], '.4f')} | {r['params']:,} | "
             f"{number(r.get('w0'), ',')} | {number(r.get('gflops_per_image'), '.3f')} | {r['seconds_per_image']:.3f} |"
         )
-    if result.get("lpips_note"):
-        lines += ["", f"LPIPS: {result['lpips_note']}"]
+    lines += [""] * bool(result.get("lpips_note") or result.get("ssim_note"))
+    lines += [result[k] for k in ("ssim_note", "lpips_note") if result.get(k)]
     return "\n".join(lines) + "\n"

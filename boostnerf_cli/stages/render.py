@@ -31,7 +31,16 @@ from boostnerf_cli.images import (
     write_png,
     write_video,
 )
-from boostnerf_cli.models import LoadedModel, Skips, all_model_names, current_models, load_model, n_views, render_split
+from boostnerf_cli.models import (
+    LoadedModel,
+    Skips,
+    all_model_names,
+    current_models,
+    load_model,
+    n_views,
+    render_split,
+    stale_reason,
+)
 from boostnerf_cli.moe.mixture import GateView
 from boostnerf_cli.render.paths import camera_path
 from boostnerf_cli.render.renderer import render_image, render_view
@@ -75,7 +84,8 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
     """Render one model along a camera path derived from the training cameras -> colour and depth videos."""
     if not names or len(names) != 1:
         fix = f"keep one of {', '.join(names)}" if names else "add --model NAME"
-        raise BoostNerfError(f"--path renders one model: {fix} (models: {', '.join(all_model_names(ws)) or 'none yet'})")
+        current = [n for n in all_model_names(ws) if stale_reason(ws, n) is None]  # what it can render
+        raise BoostNerfError(f"--path renders one model: {fix} (models: {', '.join(current) or 'none yet'})")
     scene = workspace_scene(ws)
     model = load_model(ws, current_models(ws, names)[0], device)
     target, fmt = video_target(video or ws.renders_dir(model.name) / f"{kind}.mp4")  # refused before rendering
@@ -149,7 +159,7 @@ def run_compare(ws: Workspace, names: list[str] | None, split_name: str, device:
         path = folder / f"{split.stems[i]}.png"
         write_png(path, panel_grid([top, bottom], caption=f"{scene.name}, {split_name} view {split.names[i]}"))
         written.append(path)
-    log(f"compared {', '.join(names)}: wrote {len(written)} images to {folder}")
+    log(f"compared {', '.join(names)}: wrote {len(written)} image{'s' if len(written) != 1 else ''} to {folder}")
     return written
 
 
@@ -221,8 +231,12 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
         probs = np.stack(gates, -1)  # (H, W, M)
         if log is not None:
             hi, lo = gate_by_detail(probs, split.images[i].numpy(), full["acc"].numpy() > 0.5)
-            log(f"{model.name} {stem}: mean gate probability per expert ({', '.join(names)}) on detailed pixels "
-                f"{[round(float(v), 2) for v in hi]}, on smooth pixels {[round(float(v), 2) for v in lo]}")
+            if np.isnan(hi).any():
+                log(f"{model.name} {stem}: no mean gate probability per expert: fewer than 2 pixels of the render "
+                    "are opaque (opacity > 0.5)")
+            else:
+                log(f"{model.name} {stem}: mean gate probability per expert ({', '.join(names)}) on detailed pixels "
+                    f"{[round(float(v), 2) for v in hi]}, on smooth pixels {[round(float(v), 2) for v in lo]}")
         routing = to_uint8(probs @ _palette(m))
         top = [("mixture", to_uint8(full["rgb"]))] + [(f"{names[e]} share", shares[e]) for e in range(m)]
         bottom = [("routing (smallest first: blue, cyan, green, orange, red)", routing)] + [
