@@ -486,6 +486,14 @@ def test_options_that_cannot_change_a_model_are_named(moe_ws, tmp_path):
     proc = run_cli("finetune", "--workspace", str(ws), "--baseline", "--lambda", "3", "--wide-start", "0.5",
                    "--iters", "2", "--device", "cpu", check=True)
     assert "note: --lambda, --wide-start cannot change the baseline" in proc.stderr
+    # a finished model skipped says it too (docs/stages.md): it only said "already finetuned, skipping"
+    proc = run_cli("finetune", "--workspace", str(ws), "--baseline", "--lambda", "3", "--wide-start", "0.5",
+                   "--iters", "2", "--device", "cpu", check=True)
+    assert "already finetuned, skipping" in proc.stderr
+    assert "note: --lambda, --wide-start cannot change the baseline" in proc.stderr
+    proc = run_cli("finetune", "--workspace", str(ws), "--ensemble", "--gate-noise", "2", "--iters", "2",
+                   "--device", "cpu", check=True)
+    assert "already finetuned, skipping" in proc.stderr and "note: --gate-noise cannot change ens" in proc.stderr
     proc = run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--wide-start", "0.5", "--no-renormalize",
                    "--iters", "2", "--device", "cpu", check=True)  # two experts: k = M
     assert "note: --wide-start, --no-renormalize cannot change top2 (at k = M every expert is used)" in proc.stderr

@@ -254,6 +254,22 @@ def test_in_a_forward_facing_scene_every_pixel_is_foreground_even_the_background
         assert bool(covered(o[fg], d[fg], grown, scene.near, scene.far).all())
 
 
+def test_foreground_rays_that_miss_the_scene_box_are_warned_not_said_to_be_held(tmp_path, tiny_scene):
+    """A box that leaves out part of what the views show (here data.bbox around the middle only; probe D: images
+    widened without their transforms): rays that miss the box cannot learn what they show. The covering pass
+    counted them ("N missed") and then said "the box holds every ray's surface", with no warning."""
+    recipe = make_recipe(tmp_path / "r.yaml", data={"image_size": 24, "bbox": [-0.4, -0.4, -0.5, 0.4, 0.4, 0.3]},
+                         pretrain={"res": [8], "iters": 1, "geometry": {"res": 8, "iters": 30, "batch_rays": 256}},
+                         moe=REMOVE)
+    proc = run_cli("pretrain", "-w", str(tmp_path / "ws"), "--data", str(tiny_scene), "--recipe", str(recipe),
+                   "--device", "cpu", check=True)
+    meta = read_meta(tmp_path / "ws" / "experts" / "geometry.safetensors")
+    missed, total = meta["rounds"][0]["missed_after"], meta["rounds"][0]["foreground_rays"]
+    assert missed > 0.05 * total, meta["rounds"]
+    assert f"warning: {missed} of {total} foreground training rays" in proc.stderr and "miss the scene box" in proc.stderr
+    assert "the box holds every ray's surface" not in proc.stderr
+
+
 def test_content_past_the_scene_box_is_named_and_data_bbox_holds_it(tmp_path):
     """`make-scene --content large`: the floor reaches radius 3, past the box of the region most cameras see (about
     +-1.7), so the coarse model draws what lies beyond on the box's faces. The geometry stage says so and names

@@ -136,6 +136,19 @@ def _unused_flags(name: str, flags: dict, cfg: MixtureConfig | None, gate_kind: 
     return unused
 
 
+def _note_unused(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict, flags: dict,
+                 log: Callable[[str], None]) -> None:
+    """Name the command line's options that cannot change model `name` (`_unused_flags`), from moe/init's metadata."""
+    if name == "baseline":
+        if unused := _unused_flags(name, flags, None, ""):
+            log(f"note: {', '.join(unused)} cannot change the baseline (the largest expert alone, no gate): ignored")
+        return
+    cfg, kind = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), init_meta))
+    if unused := _unused_flags(name, flags, cfg, kind):
+        why = "every expert is used with equal weights" if name == "ens" else "at k = M every expert is used"
+        log(f"note: {', '.join(unused)} cannot change {name} ({why}): ignored")
+
+
 def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str, force: bool,
         log: Callable[[str], None], flags: dict | None = None) -> dict:
     """Finetune model `name` (skipped when finished with the same settings); `flags`: the options given on the command
@@ -146,6 +159,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         raise BoostNerfError(f"no mixture to finetune in {ws.root}: run `boostnerf build-moe --workspace {ws.root}` first")
     init_meta = read_meta(init)
     check_inputs(ws)
+    _note_unused(ws, name, topk, rec, init_meta, flags or {}, log)  # also when the model is finished and skipped
     if ws.model_path(name).exists() and (ws.moe_dir / f"{name}.json").exists() and not force:
         if stale_reason(ws, name) is not None:  # moe/init is current (above), so: finetuned from an older one
             raise BoostNerfError(
@@ -161,16 +175,11 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     sched = Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every, rec.train.checkpoint_every)
     source = _source_digest(ws, name, init_meta)
     if name == "baseline":
-        if unused := _unused_flags(name, flags or {}, None, ""):
-            log(f"note: {', '.join(unused)} cannot change the baseline (the largest expert alone, no gate): ignored")
         return _baseline(ws, scene, mix, rec, sched, device, log, source, force)
     if name == "ens":
         mix.make_ensemble()
     cfg, kind = routing(name, topk, rec, mix.cfg, mix.gate.cfg.kind)
     mix.configure(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)})
-    if unused := _unused_flags(name, flags or {}, cfg, kind):
-        why = "every expert is used with equal weights" if name == "ens" else "at k = M every expert is used"
-        log(f"note: {', '.join(unused)} cannot change {name} ({why}): ignored")
     settings = scene.render_settings(mix.cfg.step, mix.bbox, rec.train.color_threshold)
     task = MixtureTask(mix, settings, rec.train, rec)
     sig = signature(name, rec, source, mix.cfg, mix.gate.cfg.kind)
@@ -185,6 +194,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         "renormalize": mix.cfg.renormalize,
         "lambda": rec.lam,
         "penalty": mix.cfg.penalty,
+        "seed": rec.seed,
         "mix": mix.cfg.mix,
         "aux_norm": mix.cfg.aux_norm,
         "aux_samples": mix.cfg.aux_samples,
@@ -243,6 +253,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
         "name": "baseline",
         "kind": "expert",
         "from": largest,
+        "seed": rec.seed,
         "iterations": result.iterations,
         "seconds": round(result.seconds, 2),
         "skipped_steps": result.skipped_steps,

@@ -96,6 +96,11 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
             f"scene box {box_text(bbox)}: the scene reaches past it, and what lies "
             "beyond is drawn on its faces; if that is content, give recipe key data.bbox a box that holds it "
             "(docs/datasets.md, \"The scene box\")")
+    if cover is not None and cover["missed_after"] > EDGE_WARN * cover["foreground_rays"]:  # a refined box: those too
+        log(f"geometry: warning: {cover['missed_after']} of {cover['foreground_rays']} foreground training rays "
+            f"({100 * cover['missed_after'] / cover['foreground_rays']:.1f}%) miss the scene box {box_text(bbox)} "
+            "altogether: what they show lies outside it and cannot be learned; if that is content, give recipe key "
+            "data.bbox a box that holds it (docs/datasets.md, \"The scene box\")")
     rounds = [cover]
     shrink = float((box[1] - box[0]).prod() / (bbox[1] - bbox[0]).prod())
     if rec.refine and cover is not None and shrink < 0.5:  # cells at least 1.26x finer: worth a second round
@@ -154,8 +159,8 @@ def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor
                                               tol=foreground_tol(scene.extra))
         cover["outside_hull"] = outside
         log(f"{name}: {cover['missed_before']} of {cover['foreground_rays']} foreground training rays reach no surface "
-            f"in occupied cells; {cover['cells_added']} cells added along them ({cover['missed_after']} missed); "
-            "the box holds every ray's surface")
+            f"in occupied cells; {cover['cells_added']} cells added along them ({cover['missed_after']} missed)"
+            + ("; the box holds every ray's surface" if not cover["missed_after"] else ""))
         occ = OccupancyGrid(occ.occupied | framed.occupied, bbox)  # the mask only grows
     else:
         box = occ.occupied_bbox(margin_cells=1)
@@ -266,6 +271,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
         "name": name,
         "model": rec.model,
         "res": res,
+        "seed": rec.seed,  # pretrain.seed: this expert's initialisation and batches draw from seed + res
         "iterations": result.iterations,
         "seconds": round(result.seconds, 2),
         "skipped_steps": result.skipped_steps,
