@@ -175,3 +175,33 @@ def test_empty_space_in_front_of_a_transparent_background_stays_empty_against_ra
     colours the pixel moves with them, so empty space still matches every draw and the rays stay empty; a loss that
     kept the pixel white would ask for an opaque white surface (the white wall of the test above)."""
     assert _toy_opacity(True, torch.zeros(256)) < 0.1
+
+
+def test_a_white_subject_on_white_is_told_by_its_alpha(tmp_path):
+    """Images with alpha whose subject is white on the white background: foreground was decided by colour alone, so
+    `pretrain` refused the scene as "nothing but the background" (and a white part of a coloured subject fell out of
+    the visual hull, which carves the geometry). The alpha tells them apart: the scene trains, every pixel of the
+    subject a foreground ray of the covering pass. (Its colour cannot place the subject: white on white looks the same
+    with or without it, so only the alpha, through train.random_background, can teach an expert where it is.)"""
+    import numpy as np
+    from conftest import REMOVE, make_recipe, run_cli
+    from PIL import Image
+
+    from boostnerf_cli.render.coverage import foreground_masks
+    from boostnerf_cli.workspace import read_meta
+
+    scene = make_scene(tmp_path / "white", size=24, n_train=10, n_test=2, seed=0)
+    for png in scene.rglob("*.png"):
+        rgba = np.array(Image.open(png).convert("RGBA"))
+        rgba[..., :3] = 255  # every pixel white: only the alpha shows the subject
+        Image.fromarray(rgba, "RGBA").save(png)
+    recipe = make_recipe(tmp_path / "r.yaml", data={"image_size": 24},
+                         pretrain={"res": [8], "iters": 5, "geometry": {"res": 12, "iters": 60, "batch_rays": 256}},
+                         moe=REMOVE)
+    ws = tmp_path / "ws"
+    run_cli("pretrain", "-w", str(ws), "--data", str(scene), "--recipe", str(recipe), "--device", "cpu", check=True)
+    tr = load_scene(scene).splits["train"]
+    assert not bool(foreground_masks(tr.images, (1.0, 1.0, 1.0)).any())
+    assert bool(foreground_masks(tr.images, (1.0, 1.0, 1.0), alpha=tr.alpha).any())
+    meta = read_meta(ws / "experts" / "geometry.safetensors")
+    assert meta["rounds"][0]["foreground_rays"] == int((tr.alpha > 0.03).sum()) > 0

@@ -67,13 +67,16 @@ def foreground_tol(extra: dict) -> float:
     return LOSSY_FOREGROUND_TOL if extra.get("lossy") else FOREGROUND_TOL
 
 
-def foreground_masks(images: Tensor, background: tuple[float, float, float] | None, tol: float = FOREGROUND_TOL) -> Tensor:
-    """(N, H, W, 3) images -> (N, H, W) bool: pixels that differ from the background colour (all True
-    when the background is unknown)."""
+def foreground_masks(images: Tensor, background: tuple[float, float, float] | None, tol: float = FOREGROUND_TOL,
+                     alpha: Tensor | None = None) -> Tensor:
+    """(N, H, W, 3) images -> (N, H, W) bool: pixels that differ from the background colour, or whose alpha (N, H, W)
+    (images that had one) exceeds `tol`: a white subject on the white background is told by its alpha alone. All True
+    when the background is unknown."""
     if background is None:
         return torch.ones(images.shape[:3], dtype=torch.bool, device=images.device)
     bg = torch.tensor(background, dtype=images.dtype, device=images.device)
-    return (images - bg).abs().amax(-1) > tol
+    masks = (images - bg).abs().amax(-1) > tol
+    return masks if alpha is None else masks | (alpha.to(masks.device) > tol)
 
 
 def ray_cells(origins: Tensor, dirs: Tensor, occ: OccupancyGrid, near: float,
@@ -132,12 +135,12 @@ def visual_hull(occ: OccupancyGrid, poses: Tensor, intrinsics: Tensor, masks: Te
 @torch.no_grad()
 def hull_cells(occ: OccupancyGrid, images: Tensor, poses: Tensor, intrinsics: Tensor,
                background: tuple[float, float, float] | None, ndc: NDC | None = None,
-               tol: float = FOREGROUND_TOL) -> OccupancyGrid:
+               tol: float = FOREGROUND_TOL, alpha: Tensor | None = None) -> OccupancyGrid:
     """The occupied cells of `occ` inside the training views' visual hull (module docstring), for the box to
     be drawn around. Without a known background, or for NDC scenes, the hull says nothing: `occ` itself."""
     if background is None or ndc is not None:
         return occ
-    masks = foreground_masks(images, background, tol).to(occ.occupied.device)
+    masks = foreground_masks(images, background, tol, alpha).to(occ.occupied.device)
     hull = visual_hull(occ, poses, intrinsics, masks, footprint=True, min_views=max(2, math.ceil(len(images) / 4)))
     return OccupancyGrid(occ.occupied & hull, occ.bbox)
 
@@ -155,6 +158,7 @@ def cover_foreground(
     ndc: NDC | None = None,
     chunk: int = 4096,
     tol: float = FOREGROUND_TOL,
+    alpha: Tensor | None = None,
 ) -> tuple[OccupancyGrid, Tensor, dict]:
     """One point on every foreground training ray, the mask grown to hold them and the box drawn around them
     (module docstring).
@@ -174,7 +178,7 @@ def cover_foreground(
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
     known = background is not None and ndc is None
     # a forward-facing capture (NDC) has no background to tell from: a white wall or sky is foreground too
-    masks = foreground_masks(images, background if known else None, tol).to(device)
+    masks = foreground_masks(images, background if known else None, tol, alpha).to(device)
     hulls = None  # (tight, footprint) visual hulls, made when a first ray needs them (on most scenes none does)
     occupied = occ.occupied.clone()
     kept = occ.occupied.reshape(-1)

@@ -147,7 +147,7 @@ def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor
         framed = occ
         if rec.hull_box:
             framed = hull_cells(occ, train_split.images, train_split.poses, train_split.intrinsics, scene.background,
-                                scene.ndc, foreground_tol(scene.extra))
+                                scene.ndc, foreground_tol(scene.extra), train_split.alpha)
         outside = int((occ.occupied & ~framed.occupied).sum())
         if outside:
             log(f"{name}: {outside} of {int(occ.occupied.sum())} occupied cells lie outside the training views' "
@@ -156,7 +156,7 @@ def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor
             "space")  # a pass over every training ray: minutes for a large capture
         framed, box, cover = cover_foreground(framed, model.density, train_split.images, train_split.poses,
                                               train_split.intrinsics, scene.background, scene.near, scene.far, scene.ndc,
-                                              tol=foreground_tol(scene.extra))
+                                              tol=foreground_tol(scene.extra), alpha=train_split.alpha)
         cover["outside_hull"] = outside
         log(f"{name}: {cover['missed_before']} of {cover['foreground_rays']} foreground training rays reach no surface "
             f"in occupied cells; {cover['cells_added']} cells added along them ({cover['missed_after']} missed)"
@@ -363,12 +363,15 @@ def check_foreground(scene: Scene, data: Path) -> None:
     if scene.background is None or scene.ndc is not None:
         return
     tol = foreground_tol(scene.extra)
-    if any(bool(foreground_masks(image[None], scene.background, tol).any()) for image in train_split.images):
+    alphas = train_split.alpha if train_split.alpha is not None else [None] * len(train_split)
+    if any(bool(foreground_masks(image[None], scene.background, tol, None if a is None else a[None]).any())
+           for image, a in zip(train_split.images, alphas)):
         return
     colour = ", ".join(f"{c:g}" for c in scene.background)
     raise BoostNerfError(
         f"the {len(train_split)} training views of {data} show nothing but the background: no pixel differs from "
-        f"its colour ({colour}) by more than {tol}; check that the images hold the scene (an all-"
+        f"its colour ({colour}) by more than {tol}" + (" nor has an alpha above it" if train_split.alpha is not None else "")
+        + "; check that the images hold the scene (an all-"
         "transparent alpha channel, a wrong folder)"
     )
 
