@@ -83,6 +83,16 @@ def _writer(workspace: Path, must_exist: bool = True, distributed: bool = False)
     return ws, dist.writer_lock(ws)
 
 
+def _reader(workspace: Path):
+    """The workspace, checked to be one, with a reader's lock (`Workspace.reading`): shared with other readers."""
+    from boostnerf_cli.workspace import Workspace
+
+    _one_process()
+    ws = Workspace(workspace)
+    ws.require_manifest()
+    return ws, ws.reading()
+
+
 def _int_list(text: str, what: str) -> list[int]:
     parts = text.replace(" ", "").split(",")
     if "" in parts[:-1]:  # "8,,12" or ",8": a value lost (a trailing comma is tolerated)
@@ -288,7 +298,7 @@ def eval_cmd(
     from boostnerf_cli.workspace import number
 
     skips = Skips.from_flags(no_skip, skip_off)
-    ws, lock = _writer(workspace)
+    ws, lock = _writer(workspace) if report else _reader(workspace)
     with lock:
         result = stage.run(ws, model, split, resolve_device(device), skips, views, report, log, costs=not no_costs,
                           exact_gate=exact_gate)

@@ -426,6 +426,52 @@ class Workspace:
                 path.unlink(missing_ok=True)  # unlink while still holding the lock, then release it
             os.close(fd)
 
+    @contextmanager
+    def reading(self) -> Iterator[None]:
+        """A reader's lock (`eval` without --report): a shared `flock` on WS/.lock, so several readers run at once,
+        a writer is refused while they read, and a reader while a writer writes (it may be replacing what is read).
+        A workspace a reader cannot lock, read-only (an archive, a read-only mount), has no writer either: it is
+        read as it is. The last reader out removes the lock file; a reader writes nothing else."""
+        path = self.root / ".lock"
+        fd = None
+        while True:
+            try:
+                fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+            except OSError as e:
+                if e.errno not in (errno.EROFS, errno.EACCES, errno.EPERM):
+                    raise BoostNerfError(f"cannot open the workspace lock {path} ({e.strerror or type(e).__name__}): "
+                                         "remove it if it is not a file, and rerun") from None
+                try:  # a read-only workspace: its lock file, if a writer left one, can still be locked
+                    fd = os.open(path, os.O_RDONLY)
+                except OSError:
+                    fd = None
+                    break  # no lock file and none can be made: nobody can be writing it
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+                locked = True
+            except BlockingIOError:
+                locked = False
+            try:
+                same = os.fstat(fd).st_ino == os.stat(path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same and locked:
+                break
+            if same:  # held by a writer
+                holder = os.read(fd, 200).decode(errors="replace").strip() if os.fstat(fd).st_size else ""
+                os.close(fd)
+                raise BoostNerfError(f"workspace {self.root} is being written by another boostnerf process "
+                                     f"({holder or 'unknown'}): wait for it to finish, then rerun")
+            os.close(fd)  # a lock file its holder unlinked while we opened it: open the new one
+        try:
+            yield
+        finally:
+            if fd is not None:
+                with suppress(OSError):  # the last reader (no other holder) removes the file
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    path.unlink()
+                os.close(fd)
+
     def _acquire(self, path: Path) -> int:
         """Lock `path` (-> its descriptor, which holds this host and pid) and clean up temporary files."""
         me = f"{socket.gethostname()} {os.getpid()}"
@@ -437,8 +483,8 @@ class Workspace:
                 holder = os.read(fd, 200).decode(errors="replace").strip()
                 os.close(fd)
                 raise BoostNerfError(
-                    f"workspace {self.root} is in use by another boostnerf process ({holder or 'unknown'}): "
-                    "wait for it to finish; two writers to one workspace are refused"
+                    f"workspace {self.root} is in use by another boostnerf process ({holder or 'reading it: eval'}): "
+                    "wait for it to finish; a writer shares a workspace with no other command"
                 ) from None
             except OSError:
                 os.close(fd)

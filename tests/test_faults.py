@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import REMOVE, assert_clean_failure, make_recipe, run_cli
+from conftest import REMOVE, assert_clean_failure, cli_in_process, make_recipe, run_cli
 
 from boostnerf_cli import workspace as wsmod
 from boostnerf_cli.errors import BoostNerfError
@@ -45,8 +45,10 @@ def test_second_writer_is_refused_through_the_cli_and_the_lock_is_released(train
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws)
     with Workspace(ws).lock():
-        proc = run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--device", "cpu")
+        proc = run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--report", "--device", "cpu")
         assert_clean_failure(proc, "in use by another boostnerf process", str(os.getpid()))
+        proc = run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--device", "cpu")  # a reader
+        assert_clean_failure(proc, "is being written by another boostnerf process", str(os.getpid()))
     assert not (ws / ".lock").exists()
     proc = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--device", "cpu")  # fails: no build-moe
     assert_clean_failure(proc, "build-moe")
@@ -55,6 +57,44 @@ def test_second_writer_is_refused_through_the_cli_and_the_lock_is_released(train
 
 HOLD_LOCK = "import sys, time; from boostnerf_cli.workspace import Workspace; cm = Workspace(sys.argv[1]).lock(); " \
             "cm.__enter__(); print('locked', flush=True); time.sleep(120)"
+
+
+HOLD_READ = HOLD_LOCK.replace(".lock()", ".reading()")
+
+
+def test_readers_share_a_workspace_and_a_read_only_one_can_be_evaluated(trained_ws, tmp_path, monkeypatch, capsys):
+    """`eval` without --report only reads: it took the exclusive writer lock, so two evals of one workspace (two
+    models on two GPUs) refused each other, and a read-only workspace (an archive, a read-only mount) could not be
+    evaluated at all ("cannot take the writer lock ... fix the workspace folder's permissions")."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
+    holder = subprocess.Popen([sys.executable, "-c", HOLD_READ, str(ws)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--device", "cpu", check=True)
+        proc = run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--report", "--device", "cpu")
+        assert_clean_failure(proc, "in use by another boostnerf process (reading it: eval)")
+        assert not (ws / "reports").exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    run_cli("eval", "--workspace", str(ws), "--views", "1", "--no-costs", "--report", "--device", "cpu", check=True)
+    assert not (ws / ".lock").exists()
+    real_open = os.open
+
+    def read_only(path, flags, *args):  # what a read-only mount answers to a file it would have to create
+        if str(path).endswith(".lock") and flags & os.O_CREAT:
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real_open(path, flags, *args)
+
+    monkeypatch.setattr(wsmod.os, "open", read_only)
+    code, err = cli_in_process(monkeypatch, capsys, "eval", "--workspace", str(ws), "--views", "1", "--no-costs",
+                               "--device", "cpu")
+    assert code == 0 and "dvgo-16: PSNR" in err, err
+    with Workspace(ws).reading():  # no lock file can be made, and no writer can be at work: read as it is
+        assert not (ws / ".lock").exists()
+    with pytest.raises(BoostNerfError, match="cannot take the writer lock"), Workspace(ws).lock():
+        pass
 
 
 def test_lock_of_a_killed_process_is_stale_and_taken_over(tmp_path):
