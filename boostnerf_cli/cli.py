@@ -147,7 +147,7 @@ def pretrain(
     data_format: Annotated[str | None, typer.Option("--format", help="Dataset format: auto (detect), blender, nsvf, tanks, llff or nerfstudio.")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
-    no_skip: Annotated[bool, typer.Option("--no-skip", help="Train without skipping empty space: the whole scene box, no occupancy mask (the reference that skipping is measured against).")] = False,
+    skip: Annotated[Optional[bool], typer.Option("--skip/--no-skip", help="--no-skip: train without skipping empty space: the whole scene box, no occupancy mask (the reference that skipping is measured against). Default: the recipe's pretrain.skip (on; a rerun keeps the workspace's recorded recipe, --skip turns it back on).", show_default=False)] = None,
     force: Annotated[bool, typer.Option("--force", help="Retrain experts that are already finished.")] = False,
 ) -> None:
     """Train one expert per resolution, independently (stage 1 of the paper)."""
@@ -158,7 +158,7 @@ def pretrain(
 
     rec = _moe_recipe(workspace, recipe).override({  # a rerun (a moved scene, one more expert) keeps the recipe
         "pretrain.model": model, "pretrain.res": _int_list(res, "--res") if res is not None else None,
-        "pretrain.iters": iters, "pretrain.seed": seed, "pretrain.skip": False if no_skip else None,
+        "pretrain.iters": iters, "pretrain.seed": seed, "pretrain.skip": skip,
         "data.image_size": image_size, "data.holdout_every": holdout_every, "data.format": data_format})
     ws, lock = _writer(workspace, must_exist=False, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock:
@@ -179,8 +179,13 @@ def _moe_recipe(workspace: Path, recipe: Optional[Path]):
 
     if recipe is not None:
         return load_recipe(recipe)
-    recorded = Workspace(workspace).manifest().get("recipe")
-    return recipe_from_dict(recorded) if recorded else Recipe()
+    ws = Workspace(workspace)
+    recorded = ws.manifest().get("recipe")
+    try:
+        return recipe_from_dict(recorded) if recorded else Recipe()
+    except BoostNerfError as e:  # a hand-edited manifest, or one written by another boostnerf
+        raise BoostNerfError(f"the recipe recorded in {ws.manifest_path}: {e}; or give --recipe FILE to use another "
+                             "recipe") from None
 
 
 @app.command("build-moe")

@@ -75,18 +75,30 @@ def is_temporary(path: Path) -> bool:
     return name.startswith(".") and (name.endswith(".tmp") or ".tmp." in name)
 
 
-_TEMP_FILE = re.compile(r"\..+\.[a-z0-9_]+\.tmp(\.[A-Za-z0-9]+)?")  # `atomic_path`'s: mkstemp's random part
-# The folders a workspace's writers write in (bench adds rows/ and variants/, each variant a workspace), and the
-# embedded scene's folder while make_scene generates it (pretrain or bench without --data).
+# `atomic_path`'s temporary files: `.NAME.` + mkstemp's 8 random characters + `.tmp` (+ the target's suffix)
+_TEMP_FILE = re.compile(r"\.(.+)\.[a-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?")
+# The folders a workspace's writers write in (bench adds rows/ and variants/, each variant a workspace), the files
+# they write in its root, and the embedded scene's folder while make_scene generates it (pretrain or bench without
+# --data).
 WRITTEN_FOLDERS = ("experts", "moe", "reports", "checkpoints", "renders", "rows", "variants")
+ROOT_FILES = ("manifest.json", "bench-config.json")
 SCENE_TMP = ".scene.tmp"
+
+
+def recorded_path(data: Path, root: Path) -> str:
+    """How a workspace (or bench folder) `root` records its scene `data`: relative to it for a scene inside it (the
+    generated default scene: it travels with a moved or copied folder), else absolute, through any symbolic link as
+    given (so repointing the link relocates the scene)."""
+    here, top = data.resolve(), root.resolve()
+    return os.path.relpath(here, top) if here.is_relative_to(top) else os.path.abspath(data)
 
 
 def stale_temporaries(root: Path) -> list[Path]:
     """What a writer killed mid-write can have left in workspace `root`, and nothing else: `atomic_path`'s
-    temporary files in `root` itself and at any depth of `WRITTEN_FOLDERS` (not in a hidden folder, nor in a folder
-    that holds its own `.lock`: another workspace, whose writer may be live), and the embedded scene being generated
-    (`SCENE_TMP`). A user's files elsewhere in the folder (`-w .`, `-w ~/project`) are never touched."""
+    temporary files of `ROOT_FILES` in `root` itself and of any file at any depth of `WRITTEN_FOLDERS` (not in a
+    hidden folder, nor in a folder that holds its own `.lock`: another workspace, whose writer may be live), and the
+    embedded scene being generated (`SCENE_TMP`). A user's files elsewhere in the folder (`-w .`, `-w ~/project`)
+    are never touched."""
     found = [root / SCENE_TMP] if (root / SCENE_TMP).is_dir() and not (root / SCENE_TMP).is_symlink() else []
     for top in (root, *(root / name for name in WRITTEN_FOLDERS)):
         for folder, dirs, files in os.walk(top):  # symbolic links to folders are not followed
@@ -94,7 +106,8 @@ def stale_temporaries(root: Path) -> list[Path]:
                 dirs.clear()  # root's own files only: its folders are the written ones above, or the user's
             else:
                 dirs[:] = [d for d in dirs if not d.startswith(".") and not os.path.lexists(os.path.join(folder, d, ".lock"))]
-            found += [Path(folder, f) for f in files if _TEMP_FILE.fullmatch(f)]
+            matches = ((f, _TEMP_FILE.fullmatch(f)) for f in files)
+            found += [Path(folder, f) for f, m in matches if m and (top != root or m.group(1) in ROOT_FILES)]
     return sorted(found)
 
 
@@ -183,8 +196,8 @@ def write_json(path: Path, data: Any) -> None:
 
 
 def number(value: float | int | None, spec: str) -> str:
-    """A report value for display: "-" for null (not available, or not finite: written as null)."""
-    return "-" if value is None or not math.isfinite(value) else format(value, spec)
+    """A report value for display: "-" for null (not available, or not finite when it was written)."""
+    return "-" if value is None else format(value, spec)
 
 
 def read_json(path: Path, what: str = "file") -> dict:
@@ -456,6 +469,8 @@ class Workspace:
             except FileNotFoundError:
                 same = False
             if same and locked:
+                with suppress(OSError):  # a killed writer's "host pid" would be named to the next writer refused
+                    os.ftruncate(fd, 0)
                 break
             if same:  # held by a writer
                 holder = os.read(fd, 200).decode(errors="replace").strip() if os.fstat(fd).st_size else ""

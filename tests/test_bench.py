@@ -3,6 +3,7 @@
 import csv
 import json
 import math
+import shutil
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -190,15 +191,39 @@ def test_bench_refuses_bad_input(quick_bench, tiny_scene, bench_recipe, tmp_path
     assert_clean_failure(proc, "made with another")
 
 
+def test_a_moved_bench_folder_or_scene_keeps_its_finished_rows(quick_bench, tiny_scene, bench_recipe, tmp_path):
+    """A bench folder moved, or its scene moved (a symbolic link repointed): the same command at the new places
+    skipped nothing and refused with "made with another data" (the scene's resolved absolute path was recorded), and
+    only deleting the folder got past it. The same images and cameras now keep every finished row; other ones are
+    refused. The generated scene inside the folder is recorded relative to it, so it travels with the folder."""
+    root = tmp_path / "moved"
+    shutil.copytree(quick_bench[0], root)
+    scene = tmp_path / "scene-moved"
+    shutil.copytree(tiny_scene, scene)
+    proc = run_cli("bench", "--data", str(scene), "--recipe", str(bench_recipe), "--workspace", str(root),
+                   "--device", "cpu", check=True)
+    assert proc.stderr.count("finished, skipping") == len(json.loads((root / "reports" / "bench.json").read_text())["rows"])
+    assert json.loads((root / "bench-config.json").read_text())["data"] == str(scene)
+    other = tmp_path / "scene-edited"
+    shutil.copytree(tiny_scene, other)
+    img = iio.imread(other / "train" / "r_0.png")
+    img[5, 5] = [255, 0, 0, 255]
+    iio.imwrite(other / "train" / "r_0.png", img)
+    proc = run_cli("bench", "--data", str(other), "--recipe", str(bench_recipe), "--workspace", str(root),
+                   "--device", "cpu")
+    assert_clean_failure(proc, "is not the one the bench", str(scene))
+    assert bench.bench_config(root / "scene", None, Recipe(), root)["data"] == "scene"
+
+
 def test_bench_config_of_a_recipe_with_per_resolution_options_reads_back_equal(tmp_path):
     """A recipe with `hidden: {64: 64, 80: 128}` (int keys) must not look like another recipe on rerun."""
     from boostnerf_cli.workspace import read_json, write_json
 
     rec = Recipe()
     rec.pretrain.dvgo = {"hidden": {64: 64, 80: 128}}
-    config = bench.bench_config(tmp_path, None, rec)
+    config = bench.bench_config(tmp_path, None, rec, tmp_path)
     write_json(tmp_path / "bench-config.json", config)
-    assert read_json(tmp_path / "bench-config.json", "bench config") == bench.bench_config(tmp_path, None, rec)
+    assert read_json(tmp_path / "bench-config.json", "bench config") == bench.bench_config(tmp_path, None, rec, tmp_path)
 
 
 def test_tables_written_to_a_file_or_pipe_keep_every_name_whole(bench_recipe, tmp_path):

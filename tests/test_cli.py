@@ -140,14 +140,12 @@ def test_eval_reports_lpips_when_its_weights_are_on_disk(trained_ws, tmp_path):
 
 
 
-def test_images_too_small_for_ssim_leave_it_out_with_a_note_and_a_view_of_empty_sky_prints_a_dash(tmp_path, tiny_scene,
+def test_images_too_small_for_ssim_leave_it_out_with_a_note(tmp_path, tiny_scene,
                                                                                                  tiny_recipe):
     """SSIM's window is 11 px: at --image-size 8 (which pretrain accepts) eval stopped with `error: ssim: image 8x8 is
     smaller than the 11x11 window` after rendering, and wrote no report. Now SSIM is null with a note, as LPIPS under
-    31 px. And an infinite PSNR (a render equal to its image), null in the JSON, printed `inf` in the tables where
-    docs/reports.md says `-`."""
+    31 px, and the tables print `-` for it."""
     from boostnerf_cli.stages.evaluate import markdown_table
-    from boostnerf_cli.workspace import number
 
     ws = tmp_path / "ws"
     run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws), "--device", "cpu",
@@ -158,9 +156,8 @@ def test_images_too_small_for_ssim_leave_it_out_with_a_note_and_a_view_of_empty_
     assert row["ssim"] is None and row["psnr"] > 5
     assert "11 px" in report["ssim_note"] and "8 x 8" in report["ssim_note"] and "8 x 8" in proc.stderr
     assert "SSIM left out" in (ws / "reports" / "eval.md").read_text()
-    assert number(float("inf"), ".3f") == "-" and number(float("nan"), ".3f") == "-" and number(3.0, ".1f") == "3.0"
-    table = markdown_table({**report, "models": [{**row, "psnr": float("inf")}]})
-    assert "| dvgo-12 | - | - |" in table and "LPIPS: LPIPS" not in table
+    table = markdown_table(report)
+    assert f"| dvgo-12 | {row['psnr']:.3f} | - |" in table and "LPIPS: LPIPS" not in table
 
 
 def test_images_too_small_for_lpips_leave_it_out_with_a_note_not_the_whole_table(tmp_path, tiny_scene, tiny_recipe):
@@ -177,14 +174,21 @@ def test_images_too_small_for_lpips_leave_it_out_with_a_note_not_the_whole_table
     assert "31" in report["lpips_note"] and "24 x 24" in report["lpips_note"] and "24 x 24" in proc.stderr
 
 
-def test_pretrain_without_data_on_a_workspace_of_another_scene_is_refused_before_generating_one(trained_ws, tmp_path,
-                                                                                                tiny_recipe):
-    """`--data` left out on a workspace made for a real scene: refused at once, with no procedural scene generated
-    into WS/scene first (it was written, then the run refused: a scene folder left in the workspace)."""
+def test_pretrain_without_data_reruns_on_the_workspace_s_own_scene_and_never_generates_one(trained_ws, tmp_path,
+                                                                                          tiny_scene, tiny_recipe):
+    """`--data` left out on a workspace made for a real scene: the rerun uses that scene, as it reuses the recorded
+    recipe (it was refused as "made for another scene"; earlier still, a procedural scene was generated into WS/scene
+    first). That scene gone: one line saying so and how to point to it, and still nothing generated."""
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
-    proc = run_cli("pretrain", "--workspace", str(ws), "--recipe", str(tiny_recipe), "--device", "cpu")
-    assert_clean_failure(proc, "was made for another scene")
+    proc = run_cli("pretrain", "--workspace", str(ws), "--recipe", str(tiny_recipe), "--device", "cpu", check=True)
+    assert "dvgo-16: already trained, skipping" in proc.stderr and "generating" not in proc.stderr
+    manifest = json.loads((ws / "manifest.json").read_text())
+    assert manifest["data"]["path"] == str(tiny_scene)
+    manifest["data"]["path"] = str(tmp_path / "gone")
+    (ws / "manifest.json").write_text(json.dumps(manifest))
+    proc = run_cli("pretrain", "--workspace", str(ws), "--device", "cpu")
+    assert_clean_failure(proc, f"the workspace's scene {tmp_path / 'gone'} is gone", "--data NEW_PLACE")
     assert not (ws / "scene").exists() and "generating" not in proc.stderr
 
 
@@ -198,7 +202,7 @@ def test_a_moved_scene_or_workspace_is_followed_not_retrained(trained_ws, tmp_pa
     shutil.copytree(tiny_scene, ws / "scene")
     digests = {p.name: read_meta(p)["digest"] for p in (ws / "experts").glob("*.safetensors")}
     proc = run_cli("pretrain", "--workspace", str(ws), "--data", str(ws / "scene"), "--device", "cpu", check=True)
-    assert "note: the workspace's scene is now scene (it was " in proc.stderr, proc.stderr
+    assert f"note: the workspace's scene is now {ws / 'scene'} (it was {tiny_scene}; " in proc.stderr, proc.stderr
     assert "already trained, skipping" in proc.stderr and "step" not in proc.stderr
     assert json.loads((ws / "manifest.json").read_text())["data"]["path"] == "scene"
     moved = tmp_path / "renamed"
@@ -214,6 +218,27 @@ def test_a_moved_scene_or_workspace_is_followed_not_retrained(trained_ws, tmp_pa
     other = make_scene(tmp_path / "other", size=32, n_train=12, n_test=3, seed=1)  # another scene: still refused
     assert_clean_failure(run_cli("pretrain", "--workspace", str(moved), "--data", str(other), "--device", "cpu"),
                          "is not the one this workspace was trained on", "--force")
+
+
+def test_a_rerun_of_pretrain_keeps_the_recorded_recipe_and_names_it_when_it_is_damaged(trained_ws, tmp_path):
+    """pretrain without --recipe reuses the workspace's recorded recipe, flags included: --no-skip given once stays,
+    and --skip (new: --no-skip had no opposite) turns it back on; a recorded recipe that no longer loads is named with
+    its file and the way around it (it said `unknown recipe key ...` about no file the user gave)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
+    run_cli("pretrain", "--workspace", str(ws), "--res", "8", "--iters", "2", "--no-skip", "--device", "cpu",
+            check=True)  # no --data either: the workspace's scene
+    proc = run_cli("pretrain", "--workspace", str(ws), "--res", "10", "--iters", "2", "--device", "cpu", check=True)
+    assert "pretrain.skip is off (--no-skip)" in proc.stderr
+    assert json.loads((ws / "experts" / "dvgo-10.json").read_text())["skip"] is False
+    proc = run_cli("pretrain", "--workspace", str(ws), "--res", "12", "--iters", "30", "--skip", "--device", "cpu",
+                   check=True)  # --iters 2 was recorded too
+    assert "skip is off" not in proc.stderr and "dvgo-12: already trained, skipping" in proc.stderr  # as trained
+    manifest = json.loads((ws / "manifest.json").read_text())
+    manifest["recipe"]["pretrain"]["old_key"] = 1
+    (ws / "manifest.json").write_text(json.dumps(manifest))
+    proc = run_cli("pretrain", "--workspace", str(ws), "--device", "cpu")
+    assert_clean_failure(proc, f"the recipe recorded in {ws / 'manifest.json'}", "old_key", "--recipe FILE")
 
 
 def test_views_of_one_name_in_different_folders_render_to_different_files(tmp_path, tiny_scene, tiny_recipe):

@@ -68,6 +68,7 @@ def test_readers_share_a_workspace_and_a_read_only_one_can_be_evaluated(trained_
     evaluated at all ("cannot take the writer lock ... fix the workspace folder's permissions")."""
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
+    (ws / ".lock").write_text("deadhost 99999")  # left by a killed writer: not the one to name while eval reads
     holder = subprocess.Popen([sys.executable, "-c", HOLD_READ, str(ws)], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "locked"
@@ -110,9 +111,9 @@ def test_lock_of_a_killed_process_is_stale_and_taken_over(tmp_path):
         holder.wait()
     assert str(holder.pid) in (ws / ".lock").read_text()  # the dead writer's lock file is still there
     (ws / "experts").mkdir()
-    (ws / "experts" / ".dvgo-12.safetensors.abc.tmp").write_bytes(b"half")  # and a file it was writing
+    (ws / "experts" / ".dvgo-12.safetensors.abc12_x9.tmp").write_bytes(b"half")  # and a file it was writing
     (ws / "renders").mkdir()
-    (ws / "renders" / ".orbit.mp4.abc.tmp.mp4").write_bytes(b"half")  # a video (ffmpeg needs the suffix)
+    (ws / "renders" / ".orbit.mp4.abc12_x9.tmp.mp4").write_bytes(b"half")  # a video (ffmpeg needs the suffix)
     (ws / ".scene.tmp" / "train").mkdir(parents=True)  # a scene being generated
     with Workspace(ws).lock():
         assert (ws / ".lock").read_text().endswith(f" {os.getpid()}")
@@ -125,11 +126,12 @@ def test_taking_the_lock_removes_only_what_a_killed_writer_left(tmp_path):
     `notes/.x.abc.tmp`, even when the command then failed (not a scene), and a command on a parent workspace deleted
     the file a nested workspace's live writer was writing."""
     ws = tmp_path / "project"
-    user = [ws / ".draft.tmp.txt", ws / ".notes.tmp", ws / ".venv.tmp" / "keep", ws / "notes" / ".x.abc.tmp",
+    user = [ws / ".draft.tmp.txt", ws / ".notes.tmp", ws / ".venv.tmp" / "keep", ws / "notes" / ".x.abc12_x9.tmp",
+            ws / ".my.notes.tmp", ws / ".env.backup.tmp", ws / ".notes.txt.abcd1234.tmp",  # in the root: not ours
             ws / "variants" / "child" / "experts" / ".dvgo-8.safetensors.k3j2abcd.tmp",  # a live nested writer's
-            ws / "experts" / ".hidden" / ".a.json.abc.tmp"]
-    ours = [ws / "experts" / ".dvgo-12.safetensors.k3j2abcd.tmp", ws / ".manifest.json.abc.tmp",
-            ws / "renders" / "top2" / "test" / ".r_0.png.abc.tmp", ws / "reports" / ".eval.json.x_1.tmp"]
+            ws / "experts" / ".hidden" / ".a.json.abc12_x9.tmp", ws / "experts" / ".my.notes.tmp"]
+    ours = [ws / "experts" / ".dvgo-12.safetensors.k3j2abcd.tmp", ws / ".manifest.json.abc12_x9.tmp",
+            ws / "renders" / "top2" / "test" / ".r_0.png.abc12_x9.tmp", ws / "reports" / ".eval.json.x_1_2345.tmp"]
     for p in user + ours:
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text("keep")

@@ -187,6 +187,9 @@ def test_gate_by_detail_splits_pixels_at_the_median_detail():
     detailed, smooth = gate_by_detail(probs, gt, np.ones((8, 8), bool))
     assert detailed[1] > 0.7 and smooth[0] > 0.7
     assert np.allclose(detailed.sum(), 1.0) and np.allclose(smooth.sum(), 1.0)
+    # a flat colour: no pixel more detailed than the median, so no detailed half (it was nan: "no pixel is opaque")
+    detailed, smooth = gate_by_detail(probs, np.full((8, 8, 3), 0.5), np.ones((8, 8), bool))
+    assert np.allclose(detailed, [0.5, 0.5]) and np.allclose(smooth, [0.5, 0.5])
 
 
 def test_a_spiral_on_a_forward_facing_scene_looks_where_its_cameras_look(tmp_path):

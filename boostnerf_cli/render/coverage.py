@@ -67,16 +67,26 @@ def foreground_tol(extra: dict) -> float:
     return LOSSY_FOREGROUND_TOL if extra.get("lossy") else FOREGROUND_TOL
 
 
+# A pixel of an image with alpha is foreground when the subject covers most of it, whatever its colour: a white
+# subject on the white background. Fainter pixels (an anti-aliased rim) count by their colour alone, as without alpha,
+# and so do images whose alpha marks no background (saved composited, or without alpha: the loader fills in 1).
+ALPHA_FOREGROUND = 0.5
+
+
 def foreground_masks(images: Tensor, background: tuple[float, float, float] | None, tol: float = FOREGROUND_TOL,
                      alpha: Tensor | None = None) -> Tensor:
-    """(N, H, W, 3) images -> (N, H, W) bool: pixels that differ from the background colour, or whose alpha (N, H, W)
-    (images that had one) exceeds `tol`: a white subject on the white background is told by its alpha alone. All True
-    when the background is unknown."""
+    """(N, H, W, 3) images -> (N, H, W) bool: pixels that differ from the background colour by more than `tol`, or
+    whose alpha (N, H, W; images that had one) exceeds `ALPHA_FOREGROUND` in an image whose alpha marks some pixel
+    as background. All True when the background is unknown."""
     if background is None:
         return torch.ones(images.shape[:3], dtype=torch.bool, device=images.device)
     bg = torch.tensor(background, dtype=images.dtype, device=images.device)
     masks = (images - bg).abs().amax(-1) > tol
-    return masks if alpha is None else masks | (alpha.to(masks.device) > tol)
+    if alpha is None:
+        return masks
+    covered = alpha.to(masks.device) > ALPHA_FOREGROUND
+    marks_background = (~covered).flatten(1).any(1)  # (N,): an opaque-everywhere alpha tells nothing
+    return masks | (covered & marks_background[:, None, None])
 
 
 def ray_cells(origins: Tensor, dirs: Tensor, occ: OccupancyGrid, near: float,

@@ -44,7 +44,7 @@ from boostnerf_cli.fields.registry import CONFIGS
 from boostnerf_cli.models import Skips
 from boostnerf_cli.moe.router import PENALTIES
 from boostnerf_cli.recipe import Recipe, recipe_dict
-from boostnerf_cli.workspace import Workspace, atomic_path, read_json, write_json
+from boostnerf_cli.workspace import Workspace, atomic_path, read_json, recorded_path, write_json
 
 SUITES = ("quick", "full")
 COLUMNS = ("name", "group", "psnr", "ssim", "train_seconds", "seconds_per_image", "gflops_per_image", "params", "w0")
@@ -313,26 +313,47 @@ class Bench:
         return sum(expert_seconds(n) for n in report["experts"]) + float(report["seconds"])
 
 
-def bench_config(data: Path, views: int | None, rec: Recipe) -> dict:
-    """What a bench folder is for, as its bench-config.json reads back: through JSON, so that a
-    per-resolution mapping (`hidden: {64: 64, ...}`, int keys) compares equal to its stored copy."""
-    return json.loads(json.dumps({"data": str(Path(data).resolve()), "views": views, "recipe": recipe_dict(rec)}))
+def bench_config(data: Path, views: int | None, rec: Recipe, root: Path) -> dict:
+    """What a bench folder `root` is for, as its bench-config.json reads back: through JSON, so that a
+    per-resolution mapping (`hidden: {64: 64, ...}`, int keys) compares equal to its stored copy. The scene's path
+    as a workspace records it (`recorded_path`: the generated scene inside the folder travels with it)."""
+    return json.loads(json.dumps({"data": recorded_path(Path(data), root), "views": views, "recipe": recipe_dict(rec)}))
 
 
 def check_config(root: Path, data: Path | None, views: int | None, rec: Recipe, listing: bool = False) -> dict:
     """The bench's config (`bench_config`; data None: the default scene WS/scene, or when `listing` the folder's own
     scene), refused when the folder holds a bench made with another one (`run`, and `--list`, whose "finished"
-    would otherwise stand for another recipe)."""
+    would otherwise stand for another recipe). The same scene at another path (the folder or the scene moved, a
+    symbolic link repointed) is that scene when its images and cameras are those the variants were trained on."""
     config_path = root / "bench-config.json"
     previous = read_json(config_path, "bench config") if config_path.exists() else None
     if data is None:
-        data = Path(previous["data"]) if listing and previous and "data" in previous else root / "scene"
-    config = bench_config(data, views, rec)
+        data = root / previous["data"] if listing and previous and "data" in previous else root / "scene"
+    config = bench_config(data, views, rec, root)
     if previous is not None and previous != config:
         changed = next(k for k in config if previous.get(k) != config[k])
-        raise BoostNerfError(f"{root} holds a bench made with another {changed} ({config_path}): "
-                             "use a new --workspace, or delete it to start over")
+        if changed != "data" or {**previous, "data": ""} != {**config, "data": ""}:
+            raise BoostNerfError(f"{root} holds a bench made with another {changed} ({config_path}): "
+                                 "use a new --workspace, or delete it to start over")
+        _check_moved_scene(root, Path(data), rec, root / previous["data"])
     return config
+
+
+def _check_moved_scene(root: Path, data: Path, rec: Recipe, was: Path) -> None:
+    """Refuse a scene at a new path whose images or cameras differ from those the bench's variants were trained on
+    (their manifests' scene digest); the variants repoint themselves when they next run (pretrain's `moved`)."""
+    digests = {read_json(m, "workspace manifest").get("scene_digest") for m in (root / "variants").glob("*/manifest.json")}
+    digests.discard(None)
+    if not digests:
+        return  # nothing trained on the old one
+    from boostnerf_cli.scenes import load_scene
+    from boostnerf_cli.stages.common import scene_digest
+
+    scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
+                       format=rec.data.format, bbox=rec.data.bbox)
+    if scene_digest(scene) not in digests:
+        raise BoostNerfError(f"the scene at {data} is not the one the bench in {root} was made with, at {was} (its "
+                             "images or cameras differ): use a new --workspace, or delete it to start over")
 
 
 def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] | None, device: str,
@@ -352,7 +373,7 @@ def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] 
         raise BoostNerfError(f"--data {data} does not exist")
     config = check_config(root, data, views, rec)
     config_path = root / "bench-config.json"
-    if not config_path.exists():
+    if not config_path.exists() or read_json(config_path, "bench config") != config:  # new, or its scene moved
         write_json(config_path, config)
     bench = Bench(root, Path(data), setups, device, views, log)
     for i, row in enumerate(chosen, 1):

@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
 import time
 from pathlib import Path
 from typing import Callable
@@ -37,7 +36,13 @@ from boostnerf_cli.recipe import (
     shaping_changes,
     unused_family_note,
 )
-from boostnerf_cli.render.coverage import cover_foreground, foreground_masks, foreground_tol, hull_cells
+from boostnerf_cli.render.coverage import (
+    ALPHA_FOREGROUND,
+    cover_foreground,
+    foreground_masks,
+    foreground_tol,
+    hull_cells,
+)
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
@@ -45,7 +50,7 @@ from boostnerf_cli.scenes.bounds import box_text
 from boostnerf_cli.stages.common import scene_digest, slow_notice
 from boostnerf_cli.tasks import FieldTask, train_rays
 from boostnerf_cli.train import Schedule, first_difference, train
-from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
+from boostnerf_cli.workspace import Workspace, read_json, read_meta, recorded_path, write_json
 
 
 def growth_schedule(iters: int, fractions: list[float]) -> tuple[int, ...]:
@@ -294,12 +299,8 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
 
 
 def scene_inputs(data: Path, rec: Recipe, root: Path) -> dict:
-    """What identifies the scene a workspace is trained on (recorded in the manifest). The path is relative to the
-    workspace `root` for a scene inside it (the generated default scene: it travels with a moved or copied
-    workspace), else absolute, through any symbolic link as given (so repointing the link relocates the scene)."""
-    here, ws = data.resolve(), root.resolve()
-    path = os.path.relpath(here, ws) if here.is_relative_to(ws) else os.path.abspath(data)
-    inputs = {"path": path, "image_size": rec.data.image_size,
+    """What identifies the scene a workspace is trained on (recorded in the manifest; the path: `recorded_path`)."""
+    inputs = {"path": recorded_path(data, root), "image_size": rec.data.image_size,
               "holdout_every": rec.data.holdout_every, "format": rec.data.format}
     if rec.data.bbox is not None:  # named only when set: workspaces made before the key keep their scene id
         inputs["bbox"] = list(rec.data.bbox)
@@ -339,7 +340,7 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
     scene, tag, box, geom, prior, todo = dist.main_first(
         lambda: _prepare(ws, data, rec, device, force, dist.main_log(log)))
     if not rec.pretrain.skip:
-        dist.main_log(log)("--no-skip: experts train on the whole scene box without an occupancy mask (colour is still "
+        dist.main_log(log)("pretrain.skip is off (--no-skip): experts train on the whole scene box without an occupancy mask (colour is still "
                            "computed only where a sample's rendering weight exceeds train.color_threshold)")
     with dist.together():
         for res in assign(todo, dist.world_size())[dist.rank()]:
@@ -370,7 +371,7 @@ def check_foreground(scene: Scene, data: Path) -> None:
     colour = ", ".join(f"{c:g}" for c in scene.background)
     raise BoostNerfError(
         f"the {len(train_split)} training views of {data} show nothing but the background: no pixel differs from "
-        f"its colour ({colour}) by more than {tol}" + (" nor has an alpha above it" if train_split.alpha is not None else "")
+        f"its colour ({colour}) by more than {tol}" + (f" nor has an alpha above {ALPHA_FOREGROUND}" if train_split.alpha is not None else "")
         + "; check that the images hold the scene (an all-"
         "transparent alpha channel, a wrong folder)"
     )
@@ -385,17 +386,23 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     """
     main = dist.is_main()
     check_recipe(rec, "setting")  # the recipe was checked when read; flags may have changed it since
+    previous = ws.manifest().get("data")
+    if data is None and previous:  # a rerun without --data: the workspace's own scene, wherever it is
+        data = ws.root / previous["path"]
+        if not data.exists():
+            raise BoostNerfError(f"the workspace's scene {data} is gone: restore it, or if it moved, say where to with "
+                                 "--data NEW_PLACE (the same images and cameras: nothing is retrained)")
     generate = data is None and not (ws.root / "scene" / "transforms_train.json").exists()
     data = ws.root / "scene" if data is None else data
     inputs = scene_inputs(Path(data), rec, ws.root)
-    previous = ws.manifest().get("data")
     # the same inputs at another path: the workspace or its scene was moved, if the images and cameras are the same
     moved = (bool(previous) and previous != inputs and {**previous, "path": ""} == {**inputs, "path": ""}
              and Path(data).exists())  # not a default scene to generate: that is another scene, refused first
+    was = str(ws.root / previous["path"]) if previous else ""  # as given: absolute, or relative to the workspace
     if previous and previous != inputs and not moved:  # checked before a default scene is generated: nothing written if refused
         if not force:
             raise BoostNerfError(
-                f"workspace {ws.root} was made for another scene, image size or box ({previous['path']}, "
+                f"workspace {ws.root} was made for another scene, image size or box ({was}, "
                 f"image_size={previous['image_size']}"
                 + (f", data.bbox={previous['bbox']}" if "bbox" in previous else "")
                 + "): use a new --workspace, or --force to retrain everything"
@@ -418,7 +425,7 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     recorded = m.get("scene_digest")
     if recorded and recorded != digest and not force:
         raise BoostNerfError(
-            (f"the scene at {data} is not the one this workspace was trained on, at {previous['path']} (its images "
+            (f"the scene at {data} is not the one this workspace was trained on, at {was} (its images "
              "or cameras differ)" if moved else
              f"the scene at {data} changed since this workspace was trained on it (its images or cameras differ)")
             + ": restore it, use a new --workspace, or --force to retrain everything"
@@ -432,9 +439,9 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     if main:
         ws.update_manifest(data=inputs, scene_id=tag, scene_digest=digest, scene=scene.describe(),
                            recipe=recipe_dict(rec))
-    if moved and tag == m.get("scene_id"):
-        log(f"note: the workspace's scene is now {inputs['path']} (it was {previous['path']}; the same images and "
-            "cameras): nothing is retrained for the move")
+    if moved and tag == m.get("scene_id") and Path(was).resolve() != Path(data).resolve():  # not just re-recorded
+        log(f"note: the workspace's scene is now {data} (it was {was}; the same images and cameras): nothing is "
+            "retrained for the move")
     if "detected" in scene.extra:
         log(f"format: {scene.extra['detected']}")
     for warning in scene.extra.get("warnings", []):

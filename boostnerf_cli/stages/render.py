@@ -187,6 +187,8 @@ def gate_by_detail(probs: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple
     if detail.size < 2:
         return np.full(probs.shape[-1], np.nan), np.full(probs.shape[-1], np.nan)
     high = detail > np.median(detail)
+    if not high.any():  # every pixel as detailed as the median (a flat colour): no halves, both the mean
+        return p.mean(0), p.mean(0)
     return p[high].mean(0), p[~high].mean(0)
 
 
