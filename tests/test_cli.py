@@ -218,6 +218,17 @@ def test_a_moved_scene_or_workspace_is_followed_not_retrained(trained_ws, tmp_pa
     other = make_scene(tmp_path / "other", size=32, n_train=12, n_test=3, seed=1)  # another scene: still refused
     assert_clean_failure(run_cli("pretrain", "--workspace", str(moved), "--data", str(other), "--device", "cpu"),
                          "is not the one this workspace was trained on", "--force")
+    # a demo workspace made before this: its generated scene recorded absolute, at the place it was moved from
+    old = tmp_path / "old-demo"
+    shutil.copytree(trained_ws, old, ignore=shutil.ignore_patterns("reports", "renders"))
+    shutil.copytree(tiny_scene, old / "scene")
+    manifest = json.loads((old / "manifest.json").read_text())
+    manifest["data"]["path"] = str(tmp_path / "before-the-move" / "scene")
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    run_cli("eval", "--workspace", str(old), "--no-costs", "--views", "1", "--device", "cpu", check=True)
+    proc = run_cli("pretrain", "--workspace", str(old), "--device", "cpu", check=True)
+    assert "dvgo-16: already trained, skipping" in proc.stderr
+    assert json.loads((old / "manifest.json").read_text())["data"]["path"] == "scene"
 
 
 def test_a_rerun_of_pretrain_keeps_the_recorded_recipe_and_names_it_when_it_is_damaged(trained_ws, tmp_path):

@@ -90,8 +90,10 @@ def test_manifest_that_is_a_folder_and_a_lock_that_is_a_folder(tmp_path, trained
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws)
     (ws / ".lock").mkdir()
-    proc = run_cli("eval", "--workspace", str(ws), "--device", "cpu")
+    proc = run_cli("eval", "--workspace", str(ws), "--report", "--device", "cpu")
     assert_clean_failure(proc, "cannot take the writer lock", ".lock (Is a directory)")
+    proc = run_cli("eval", "--workspace", str(ws), "--device", "cpu")  # a reader (no --report)
+    assert_clean_failure(proc, "cannot open the workspace lock", ".lock (Is a directory)", "remove it")
     (ws / ".lock").rmdir()
     (ws / "manifest.json").unlink()
     (ws / "manifest.json").mkdir()

@@ -32,6 +32,8 @@ def workspace_scene(ws: Workspace) -> Scene:
     if not data:
         raise BoostNerfError(f"{ws.manifest_path} records no scene: rerun `boostnerf pretrain --workspace {ws.root}`")
     path = ws.root / data["path"]  # relative: inside the workspace (the generated scene); else absolute
+    if not path.exists() and (ws.root / "scene").is_dir():  # the generated scene of a workspace moved since it was
+        path = ws.root / "scene"  # recorded absolute (before session 27): the digest below says if it is the one
     if not path.exists():
         raise BoostNerfError(
             f"the workspace's scene {path} is gone: restore it, or if it moved, say where to once with `boostnerf "

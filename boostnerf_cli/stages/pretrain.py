@@ -340,8 +340,9 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
     scene, tag, box, geom, prior, todo = dist.main_first(
         lambda: _prepare(ws, data, rec, device, force, dist.main_log(log)))
     if not rec.pretrain.skip:
-        dist.main_log(log)("pretrain.skip is off (--no-skip): experts train on the whole scene box without an occupancy mask (colour is still "
-                           "computed only where a sample's rendering weight exceeds train.color_threshold)")
+        dist.main_log(log)("pretrain.skip is off (--no-skip): experts train on the whole scene box without an "
+                           "occupancy mask (colour is still computed only where a sample's rendering weight exceeds "
+                           "train.color_threshold)")
     with dist.together():
         for res in assign(todo, dist.world_size())[dist.rank()]:
             report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, tag, log, force)
@@ -371,7 +372,8 @@ def check_foreground(scene: Scene, data: Path) -> None:
     colour = ", ".join(f"{c:g}" for c in scene.background)
     raise BoostNerfError(
         f"the {len(train_split)} training views of {data} show nothing but the background: no pixel differs from "
-        f"its colour ({colour}) by more than {tol}" + (f" nor has an alpha above {ALPHA_FOREGROUND}" if train_split.alpha is not None else "")
+        f"its colour ({colour}) by more than {tol}"
+        + (f" nor has an alpha above {ALPHA_FOREGROUND}" if train_split.alpha is not None else "")
         + "; check that the images hold the scene (an all-"
         "transparent alpha channel, a wrong folder)"
     )
@@ -389,6 +391,8 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     previous = ws.manifest().get("data")
     if data is None and previous:  # a rerun without --data: the workspace's own scene, wherever it is
         data = ws.root / previous["path"]
+        if not data.exists() and (ws.root / "scene").is_dir():  # a generated scene recorded absolute, then moved
+            data = ws.root / "scene"
         if not data.exists():
             raise BoostNerfError(f"the workspace's scene {data} is gone: restore it, or if it moved, say where to with "
                                  "--data NEW_PLACE (the same images and cameras: nothing is retrained)")
@@ -399,7 +403,7 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     moved = (bool(previous) and previous != inputs and {**previous, "path": ""} == {**inputs, "path": ""}
              and Path(data).exists())  # not a default scene to generate: that is another scene, refused first
     was = str(ws.root / previous["path"]) if previous else ""  # as given: absolute, or relative to the workspace
-    if previous and previous != inputs and not moved:  # checked before a default scene is generated: nothing written if refused
+    if previous and previous != inputs and not moved:  # before a default scene is generated: nothing written if refused
         if not force:
             raise BoostNerfError(
                 f"workspace {ws.root} was made for another scene, image size or box ({was}, "
