@@ -57,12 +57,14 @@ def test_the_psnr_references_fail_broken_models(trained_ws):
     assert evaluate_model(model, scene, test, "cpu", None)["psnr"] < floor
 
 
-def test_pretrain_skips_finished_experts(trained_ws, tiny_scene, tiny_recipe):
-    before = (trained_ws / "experts" / "dvgo-12.safetensors").stat().st_mtime_ns
+def test_pretrain_skips_finished_experts(trained_ws, tiny_scene, tiny_recipe, tmp_path):
+    ws = tmp_path / "ws"  # a copy: a rerun records its recipe (--res 12), which later copies of trained_ws would reuse
+    shutil.copytree(trained_ws, ws)
+    before = (ws / "experts" / "dvgo-12.safetensors").stat().st_mtime_ns
     proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace",
-                   str(trained_ws), "--device", "cpu", "--res", "12", check=True)
+                   str(ws), "--device", "cpu", "--res", "12", check=True)
     assert "already trained" in proc.stderr
-    assert (trained_ws / "experts" / "dvgo-12.safetensors").stat().st_mtime_ns == before
+    assert (ws / "experts" / "dvgo-12.safetensors").stat().st_mtime_ns == before
 
 
 def test_a_finished_expert_is_not_skipped_under_other_training_settings(tmp_path, tiny_scene, tiny_recipe):
@@ -182,7 +184,7 @@ def test_pretrain_without_data_reruns_on_the_workspace_s_own_scene_and_never_gen
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
     proc = run_cli("pretrain", "--workspace", str(ws), "--recipe", str(tiny_recipe), "--device", "cpu", check=True)
-    assert "dvgo-16: already trained, skipping" in proc.stderr and "generating" not in proc.stderr
+    assert "already trained, skipping" in proc.stderr and "] step " not in proc.stderr and "generating" not in proc.stderr
     manifest = json.loads((ws / "manifest.json").read_text())
     assert manifest["data"]["path"] == str(tiny_scene)
     manifest["data"]["path"] = str(tmp_path / "gone")
@@ -227,7 +229,7 @@ def test_a_moved_scene_or_workspace_is_followed_not_retrained(trained_ws, tmp_pa
     (old / "manifest.json").write_text(json.dumps(manifest))
     run_cli("eval", "--workspace", str(old), "--no-costs", "--views", "1", "--device", "cpu", check=True)
     proc = run_cli("pretrain", "--workspace", str(old), "--device", "cpu", check=True)
-    assert "dvgo-16: already trained, skipping" in proc.stderr
+    assert "already trained, skipping" in proc.stderr and "] step " not in proc.stderr  # nothing retrained
     assert json.loads((old / "manifest.json").read_text())["data"]["path"] == "scene"
 
 
