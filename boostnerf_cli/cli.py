@@ -376,7 +376,8 @@ def bench(
     from boostnerf_cli.stages import bench as stage
     from boostnerf_cli.stages.common import resolve_device
 
-    rec = load_recipe(recipe)
+    rec = stage.folder_recipe(workspace) if recipe is None else None  # a rerun: the bench's own recipe
+    rec = rec or load_recipe(recipe)
     names = [n for n in only.replace(" ", "").split(",") if n] if only else None
     if list_rows:
         _, rows = stage.catalogue(rec, suite)

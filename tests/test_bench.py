@@ -213,6 +213,11 @@ def test_a_moved_bench_folder_or_scene_keeps_its_finished_rows(quick_bench, tiny
                    "--device", "cpu")
     assert_clean_failure(proc, "is not the one the bench", str(scene))
     assert bench.bench_config(root / "scene", None, Recipe(), root)["data"] == "scene"
+    # no --recipe: the bench's own recipe, as a workspace's later stages take its recorded one (it was the default
+    # recipe, whose suite has other rows: "no row or group 'dvgo-12' in the quick suite")
+    proc = run_cli("bench", "--data", str(scene), "--workspace", str(root), "--only", "dvgo-12", "--device", "cpu",
+                   check=True)
+    assert "finished, skipping" in proc.stderr
 
 
 def test_bench_config_of_a_recipe_with_per_resolution_options_reads_back_equal(tmp_path):

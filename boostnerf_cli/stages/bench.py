@@ -43,7 +43,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import CONFIGS
 from boostnerf_cli.models import Skips
 from boostnerf_cli.moe.router import PENALTIES
-from boostnerf_cli.recipe import Recipe, recipe_dict
+from boostnerf_cli.recipe import Recipe, recipe_dict, recipe_from_dict
 from boostnerf_cli.workspace import Workspace, atomic_path, read_json, recorded_path, write_json
 
 SUITES = ("quick", "full")
@@ -318,6 +318,19 @@ def bench_config(data: Path, views: int | None, rec: Recipe, root: Path) -> dict
     per-resolution mapping (`hidden: {64: 64, ...}`, int keys) compares equal to its stored copy. The scene's path
     as a workspace records it (`recorded_path`: the generated scene inside the folder travels with it)."""
     return json.loads(json.dumps({"data": recorded_path(Path(data), root), "views": views, "recipe": recipe_dict(rec)}))
+
+
+def folder_recipe(root: Path) -> Recipe | None:
+    """The recipe a bench folder was made with (its bench-config.json), for a rerun given no --recipe, as a
+    workspace's recorded recipe serves its later stages; None for a new folder."""
+    config_path = root / "bench-config.json"
+    if not config_path.exists():
+        return None
+    try:
+        return recipe_from_dict(read_json(config_path, "bench config")["recipe"])
+    except (BoostNerfError, KeyError, TypeError) as e:
+        raise BoostNerfError(f"the recipe recorded in {config_path} does not load ({e}): give --recipe FILE, or "
+                             "delete the folder to start over") from None
 
 
 def check_config(root: Path, data: Path | None, views: int | None, rec: Recipe, listing: bool = False) -> dict:
