@@ -156,7 +156,7 @@ def pretrain(
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.workspace import number
 
-    rec = _moe_recipe(workspace, recipe).override({  # a rerun (a moved scene, one more expert) keeps the recipe
+    rec = _recipe(workspace, recipe).override({  # a rerun (a moved scene, one more expert) keeps the recipe
         "pretrain.model": model, "pretrain.res": _int_list(res, "--res") if res is not None else None,
         "pretrain.iters": iters, "pretrain.seed": seed, "pretrain.skip": skip,
         "data.image_size": image_size, "data.holdout_every": holdout_every, "data.format": data_format})
@@ -172,20 +172,15 @@ def pretrain(
     show(table)
 
 
-def _moe_recipe(workspace: Path, recipe: Optional[Path]):
+def _recipe(workspace: Path, recipe: Optional[Path]):
     """The recipe given, else the one recorded by pretrain in the workspace, else defaults (every stage's)."""
-    from boostnerf_cli.recipe import Recipe, load_recipe, recipe_from_dict
+    from boostnerf_cli.recipe import Recipe, load_recipe, recorded_recipe
     from boostnerf_cli.workspace import Workspace
 
     if recipe is not None:
         return load_recipe(recipe)
     ws = Workspace(workspace)
-    recorded = ws.manifest().get("recipe")
-    try:
-        return recipe_from_dict(recorded) if recorded else Recipe()
-    except BoostNerfError as e:  # a hand-edited manifest, or one written by another boostnerf
-        raise BoostNerfError(f"the recipe recorded in {ws.manifest_path}: {e}; or give --recipe FILE to use another "
-                             "recipe") from None
+    return recorded_recipe(ws.manifest().get("recipe"), ws.manifest_path) or Recipe()
 
 
 @app.command("build-moe")
@@ -203,7 +198,7 @@ def build_moe(
     from boostnerf_cli.stages import build_moe as stage
     from boostnerf_cli.stages.common import resolve_device
 
-    rec = _moe_recipe(workspace, recipe).override({"moe.gate_res": gate_res, "moe.gate_type": gate_type,
+    rec = _recipe(workspace, recipe).override({"moe.gate_res": gate_res, "moe.gate_type": gate_type,
                                                    "moe.gate_grid": gate_grid, "moe.density_threshold": threshold})
     names = [n for n in experts.split(",") if n] if experts else None
     ws, lock = _writer(workspace)
@@ -234,7 +229,7 @@ def finetune(
     from boostnerf_cli.stages.common import resolve_device
 
     name = stage.model_name(topk, ensemble, baseline)
-    rec = _moe_recipe(workspace, recipe).override({"moe.iters": iters, "moe.lam": lam, "moe.penalty": penalty,
+    rec = _recipe(workspace, recipe).override({"moe.iters": iters, "moe.lam": lam, "moe.penalty": penalty,
                                                    "moe.renormalize": renormalize, "moe.seed": seed,
                                                    "moe.wide_start": wide_start, "moe.gate_noise": gate_noise})
     given = {flag: value for flag, value in (("--lambda", lam), ("--penalty", penalty), ("--renormalize", renormalize),
@@ -376,8 +371,7 @@ def bench(
     from boostnerf_cli.stages import bench as stage
     from boostnerf_cli.stages.common import resolve_device
 
-    rec = stage.folder_recipe(workspace) if recipe is None else None  # a rerun: the bench's own recipe
-    rec = rec or load_recipe(recipe)
+    rec = (stage.folder_recipe(workspace) if recipe is None else None) or load_recipe(recipe)  # a rerun: its own
     names = [n for n in only.replace(" ", "").split(",") if n] if only else None
     if list_rows:
         _, rows = stage.catalogue(rec, suite)

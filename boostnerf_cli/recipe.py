@@ -391,3 +391,16 @@ def recipe_dict(recipe: Recipe) -> dict:
 def recipe_from_dict(data: dict) -> Recipe:
     """A recipe recorded in a workspace manifest (validated like a YAML file)."""
     return check_recipe(_build(Recipe, data, ""), "workspace manifest's recipe key")
+
+
+def recorded_recipe(data: dict | None, where: Path) -> Recipe | None:
+    """The recipe recorded in file `where` (a workspace's manifest, a bench folder's config), for a command given no
+    --recipe; None when it records none. One line naming the file when it no longer loads (hand-edited, or written by
+    another boostnerf)."""
+    if not data:
+        return None
+    try:
+        return recipe_from_dict(data)
+    except BoostNerfError as e:
+        raise BoostNerfError(f"the recipe recorded in {where} does not load ({e}): give --recipe FILE to use another "
+                             "recipe") from None

@@ -43,7 +43,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import CONFIGS
 from boostnerf_cli.models import Skips
 from boostnerf_cli.moe.router import PENALTIES
-from boostnerf_cli.recipe import Recipe, recipe_dict, recipe_from_dict
+from boostnerf_cli.recipe import Recipe, recipe_dict, recorded_recipe
 from boostnerf_cli.workspace import Workspace, atomic_path, read_json, recorded_path, write_json
 
 SUITES = ("quick", "full")
@@ -326,11 +326,7 @@ def folder_recipe(root: Path) -> Recipe | None:
     config_path = root / "bench-config.json"
     if not config_path.exists():
         return None
-    try:
-        return recipe_from_dict(read_json(config_path, "bench config")["recipe"])
-    except (BoostNerfError, KeyError, TypeError) as e:
-        raise BoostNerfError(f"the recipe recorded in {config_path} does not load ({e}): give --recipe FILE, or "
-                             "delete the folder to start over") from None
+    return recorded_recipe(read_json(config_path, "bench config").get("recipe"), config_path)
 
 
 def check_config(root: Path, data: Path | None, views: int | None, rec: Recipe, listing: bool = False) -> dict:

@@ -100,6 +100,7 @@ def markdown_table(result: dict) -> str:
             f"| {r['name']} | {number(r['psnr'], '.3f')} | {number(r['ssim'], '.4f')} | {number(r['lpips'], '.4f')} | {r['params']:,} | "
             f"{number(r.get('w0'), ',')} | {number(r.get('gflops_per_image'), '.3f')} | {r['seconds_per_image']:.3f} |"
         )
-    lines += [""] * bool(result.get("lpips_note") or result.get("ssim_note"))
-    lines += [result[k] for k in ("ssim_note", "lpips_note") if result.get(k)]
+    notes = [result[k] for k in ("ssim_note", "lpips_note") if result.get(k)]
+    if notes:
+        lines += ["", *notes]
     return "\n".join(lines) + "\n"

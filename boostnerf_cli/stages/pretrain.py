@@ -388,7 +388,8 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     """
     main = dist.is_main()
     check_recipe(rec, "setting")  # the recipe was checked when read; flags may have changed it since
-    previous = ws.manifest().get("data")
+    m = ws.manifest()  # read once: nothing below writes it before update_manifest
+    previous = m.get("data")
     if data is None and previous:  # a rerun without --data: the workspace's own scene, wherever it is
         data = ws.root / previous["path"]
         if not data.exists() and (ws.root / "scene").is_dir():  # a generated scene recorded absolute, then moved
@@ -425,7 +426,6 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
         log(note)
     check_foreground(scene, data)
     digest = scene_digest(scene)
-    m = ws.manifest()
     recorded = m.get("scene_digest")
     if recorded and recorded != digest and not force:
         raise BoostNerfError(
