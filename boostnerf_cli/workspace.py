@@ -464,6 +464,11 @@ class Workspace:
                 locked = True
             except BlockingIOError:
                 locked = False
+            except OSError as e:  # a file system without locks (some network mounts), as the writer's lock says
+                os.close(fd)
+                raise BoostNerfError(f"cannot take the reader lock {path} ({e.strerror or type(e).__name__}): the "
+                                     "workspace's file system must support flock; move the workspace to a local "
+                                     "disk") from None
             try:
                 same = os.fstat(fd).st_ino == os.stat(path).st_ino
             except FileNotFoundError:

@@ -96,6 +96,15 @@ def test_readers_share_a_workspace_and_a_read_only_one_can_be_evaluated(trained_
         assert not (ws / ".lock").exists()
     with pytest.raises(BoostNerfError, match="cannot take the writer lock"), Workspace(ws).lock():
         pass
+    monkeypatch.undo()
+
+    def no_locks(fd, op):  # a file system without flock (some network mounts): one line, not a traceback
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(wsmod.fcntl, "flock", no_locks)
+    with pytest.raises(BoostNerfError, match="cannot take the reader lock .*No locks available"), Workspace(ws).reading():
+        pass
+    assert not (ws / ".lock").exists() or (ws / ".lock").read_text() == ""
 
 
 def test_lock_of_a_killed_process_is_stale_and_taken_over(tmp_path):
