@@ -244,9 +244,31 @@ def first_difference(saved: dict, wanted: dict) -> str | None:
     return next((key for key in sorted(set(saved) | set(wanted)) if saved.get(key) != wanted.get(key)), None)
 
 
-def _check_signature(path: Path, saved: dict | None, wanted: dict | None) -> None:
+# Signature entries for the training settings that shape a model (`train`, finetune's `lam`): a checkpoint names
+# them when they differ from the defaults, since session 23. A checkpoint without a PSNR trend (written before
+# session 24) may come from a boostnerf that did not record them at all: their absence there says nothing.
+LATE_SETTINGS = ("train", "lam")
+
+
+def unrecorded_settings(state: dict, wanted: dict | None) -> list[str]:
+    """The settings of `wanted` that the checkpoint `state`, written by an earlier boostnerf, may not have recorded."""
+    saved = state.get("signature")
+    if saved is None or wanted is None or state.get("trend") is not None:
+        return []
+    return [key for key in LATE_SETTINGS if key in wanted and key not in saved]
+
+
+def _difference(saved: dict | None, wanted: dict | None, unrecorded: list[str]) -> str | None:
+    """The first setting in which a checkpoint's signature differs from this run's, leaving out the settings it
+    could not record (`unrecorded_settings`); None when they agree or either is missing."""
+    if saved is None or wanted is None:
+        return None
+    return first_difference({**saved, **{key: wanted[key] for key in unrecorded}}, wanted)
+
+
+def _check_signature(path: Path, saved: dict | None, wanted: dict | None, unrecorded: list[str]) -> None:
     """Refuse to resume a checkpoint written with settings that change what is being trained."""
-    if saved is None or wanted is None or (key := first_difference(saved, wanted)) is None:
+    if (key := _difference(saved, wanted, unrecorded)) is None:
         return
     raise BoostNerfError(
         f"training checkpoint {path} was written with other settings ({setting_change(key, saved.get(key), wanted.get(key))}): "
@@ -311,6 +333,7 @@ def train(
     trend = PsnrTrend()
     opt: torch.optim.Optimizer | None = None
     state = None
+    unrecorded: list[str] = []
     if checkpoint is not None and checkpoint.exists():
         try:
             state = torch.load(checkpoint, map_location="cpu", weights_only=True)
@@ -319,11 +342,12 @@ def train(
         if not isinstance(state, dict):
             raise BoostNerfError(f"training checkpoint {checkpoint} is not a boostnerf training state; "
                                  "delete it to restart this model")
-        if restart_other and state.get("signature") != signature:
-            state = None  # --force: a checkpoint of other settings is dropped (overwritten at the next checkpoint)
+        unrecorded = unrecorded_settings(state, signature)
+        if restart_other and _difference(state.get("signature"), signature, unrecorded) is not None:
+            state, unrecorded = None, []  # --force: a checkpoint of other settings is dropped (overwritten later)
     if state is not None:
         try:
-            _check_signature(checkpoint, state.get("signature"), signature)
+            _check_signature(checkpoint, state.get("signature"), signature, unrecorded)
             task.load_state(state["task"])
             opt = make_optimizer(task)
             opt.load_state_dict(state["optim"])
@@ -340,6 +364,9 @@ def train(
     progress = Progress(title, sched.iters, start, sched.log_every, quiet=parallel and not dist.is_main())
     if start > 0:
         progress.warn(f"resuming from {checkpoint} at step {start}/{sched.iters}")
+    if unrecorded:
+        progress.warn(f"note: {checkpoint} comes from an earlier boostnerf, which did not record "
+                      f"{' or '.join(SETTING_NAMES.get(k, k) for k in unrecorded)}; resuming with this run's")
     bad_run = 0
     t0 = time.perf_counter() - elapsed
     try:
