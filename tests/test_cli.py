@@ -228,6 +228,10 @@ def test_a_moved_scene_or_workspace_is_followed_not_retrained(trained_ws, tmp_pa
     manifest["data"]["path"] = str(tmp_path / "before-the-move" / "scene")
     (old / "manifest.json").write_text(json.dumps(manifest))
     run_cli("eval", "--workspace", str(old), "--no-costs", "--views", "1", "--device", "cpu", check=True)
+    # probe T (session 28): a new workspace made since at the old place holds another scene there; the renamed one
+    # followed the stale path into it ("changed since pretrain: retrain ... --data OTHER --force")
+    make_scene(tmp_path / "before-the-move" / "scene", size=32, n_train=12, n_test=3, seed=1)
+    run_cli("eval", "--workspace", str(old), "--no-costs", "--views", "1", "--device", "cpu", check=True)
     proc = run_cli("pretrain", "--workspace", str(old), "--device", "cpu", check=True)
     assert "already trained, skipping" in proc.stderr and "] step " not in proc.stderr  # nothing retrained
     assert json.loads((old / "manifest.json").read_text())["data"]["path"] == "scene"

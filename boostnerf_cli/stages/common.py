@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import threading
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Callable, Iterator
 
 import torch
@@ -25,21 +26,50 @@ def resolve_device(name: str) -> str:
     return name
 
 
+def _load_recorded(path, data: dict) -> Scene:
+    return load_scene(path, image_size=data.get("image_size"), holdout_every=data.get("holdout_every", 8),
+                      format=data.get("format", "auto"), bbox=data.get("bbox"))
+
+
+def _locate_scene(ws: Workspace, m: dict) -> tuple[Path, Scene | None]:
+    """Where a workspace's scene is: its recorded path, or its own `scene` folder (the generated one) when the path
+    is recorded absolute, exists as that folder's copy, and holds the recorded images and cameras (a workspace
+    made before session 27 recorded its generated scene absolute: a renamed or copied one must read its own scene,
+    not what now sits at the old place). -> (path, the scene when already loaded to tell)."""
+    data = m["data"]
+    recorded, own = ws.root / data["path"], ws.root / "scene"
+    if not own.is_dir() or own.resolve() == recorded.resolve():
+        own = None
+    if not recorded.exists() and own is not None:
+        return own, None  # the digest, checked by the caller, says if it is the one
+    if not recorded.exists():
+        raise BoostNerfError(
+            f"the workspace's scene {recorded} is gone: restore it, or if it moved, say where to once with `boostnerf "
+            f"pretrain --workspace {ws.root} --data NEW_PLACE` (the same images and cameras: nothing is retrained)")
+    if own is not None and m.get("scene_digest"):
+        try:
+            scene = _load_recorded(own, data)
+        except BoostNerfError:
+            return recorded, None
+        if scene_digest(scene) == m["scene_digest"]:
+            return own, scene
+    return recorded, None
+
+
+def workspace_scene_path(ws: Workspace, m: dict) -> Path:
+    """The path of the scene the workspace `m` (its manifest) records (`_locate_scene`); its content unchecked."""
+    return _locate_scene(ws, m)[0]
+
+
 def workspace_scene(ws: Workspace) -> Scene:
     """Reload the scene a workspace was trained on, exactly as `pretrain` loaded it."""
     m = ws.require_manifest()
     data = m.get("data")
     if not data:
         raise BoostNerfError(f"{ws.manifest_path} records no scene: rerun `boostnerf pretrain --workspace {ws.root}`")
-    path = ws.root / data["path"]  # relative: inside the workspace (the generated scene); else absolute
-    if not path.exists() and (ws.root / "scene").is_dir():  # the generated scene of a workspace moved since it was
-        path = ws.root / "scene"  # recorded absolute (before session 27): the digest below says if it is the one
-    if not path.exists():
-        raise BoostNerfError(
-            f"the workspace's scene {path} is gone: restore it, or if it moved, say where to once with `boostnerf "
-            f"pretrain --workspace {ws.root} --data NEW_PLACE` (the same images and cameras: nothing is retrained)")
-    scene = load_scene(path, image_size=data.get("image_size"), holdout_every=data.get("holdout_every", 8),
-                       format=data.get("format", "auto"), bbox=data.get("bbox"))
+    path, scene = _locate_scene(ws, m)
+    if scene is None:
+        scene = _load_recorded(path, data)
     if m.get("scene_digest") and scene_digest(scene) != m["scene_digest"]:
         raise BoostNerfError(
             f"the workspace's scene {path} changed since pretrain (its images or cameras differ): restore it, "

@@ -47,7 +47,7 @@ from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.scenes.bounds import box_text
-from boostnerf_cli.stages.common import scene_digest, slow_notice
+from boostnerf_cli.stages.common import scene_digest, slow_notice, workspace_scene_path
 from boostnerf_cli.tasks import FieldTask, train_rays
 from boostnerf_cli.train import Schedule, first_difference, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, recorded_path, write_json
@@ -391,12 +391,7 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     m = ws.manifest()  # read once: nothing below writes it before update_manifest
     previous = m.get("data")
     if data is None and previous:  # a rerun without --data: the workspace's own scene, wherever it is
-        data = ws.root / previous["path"]
-        if not data.exists() and (ws.root / "scene").is_dir():  # a generated scene recorded absolute, then moved
-            data = ws.root / "scene"
-        if not data.exists():
-            raise BoostNerfError(f"the workspace's scene {data} is gone: restore it, or if it moved, say where to with "
-                                 "--data NEW_PLACE (the same images and cameras: nothing is retrained)")
+        data = workspace_scene_path(ws, m)
     generate = data is None and not (ws.root / "scene" / "transforms_train.json").exists()
     data = ws.root / "scene" if data is None else data
     inputs = scene_inputs(Path(data), rec, ws.root)
