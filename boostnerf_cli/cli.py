@@ -23,6 +23,20 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 err = Console(stderr=True, highlight=False, soft_wrap=True)
+
+
+def _version(value: bool) -> None:
+    if value:
+        from boostnerf_cli import __version__
+
+        print(f"boostnerf {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _app(version: Annotated[bool, typer.Option("--version", is_eager=True, callback=_version,
+                                               help="Print boostnerf's version and exit.")] = False) -> None:
+    """Boost Your NeRF: train Fast-NeRF experts, mix them with a gate, render and measure."""
 out = Console(highlight=False)
 
 
@@ -402,20 +416,56 @@ class Interrupted(BaseException):
     """Ctrl-C or SIGTERM. A BaseException like KeyboardInterrupt (no `except Exception` swallows it),
     but not one, because Typer turns KeyboardInterrupt into a silent exit."""
 
+    def __init__(self, signum: int | None = None):
+        super().__init__()
+        self.signum = signum
+
+
+INTERRUPTED = ("interrupted: finished files are kept; rerun the same command to go on (a model in training resumes "
+               "from its last checkpoint, if it had written one)")
+
 
 def _interrupt(signum, frame) -> None:
-    raise Interrupted()
+    raise Interrupted(signum)
 
 
-def _during_interrupt(e: BaseException) -> bool:
-    """True when an interrupt (Ctrl-C, SIGTERM) is among the exceptions `e` was raised while handling."""
+def _interrupt_at_start(signum, frame) -> None:
+    """An interrupt before the heavy imports are done (nothing written yet): the line, and the end at once. Raised
+    inside numpy's or torch's import it left them half imported (an ImportError traceback), or was lost (exit 0)."""
+    err.print(INTERRUPTED, markup=False)
+    _die_by(signum)
+
+
+def _die_by(signum: int) -> None:
+    """End by the signal received, as the shell expects of an interrupted command (status 128 + N): a script or a
+    loop running boostnerf stops at a Ctrl-C too, where a plain exit 130 let it run the next command."""
+    import os
+    import signal
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    signal.signal(signum, signal.SIG_DFL)
+    os.kill(os.getpid(), signum)
+    sys.exit(128 + signum)  # where a signal cannot end the process
+
+
+def _usage_error(e) -> str:
+    """A command-line mistake Click found (an unknown option, a value of the wrong type, a missing option), as the
+    one line every other refusal is (Typer drew a multi-line box around it, wrapped mid-word on a narrow terminal)."""
+    message = " ".join(e.format_message().split())
+    ctx = getattr(e, "ctx", None)
+    return f"{message} (see `{ctx.command_path} --help`)" if ctx is not None else message
+
+
+def _during_interrupt(e: BaseException) -> BaseException | None:
+    """The interrupt (Ctrl-C, SIGTERM) among the exceptions `e` was raised while handling, if any."""
     seen = set()
     while e is not None and id(e) not in seen:
         if isinstance(e, (Interrupted, KeyboardInterrupt)):
-            return True
+            return e
         seen.add(id(e))
         e = e.__cause__ or e.__context__
-    return False
+    return None
 
 
 PATH_OPTIONS = ("-w", "--workspace", "--data", "--recipe", "--video")  # the options that take a path
@@ -424,8 +474,13 @@ PATH_OPTIONS = ("-w", "--workspace", "--data", "--recipe", "--video")  # the opt
 def main() -> None:
     import signal
 
-    signal.signal(signal.SIGINT, _interrupt)
-    signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        from typer._click import exceptions as click  # Typer vendors Click (0.29: a Click of its own)
+    except ImportError:  # an older Typer: Click itself
+        from click import exceptions as click
+
+    signal.signal(signal.SIGINT, _interrupt_at_start)
+    signal.signal(signal.SIGTERM, _interrupt_at_start)
     args = sys.argv[1:]
     empty = next((i for i, a in enumerate(args) if a == "" or (a.startswith("--") and a.endswith("="))), None)
     if empty is not None:  # an unset shell variable: `-w ""` would mean the current folder
@@ -436,20 +491,31 @@ def main() -> None:
         err.print(f"error: {what} (an unset shell variable?): give it a value"
                   + (", or '.' for the current folder" if folder else ""), markup=False)
         sys.exit(2)
+    if args and not {"--help", "--version"} & set(args):
+        import torch  # noqa: F401  the seconds of importing it, under the handler that ends at once
+    signal.signal(signal.SIGINT, _interrupt)
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         try:
-            app()
+            code = app(standalone_mode=False)
         except Exception as e:  # an interrupt that unwound through cleanup which failed in turn (a torch.save's writer)
-            if _during_interrupt(e):
-                raise Interrupted() from None
+            if (interrupt := _during_interrupt(e)) is not None:
+                raise Interrupted(getattr(interrupt, "signum", None)) from None
             raise
     except BoostNerfError as e:
         err.print(f"error: {e}", markup=False)
         sys.exit(e.exit_code)
-    except (Interrupted, KeyboardInterrupt):  # the stage's cleanup (lock, temporary files) has run
-        err.print("interrupted: finished files are kept; rerun the same command to go on (a model in training "
-                  "resumes from its last checkpoint, if it had written one)", markup=False)
-        sys.exit(130)
+    except click.NoArgsIsHelpError as e:  # `boostnerf` alone: its help
+        from typer import rich_utils
+
+        rich_utils.rich_format_error(e)
+        sys.exit(e.exit_code)
+    except click.ClickException as e:
+        err.print(f"error: {_usage_error(e)}", markup=False)
+        sys.exit(e.exit_code)
+    except (Interrupted, KeyboardInterrupt) as e:  # the stage's cleanup (lock, temporary files) has run
+        err.print(INTERRUPTED, markup=False)
+        _die_by(getattr(e, "signum", None) or signal.SIGINT)
     except (NotADirectoryError, IsADirectoryError, FileExistsError, PermissionError) as e:
         if e.filename is None:  # a path in the workspace or scene is in the way: the user's to move
             raise
@@ -464,3 +530,4 @@ def main() -> None:
                   "moe.gate_res, moe.vd_res) or train.batch_rays, or use a device with more memory; finished files "
                   "are kept", markup=False)
         sys.exit(3)
+    sys.exit(code if isinstance(code, int) else 0)  # --help and --version give 0, as a finished command does

@@ -5,7 +5,7 @@ import shutil
 
 import pytest
 import torch
-from conftest import PSNR_MARGIN, TINY_PSNR, assert_clean_failure, make_recipe, no_temp_files, run_cli
+from conftest import PSNR_MARGIN, TINY_PSNR, assert_clean_failure, cli_in_process, make_recipe, no_temp_files, run_cli
 from helpers import write_lpips_weights
 from safetensors import safe_open
 
@@ -481,3 +481,29 @@ def test_log_lines_print_brackets_as_written(capsys):
     text = "on detailed pixels [0.34, 0.66], [nan, nan], [dvgo-8] and ws[x]/scene [bold]"
     log(text)
     assert capsys.readouterr().err.strip() == text
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["finetune", "-w", "ws", "--topk=x"], "'--topk'"),
+    (["eval", "--wokspace", "ws"], "--wokspace"),
+    (["eval"], "'--workspace'"),
+    (["render", "-w", "ws", "--views", "0"], "'--views'"),
+], ids=["type", "unknown", "missing", "range"])
+def test_a_command_line_mistake_is_one_error_line(monkeypatch, capsys, args, needle):
+    """Probe U (session 28): Click's own refusals (a value of the wrong type, an unknown or missing option) were a
+    box of 6+ lines around `Usage:`, the message wrapped mid-word on a narrow terminal, with no `error:` line to grep
+    for; every other refusal is one line."""
+    code, err = cli_in_process(monkeypatch, capsys, *args)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], err
+    assert lines[0].endswith(f"{args[0]} --help`)"), err  # where to read what is accepted
+
+
+def test_version(monkeypatch, capsys):
+    from boostnerf_cli import __version__
+    from boostnerf_cli.cli import main
+
+    monkeypatch.setattr("sys.argv", ["boostnerf", "--version"])
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    assert exit_info.value.code == 0 and capsys.readouterr().out == f"boostnerf {__version__}\n"

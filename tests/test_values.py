@@ -412,7 +412,7 @@ def test_out_of_memory_is_one_line_naming_the_settings(monkeypatch, capsys, fail
     gate_res 3000 raised the first before grid resolutions were capped) reaches the user as one line, exit 3."""
     from boostnerf_cli import cli
 
-    def stage():
+    def stage(**kwargs):
         raise failure
 
     monkeypatch.setattr(cli, "app", stage)
@@ -427,7 +427,7 @@ def test_out_of_memory_is_one_line_naming_the_settings(monkeypatch, capsys, fail
 def test_a_runtime_error_that_is_not_memory_keeps_its_traceback(monkeypatch):
     from boostnerf_cli import cli
 
-    def stage():
+    def stage(**kwargs):
         raise RuntimeError("mat1 and mat2 shapes cannot be multiplied")
 
     monkeypatch.setattr(cli, "app", stage)
