@@ -21,6 +21,7 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # Click's plain help: it wraps at any width; Rich's boxes cut words and option names
 )
 err = Console(stderr=True, highlight=False, soft_wrap=True)
 
@@ -42,7 +43,10 @@ out = Console(highlight=False)
 
 def show(table: Table) -> None:
     """Print `table` on stdout: fitted to a terminal, and as wide as its cells in a file or pipe (Rich lays out
-    80 columns there and cuts what does not fit)."""
+    80 columns there and cuts what does not fit). On a narrow terminal a cell folds onto more lines: Rich's default
+    cut its end ("11.…" for a PSNR, "top1-pru…" for a model)."""
+    for column in table.columns:
+        column.overflow = "fold"
     if out.is_terminal:
         out.print(table)
         return
@@ -506,9 +510,7 @@ def main() -> None:
         err.print(f"error: {e}", markup=False)
         sys.exit(e.exit_code)
     except click.NoArgsIsHelpError as e:  # `boostnerf` alone: its help
-        from typer import rich_utils
-
-        rich_utils.rich_format_error(e)
+        e.show()
         sys.exit(e.exit_code)
     except click.ClickException as e:
         err.print(f"error: {_usage_error(e)}", markup=False)

@@ -157,11 +157,19 @@ class Progress:
         self.title, self.total, self.log_every, self.quiet = title, total, log_every, quiet
         self.bar = None
         if sys.stderr.isatty() and not quiet:
+            from rich.console import Console
             from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
             from rich.progress import Progress as RichProgress
+            from rich.table import Column
 
-            self.bar = RichProgress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                    TimeElapsedColumn(), TextColumn("{task.fields[info]}"), transient=False)
+            # on stderr, where the plain log lines go (stdout is for results), and laid out so that the title, step
+            # and time always show: the logged values take what is left, cut at its end (at 80 columns they took
+            # the whole line and the bar, the step and the time were gone)
+            self.bar = RichProgress(TextColumn("{task.description}", table_column=Column(no_wrap=True)),
+                                    BarColumn(bar_width=16), MofNCompleteColumn(), TimeElapsedColumn(),
+                                    TextColumn("{task.fields[info]}",
+                                               table_column=Column(no_wrap=True, overflow="ellipsis", ratio=1)),
+                                    console=Console(stderr=True), expand=True, transient=False)
             self.bar.start()
             self.task = self.bar.add_task(title, total=total, completed=start, info="")
 

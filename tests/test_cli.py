@@ -507,3 +507,22 @@ def test_version(monkeypatch, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main()
     assert exit_info.value.code == 0 and capsys.readouterr().out == f"boostnerf {__version__}\n"
+
+
+def test_a_result_table_on_a_narrow_terminal_folds_its_cells_and_cuts_no_digit(monkeypatch):
+    """Probe U (session 28): at 60 columns eval's table showed a PSNR as `11.…` and a GFLOPs figure as `0.01…`."""
+    import io
+
+    from rich.table import Table
+
+    from boostnerf_cli import cli
+
+    table = Table("model", "PSNR", "SSIM", "LPIPS", "params", "w0", "GFLOPs/image", "s/image")
+    table.add_row("top1-pruned", "11.873", "0.4567", "0.1234", "1,234,567", "15,234", "0.0123", "0.456")
+    monkeypatch.setattr(cli, "out", cli.Console(file=io.StringIO(), width=40, force_terminal=True, color_system=None))
+    cli.show(table)
+    text = "".join(c for c in cli.out.file.getvalue() if c.isalnum() or c in ".,-")
+    assert "…" not in cli.out.file.getvalue()
+    for cell in ("11.873", "0.0123", "1,234,567", "15,234"):  # each digit is there, in order, across folded lines
+        it = iter(text)
+        assert all(ch in it for ch in cell), cell

@@ -1,5 +1,7 @@
 """The training loop: resume from a checkpoint equals an uninterrupted run; the NaN guard."""
 
+import sys
+
 import pytest
 import torch
 
@@ -305,3 +307,26 @@ def test_the_ray_table_is_every_view_s_box_hitting_rays_in_order(tiny_scene, tmp
         assert torch.equal(table.rgb, split.images.reshape(-1, 3)[hit])
         if split.alpha is not None:
             assert torch.equal(table.alpha, split.alpha.reshape(-1)[hit])
+
+
+def test_the_progress_bar_is_drawn_on_stderr_with_its_step_at_80_columns(monkeypatch):
+    """Probe U (session 28): on a terminal the bar went to stdout (a `> results.txt` caught it, the terminal showed
+    nothing), and at 80 columns the logged values took the whole line: no bar, step or time were left."""
+    import io
+
+    from boostnerf_cli.train import Progress
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    progress = Progress("top1", 2000, 0, 10)
+    try:
+        console = progress.bar.console
+        assert console.stderr
+        console.file, console.width = io.StringIO(), 80  # what an 80-column terminal shows
+        progress.update(1234, {"loss": 0.1292, "psnr": 8.888, "aux": 1.234, "load0": 0.5321, "load1": 0.2895,
+                               "load2": 0.1785, "samples": 16.21, "colored": 9.5})
+        with console.capture() as captured:
+            console.print(progress.bar.make_tasks_table(progress.bar.tasks))
+        line = captured.get().rstrip("\n")
+    finally:
+        progress.close()
+    assert line.startswith("top1 ") and "1234/2000" in line and "0:00:" in line and "loss=0.1292" in line, line
