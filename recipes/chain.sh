@@ -33,6 +33,12 @@ if [ ! -f "$RECIPE" ]; then
   echo "chain: recipe $RECIPE not found; recipes here: $(cd "$HERE" && ls ./*.yaml | sed 's|^\./||; s|\.yaml$||' | tr '\n' ' ')" >&2
   exit 2
 fi
+for m in $MODELS; do  # before any stage: a typo found after an hour of pretraining costs the hour's attention
+  case "$m" in
+    baseline|ens|top[1-9]|top[1-9][0-9]) ;;
+    *) echo "chain: unknown model $m in MODELS (use baseline, topK, ens)" >&2; exit 2 ;;
+  esac
+done
 DATA_ARGS=()
 [ "$DATA" = "-" ] || DATA_ARGS=(--data "$DATA")
 
@@ -40,7 +46,7 @@ stage() {  # stage NAME COMMAND...: run one stage, name it when it fails
   echo "== chain: $1" >&2
   shift
   if ! "$@"; then
-    echo "chain: stage failed: $*" >&2
+    echo "chain: stage failed: $(printf '%q ' "$@")" >&2  # quoted: pasted back, it reruns the stage
     exit 1
   fi
 }
@@ -51,8 +57,7 @@ for m in $MODELS; do
   case "$m" in
     baseline) flag=(--baseline) ;;
     ens) flag=(--ensemble) ;;
-    top[0-9]*) flag=(--topk "${m#top}") ;;
-    *) echo "chain: unknown model $m in MODELS (use baseline, topK, ens)" >&2; exit 2 ;;
+    *) flag=(--topk "${m#top}") ;;  # topK, checked above
   esac
   stage "finetune $m" boostnerf finetune --workspace "$WS" --recipe "$RECIPE" "${flag[@]}" --device "$DEVICE"
 done
