@@ -234,9 +234,13 @@ def _check_finished(ws: Workspace, rec: PretrainRecipe, scene_tag: str, force: b
         if force or not path.exists() or not ws.expert_report_path(name).exists():
             continue
         stored = read_meta(path).get("signature")
-        if stored is None:  # an expert saved before its signature was stored: skipped as before
-            continue
-        now = expert_signature(rec, res, scene_tag, stored.get("geometry"))
+        if stored is None:  # saved by a boostnerf that stored no signature: the settings its report names
+            report = read_json(ws.expert_report_path(name), "expert report")
+            named = {"model": ("model", rec.model), "iters": ("iterations", rec.iters), "skip": ("skip", rec.skip)}
+            stored = {key: report[field] for key, (field, _) in named.items() if field in report}
+            now = {key: value for key, (field, value) in named.items() if field in report}
+        else:
+            now = expert_signature(rec, res, scene_tag, stored.get("geometry"))
         if (key := first_difference(stored, now)) is not None:
             raise BoostNerfError(
                 f"{name} was trained with other settings ({key}: {stored.get(key)!r}, now {now.get(key)!r}): "
