@@ -527,9 +527,12 @@ def main() -> None:
     except (MemoryError, RuntimeError) as e:  # RuntimeError: torch's allocators (OutOfMemoryError is one)
         if not out_of_memory(e):
             raise
+        import textwrap
+
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        err.print(f"error: out of memory ({first[:160]}): lower the recipe's grid resolutions (pretrain.res, "
-                  "moe.gate_res, moe.vd_res) or train.batch_rays, or use a device with more memory; finished files "
-                  "are kept", markup=False)
+        err.print(f"error: out of memory ({textwrap.shorten(first, 160, placeholder=' ...')}): lower the recipe's "
+                  "sizes: grid resolutions (pretrain.res, moe.gate_res, moe.vd_res, moe.bake_res), network widths "
+                  "(hidden, moe.gate_channels), batch_rays (train, geometry) or a small train.step_ratio, or use a "
+                  "device with more memory; finished files are kept", markup=False)
         sys.exit(3)
     sys.exit(code if isinstance(code, int) else 0)  # --help and --version give 0, as a finished command does

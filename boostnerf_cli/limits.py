@@ -101,6 +101,19 @@ LOSS_WEIGHT = Range(0, MAX_LOSS_WEIGHT)
 # channel are 4 GiB, and every grid holds several channels, so a larger value can only fail for lack of memory
 MAX_GRID_RES = 1024
 GRID_RES = Range(1, MAX_GRID_RES)
+# learning rates: Adam moves a parameter by about lr per step; past 10 (100x the grids' default) a grid's values leave
+# the range its activations use in the first steps and the model trains to noise with a finite loss (1e30: exit 0)
+LEARNING_RATE = Range(0, 10, lo_open=True)
+# network sizes: past these a model can only run out of memory (a million layers ended in a MemoryError inside
+# Python's own error hook), or, for encoding frequencies, overflow float32: sin(2^k pi x) is inf for k > 127
+MLP_WIDTH = Range(1, 4096)
+MLP_LAYERS = Range(0, 16)
+PE_FREQS = Range(0, 16)
+# the render step in voxels of the final grid: at 1e-6 a ray took millions of samples (out of memory), at 1e6 every
+# sample but the first fell past the box (a blank model, exit 0); DVGO's is 0.5
+STEP_RATIO = Range(0.05, 4)
+# a scene box coordinate in world units: the box's diagonal in float32 overflowed at 1e30 (a traceback)
+BBOX_COORD = Range(-1e6, 1e6)
 
 
 def limit(default: Any = dataclasses.MISSING, rule: Range | OneOf | None = None, *, factory: Any = dataclasses.MISSING,

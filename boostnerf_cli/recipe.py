@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 import typing
 from dataclasses import dataclass, field, fields
@@ -19,12 +20,16 @@ import yaml
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import CONFIGS, FAMILIES
 from boostnerf_cli.limits import (
+    BBOX_COORD,
     GRID_RES,
+    LEARNING_RATE,
     LOSS_WEIGHT,
     MAX_GRID_RES,
+    MLP_LAYERS,
+    MLP_WIDTH,
     NON_NEGATIVE,
     OPEN_UNIT,
-    POSITIVE,
+    STEP_RATIO,
     THRESHOLD,
     OneOf,
     Range,
@@ -48,7 +53,7 @@ class DataRecipe:
     format: str = limit("auto", OneOf(("auto", *FORMATS)))  # the dataset layout (docs/datasets.md); auto: told by the files the folder holds
     # the scene box [xmin, ymin, zmin, xmax, ymax, zmax] in world units, instead of the one the loader gives (bbox.txt,
     # or the region most cameras see): for content that reaches past it (docs/datasets.md, "The scene box")
-    bbox: list[float] | None = limit(None, Range())
+    bbox: list[float] | None = limit(None, BBOX_COORD)
 
 
 @dataclass
@@ -58,7 +63,7 @@ class GeometryRecipe:
     res: int = limit(32, GRID_RES)  # the coarse grid has about res^3 voxels over the scene box
     iters: int = limit(600, at_least(1))  # training steps of the coarse grid
     batch_rays: int = limit(1024, at_least(1))  # rays per step
-    lr: float = limit(0.1, POSITIVE)  # learning rate of the coarse density grid
+    lr: float = limit(0.1, LEARNING_RATE)  # learning rate of the coarse density grid
     alpha_init: float = limit(1e-4, OPEN_UNIT)  # opacity over one voxel of the coarse grid before training
     alpha_threshold: float = limit(1e-3, THRESHOLD)  # per coarse step: cells below it are empty
     weight_entropy: float = limit(0.1, LOSS_WEIGHT)  # pushes ray opacity to 0 or 1: clears floaters against the background
@@ -70,10 +75,10 @@ class GeometryRecipe:
 @dataclass
 class TrainRecipe:
     batch_rays: int = limit(4096, at_least(1))  # rays per step
-    lr_grid: float = limit(0.1, POSITIVE)  # learning rate of the grids (hash tables, VM factors)
-    lr_mlp: float = limit(1e-3, POSITIVE)  # learning rate of the MLPs
+    lr_grid: float = limit(0.1, LEARNING_RATE)  # learning rate of the grids (hash tables, VM factors)
+    lr_mlp: float = limit(1e-3, LEARNING_RATE)  # learning rate of the MLPs
     lr_decay: float = limit(0.1, Range(0, 1, lo_open=True))  # learning rates fall to this fraction at the last step
-    step_ratio: float = limit(0.5, POSITIVE)  # sampling step in voxels of the final grid (pretrain only: finetuning samples at the experts' step, moe.step_from)
+    step_ratio: float = limit(0.5, STEP_RATIO)  # sampling step in voxels of the final grid (pretrain only: finetuning samples at the experts' step, moe.step_from)
     color_threshold: float = limit(1e-4, THRESHOLD)  # samples with a smaller weight skip the colour MLP
     weight_rgbper: float = limit(0.01, LOSS_WEIGHT)  # weight of the per-sample colour loss (each sample's colour against the pixel, by its rendering weight; DVGO's rgbper)
     weight_entropy: float = limit(1e-3, LOSS_WEIGHT)  # weight of the ray-opacity entropy loss, which pushes each ray to fully opaque or empty
@@ -148,9 +153,9 @@ class MoERecipe:
     gate_type: str = limit("grid", OneOf(TRAINABLE_GATES))  # grid: softmax(MLP(grid features)) (paper); linear: softmax of a linear map of them (the paper's ablation); switch: an MLP on encoded positions, no grid (Switch-NeRF)
     gate_grid: str = limit("auto", OneOf(("auto", *GATE_GRIDS)))  # dense | tensorf | hash | auto (the experts' family: dvgo dense, tensorf VM, ngp hash)
     gate_res: int = limit(32, Range(2, MAX_GRID_RES))  # the gate grid has gate_res^3 voxels (128 in the paper)
-    gate_channels: int = limit(8, at_least(1))  # features per vertex of the gate's grid
-    gate_hidden: int = limit(64, at_least(1))  # width of the gate's MLP
-    gate_layers: int = limit(2, NON_NEGATIVE)  # hidden layers of the gate's MLP (0: a linear map to the M logits)
+    gate_channels: int = limit(8, Range(1, 512))  # features per vertex of the gate's grid
+    gate_hidden: int = limit(64, MLP_WIDTH)  # width of the gate's MLP
+    gate_layers: int = limit(2, MLP_LAYERS)  # hidden layers of the gate's MLP (0: a linear map to the M logits)
     gate_init: str = limit("random", OneOf(("random", "expert")))  # the gate's dense feature grid: random, or expert: the smallest (dvgo) expert's feature grid, copied (same lattice) or resampled trilinearly, gate_channels then = its channels (the official code's)
     gate_from: str = ""  # with gate_init expert: the expert whose feature grid the gate copies, by name, in the mixture or not (the official code copies a 128^3 model it leaves out of the mixture); empty: the mixture's smallest expert
     vd_res: int | None = limit(None, GRID_RES)  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
@@ -169,8 +174,8 @@ class MoERecipe:
     gate_noise: float = limit(0.0, Range(0.0, 10.0))  # noisy top-k: training chooses experts by log p + gate_noise * N(0, 1) (Shazeer et al. 2017), so a Top-1 gate sees other experts too; rendering never adds it (not in the paper; docs/paper-map.md)
     bake_res: int = limit(128, Range(0, MAX_GRID_RES))  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
     iters: int = limit(1000, at_least(1))  # joint training steps of each mixture, the ensemble and the baseline
-    lr_gate: float = limit(1e-2, POSITIVE)  # learning rate of the gate's grid
-    lr_gate_mlp: float = limit(1e-3, POSITIVE)  # learning rate of the gate's MLP
+    lr_gate: float = limit(1e-2, LEARNING_RATE)  # learning rate of the gate's grid
+    lr_gate_mlp: float = limit(1e-3, LEARNING_RATE)  # learning rate of the gate's MLP
     seed: int = limit(0, SEED)  # the gate's initialisation (build-moe) and the finetuning batches
     train: TrainRecipe = field(default_factory=_finetune_train)
 
@@ -314,10 +319,19 @@ def _is_int_key(key: Any) -> bool:
     return True
 
 
+def nearest_listed(mapping: dict[int, Any], res: int) -> int:
+    """The resolution whose value a per-expert mapping gives the expert at `res`: `res` itself when listed, else the
+    nearest listed one (the larger on a tie)."""
+    return res if res in mapping else min(mapping, key=lambda r: (abs(r - res), -r))
+
+
 def _family_value(section: dict, key: str, res: int, default: Any) -> Any:
+    """The value of family option `key` for the expert at `res`, as pretrain takes it (`nearest_listed`): a check
+    that looked up `res` alone passed a mapping whose nearest value then failed mid-run."""
     value = section.get(key, default)
     if isinstance(value, dict):
-        value = {int(k): v for k, v in value.items()}.get(res, default)
+        value = {int(k): v for k, v in value.items()}
+        value = value[nearest_listed(value, res)] if value else default
     return value
 
 
@@ -358,6 +372,28 @@ def _check_unused(recipe: Recipe) -> None:
                                  f"finetuning): remove it (pretrain.train.{key} sets it for the experts)")
 
 
+class _RecipeLoader(yaml.SafeLoader):
+    """YAML's safe loader, with two of its surprises taken out of recipes: a key given twice in one section (the
+    last silently won, and a second `pretrain:` block threw the whole first one away) is refused, and a number
+    written `1e-2` or `1.0e3` is a float (YAML 1.1 reads it as text, which was refused as "must be float")."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise ValueError(f"key {key!r} is given twice (lines {seen[key] + 1} and {key_node.start_mark.line + 1}): "
+                                 "keep one")
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
+
+
+_RecipeLoader.add_implicit_resolver(  # YAML 1.2's floats: 1e-2, 1E5, -1.5e3 (1.1 wants a dot and a signed exponent)
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."))
+
+
 def load_recipe(path: Path | None) -> Recipe:
     """Parse and validate a YAML recipe (None -> built-in defaults)."""
     if path is None:
@@ -374,8 +410,8 @@ def load_recipe(path: Path | None) -> Recipe:
     except OSError as e:
         raise BoostNerfError(f"cannot read recipe {path} ({e.strerror or type(e).__name__})") from None
     try:
-        data = yaml.safe_load(text) or {}
-    except (yaml.YAMLError, ValueError) as e:  # ValueError: an integer of more than 4300 digits
+        data = yaml.load(text, Loader=_RecipeLoader) or {}  # noqa: S506 (a safe loader)
+    except (yaml.YAMLError, ValueError) as e:  # ValueError: an integer of more than 4300 digits, a key given twice
         raise BoostNerfError(f"recipe {path} is not valid YAML: {str(e).splitlines()[0]}") from None
     recipe = check_recipe(_build(Recipe, data, ""))
     _check_unused(recipe)

@@ -332,6 +332,9 @@ def train(
     checkpoint does not depend on the number of ranks (docs/distributed.md).
     """
     parallel = data_parallel and dist.world_size() > 1
+    if len(rays) == 0:  # torch.randint over no rays raised "random_ expects 'from' to be less than 'to'"
+        raise BoostNerfError(f"{title}: no training ray crosses the box this model is trained in: if the recipe sets "
+                             "data.bbox, it must hold what the cameras see")
     if parallel and sched.batch_rays % dist.world_size():
         raise BoostNerfError(f"train.batch_rays ({sched.batch_rays}) must be divisible by the number of processes "
                              f"({dist.world_size()}) to split every batch evenly: change one of them")

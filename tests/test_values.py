@@ -69,11 +69,12 @@ BAD: dict[str, st.SearchStrategy] = {
     "pretrain.geometry.alpha_threshold": OUTSIDE_THRESHOLD,
     "pretrain.geometry.weight_entropy": NEGATIVE,
     "pretrain.train.batch_rays": INT_BELOW(1),
-    "pretrain.train.lr_grid": NOT_POSITIVE,
+    "pretrain.train.lr_grid": st.one_of(NOT_POSITIVE, st.floats(min_value=10.0, exclude_min=True)),  # Adam's step
     "pretrain.train.lr_mlp": NOT_POSITIVE,
     "pretrain.train.lr_decay": st.one_of(st.floats(max_value=0.0, allow_nan=False),
                                          st.floats(min_value=1.0, exclude_min=True, allow_nan=False), st.just(math.nan)),
-    "pretrain.train.step_ratio": NOT_POSITIVE,
+    "pretrain.train.step_ratio": st.one_of(NOT_POSITIVE, st.floats(0, 0.05, exclude_max=True), st.floats(min_value=4.0,
+                                           exclude_min=True)),  # samples per ray: out of memory, or past the box
     "pretrain.train.color_threshold": OUTSIDE_THRESHOLD,
     "pretrain.train.occupancy_threshold": OUTSIDE_THRESHOLD,
     "pretrain.train.weight_rgbper": NEGATIVE,
@@ -83,7 +84,8 @@ BAD: dict[str, st.SearchStrategy] = {
     "pretrain.dvgo.alpha_init": OUTSIDE_OPEN_UNIT,
     "pretrain.dvgo.feat_dim": INT_BELOW(1),
     "pretrain.dvgo.hidden": INT_BELOW(0),
-    "pretrain.dvgo.view_pe": INT_BELOW(0),
+    "pretrain.dvgo.view_pe": st.one_of(INT_BELOW(0), st.integers(min_value=17)),  # sin(2^k pi x): inf past k = 127
+    "pretrain.dvgo.layers": st.one_of(INT_BELOW(0), st.integers(min_value=17)),
     "pretrain.tensorf.alpha_init": OUTSIDE_OPEN_UNIT,
     "pretrain.tensorf.density_rank": INT_BELOW(1),
     "pretrain.tensorf.l1_weight": NEGATIVE,
@@ -235,6 +237,43 @@ def test_known_values_from_the_issue(tmp_path):
         with pytest.raises(BoostNerfError) as e:
             load_recipe(path)
         assert expected in str(e.value) and "\n" not in str(e.value), (text, str(e.value))
+
+
+def test_probe_s_values_accepted_before_that_crashed_or_trained_garbage(tmp_path, tiny_scene):
+    """Probe S (session 28): values the recipe accepted that crashed mid-run with a traceback (alpha_init 1e-300, a
+    per-resolution ngp mapping checked at the listed resolution only, a box no camera sees), trained a blank or noisy
+    model with exit 0 (step_ratio 1e6, lr 1e30) or failed after minutes (view_pe 200, a million layers); and YAML's
+    surprises: a key given twice (the last won silently, a second `pretrain:` block dropped the first) and 1e-2 read
+    as text."""
+    from conftest import assert_clean_failure, make_recipe, run_cli
+
+    from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+
+    cases = {
+        "pretrain:\n  dvgo: {view_pe: 200}\n": "pretrain.dvgo.view_pe = 200: must be in [0, 16]",
+        "pretrain:\n  dvgo: {layers: 1000000}\n": "pretrain.dvgo.layers = 1000000: must be in [0, 16]",
+        "pretrain:\n  train: {step_ratio: 1.0e+6}\n": "pretrain.train.step_ratio = 1000000.0: must be in [0.05, 4]",
+        "pretrain:\n  train: {lr_grid: 1.0e+30}\n": "pretrain.train.lr_grid = 1e+30: must be in (0, 10]",
+        "moe:\n  gate_channels: 10000000\n": "moe.gate_channels = 10000000: must be in [1, 512]",
+        "data:\n  bbox: [-1.0e+30, -1, -1, 1, 1, 1]\n": "data.bbox = -1e+30: must be in [-1e+06, 1e+06]",
+        "pretrain:\n  model: ngp\n  res: [4]\n  ngp: {max_res: {6: 8}}\n":
+            "pretrain.ngp.max_res = 8: must be >= base_res (16) (expert ngp-4)",
+        "pretrain:\n  iters: 50\n  res: [12]\n  iters: 5000\n": "key 'iters' is given twice (lines 2 and 4): keep one",
+        "pretrain:\n  iters: 50\nmoe:\n  iters: 9\npretrain:\n  res: [12]\n": "key 'pretrain' is given twice",
+    }
+    for text, expected in cases.items():
+        (tmp_path / "r.yaml").write_text(text)
+        with pytest.raises(BoostNerfError) as e:
+            load_recipe(tmp_path / "r.yaml")
+        assert expected in str(e.value) and "\n" not in str(e.value), (text, str(e.value))
+    (tmp_path / "r.yaml").write_text("pretrain:\n  train: {lr_grid: 1e-2, lr_mlp: 1.0e-3, lr_decay: 5E-1}\n")
+    train = load_recipe(tmp_path / "r.yaml").pretrain.train
+    assert (train.lr_grid, train.lr_mlp, train.lr_decay) == (0.01, 1e-3, 0.5)  # read as numbers (YAML 1.1: text)
+    expert = DVGOExpert(DVGOConfig(res=4, alpha_init=1e-300), torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    assert math.isfinite(expert.shift) and expert.shift < -600  # log(1e-300): math domain error before
+    far = make_recipe(tmp_path / "far.yaml", data={"image_size": 16, "bbox": [100, 100, 100, 101, 101, 101]})
+    assert_clean_failure(run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(far), "-w", str(tmp_path / "ws"),
+                                 "--device", "cpu"), "no training ray crosses the box", "data.bbox")
 
 
 def test_loss_weights_that_overflow_float32_and_finetuning_keys_finetuning_ignores_are_refused(tmp_path):

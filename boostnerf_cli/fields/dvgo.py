@@ -21,7 +21,15 @@ from torch import Tensor, nn
 from boostnerf_cli.fields import grid as G
 from boostnerf_cli.fields.base import ExpertModule
 from boostnerf_cli.fields.mlp import MLP
-from boostnerf_cli.limits import GRID_RES, NON_NEGATIVE, OPEN_UNIT, at_least, limit
+from boostnerf_cli.limits import (
+    GRID_RES,
+    MLP_LAYERS,
+    MLP_WIDTH,
+    OPEN_UNIT,
+    PE_FREQS,
+    Range,
+    limit,
+)
 
 
 @dataclass
@@ -29,10 +37,10 @@ class DVGOConfig:
     """Architecture of a DVGO-style expert. `res`: the final grid has res^3 voxels."""
 
     res: int = limit(128, GRID_RES)
-    feat_dim: int = limit(12, at_least(1))  # feature channels of the colour grid (with hidden 0: 3, the colour itself)
-    hidden: int = limit(128, NON_NEGATIVE)  # width of the colour MLP; 0 = no MLP, colour = sigmoid of 3 grid channels
-    layers: int = limit(2, NON_NEGATIVE)  # hidden layers of the colour MLP
-    view_pe: int = limit(4, NON_NEGATIVE)  # frequencies of the view-direction encoding
+    feat_dim: int = limit(12, Range(1, 512))  # feature channels of the colour grid (with hidden 0: 3, the colour itself)
+    hidden: int = limit(128, Range(0, MLP_WIDTH.hi))  # width of the colour MLP; 0 = no MLP, colour = sigmoid of 3 grid channels
+    layers: int = limit(2, MLP_LAYERS)  # hidden layers of the colour MLP
+    view_pe: int = limit(4, PE_FREQS)  # frequencies of the view-direction encoding
     alpha_init: float = limit(1e-2, OPEN_UNIT)  # opacity over one voxel before training (the density's shift is log(1/(1 - a) - 1))
 
 

@@ -30,7 +30,17 @@ from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.hashgrid import MAX_COORD, HashEncoding
 from boostnerf_cli.fields.mlp import MLP
 from boostnerf_cli.fields.warmstart import fit_batch, fit_density
-from boostnerf_cli.limits import GRID_RES, NON_NEGATIVE, OPEN_UNIT, Range, at_least, limit
+from boostnerf_cli.limits import (
+    GRID_RES,
+    MLP_LAYERS,
+    MLP_WIDTH,
+    NON_NEGATIVE,
+    OPEN_UNIT,
+    PE_FREQS,
+    Range,
+    at_least,
+    limit,
+)
 
 
 @dataclass
@@ -43,11 +53,11 @@ class NGPConfig:
     base_res: int = limit(16, at_least(1))  # N_min: cells along the box's longest side at the coarsest level
     max_res: int = limit(1024, Range(1, MAX_COORD - 3))  # N_max (>= base_res): at the finest level
     grid_res: int = limit(128, GRID_RES)  # occupancy grid (and density unit) cells along the longest side
-    hidden: int = limit(64, at_least(1))  # density MLP: one hidden layer
+    hidden: int = limit(64, MLP_WIDTH)  # density MLP: one hidden layer
     geo_feat: int = limit(15, NON_NEGATIVE)  # features passed from the density MLP to the colour MLP
-    color_hidden: int = limit(64, at_least(1))  # width of the colour MLP
-    color_layers: int = limit(2, NON_NEGATIVE)  # hidden layers of the colour MLP
-    view_pe: int = limit(4, NON_NEGATIVE)  # frequencies of the view-direction encoding
+    color_hidden: int = limit(64, MLP_WIDTH)  # width of the colour MLP
+    color_layers: int = limit(2, MLP_LAYERS)  # hidden layers of the colour MLP
+    view_pe: int = limit(4, PE_FREQS)  # frequencies of the view-direction encoding
     alpha_init: float = limit(1e-4, OPEN_UNIT)  # opacity over one unit before training (where the density MLP gives 0)
     fit_steps: int = limit(200, NON_NEGATIVE)  # Adam steps of the warm start from the coarse geometry
 

@@ -25,7 +25,17 @@ from boostnerf_cli.fields.base import ExpertModule
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.vm import VMGrid
 from boostnerf_cli.fields.warmstart import fit_batch, fit_density
-from boostnerf_cli.limits import GRID_RES, LOSS_WEIGHT, NON_NEGATIVE, OPEN_UNIT, at_least, limit
+from boostnerf_cli.limits import (
+    GRID_RES,
+    LOSS_WEIGHT,
+    MLP_LAYERS,
+    MLP_WIDTH,
+    NON_NEGATIVE,
+    OPEN_UNIT,
+    PE_FREQS,
+    at_least,
+    limit,
+)
 
 
 @dataclass
@@ -36,10 +46,10 @@ class TensoRFConfig:
     density_rank: int = limit(8, at_least(1))  # components per mode (TensoRF-VM uses 16)
     app_rank: int = limit(24, at_least(1))  # components per mode (TensoRF-VM uses 48)
     app_dim: int = limit(27, at_least(1))  # appearance feature after the basis matrix
-    hidden: int = limit(128, at_least(1))  # width of the shading MLP
-    layers: int = limit(2, NON_NEGATIVE)  # hidden layers of the shading MLP
-    view_pe: int = limit(2, NON_NEGATIVE)  # frequencies of the view-direction encoding
-    feat_pe: int = limit(2, NON_NEGATIVE)  # frequencies of the appearance-feature encoding
+    hidden: int = limit(128, MLP_WIDTH)  # width of the shading MLP
+    layers: int = limit(2, MLP_LAYERS)  # hidden layers of the shading MLP
+    view_pe: int = limit(2, PE_FREQS)  # frequencies of the view-direction encoding
+    feat_pe: int = limit(2, PE_FREQS)  # frequencies of the appearance-feature encoding
     alpha_init: float = limit(1e-4, OPEN_UNIT)  # opacity over one unit where the density components are zero
     l1_weight: float = limit(8e-5, LOSS_WEIGHT)  # weight of the L1 density regularisation in the training loss
     fit_steps: int = limit(200, NON_NEGATIVE)  # Adam steps of the warm start from the coarse geometry

@@ -32,6 +32,7 @@ from boostnerf_cli.recipe import (
     Recipe,
     TrainRecipe,
     check_recipe,
+    nearest_listed,
     recipe_dict,
     shaping_changes,
     unused_family_note,
@@ -196,14 +197,10 @@ def expert_options(rec: PretrainRecipe, res: int, log: Callable[[str], None] | N
             if not value:
                 raise BoostNerfError(f"recipe key pretrain.{rec.model}.{key} is an empty mapping: give a value per "
                                      "resolution, or a single value")
-            if res not in value:
-                nearest = min(value, key=lambda r: (abs(r - res), -r))
-                if log is not None:
-                    log(f"recipe key pretrain.{rec.model}.{key} lists no value for res {res}: using {value[nearest]!r}, "
-                        f"the value for the nearest listed resolution ({nearest})")
-                res_key = nearest
-            else:
-                res_key = res
+            res_key = nearest_listed(value, res)
+            if res_key != res and log is not None:
+                log(f"recipe key pretrain.{rec.model}.{key} lists no value for res {res}: using {value[res_key]!r}, "
+                    f"the value for the nearest listed resolution ({res_key})")
             value = value[res_key]
         opts[key] = value
     return {**opts, "res": res}
