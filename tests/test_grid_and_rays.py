@@ -71,17 +71,6 @@ def test_resample_reproduces_a_linear_function():
     assert torch.allclose(out, f(verts(new_shape, inner)), atol=1e-10)
 
 
-@pytest.mark.parametrize("new_shape", [(13, 9, 22), (3, 2, 4), (4, 5, 6)])
-def test_resample_onto_the_same_box_is_the_pointwise_trilinear_blend(new_shape):
-    """The same box takes F.interpolate's separable pass (a gate's bake, a grid grown in place): its values are
-    the point-wise blend of `corners` + `lookup` at the new lattice's vertices, finer, coarser or the same."""
-    shape = (4, 5, 6)
-    box = torch.tensor([[-1.0, -0.3, -2.0], [0.7, 1.0, 1.5]], dtype=torch.float64)
-    table = torch.randn(4 * 5 * 6, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
-    idx, w = G.corners(G.lattice_points(box, new_shape), box, shape)
-    assert torch.allclose(G.resample(table, shape, box, new_shape, box), G.lookup(table, idx, w), atol=1e-12)
-
-
 def test_lattice_shape_has_about_n_voxels_and_isotropic_spacing():
     box = torch.tensor([[0.0, 0.0, 0.0], [2.0, 1.0, 1.0]])
     shape = G.lattice_shape(box, 16000)

@@ -112,16 +112,7 @@ def lattice_points(bbox: Tensor, shape: tuple[int, int, int]) -> Tensor:
 
 def resample(table: Tensor, old_shape: tuple[int, int, int], old_bbox: Tensor,
              new_shape: tuple[int, int, int], new_bbox: Tensor) -> Tensor:
-    """Trilinearly resample a grid's values onto a new lattice and box: -> (prod(new_shape), C).
-
-    Onto the same box (a grid grown in place, a gate baked on a finer lattice) trilinear interpolation is
-    separable and `F.interpolate` does it in one pass (align_corners: vertex 0 and the last on the box's
-    faces, as `corners` places them); the same values as the point-wise blend up to float rounding, several
-    times faster on CPU (a 16^3 gate onto 128^3: the gathers were most of a gate bake)."""
-    if torch.equal(old_bbox.to(table.device), new_bbox.to(table.device)):
-        grid = table.detach().T.reshape(1, table.shape[1], *old_shape)
-        out = F.interpolate(grid, size=tuple(new_shape), mode="trilinear", align_corners=True)
-        return out.reshape(table.shape[1], -1).T.contiguous()
+    """Trilinearly resample a grid's values onto a new lattice and box: -> (prod(new_shape), C)."""
     pts = lattice_points(new_bbox.to(table.device), new_shape)
     out = []
     for i in range(0, pts.shape[0], 1 << 20):

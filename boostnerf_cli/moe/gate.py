@@ -174,14 +174,8 @@ class Gate(nn.Module):
             return self
         out = Gate(GateConfig(kind="baked", res=res, channels=self.m, hidden=0, layers=0), self.m, self.bbox)
         out = out.to(self.bbox.device)  # sampled where this gate lives
-        chunks = range(0, math.prod(out.shape), 1 << 16)
-        if self.table is not None:  # a dense feature grid: its features on the lattice at once, then the MLP
-            feats = G.resample(self.table, self.shape, self.bbox, out.shape, out.bbox)
-            logits = [self.mlp(feats[i : i + (1 << 16)]) for i in chunks]
-        else:
-            pts = G.lattice_points(out.bbox, out.shape)
-            logits = [self.logits(pts[i : i + (1 << 16)]) for i in chunks]
-        out.logit_table.copy_(torch.cat(logits))
+        pts = G.lattice_points(out.bbox, out.shape)
+        out.logit_table.copy_(torch.cat([self.logits(pts[i : i + (1 << 16)]) for i in range(0, pts.shape[0], 1 << 16)]))
         return out.eval()
 
     def config_dict(self) -> dict:
