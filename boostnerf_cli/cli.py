@@ -288,12 +288,14 @@ def render(
     ws, lock = _writer(workspace)
     with lock:
         if path is not None:
-            stage.run_video(ws, model, path, frames, video, fps, resolve_device(device), skips, log)
+            written = stage.run_video(ws, model, path, frames, video, fps, resolve_device(device), skips, log)
         elif compare:
-            stage.run_compare(ws, model, split, resolve_device(device), skips, views, log)
+            written = stage.run_compare(ws, model, split, resolve_device(device), skips, views, log)
         else:
-            stage.run(ws, model, split, resolve_device(device), skips, views, log, per_expert=per_expert,
-                      exact_gate=exact_gate)
+            written = stage.run(ws, model, split, resolve_device(device), skips, views, log, per_expert=per_expert,
+                                exact_gate=exact_gate)
+    for p in written:  # stdout: the files written, one per line, for a script (the prose above is on stderr)
+        print(p)
 
 
 @app.command("eval")
@@ -320,6 +322,8 @@ def eval_cmd(
     with lock:
         result = stage.run(ws, model, split, resolve_device(device), skips, views, report, log, costs=not no_costs,
                           exact_gate=exact_gate)
+    if report:
+        log(f"wrote {ws.reports_dir / 'eval.json'} and eval.md")
     table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")
     for r in result["models"]:
         table.add_row(r["name"], number(r["psnr"], ".3f"), number(r["ssim"], ".4f"), number(r["lpips"], ".4f"),
@@ -343,6 +347,7 @@ def count_params_cmd(
     ws, lock = _writer(workspace)
     with lock:
         result = stage.run(ws, model, split, resolve_device(device), views, log)
+    log(f"wrote {ws.reports_dir / 'count-params.json'}")
     table = Table("model", "params", "||w||_0", "GFLOPs/image")
     for r in result["models"]:
         table.add_row(r["name"], f"{r['params']:,}", f"{r['w0']:,}", f"{r['gflops_per_image']:.3f}")

@@ -109,11 +109,14 @@ def test_eval_report_schema_and_render_outputs(trained_ws, tmp_path):
         assert m["lpips"] is None
     assert ALEXNET_ENV in report["lpips_note"] and missing[ALEXNET_ENV] in report["lpips_note"]
 
-    run_cli("render", "--workspace", str(trained_ws), "--model", "dvgo-16", "--views", "2", "--device", "cpu", check=True)
+    proc = run_cli("render", "--workspace", str(trained_ws), "--model", "dvgo-16", "--views", "2", "--device", "cpu",
+                   check=True)
     import imageio.v3 as iio
 
     pngs = sorted((trained_ws / "renders" / "dvgo-16" / "test").glob("*.png"))
     assert len(pngs) == 4  # 2 colour + 2 depth
+    # stdout lists the colour images written, one per line, for a script (probe U, session 28: nothing was on stdout)
+    assert sorted(proc.stdout.splitlines()) == [str(p) for p in pngs if "depth" not in p.name], proc.stdout
     rgb = iio.imread([p for p in pngs if "depth" not in p.name][0])
     depth = iio.imread([p for p in pngs if "depth" in p.name][0])
     assert rgb.shape == (32, 32, 3) and depth.dtype.name == "uint16"
