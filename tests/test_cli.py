@@ -539,3 +539,18 @@ def test_a_result_table_on_a_narrow_terminal_folds_its_cells_and_cuts_no_digit(m
     for cell in ("11.873", "0.0123", "1,234,567", "15,234"):  # each digit is there, in order, across folded lines
         it = iter(text)
         assert all(ch in it for ch in cell), cell
+
+
+def test_eval_says_when_it_renders_with_other_bounds_than_pretrain_recorded(trained_ws, tmp_path):
+    """Probe T (session 28): a workspace pretrained by an earlier boostnerf, whose near / far this one widens (so that
+    every camera's rays reach the box, session 26), evaluated up to 0.02 dB away from its reports with no word."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
+    manifest = json.loads((ws / "manifest.json").read_text())
+    near, far = manifest["scene"]["near"], manifest["scene"]["far"]
+    proc = run_cli("eval", "--workspace", str(ws), "--no-costs", "--views", "1", "--device", "cpu", check=True)
+    assert "near / far" not in proc.stderr  # the bounds it was pretrained with: nothing to say
+    manifest["scene"]["far"] = far * 0.6  # as an earlier boostnerf recorded them
+    (ws / "manifest.json").write_text(json.dumps(manifest))
+    proc = run_cli("eval", "--workspace", str(ws), "--no-costs", "--views", "1", "--device", "cpu", check=True)
+    assert f"near / far {near:.4g} / {far:.4g} here, {near:.4g} / {far * 0.6:.4g} when this workspace" in proc.stderr

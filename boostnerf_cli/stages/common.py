@@ -61,8 +61,10 @@ def workspace_scene_path(ws: Workspace, m: dict) -> Path:
     return _locate_scene(ws, m)[0]
 
 
-def workspace_scene(ws: Workspace) -> Scene:
-    """Reload the scene a workspace was trained on, exactly as `pretrain` loaded it."""
+def workspace_scene(ws: Workspace, log: Callable[[str], None] | None = None) -> Scene:
+    """Reload the scene a workspace was trained on, exactly as `pretrain` loaded it; `log` says when this boostnerf
+    renders it with other near / far bounds than the workspace's pretrain recorded (a later release widened them:
+    figures can then differ from the workspace's reports)."""
     m = ws.require_manifest()
     data = m.get("data")
     if not data:
@@ -75,6 +77,13 @@ def workspace_scene(ws: Workspace) -> Scene:
             f"the workspace's scene {path} changed since pretrain (its images or cameras differ): restore it, "
             f"or retrain with `boostnerf pretrain --workspace {ws.root} --data {path} --force`"
         )
+    was = m.get("scene") or {}
+    if log is not None and scene.ndc is None and was.get("near") is not None and (
+            abs(was["near"] - scene.near) > 1e-6 * max(1.0, abs(scene.near)) or
+            abs(was["far"] - scene.far) > 1e-6 * max(1.0, abs(scene.far))):
+        log(f"note: rays run over near / far {scene.near:.4g} / {scene.far:.4g} here, {was['near']:.4g} / "
+            f"{was['far']:.4g} when this workspace was pretrained (an earlier boostnerf): its reports' figures may "
+            "differ from these; rerun `boostnerf pretrain` on it to record the new bounds (nothing is retrained)")
     return scene
 
 

@@ -14,7 +14,7 @@ from boostnerf_cli.workspace import Workspace, write_json
 
 def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, views: int | None,
         log: Callable[[str], None]) -> dict:
-    scene = workspace_scene(ws)
+    scene = workspace_scene(ws, log)
     split = scene.split(split_name)
     names = current_models(ws, names)
     if not names:

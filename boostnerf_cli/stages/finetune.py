@@ -169,7 +169,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         _check_finished(ws, name, topk, rec, init_meta)
         log(f"{name}: already finetuned, skipping (use --force to redo it)")
         return read_json(ws.moe_dir / f"{name}.json", "finetune report")
-    scene = workspace_scene(ws)
+    scene = workspace_scene(ws, log)
     mix, meta = load_mixture(init, device)
     mix.train()
     sched = Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every, rec.train.checkpoint_every)

@@ -53,7 +53,7 @@ COMPARED = ("baseline", "top1", "top2", "ens")  # the paper's comparison models,
 
 def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
                log: Callable[[str], None], per_expert: bool = False, exact_gate: bool = False) -> list[Path]:
-    scene = workspace_scene(ws)
+    scene = workspace_scene(ws, log)
     split = scene.split(split_name)
     written = []
     for name in current_models(ws, names):
@@ -86,7 +86,7 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
         fix = f"keep one of {', '.join(names)}" if names else "add --model NAME"
         current = [n for n in all_model_names(ws) if stale_reason(ws, n) is None]  # what it can render
         raise BoostNerfError(f"--path renders one model: {fix} (models: {', '.join(current) or 'none yet'})")
-    scene = workspace_scene(ws)
+    scene = workspace_scene(ws, log)
     model = load_model(ws, current_models(ws, names)[0], device)
     target, fmt = video_target(video or ws.renders_dir(model.name) / f"{kind}.mp4")  # refused before rendering
     train = scene.split("train")
@@ -137,7 +137,7 @@ def pixel_error(rgb: np.ndarray, gt: np.ndarray) -> np.ndarray:
 def run_compare(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
                 log: Callable[[str], None]) -> list[Path]:
     """One image per view: ground truth and each model side by side, each model's error heat map below it."""
-    scene = workspace_scene(ws)
+    scene = workspace_scene(ws, log)
     split = scene.split(split_name)
     names = compared_models(ws, names)
     n = n_views(split, views)
