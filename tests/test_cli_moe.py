@@ -16,6 +16,8 @@ from conftest import (
     run_cli,
 )
 
+from boostnerf_cli.workspace import load_tensors, save_tensors
+
 
 @pytest.fixture(scope="module")
 def moe_ws(trained_ws, tmp_path_factory):
@@ -35,6 +37,14 @@ def test_a_density_volume_that_keeps_no_cell_is_refused(trained_ws, tmp_path):
     assert_clean_failure(run_cli("build-moe", "--workspace", str(ws), "--threshold", "0.99999", "--device", "cpu"),
                          "keeps no cell", "--threshold")
     assert not (ws / "moe").exists() or not list((ws / "moe").iterdir())
+    # one an earlier build-moe wrote (probe T, session 28): finetune trained it on 0 samples, exit 0
+    run_cli("build-moe", "--workspace", str(ws), "--device", "cpu", check=True)
+    tensors, meta = load_tensors(ws / "moe" / "init.safetensors")
+    tensors["occupancy"] = torch.zeros_like(tensors["occupancy"])
+    save_tensors(ws / "moe" / "init.safetensors", tensors, meta)
+    assert_clean_failure(run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--device", "cpu"),
+                         "keeps no cell", f"boostnerf build-moe --workspace {ws}")
+    assert not (ws / "moe" / "top1.safetensors").exists()
 
 
 def test_models_made_from_a_retrained_expert_are_refused_until_made_again(moe_ws, tmp_path, tiny_scene, tiny_recipe,
