@@ -554,3 +554,16 @@ def test_eval_says_when_it_renders_with_other_bounds_than_pretrain_recorded(trai
     (ws / "manifest.json").write_text(json.dumps(manifest))
     proc = run_cli("eval", "--workspace", str(ws), "--no-costs", "--views", "1", "--device", "cpu", check=True)
     assert f"near / far {near:.4g} / {far:.4g} here, {near:.4g} / {far * 0.6:.4g} when this workspace" in proc.stderr
+
+
+def test_an_experts_reported_held_out_psnr_is_what_eval_measures(tmp_path, tiny_scene):
+    """Probe S (session 28): with train.color_threshold 0.999999 pretrain's report scored the expert 14.77 dB, eval
+    12.83: the report rendered with the training threshold, eval as every model is rendered (1e-4)."""
+    recipe = make_recipe(tmp_path / "r.yaml", pretrain={"res": [10], "train": {"color_threshold": 0.3}})
+    ws = tmp_path / "ws"
+    run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "-w", str(ws), "--device", "cpu",
+            check=True)
+    reported = json.loads((ws / "experts" / "dvgo-10.json").read_text())["test_psnr"]
+    run_cli("eval", "-w", str(ws), "--no-costs", "--report", "--device", "cpu", check=True)
+    measured = json.loads((ws / "reports" / "eval.json").read_text())["models"][0]["psnr"]
+    assert reported == pytest.approx(measured, abs=2e-3)
