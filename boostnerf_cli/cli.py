@@ -500,6 +500,11 @@ def main() -> None:
         err.print(f"error: {what} (an unset shell variable?): give it a value"
                   + (", or '.' for the current folder" if folder else ""), markup=False)
         sys.exit(2)
+    glued = next((a for a in args if len(a) > 2 and a[0] == "-" and a[1] != "-" and a[2] == "="), None)
+    if glued is not None:  # Click reads `-w=ws` as -w with the value "=ws": a folder named "=ws"
+        err.print(f"error: {glued} names the folder {glued[2:]!r} (a short option takes no '='): write "
+                  f"{glued[:2]} {glued[3:]}", markup=False)
+        sys.exit(2)
     if args and not {"--help", "--version"} & set(args):
         import torch  # noqa: F401  the seconds of importing it, under the handler that ends at once
     signal.signal(signal.SIGINT, _interrupt)

@@ -512,6 +512,15 @@ def test_a_command_line_mistake_is_one_error_line(monkeypatch, capsys, args, nee
     assert lines[0].endswith(f"{args[0]} --help`)"), err  # where to read what is accepted
 
 
+def test_a_short_option_written_with_an_equals_sign_is_refused(monkeypatch, capsys, tmp_path):
+    """Probe U (session 28): `pretrain -w=wsX` made a folder named `=wsX` (Click's reading of a short option), and
+    `eval -w=ws` said `=ws is not a boostnerf workspace`."""
+    monkeypatch.chdir(tmp_path)
+    code, err = cli_in_process(monkeypatch, capsys, "eval", "-w=wsX", "--device", "cpu")
+    assert code == 2 and err.strip() == "error: -w=wsX names the folder '=wsX' (a short option takes no '='): write -w wsX"
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_version(monkeypatch, capsys):
     from boostnerf_cli import __version__
     from boostnerf_cli.cli import main
