@@ -463,7 +463,11 @@ def _usage_error(e) -> str:
     one line every other refusal is (Typer drew a multi-line box around it, wrapped mid-word on a narrow terminal)."""
     message = " ".join(e.format_message().split())
     ctx = getattr(e, "ctx", None)
-    return f"{message} (see `{ctx.command_path} --help`)" if ctx is not None else message
+    if ctx is not None:
+        return f"{message} (see `{ctx.command_path} --help`)"
+    commands = typer.main.get_command(app).list_commands(None)  # an option missing its value: Click gives no context
+    command = next((a for a in sys.argv[1:] if a in commands), None)
+    return f"{message} (see `boostnerf {command + ' ' if command else ''}--help`)"
 
 
 def _during_interrupt(e: BaseException) -> BaseException | None:
@@ -542,7 +546,7 @@ def main() -> None:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         err.print(f"error: out of memory ({textwrap.shorten(first, 160, placeholder=' ...')}): lower the recipe's "
                   "sizes: grid resolutions (pretrain.res, moe.gate_res, moe.vd_res, moe.bake_res), network widths "
-                  "(hidden, moe.gate_channels), batch_rays (train, geometry) or a small train.step_ratio, or use a "
+                  "and ranks (hidden, app_dim, app_rank, moe.gate_channels), batch_rays (train, geometry) or a small train.step_ratio, or use a "
                   "device with more memory; finished files are kept", markup=False)
         sys.exit(3)
     sys.exit(code if isinstance(code, int) else 0)  # --help and --version give 0, as a finished command does

@@ -106,7 +106,7 @@ GRID_RES = Range(1, MAX_GRID_RES)
 LEARNING_RATE = Range(0, 10, lo_open=True)
 # network sizes: past these a model can only run out of memory (a million layers ended in a MemoryError inside
 # Python's own error hook), or, for encoding frequencies, overflow float32: sin(2^k pi x) is inf for k > 127
-MLP_WIDTH = Range(1, 4096)
+MLP_WIDTH = Range(1, 4096)  # also a factorisation's ranks and feature widths (TensoRF app_dim, NGP geo_feat, F)
 MLP_LAYERS = Range(0, 16)
 PE_FREQS = Range(0, 16)
 # the render step in voxels of the final grid: at 1e-6 a ray took millions of samples (out of memory), at 1e6 every

@@ -256,7 +256,12 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
         except OverflowError:
             raise BoostNerfError(f"recipe key {where} = {value}: too large for a float") from None
     if hint in (int, float, str, bool) and not (isinstance(value, hint) and not (hint is int and isinstance(value, bool))):
-        raise BoostNerfError(f"recipe key {where} must be {hint.__name__}, got {value!r}")
+        fix = ""
+        if hint is int and isinstance(value, float) and value.is_integer() and abs(value) < 1e18:
+            fix = f" (write {int(value)})"  # `1e3` is a float in YAML 1.2
+        elif hint is str and isinstance(value, (int, float)) and not isinstance(value, bool):
+            fix = " (quote it to keep it text)"  # `name: 1e5`
+        raise BoostNerfError(f"recipe key {where} must be {hint.__name__}, got {value!r}{fix}")
     return value
 
 
@@ -301,16 +306,21 @@ def _check_family(family: str, section: dict, where: str, source: str) -> None:
             raise BoostNerfError(f"unknown {source} {where}.{_key_text(key)}{extra}: known keys here are "
                                  f"{', '.join(sorted(fields))}")
         per_res = value.items() if isinstance(value, dict) else [(None, value)]
+        listed: set[int] = set()
         for res, v in per_res:
             path = f"{where}.{key}" if res is None else f"{where}.{key}[{res}]"
             if res is not None and not _is_int_key(res):
                 raise BoostNerfError(f"{source} {where}.{key}: the keys of a per-expert mapping must be resolutions "
                                      f"(integers), got {res!r}")
+            if res is not None and int(res) in listed:  # 8 and "8" (a manifest's JSON has only the latter)
+                raise BoostNerfError(f"{source} {where}.{key} lists resolution {int(res)} twice: keep one")
+            if res is not None:
+                listed.add(int(res))
             _check_value(fields[key], _coerce(hints[key], v, path), path, source)
 
 
 def _is_int_key(key: Any) -> bool:
-    if isinstance(key, bool):
+    if isinstance(key, bool) or (isinstance(key, float) and not key.is_integer()):  # 8.5 is no resolution
         return False
     try:
         int(key)
@@ -379,10 +389,16 @@ class _RecipeLoader(yaml.SafeLoader):
 
     def construct_mapping(self, node, deep=False):
         seen: dict = {}
-        for key_node, _ in node.value:
+        for key_node, _ in node.value:  # the mapping's own keys: a merge (`<<: *anchor`) may be overridden here
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
             key = self.construct_object(key_node, deep=deep)
-            if key in seen:
-                raise ValueError(f"key {key!r} is given twice (lines {seen[key] + 1} and {key_node.start_mark.line + 1}): "
+            try:
+                line = seen.get(key)
+            except TypeError:  # a list or mapping as a key: the safe loader's own error says so
+                break
+            if line is not None:
+                raise ValueError(f"key {key!r} is given twice (lines {line + 1} and {key_node.start_mark.line + 1}): "
                                  "keep one")
             seen[key] = key_node.start_mark.line
         return super().construct_mapping(node, deep=deep)

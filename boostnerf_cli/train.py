@@ -361,7 +361,10 @@ def train(
             _check_signature(checkpoint, state.get("signature"), signature, unrecorded)
             task.load_state(state["task"])
             opt = make_optimizer(task)
+            rates = [g["initial_lr"] for g in opt.param_groups]  # this run's recipe's learning rates
             opt.load_state_dict(state["optim"])
+            for g, lr in zip(opt.param_groups, rates):  # the state brought back the interrupted run's; a diverged run
+                g["initial_lr"] = lr  # resumed with lower rates (the advice it gives) trained on at the old ones
             start, elapsed, skipped, history = (int(state["step"]), float(state["seconds"]), int(state["skipped"]),
                                                 list(state["history"]))
             if state.get("trend") is not None:  # checkpoints before session 24 did not keep it

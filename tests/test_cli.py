@@ -90,6 +90,9 @@ def test_a_finished_expert_is_not_skipped_under_other_training_settings(tmp_path
     manifest = (ws / "manifest.json").read_text()
     assert_clean_failure(run_cli(*args, "--recipe", str(more)), "dvgo-12 was trained with other settings",
                          "iters: 30, now 50")
+    assert_clean_failure(run_cli(*args, "--recipe", str(quiet), "--seed", "5"), "seed: 0, now 5")  # and its file's
+    wider = make_recipe(tmp_path / "wider.yaml", pretrain={"dvgo": {"hidden": 32}})  # architecture (probe X)
+    assert_clean_failure(run_cli(*args, "--recipe", str(wider)), "dvgo.hidden: 16, now 32")
     assert (ws / "manifest.json").read_text() == manifest
     assert "already trained" in run_cli(*args, "--recipe", str(quiet), check=True).stderr
 
@@ -230,6 +233,14 @@ def test_a_moved_scene_or_workspace_is_followed_not_retrained(trained_ws, tmp_pa
     run_cli("pretrain", "--workspace", str(moved), "--data", str(away), "--device", "cpu", check=True)
     run_cli("eval", "--workspace", str(moved), "--no-costs", "--device", "cpu", check=True)
     assert {p.name: read_meta(p)["digest"] for p in (moved / "experts").glob("*.safetensors")} == digests
+    # a `scene` folder of another scene left inside, the recorded one moved again (probe X, session 28: the leftover
+    # was blamed, "changed since pretrain: retrain ... --data WS/scene --force")
+    make_scene(moved / "scene", size=32, n_train=12, n_test=3, seed=1)
+    away.rename(tmp_path / "elsewhere-2")
+    assert_clean_failure(run_cli("eval", "--workspace", str(moved), "--no-costs", "--device", "cpu"),
+                         f"the workspace's scene {away} is gone", "--data NEW_PLACE")
+    (tmp_path / "elsewhere-2").rename(away)
+    shutil.rmtree(moved / "scene")
     other = make_scene(tmp_path / "other", size=32, n_train=12, n_test=3, seed=1)  # another scene: still refused
     assert_clean_failure(run_cli("pretrain", "--workspace", str(moved), "--data", str(other), "--device", "cpu"),
                          "is not the one this workspace was trained on", "--force")
@@ -501,7 +512,8 @@ def test_log_lines_print_brackets_as_written(capsys):
     (["eval", "--wokspace", "ws"], "--wokspace"),
     (["eval"], "'--workspace'"),
     (["render", "-w", "ws", "--views", "0"], "'--views'"),
-], ids=["type", "unknown", "missing", "range"])
+    (["eval", "-w"], "'-w' requires an argument"),  # Click gives this one no context (probe X)
+], ids=["type", "unknown", "missing", "range", "no-value"])
 def test_a_command_line_mistake_is_one_error_line(monkeypatch, capsys, args, needle):
     """Probe U (session 28): Click's own refusals (a value of the wrong type, an unknown or missing option) were a
     box of 6+ lines around `Usage:`, the message wrapped mid-word on a narrow terminal, with no `error:` line to grep

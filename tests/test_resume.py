@@ -148,6 +148,11 @@ def test_a_checkpoint_is_not_resumed_with_other_training_settings(setup, tmp_pat
     quiet = make_recipe(tmp_path / "quiet.yaml", **merge(RECIPE_CHANGES, {"pretrain": {"train": {"log_every": 5, "lr_grid": 0.05}}}))
     proc = run_cli(*[a if a != str(recipe) else str(quiet) for a in args], check=True)
     assert "resuming from" in proc.stderr
+    # with the new rate (probe X, session 28: the checkpoint's optimiser state brought the old rates back, so a
+    # diverged run resumed with lower ones, as its error advises, trained on exactly as before)
+    grids, _ = load_tensors(ws / "experts" / "dvgo-10.safetensors")
+    before, _ = load_tensors(ref / "experts" / "dvgo-10.safetensors")
+    assert not torch.equal(grids["feature_table"], before["feature_table"])
     run_cli("build-moe", "--workspace", str(ws), "--device", "cpu", check=True)
     finetune = ["finetune", "--workspace", str(ws), "--topk", "2", "--device", "cpu"]
     run_killed([*finetune, "--lambda", "0.5"], "checkpoint:1")

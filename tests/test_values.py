@@ -260,6 +260,14 @@ def test_probe_s_values_accepted_before_that_crashed_or_trained_garbage(tmp_path
             "pretrain.ngp.max_res = 8: must be >= base_res (16) (expert ngp-4)",
         "pretrain:\n  iters: 50\n  res: [12]\n  iters: 5000\n": "key 'iters' is given twice (lines 2 and 4): keep one",
         "pretrain:\n  iters: 50\nmoe:\n  iters: 9\npretrain:\n  res: [12]\n": "key 'pretrain' is given twice",
+        # the review's (probe X): an unhashable key was a TypeError traceback; 1e3 where an int belongs, a number
+        # where text belongs; 8 and "8" in one per-resolution mapping; a resolution 8.5
+        "pretrain:\n  iters: 30\n  [1, 2]: 3\n": "is not valid YAML",
+        "pretrain:\n  iters: 1e3\n": "recipe key pretrain.iters must be int, got 1000.0 (write 1000)",
+        "name: 1e5\n": "recipe key name must be str, got 100000.0 (quote it to keep it text)",
+        "pretrain:\n  dvgo: {hidden: {8: 16, '8': 32}}\n": "pretrain.dvgo.hidden lists resolution 8 twice: keep one",
+        "pretrain:\n  dvgo: {hidden: {8.5: 16}}\n": "the keys of a per-expert mapping must be resolutions",
+        "pretrain:\n  model: tensorf\n  tensorf: {app_dim: 100000000}\n": "app_dim = 100000000: must be in [1, 4096]",
     }
     for text, expected in cases.items():
         (tmp_path / "r.yaml").write_text(text)
@@ -269,6 +277,10 @@ def test_probe_s_values_accepted_before_that_crashed_or_trained_garbage(tmp_path
     (tmp_path / "r.yaml").write_text("pretrain:\n  train: {lr_grid: 1e-2, lr_mlp: 1.0e-3, lr_decay: 5E-1}\n")
     train = load_recipe(tmp_path / "r.yaml").pretrain.train
     assert (train.lr_grid, train.lr_mlp, train.lr_decay) == (0.01, 1e-3, 0.5)  # read as numbers (YAML 1.1: text)
+    (tmp_path / "r.yaml").write_text("pretrain:\n  train: &t {batch_rays: 256, lr_grid: 0.1}\n"
+                                     "moe:\n  train: {<<: *t, lr_grid: 0.03}\n")  # a merge key, overridden: no twice
+    train = load_recipe(tmp_path / "r.yaml").moe.train
+    assert (train.batch_rays, train.lr_grid) == (256, 0.03)
     expert = DVGOExpert(DVGOConfig(res=4, alpha_init=1e-300), torch.tensor([[-1.0] * 3, [1.0] * 3]))
     assert math.isfinite(expert.shift) and expert.shift < -600  # log(1e-300): math domain error before
     far = make_recipe(tmp_path / "far.yaml", data={"image_size": 16, "bbox": [100, 100, 100, 101, 101, 101]})

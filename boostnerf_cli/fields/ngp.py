@@ -49,12 +49,12 @@ class NGPConfig:
 
     res: int = limit(16, at_least(1))  # L
     log2_table: int = limit(19, Range(1, 30))  # T: each level's table has at most 2^T rows (hashgrid.py)
-    features: int = limit(2, at_least(1))  # F per level
+    features: int = limit(2, Range(1, 64))  # F per level
     base_res: int = limit(16, at_least(1))  # N_min: cells along the box's longest side at the coarsest level
     max_res: int = limit(1024, Range(1, MAX_COORD - 3))  # N_max (>= base_res): at the finest level
     grid_res: int = limit(128, GRID_RES)  # occupancy grid (and density unit) cells along the longest side
     hidden: int = limit(64, MLP_WIDTH)  # density MLP: one hidden layer
-    geo_feat: int = limit(15, NON_NEGATIVE)  # features passed from the density MLP to the colour MLP
+    geo_feat: int = limit(15, Range(0, MLP_WIDTH.hi))  # features passed from the density MLP to the colour MLP
     color_hidden: int = limit(64, MLP_WIDTH)  # width of the colour MLP
     color_layers: int = limit(2, MLP_LAYERS)  # hidden layers of the colour MLP
     view_pe: int = limit(4, PE_FREQS)  # frequencies of the view-direction encoding

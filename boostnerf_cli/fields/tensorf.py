@@ -33,7 +33,6 @@ from boostnerf_cli.limits import (
     NON_NEGATIVE,
     OPEN_UNIT,
     PE_FREQS,
-    at_least,
     limit,
 )
 
@@ -43,9 +42,9 @@ class TensoRFConfig:
     """Architecture of a TensoRF-style expert. `res`: the final lattice has res^3 voxels."""
 
     res: int = limit(128, GRID_RES)
-    density_rank: int = limit(8, at_least(1))  # components per mode (TensoRF-VM uses 16)
-    app_rank: int = limit(24, at_least(1))  # components per mode (TensoRF-VM uses 48)
-    app_dim: int = limit(27, at_least(1))  # appearance feature after the basis matrix
+    density_rank: int = limit(8, MLP_WIDTH)  # components per mode (TensoRF-VM uses 16)
+    app_rank: int = limit(24, MLP_WIDTH)  # components per mode (TensoRF-VM uses 48)
+    app_dim: int = limit(27, MLP_WIDTH)  # appearance feature after the basis matrix
     hidden: int = limit(128, MLP_WIDTH)  # width of the shading MLP
     layers: int = limit(2, MLP_LAYERS)  # hidden layers of the shading MLP
     view_pe: int = limit(2, PE_FREQS)  # frequencies of the view-direction encoding

@@ -40,19 +40,20 @@ def _locate_scene(ws: Workspace, m: dict) -> tuple[Path, Scene | None]:
     recorded, own = ws.root / data["path"], ws.root / "scene"
     if not own.is_dir() or own.resolve() == recorded.resolve():
         own = None
-    if not recorded.exists() and own is not None:
-        return own, None  # the digest, checked by the caller, says if it is the one
-    if not recorded.exists():
+    own_scene = None
+    if own is not None and m.get("scene_digest"):
+        try:
+            own_scene = _load_recorded(own, data)
+        except BoostNerfError:
+            pass
+        if own_scene is not None and scene_digest(own_scene) == m["scene_digest"]:
+            return own, own_scene
+    if not recorded.exists() and own is not None and not m.get("scene_digest"):
+        return own, None  # no digest to tell by (a very old manifest): the workspace's own scene, as before
+    if not recorded.exists():  # a `scene` folder left from another scene is not it (the recorded one moved)
         raise BoostNerfError(
             f"the workspace's scene {recorded} is gone: restore it, or if it moved, say where to once with `boostnerf "
             f"pretrain --workspace {ws.root} --data NEW_PLACE` (the same images and cameras: nothing is retrained)")
-    if own is not None and m.get("scene_digest"):
-        try:
-            scene = _load_recorded(own, data)
-        except BoostNerfError:
-            return recorded, None
-        if scene_digest(scene) == m["scene_digest"]:
-            return own, scene
     return recorded, None
 
 

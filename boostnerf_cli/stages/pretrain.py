@@ -234,11 +234,16 @@ def _check_finished(ws: Workspace, rec: PretrainRecipe, scene_tag: str, force: b
         if force or not path.exists() or not ws.expert_report_path(name).exists():
             continue
         stored = read_meta(path).get("signature")
-        if stored is None:  # saved by a boostnerf that stored no signature: the settings its report names
+        if stored is None:  # saved by a boostnerf that stored no signature: what its report and its file name
             report = read_json(ws.expert_report_path(name), "expert report")
-            named = {"model": ("model", rec.model), "iters": ("iterations", rec.iters), "skip": ("skip", rec.skip)}
+            named = {"model": ("model", rec.model), "iters": ("iterations", rec.iters), "skip": ("skip", rec.skip),
+                     "seed": ("seed", rec.seed)}
             stored = {key: report[field] for key, (field, _) in named.items() if field in report}
             now = {key: value for key, (field, value) in named.items() if field in report}
+            config, options = read_meta(path).get("config"), expert_options(rec, res)
+            for key, value in (config.items() if isinstance(config, dict) else ()):  # the architecture it was built with
+                if key in options:
+                    stored[f"{rec.model}.{key}"], now[f"{rec.model}.{key}"] = value, options[key]
         else:
             now = expert_signature(rec, res, scene_tag, stored.get("geometry"))
         if (key := first_difference(stored, now)) is not None:
