@@ -48,7 +48,7 @@ SEED = Range(0, 2**63 - 1)
 
 @dataclass
 class DataRecipe:
-    image_size: int | None = limit(None, at_least(1))  # longer side in pixels after area downscaling; None = native
+    image_size: int | None = limit(None, at_least(8))  # longer side in pixels after area downscaling; None = native
     holdout_every: int = limit(8, Range(2, also=(0,)))  # datasets without a test split: every N-th train view is held out
     format: str = limit("auto", OneOf(("auto", *FORMATS)))  # the dataset layout (docs/datasets.md); auto: told by the files the folder holds
     # the scene box [xmin, ymin, zmin, xmax, ymax, zmax] in world units, instead of the one the loader gives (bbox.txt,

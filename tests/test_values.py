@@ -48,7 +48,7 @@ BAD_PENALTY = st.one_of(
 
 # key -> out-of-range values (what the code using the value cannot work with)
 BAD: dict[str, st.SearchStrategy] = {
-    "data.image_size": INT_BELOW(1),
+    "data.image_size": INT_BELOW(8),  # as --image-size: 1 x 1 images trained
     "data.holdout_every": st.one_of(st.integers(max_value=-1), st.just(1)),  # blender.py: 0 (off) or >= 2
     "data.format": BAD_WORD.filter(lambda w: w not in ("auto", "blender", "nsvf", "tanks", "llff", "nerfstudio")),
     "data.bbox": st.one_of(  # a box: six finite numbers, each max above its min
