@@ -147,6 +147,15 @@ def _write(tmp_path, data: dict):
     return path
 
 
+def _assert_refused(tmp_path, cases: dict[str, str]) -> None:
+    """Each recipe text of `cases` is refused in one line holding its expected words."""
+    for text, expected in cases.items():
+        (tmp_path / "r.yaml").write_text(text)
+        with pytest.raises(BoostNerfError) as e:
+            load_recipe(tmp_path / "r.yaml")
+        assert expected in str(e.value) and "\n" not in str(e.value), (text, str(e.value))
+
+
 def _assert_names(err: BoostNerfError, key: str) -> None:
     msg = str(err)
     assert "\n" not in msg and msg.strip() == msg
@@ -231,12 +240,7 @@ def test_known_values_from_the_issue(tmp_path):
                                               "numbers, xmin, ymin, zmin, xmax, ymax, zmax, each max above its min",
         "data:\n  bbox: [-1, -1, -1, 1, 1]\n": "recipe key data.bbox = [-1.0, -1.0, -1.0, 1.0, 1.0]: must be six",
     }
-    for text, expected in cases.items():
-        path = tmp_path / "r.yaml"
-        path.write_text(text)
-        with pytest.raises(BoostNerfError) as e:
-            load_recipe(path)
-        assert expected in str(e.value) and "\n" not in str(e.value), (text, str(e.value))
+    _assert_refused(tmp_path, cases)
 
 
 def test_probe_s_values_accepted_before_that_crashed_or_trained_garbage(tmp_path, tiny_scene):
@@ -269,11 +273,7 @@ def test_probe_s_values_accepted_before_that_crashed_or_trained_garbage(tmp_path
         "pretrain:\n  dvgo: {hidden: {8.5: 16}}\n": "the keys of a per-expert mapping must be resolutions",
         "pretrain:\n  model: tensorf\n  tensorf: {app_dim: 100000000}\n": "app_dim = 100000000: must be in [1, 4096]",
     }
-    for text, expected in cases.items():
-        (tmp_path / "r.yaml").write_text(text)
-        with pytest.raises(BoostNerfError) as e:
-            load_recipe(tmp_path / "r.yaml")
-        assert expected in str(e.value) and "\n" not in str(e.value), (text, str(e.value))
+    _assert_refused(tmp_path, cases)
     (tmp_path / "r.yaml").write_text("pretrain:\n  train: {lr_grid: 1e-2, lr_mlp: 1.0e-3, lr_decay: 5E-1}\n")
     train = load_recipe(tmp_path / "r.yaml").pretrain.train
     assert (train.lr_grid, train.lr_mlp, train.lr_decay) == (0.01, 1e-3, 0.5)  # read as numbers (YAML 1.1: text)
@@ -300,11 +300,7 @@ def test_loss_weights_that_overflow_float32_and_finetuning_keys_finetuning_ignor
         "moe:\n  train: {step_ratio: 0.25}\n": "recipe key moe.train.step_ratio = 0.25: finetuning does not use it",
         "moe:\n  train: {growth: [0.5]}\n": "recipe key moe.train.growth = [0.5]: finetuning does not use it",
     }
-    for text, expected in cases.items():
-        (tmp_path / "r.yaml").write_text(text)
-        with pytest.raises(BoostNerfError) as e:
-            load_recipe(tmp_path / "r.yaml")
-        assert expected in str(e.value) and "\n" not in str(e.value), (text, str(e.value))
+    _assert_refused(tmp_path, cases)
     (tmp_path / "r.yaml").write_text("moe:\n  lam: 1.0e+6\n  penalty: '1, 1e6'\n  train: {step_ratio: 0.5, growth: []}\n")
     assert load_recipe(tmp_path / "r.yaml").moe.lam == 1e6  # the bounds and the defaults themselves load
 
