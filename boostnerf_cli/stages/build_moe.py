@@ -103,12 +103,13 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     write_json(ws.moe_dir / "init.json", report)
     ws.update_manifest(moe={"init": {"experts": cfg.expert_names, "gate": rec.gate_type, "gate_grid": gate_grid,
                                      "inputs": inputs, "digest": read_meta(ws.model_path("init")).get("digest")}})
-    grid_text = f" ({gate_grid} features)" if rec.gate_type in ("grid", "linear") else ""
+    has_grid = rec.gate_type in ("grid", "linear")  # a switch gate encodes positions: it has no grid to size
+    grid_text = f" ({gate_grid} features) {'x'.join(map(str, gate.shape))}" if has_grid else ""
     if source is not None:
         same = tuple(source[2].shape) == tuple(gate.shape)
         grid_text += f" started from {source[1]}'s feature grid ({'copied' if same else 'resampled trilinearly'})"
-    log(f"built a mixture of {len(experts)} experts ({', '.join(cfg.expert_names)}), gate {rec.gate_type}{grid_text} "
-        f"{'x'.join(map(str, gate.shape))}, V_D from {cfg.expert_names[0]} keeps {100 * occ.fraction():.1f}% of cells"
+    log(f"built a mixture of {len(experts)} experts ({', '.join(cfg.expert_names)}), gate {rec.gate_type}{grid_text}"
+        f", V_D from {cfg.expert_names[0]} keeps {100 * occ.fraction():.1f}% of cells"
         + (f" (its filter then reads {cfg.expert_names[-1]}'s density as it trains)" if rec.vd_source == "largest" else ""))
     return report
 
