@@ -224,6 +224,13 @@ def test_render_per_expert_and_gate_maps(moe_ws):
     assert g0.shape == (32, 32, 3) and (g0[..., 0] == g0[..., 1]).all()  # greyscale
     acc_like = g0[..., 0] + g1[..., 0]  # probabilities sum to the pixel's opacity (<= 255 up to rounding)
     assert acc_like.max() <= 256
+    # an earlier mixture's third expert (build-moe --experts changed them since): its images go (probe H, session
+    # 28: they stayed beside the new mixture's)
+    for kind in ("expert2", "gate2"):
+        (folder / f"{stem}_{kind}-dvgo-20.png").write_bytes((folder / f"{stem}_gate1-dvgo-16.png").read_bytes())
+    run_cli("render", "--workspace", str(moe_ws), "--model", "top2", "--views", "1", "--per-expert", "--device", "cpu",
+            check=True)
+    assert sorted(p.name for p in folder.glob("*.png")) == names
 
 
 def test_render_expert_montage_and_comparison(moe_ws):

@@ -188,3 +188,23 @@ def test_a_prune_stopped_before_its_check_leaves_no_model_the_other_stages_take(
     assert (ws / "moe" / "top1-pruned.json").exists()
     run_cli("eval", "--workspace", str(ws), "--model", "top1-pruned", "--views", "1", "--no-costs", "--device", "cpu",
             check=True)
+
+
+def test_prune_of_a_scene_that_holds_no_view_out(tmp_path):
+    """Probe H (session 28): with no test split (one view, holdout_every 0) prune on the train views failed on the
+    report's held-out PSNR, after writing the pruned model: that file, without its report, read as a stale prune
+    for good, and `prune` again failed the same way. The held-out PSNR is now null there, and a prune that fails
+    after writing leaves nothing."""
+    from conftest import make_recipe
+
+    from boostnerf_cli.scenes import make_scene
+
+    scene = make_scene(tmp_path / "scene", size=24, n_train=2, n_test=0, seed=0)
+    recipe = make_recipe(tmp_path / "r.yaml", data={"image_size": 24, "holdout_every": 0},
+                         pretrain={"res": [8], "iters": 10})
+    ws = tmp_path / "ws"
+    run_cli("pretrain", "--data", str(scene), "--recipe", str(recipe), "-w", str(ws), "--device", "cpu", check=True)
+    run_cli("prune", "-w", str(ws), "--model", "dvgo-8", "--split", "train", "--device", "cpu", check=True)
+    report = json.loads((ws / "moe" / "dvgo-8-pruned.json").read_text())
+    assert report["test_views"] == 0 and report["test_psnr_before"] is None and report["train_max_abs_diff"] < 1e-5
+    run_cli("eval", "-w", str(ws), "--split", "train", "--no-costs", "--device", "cpu", check=True)

@@ -137,14 +137,19 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
     masks = usage_masks(ws, name, scene, split, device, views, render=before)
     params_before = before.params
     tables, dropped = save_pruned(src, out_path, masks, fill_row, out_name, name, params_before)
-    after = load_model(ws, out_name, device)
-    check = min(CHECK_VIEWS, n_views(split, views))  # views the rows were kept for (--views N: the first N)
-    train_before = _renders(before, scene, split, device, check)
-    train_after = _renders(after, scene, split, device, check)
-    diff = max(float((a - b).abs().max()) for a, b in zip(train_before, train_after))
-    test = scene.split("test")
-    test_before = _psnr(_renders(before, scene, test, device, len(test)), test)
-    test_after = _psnr(_renders(after, scene, test, device, len(test)), test)
+    try:  # the checks below fail or are interrupted: no pruned model without its report (it read as "stale" for good)
+        after = load_model(ws, out_name, device)
+        check = min(CHECK_VIEWS, n_views(split, views))  # views the rows were kept for (--views N: the first N)
+        train_before = _renders(before, scene, split, device, check)
+        train_after = _renders(after, scene, split, device, check)
+        diff = max(float((a - b).abs().max()) for a, b in zip(train_before, train_after))
+        # the held-out PSNR before and after, when the scene holds views out (a capture of one view holds none)
+        test = scene.split("test") if any(k in scene.splits for k in ("test", "val")) else None
+        test_before = _psnr(_renders(before, scene, test, device, len(test)), test) if test is not None else None
+        test_after = _psnr(_renders(after, scene, test, device, len(test)), test) if test is not None else None
+    except BaseException:
+        out_path.unlink(missing_ok=True)
+        raise
     report = {
         "name": out_name,
         "from": name,
@@ -158,14 +163,15 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
         "tables": tables,
         "train_check_views": len(train_before),
         "train_max_abs_diff": diff,
-        "test_views": len(test),
-        "test_psnr_before": round(test_before, 4),
-        "test_psnr_after": round(test_after, 4),
+        "test_views": len(test) if test is not None else 0,
+        "test_psnr_before": round(test_before, 4) if test is not None else None,
+        "test_psnr_after": round(test_after, 4) if test is not None else None,
         "seconds": round(time.perf_counter() - t0, 2),
     }
     write_json(report_path, report)
     log(f"{out_name}: {params_before:,} -> {report['params_after']:,} parameters "
         f"({params_before / max(1, report['params_after']):.2f}x), file {report['file_bytes_before'] / 1e6:.2f} -> "
-        f"{report['file_bytes_after'] / 1e6:.2f} MB; test PSNR {test_before:.3f} -> {test_after:.3f}; "
-        f"train views max |diff| {diff:.2e}")
+        f"{report['file_bytes_after'] / 1e6:.2f} MB; "
+        + (f"test PSNR {test_before:.3f} -> {test_after:.3f}; " if test is not None else "no held-out views; ")
+        + f"train views max |diff| {diff:.2e}")
     return report

@@ -213,6 +213,8 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
     written = []
     for i in range(n_views(split, views)):
         stem = split.stems[i]
+        for old in (*folder.glob(f"{stem}_expert[0-9]*-*.png"), *folder.glob(f"{stem}_gate[0-9]*-*.png")):
+            old.unlink()  # an earlier mixture's experts (build-moe --experts changed them): not beside this one's
 
         def draw(field, s, i=i):
             return render_view(field, split, i, s, skip, device)
