@@ -65,6 +65,9 @@ def test_pretrain_skips_finished_experts(trained_ws, tiny_scene, tiny_recipe, tm
                    str(ws), "--device", "cpu", "--res", "12", check=True)
     assert "already trained" in proc.stderr
     assert (ws / "experts" / "dvgo-12.safetensors").stat().st_mtime_ns == before
+    # another holdout_every: the refusal names it (probe H, session 28: "another scene, image size or box")
+    assert_clean_failure(run_cli("pretrain", "--workspace", str(ws), "--holdout-every", "4", "--device", "cpu"),
+                         "held-out views (holdout_every) 8, now 4")
 
 
 def test_a_finished_expert_is_not_skipped_under_other_training_settings(tmp_path, tiny_scene, tiny_recipe):

@@ -410,10 +410,13 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     was = str(ws.root / previous["path"]) if previous else ""  # as given: absolute, or relative to the workspace
     if previous and previous != inputs and not moved:  # before a default scene is generated: nothing written if refused
         if not force:
+            changed = [k for k in sorted(set(previous) | set(inputs)) if k != "path" and previous.get(k) != inputs.get(k)]
+            names = {"image_size": "image size", "holdout_every": "held-out views (holdout_every)", "format": "format",
+                     "bbox": "box (data.bbox)"}
+            what = ", ".join(f"{names.get(k, k)} {previous.get(k)!r}, now {inputs.get(k)!r}" for k in changed)
             raise BoostNerfError(
-                f"workspace {ws.root} was made for another scene, image size or box ({was}, "
-                f"image_size={previous['image_size']}"
-                + (f", data.bbox={previous['bbox']}" if "bbox" in previous else "")
+                f"workspace {ws.root} was made for another scene, image size or box ({was}"
+                + (f"; {what}" if what else "")
                 + "): use a new --workspace, or --force to retrain everything"
             )
         _forget_trained(ws)
