@@ -395,7 +395,7 @@ def test_error_bad_json_and_missing_focal(tmp_path):
 
 def test_error_bad_holdout(tmp_path):
     folder = write_blender(tmp_path / "o", {"train": [rgba(4, 4)]})
-    raises_one_line("holdout_every=0", load_scene, folder)
+    raises_one_line("--holdout-every 0", load_scene, folder)  # the flag (probe H: it named a key=value)
     raises_one_line("at least 2", load_scene, folder, holdout_every=1)
 
 

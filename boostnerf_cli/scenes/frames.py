@@ -417,7 +417,7 @@ def hold_out(train: Split, every: int) -> tuple[Split, Split, str]:
     kept = [i for i in range(len(train)) if i % every != 0]
     if not kept:
         raise BoostNerfError(
-            f"only {len(train)} train view(s): holding out every {every}th leaves none; pass holdout_every=0"
+            f"only {len(train)} train view(s): holding out every {every}th leaves none; hold none out with --holdout-every 0 (recipe key data.holdout_every: 0)"
         )
     text = f"every {every}th train view ({len(held)} of {len(train)}) held out as test"
     return train.subset(kept), train.subset(held), text

@@ -120,7 +120,8 @@ class Scene:
             if candidate in self.splits:
                 return self.splits[candidate]
         raise BoostNerfError(
-            f"scene {self.name!r} has no {name!r} split (it has: {', '.join(sorted(self.splits))})"
+            f"scene {self.name!r} has no {name!r} split (it has: {', '.join(sorted(self.splits))}): give one of "
+            "those with --split"
         )
 
     def render_settings(self, step: float, bbox: Tensor, color_threshold: float = 1e-4) -> RenderSettings:
