@@ -546,7 +546,7 @@ def main() -> None:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         err.print(f"error: out of memory ({textwrap.shorten(first, 160, placeholder=' ...')}): lower the recipe's "
                   "sizes: grid resolutions (pretrain.res, moe.gate_res, moe.vd_res, moe.bake_res), network widths "
-                  "and ranks (hidden, app_dim, app_rank, moe.gate_channels), batch_rays (train, geometry) or a small train.step_ratio, or use a "
-                  "device with more memory; finished files are kept", markup=False)
+                  "and ranks (hidden, app_dim, app_rank, moe.gate_channels), batch_rays (train, geometry) or a small "
+                  "train.step_ratio, or use a device with more memory; finished files are kept", markup=False)
         sys.exit(3)
     sys.exit(code if isinstance(code, int) else 0)  # --help and --version give 0, as a finished command does

@@ -309,12 +309,12 @@ def _check_family(family: str, section: dict, where: str, source: str) -> None:
         listed: set[int] = set()
         for res, v in per_res:
             path = f"{where}.{key}" if res is None else f"{where}.{key}[{res}]"
-            if res is not None and not _is_int_key(res):
-                raise BoostNerfError(f"{source} {where}.{key}: the keys of a per-expert mapping must be resolutions "
-                                     f"(integers), got {res!r}")
-            if res is not None and int(res) in listed:  # 8 and "8" (a manifest's JSON has only the latter)
-                raise BoostNerfError(f"{source} {where}.{key} lists resolution {int(res)} twice: keep one")
             if res is not None:
+                if not _is_int_key(res):
+                    raise BoostNerfError(f"{source} {where}.{key}: the keys of a per-expert mapping must be "
+                                         f"resolutions (integers), got {res!r}")
+                if int(res) in listed:  # 8 and "8" (a manifest's JSON has only the latter)
+                    raise BoostNerfError(f"{source} {where}.{key} lists resolution {int(res)} twice: keep one")
                 listed.add(int(res))
             _check_value(fields[key], _coerce(hints[key], v, path), path, source)
 

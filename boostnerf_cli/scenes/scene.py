@@ -114,9 +114,15 @@ class Scene:
         if self.bbox.shape != (2, 3) or not bool((self.bbox[1] > self.bbox[0]).all()):
             raise BoostNerfError(f"scene {self.name!r}: bounding box must be (2, 3) with max > min")
 
+    HELD_OUT = ("test", "val")  # the split called test: the dataset's test views, else its validation views
+
+    def held_out(self) -> Split | None:
+        """The held-out views (`split("test")`), or None for a scene that holds none out (one view, holdout_every 0)."""
+        return self.split("test") if any(k in self.splits for k in self.HELD_OUT) else None
+
     def split(self, name: str) -> Split:
         """The named split; `test` falls back to `val` when a dataset has no test split."""
-        for candidate in {"test": ("test", "val")}.get(name, (name,)):
+        for candidate in {"test": self.HELD_OUT}.get(name, (name,)):
             if candidate in self.splits:
                 return self.splits[candidate]
         raise BoostNerfError(

@@ -233,14 +233,15 @@ def _check_finished(ws: Workspace, rec: PretrainRecipe, scene_tag: str, force: b
         path = ws.expert_path(name)
         if force or not path.exists() or not ws.expert_report_path(name).exists():
             continue
-        stored = read_meta(path).get("signature")
+        meta = read_meta(path)
+        stored = meta.get("signature")
         if stored is None:  # saved by a boostnerf that stored no signature: what its report and its file name
             report = read_json(ws.expert_report_path(name), "expert report")
             named = {"model": ("model", rec.model), "iters": ("iterations", rec.iters), "skip": ("skip", rec.skip),
                      "seed": ("seed", rec.seed)}
             stored = {key: report[field] for key, (field, _) in named.items() if field in report}
             now = {key: value for key, (field, value) in named.items() if field in report}
-            config, options = read_meta(path).get("config"), expert_options(rec, res)
+            config, options = meta.get("config"), expert_options(rec, res)
             for key, value in (config.items() if isinstance(config, dict) else ()):  # the architecture it was built with
                 if key in options:
                     stored[f"{rec.model}.{key}"], now[f"{rec.model}.{key}"] = value, options[key]
@@ -296,7 +297,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
         "train_psnr": result.history[-1]["psnr"] if result.history else None,
         "history": result.history,
     }
-    test = scene.split("test") if any(k in scene.splits for k in ("test", "val")) else None
+    test = scene.held_out()
     if test is not None:
         with slow_notice(log or (lambda _: None), f"{name}: scoring its {len(test)} held-out views"):
             report["test_psnr"] = round(_test_psnr(model, test, settings, task.skip, device), 3)

@@ -144,7 +144,7 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
         train_after = _renders(after, scene, split, device, check)
         diff = max(float((a - b).abs().max()) for a, b in zip(train_before, train_after))
         # the held-out PSNR before and after, when the scene holds views out (a capture of one view holds none)
-        test = scene.split("test") if any(k in scene.splits for k in ("test", "val")) else None
+        test = scene.held_out()
         test_before = _psnr(_renders(before, scene, test, device, len(test)), test) if test is not None else None
         test_after = _psnr(_renders(after, scene, test, device, len(test)), test) if test is not None else None
     except BaseException:
