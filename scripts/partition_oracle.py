@@ -1,0 +1,214 @@
+"""Issue 18: can any spatial partition of single models beat the best of them on views it has not seen?
+
+A Top-1 mixture renders each sample with one expert, chosen by where the sample is. It can only beat its largest
+expert if some other expert renders some part of the scene better, on views none of them trained on, and if the
+parts where that holds are the same from view to view. This script measures that directly, without a gate and
+without joint training: it takes models trained alone (each workspace's `baseline`, or any model name), renders
+held-out views with every one of them at the same sample positions, splats each model's per-pixel squared error
+back along the ray (by the models' mean rendering weight) into a map_res^3 lattice over the box, and routes every
+sample to the model with the lowest error in its cell. Each lattice is chosen on one set of views and scored on
+another:
+
+    chosen on the training views    what a gate trained on the photometric loss could at best learn
+    chosen on the even held-out views, scored on the odd ones (and the reverse)
+                                     a partition that generalises across unseen views
+    chosen on the scored views      an upper bound (it has seen the answer)
+
+Controls: each model alone at the common sample positions (the finest model's step), and a random partition
+with the held-out choice's proportions (what the seams between models cost). Prints one JSON document.
+
+    python scripts/partition_oracle.py --model NAME=WORKSPACE [--model NAME=WORKSPACE ...] [--map-res 16,32]
+        [--train-views 24] [--out FILE]
+
+NAME=WORKSPACE names a model (`baseline`, `dvgo-80`, ...) of a workspace; give them smallest first. Every workspace
+must be of one scene, with one box.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from boostnerf_cli.metrics.image import psnr, ssim
+from boostnerf_cli.models import LoadedModel, load_model
+from boostnerf_cli.render.rays import image_rays
+from boostnerf_cli.render.renderer import RenderSettings, render_rays, sample_rays
+from boostnerf_cli.stages.common import workspace_scene
+from boostnerf_cli.workspace import Workspace
+
+
+def cells(xyz: Tensor, bbox: Tensor, res: int) -> Tensor:
+    """(N, 3) points -> (N,) flat index of their cell in a res^3 lattice over `bbox`."""
+    u = ((xyz - bbox[0]) / (bbox[1] - bbox[0]) * res).long().clamp(0, res - 1)
+    return (u[:, 0] * res + u[:, 1]) * res + u[:, 2]
+
+
+class Routed:
+    """A Field that renders each sample with one model, chosen by its cell of `route` (res^3,) ints."""
+
+    def __init__(self, models: list[LoadedModel], route: Tensor, bbox: Tensor):
+        self.models, self.route, self.bbox = models, route, bbox
+        self.res = round(route.numel() ** (1 / 3))
+
+    def which(self, xyz: Tensor) -> Tensor:
+        return self.route[cells(xyz, self.bbox, self.res)]
+
+    def _run(self, xyz: Tensor, call, dim: int) -> Tensor:
+        out = xyz.new_zeros(xyz.shape[0], dim)
+        idx = self.which(xyz)
+        for e, model in enumerate(self.models):
+            rows = (idx == e).nonzero().squeeze(-1)
+            if rows.numel():
+                out[rows] = call(model.field, rows).reshape(rows.numel(), dim).to(out.dtype)
+        return out
+
+    def density(self, xyz: Tensor) -> Tensor:
+        return self._run(xyz, lambda f, r: f.density(xyz[r]), 1)[:, 0]
+
+    def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
+        return self._run(xyz, lambda f, r: f.color(xyz[r], dirs[r]), 3)
+
+    def skip(self, xyz: Tensor) -> Tensor:
+        """Each sample passes its own model's empty-space filter."""
+        keep = torch.ones(xyz.shape[0], dtype=torch.bool)
+        idx = self.which(xyz)
+        for e, model in enumerate(self.models):
+            rows = (idx == e).nonzero().squeeze(-1)
+            if rows.numel() and model.skip is not None:
+                keep[rows] = model.skip(xyz[rows])
+        return keep
+
+
+@torch.no_grad()
+def render(field, skip, split, i: int, settings: RenderSettings) -> tuple[Tensor, Tensor]:
+    """View i -> colour (H*W, 3), weights (H*W, S)."""
+    o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, settings.ndc)
+    b = render_rays(field, o, d, settings, skip)
+    return b.color.clamp(0, 1), b.extras["weights"]
+
+
+@torch.no_grad()
+def splat(models: list[LoadedModel], split, views: list[int], settings: RenderSettings, bbox: Tensor,
+          res: int) -> Tensor:
+    """(M, res^3) per-cell error of each model on `views`: its per-pixel squared error spread along the ray by the
+    models' mean rendering weight, divided by that weight's total in the cell (inf where no view saw the cell)."""
+    err = torch.zeros(len(models), res**3, dtype=torch.float64)
+    mass = torch.zeros(res**3, dtype=torch.float64)
+    for i in views:
+        gt = split.images[i].reshape(-1, 3)
+        outs = [render(m.field, m.skip, split, i, settings) for m in models]
+        o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, settings.ndc)
+        _, valid, xyz, _ = sample_rays(o, d, settings, jitter=False)
+        w = torch.stack([wt for _, wt in outs]).mean(0)  # (R, S)
+        where = valid & (w > 1e-4)
+        c = cells(xyz[where], bbox, res)
+        ws = w[where].double()
+        mass.index_add_(0, c, ws)
+        for e, (rgb, _) in enumerate(outs):
+            pix = ((rgb - gt) ** 2).mean(-1).double()  # (R,)
+            err[e].index_add_(0, c, ws * pix[:, None].expand_as(w)[where])
+    return torch.where(mass > 0, err / mass.clamp_min(1e-30), torch.full_like(err, float("inf")))
+
+
+@torch.no_grad()
+def score(field, skip, split, views: list[int], settings: RenderSettings) -> dict:
+    rows = []
+    for i in views:
+        rgb, _ = render(field, skip, split, i, settings)
+        pred = rgb.reshape(split.height, split.width, 3)
+        rows.append((psnr(pred, split.images[i]), ssim(pred, split.images[i])))
+    return {"psnr": round(sum(r[0] for r in rows) / len(rows), 4), "ssim": round(sum(r[1] for r in rows) / len(rows), 5)}
+
+
+def choose(err: Tensor, default: int) -> Tensor:
+    """Each cell's lowest-error model; cells no view saw go to `default`."""
+    seen = torch.isfinite(err).all(0)
+    return torch.where(seen, err.argmin(0), torch.full_like(seen, default, dtype=torch.long))
+
+
+def shares(route: Tensor, weight: Tensor, m: int) -> list[float]:
+    """How much of the rendering weight each model's cells hold."""
+    total = float(weight.sum()) or 1.0
+    return [round(float(weight[route == e].sum()) / total, 4) for e in range(m)]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", action="append", required=True, help="NAME=WORKSPACE, smallest model first")
+    ap.add_argument("--map-res", default="16,32", help="lattice resolutions, comma-separated")
+    ap.add_argument("--train-views", type=int, default=24, help="training views the training-view choice reads")
+    ap.add_argument("--seed", type=int, default=0, help="the random partition's draw")
+    ap.add_argument("--out", type=Path, help="also write the JSON here")
+    args = ap.parse_args()
+    models, names = [], []
+    scene = None
+    for spec in args.model:
+        name, _, root = spec.partition("=")
+        ws = Workspace(Path(root))
+        scene = scene or workspace_scene(ws, lambda s: print(s, file=sys.stderr))
+        models.append(load_model(ws, name, "cpu"))
+        names.append(f"{name}@{Path(root).name}")
+    bbox = models[0].bbox.cpu()
+    for m in models[1:]:
+        if not torch.allclose(m.bbox.cpu(), bbox, atol=1e-4):
+            sys.exit(f"error: {m.name} has another box ({m.bbox.tolist()} against {bbox.tolist()}): give models of one box")
+    step = min(m.step for m in models)
+    settings = scene.render_settings(step, bbox)
+    test, train = scene.split("test"), scene.split("train")
+    even, odd = list(range(0, len(test), 2)), list(range(1, len(test), 2))
+    train_views = list(range(0, len(train), max(1, len(train) // args.train_views)))[: args.train_views]
+    t0 = time.time()
+    out = {"models": names, "step": step, "test_views": len(test), "train_views": train_views,
+           "alone": {}, "maps": {}}
+    for e, m in enumerate(models):
+        out["alone"][names[e]] = {"even": score(m.field, m.skip, test, even, settings),
+                                  "odd": score(m.field, m.skip, test, odd, settings),
+                                  "all": score(m.field, m.skip, test, list(range(len(test))), settings)}
+    largest = len(models) - 1
+    gen = torch.Generator().manual_seed(args.seed)
+    for res in (int(r) for r in args.map_res.split(",")):
+        err_even = splat(models, test, even, settings, bbox, res)
+        err_odd = splat(models, test, odd, settings, bbox, res)
+        err_train = splat(models, train, train_views, settings, bbox, res)
+        mass = torch.isfinite(err_even).all(0).double()
+        row = {}
+        for label, route_for_odd, route_for_even in (
+            ("training views", choose(err_train, largest), choose(err_train, largest)),
+            ("the other held-out half", choose(err_even, largest), choose(err_odd, largest)),
+            ("the scored views (upper bound)", choose(err_odd, largest), choose(err_even, largest)),
+        ):
+            s_odd = score(*_field(models, route_for_odd, bbox), test, odd, settings)
+            s_even = score(*_field(models, route_for_even, bbox), test, even, settings)
+            row[label] = {"odd": s_odd, "even": s_even,
+                          "psnr": round((s_odd["psnr"] * len(odd) + s_even["psnr"] * len(even)) / len(test), 4),
+                          "cells": shares(route_for_odd, mass, len(models))}
+        # seams: a random partition in the proportions of the held-out choice
+        p = torch.tensor([max(v, 1e-6) for v in row["the other held-out half"]["cells"]])
+        rand = torch.multinomial(p / p.sum(), res**3, replacement=True, generator=gen)
+        s_odd = score(*_field(models, rand, bbox), test, odd, settings)
+        s_even = score(*_field(models, rand, bbox), test, even, settings)
+        row["random, the held-out proportions"] = {
+            "odd": s_odd, "even": s_even, "psnr": round((s_odd["psnr"] * len(odd) + s_even["psnr"] * len(even)) / len(test), 4),
+            "cells": shares(rand, mass, len(models))}
+        out["maps"][str(res)] = row
+        print(f"map {res}^3 done ({time.time() - t0:.0f} s)", file=sys.stderr)
+    out["seconds"] = round(time.time() - t0)
+    text = json.dumps(out, indent=1)
+    print(text)
+    if args.out:
+        args.out.write_text(text + "\n")
+
+
+def _field(models, route, bbox):
+    f = Routed(models, route, bbox)
+    return f, f.skip
+
+
+if __name__ == "__main__":
+    main()

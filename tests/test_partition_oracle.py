@@ -1,0 +1,69 @@
+"""scripts/partition_oracle.py (issue 18, docs/results.md session 29): a partition of single models, rendered as it
+claims to be, and its choice of model per cell."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+from boostnerf_cli.models import load_model
+from boostnerf_cli.scenes import load_scene
+from boostnerf_cli.workspace import Workspace
+
+ROOT = Path(__file__).parent.parent
+_spec = importlib.util.spec_from_file_location("partition_oracle", ROOT / "scripts" / "partition_oracle.py")
+oracle = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(oracle)
+
+
+def test_cells_index_the_lattice_and_clamp_the_box_edges():
+    bbox = torch.tensor([[0.0, 0.0, 0.0], [1.0, 2.0, 4.0]])
+    xyz = torch.tensor([[0.0, 0.0, 0.0], [0.99, 1.99, 3.99], [1.0, 2.0, 4.0], [0.5, 0.0, 0.0], [0.0, 0.0, 2.0]])
+    assert oracle.cells(xyz, bbox, 2).tolist() == [0, 7, 7, 4, 1]
+
+
+def test_each_cell_goes_to_its_lowest_error_model_and_unseen_cells_to_the_default():
+    inf = float("inf")
+    err = torch.tensor([[0.1, 0.5, inf], [0.2, 0.4, inf], [0.3, 0.6, inf]], dtype=torch.float64)
+    assert oracle.choose(err, default=2).tolist() == [0, 1, 2]
+
+
+def test_a_partition_that_sends_every_cell_to_one_model_renders_that_model(trained_ws, tiny_scene):
+    """The Routed field is only a fair partition if a one-model route is the model itself: same samples, same
+    empty-space filter, same colours (bit for bit)."""
+    ws = Workspace(trained_ws)
+    models = [load_model(ws, name, "cpu") for name in ws.expert_names()]
+    scene = load_scene(tiny_scene)
+    bbox = models[0].bbox
+    settings = scene.render_settings(min(m.step for m in models), bbox)
+    test = scene.split("test")
+    for e, m in enumerate(models):
+        alone, _ = oracle.render(m.field, m.skip, test, 0, settings)
+        routed = oracle.Routed(models, torch.full((4**3,), e, dtype=torch.long), bbox)
+        mixed, _ = oracle.render(routed, routed.skip, test, 0, settings)
+        assert torch.equal(alone, mixed)
+    # and a split lattice renders something of each, and neither alone
+    half = torch.tensor([(i // 16) % 2 for i in range(4**3)])
+    routed = oracle.Routed(models, half, bbox)
+    assert set(routed.which(torch.rand(500, 3) * (bbox[1] - bbox[0]) + bbox[0]).tolist()) == {0, 1}
+
+
+def test_the_script_scores_every_choice_and_the_models_alone(trained_ws, tmp_path):
+    out = tmp_path / "oracle.json"
+    specs = [f"--model={name}={trained_ws}" for name in Workspace(trained_ws).expert_names()]
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "partition_oracle.py"), *specs, "--map-res", "4",
+                           "--train-views", "2", "--out", str(out)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(out.read_text())
+    assert json.loads(proc.stdout) == result
+    assert len(result["alone"]) == 2 and all(v["all"]["psnr"] > 10 for v in result["alone"].values())
+    row = result["maps"]["4"]
+    assert set(row) == {"training views", "the other held-out half", "the scored views (upper bound)",
+                        "random, the held-out proportions"}
+    for choice in row.values():
+        assert abs(sum(choice["cells"]) - 1) < 1e-3 and choice["psnr"] > 10
