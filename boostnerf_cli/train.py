@@ -238,11 +238,15 @@ def _kept(checkpoint: Path | None) -> str:
 # how a setting of a training signature is given, for messages (others are named by their recipe key)
 SETTING_NAMES = {"iters": "--iters", "seed": "--seed", "lam": "--lambda", "penalty": "--penalty",
                  "renormalize": "--renormalize", "wide_steps": "--wide-start (in steps)", "gate_noise": "--gate-noise",
-                 "topk": "--topk", "train": "the recipe's train section", "from": "its source"}
+                 "topk": "--topk", "train": "the recipe's train section"}
 
 
 def setting_change(key: str, was, now) -> str:
-    """`key: was, now now` for a message, with the flag's name and "the default" for a setting left at it."""
+    """`key: was, now now` for a message, with the flag's name and "the default" for a setting left at it. A changed
+    source (`from`, the digest of moe/init or of the baseline's expert) is said as such, its digests shortened."""
+    if key == "from":
+        digests = f" (digest {was[:8]}..., now {now[:8]}...)" if isinstance(was, str) and isinstance(now, str) else ""
+        return f"the model it is trained from was made again since{digests}"
     was, now = (("the default" if v is None else repr(v)) for v in (was, now))
     return f"{SETTING_NAMES.get(key, key)}: {was}, now {now}"
 

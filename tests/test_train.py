@@ -177,6 +177,19 @@ def test_a_checkpoint_made_with_other_settings_is_refused(tiny_scene, tmp_path):
               signature={"iters": 12, "seed": 0})
 
 
+def test_a_changed_source_is_named_as_a_remade_model_not_by_its_digests():
+    """A finetuning checkpoint (or a finished model) whose source (moe/init, or the baseline's largest expert) was
+    remade since differs in its signature's "from", a digest: the message said "its source: '078c...', now
+    'a1b2...'" (probe H, session 28), which tells a user nothing about what to do."""
+    from boostnerf_cli.train import setting_change
+
+    was, now = "078c" * 16, "a1b2" * 16
+    text = setting_change("from", was, now)
+    assert was not in text and now not in text
+    assert text == "the model it is trained from was made again since (digest 078c078c..., now a1b2a1b2...)"
+    assert setting_change("from", None, now) == "the model it is trained from was made again since"
+
+
 def test_a_partial_recipe_section_keeps_that_sections_own_defaults(tmp_path):
     """moe.train with only batch_rays keeps finetuning's lower learning rates and no growth, not the
     pretraining defaults of TrainRecipe (which used to come back silently)."""
