@@ -199,10 +199,34 @@ def main() -> None:
         out["maps"][str(res)] = row
         print(f"map {res}^3 done ({time.time() - t0:.0f} s)", file=sys.stderr)
     out["seconds"] = round(time.time() - t0)
+    out.update(table(out))
     text = json.dumps(out, indent=1)
     print(text)
     if args.out:
         args.out.write_text(text + "\n")
+
+
+def table(out: dict) -> dict:
+    """The result as a generic table of scripts/tables.py ({"columns", "rows"}): each model alone, then each lattice's
+    choices, every PSNR and SSIM over all held-out views, against the largest model alone."""
+    names = out["models"]
+    n_odd, n_even = out["test_views"] // 2, out["test_views"] - out["test_views"] // 2
+
+    def both(r: dict, key: str) -> float:
+        return (r["odd"][key] * n_odd + r["even"][key] * n_even) / out["test_views"]
+
+    top = both(out["alone"][names[-1]], "psnr")
+
+    def row(model: str, res: str, label: str, r: dict, shares: str) -> list[str]:
+        return [model, res, label, f"{both(r, 'psnr'):.3f}", f"{both(r, 'psnr') - top:+.2f}", f"{both(r, 'ssim'):.4f}",
+                shares]
+
+    rows = [row(f"{name} alone", "-", "-", r, "-") for name, r in out["alone"].items()]
+    for res, choices in out["maps"].items():
+        rows += [row("partition", f"{res}^3", label, r, " / ".join(f"{c:.2f}" for c in r["cells"]))
+                 for label, r in choices.items()]
+    return {"columns": ["model", "cells", "models chosen on", "PSNR", f"vs {names[-1]} alone", "SSIM",
+                        "rendering weight per model"], "rows": rows}
 
 
 def _field(models, route, bbox):

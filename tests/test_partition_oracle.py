@@ -67,3 +67,6 @@ def test_the_script_scores_every_choice_and_the_models_alone(trained_ws, tmp_pat
                         "random, the held-out proportions"}
     for choice in row.values():
         assert abs(sum(choice["cells"]) - 1) < 1e-3 and choice["psnr"] > 10
+    # the table docs/results.md prints (scripts/tables.py's generic table): each model alone, then each choice
+    assert len(result["rows"]) == 2 + 4 and all(len(r) == len(result["columns"]) for r in result["rows"])
+    assert result["rows"][1][4] == "+0.00"  # the largest model alone, against itself
