@@ -18,7 +18,7 @@ Controls: each model alone at the common sample positions (the finest model's st
 with the held-out choice's proportions (what the seams between models cost). Prints one JSON document.
 
     python scripts/partition_oracle.py --model NAME=WORKSPACE [--model NAME=WORKSPACE ...] [--map-res 16,32]
-        [--train-views 24] [--out FILE]
+        [--train-views 24] [--out FILE] [--device cuda]
 
 NAME=WORKSPACE names a model (`baseline`, `dvgo-80`, ...) of a workspace; give them smallest first. Every workspace
 must be of one scene, with one box.
@@ -53,7 +53,8 @@ class Routed:
     """A Field that renders each sample with one model, chosen by its cell of `route` (res^3,) ints."""
 
     def __init__(self, models: list[LoadedModel], route: Tensor, bbox: Tensor):
-        self.models, self.route, self.bbox = models, route, bbox
+        device = models[0].bbox.device
+        self.models, self.route, self.bbox = models, route.to(device), bbox.to(device)
         self.res = round(route.numel() ** (1 / 3))
 
     def which(self, xyz: Tensor) -> Tensor:
@@ -76,7 +77,7 @@ class Routed:
 
     def skip(self, xyz: Tensor) -> Tensor:
         """Each sample passes its own model's empty-space filter."""
-        keep = torch.ones(xyz.shape[0], dtype=torch.bool)
+        keep = torch.ones(xyz.shape[0], dtype=torch.bool, device=xyz.device)
         idx = self.which(xyz)
         for e, model in enumerate(self.models):
             rows = (idx == e).nonzero().squeeze(-1)
@@ -87,10 +88,11 @@ class Routed:
 
 @torch.no_grad()
 def render(field, skip, split, i: int, settings: RenderSettings) -> tuple[Tensor, Tensor]:
-    """View i -> colour (H*W, 3), weights (H*W, S)."""
+    """View i -> colour (H*W, 3), weights (H*W, S), on the CPU (rendered where the field is)."""
     o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, settings.ndc)
-    b = render_rays(field, o, d, settings, skip)
-    return b.color.clamp(0, 1), b.extras["weights"]
+    device = field.bbox.device
+    b = render_rays(field, o.to(device), d.to(device), settings, skip)
+    return b.color.clamp(0, 1).cpu(), b.extras["weights"].cpu()
 
 
 @torch.no_grad()
@@ -145,6 +147,7 @@ def main() -> None:
     ap.add_argument("--train-views", type=int, default=24, help="training views the training-view choice reads")
     ap.add_argument("--seed", type=int, default=0, help="the random partition's draw")
     ap.add_argument("--out", type=Path, help="also write the JSON here")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda: where the models render")
     args = ap.parse_args()
     models, names = [], []
     scene = None
@@ -152,7 +155,7 @@ def main() -> None:
         name, _, root = spec.partition("=")
         ws = Workspace(Path(root))
         scene = scene or workspace_scene(ws, lambda s: print(s, file=sys.stderr))
-        models.append(load_model(ws, name, "cpu"))
+        models.append(load_model(ws, name, args.device))
         names.append(f"{name}@{Path(root).name}")
     bbox = models[0].bbox.cpu()
     for m in models[1:]:
