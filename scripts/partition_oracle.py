@@ -20,7 +20,8 @@ with the held-out choice's proportions (what the seams between models cost). Pri
     python scripts/partition_oracle.py --model NAME=WORKSPACE [--model NAME=WORKSPACE ...] [--map-res 16,32]
         [--train-views 24] [--out FILE] [--device cuda]
 
-NAME=WORKSPACE names a model (`baseline`, `dvgo-80`, ...) of a workspace; give them smallest first. Every workspace
+NAME=WORKSPACE names a model (`baseline`, `dvgo-80`, ...) of a workspace; give them smallest first. A baseline is
+labelled by the expert it was trained on (dvgo-80). Every workspace
 must be of one scene, with one box.
 """
 
@@ -36,11 +37,11 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.metrics.image import psnr, ssim
-from boostnerf_cli.models import LoadedModel, load_model
+from boostnerf_cli.models import LoadedModel, load_model, model_file
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.render.renderer import RenderSettings, render_rays, sample_rays
 from boostnerf_cli.stages.common import workspace_scene
-from boostnerf_cli.workspace import Workspace
+from boostnerf_cli.workspace import Workspace, read_meta
 
 
 def cells(xyz: Tensor, bbox: Tensor, res: int) -> Tensor:
@@ -156,7 +157,9 @@ def main() -> None:
         ws = Workspace(Path(root))
         scene = scene or workspace_scene(ws, lambda s: print(s, file=sys.stderr))
         models.append(load_model(ws, name, args.device))
-        names.append(f"{name}@{Path(root).name}")
+        # a workspace's baseline is its largest expert trained on: named by that expert (dvgo-80)
+        label = read_meta(model_file(ws, name)).get("from", name) if name == "baseline" else name
+        names.append(label if label not in names else f"{label}@{Path(root).name}")
     bbox = models[0].bbox.cpu()
     for m in models[1:]:
         if not torch.allclose(m.bbox.cpu(), bbox, atol=1e-4):
@@ -167,7 +170,7 @@ def main() -> None:
     even, odd = list(range(0, len(test), 2)), list(range(1, len(test), 2))
     train_views = list(range(0, len(train), max(1, len(train) // args.train_views)))[: args.train_views]
     t0 = time.time()
-    out = {"models": names, "step": step, "test_views": len(test), "train_views": train_views,
+    out = {"inputs": names, "step": step, "test_views": len(test), "train_views": train_views,
            "alone": {}, "maps": {}}
     for e, m in enumerate(models):
         out["alone"][names[e]] = {"even": score(m.field, m.skip, test, even, settings),
@@ -212,7 +215,7 @@ def main() -> None:
 def table(out: dict) -> dict:
     """The result as a generic table of scripts/tables.py ({"columns", "rows"}): each model alone, then each lattice's
     choices, every PSNR and SSIM over all held-out views, against the largest model alone."""
-    names = out["models"]
+    names = out["inputs"]
     n_odd, n_even = out["test_views"] // 2, out["test_views"] - out["test_views"] // 2
 
     def both(r: dict, key: str) -> float:
