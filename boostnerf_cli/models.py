@@ -294,12 +294,16 @@ def current_models(ws: Workspace, names: list[str] | None = None) -> list[str]:
     reasons = {n: stale_reason(ws, n) for n in dict.fromkeys([*names, *have])}
     stale = {n: reasons[n] for n in names if reasons[n] is not None}
     if stale:
-        first = next(iter(stale))
-        what, remedy = stale[first]
+        what = next(iter(stale.values()))[0]
+        by_remedy: dict[str, list[str]] = {}  # each way of making stale models again, and the models it makes
+        for n, (_, remedy) in stale.items():
+            by_remedy.setdefault(remedy, []).append(n)
         others = [n for n in have if reasons[n] is None]
         raise BoostNerfError(
-            f"{', '.join(stale)} {'is' if len(stale) == 1 else 'are'} stale: {what}; make {first} again with "
-            f"{remedy}" + (f" (or name current models: {' '.join('--model ' + n for n in others)})" if others else ""))
+            f"{', '.join(stale)} {'is' if len(stale) == 1 else 'are'} stale: {what}; make "
+            + "; ".join(f"{', '.join(names)} again with {remedy}" if i == 0 else f"{', '.join(names)} with {remedy}"
+                        for i, (remedy, names) in enumerate(by_remedy.items()))
+            + (f" (or name current models: {' '.join('--model ' + n for n in others)})" if others else ""))
     return names
 
 

@@ -36,6 +36,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.metrics.image import psnr, ssim
 from boostnerf_cli.models import LoadedModel, load_model, model_file
 from boostnerf_cli.render.rays import image_rays
@@ -167,6 +168,9 @@ def main() -> None:
     step = min(m.step for m in models)
     settings = scene.render_settings(step, bbox)
     test, train = scene.split("test"), scene.split("train")
+    if len(test) < 2:
+        sys.exit(f"error: the scene holds out {len(test)} view(s); the cells are chosen on one half of the held-out views "
+                 "and scored on the other, so it needs at least 2 (pretrain with --holdout-every 8, or a test split)")
     even, odd = list(range(0, len(test), 2)), list(range(1, len(test), 2))
     train_views = list(range(0, len(train), max(1, len(train) // args.train_views)))[: args.train_views]
     t0 = time.time()
@@ -241,4 +245,7 @@ def _field(models, route, bbox):
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except BoostNerfError as e:  # a missing workspace or model, a scene without a test split: one line
+        sys.exit(f"error: {e}")

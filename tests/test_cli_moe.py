@@ -68,6 +68,12 @@ def test_models_made_from_a_retrained_expert_are_refused_until_made_again(moe_ws
     for name, needle in (("top2", "build-moe"), ("baseline", "--baseline --force")):
         code, err = cli_in_process(monkeypatch, capsys, "eval", "--model", name, *w)
         assert code == 2 and f"{name} is stale" in err and needle in err, err
+    # every stale model at once: each way of making them again is named, not only the first model's (probe H, session
+    # 28: the baseline's `--baseline --force` came up only after the mixtures had been remade)
+    code, err = cli_in_process(monkeypatch, capsys, "eval", *w)
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert f"make baseline again with `boostnerf finetune -w {ws} --baseline --force`; top1, top2, top1-pruned, ens with " \
+           f"`boostnerf build-moe -w {ws}`, then finetune" in err, err
     proc = run_cli("eval", "--model", "dvgo-12", "--model", "dvgo-16", "--views", "1", "--no-costs", *w, check=True)
     assert "PSNR" in proc.stderr
     run_cli("build-moe", *w, check=True)

@@ -70,3 +70,10 @@ def test_the_script_scores_every_choice_and_the_models_alone(trained_ws, tmp_pat
     # the table docs/results.md prints (scripts/tables.py's generic table): each model alone, then each choice
     assert len(result["rows"]) == 2 + 4 and all(len(r) == len(result["columns"]) for r in result["rows"])
     assert result["rows"][1][4] == "+0.00"  # the largest model alone, against itself
+
+
+def test_a_model_the_workspace_lacks_is_one_line(trained_ws):
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "partition_oracle.py"),
+                           f"--model=dvgo-99={trained_ws}", f"--model=dvgo-16={trained_ws}"], capture_output=True, text=True)
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert proc.stderr.strip().splitlines() == [f"error: no model named 'dvgo-99' in {trained_ws} (models: dvgo-12, dvgo-16)"]
