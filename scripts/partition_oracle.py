@@ -99,9 +99,10 @@ def render(field, skip, split, i: int, settings: RenderSettings) -> tuple[Tensor
 
 @torch.no_grad()
 def splat(models: list[LoadedModel], split, views: list[int], settings: RenderSettings, bbox: Tensor,
-          res: int) -> Tensor:
-    """(M, res^3) per-cell error of each model on `views`: its per-pixel squared error spread along the ray by the
-    models' mean rendering weight, divided by that weight's total in the cell (inf where no view saw the cell)."""
+          res: int) -> tuple[Tensor, Tensor]:
+    """-> (M, res^3) per-cell error of each model on `views`: its per-pixel squared error spread along the ray by the
+    models' mean rendering weight, divided by that weight's total in the cell (inf where no view saw the cell); and
+    (res^3,) that total."""
     err = torch.zeros(len(models), res**3, dtype=torch.float64)
     mass = torch.zeros(res**3, dtype=torch.float64)
     for i in views:
@@ -117,7 +118,7 @@ def splat(models: list[LoadedModel], split, views: list[int], settings: RenderSe
         for e, (rgb, _) in enumerate(outs):
             pix = ((rgb - gt) ** 2).mean(-1).double()  # (R,)
             err[e].index_add_(0, c, ws * pix[:, None].expand_as(w)[where])
-    return torch.where(mass > 0, err / mass.clamp_min(1e-30), torch.full_like(err, float("inf")))
+    return torch.where(mass > 0, err / mass.clamp_min(1e-30), torch.full_like(err, float("inf"))), mass
 
 
 @torch.no_grad()
@@ -137,7 +138,7 @@ def choose(err: Tensor, default: int) -> Tensor:
 
 
 def shares(route: Tensor, weight: Tensor, m: int) -> list[float]:
-    """How much of the rendering weight each model's cells hold."""
+    """How much of the rendering weight (`weight`, per cell) each model's cells hold."""
     total = float(weight.sum()) or 1.0
     return [round(float(weight[route == e].sum()) / total, 4) for e in range(m)]
 
@@ -183,10 +184,10 @@ def main() -> None:
     largest = len(models) - 1
     gen = torch.Generator().manual_seed(args.seed)
     for res in (int(r) for r in args.map_res.split(",")):
-        err_even = splat(models, test, even, settings, bbox, res)
-        err_odd = splat(models, test, odd, settings, bbox, res)
-        err_train = splat(models, train, train_views, settings, bbox, res)
-        mass = torch.isfinite(err_even).all(0).double()
+        err_even, mass_even = splat(models, test, even, settings, bbox, res)
+        err_odd, mass_odd = splat(models, test, odd, settings, bbox, res)
+        err_train, _ = splat(models, train, train_views, settings, bbox, res)
+        mass = mass_even + mass_odd  # the held-out views' rendering weight in each cell
         row = {}
         for label, route_for_odd, route_for_even in (
             ("training views", choose(err_train, largest), choose(err_train, largest)),

@@ -33,6 +33,23 @@ def test_each_cell_goes_to_its_lowest_error_model_and_unseen_cells_to_the_defaul
     assert oracle.choose(err, default=2).tolist() == [0, 1, 2]
 
 
+def test_a_models_share_is_the_rendering_weight_its_cells_hold_not_their_count(trained_ws, tiny_scene):
+    """The table's last column: session 29's first runs counted the cells the held-out views saw, not their weight."""
+    assert oracle.shares(torch.tensor([0, 1, 1]), torch.tensor([3.0, 1.0, 0.0], dtype=torch.float64), 2) == [0.75, 0.25]
+    ws = Workspace(trained_ws)
+    models = [load_model(ws, name, "cpu") for name in ws.expert_names()]
+    scene = load_scene(tiny_scene)
+    settings = scene.render_settings(min(m.step for m in models), models[0].bbox)
+    test = scene.split("test")
+    err, mass = oracle.splat(models, test, [0, 1], settings, models[0].bbox, 4)
+    total = 0.0
+    for i in (0, 1):
+        w = torch.stack([oracle.render(m.field, m.skip, test, i, settings)[1] for m in models]).mean(0)
+        total += float(w[w > 1e-4].double().sum())
+    assert abs(float(mass.sum()) - total) < 1e-6 * total
+    assert torch.isfinite(err).all(0).tolist() == (mass > 0).tolist()
+
+
 def test_a_partition_that_sends_every_cell_to_one_model_renders_that_model(trained_ws, tiny_scene):
     """The Routed field is only a fair partition if a one-model route is the model itself: same samples, same
     empty-space filter, same colours (bit for bit)."""
