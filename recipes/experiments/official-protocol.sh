@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh DATA OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|oracle-64|oracle-80|oracle-96|oracle200-96|oracle200-128|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|below-vd-official|seed1-below-vd-official|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|llff-m3|tensorf-m3|ngp-m3|tensorf-m3-ens|ngp-m3-ens|tensorf-m3-st|ngp-m3-st|tensorf-m3-fastgate|ngp-m3-fastgate|collect]...
+# Usage: bash recipes/experiments/official-protocol.sh DATA OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|oracle-64|oracle-80|oracle-96|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|below-vd-official|seed1-below-vd-official|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|llff-m3|tensorf-m3|ngp-m3|tensorf-m3-ens|ngp-m3-ens|tensorf-m3-st|ngp-m3-st|tensorf-m3-fastgate|ngp-m3-fastgate|collect]...
 #   DATA        the scene folder: lego's (../shared/data/lego) for every step but llff-m3, which takes fern's
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
@@ -84,8 +84,6 @@
 #   oracle-64, oracle-80, oracle-96  single models for scripts/partition_oracle.py: dvgo-64, dvgo-80 and dvgo-96,
 #               each with a 2 x 128 colour MLP, alone for the baseline's 1,000 + 5,000 steps (two-expert recipes 56/64,
 #               72/80, 88/96) -> OUT/oracle-64, OUT/oracle-80, OUT/oracle-96 (their `baseline`)
-#   oracle200-96, oracle200-128  the same on 200 px views: dvgo-96 and dvgo-128 (2 x 128 MLPs) alone for 1,000 + 5,000
-#               steps (two-expert recipes 88/96, 112/128) -> OUT/oracle200-96, OUT/oracle200-128
 #   llff-m3     M = 3 away from lego: a LLFF forward-facing scene (fern, ../shared/data/fern, in NDC) at 252 px wide
 #               (images_8 halved), m3's experts and the official recipe otherwise, 3,000 joint steps (a fern step
 #               costs ~5x a lego one: ~120 samples per ray pass the occupancy grid, ~50 are coloured); the baseline (dvgo-80, 1,000 + 3,000
@@ -292,8 +290,6 @@ for what in "$@"; do
     oracle-64) alone oracle-64 "56, 64" "56: 128, 64: 128" 56 ;;
     oracle-80) alone oracle-80 "72, 80" "72: 128, 80: 128" 72 ;;
     oracle-96) alone oracle-96 "88, 96" "88: 128, 96: 128" 88 ;;
-    oracle200-96) alone oracle200-96 "88, 96" "88: 128, 96: 128" 88 data.image_size=200 ;;
-    oracle200-128) alone oracle200-128 "112, 128" "112: 128, 128: 128" 112 data.image_size=200 ;;
     m3-alone)
       alone m3-alone64 "56, 64" "56: 64, 64: 64" 56
       alone m3-alone72 "64, 72" "64: 64, 72: 96" 64 ;;
@@ -412,6 +408,6 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
     print("wrote", data / f"issue18-{tag}{ws.name}.json")
 PY
       ;;
-    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, oracle-64, oracle-80, oracle-96, oracle200-96, oracle200-128, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, seed1-below, below-step40, below-vd-official, seed1-below-vd-official, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, llff-m3, tensorf-m3, ngp-m3, tensorf-m3-ens, ngp-m3-ens, tensorf-m3-st, ngp-m3-st, tensorf-m3-fastgate, ngp-m3-fastgate, collect)" >&2; exit 2 ;;
+    *) echo "unknown step $what (m3, m4, m5, ablation, raw, seed1, ens, ens-m3, ens-m4, ens-m5, ablation-budget, lamX, penalty-P, vd-official, vd-largest, vd-visible, seed1-vd-official, seed1-all-official, gate-outside, gate-inside, all-official, all-official-top2, wideX, noiseX, long-base, long-top1, seed1-m3, seed1-m4, seed1-m5, hires, seed1-hires, hires-base96, m3-alone, oracle-64, oracle-80, oracle-96, same-mlp, seed1-same-mlp, same-mlp-step64, same-mlp-tuned, same-mlp-step64-tuned, seed1-same-mlp-step64-tuned, ladder, below, seed1-below, below-step40, below-vd-official, seed1-below-vd-official, px200, px200-alone, paper, paper-m3, paper-m4, paper-m5, llff-m3, tensorf-m3, ngp-m3, tensorf-m3-ens, ngp-m3-ens, tensorf-m3-st, ngp-m3-st, tensorf-m3-fastgate, ngp-m3-fastgate, collect)" >&2; exit 2 ;;
   esac
 done
