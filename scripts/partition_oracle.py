@@ -99,12 +99,12 @@ def render(field, skip, split, i: int, settings: RenderSettings) -> tuple[Tensor
 
 @torch.no_grad()
 def splat(models: list[LoadedModel], split, views: list[int], settings: RenderSettings, bbox: Tensor,
-          res: int) -> tuple[Tensor, Tensor]:
-    """-> (M, res^3) per-cell error of each model on `views`: its per-pixel squared error spread along the ray by the
-    models' mean rendering weight, divided by that weight's total in the cell (inf where no view saw the cell); and
-    (res^3,) that total."""
-    err = torch.zeros(len(models), res**3, dtype=torch.float64)
-    mass = torch.zeros(res**3, dtype=torch.float64)
+          resolutions: list[int]) -> dict[int, tuple[Tensor, Tensor]]:
+    """-> {res: ((M, res^3) per-cell error of each model on `views`, (res^3,) rendering weight)}: each model's per-pixel
+    squared error spread along the ray by the models' mean rendering weight, divided by that weight's total in the
+    cell (inf where no view saw the cell). Each view is rendered once for every lattice."""
+    err = {res: torch.zeros(len(models), res**3, dtype=torch.float64) for res in resolutions}
+    mass = {res: torch.zeros(res**3, dtype=torch.float64) for res in resolutions}
     for i in views:
         gt = split.images[i].reshape(-1, 3)
         outs = [render(m.field, m.skip, split, i, settings) for m in models]
@@ -112,13 +112,20 @@ def splat(models: list[LoadedModel], split, views: list[int], settings: RenderSe
         _, valid, xyz, _ = sample_rays(o, d, settings, jitter=False)
         w = torch.stack([wt for _, wt in outs]).mean(0)  # (R, S)
         where = valid & (w > 1e-4)
-        c = cells(xyz[where], bbox, res)
         ws = w[where].double()
-        mass.index_add_(0, c, ws)
-        for e, (rgb, _) in enumerate(outs):
-            pix = ((rgb - gt) ** 2).mean(-1).double()  # (R,)
-            err[e].index_add_(0, c, ws * pix[:, None].expand_as(w)[where])
-    return torch.where(mass > 0, err / mass.clamp_min(1e-30), torch.full_like(err, float("inf"))), mass
+        pix = [((rgb - gt) ** 2).mean(-1).double()[:, None].expand_as(w)[where] for rgb, _ in outs]  # per sample
+        for res in resolutions:
+            c = cells(xyz[where], bbox, res)
+            mass[res].index_add_(0, c, ws)
+            for e, p in enumerate(pix):
+                err[res][e].index_add_(0, c, ws * p)
+    return {res: (torch.where(mass[res] > 0, err[res] / mass[res].clamp_min(1e-30),
+                              torch.full_like(err[res], float("inf"))), mass[res]) for res in resolutions}
+
+
+def pooled(odd: dict, even: dict, n_odd: int, n_even: int, key: str) -> float:
+    """The mean PSNR (or SSIM) over all held-out views from the means over the odd and the even ones."""
+    return (odd[key] * n_odd + even[key] * n_even) / (n_odd + n_even)
 
 
 @torch.no_grad()
@@ -177,36 +184,39 @@ def main() -> None:
     t0 = time.time()
     out = {"inputs": names, "step": step, "test_views": len(test), "train_views": train_views,
            "alone": {}, "maps": {}}
+    n_odd, n_even = len(odd), len(even)
+
+    def halves(route_for_odd: Tensor, route_for_even: Tensor | None = None) -> dict:
+        """A route's scores on the odd and the even views (another route for the even ones), and over all."""
+        s_odd = score(*_field(models, route_for_odd, bbox), test, odd, settings)
+        s_even = score(*_field(models, route_for_odd if route_for_even is None else route_for_even, bbox), test,
+                       even, settings)
+        return {"odd": s_odd, "even": s_even, "psnr": round(pooled(s_odd, s_even, n_odd, n_even, "psnr"), 4)}
+
     for e, m in enumerate(models):
-        out["alone"][names[e]] = {"even": score(m.field, m.skip, test, even, settings),
-                                  "odd": score(m.field, m.skip, test, odd, settings),
-                                  "all": score(m.field, m.skip, test, list(range(len(test))), settings)}
+        s_odd, s_even = (score(m.field, m.skip, test, views, settings) for views in (odd, even))
+        out["alone"][names[e]] = {"even": s_even, "odd": s_odd, "all": {
+            "psnr": round(pooled(s_odd, s_even, n_odd, n_even, "psnr"), 4),
+            "ssim": round(pooled(s_odd, s_even, n_odd, n_even, "ssim"), 5)}}
     largest = len(models) - 1
     gen = torch.Generator().manual_seed(args.seed)
-    for res in (int(r) for r in args.map_res.split(",")):
-        err_even, mass_even = splat(models, test, even, settings, bbox, res)
-        err_odd, mass_odd = splat(models, test, odd, settings, bbox, res)
-        err_train, _ = splat(models, train, train_views, settings, bbox, res)
+    resolutions = [int(r) for r in args.map_res.split(",")]
+    on_even, on_odd, on_train = (splat(models, split, views, settings, bbox, resolutions)
+                                 for split, views in ((test, even), (test, odd), (train, train_views)))
+    for res in resolutions:
+        (err_even, mass_even), (err_odd, mass_odd), (err_train, _) = on_even[res], on_odd[res], on_train[res]
         mass = mass_even + mass_odd  # the held-out views' rendering weight in each cell
         row = {}
         for label, route_for_odd, route_for_even in (
-            ("training views", choose(err_train, largest), choose(err_train, largest)),
+            ("training views", choose(err_train, largest), None),
             ("the other held-out half", choose(err_even, largest), choose(err_odd, largest)),
             ("the scored views (upper bound)", choose(err_odd, largest), choose(err_even, largest)),
         ):
-            s_odd = score(*_field(models, route_for_odd, bbox), test, odd, settings)
-            s_even = score(*_field(models, route_for_even, bbox), test, even, settings)
-            row[label] = {"odd": s_odd, "even": s_even,
-                          "psnr": round((s_odd["psnr"] * len(odd) + s_even["psnr"] * len(even)) / len(test), 4),
-                          "cells": shares(route_for_odd, mass, len(models))}
+            row[label] = {**halves(route_for_odd, route_for_even), "cells": shares(route_for_odd, mass, len(models))}
         # seams: a random partition in the proportions of the held-out choice
         p = torch.tensor([max(v, 1e-6) for v in row["the other held-out half"]["cells"]])
         rand = torch.multinomial(p / p.sum(), res**3, replacement=True, generator=gen)
-        s_odd = score(*_field(models, rand, bbox), test, odd, settings)
-        s_even = score(*_field(models, rand, bbox), test, even, settings)
-        row["random, the held-out proportions"] = {
-            "odd": s_odd, "even": s_even, "psnr": round((s_odd["psnr"] * len(odd) + s_even["psnr"] * len(even)) / len(test), 4),
-            "cells": shares(rand, mass, len(models))}
+        row["random, the held-out proportions"] = {**halves(rand), "cells": shares(rand, mass, len(models))}
         out["maps"][str(res)] = row
         print(f"map {res}^3 done ({time.time() - t0:.0f} s)", file=sys.stderr)
     out["seconds"] = round(time.time() - t0)
@@ -224,7 +234,7 @@ def table(out: dict) -> dict:
     n_odd, n_even = out["test_views"] // 2, out["test_views"] - out["test_views"] // 2
 
     def both(r: dict, key: str) -> float:
-        return (r["odd"][key] * n_odd + r["even"][key] * n_even) / out["test_views"]
+        return pooled(r["odd"], r["even"], n_odd, n_even, key)
 
     top = both(out["alone"][names[-1]], "psnr")
 

@@ -206,19 +206,14 @@ def test_the_partition_oracle_routes_models_of_any_family(family_ws, tiny_scene)
     """scripts/partition_oracle.py (issue 18, session 29) treats models as black boxes, as the mixture does: a route
     that sends every cell to one TensoRF or Instant-NGP model renders exactly that model, and a split route renders
     both families in one image."""
-    import importlib.util
-    from pathlib import Path
-
     import torch
+    from helpers import load_script
 
     from boostnerf_cli.models import load_model
     from boostnerf_cli.scenes import load_scene
     from boostnerf_cli.workspace import Workspace
 
-    spec = importlib.util.spec_from_file_location("partition_oracle",
-                                                  Path(__file__).parent.parent / "scripts" / "partition_oracle.py")
-    oracle = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(oracle)
+    oracle = load_script("partition_oracle")
     ws = Workspace(family_ws)
     models = [load_model(ws, name, "cpu") for name in ("tensorf-14", "ngp-3")]
     assert torch.allclose(models[0].bbox, models[1].bbox)

@@ -3,22 +3,20 @@ claims to be, and its choice of model per cell."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import torch
+from helpers import load_script
 
 from boostnerf_cli.models import load_model
 from boostnerf_cli.scenes import load_scene
 from boostnerf_cli.workspace import Workspace
 
 ROOT = Path(__file__).parent.parent
-_spec = importlib.util.spec_from_file_location("partition_oracle", ROOT / "scripts" / "partition_oracle.py")
-oracle = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(oracle)
+oracle = load_script("partition_oracle")
 
 
 def test_cells_index_the_lattice_and_clamp_the_box_edges():
@@ -41,7 +39,7 @@ def test_a_models_share_is_the_rendering_weight_its_cells_hold_not_their_count(t
     scene = load_scene(tiny_scene)
     settings = scene.render_settings(min(m.step for m in models), models[0].bbox)
     test = scene.split("test")
-    err, mass = oracle.splat(models, test, [0, 1], settings, models[0].bbox, 4)
+    err, mass = oracle.splat(models, test, [0, 1], settings, models[0].bbox, [4])[4]
     total = 0.0
     for i in (0, 1):
         w = torch.stack([oracle.render(m.field, m.skip, test, i, settings)[1] for m in models]).mean(0)
