@@ -41,7 +41,7 @@ from boostnerf_cli.metrics.image import psnr, ssim
 from boostnerf_cli.models import LoadedModel, load_model, model_file
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.render.renderer import RenderSettings, render_rays, sample_rays
-from boostnerf_cli.stages.common import workspace_scene
+from boostnerf_cli.stages.common import resolve_device, workspace_scene
 from boostnerf_cli.workspace import Workspace, read_meta
 
 
@@ -150,22 +150,54 @@ def shares(route: Tensor, weight: Tensor, m: int) -> list[float]:
     return [round(float(weight[route == e].sum()) / total, 4) for e in range(m)]
 
 
+def model_spec(text: str) -> tuple[str, str]:
+    """--model NAME=WORKSPACE -> (NAME, WORKSPACE)."""
+    name, sep, root = text.partition("=")
+    if not (sep and name and root):
+        raise argparse.ArgumentTypeError(f"{text!r}: give NAME=WORKSPACE, e.g. baseline=OUT/oracle-80")
+    return name, root
+
+
+def lattices(text: str) -> list[int]:
+    """--map-res 16,32 -> [16, 32]."""
+    try:
+        values = [int(r) for r in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or not all(1 <= v <= 256 for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: give lattice sizes from 1 to 256, comma-separated, e.g. 16,32")
+    return values
+
+
+def positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: give a whole number of at least 1")
+    return value
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--model", action="append", required=True, help="NAME=WORKSPACE, smallest model first")
-    ap.add_argument("--map-res", default="16,32", help="lattice resolutions, comma-separated")
-    ap.add_argument("--train-views", type=int, default=24, help="training views the training-view choice reads")
+    ap.add_argument("--model", action="append", required=True, type=model_spec,
+                    help="NAME=WORKSPACE, smallest model first (at least two)")
+    ap.add_argument("--map-res", default=[16, 32], type=lattices, help="lattice resolutions, comma-separated")
+    ap.add_argument("--train-views", type=positive, default=24, help="training views the training-view choice reads")
     ap.add_argument("--seed", type=int, default=0, help="the random partition's draw")
     ap.add_argument("--out", type=Path, help="also write the JSON here")
-    ap.add_argument("--device", default="cpu", help="cpu or cuda: where the models render")
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the models render")
     args = ap.parse_args()
+    if len(args.model) < 2:
+        ap.error("give at least two --model NAME=WORKSPACE to partition between")
+    device = resolve_device(args.device)  # cuda without a GPU: one line
     models, names = [], []
     scene = None
-    for spec in args.model:
-        name, _, root = spec.partition("=")
+    for name, root in args.model:
         ws = Workspace(Path(root))
         scene = scene or workspace_scene(ws, lambda s: print(s, file=sys.stderr))
-        models.append(load_model(ws, name, args.device))
+        models.append(load_model(ws, name, device))
         # a workspace's baseline is its largest expert trained on: named by that expert (dvgo-80)
         label = read_meta(model_file(ws, name)).get("from", name) if name == "baseline" else name
         names.append(label if label not in names else f"{label}@{Path(root).name}")
@@ -200,7 +232,7 @@ def main() -> None:
             "ssim": round(pooled(s_odd, s_even, n_odd, n_even, "ssim"), 5)}}
     largest = len(models) - 1
     gen = torch.Generator().manual_seed(args.seed)
-    resolutions = [int(r) for r in args.map_res.split(",")]
+    resolutions = args.map_res
     on_even, on_odd, on_train = (splat(models, split, views, settings, bbox, resolutions)
                                  for split, views in ((test, even), (test, odd), (train, train_views)))
     for res in resolutions:

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 from helpers import load_script
 
@@ -92,3 +93,29 @@ def test_a_model_the_workspace_lacks_is_one_line(trained_ws):
                            f"--model=dvgo-99={trained_ws}", f"--model=dvgo-16={trained_ws}"], capture_output=True, text=True)
     assert proc.returncode == 1 and proc.stdout == ""
     assert proc.stderr.strip().splitlines() == [f"error: no model named 'dvgo-99' in {trained_ws} (models: dvgo-12, dvgo-16)"]
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--map-res", "abc"], "argument --map-res: 'abc': give lattice sizes from 1 to 256"),
+    (["--map-res", "0"], "argument --map-res: '0': give lattice sizes from 1 to 256"),
+    (["--train-views", "0"], "argument --train-views: '0': give a whole number of at least 1"),
+    (["--model", "dvgo-16"], "argument --model: 'dvgo-16': give NAME=WORKSPACE"),
+])
+def test_a_bad_value_is_one_line_not_a_traceback(trained_ws, args, says):
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "partition_oracle.py"),
+                           f"--model=dvgo-12={trained_ws}", f"--model=dvgo-16={trained_ws}", *args],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stdout == "" and "Traceback" not in proc.stderr, proc.stderr
+    assert says in proc.stderr.strip().splitlines()[-1]
+
+
+def test_one_model_or_cuda_without_a_gpu_is_refused_in_one_line(trained_ws):
+    run = lambda *a: subprocess.run([sys.executable, str(ROOT / "scripts" / "partition_oracle.py"), *a],  # noqa: E731
+                                    capture_output=True, text=True)
+    proc = run(f"--model=dvgo-16={trained_ws}")
+    assert proc.returncode == 2 and "give at least two --model" in proc.stderr and "Traceback" not in proc.stderr
+    if not torch.cuda.is_available():
+        proc = run(f"--model=dvgo-12={trained_ws}", f"--model=dvgo-16={trained_ws}", "--device", "cuda")
+        assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+        assert proc.stderr.strip().splitlines() == [
+            "error: --device cuda was asked for but torch sees no CUDA GPU: use --device cpu or auto"]
