@@ -14,7 +14,7 @@ from contextlib import nullcontext
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -226,15 +226,6 @@ def _non_finite_entry(obj, where: str = "") -> str | None:
     return None
 
 
-def _kept(checkpoint: Path | None) -> str:
-    """What a stopped run keeps, for its error message."""
-    if checkpoint is None:
-        return "this short stage keeps no checkpoint"
-    if checkpoint.exists():
-        return f"the last good checkpoint {checkpoint} is kept (rerunning resumes from it)"
-    return "no checkpoint had been written yet"
-
-
 # how a setting of a training signature is given, for messages (others are named by their recipe key)
 SETTING_NAMES = {"iters": "--iters", "seed": "--seed", "lam": "--lambda", "penalty": "--penalty",
                  "renormalize": "--renormalize", "wide_steps": "--wide-start (in steps)", "gate_noise": "--gate-noise",
@@ -278,16 +269,6 @@ def _difference(saved: dict | None, wanted: dict | None, unrecorded: list[str]) 
     return first_difference({**saved, **{key: wanted[key] for key in unrecorded}}, wanted)
 
 
-def _check_signature(path: Path, saved: dict | None, wanted: dict | None, unrecorded: list[str]) -> None:
-    """Refuse to resume a checkpoint written with settings that change what is being trained."""
-    if (key := _difference(saved, wanted, unrecorded)) is None:
-        return
-    raise BoostNerfError(
-        f"training checkpoint {path} was written with other settings ({setting_change(key, saved.get(key), wanted.get(key))}): "
-        "rerun with the settings it was made with to resume, add --force to restart this model with these, or delete it"
-    )
-
-
 def batch_gradients(task: TrainTask, rays: RayData, idx: Tensor, step: int,
                     parallel: bool = False) -> tuple[bool, bool, dict[str, float]]:
     """The loss of the batch `idx` and its gradient, accumulated in the parameters' .grad.
@@ -308,148 +289,91 @@ def batch_gradients(task: TrainTask, rays: RayData, idx: Tensor, step: int,
     return loss.requires_grad, finite, logs
 
 
-def train(
-    task: TrainTask,
-    rays: RayData,
-    sched: Schedule,
-    seed: int,
-    title: str,
-    checkpoint: Path | None = None,
-    on_log: Callable[[int, dict], None] | None = None,
-    signature: dict | None = None,
-    data_parallel: bool = False,
-    restart_other: bool = False,
-) -> TrainResult:
-    """Run `sched.iters` steps of `task` on random batches of `rays`, resuming from `checkpoint`.
+@dataclass
+class Step:
+    """What one optimiser step did: `learnable` (False when every sample of the batch was skipped: nothing to
+    learn), `finite_loss`, `applied` (the update was taken: a finite loss and finite gradients), the logs, and the
+    parameters it updates."""
 
-    `checkpoint` is written atomically every `sched.checkpoint_every` steps and after the last step
-    (model, optimiser, step, skipped-step count, history, batch and global RNG states, `signature`);
-    a checkpoint whose `signature` (the settings that define what is trained) differs is refused, or with
-    `restart_other` (pretrain's and finetune's --force) dropped: the model trains from its first step. A checkpoint
-    of the same settings is resumed either way (an interrupted --force run goes on when rerun).
-    A non-finite loss or gradient skips the step (counted, reported); `sched.max_bad_steps`
-    consecutive ones stop the run. A state with non-finite values is never checkpointed.
+    learnable: bool
+    finite_loss: bool
+    applied: bool
+    logs: dict[str, float]
+    params: list[Tensor]
 
-    `data_parallel` under torchrun: every rank draws the same global batch, trains on its shard, and
-    the gradients are averaged (`batch_gradients`), so a step is the one-process step on the whole
-    batch; every rank keeps the same state, rank 0 alone prints and writes the checkpoint, and the
-    checkpoint does not depend on the number of ranks (docs/distributed.md).
-    """
-    parallel = data_parallel and dist.world_size() > 1
-    if len(rays) == 0:  # torch.randint over no rays raised "random_ expects 'from' to be less than 'to'"
-        raise BoostNerfError(f"{title}: no training ray crosses the box this model is trained in: if the recipe sets "
-                             "data.bbox, it must hold what the cameras see")
-    if parallel and sched.batch_rays % dist.world_size():
-        raise BoostNerfError(f"train.batch_rays ({sched.batch_rays}) must be divisible by the number of processes "
-                             f"({dist.world_size()}) to split every batch evenly: change one of them")
-    gen = torch.Generator(device="cpu").manual_seed(seed)
-    torch.manual_seed(seed)
-    start, elapsed, skipped, history = 0, 0.0, 0, []
-    trend = PsnrTrend()
-    opt: torch.optim.Optimizer | None = None
-    state = None
-    unrecorded: list[str] = []
-    if checkpoint is not None and checkpoint.exists():
-        try:
-            state = torch.load(checkpoint, map_location="cpu", weights_only=True)
-        except Exception as e:  # a damaged checkpoint: say so, do not train from a wrong state
-            raise BoostNerfError(f"training checkpoint {checkpoint} is damaged ({type(e).__name__}); delete it to restart this model") from None
-        if not isinstance(state, dict):
-            raise BoostNerfError(f"training checkpoint {checkpoint} is not a boostnerf training state; "
-                                 "delete it to restart this model")
-        unrecorded = unrecorded_settings(state, signature)
-        if restart_other and _difference(state.get("signature"), signature, unrecorded) is not None:
-            state, unrecorded = None, []  # --force: a checkpoint of other settings is dropped (overwritten later)
-    if state is not None:
-        try:
-            _check_signature(checkpoint, state.get("signature"), signature, unrecorded)
-            task.load_state(state["task"])
-            opt = make_optimizer(task)
-            rates = [g["initial_lr"] for g in opt.param_groups]  # this run's recipe's learning rates
-            opt.load_state_dict(state["optim"])
-            for g, lr in zip(opt.param_groups, rates):  # the state brought back the interrupted run's; a diverged run
-                g["initial_lr"] = lr  # resumed with lower rates (the advice it gives) trained on at the old ones
-            start, elapsed, skipped, history = (int(state["step"]), float(state["seconds"]), int(state["skipped"]),
-                                                list(state["history"]))
-            if state.get("trend") is not None:  # checkpoints before session 24 did not keep it
-                trend.load_state(state["trend"])
-            gen.set_state(state["gen"])
-            torch.set_rng_state(state["rng"])
-            restore_cuda_rng(state.get("cuda_rng"), rays.origins.device)
-        except MALFORMED as e:
-            raise BoostNerfError(f"training checkpoint {checkpoint} does not hold this model's training state "
-                                 f"({malformed(e)}); delete it to restart this model") from None
-    progress = Progress(title, sched.iters, start, sched.log_every, quiet=parallel and not dist.is_main())
-    if start > 0:
-        progress.warn(f"resuming from {checkpoint} at step {start}/{sched.iters}")
-    if unrecorded:
-        progress.warn(f"note: {checkpoint} comes from an earlier boostnerf, which did not record "
-                      f"{' or '.join(SETTING_NAMES.get(k, k) for k in unrecorded)}; resuming with this run's")
-    bad_run = 0
-    t0 = time.perf_counter() - elapsed
+
+def optimizer_step(task: TrainTask, rays: RayData, sched: Schedule, opt: torch.optim.Optimizer | None,
+                   gen: torch.Generator, step: int, parallel: bool) -> tuple[torch.optim.Optimizer | None, Step]:
+    """One training step: the optimiser (re)built when the task changed its parameters (`before_step`), the step's
+    learning rates, a batch drawn from `gen`, its gradient (data parallel: averaged over the ranks), and the update
+    when the loss and every gradient are finite (else the gradients are dropped). -> (the optimiser, the step)."""
+    learnable, finite_loss, logs, failure = False, True, {}, None
     try:
-        for step in range(start, sched.iters):
-            learnable, finite_loss, logs, failure = False, True, {}, None
-            try:
-                if task.before_step(step) or opt is None:
-                    opt = make_optimizer(task)
-                _set_lr(opt, step, sched)
-                idx = torch.randint(0, len(rays), (sched.batch_rays,), generator=gen).to(rays.origins.device)
-                opt.zero_grad(set_to_none=True)
-                learnable, finite_loss, logs = batch_gradients(task, rays, idx, step, parallel)
-            except Exception as e:
-                if not parallel:
-                    raise
-                failure = e  # every rank stops with this rank's message (in average_gradients)
-            params = [p for g in opt.param_groups for p in g["params"]] if opt is not None else []
-            if parallel:
-                learnable, finite_loss, logs = dist.average_gradients(params, learnable, finite_loss, logs, failure)
-            if learnable:  # False when every sample of the batch was skipped: nothing to learn
-                if finite_loss and all_finite(params):
-                    bad_run = 0
-                    opt.step()
-                else:
-                    skipped += 1
-                    bad_run += 1
-                    opt.zero_grad(set_to_none=True)
-                    progress.warn(f"step {step + 1}: non-finite {'gradient' if finite_loss else 'loss'}, "
-                                  f"step skipped ({skipped} so far)")
-                    # Skipping cannot help when the parameters themselves are gone (an overflowing step).
-                    if not all(bool(torch.isfinite(p).all()) for p in params):
-                        raise BoostNerfError(
-                            f"training diverged: the parameters became non-finite by step {step + 1} (an "
-                            f"optimiser step overflowed); {_kept(checkpoint)}: lower the learning rates in the recipe"
-                        )
-                    if bad_run >= sched.max_bad_steps:
-                        raise BoostNerfError(
-                            f"training diverged: {bad_run} consecutive steps had a non-finite loss or gradient "
-                            f"(last at step {step + 1}); {_kept(checkpoint)}: lower the learning rates in the "
-                            "recipe or check the data"
-                        )
-            done = step + 1
-            trend.add(logs.get("psnr"))
-            if done % sched.log_every == 0 or done == sched.iters:
-                entry = {"step": done, "seconds": round(time.perf_counter() - t0, 2), **logs}
-                mean = trend.close_interval()
-                if mean is not None:
-                    entry["psnr_mean"] = round(mean, 3)
-                history.append(entry)
-                warning = trend.falling_warning(done)
-                if warning:
-                    progress.warn(warning)
-                if on_log is not None:
-                    on_log(done, entry)
-            progress.update(done, logs)
-            if checkpoint is not None and (done % sched.checkpoint_every == 0 or done == sched.iters):
-                save = partial(_save_checkpoint, checkpoint, task, opt, done, time.perf_counter() - t0, skipped,
-                               history, gen, signature, trend, rays.origins.device)
-                if parallel:
-                    dist.on_main(save)  # one file for all ranks (they hold the same state)
-                else:
-                    save()
-    finally:
-        progress.close()
-    return TrainResult(sched.iters, time.perf_counter() - t0, skipped, history)
+        if task.before_step(step) or opt is None:
+            opt = make_optimizer(task)
+        _set_lr(opt, step, sched)
+        idx = torch.randint(0, len(rays), (sched.batch_rays,), generator=gen).to(rays.origins.device)
+        opt.zero_grad(set_to_none=True)
+        learnable, finite_loss, logs = batch_gradients(task, rays, idx, step, parallel)
+    except Exception as e:
+        if not parallel:
+            raise
+        failure = e  # every rank stops with this rank's message (in average_gradients)
+    params = [p for g in opt.param_groups for p in g["params"]] if opt is not None else []
+    if parallel:
+        learnable, finite_loss, logs = dist.average_gradients(params, learnable, finite_loss, logs, failure)
+    applied = learnable and finite_loss and all_finite(params)
+    if applied:
+        opt.step()
+    elif learnable:
+        opt.zero_grad(set_to_none=True)
+    return opt, Step(learnable, finite_loss, applied, logs, params)
+
+
+@dataclass
+class RunState:
+    """How far a run is: steps done, seconds trained, non-finite steps skipped, the logged history and the PSNR
+    trend (what a checkpoint keeps besides the model, the optimiser and the random states), and the current run
+    of consecutive non-finite steps."""
+
+    step: int = 0
+    seconds: float = 0.0
+    skipped: int = 0
+    history: list[dict] = field(default_factory=list)
+    trend: PsnrTrend = field(default_factory=PsnrTrend)
+    bad_run: int = 0
+
+    def guard(self, step: Step, done: int, sched: Schedule, checkpoint: Path | None, progress: Progress) -> None:
+        """The NaN guard, after a learnable step: a skipped step is counted and said; the run stops when the
+        parameters themselves are no longer finite (an overflowing update) or after `sched.max_bad_steps`
+        consecutive skipped steps (its message says what the `checkpoint` keeps)."""
+        if step.applied:
+            self.bad_run = 0
+            return
+        self.skipped += 1
+        self.bad_run += 1
+        progress.warn(f"step {done}: non-finite {'gradient' if step.finite_loss else 'loss'}, "
+                      f"step skipped ({self.skipped} so far)")
+        # Skipping cannot help when the parameters themselves are gone (an overflowing step).
+        if not all(bool(torch.isfinite(p).all()) for p in step.params):
+            raise BoostNerfError(f"training diverged: the parameters became non-finite by step {done} (an "
+                                 f"optimiser step overflowed); {kept(checkpoint)}: lower the learning rates in the recipe")
+        if self.bad_run >= sched.max_bad_steps:
+            raise BoostNerfError(f"training diverged: {self.bad_run} consecutive steps had a non-finite loss or "
+                                 f"gradient (last at step {done}); {kept(checkpoint)}: lower the learning rates in the recipe "
+                                 "or check the data")
+
+    def log(self, done: int, logs: dict[str, float], seconds: float, sched: Schedule) -> str | None:
+        """Add a step's PSNR to the trend; at a logging step, an entry of the history. -> a falling-PSNR warning."""
+        self.trend.add(logs.get("psnr"))
+        if done % sched.log_every and done != sched.iters:
+            return None
+        entry = {"step": done, "seconds": round(seconds, 2), **logs}
+        mean = self.trend.close_interval()
+        if mean is not None:
+            entry["psnr_mean"] = round(mean, 3)
+        self.history.append(entry)
+        return self.trend.falling_warning(done)
 
 
 def cuda_rng_state(device: torch.device) -> Tensor | None:
@@ -472,30 +396,150 @@ def restore_cuda_rng(state: Tensor | list | None, device: torch.device) -> None:
     torch.cuda.set_rng_state(state, device)
 
 
-def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, step: int, seconds: float,
-                     skipped: int, history: list, gen: torch.Generator, signature: dict | None = None,
-                     trend: PsnrTrend | None = None, device: torch.device | None = None) -> None:
-    """Write the resumable state atomically; a state with NaN or infinity stops the run instead
-    (the previous checkpoint stays, so nothing before it is lost)."""
-    task_state, optim_state = task.state(), opt.state_dict()
-    bad = _non_finite_entry(task_state) or _non_finite_entry(optim_state, "optimiser")
-    if bad is not None:
-        raise BoostNerfError(
-            f"training diverged: {bad} holds non-finite values at step {step}, so it is not checkpointed; "
-            f"{_kept(path)}: lower the learning rates in the recipe or check the data"
-        )
-    state = {
-        "task": task_state,
-        "optim": optim_state,
-        "step": step,
-        "seconds": seconds,
-        "skipped": skipped,
-        "history": history,
-        "gen": gen.get_state(),
-        "rng": torch.get_rng_state(),
-        "cuda_rng": None if device is None else cuda_rng_state(device),
-        "signature": signature,
-        "trend": None if trend is None else trend.state(),
-    }
-    save_torch(path, state)
-    kill_point_for_tests("checkpoint")  # inert unless a resume test asks for it (workspace.TEST_KILL_ENV)
+def kept(path: Path | None) -> str:
+    """What a stopped run keeps, for its error message."""
+    if path is None:
+        return "this short stage keeps no checkpoint"
+    if path.exists():
+        return f"the last good checkpoint {path} is kept (rerunning resumes from it)"
+    return "no checkpoint had been written yet"
+
+
+class TrainCheckpoint:
+    """A run's resumable state in one file, written atomically: the task's state, the optimiser's, the run's
+    counters (`RunState`), the batch generator's, torch's and the CUDA device's random states (a resumed run draws
+    what an uninterrupted one does), and `signature`, the settings that define what is trained.
+
+    A checkpoint of another signature is refused, or with `restart_other` (pretrain's and finetune's --force)
+    dropped: the model trains from its first step. A checkpoint of the same settings is resumed either way (an
+    interrupted --force run goes on when rerun). A state with non-finite values is never written.
+    """
+
+    def __init__(self, path: Path, signature: dict | None = None, restart_other: bool = False):
+        self.path, self.signature, self.restart_other = path, signature, restart_other
+        self.unrecorded: list[str] = []  # settings an earlier boostnerf's checkpoint did not record
+
+    def load(self) -> dict | None:
+        """The state to resume from; None when there is none (no file, or --force over other settings)."""
+        if not self.path.exists():
+            return None
+        try:
+            state = torch.load(self.path, map_location="cpu", weights_only=True)
+        except Exception as e:  # a damaged checkpoint: say so, do not train from a wrong state
+            raise BoostNerfError(f"training checkpoint {self.path} is damaged ({type(e).__name__}); delete it to "
+                                 "restart this model") from None
+        if not isinstance(state, dict):
+            raise BoostNerfError(f"training checkpoint {self.path} is not a boostnerf training state; "
+                                 "delete it to restart this model")
+        self.unrecorded = unrecorded_settings(state, self.signature)
+        if self.restart_other and _difference(state.get("signature"), self.signature, self.unrecorded) is not None:
+            self.unrecorded = []
+            return None  # --force: a checkpoint of other settings is dropped (overwritten later)
+        return state
+
+    def _check_signature(self, saved: dict | None) -> None:
+        """Refuse to resume a checkpoint written with settings that change what is being trained."""
+        if (key := _difference(saved, self.signature, self.unrecorded)) is None:
+            return
+        change = setting_change(key, saved.get(key), self.signature.get(key))
+        raise BoostNerfError(f"training checkpoint {self.path} was written with other settings ({change}): rerun "
+                             "with the settings it was made with to resume, add --force to restart this model with "
+                             "these, or delete it")
+
+    def resume(self, task: TrainTask, gen: torch.Generator,
+               device: torch.device) -> tuple[torch.optim.Optimizer | None, RunState]:
+        """Bring `task`, a new optimiser, `gen` and torch's random states back to the saved state.
+        -> (the optimiser, the run's counters); (None, a new run) when there is nothing to resume."""
+        state = self.load()
+        if state is None:
+            return None, RunState()
+        try:
+            self._check_signature(state.get("signature"))
+            task.load_state(state["task"])
+            opt = make_optimizer(task)
+            rates = [g["initial_lr"] for g in opt.param_groups]  # this run's recipe's learning rates
+            opt.load_state_dict(state["optim"])
+            for g, lr in zip(opt.param_groups, rates):  # the state brought back the interrupted run's; a diverged run
+                g["initial_lr"] = lr  # resumed with lower rates (the advice it gives) trained on at the old ones
+            run = RunState(int(state["step"]), float(state["seconds"]), int(state["skipped"]), list(state["history"]))
+            if state.get("trend") is not None:  # checkpoints before session 24 did not keep it
+                run.trend.load_state(state["trend"])
+            gen.set_state(state["gen"])
+            torch.set_rng_state(state["rng"])
+            restore_cuda_rng(state.get("cuda_rng"), device)
+        except MALFORMED as e:
+            raise BoostNerfError(f"training checkpoint {self.path} does not hold this model's training state "
+                                 f"({malformed(e)}); delete it to restart this model") from None
+        return opt, run
+
+    def save(self, task: TrainTask, opt: torch.optim.Optimizer, run: RunState, gen: torch.Generator,
+             device: torch.device) -> None:
+        """Write the resumable state atomically; a state with NaN or infinity stops the run instead
+        (the previous checkpoint stays, so nothing before it is lost)."""
+        task_state, optim_state = task.state(), opt.state_dict()
+        bad = _non_finite_entry(task_state) or _non_finite_entry(optim_state, "optimiser")
+        if bad is not None:
+            raise BoostNerfError(f"training diverged: {bad} holds non-finite values at step {run.step}, so it is not "
+                                 f"checkpointed; {kept(self.path)}: lower the learning rates in the recipe or check "
+                                 "the data")
+        save_torch(self.path, {
+            "task": task_state, "optim": optim_state, "step": run.step, "seconds": run.seconds,
+            "skipped": run.skipped, "history": run.history, "gen": gen.get_state(), "rng": torch.get_rng_state(),
+            "cuda_rng": cuda_rng_state(device), "signature": self.signature, "trend": run.trend.state(),
+        })
+        kill_point_for_tests("checkpoint")  # inert unless a resume test asks for it (workspace.TEST_KILL_ENV)
+
+
+def _check_rays(rays: RayData, sched: Schedule, title: str, parallel: bool) -> None:
+    if len(rays) == 0:  # torch.randint over no rays raised "random_ expects 'from' to be less than 'to'"
+        raise BoostNerfError(f"{title}: no training ray crosses the box this model is trained in: if the recipe sets "
+                             "data.bbox, it must hold what the cameras see")
+    if parallel and sched.batch_rays % dist.world_size():
+        raise BoostNerfError(f"train.batch_rays ({sched.batch_rays}) must be divisible by the number of processes "
+                             f"({dist.world_size()}) to split every batch evenly: change one of them")
+
+
+def train(task: TrainTask, rays: RayData, sched: Schedule, seed: int, title: str,
+          checkpoint: TrainCheckpoint | None = None, data_parallel: bool = False) -> TrainResult:
+    """Run `sched.iters` steps of `task` on random batches of `rays`, resuming from `checkpoint` (written every
+    `sched.checkpoint_every` steps and after the last). A non-finite loss or gradient skips the step (`RunState.guard`).
+
+    `data_parallel` under torchrun: every rank draws the same global batch, trains on its shard, and the gradients
+    are averaged (`batch_gradients`), so a step is the one-process step on the whole batch; every rank keeps the
+    same state, rank 0 alone prints and writes the checkpoint, which does not depend on the number of ranks.
+    """
+    parallel = data_parallel and dist.world_size() > 1
+    _check_rays(rays, sched, title, parallel)
+    device = rays.origins.device
+    gen = torch.Generator(device="cpu").manual_seed(seed)
+    torch.manual_seed(seed)
+    opt, run = checkpoint.resume(task, gen, device) if checkpoint is not None else (None, RunState())
+    progress = Progress(title, sched.iters, run.step, sched.log_every, quiet=parallel and not dist.is_main())
+    if run.step > 0:
+        progress.warn(f"resuming from {checkpoint.path} at step {run.step}/{sched.iters}")
+    if checkpoint is not None and checkpoint.unrecorded:
+        progress.warn(f"note: {checkpoint.path} comes from an earlier boostnerf, which did not record "
+                      f"{' or '.join(SETTING_NAMES.get(k, k) for k in checkpoint.unrecorded)}; resuming with this run's")
+    t0 = time.perf_counter() - run.seconds
+    try:
+        for step in range(run.step, sched.iters):
+            # --- one step: batch, gradient, update (the rest of the loop is bookkeeping) ---
+            opt, result = optimizer_step(task, rays, sched, opt, gen, step, parallel)
+            run.step = step + 1
+            if result.learnable:
+                run.guard(result, run.step, sched, checkpoint and checkpoint.path, progress)
+            # --- log and checkpoint ---
+            warning = run.log(run.step, result.logs, time.perf_counter() - t0, sched)
+            if warning:
+                progress.warn(warning)
+            progress.update(run.step, result.logs)
+            if checkpoint is not None and (run.step % sched.checkpoint_every == 0 or run.step == sched.iters):
+                run.seconds = time.perf_counter() - t0
+                save = partial(checkpoint.save, task, opt, run, gen, device)
+                if parallel:
+                    dist.on_main(save)  # one file for all ranks (they hold the same state)
+                else:
+                    save()
+    finally:
+        progress.close()
+    return TrainResult(sched.iters, time.perf_counter() - t0, run.skipped, run.history)

@@ -153,19 +153,19 @@ def test_a_run_interrupted_on_the_gpu_resumes_there(tmp_path, tiny_scene, monkey
     _invoke("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "-w", str(tmp_path / "whole"),
             "--device", "cpu")
     with simulated_gpu():
-        real_save, saves = train_mod._save_checkpoint, []
+        real_save, saves = train_mod.TrainCheckpoint.save, []
 
-        def save_then_stop(path, *args, **kwargs):
-            real_save(path, *args, **kwargs)
-            saves.append(path)
-            if path.name.startswith("dvgo-16") and len([p for p in saves if p == path]) == 2:
+        def save_then_stop(self, *args, **kwargs):
+            real_save(self, *args, **kwargs)
+            saves.append(self.path)
+            if self.path.name.startswith("dvgo-16") and len([p for p in saves if p == self.path]) == 2:
                 raise KeyboardInterrupt  # as if stopped right after the second checkpoint
 
-        monkeypatch.setattr(train_mod, "_save_checkpoint", save_then_stop)
+        monkeypatch.setattr(train_mod.TrainCheckpoint, "save", save_then_stop)
         result = CliRunner().invoke(app, ["pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "-w",
                                           str(tmp_path / "cut"), "--device", "cuda"])
         assert result.exit_code != 0 and (tmp_path / "cut" / "checkpoints" / "dvgo-16.pt").exists()
-        monkeypatch.setattr(train_mod, "_save_checkpoint", real_save)
+        monkeypatch.setattr(train_mod.TrainCheckpoint, "save", real_save)
         _invoke("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "-w", str(tmp_path / "cut"),
                 "--device", "cuda")
     whole, cut = (json.loads((tmp_path / w / "experts" / "dvgo-16.json").read_text()) for w in ("whole", "cut"))

@@ -13,7 +13,7 @@ from boostnerf_cli.render.renderer import RenderSettings
 from boostnerf_cli.scenes import load_scene
 from boostnerf_cli.stages.pretrain import growth_schedule
 from boostnerf_cli.tasks import FieldTask
-from boostnerf_cli.train import RayData, Schedule, train
+from boostnerf_cli.train import RayData, Schedule, TrainCheckpoint, train
 
 
 class Interrupt(Exception):
@@ -59,11 +59,11 @@ def test_resume_after_a_crash_matches_an_uninterrupted_run(tiny_scene, tmp_path)
 
     crashing.loss = loss
     with pytest.raises(Interrupt):
-        train(crashing, rays, sched, seed=3, title="crash", checkpoint=ckpt)
+        train(crashing, rays, sched, seed=3, title="crash", checkpoint=TrainCheckpoint(ckpt))
     assert ckpt.exists()  # the step-10 checkpoint survived the crash
 
     resumed = _task(scene, 24)
-    result = train(resumed, rays, sched, seed=3, title="resume", checkpoint=ckpt)
+    result = train(resumed, rays, sched, seed=3, title="resume", checkpoint=TrainCheckpoint(ckpt))
     assert result.iterations == 24
     sd, sd2 = ref.model.state_dict(), resumed.model.state_dict()
     assert sd.keys() == sd2.keys()
@@ -159,7 +159,8 @@ def test_a_state_with_non_finite_values_is_never_checkpointed(tiny_scene, tmp_pa
     task.loss = loss
     ckpt = tmp_path / "run.pt"
     with pytest.raises(BoostNerfError, match="training diverged.*non-finite.*run.pt is kept"):
-        train(task, rays, Schedule(iters=20, batch_rays=64, checkpoint_every=5), seed=0, title="inf", checkpoint=ckpt)
+        train(task, rays, Schedule(iters=20, batch_rays=64, checkpoint_every=5), seed=0, title="inf",
+              checkpoint=TrainCheckpoint(ckpt))
     state = torch.load(ckpt, weights_only=True)
     assert state["step"] == 5  # the last good one, untouched
     assert all(torch.isfinite(v).all() for v in state["task"]["model"].values() if v.is_floating_point())
@@ -170,11 +171,11 @@ def test_a_checkpoint_made_with_other_settings_is_refused(tiny_scene, tmp_path):
     rays = RayData.from_split(scene.splits["train"], scene.bbox, scene.near, scene.far)
     ckpt = tmp_path / "run.pt"
     train(_task(scene, 6), rays, Schedule(iters=6, batch_rays=64, checkpoint_every=3), seed=0, title="a",
-          checkpoint=ckpt, signature={"iters": 6, "seed": 0})
+          checkpoint=TrainCheckpoint(ckpt, {"iters": 6, "seed": 0}))
     assert torch.load(ckpt, weights_only=True)["step"] == 6  # also checkpointed after the last step
     with pytest.raises(BoostNerfError, match=r"run.pt was written with other settings \(--iters: 6, now 12\)"):
-        train(_task(scene, 12), rays, Schedule(iters=12, batch_rays=64), seed=0, title="b", checkpoint=ckpt,
-              signature={"iters": 12, "seed": 0})
+        train(_task(scene, 12), rays, Schedule(iters=12, batch_rays=64), seed=0, title="b",
+              checkpoint=TrainCheckpoint(ckpt, {"iters": 12, "seed": 0}))
 
 
 def test_a_changed_source_is_named_as_a_remade_model_not_by_its_digests():

@@ -429,7 +429,7 @@ def test_mixture_file_with_the_wrong_structure_is_one_line(tmp_path):
 
 
 def test_training_checkpoint_with_the_wrong_structure_is_one_line(tmp_path):
-    from boostnerf_cli.train import RayData, Schedule, train
+    from boostnerf_cli.train import RayData, Schedule, TrainCheckpoint, train
 
     class Task:
         def param_groups(self):
@@ -443,7 +443,7 @@ def test_training_checkpoint_with_the_wrong_structure_is_one_line(tmp_path):
     for state in ({"task": {}, "step": 1}, [1, 2, 3], {"task": {"weights": 1}, "signature": 5}):
         torch.save(state, ckpt)
         with pytest.raises(BoostNerfError, match=r"training checkpoint .*c.pt .*delete it to restart this model") as e:
-            train(Task(), rays, Schedule(iters=2), 0, "t", checkpoint=ckpt, signature={"stage": "x"})
+            train(Task(), rays, Schedule(iters=2), 0, "t", TrainCheckpoint(ckpt, {"stage": "x"}))
         assert "\n" not in str(e.value)
 
 

@@ -30,7 +30,7 @@ from boostnerf_cli.recipe import MoERecipe, check_section, shaping_changes
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.tasks import FieldTask, MixtureTask, sparse_options, train_rays
-from boostnerf_cli.train import Schedule, first_difference, setting_change, train
+from boostnerf_cli.train import Schedule, TrainCheckpoint, first_difference, setting_change, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
 
@@ -187,8 +187,8 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     settings = scene.render_settings(mix.cfg.step, mix.bbox, rec.train.color_threshold)
     task = MixtureTask(mix, settings, rec.train, rec)
     sig = signature(name, rec, source, mix.cfg, mix.gate.cfg.kind)
-    result = train(task, train_rays(scene, mix.bbox, device, rec.train), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
-                   signature=sig, data_parallel=True, restart_other=force)
+    result = train(task, train_rays(scene, mix.bbox, device, rec.train), sched, rec.seed, name,
+                   TrainCheckpoint(ws.checkpoint_path(name), sig, restart_other=force), data_parallel=True)
     mix.eval()
     final = result.history[-1] if result.history else {}
     report = {
@@ -250,7 +250,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
     task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
     sig = signature("baseline", rec, source)
     result = train(task, train_rays(scene, model.bbox, device, rec.train), sched, rec.seed, "baseline",
-                   checkpoint=ws.checkpoint_path("baseline"), signature=sig, data_parallel=True, restart_other=force)
+                   TrainCheckpoint(ws.checkpoint_path("baseline"), sig, restart_other=force), data_parallel=True)
     model.eval()
     final = result.history[-1] if result.history else {}
     report = {

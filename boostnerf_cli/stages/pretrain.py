@@ -50,7 +50,7 @@ from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.scenes.bounds import box_text
 from boostnerf_cli.stages.common import scene_digest, slow_notice, workspace_scene_path
 from boostnerf_cli.tasks import FieldTask, train_rays
-from boostnerf_cli.train import Schedule, first_difference, train
+from boostnerf_cli.train import Schedule, TrainCheckpoint, first_difference, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, recorded_path, write_json
 
 
@@ -144,10 +144,10 @@ def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor
     task = FieldTask(model, settings, tcfg, skip=None, base_mask=None)
     rays = train_rays(scene, bbox, device, tcfg)
     ckpt = ws.checkpoint_path(name)  # removed once the geometry is saved
+    signature = {"stage": name, "scene": scene_tag, "recipe": dataclasses.asdict(rec), "seed": seed,
+                 "bbox": [round(v, 6) for v in bbox.flatten().tolist()]}
     train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5),
-                               checkpoint_every=checkpoint_every), seed, name, checkpoint=ckpt,
-          signature={"stage": name, "scene": scene_tag, "recipe": dataclasses.asdict(rec), "seed": seed,
-                     "bbox": [round(v, 6) for v in bbox.flatten().tolist()]})
+                               checkpoint_every=checkpoint_every), seed, name, TrainCheckpoint(ckpt, signature))
     model.eval()
     occ = OccupancyGrid.from_density(model.density, bbox, model.shape, step, rec.alpha_threshold)
     cover = None
@@ -279,7 +279,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
     signature = expert_signature(rec, res, scene_tag, read_meta(ws.geometry_path).get("digest"))
-    result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt, signature=signature, restart_other=force)
+    result = train(task, rays, sched, rec.seed + res, name, TrainCheckpoint(ckpt, signature, restart_other=force))
     model.eval()
     task.refresh_occupancy()
     report = {
