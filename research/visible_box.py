@@ -6,7 +6,7 @@ per layout, the box `pretrain` draws around the occupied cells, and the box arou
 rendering weight over every training ray is at least tau (cells only hidden space or barely visible floaters
 occupy would go). docs/results.md, issue 17, records the output.
 
-    python scripts/visible_box.py OUT
+    python research/visible_box.py OUT
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ nerfstudio and NSVF layouts and runs `boostnerf pretrain` on each with the recip
 seed the box the geometry stage drew, its coverage counts and the expert's held-out PSNR. docs/results.md, issue
 17, records the output.
 
-    python scripts/layout_agreement.py OUT [SEED ...]      (default seeds: 0 1)
+    python research/layout_agreement.py OUT [SEED ...]      (default seeds: 0 1)
 """
 
 from __future__ import annotations

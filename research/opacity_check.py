@@ -8,7 +8,7 @@ colour may still be right against the background but whose depth reads empty (fe
 Prints one JSON line: the held-out PSNR and both percentages, averaged over the views. docs/datasets.md records
 what it measured.
 
-    python scripts/opacity_check.py WORKSPACE MODEL [--views N] [--device cpu]
+    python research/opacity_check.py WORKSPACE MODEL [--views N] [--device cpu]
 """
 
 from __future__ import annotations

@@ -2,8 +2,8 @@
 # Does the mixture's density volume V_D cut thin structure? (session 24; docs/results.md, issue 17)
 # The thin procedural scene at 80 px; DVGO (24/32/40) and Instant-NGP (L = 4/6) experts, Top-2 mixtures. Each model
 # renders the held-out views with every skip on and with the empty-space skip off (V_D and occupancy), and
-# scripts/thin_pixels.py scores the thin-structure pixels and the rest.
-#   bash recipes/experiments/vd-thin.sh OUT
+# research/thin_pixels.py scores the thin-structure pixels and the rest.
+#   bash research/recipes/vd-thin.sh OUT
 set -euo pipefail
 OUT=${1:?usage: vd-thin.sh OUT}
 HERE=$(cd "$(dirname "$0")" && pwd)
@@ -21,7 +21,7 @@ for fam in dvgo ngp; do
       # shellcheck disable=SC2086
       boostnerf render -w "$ws" --model "$model" $skips --device cpu > /dev/null
       echo "== $fam $model ${skips:-every skip on}"
-      python "$ROOT/scripts/thin_pixels.py" "$OUT/thin" "$ws/renders/$model/test"
+      python "$ROOT/research/thin_pixels.py" "$OUT/thin" "$ws/renders/$model/test"
     done
   done
 done

@@ -17,7 +17,7 @@ another:
 Controls: each model alone at the common sample positions (the finest model's step), and a random partition
 with the held-out choice's proportions (what the seams between models cost). Prints one JSON document.
 
-    python scripts/partition_oracle.py --model NAME=WORKSPACE [--model NAME=WORKSPACE ...] [--map-res 16,32]
+    python research/partition_oracle.py --model NAME=WORKSPACE [--model NAME=WORKSPACE ...] [--map-res 16,32]
         [--train-views 24] [--out FILE] [--device cuda]
 
 NAME=WORKSPACE names a model (`baseline`, `dvgo-80`, ...) of a workspace; give them smallest first. A baseline is

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 18: the official code's training protocol at CPU size on lego (every 8th view held out, 100 px).
 #
-# Usage: bash recipes/experiments/official-protocol.sh DATA OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|oracle-64|oracle-80|oracle-96|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|below-vd-official|seed1-below-vd-official|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|llff-m3|tensorf-m3|ngp-m3|tensorf-m3-ens|ngp-m3-ens|tensorf-m3-st|ngp-m3-st|tensorf-m3-fastgate|ngp-m3-fastgate|collect]...
+# Usage: bash research/recipes/official-protocol.sh DATA OUT [m3|m4|m5|ablation|raw|raw-m3|...|seed1|ens|ens-m3|...|ablation-budget|lamX|penalty-P|vd-official|vd-largest|vd-visible|seed1-vd-official|seed1-all-official|gate-outside|gate-inside|all-official|all-official-top2|wideX|noiseX|long-base|long-top1|seed1-mX|hires|seed1-hires|hires-base96|m3-alone|oracle-64|oracle-80|oracle-96|same-mlp|seed1-same-mlp|same-mlp-step64|same-mlp-tuned|same-mlp-step64-tuned|seed1-same-mlp-step64-tuned|ladder|below|seed1-below|below-step40|below-vd-official|seed1-below-vd-official|px200|px200-alone|paper|paper-m3|paper-m4|paper-m5|llff-m3|tensorf-m3|ngp-m3|tensorf-m3-ens|ngp-m3-ens|tensorf-m3-st|ngp-m3-st|tensorf-m3-fastgate|ngp-m3-fastgate|collect]...
 #   DATA        the scene folder: lego's (../shared/data/lego) for every step but llff-m3, which takes fern's
 #   m3, m4, m5  recipes/chain.sh with blender-dvgo-cpu-official.yaml (M = 3: experts 64/72/80) and its
 #               M = 4 (64..88) / M = 5 (56..88) variants written here; models baseline, top1, top2 (or $MODELS)
@@ -81,7 +81,7 @@
 #               of a two-expert recipe 88/96 -> OUT/hires-base96
 #   m3-alone    the same control for m3: its smaller experts dvgo-64 and dvgo-72 each alone for 1,000 + 5,000 steps
 #               (two-expert recipes 56/64 and 64/72) -> OUT/m3-alone64, m3-alone72
-#   oracle-64, oracle-80, oracle-96  single models for scripts/partition_oracle.py: dvgo-64, dvgo-80 and dvgo-96,
+#   oracle-64, oracle-80, oracle-96  single models for research/partition_oracle.py: dvgo-64, dvgo-80 and dvgo-96,
 #               each with a 2 x 128 colour MLP, alone for the baseline's 1,000 + 5,000 steps (two-expert recipes 56/64,
 #               72/80, 88/96) -> OUT/oracle-64, OUT/oracle-80, OUT/oracle-96 (their `baseline`)
 #   llff-m3     M = 3 away from lego: a LLFF forward-facing scene (fern, ../shared/data/fern, in NDC) at 252 px wide
