@@ -44,8 +44,9 @@ def main(out: Path, seeds: list[int]) -> None:
         for layout in LAYOUTS:
             ws = out / f"ws-{layout}-s{seed}"
             if not (ws / "experts" / "dvgo-40.json").exists():
-                subprocess.run([sys.executable, "-m", "boostnerf_cli", "pretrain", "-w", str(ws), "--data", str(out / layout),
-                                "--recipe", str(r), "--device", "cpu", "--seed", str(seed)], check=True, capture_output=True)
+                subprocess.run([sys.executable, "-m", "boostnerf_cli", "pretrain", "-w", str(ws), "--data",
+                                str(out / layout), "--recipe", str(r), "--device", "cpu", "--seed", str(seed)],
+                               check=True, capture_output=True)
             meta = json.loads(safe_open(str(ws / "experts" / "geometry.safetensors"), "pt").metadata()["boostnerf"])
             psnr = json.loads((ws / "experts" / "dvgo-40.json").read_text())["test_psnr"]
             lo, hi = meta["fine_bbox"]

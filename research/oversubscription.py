@@ -10,25 +10,33 @@ import torch
 from boostnerf_cli.moe.gate import Gate, GateConfig
 
 BUSY = "import torch\nx=torch.randn(512,512)\nwhile True: x=(x@x).clamp(-1,1)"
-gate = Gate(GateConfig(kind="grid", res=24), 3, torch.tensor([[-1.0] * 3, [1.0] * 3]))
 
-def bake(threads):
+
+def bake(gate: Gate, threads: int) -> tuple[float, float]:
+    """The fastest and slowest of three bakes with `threads` intra-op threads, in seconds."""
     torch.set_num_threads(threads)
-    best = []
+    times = []
     for _ in range(3):
         t = time.perf_counter()
         gate.baked(128)
-        best.append(time.perf_counter() - t)
-    return min(best), max(best)
+        times.append(time.perf_counter() - t)
+    return min(times), max(times)
 
-for n_busy in (0, 1, 3):
-    procs = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(n_busy)]
-    time.sleep(3)
-    try:
-        for threads in (2, 1):
-            lo, hi = bake(threads)
-            print(f"{n_busy} busy torch processes (2 threads each), bake with {threads} thread(s): "
-                  f"{lo:.2f}-{hi:.2f} s", flush=True)
-    finally:
-        for p in procs:
-            p.kill()
+
+def main() -> None:
+    gate = Gate(GateConfig(kind="grid", res=24), 3, torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    for n_busy in (0, 1, 3):
+        procs = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(n_busy)]
+        time.sleep(3)
+        try:
+            for threads in (2, 1):
+                lo, hi = bake(gate, threads)
+                print(f"{n_busy} busy torch processes (2 threads each), bake with {threads} thread(s): "
+                      f"{lo:.2f}-{hi:.2f} s", flush=True)
+        finally:
+            for p in procs:
+                p.kill()
+
+
+if __name__ == "__main__":
+    main()

@@ -57,8 +57,8 @@ def main(out: Path) -> None:
         print(f"{layout}: box {[round(v, 2) for v in box.flatten().tolist()]}, occupied {occ.fraction():.3f}")
         for tau in (1e-3, 1e-2):
             vis = OccupancyGrid(occ.occupied & (seen >= tau), occ.bbox)
-            print(f"  seen with weight >= {tau:g}: box {[round(v, 2) for v in vis.occupied_bbox(1).flatten().tolist()]}, "
-                  f"occupied {vis.fraction():.3f}")
+            vis_box = [round(v, 2) for v in vis.occupied_bbox(1).flatten().tolist()]
+            print(f"  seen with weight >= {tau:g}: box {vis_box}, occupied {vis.fraction():.3f}")
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ def _functions(*names: str) -> str:
     """The bash definitions of the named functions of official-protocol.sh."""
     text = SCRIPT.read_text()
     found = [re.search(rf"^{name}\(\) {{.*?^}}$", text, re.S | re.M) for name in names]
-    assert all(found), f"official-protocol.sh defines {[n for n, f in zip(names, found) if not f]} no longer"
+    assert all(found), f"official-protocol.sh has no function {[n for n, f in zip(names, found) if not f]}"
     return "\n".join(f.group(0) for f in found)
 
 
@@ -69,7 +69,8 @@ def test_variants_change_exactly_the_keys_asked_for(tmp_path):
     assert rec.pretrain.dvgo["hidden"] == {50: 128, 64: 128, 80: 128}
 
     step = yaml.safe_load((tmp_path / "step.yaml").read_text())
-    assert _changed(step, ladder) == {"moe.step_from"} and load_recipe(tmp_path / "step.yaml").moe.step_from == "smallest"
+    assert _changed(step, ladder) == {"moe.step_from"}
+    assert load_recipe(tmp_path / "step.yaml").moe.step_from == "smallest"
 
     vd = load_recipe(tmp_path / "official-vd-largest-visible.yaml")
     assert (vd.moe.vd_source, vd.moe.vd_filter) == ("largest", "visible")
@@ -93,7 +94,8 @@ def test_the_other_families_get_the_official_protocol_and_keep_their_experts_and
     rec = load_recipe(path)
     assert rec.pretrain.model == family and rec.pretrain.res == source["pretrain"]["res"]
     assert (rec.pretrain.iters, rec.moe.iters, rec.moe.lam) == (1000, 5000, 0.001)
-    assert (rec.moe.aux_norm, rec.moe.aux_samples, rec.moe.mix, rec.moe.gate_init) == ("counts", "visible", "alpha", "random")
+    assert (rec.moe.aux_norm, rec.moe.aux_samples, rec.moe.mix, rec.moe.gate_init) == (
+        "counts", "visible", "alpha", "random")
     pre = source["pretrain"]["train"]
     assert (rec.moe.train.lr_grid, rec.moe.train.lr_mlp, rec.moe.train.lr_decay) == (pre["lr_grid"], pre["lr_mlp"], 0.1)
 
@@ -101,7 +103,8 @@ def test_the_other_families_get_the_official_protocol_and_keep_their_experts_and
 def test_recipe_with_refuses_a_section_the_recipe_lacks(tmp_path):
     proc = _run(tmp_path, 'recipe_with "$OFFICIAL" "$OUT/bad.yaml" pretrain.tensorf.hidden=8\n')
     assert proc.returncode != 0
-    assert proc.stderr.strip().splitlines() == [f"recipe_with: {OFFICIAL} has no section tensorf (in pretrain.tensorf.hidden)"]
+    assert proc.stderr.strip().splitlines() == [
+        f"recipe_with: {OFFICIAL} has no section tensorf (in pretrain.tensorf.hidden)"]
     assert not (tmp_path / "bad.yaml").exists()
 
 
@@ -110,6 +113,21 @@ def test_an_unknown_step_is_refused_with_the_steps_there_are(tmp_path):
                           capture_output=True, text=True)
     assert proc.returncode == 2
     assert proc.stderr.startswith("unknown step no-such-step (m3, m4, m5,") and len(proc.stderr.splitlines()) == 1
+
+
+def test_every_case_the_docs_run_is_a_case_of_the_table(tmp_path):
+    """The cases docs/results.md and README.md give official-protocol.sh are cases its table runs (lamX stands for
+    lam1e-4, penalty-P for penalty-none, ...)."""
+    proc = subprocess.run(["bash", str(SCRIPT), str(tmp_path / "lego"), str(tmp_path / "out"), "no-such-step"],
+                          capture_output=True, text=True)
+    listed = proc.stderr.strip().split(" (", 1)[1].rstrip(")").split(", ")
+    case = re.compile("|".join(re.sub(r"X$", "[0-9].*", re.sub(r"-P$", "-.+", n)) for n in listed))
+    documented = set()
+    for doc in (ROOT / "docs" / "results.md", ROOT / "README.md"):
+        for command in re.findall(r"`([^`]*official-protocol\.sh[^`]*)`", doc.read_text()):
+            documented |= set(command.split()[command.split().index("OUT") + 1:])
+    assert len(documented) > 40 and "lam1e-4" in documented
+    assert sorted(n for n in documented if not case.fullmatch(n)) == []
 
 
 def test_the_paper_table_trains_every_column_of_each_size_in_its_own_workspace(tmp_path):
