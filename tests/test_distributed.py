@@ -101,6 +101,7 @@ def test_experts_are_shared_out_by_cost():
     assert assign([8], 2) == [[8], []]
 
 
+@pytest.mark.slow
 def test_pretrain_under_torchrun_equals_one_process(setup):
     root, _, proc, manifest = setup
     stderr = proc.stderr
@@ -193,6 +194,7 @@ def dp_worker(ws: str, out: str, official: bool = False) -> None:
         torch.save(result, Path(out) / f"rank{dist.rank()}.pt")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("official", [False, True])
 def test_a_data_parallel_step_equals_one_process_step_on_the_union(setup, tmp_path, official):
     ws = setup[0] / "one"
@@ -222,6 +224,7 @@ def test_a_data_parallel_step_equals_one_process_step_on_the_union(setup, tmp_pa
 
 
 # --- resume with another number of processes, failures --------------------------------------------
+@pytest.mark.slow
 def test_finetune_checkpointed_by_two_ranks_resumes_in_one_process(setup, tmp_path):
     ws = tmp_path / "ws"
     shutil.copytree(setup[0] / "one", ws)
@@ -247,6 +250,7 @@ def test_finetune_checkpointed_by_two_ranks_resumes_in_one_process(setup, tmp_pa
     assert_clean(ws)
 
 
+@pytest.mark.slow
 def test_a_failing_rank_stops_every_rank_with_its_message_and_keeps_finished_files(setup, tmp_path):
     root, recipe = setup[0], setup[1]
     ws = tmp_path / "ws"

@@ -143,6 +143,7 @@ def docs_env(tmp_path_factory):
         server.wait(timeout=30)
 
 
+@pytest.mark.slow
 def test_every_documented_command_runs(docs_env):
     """The documents in a user's reading order (quickstart first), in one folder, so later documents can
     use the workspaces the quickstart made; every document is run even when an earlier one failed."""
@@ -177,6 +178,7 @@ def _run_chain(cwd: Path, env: dict, *args: str) -> tuple[subprocess.CompletedPr
     return proc, log.read_text() if log.exists() else ""
 
 
+@pytest.mark.slow
 def test_chain_skips_finished_models_redoes_the_reports_and_stops_at_the_first_failure(docs_env):
     base, env = docs_env
     cwd = base / "chain"

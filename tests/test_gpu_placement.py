@@ -96,6 +96,7 @@ def _recipe(tmp_path: Path, family: str = "dvgo") -> Path:
                        moe=SHORT["moe"])
 
 
+@pytest.mark.slow
 def test_every_stage_on_the_simulated_gpu_gives_the_cpu_numbers(tmp_path, tiny_scene):
     """The reference is a plain CPU run, outside the simulator (whose dispatch mode makes a run ~4x slower)."""
     recipe = _recipe(tmp_path)
@@ -127,6 +128,7 @@ def test_every_stage_on_the_simulated_gpu_gives_the_cpu_numbers(tmp_path, tiny_s
     assert (tmp_path / "gpu" / "moe" / "top1-pruned.safetensors").exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("family", ["tensorf", "ngp"])
 def test_other_families_on_the_simulated_gpu(tmp_path, tiny_scene, family):
     """Placement only (no figure is compared), with the SHORT steps."""
@@ -147,6 +149,7 @@ def test_other_families_on_the_simulated_gpu(tmp_path, tiny_scene, family):
     assert (report["vd_source"], report["vd_filter"], report["penalty"]) == ("largest", "visible", "1, 1.5")
 
 
+@pytest.mark.slow
 def test_a_run_interrupted_on_the_gpu_resumes_there(tmp_path, tiny_scene, monkeypatch):
     """A checkpoint written from the GPU (read back with map_location=cpu) resumes on the GPU: model, Adam
     state and random state go back to the device, and the result equals an uninterrupted run. That run is on
@@ -176,6 +179,7 @@ def test_a_run_interrupted_on_the_gpu_resumes_there(tmp_path, tiny_scene, monkey
     assert cut["test_psnr"] == pytest.approx(whole["test_psnr"], abs=1e-4)
 
 
+@pytest.mark.slow
 def test_bench_on_the_simulated_gpu(tmp_path, tiny_scene):
     with simulated_gpu():
         _invoke("bench", "--data", str(tiny_scene), "--recipe", str(_recipe(tmp_path)), "-w", str(tmp_path / "b"),

@@ -97,6 +97,7 @@ def setup(tmp_path_factory, tiny_scene):
     return root, recipe, ref, args
 
 
+@pytest.mark.slow
 def test_pretrain_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupted_result(setup):
     root, _, ref, args = setup
     ws = root / "killed-pretrain"
@@ -115,6 +116,7 @@ def test_pretrain_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupt
     assert_clean(ws)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how", [["--topk", "2"]], ids=["top2"])
 def test_finetune_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupted_result(setup, how):
     root, _, ref, _ = setup
@@ -133,6 +135,7 @@ def test_finetune_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupt
     assert_clean(ws)
 
 
+@pytest.mark.slow
 def test_a_checkpoint_is_not_resumed_with_other_training_settings(setup, tmp_path):
     """A checkpoint resumes only with the settings that shape what is trained: a finetune killed at --lambda 0.5
     resumed at --lambda 0 (its report said 0 for a model half trained at 0.5), and a pretrain resumed with another
@@ -180,6 +183,7 @@ def test_a_checkpoint_from_before_the_training_settings_were_recorded_resumes(se
     assert_clean(ws)
 
 
+@pytest.mark.slow
 def test_an_interrupted_force_run_resumes_and_force_drops_a_checkpoint_of_other_settings(setup, tmp_path):
     """Probe Y (session 26): `finetune --force` (and `pretrain --force`) deleted the model's training checkpoint
     before training, so an interrupted --force run restarted from step 0 on every rerun of the same command, though
