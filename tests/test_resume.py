@@ -1,8 +1,8 @@
 """kill -9, rerun the same command: the result equals an uninterrupted run.
 
-The real CLI runs in a subprocess and SIGKILLs itself at known points (workspace.TEST_KILL_ENV): right
-after its N-th training checkpoint, or inside the atomic write of a named artifact (temporary file
-written, not yet renamed). Rerunning the same command resumes from the last checkpoint; the final
+The real CLI runs in a process of its own (conftest.run_cli) and SIGKILLs itself at known points
+(workspace.TEST_KILL_ENV): right after its N-th training checkpoint, or inside the atomic write of a named
+artifact (temporary file written, not yet renamed). Rerunning the same command resumes from the last checkpoint; the final
 artifacts must match an uninterrupted run with the same seed within RESUME_ATOL (docs/reliability.md),
 and the killed runs must leave no partial file, checkpoint or lock behind once the command has completed.
 """
@@ -10,11 +10,8 @@ and the killed runs must leave no partial file, checkpoint or lock behind once t
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -39,14 +36,9 @@ RECIPE_CHANGES = {
     "moe": {"gate_res": 6, "iters": 24, "train": {"batch_rays": 128, "log_every": 3, "checkpoint_every": 4}},
 }
 
-def _cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "boostnerf_cli", *args]
-
-
 def run_killed(args: list[str], point: str) -> None:
     """Run the CLI until it SIGKILLs itself at `point` (workspace.TEST_KILL_ENV: "checkpoint:N", "write:NAME")."""
-    env = {**os.environ, "PYTHONWARNINGS": "ignore", TEST_KILL_ENV: point}
-    proc = subprocess.run(_cli(*args), capture_output=True, text=True, env=env, timeout=600)
+    proc = run_cli(*args, env_extra={TEST_KILL_ENV: point})
     assert proc.returncode == -signal.SIGKILL, f"{point}: not killed ({proc.returncode}):\n{proc.stderr[-2000:]}"
 
 
