@@ -120,6 +120,7 @@ class ToyExpert(DVGOExpert):
 '''
 
 
+@pytest.mark.slow
 def test_a_fourth_family_is_one_file_and_one_registry_entry(tmp_path, tiny_scene):
     """docs/design.md's recipe for a new family, followed on a copy of the package: the module, its class added to
     the FAMILIES line, nothing else. Its recipe section, --model, pretrain, build-moe and finetune then work."""

@@ -405,6 +405,7 @@ def _finetune_top1(moe_ws, folder, *flags):
     return json.loads((ws / "moe" / "top1.json").read_text())
 
 
+@pytest.mark.slow
 def test_finetuning_learns_and_the_resolution_penalty_moves_load_to_the_small_expert(moe_ws, tmp_path):
     """Measured (session 11): loss 0.028 over steps 10-50 -> 0.016 over steps 160-200 with the geometric penalty,
     0.024 -> 0.013 with none (one batch a logged step, so five are averaged; over 100 steps and three batches the

@@ -1,8 +1,8 @@
 """kill -9, rerun the same command: the result equals an uninterrupted run.
 
-The real CLI runs in a subprocess and SIGKILLs itself at known points (workspace.TEST_KILL_ENV): right
-after its N-th training checkpoint, or inside the atomic write of a named artifact (temporary file
-written, not yet renamed). Rerunning the same command resumes from the last checkpoint; the final
+The real CLI runs in a process of its own (conftest.run_cli) and SIGKILLs itself at known points
+(workspace.TEST_KILL_ENV): right after its N-th training checkpoint, or inside the atomic write of a named
+artifact (temporary file written, not yet renamed). Rerunning the same command resumes from the last checkpoint; the final
 artifacts must match an uninterrupted run with the same seed within RESUME_ATOL (docs/reliability.md),
 and the killed runs must leave no partial file, checkpoint or lock behind once the command has completed.
 """
@@ -10,11 +10,8 @@ and the killed runs must leave no partial file, checkpoint or lock behind once t
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -39,14 +36,9 @@ RECIPE_CHANGES = {
     "moe": {"gate_res": 6, "iters": 24, "train": {"batch_rays": 128, "log_every": 3, "checkpoint_every": 4}},
 }
 
-def _cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "boostnerf_cli", *args]
-
-
 def run_killed(args: list[str], point: str) -> None:
     """Run the CLI until it SIGKILLs itself at `point` (workspace.TEST_KILL_ENV: "checkpoint:N", "write:NAME")."""
-    env = {**os.environ, "PYTHONWARNINGS": "ignore", TEST_KILL_ENV: point}
-    proc = subprocess.run(_cli(*args), capture_output=True, text=True, env=env, timeout=600)
+    proc = run_cli(*args, env_extra={TEST_KILL_ENV: point})
     assert proc.returncode == -signal.SIGKILL, f"{point}: not killed ({proc.returncode}):\n{proc.stderr[-2000:]}"
 
 
@@ -97,6 +89,7 @@ def setup(tmp_path_factory, tiny_scene):
     return root, recipe, ref, args
 
 
+@pytest.mark.slow
 def test_pretrain_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupted_result(setup):
     root, _, ref, args = setup
     ws = root / "killed-pretrain"
@@ -115,6 +108,7 @@ def test_pretrain_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupt
     assert_clean(ws)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how", [["--topk", "2"]], ids=["top2"])
 def test_finetune_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupted_result(setup, how):
     root, _, ref, _ = setup
@@ -133,6 +127,7 @@ def test_finetune_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupt
     assert_clean(ws)
 
 
+@pytest.mark.slow
 def test_a_checkpoint_is_not_resumed_with_other_training_settings(setup, tmp_path):
     """A checkpoint resumes only with the settings that shape what is trained: a finetune killed at --lambda 0.5
     resumed at --lambda 0 (its report said 0 for a model half trained at 0.5), and a pretrain resumed with another
@@ -180,6 +175,7 @@ def test_a_checkpoint_from_before_the_training_settings_were_recorded_resumes(se
     assert_clean(ws)
 
 
+@pytest.mark.slow
 def test_an_interrupted_force_run_resumes_and_force_drops_a_checkpoint_of_other_settings(setup, tmp_path):
     """Probe Y (session 26): `finetune --force` (and `pretrain --force`) deleted the model's training checkpoint
     before training, so an interrupted --force run restarted from step 0 on every rerun of the same command, though
