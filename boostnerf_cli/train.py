@@ -10,16 +10,18 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections import deque
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Protocol
+from typing import Iterator, Protocol
 
 import torch
 from torch import Tensor
 
 from boostnerf_cli import distributed as dist
+from boostnerf_cli.device import from_host
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
@@ -120,18 +122,24 @@ class PsnrTrend:
 
     def state(self) -> dict:
         """What a checkpoint keeps, so that a resumed run logs the same means and warns at the same step."""
-        return {"total": self.total, "count": self.count, "means": list(self.means), "warned": self.warned}
+        return {"total": float(self.total), "count": int(self.count), "means": list(self.means), "warned": self.warned}
 
     def load_state(self, state: dict) -> None:
         self.total, self.count = float(state["total"]), int(state["count"])
         self.means, self.warned = [float(m) for m in state["means"]], bool(state["warned"])
 
-    def add(self, psnr: float | None) -> None:
-        if psnr is not None and math.isfinite(psnr):
+    def add(self, psnr: float | Tensor | None) -> None:
+        """Add a step's PSNR (a device value is summed on the device: nothing waits for it)."""
+        if isinstance(psnr, Tensor):
+            finite = torch.isfinite(psnr)
+            self.total = self.total + torch.where(finite, psnr, 0.0)
+            self.count = self.count + finite.to(torch.int64)
+        elif psnr is not None and math.isfinite(psnr):
             self.total, self.count = self.total + psnr, self.count + 1
 
     def close_interval(self) -> float | None:
-        mean = self.total / self.count if self.count else None
+        total, count = float(self.total), int(self.count)
+        mean = total / count if count else None
         if mean is not None:
             self.means.append(mean)
         self.total, self.count = 0.0, 0
@@ -173,12 +181,12 @@ class Progress:
             self.bar.start()
             self.task = self.bar.add_task(title, total=total, completed=start, info="")
 
-    def update(self, step: int, logs: dict[str, float]) -> None:
-        info = " ".join(f"{k}={v:.4g}" for k, v in logs.items())
+    def update(self, step: int, logs: dict[str, float] | None) -> None:
+        """The step count; with `logs` (a logging step's values), also them."""
         if self.bar is not None:
-            self.bar.update(self.task, completed=step, info=info)
-        elif not self.quiet and (step % self.log_every == 0 or step == self.total):
-            print(f"[{self.title}] step {step}/{self.total} {info}", file=sys.stderr, flush=True)
+            self.bar.update(self.task, completed=step, **({} if logs is None else {"info": _info(logs)}))
+        elif not self.quiet and logs is not None and (step % self.log_every == 0 or step == self.total):
+            print(f"[{self.title}] step {step}/{self.total} {_info(logs)}", file=sys.stderr, flush=True)
 
     def warn(self, msg: str) -> None:
         if self.bar is not None:
@@ -189,6 +197,10 @@ class Progress:
     def close(self) -> None:
         if self.bar is not None:
             self.bar.stop()
+
+
+def _info(logs: dict[str, float]) -> str:
+    return " ".join(f"{k}={v:.4g}" for k, v in logs.items())
 
 
 def make_optimizer(task: TrainTask) -> torch.optim.Optimizer:
@@ -204,14 +216,16 @@ def _set_lr(opt: torch.optim.Optimizer, step: int, sched: Schedule) -> None:
         g["lr"] = g["initial_lr"] * factor
 
 
-def all_finite(params: list[Tensor]) -> bool:
-    """True when no gradient holds a NaN or an infinity: one sum per gradient tensor. A sum is NaN or
-    +-inf when any entry is (+inf and -inf together give NaN); finite entries whose sum overflows float32
-    are refused too, as a gradient that large should be. Measured on CPU over an 80^3 DVGO expert's 6.7M
-    gradients, one thread: 0.9 ms, against 29 ms for a fused max-norm (`_foreach_norm(inf)`, slow on CPU)
-    and ~20% of a small expert's step for an `isfinite` pass per tensor."""
+def grads_finite(params: list[Tensor], device: torch.device | str = "cpu") -> Tensor:
+    """Whether no gradient holds a NaN or an infinity, as a device bool (nothing waits for it): one sum per gradient
+    tensor. A sum is NaN or +-inf when any entry is (+inf and -inf together give NaN); finite entries whose sum
+    overflows float32 are refused too, as a gradient that large should be. Measured on CPU over an 80^3 DVGO
+    expert's 6.7M gradients, one thread: 0.9 ms, against 29 ms for a fused max-norm (`_foreach_norm(inf)`, slow on
+    CPU) and ~20% of a small expert's step for an `isfinite` pass per tensor."""
     grads = [p.grad for p in params if p.grad is not None]
-    return not grads or bool(torch.stack([g.sum() for g in grads]).isfinite().all())
+    if not grads:
+        return torch.ones((), dtype=torch.bool, device=device)
+    return torch.stack([g.sum() for g in grads]).isfinite().all()
 
 
 def _non_finite_entry(obj, where: str = "") -> str | None:
@@ -270,12 +284,12 @@ def _difference(saved: dict | None, wanted: dict | None, unrecorded: list[str]) 
 
 
 def batch_gradients(task: TrainTask, rays: RayData, idx: Tensor, step: int,
-                    parallel: bool = False) -> tuple[bool, bool, dict[str, float]]:
+                    parallel: bool = False) -> tuple[bool, Tensor, dict]:
     """The loss of the batch `idx` and its gradient, accumulated in the parameters' .grad.
 
-    -> (learnable: the loss depends on the parameters (False when every sample was skipped), the loss is
-    finite, logs); a non-finite loss is not backpropagated. `parallel` (data parallel): `idx` is the
-    global batch and this rank takes its shard, with the random draws its rays get in the global batch
+    -> (learnable: the loss depends on the parameters (False when every sample was skipped), whether the loss is
+    non-finite (a device bool: the update is then skipped, `optimizer_step`), logs). `parallel` (data parallel):
+    `idx` is the global batch and this rank takes its shard, with the random draws its rays get in the global batch
     (`distributed.rng_share`); the ranks' gradients are then combined by `distributed.average_gradients`.
     """
     if parallel:
@@ -283,51 +297,95 @@ def batch_gradients(task: TrainTask, rays: RayData, idx: Tensor, step: int,
     with dist.rng_share(len(idx), rays.origins.device) if parallel else nullcontext():
         alpha = None if rays.alpha is None else rays.alpha[idx]
         loss, logs = task.loss(rays.origins[idx], rays.dirs[idx], rays.rgb[idx], alpha, step)
-    finite = bool(torch.isfinite(loss))
-    if loss.requires_grad and finite:
-        loss.backward()
-    return loss.requires_grad, finite, logs
+    if loss.requires_grad:
+        loss.backward()  # a non-finite loss gives non-finite gradients; the update is skipped either way
+    return loss.requires_grad, ~torch.isfinite(loss.detach()), logs
+
+
+def draw_batch(gen: torch.Generator, n: int, size: int, device: torch.device) -> Tensor:
+    """`size` ray indices below `n` from the host generator `gen` (so every device draws the same rays), on `device`
+    (copied without waiting)."""
+    return from_host(torch.randint(0, n, (size,), generator=gen), device)
 
 
 @dataclass
 class Step:
     """What one optimiser step did: `learnable` (False when every sample of the batch was skipped: nothing to
-    learn), `finite_loss`, `applied` (the update was taken: a finite loss and finite gradients), the logs, and the
-    parameters it updates."""
+    learn), `flags` (None, or a device vector (non-finite loss, non-finite gradient, a sample budget overflowed): the
+    update was skipped when any is set), the logs (device values), and the parameters it updates."""
 
     learnable: bool
-    finite_loss: bool
-    applied: bool
-    logs: dict[str, float]
+    flags: Tensor | None
+    logs: dict
     params: list[Tensor]
 
 
 def optimizer_step(task: TrainTask, rays: RayData, sched: Schedule, opt: torch.optim.Optimizer | None,
                    gen: torch.Generator, step: int, parallel: bool) -> tuple[torch.optim.Optimizer | None, Step]:
     """One training step: the optimiser (re)built when the task changed its parameters (`before_step`), the step's
-    learning rates, a batch drawn from `gen`, its gradient (data parallel: averaged over the ranks), and the update
-    when the loss and every gradient are finite (else the gradients are dropped). -> (the optimiser, the step)."""
-    learnable, finite_loss, logs, failure = False, True, {}, None
+    learning rates, a batch drawn from `gen`, its gradient (data parallel: averaged over the ranks), and the update,
+    skipped on the device (fused Adam's `found_inf`) unless the loss and every gradient are finite and every sample
+    fitted its budget. Nothing here waits for the device (but data parallel). -> (the optimiser, the step)."""
+    learnable, loss_bad, logs, failure = False, None, {}, None
+    packer = getattr(task, "packer", None)
     try:
         if task.before_step(step) or opt is None:
             opt = make_optimizer(task)
         _set_lr(opt, step, sched)
-        idx = torch.randint(0, len(rays), (sched.batch_rays,), generator=gen).to(rays.origins.device)
+        idx = draw_batch(gen, len(rays), sched.batch_rays, rays.origins.device)
         opt.zero_grad(set_to_none=True)
-        learnable, finite_loss, logs = batch_gradients(task, rays, idx, step, parallel)
+        if packer is not None:
+            packer.begin()
+        learnable, loss_bad, logs = batch_gradients(task, rays, idx, step, parallel)
     except Exception as e:
         if not parallel:
             raise
         failure = e  # every rank stops with this rank's message (in average_gradients)
     params = [p for g in opt.param_groups for p in g["params"]] if opt is not None else []
     if parallel:
-        learnable, finite_loss, logs = dist.average_gradients(params, learnable, finite_loss, logs, failure)
-    applied = learnable and finite_loss and all_finite(params)
-    if applied:
-        opt.step()
-    elif learnable:
-        opt.zero_grad(set_to_none=True)
-    return opt, Step(learnable, finite_loss, applied, logs, params)
+        finite = failure is not None or not bool(loss_bad)
+        learnable, finite, logs = dist.average_gradients(params, learnable, finite, _floats(logs), failure)
+        loss_bad = torch.tensor(not finite, device=rays.origins.device)
+    if not learnable:
+        return opt, Step(False, None, logs, params)
+    over = packer.overflowed() if packer is not None else None
+    flags = torch.stack([loss_bad, ~grads_finite(params, loss_bad.device),
+                         over if over is not None else torch.zeros_like(loss_bad)]).float()
+    opt.found_inf = flags.amax()  # fused Adam leaves every parameter and its state as they were when set
+    opt.step()
+    return opt, Step(True, flags, logs, params)
+
+
+def _floats(logs: dict) -> dict[str, float]:
+    return {k: float(v) for k, v in logs.items()}
+
+
+class Outcomes:
+    """Each step's flags (`Step.flags`), read back on the host without stopping the device: a copy queued after the
+    step, read once it has arrived (at once off a GPU), and all of them on a logging or checkpoint step."""
+
+    def __init__(self, device: torch.device):
+        self.cuda = device.type == "cuda"
+        self.queue: deque = deque()
+
+    def push(self, done: int, flags: Tensor) -> None:
+        host = flags.to("cpu", non_blocking=True)
+        event = None
+        if self.cuda:
+            event = torch.cuda.Event()
+            event.record()
+        self.queue.append((done, host, event))
+
+    def ready(self, wait: bool) -> Iterator[tuple[int, list[float]]]:
+        """(step, its flags) of the steps whose flags have arrived, in order; `wait`: of every step pushed."""
+        while self.queue:
+            done, host, event = self.queue[0]
+            if event is not None:
+                if not wait and not event.query():
+                    return
+                event.synchronize()
+            self.queue.popleft()
+            yield done, host.tolist()
 
 
 @dataclass
@@ -343,19 +401,27 @@ class RunState:
     trend: PsnrTrend = field(default_factory=PsnrTrend)
     bad_run: int = 0
 
-    def guard(self, step: Step, done: int, sched: Schedule, checkpoint: Path | None, progress: Progress) -> None:
-        """The NaN guard, after a learnable step: a skipped step is counted and said; the run stops when the
-        parameters themselves are no longer finite (an overflowing update) or after `sched.max_bad_steps`
-        consecutive skipped steps (its message says what the `checkpoint` keeps)."""
-        if step.applied:
+    def guard(self, done: int, flags: list[float], sched: Schedule, checkpoint: Path | None, progress: Progress,
+              params: list[Tensor], packer=None) -> None:
+        """The NaN guard, on a learnable step's flags (`Step.flags`): a skipped step is counted and said; the run stops
+        when the parameters themselves are no longer finite (an overflowing update) or after `sched.max_bad_steps`
+        consecutive steps with a non-finite loss or gradient (its message says what the `checkpoint` keeps). A step
+        whose samples overflowed their budget is skipped too, and the budgets grow at once (`packer.settle`)."""
+        loss_bad, grad_bad, overflow = (bool(f) for f in flags)
+        if not (loss_bad or grad_bad or overflow):
             self.bad_run = 0
             return
         self.skipped += 1
+        if not (loss_bad or grad_bad):
+            packer.settle()
+            progress.warn(f"step {done}: more samples than the sample budget held, step skipped ({self.skipped} so "
+                          "far); the budget grows")
+            return
         self.bad_run += 1
-        progress.warn(f"step {done}: non-finite {'gradient' if step.finite_loss else 'loss'}, "
+        progress.warn(f"step {done}: non-finite {'loss' if loss_bad else 'gradient'}, "
                       f"step skipped ({self.skipped} so far)")
         # Skipping cannot help when the parameters themselves are gone (an overflowing step).
-        if not all(bool(torch.isfinite(p).all()) for p in step.params):
+        if not all(bool(torch.isfinite(p).all()) for p in params):
             raise BoostNerfError(f"training diverged: the parameters became non-finite by step {done} (an "
                                  f"optimiser step overflowed); {kept(checkpoint)}: lower the learning rates in the recipe")
         if self.bad_run >= sched.max_bad_steps:
@@ -363,17 +429,19 @@ class RunState:
                                  f"gradient (last at step {done}); {kept(checkpoint)}: lower the learning rates in the recipe "
                                  "or check the data")
 
-    def log(self, done: int, logs: dict[str, float], seconds: float, sched: Schedule) -> str | None:
-        """Add a step's PSNR to the trend; at a logging step, an entry of the history. -> a falling-PSNR warning."""
+    def log(self, done: int, logs: dict, seconds: float, sched: Schedule) -> dict[str, float] | None:
+        """Add a step's PSNR to the trend; at a logging step, an entry of the history (the one time a step's logs are
+        read from the device). -> that step's logs, as numbers (None off a logging step)."""
         self.trend.add(logs.get("psnr"))
         if done % sched.log_every and done != sched.iters:
             return None
+        logs = _floats(logs)
         entry = {"step": done, "seconds": round(seconds, 2), **logs}
         mean = self.trend.close_interval()
         if mean is not None:
             entry["psnr_mean"] = round(mean, 3)
         self.history.append(entry)
-        return self.trend.falling_warning(done)
+        return logs
 
 
 def cuda_rng_state(device: torch.device) -> Tensor | None:
@@ -521,19 +589,26 @@ def train(task: TrainTask, rays: RayData, sched: Schedule, seed: int, title: str
         progress.warn(f"note: {checkpoint.path} comes from an earlier boostnerf, which did not record "
                       f"{' or '.join(SETTING_NAMES.get(k, k) for k in checkpoint.unrecorded)}; resuming with this run's")
     t0 = time.perf_counter() - run.seconds
+    outcomes, packer = Outcomes(device), getattr(task, "packer", None)
     try:
         for step in range(run.step, sched.iters):
             # --- one step: batch, gradient, update (the rest of the loop is bookkeeping) ---
             opt, result = optimizer_step(task, rays, sched, opt, gen, step, parallel)
             run.step = step + 1
+            saving = checkpoint is not None and (run.step % sched.checkpoint_every == 0 or run.step == sched.iters)
+            # --- the steps' outcomes as they arrive (all on a logging or checkpoint step), log and checkpoint ---
             if result.learnable:
-                run.guard(result, run.step, sched, checkpoint and checkpoint.path, progress)
-            # --- log and checkpoint ---
-            warning = run.log(run.step, result.logs, time.perf_counter() - t0, sched)
-            if warning:
+                outcomes.push(run.step, result.flags)
+            logging = run.step % sched.log_every == 0 or run.step == sched.iters
+            for done, flags in outcomes.ready(wait=logging or saving):
+                run.guard(done, flags, sched, checkpoint and checkpoint.path, progress, result.params, packer)
+            if logging and packer is not None:
+                packer.settle()
+            logs = run.log(run.step, result.logs, time.perf_counter() - t0, sched)
+            if logs is not None and (warning := run.trend.falling_warning(run.step)):
                 progress.warn(warning)
-            progress.update(run.step, result.logs)
-            if checkpoint is not None and (run.step % sched.checkpoint_every == 0 or run.step == sched.iters):
+            progress.update(run.step, logs)
+            if saving:
                 run.seconds = time.perf_counter() - t0
                 save = partial(checkpoint.save, task, opt, run, gen, device)
                 if parallel:
