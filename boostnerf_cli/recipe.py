@@ -11,7 +11,7 @@ import math
 import re
 import types
 import typing
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -128,19 +128,6 @@ def unused_family_note(pre: PretrainRecipe) -> str | None:
     sections = " and ".join(f"pretrain.{name}" for name in others)
     return (f"note: the experts are {pre.model} and the recipe has no pretrain.{pre.model} section, so they take "
             f"{pre.model}'s default architecture; its {sections} settings apply only to that family")
-
-
-UNSHAPING = ("log_every", "checkpoint_every")  # training settings that do not change what is trained
-
-
-def shaping_changes(current, default, leave_out: tuple[str, ...] = ()) -> dict:
-    """The fields of the dataclass `current` that shape what is trained and differ from `default`'s, for a
-    checkpoint's signature. Left out: `UNSHAPING`, `leave_out`, and the learning rates (`lr_*`), which a diverged
-    run may lower to resume from its last good checkpoint. A setting is named only when it is not the default, so
-    that a checkpoint written before it was named still resumes, and any change from it is still seen."""
-    return {f.name: getattr(current, f.name) for f in fields(current)
-            if f.name not in UNSHAPING + leave_out and not f.name.startswith("lr_")
-            and getattr(current, f.name) != getattr(default, f.name)}
 
 
 def _finetune_train() -> TrainRecipe:

@@ -39,7 +39,7 @@ from safetensors.torch import load_file, save_file
 
 from boostnerf_cli.errors import BoostNerfError
 
-FORMAT_VERSION = "1"
+FORMAT_VERSION = "2"
 
 
 # Test hook for tests/test_resume.py, inert unless the variable is set (one environment lookup per file write):
@@ -611,3 +611,17 @@ class Workspace:
 
     def model_names(self) -> list[str]:
         return sorted(p.stem for p in self.moe_dir.glob("*.safetensors")) if self.moe_dir.exists() else []
+
+    def all_model_names(self) -> list[str]:
+        """Experts smallest first, then mixtures in the paper's order (moe/init, untrained, is no model to use)."""
+        order = {"baseline": 0, "top1": 1, "top2": 2, "ens": 9}
+        mixtures = sorted((n for n in self.model_names() if n != "init"), key=lambda n: (order.get(n, 5), n))
+        return self.expert_names() + mixtures
+
+    def model_file(self, name: str) -> Path:
+        """Where model `name` lives: experts/NAME.safetensors, else moe/NAME.safetensors."""
+        return self.expert_path(name) if self.expert_path(name).exists() else self.model_path(name)
+
+    def report_path(self, name: str) -> Path:
+        """The report of model `name`, written when it is finished: experts/NAME.json, else moe/NAME.json."""
+        return self.expert_report_path(name) if self.expert_path(name).exists() else self.moe_dir / f"{name}.json"

@@ -474,11 +474,11 @@ def test_a_finished_model_asked_for_with_other_settings_is_refused_not_skipped(m
     refuses the same case; so does finetune now, for every model. The same settings still skip."""
     ws = tmp_path / "ws"
     shutil.copytree(moe_ws, ws)
-    for model, flags, key in ((["--topk", "1"], ["--no-renormalize"], "(--renormalize: True, now False)"),
-                              (["--topk", "2"], ["--lambda", "0.5"], "(--lambda: the default, now 0.5)"),
-                              (["--topk", "1"], ["--iters", "3"], "--iters"),
-                              (["--ensemble"], ["--seed", "5"], "(--seed: 0, now 5)"),
-                              (["--baseline"], ["--iters", "3"], "--iters")):
+    for model, flags, key in ((["--topk", "1"], ["--no-renormalize"], "(moe.renormalize: True, now False)"),
+                              (["--topk", "2"], ["--lambda", "0.5"], "(moe.lam: 0.001, now 0.5)"),
+                              (["--topk", "1"], ["--iters", "3"], "(moe.iters: 20, now 3)"),
+                              (["--ensemble"], ["--seed", "5"], "(moe.seed: 0, now 5)"),
+                              (["--baseline"], ["--iters", "3"], "(moe.iters: 20, now 3)")):
         proc = run_cli("finetune", "--workspace", str(ws), *model, *flags, "--device", "cpu")
         assert_clean_failure(proc, "was finetuned with other settings", key, "--force")
     before = {p.name: p.stat().st_mtime_ns for p in (ws / "moe").iterdir()}

@@ -315,7 +315,8 @@ def test_a_model_finetuned_from_an_older_init_is_not_silently_kept(moe_copy, mon
     finetune.run(ws, "top1", 1, rec, "cpu", False, logs.append)
     assert "already finetuned" in logs[-1]
     build_moe.build(ws, None, load_recipe(None).moe.__class__(gate_res=6), "cpu", lambda m: None)  # a new init
-    with pytest.raises(BoostNerfError, match="top1 was finetuned from an older moe/init .* --force"):
+    with pytest.raises(BoostNerfError, match="top1 is stale: moe/init was rebuilt after top1 was finetuned from it; "
+                                             "make it again with `boostnerf finetune -w .* --topk 1 --force`"):
         finetune.run(ws, "top1", 1, rec, "cpu", False, lambda m: None)
     finetune.run(ws, "top1", 1, rec, "cpu", True, lambda m: None)  # --force redoes it from the new init
 

@@ -138,4 +138,5 @@ def test_a_changed_family_setting_is_noticed_on_resume(tmp_path, tiny_scene, fam
     changed = _family_recipe(tmp_path / "b.yaml", family, hidden=12)
     proc = run_cli("pretrain", "-w", str(ws), "--data", str(tiny_scene), "--recipe", str(changed), "--device", "cpu",
                    "--iters", "40")
-    assert proc.returncode == 2 and "other settings" in proc.stderr and f"{family}:" in proc.stderr, proc.stderr
+    assert proc.returncode == 2 and "other settings" in proc.stderr and f"pretrain.{family}.hidden:" in proc.stderr, \
+        proc.stderr

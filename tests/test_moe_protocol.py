@@ -516,7 +516,7 @@ def test_the_gate_can_start_from_an_expert_left_out_of_the_mixture(trained_ws, t
     mix, meta = load_mixture(ws / "moe" / "init.safetensors")
     expert, _, _ = load_expert(ws / "experts" / "dvgo-12.safetensors")
     assert mix.m == 1 and torch.equal(mix.gate.table, expert.feature_table)  # an exact copy, from outside
-    assert set(meta["inputs"]) == {"dvgo-12", "dvgo-16"}  # retraining the gate's source makes moe/init stale
+    assert set(meta["signature"]["inputs"]) == {"dvgo-12", "dvgo-16"}  # retraining the gate's source makes moe/init stale
 
     shutil.rmtree(ws / "moe")
     bad = make_recipe(tmp_path / "bad.yaml", moe={**OFFICIAL, "topk": 1, "gate_from": "dvgo-99"})

@@ -7,6 +7,7 @@ import torch
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.lineage import BaselineSpec
 from boostnerf_cli.recipe import TrainRecipe
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings
@@ -170,25 +171,33 @@ def test_a_checkpoint_made_with_other_settings_is_refused(tiny_scene, tmp_path):
     scene = load_scene(tiny_scene)
     rays = RayData.from_split(scene.splits["train"], scene.bbox, scene.near, scene.far)
     ckpt = tmp_path / "run.pt"
+    six, twelve = (BaselineSpec({"dvgo-12": "0" * 32}, iters, 0, {}).signature() for iters in (6, 12))
     train(_task(scene, 6), rays, Schedule(iters=6, batch_rays=64, checkpoint_every=3), seed=0, title="a",
-          checkpoint=TrainCheckpoint(ckpt, {"iters": 6, "seed": 0}))
+          checkpoint=TrainCheckpoint(ckpt, six))
     assert torch.load(ckpt, weights_only=True)["step"] == 6  # also checkpointed after the last step
-    with pytest.raises(BoostNerfError, match=r"run.pt was written with other settings \(--iters: 6, now 12\)"):
+    with pytest.raises(BoostNerfError, match=r"run.pt was written with other settings \(moe.iters: 6, now 12\)"):
         train(_task(scene, 12), rays, Schedule(iters=12, batch_rays=64), seed=0, title="b",
-              checkpoint=TrainCheckpoint(ckpt, {"iters": 12, "seed": 0}))
+              checkpoint=TrainCheckpoint(ckpt, twelve))
 
 
 def test_a_changed_source_is_named_as_a_remade_model_not_by_its_digests():
     """A finetuning checkpoint (or a finished model) whose source (moe/init, or the baseline's largest expert) was
-    remade since differs in its signature's "from", a digest: the message said "its source: '078c...', now
-    'a1b2...'" (probe H, session 28), which tells a user nothing about what to do."""
-    from boostnerf_cli.train import setting_change
+    remade since differs in its signature's inputs, digests: the message says the model it is made from was made
+    again, with the digests shortened (in full they tell a user nothing about what to do); a setting is named by its
+    recipe key."""
+    from boostnerf_cli.lineage import describe_change
 
     was, now = "078c" * 16, "a1b2" * 16
-    text = setting_change("from", was, now)
+    text = describe_change(BaselineSpec({"dvgo-16": was}, 6, 0, {}).signature(),
+                           BaselineSpec({"dvgo-16": now}, 6, 0, {}).signature())
     assert was not in text and now not in text
-    assert text == "the model it is trained from was made again since (digest 078c078c..., now a1b2a1b2...)"
-    assert setting_change("from", None, now) == "the model it is trained from was made again since"
+    assert text == "the model it is made from was made again since (digest 078c078c..., now a1b2a1b2...)"
+    assert describe_change(BaselineSpec({"dvgo-16": None}, 6, 0, {}).signature(),
+                           BaselineSpec({"dvgo-16": now}, 6, 0, {}).signature()) == \
+        "the model it is made from was made again since"
+    assert describe_change(BaselineSpec({"dvgo-16": now}, 6, 0, {"batch_rays": 64}).signature(),
+                           BaselineSpec({"dvgo-16": now}, 6, 0, {"batch_rays": 128}).signature()) == \
+        "moe.train.batch_rays: 64, now 128"
 
 
 def test_a_partial_recipe_section_keeps_that_sections_own_defaults(tmp_path):

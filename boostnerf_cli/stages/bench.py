@@ -41,6 +41,7 @@ from typing import Callable
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import CONFIGS
+from boostnerf_cli.lineage import moved, scene_digest
 from boostnerf_cli.models import Skips
 from boostnerf_cli.moe.router import PENALTIES
 from boostnerf_cli.recipe import Recipe, recipe_dict, recorded_recipe
@@ -339,12 +340,12 @@ def check_config(root: Path, data: Path | None, views: int | None, rec: Recipe, 
     if data is None:
         data = root / previous["data"] if listing and previous and "data" in previous else root / "scene"
     config = bench_config(data, views, rec, root)
-    if previous is not None and previous != config:
-        changed = next(k for k in config if previous.get(k) != config[k])
-        if changed != "data" or {**previous, "data": ""} != {**config, "data": ""}:
-            raise BoostNerfError(f"{root} holds a bench made with another {changed} ({config_path}): "
-                                 "use a new --workspace, or delete it to start over")
+    if moved(previous, config, "data"):
         _check_moved_scene(root, Path(data), rec, root / previous["data"])
+    elif previous is not None and previous != config:
+        changed = next(k for k in config if previous.get(k) != config[k])
+        raise BoostNerfError(f"{root} holds a bench made with another {changed} ({config_path}): "
+                             "use a new --workspace, or delete it to start over")
     return config
 
 
@@ -356,7 +357,6 @@ def _check_moved_scene(root: Path, data: Path, rec: Recipe, was: Path) -> None:
     if not digests:
         return  # nothing trained on the old one
     from boostnerf_cli.scenes import load_scene
-    from boostnerf_cli.stages.common import scene_digest
 
     scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
                        format=rec.data.format, bbox=rec.data.bbox)

@@ -5,12 +5,14 @@ Writes `moe/init.safetensors` (+ `moe/init.json`), the starting point of every `
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from typing import Callable
 
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import FAMILIES, count_params
+from boostnerf_cli.lineage import MixtureInitSpec
 from boostnerf_cli.models import load_expert, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
@@ -88,7 +90,8 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
                         expert_names=[e[1] for e in experts], mix=rec.mix, aux_norm=rec.aux_norm,
                         aux_samples=rec.aux_samples, vd_source=rec.vd_source, vd_filter=rec.vd_filter)
     mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
-    save_mixture(ws.model_path("init"), mix, {"name": "init", "inputs": inputs})
+    spec = MixtureInitSpec(inputs, {"mixture": asdict(cfg), "gate": gate.config_dict(), "seed": rec.seed})
+    save_mixture(ws.model_path("init"), mix, {"name": "init", "signature": spec.signature()})
     report = {
         "name": "init",
         "experts": cfg.expert_names,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import threading
 from contextlib import contextmanager
 from pathlib import Path
@@ -11,6 +10,7 @@ from typing import Callable, Iterator
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.lineage import scene_digest
 from boostnerf_cli.scenes import Scene, load_scene
 from boostnerf_cli.workspace import Workspace
 
@@ -87,17 +87,6 @@ def workspace_scene(ws: Workspace, log: Callable[[str], None] | None = None) -> 
             f"{was['far']:.4g} when this workspace was pretrained (an earlier boostnerf): its reports' figures may "
             "differ from these; rerun `boostnerf pretrain` on it to record the new bounds (nothing is retrained)")
     return scene
-
-
-def scene_digest(scene: Scene) -> str:
-    """Fingerprint of what training sees: every split's images, poses and intrinsics (recorded by pretrain)."""
-    h = hashlib.blake2b(digest_size=16)
-    for name in sorted(scene.splits):
-        s = scene.splits[name]
-        h.update(name.encode())
-        for t in (s.images, s.poses, s.intrinsics):
-            h.update(t.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()
 
 
 @contextmanager

@@ -16,21 +16,15 @@ from typing import Callable
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import count_params
-from boostnerf_cli.models import (
-    load_expert,
-    load_mixture,
-    mixture_routing_meta,
-    save_expert,
-    save_mixture,
-    stale_reason,
-)
+from boostnerf_cli.lineage import BaselineSpec, FinetuneSpec, decide, finished, stale
+from boostnerf_cli.models import load_expert, load_mixture, mixture_routing_meta, save_expert, save_mixture
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, check_config
 from boostnerf_cli.moe.router import check_topk
-from boostnerf_cli.recipe import MoERecipe, check_section, shaping_changes
+from boostnerf_cli.recipe import MoERecipe, check_section
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.tasks import FieldTask, MixtureTask, sparse_options, train_rays
-from boostnerf_cli.train import Schedule, TrainCheckpoint, first_difference, setting_change, train
+from boostnerf_cli.train import Schedule, TrainCheckpoint, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
 
@@ -43,8 +37,8 @@ def model_name(topk: int | None, ensemble: bool, baseline: bool) -> str:
 
 def check_inputs(ws: Workspace) -> None:
     """Refuse a moe/init built from experts that have been retrained or removed since build-moe."""
-    if (stale := stale_reason(ws, "init")) is not None:
-        what, remedy = stale
+    if (why := stale(ws, "init")) is not None:
+        what, remedy = why
         raise BoostNerfError(f"{what}, so moe/init is stale: rerun {remedy}")
 
 
@@ -73,48 +67,22 @@ def routing(name: str, topk: int | None, rec: MoERecipe, cfg: MixtureConfig, gat
     return cfg, gate_kind
 
 
-def signature(name: str, rec: MoERecipe, source: str | None, cfg: MixtureConfig | None = None,
-              gate_kind: str = "") -> dict:
-    """What defines finetuned model `name` (its training checkpoint's signature, and stored in the finished model):
-    its source, steps, seed, routing (`routing`'s config; None for the baseline) and the shaping settings."""
-    sig = {"stage": "finetune", "model": name, "from": source, "iters": rec.iters, "seed": rec.seed}
-    if rec.train.random_background:  # named only when set: older checkpoints still resume
-        sig["random_background"] = True
-    if cfg is not None:
-        sig.update(topk=cfg.topk, renormalize=cfg.renormalize, penalty=cfg.penalty)
-        defaults = MixtureConfig()
-        for key in ("mix", "aux_norm", "aux_samples", "vd_source", "vd_filter"):  # named only when not the default: older checkpoints still resume
-            if getattr(cfg, key) != getattr(defaults, key):
-                sig[key] = getattr(cfg, key)
-        wide_steps, gate_noise = sparse_options(gate_kind, cfg.topk, len(cfg.expert_names), rec)
-        if wide_steps:
-            sig["wide_steps"] = wide_steps
-        if gate_noise:
-            sig["gate_noise"] = gate_noise
-    sig.update(_shaping(rec, ("lam",) if cfg is not None and name != "ens" else ()))  # no aux loss to weigh: ens
-    return sig
+def spec(name: str, rec: MoERecipe, source: str | None, cfg: MixtureConfig | None = None,
+         gate_kind: str = "", largest: str = "") -> FinetuneSpec | BaselineSpec:
+    """What defines finetuned model `name`: its source's digest `source` (moe/init, or for the baseline the `largest`
+    expert), and the recipe's settings, with `routing`'s config `cfg` for a mixture."""
+    if name == "baseline":
+        return BaselineSpec.of(rec, largest, source)
+    return FinetuneSpec.of(name, rec, source, cfg, *sparse_options(gate_kind, cfg.topk, len(cfg.expert_names), rec))
 
 
 def _planned_signature(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict) -> dict:
     """The signature this run would give `name`, from moe/init's metadata alone (nothing loaded)."""
     source = _source_digest(ws, name, init_meta)
     if name == "baseline":
-        return signature(name, rec, source)
+        return spec(name, rec, source, largest=init_meta["mixture"]["expert_names"][-1]).signature()
     cfg, kind = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), init_meta))
-    return signature(name, rec, source, cfg, kind)
-
-
-def _check_finished(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict) -> None:
-    """Refuse to skip a finished model that this run would finetune differently (--lambda, --no-renormalize, --iters,
-    another recipe, ...): its report would stand for settings it was not trained with. A model saved before its
-    signature was stored is skipped as before."""
-    stored = read_meta(ws.model_path(name)).get("finetune_signature")
-    if stored is None:
-        return
-    now = _planned_signature(ws, name, topk, rec, init_meta)
-    if (key := first_difference(stored, now)) is not None:
-        raise BoostNerfError(f"{name} was finetuned with other settings ({setting_change(key, stored.get(key), now.get(key))}): "
-                             "add --force to finetune it again, or rerun with the settings it was finetuned with")
+    return spec(name, rec, source, cfg, kind).signature()
 
 
 def _unused_flags(name: str, flags: dict, cfg: MixtureConfig | None, gate_kind: str) -> list[str]:
@@ -160,13 +128,8 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     init_meta = read_meta(init)
     check_inputs(ws)
     _note_unused(ws, name, topk, rec, init_meta, flags or {}, log)  # also when the model is finished and skipped
-    if ws.model_path(name).exists() and (ws.moe_dir / f"{name}.json").exists() and not force:
-        if stale_reason(ws, name) is not None:  # moe/init is current (above), so: finetuned from an older one
-            raise BoostNerfError(
-                f"{name} was finetuned from an older {'expert' if name == 'baseline' else 'moe/init'} "
-                f"(build-moe or pretrain ran again since): add --force to finetune it again"
-            )
-        _check_finished(ws, name, topk, rec, init_meta)
+    if (found := finished(ws, name)) is not None and not force:  # refused when made from another moe/init or
+        decide(found, _planned_signature(ws, name, topk, rec, init_meta)).check()  # expert, or other settings
         log(f"{name}: already finetuned, skipping (use --force to redo it)")
         return read_json(ws.moe_dir / f"{name}.json", "finetune report")
     scene = workspace_scene(ws, log)
@@ -186,7 +149,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     mix.configure(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)})
     settings = scene.render_settings(mix.cfg.step, mix.bbox, rec.train.color_threshold)
     task = MixtureTask(mix, settings, rec.train, rec)
-    sig = signature(name, rec, source, mix.cfg, mix.gate.cfg.kind)
+    sig = spec(name, rec, source, mix.cfg, mix.gate.cfg.kind).signature()
     result = train(task, train_rays(scene, mix.bbox, device, rec.train), sched, rec.seed, name,
                    TrainCheckpoint(ws.checkpoint_path(name), sig, restart_other=force), data_parallel=True)
     mix.eval()
@@ -218,8 +181,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     }
 
     def write() -> None:
-        save_mixture(ws.model_path(name), mix, {"name": name, "from": "init", "from_digest": source,
-                                                "finetune_signature": sig})
+        save_mixture(ws.model_path(name), mix, {"name": name, "from": "init", "signature": sig})
         write_json(ws.moe_dir / f"{name}.json", report)
         ws.checkpoint_path(name).unlink(missing_ok=True)
         ws.update_manifest(moe={name: {"from": "init", "iterations": rec.iters}})
@@ -230,16 +192,6 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     return report
 
 
-def _shaping(rec: MoERecipe, keys: tuple[str, ...]) -> dict:
-    """The signature's entries for the joint training settings that differ from the defaults (`shaping_changes`):
-    `train` (batch, thresholds, loss weights; not the learning rates), and the MoE section's `keys` (lambda)."""
-    default = MoERecipe()
-    out = {k: getattr(rec, k) for k in keys if getattr(rec, k) != getattr(default, k)}
-    if changed := shaping_changes(rec.train, default.train, leave_out=("random_background",)):
-        out["train"] = changed
-    return out
-
-
 def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: Schedule, device: str,
               log: Callable[[str], None], source: str | None, force: bool = False) -> dict:
     """The largest expert alone, trained for the same finetuning iterations and schedule."""
@@ -248,7 +200,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
     model.train()
     settings = scene.render_settings(meta["step"], model.bbox, rec.train.color_threshold)
     task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
-    sig = signature("baseline", rec, source)
+    sig = spec("baseline", rec, source, largest=largest).signature()
     result = train(task, train_rays(scene, model.bbox, device, rec.train), sched, rec.seed, "baseline",
                    TrainCheckpoint(ws.checkpoint_path("baseline"), sig, restart_other=force), data_parallel=True)
     model.eval()
@@ -268,7 +220,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
 
     def write() -> None:
         save_expert(ws.model_path("baseline"), model, task.skip,
-                    {**meta, "name": "baseline", "from": largest, "from_digest": source, "finetune_signature": sig})
+                    {**meta, "name": "baseline", "from": largest, "signature": sig})
         write_json(ws.moe_dir / "baseline.json", report)
         ws.checkpoint_path("baseline").unlink(missing_ok=True)
         ws.update_manifest(moe={"baseline": {"from": largest, "iterations": rec.iters}})

@@ -31,16 +31,8 @@ from boostnerf_cli.images import (
     write_png,
     write_video,
 )
-from boostnerf_cli.models import (
-    LoadedModel,
-    Skips,
-    all_model_names,
-    current_models,
-    load_model,
-    n_views,
-    render_split,
-    stale_reason,
-)
+from boostnerf_cli.lineage import require_current, stale
+from boostnerf_cli.models import LoadedModel, Skips, load_model, n_views, render_split
 from boostnerf_cli.moe.mixture import GateView
 from boostnerf_cli.render.paths import camera_path
 from boostnerf_cli.render.renderer import render_image, render_view
@@ -56,7 +48,7 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
     scene = workspace_scene(ws, log)
     split = scene.split(split_name)
     written = []
-    for name in current_models(ws, names):
+    for name in require_current(ws, names):
         model = load_model(ws, name, device, exact_gate)
         folder = ws.renders_dir(name, split_name)
         mine = []
@@ -84,10 +76,10 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
     """Render one model along a camera path derived from the training cameras -> colour and depth videos."""
     if not names or len(names) != 1:
         fix = f"keep one of {', '.join(names)}" if names else "add --model NAME"
-        current = [n for n in all_model_names(ws) if stale_reason(ws, n) is None]  # what it can render
+        current = [n for n in ws.all_model_names() if stale(ws, n) is None]  # what it can render
         raise BoostNerfError(f"--path renders one model: {fix} (models: {', '.join(current) or 'none yet'})")
     scene = workspace_scene(ws, log)
-    model = load_model(ws, current_models(ws, names)[0], device)
+    model = load_model(ws, require_current(ws, names)[0], device)
     target, fmt = video_target(video or ws.renders_dir(model.name) / f"{kind}.mp4")  # refused before rendering
     train = scene.split("train")
     facing = float(torch.linalg.norm(train.poses[:, :3, 2].mean(0)))  # 1: all cameras look the same way
@@ -121,12 +113,12 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
 def compared_models(ws: Workspace, names: list[str] | None) -> list[str]:
     """`names`, else the paper's comparison models the workspace has, else every model it has."""
     if names:
-        return current_models(ws, names)
-    have = all_model_names(ws)
+        return require_current(ws, names)
+    have = ws.all_model_names()
     chosen = [n for n in COMPARED if n in have] or have
     if not chosen:
         raise BoostNerfError(f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
-    return current_models(ws, chosen)
+    return require_current(ws, chosen)
 
 
 def pixel_error(rgb: np.ndarray, gt: np.ndarray) -> np.ndarray:
