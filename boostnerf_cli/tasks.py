@@ -133,14 +133,8 @@ class FieldTask:
         self.model.resize_to(tuple(state["meta"]["shape"]))
         self.model.load_state_dict(state["model"])
         if state["skip"] is not None:
-            # Until its first refresh the mask is the geometry stage's grid, over the geometry's own box, not the
-            # expert's (a checkpoint of then resumed the mask stretched over the expert's box). A checkpoint written
-            # before the box was stored: the base mask's box when the mask has its shape, as only it can.
-            box = state.get("skip_bbox")
-            if box is None:
-                same = self.base_mask is not None and tuple(state["skip"].shape) == tuple(self.base_mask.occupied.shape)
-                box = self.base_mask.bbox if same else self.model.bbox
-            self.skip = OccupancyGrid(state["skip"], box.to(self.model.bbox.device))
+            # until its first refresh the mask is the geometry stage's grid, over the geometry's own box
+            self.skip = OccupancyGrid(state["skip"], state["skip_bbox"].to(self.model.bbox.device))
 
 
 def occupancy_shape(model: nn.Module) -> tuple[int, int, int]:

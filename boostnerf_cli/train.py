@@ -340,18 +340,10 @@ def cuda_rng_state(device: torch.device) -> Tensor | None:
     return torch.cuda.get_rng_state(device) if device.type == "cuda" else None
 
 
-def restore_cuda_rng(state: Tensor | list | None, device: torch.device) -> None:
-    """Give `device` the state `cuda_rng_state` saved. A checkpoint from before session 25 holds every visible GPU's
-    state (`get_rng_state_all`, which `set_rng_state_all` cannot put back with fewer GPUs): the entry of `device`'s
-    index, if there is one. Nothing off CUDA."""
-    if state is None or device.type != "cuda":
-        return
-    if isinstance(state, (list, tuple)):
-        index = device.index if device.index is not None else torch.cuda.current_device()
-        if index >= len(state):
-            return
-        state = state[index]
-    torch.cuda.set_rng_state(state, device)
+def restore_cuda_rng(state: Tensor | None, device: torch.device) -> None:
+    """Give `device` the state `cuda_rng_state` saved; nothing off CUDA."""
+    if state is not None and device.type == "cuda":
+        torch.cuda.set_rng_state(state, device)
 
 
 def kept(path: Path | None) -> str:
@@ -412,8 +404,7 @@ class TrainCheckpoint:
             for g, lr in zip(opt.param_groups, rates):  # the state brought back the interrupted run's; a diverged run
                 g["initial_lr"] = lr  # resumed with lower rates (the advice it gives) trained on at the old ones
             run = RunState(int(state["step"]), float(state["seconds"]), int(state["skipped"]), list(state["history"]))
-            if state.get("trend") is not None:  # checkpoints before session 24 did not keep it
-                run.trend.load_state(state["trend"])
+            run.trend.load_state(state["trend"])
             gen.set_state(state["gen"])
             torch.set_rng_state(state["rng"])
             restore_cuda_rng(state.get("cuda_rng"), device)

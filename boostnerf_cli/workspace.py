@@ -303,9 +303,19 @@ def read_meta(path: Path) -> dict[str, Any]:
                              "delete it and rerun the stage that writes it")
     if meta.get("format_version") != FORMAT_VERSION:
         raise BoostNerfError(f"checkpoint {path} has file format {meta.get('format_version')!r}, and this boostnerf "
-                             f"reads format {FORMAT_VERSION!r}: read it with the boostnerf that wrote it, or delete it "
-                             "and rerun the stage that writes it")
+                             f"reads format {FORMAT_VERSION!r}: make it again with this one (delete it and rerun "
+                             f"{_maker(path)}), or read it with the boostnerf that wrote it")
     return meta
+
+
+def _maker(path: Path) -> str:
+    """The command that writes a workspace's model file `path`, for messages."""
+    if path.parent.name == "experts":
+        return "`boostnerf pretrain`"
+    if path.parent.name == "moe":
+        return ("`boostnerf build-moe`" if path.stem == "init" else "`boostnerf prune`" if path.stem.endswith("-pruned")
+                else "`boostnerf finetune`")
+    return "the stage that writes it"
 
 
 def load_tensors(path: Path, device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
@@ -577,9 +587,15 @@ class Workspace:
 
     # manifest
     def manifest(self) -> dict:
+        """The workspace's manifest ({} when there is none); one line for one of another file format."""
         if not self.manifest_path.exists():
             return {}
-        return read_json(self.manifest_path, "workspace manifest")
+        m = read_json(self.manifest_path, "workspace manifest")
+        if m and m.get("format_version") != FORMAT_VERSION:
+            raise BoostNerfError(f"workspace {self.root} has file format {m.get('format_version')!r}, and this "
+                                 f"boostnerf reads format {FORMAT_VERSION!r}: make it again in a new workspace "
+                                 "(`boostnerf pretrain --workspace NEW ...`), or use the boostnerf that made it")
+        return m
 
     def require_manifest(self) -> dict:
         m = self.manifest()
@@ -590,7 +606,7 @@ class Workspace:
         return m
 
     def update_manifest(self, **sections: Any) -> dict:
-        m = self.manifest()
+        m = {"format_version": FORMAT_VERSION, **self.manifest()}
         for key, value in sections.items():
             if isinstance(value, dict) and isinstance(m.get(key), dict):
                 m[key] = {**m[key], **value}

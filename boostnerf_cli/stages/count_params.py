@@ -15,7 +15,7 @@ from boostnerf_cli.workspace import Workspace, write_json
 
 def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, views: int | None,
         log: Callable[[str], None]) -> dict:
-    scene = workspace_scene(ws, log)
+    scene = workspace_scene(ws)
     split = scene.split(split_name)
     names = require_current(ws, names)
     if not names:

@@ -48,7 +48,7 @@ def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, 
 
 def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
              report: bool, log: Callable[[str], None], costs: bool = True, exact_gate: bool = False) -> dict:
-    scene = workspace_scene(ws, log)
+    scene = workspace_scene(ws)
     split = scene.split(split_name)
     names = require_current(ws, names)
     if not names:

@@ -132,12 +132,8 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         decide(found, _planned_signature(ws, name, topk, rec, init_meta)).check()  # expert, or other settings
         log(f"{name}: already finetuned, skipping (use --force to redo it)")
         return read_json(ws.moe_dir / f"{name}.json", "finetune report")
-    scene = workspace_scene(ws, log)
+    scene = workspace_scene(ws)
     mix, meta = load_mixture(init, device)
-    if name != "baseline" and mix.occupancy is not None and mix.occupancy.fraction() == 0:  # build-moe refuses one
-        raise BoostNerfError(f"{init} holds a density volume V_D that keeps no cell (an earlier boostnerf's "  # since
-                             "build-moe): every sample would be filtered and the mixture could not train; run "
-                             f"`boostnerf build-moe --workspace {ws.root}` again, which says what to change")
     mix.train()
     sched = Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every, rec.train.checkpoint_every)
     source = _source_digest(ws, name, init_meta)

@@ -45,7 +45,7 @@ COMPARED = ("baseline", "top1", "top2", "ens")  # the paper's comparison models,
 
 def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
                log: Callable[[str], None], per_expert: bool = False, exact_gate: bool = False) -> list[Path]:
-    scene = workspace_scene(ws, log)
+    scene = workspace_scene(ws)
     split = scene.split(split_name)
     written = []
     for name in require_current(ws, names):
@@ -78,7 +78,7 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
         fix = f"keep one of {', '.join(names)}" if names else "add --model NAME"
         current = [n for n in ws.all_model_names() if stale(ws, n) is None]  # what it can render
         raise BoostNerfError(f"--path renders one model: {fix} (models: {', '.join(current) or 'none yet'})")
-    scene = workspace_scene(ws, log)
+    scene = workspace_scene(ws)
     model = load_model(ws, require_current(ws, names)[0], device)
     target, fmt = video_target(video or ws.renders_dir(model.name) / f"{kind}.mp4")  # refused before rendering
     train = scene.split("train")
@@ -129,7 +129,7 @@ def pixel_error(rgb: np.ndarray, gt: np.ndarray) -> np.ndarray:
 def run_compare(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
                 log: Callable[[str], None]) -> list[Path]:
     """One image per view: ground truth and each model side by side, each model's error heat map below it."""
-    scene = workspace_scene(ws, log)
+    scene = workspace_scene(ws)
     split = scene.split(split_name)
     names = compared_models(ws, names)
     n = n_views(split, views)
