@@ -133,32 +133,20 @@ class BaselineSpec(Spec):
 class FinetuneSpec(Spec):
     artifact: ClassVar[str] = "finetuned"
     section: ClassVar[str] = "moe"
-    names: ClassVar[dict[str, str]] = {"wide_steps": "moe.wide_start (in steps)"}
+    names: ClassVar[dict[str, str]] = {"routing": "moe"}  # its keys are the moe section's (`moe.penalty`)
 
     model: str  # top1, top2, ..., ens
     inputs: dict  # {"init": moe/init's digest}
     iters: int
     seed: int
-    topk: int
-    renormalize: bool
-    penalty: str
-    mix: str
-    aux_norm: str
-    aux_samples: str
-    vd_source: str
-    vd_filter: str
+    routing: dict  # the mixture's routing as finetuning sets it (`moe.mixture.Routing`: top-k, weights, penalty, ...)
     lam: float | None  # None: no auxiliary loss to weigh (the ensemble)
-    wide_steps: int
-    gate_noise: float
     train: dict
 
     @staticmethod
-    def of(name: str, rec: MoERecipe, digest: str | None, cfg: Any, wide_steps: int,
-           gate_noise: float) -> "FinetuneSpec":
-        """`cfg`: the mixture's config as finetuning sets it (its routing)."""
-        return FinetuneSpec(name, {"init": digest}, rec.iters, rec.seed, cfg.topk, cfg.renormalize, cfg.penalty,
-                            cfg.mix, cfg.aux_norm, cfg.aux_samples, cfg.vd_source, cfg.vd_filter,
-                            None if name == "ens" else rec.lam, wide_steps, gate_noise, shaping(rec.train))
+    def of(name: str, rec: MoERecipe, digest: str | None, routing: dict) -> "FinetuneSpec":
+        return FinetuneSpec(name, {"init": digest}, rec.iters, rec.seed, routing, None if name == "ens" else rec.lam,
+                            shaping(rec.train))
 
 
 @dataclass(frozen=True)

@@ -144,14 +144,6 @@ def occupancy_shape(model: nn.Module) -> tuple[int, int, int]:
     return tuple(max(2, int(math.ceil(v / f))) for v in s)  # type: ignore[return-value]
 
 
-def sparse_options(gate_kind: str, topk: int, m: int, rec: MoERecipe) -> tuple[int, float]:
-    """(wide_steps, gate_noise) of a finetuning run: both options need a choice to make, a trained gate that leaves
-    some experts out (not the ensemble, not k = M); elsewhere they are 0. wide_steps < iters: the last step narrows;
-    gate_noise: the noisy top-k choice while training (router.top_k)."""
-    sparse = gate_kind != "uniform" and topk < m
-    return (int(rec.wide_start * rec.iters), rec.gate_noise) if sparse else (0, 0.0)
-
-
 @dataclass
 class MixtureTask:
     """One finetuning step of a mixture: render with routing stats, photometric + lambda * aux loss."""
@@ -164,23 +156,13 @@ class MixtureTask:
     def param_groups(self) -> list[dict]:
         return self.mix.param_groups(self.tcfg.lr_grid, self.tcfg.lr_mlp, self.rec.lr_gate, self.rec.lr_gate_mlp)
 
-    def __post_init__(self) -> None:
-        # the routing the task ends with; `rec.wide_start` of the steps route to one expert more before it
-        self.final_routing = {"topk": self.mix.cfg.topk, "renormalize": self.mix.cfg.renormalize}
-        self.wide_steps, self.gate_noise = sparse_options(self.mix.gate.cfg.kind, self.mix.cfg.topk, self.mix.m, self.rec)
-
     def before_step(self, step: int) -> bool:
-        """Set the step's routing (a function of the step alone, so a resumed run routes as an uninterrupted one)."""
-        routing = self.final_routing
-        if step < self.wide_steps:
-            routing = {"topk": routing["topk"] + 1, "renormalize": True}
-        if any(getattr(self.mix.cfg, k) != v for k, v in routing.items()):
-            self.mix.configure(**routing)
+        """Nothing changes the mixture's parameters between steps."""
         return False
 
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, alpha: Tensor | None, step: int):
         stats = RoutingStats()
-        bundle = render_rays(self.mix.with_stats(stats, self.gate_noise), origins, dirs, self.settings, self.mix.skip, jitter=True)
+        bundle = render_rays(self.mix.with_stats(stats), origins, dirs, self.settings, self.mix.skip, jitter=True)
         loss, logs = photometric_loss(bundle, rgb, alpha, self.tcfg, self.settings.background, step)
         for ex in self.mix.experts:  # family-specific terms (TensoRF's L1), as in pretraining
             reg = ex.regularization()

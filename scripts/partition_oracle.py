@@ -196,7 +196,7 @@ def main() -> None:
     scene = None
     for name, root in args.model:
         ws = Workspace(Path(root))
-        scene = scene or workspace_scene(ws, lambda s: print(s, file=sys.stderr))
+        scene = scene or workspace_scene(ws)
         models.append(load_model(ws, name, device))
         # a workspace's baseline is its largest expert trained on: named by that expert (dvgo-80)
         label = read_meta(ws.model_file(name)).get("from", name) if name == "baseline" else name

@@ -1,6 +1,7 @@
 """The staged pipeline through the real CLI: artifacts, reports, resumable stages, bad input."""
 
 import json
+import logging
 import shutil
 
 import pytest
@@ -456,35 +457,36 @@ def test_render_writes_each_view_as_it_comes(trained_ws, tmp_path, monkeypatch):
 
     monkeypatch.setattr(models, "render_view", failing_second)
     with pytest.raises(RuntimeError, match="second view"):
-        stage.run(Workspace(ws), ["dvgo-12"], "test", "cpu", ALL_SKIPS, None, lambda _: None)
+        stage.run(Workspace(ws), ["dvgo-12"], "test", "cpu", ALL_SKIPS, None)
     written = sorted(p.name for p in (ws / "renders" / "dvgo-12" / "test").glob("*.png"))
     assert len(written) == 2 and sum(n.endswith("_depth.png") for n in written) == 1, written  # view 1: colour, depth
 
 
-def test_a_slow_stage_says_what_it_is_doing_and_a_fast_one_stays_quiet():
+def test_a_slow_stage_says_what_it_is_doing_and_a_fast_one_stays_quiet(caplog):
     """Reading 120 JPEGs at 4000 x 3000 (53 s) and scoring 200 held-out views (122 s) printed nothing; a line printed
     up front, though, made every one-line refusal of a bad scene two lines. The notice comes only when it is slow."""
     import time
 
     from boostnerf_cli.stages.common import slow_notice
 
-    said = []
-    with slow_notice(said.append, "reading the scene", after=0.05):
+    caplog.set_level(logging.INFO, logger="boostnerf_cli")
+    with slow_notice("reading the scene", after=0.05):
         time.sleep(0.3)
-    assert said == ["reading the scene"]
-    with slow_notice(said.append, "scoring", after=0.5):
+    assert caplog.messages == ["reading the scene"]
+    with slow_notice("scoring", after=0.5):
         pass
-    with pytest.raises(ValueError), slow_notice(said.append, "failing", after=0.05):
+    with pytest.raises(ValueError), slow_notice("failing", after=0.05):
         raise ValueError("at once")
     time.sleep(0.2)
-    assert said == ["reading the scene"]
+    assert caplog.messages == ["reading the scene"]
 
 
 def test_log_lines_print_brackets_as_written(capsys):
     """Progress lines are plain text: Rich took "[0.34, 0.66]" or "[dvgo-8]" for a markup tag and dropped it, so
     `render --per-expert` printed "on detailed pixels , on smooth pixels " and a path like ws[2] lost its part."""
-    from boostnerf_cli.cli import log
+    from boostnerf_cli.cli import log, say_messages
 
+    say_messages()  # as every command does first
     text = "on detailed pixels [0.34, 0.66], [nan, nan], [dvgo-8] and ws[x]/scene [bold]"
     log(text)
     assert capsys.readouterr().err.strip() == text

@@ -457,20 +457,6 @@ def test_finetuning_learns_and_the_resolution_penalty_moves_load_to_the_small_ex
     assert weighted["load"][0] > flat["load"][0] + 0.05, (weighted["load"], flat["load"])
 
 
-def test_gate_noise_reaches_the_report_and_a_bad_value_is_one_line(moe_ws, tmp_path):
-    """finetune --gate-noise: the report says the noise it trained with; a negative one is refused in one line and
-    leaves no model behind."""
-    ws = _without_top1(moe_ws, tmp_path)
-    bad = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--iters", "10", "--gate-noise", "-1",
-                  "--device", "cpu")
-    assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
-    assert "gate_noise" in bad.stderr and not (ws / "moe" / "top1.safetensors").exists()
-    run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--iters", "10", "--gate-noise", "0.5",
-            "--device", "cpu", check=True)
-    report = json.loads((ws / "moe" / "top1.json").read_text())
-    assert report["gate_noise"] == 0.5 and report["iterations"] == 10
-
-
 def test_a_finished_model_asked_for_with_other_settings_is_refused_not_skipped(moe_ws, tmp_path):
     """`finetune --topk 2 --no-renormalize` (or another --lambda, --iters, --seed) over a finished top2 said "already
     finetuned, skipping" and exited 0: a script got the old model, whose report still said renormalize true. pretrain
@@ -502,28 +488,28 @@ def test_a_finished_model_asked_for_with_other_settings_is_refused_not_skipped(m
 
 
 def test_options_that_cannot_change_a_model_are_named(moe_ws, tmp_path):
-    """--gate-noise, --wide-start, --penalty or --lambda on the ensemble or the baseline, or --wide-start at k = M,
-    were dropped without a word (the report recorded the defaults)."""
+    """--penalty or --lambda on the ensemble or the baseline, or --no-renormalize at k = M, were dropped without a word
+    (the report recorded the defaults)."""
     ws = tmp_path / "ws"
     shutil.copytree(moe_ws, ws, ignore=shutil.ignore_patterns("top*", "ens*", "baseline*"))
-    proc = run_cli("finetune", "--workspace", str(ws), "--ensemble", "--gate-noise", "2", "--penalty", "1,2",
+    proc = run_cli("finetune", "--workspace", str(ws), "--ensemble", "--lambda", "2", "--penalty", "1,2",
                    "--iters", "2", "--device", "cpu", check=True)
-    assert "note: --penalty, --gate-noise cannot change ens (every expert is used with equal weights)" in proc.stderr
-    proc = run_cli("finetune", "--workspace", str(ws), "--baseline", "--lambda", "3", "--wide-start", "0.5",
+    assert "note: --lambda, --penalty cannot change ens (every expert is used with equal weights)" in proc.stderr
+    proc = run_cli("finetune", "--workspace", str(ws), "--baseline", "--lambda", "3", "--no-renormalize",
                    "--iters", "2", "--device", "cpu", check=True)
-    assert "note: --lambda, --wide-start cannot change the baseline" in proc.stderr
+    assert "note: --lambda, --no-renormalize cannot change the baseline" in proc.stderr
     # a finished model skipped says it too (docs/stages.md): it only said "already finetuned, skipping"
-    proc = run_cli("finetune", "--workspace", str(ws), "--baseline", "--lambda", "3", "--wide-start", "0.5",
+    proc = run_cli("finetune", "--workspace", str(ws), "--baseline", "--lambda", "3", "--no-renormalize",
                    "--iters", "2", "--device", "cpu", check=True)
     assert "already finetuned, skipping" in proc.stderr
-    assert "note: --lambda, --wide-start cannot change the baseline" in proc.stderr
-    proc = run_cli("finetune", "--workspace", str(ws), "--ensemble", "--gate-noise", "2", "--iters", "2",
+    assert "note: --lambda, --no-renormalize cannot change the baseline" in proc.stderr
+    proc = run_cli("finetune", "--workspace", str(ws), "--ensemble", "--penalty", "1,2", "--iters", "2",
                    "--device", "cpu", check=True)
-    assert "already finetuned, skipping" in proc.stderr and "note: --gate-noise cannot change ens" in proc.stderr
-    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--wide-start", "0.5", "--no-renormalize",
+    assert "already finetuned, skipping" in proc.stderr and "note: --penalty cannot change ens" in proc.stderr
+    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--lambda", "0.5", "--no-renormalize",
                    "--iters", "2", "--device", "cpu", check=True)  # two experts: k = M
-    assert "note: --wide-start, --no-renormalize cannot change top2 (at k = M every expert is used)" in proc.stderr
-    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--wide-start", "0.5", "--lambda", "0.1",
+    assert "note: --no-renormalize cannot change top2 (at k = M every expert is used)" in proc.stderr
+    proc = run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--no-renormalize", "--lambda", "0.1",
                    "--iters", "2", "--device", "cpu", check=True)
     assert "note:" not in proc.stderr
 

@@ -117,7 +117,7 @@ def test_skipped_steps_are_counted_warned_and_in_the_stage_report(tmp_path, tiny
 
     monkeypatch.setattr(FieldTask, "loss", loss)
     ws = Workspace(tmp_path / "ws")
-    stage.run(ws, tiny_scene, rec, "cpu", False, lambda m: None)
+    stage.run(ws, tiny_scene, rec, "cpu", False)
     report = json.loads(ws.expert_report_path("dvgo-12").read_text())
     assert report["skipped_steps"] == 2 and report["iterations"] == 12
     err = capsys.readouterr().err

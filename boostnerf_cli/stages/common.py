@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Iterator
 
 import torch
 
@@ -13,6 +14,8 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.lineage import scene_digest
 from boostnerf_cli.scenes import Scene, load_scene
 from boostnerf_cli.workspace import Workspace
+
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 
 def resolve_device(name: str) -> str:
@@ -56,7 +59,7 @@ def workspace_scene(ws: Workspace) -> Scene:
 
 
 @contextmanager
-def slow_notice(log: Callable[[str], None], message: str, after: float = 5.0) -> Iterator[None]:
+def slow_notice(message: str, after: float = 5.0) -> Iterator[None]:
     """Say `message` once if the block is still running after `after` seconds (reading a large capture takes
     minutes); a block that ends sooner, or fails at once with its one-line error, prints nothing more."""
     timer = threading.Timer(after, log, args=(message,))

@@ -8,7 +8,7 @@ reports/eval.json schema (documented in docs/reports.md):
 
 from __future__ import annotations
 
-from typing import Callable
+import logging
 
 from boostnerf_cli.costs import model_costs
 from boostnerf_cli.errors import BoostNerfError
@@ -19,6 +19,8 @@ from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, load_model, n_vi
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, atomic_path, number, write_json
+
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 
 def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, lpips_model, skips: Skips = ALL_SKIPS,
@@ -47,7 +49,7 @@ def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, 
 
 
 def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
-             report: bool, log: Callable[[str], None], costs: bool = True, exact_gate: bool = False) -> dict:
+             report: bool, costs: bool = True, exact_gate: bool = False) -> dict:
     scene = workspace_scene(ws)
     split = scene.split(split_name)
     names = require_current(ws, names)

@@ -11,21 +11,23 @@ by `tasks.batch_routing`); rank 0 alone writes the outputs (docs/distributed.md)
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+import logging
 
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import count_params
 from boostnerf_cli.lineage import BaselineSpec, FinetuneSpec, decide, finished, stale
 from boostnerf_cli.models import load_expert, load_mixture, mixture_routing_meta, save_expert, save_mixture
-from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, check_config
+from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, Routing, check_config, routing_of
 from boostnerf_cli.moe.router import check_topk
 from boostnerf_cli.recipe import MoERecipe, check_section
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.stages.common import workspace_scene
-from boostnerf_cli.tasks import FieldTask, MixtureTask, sparse_options, train_rays
+from boostnerf_cli.tasks import FieldTask, MixtureTask, train_rays
 from boostnerf_cli.train import Schedule, TrainCheckpoint, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
+
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 
 def model_name(topk: int | None, ensemble: bool, baseline: bool) -> str:
@@ -52,28 +54,26 @@ def _source_digest(ws: Workspace, name: str, init_meta: dict) -> str | None:
 
 def routing(name: str, topk: int | None, rec: MoERecipe, cfg: MixtureConfig, gate_kind: str) -> tuple[MixtureConfig, str]:
     """How finetuning configures moe/init's mixture (its config `cfg`, its gate's kind) for model `name`: the recipe's
-    mixing and V_D options, then the ensemble's uniform gate and k = M, or top-k's k, weights and penalty.
+    routing (`moe.mixture.Routing`), then the ensemble's uniform gate and k = M, or top-k's k.
     -> (the mixture's config, the gate's kind)."""
-    cfg = dataclasses.replace(cfg, mix=rec.mix, aux_norm=rec.aux_norm, aux_samples=rec.aux_samples,
-                              vd_source=rec.vd_source, vd_filter=rec.vd_filter)
+    cfg = dataclasses.replace(cfg, **routing_of(rec))
     m = len(cfg.expert_names)
-    if name == "ens":  # equal weights over every expert: renormalising and the penalty change nothing (`_unused_flags`)
-        return dataclasses.replace(cfg, topk=m, renormalize=True, penalty=MixtureConfig().penalty), "uniform"
+    if name == "ens":  # equal weights over every expert: renormalising and the penalty change nothing
+        return dataclasses.replace(cfg, topk=m, renormalize=True, penalty=Routing().penalty), "uniform"
     check_topk(topk, cfg.expert_names, "--topk")
     # at k = M every expert is used and the weights already sum to 1: renormalising changes nothing
-    renormalize = True if topk == m else rec.renormalize
-    cfg = dataclasses.replace(cfg, topk=topk, renormalize=renormalize, penalty=rec.penalty, bake_res=rec.bake_res)
+    cfg = dataclasses.replace(cfg, topk=topk, renormalize=True if topk == m else rec.renormalize)
     check_config(cfg, m)
     return cfg, gate_kind
 
 
 def spec(name: str, rec: MoERecipe, source: str | None, cfg: MixtureConfig | None = None,
-         gate_kind: str = "", largest: str = "") -> FinetuneSpec | BaselineSpec:
+         largest: str = "") -> FinetuneSpec | BaselineSpec:
     """What defines finetuned model `name`: its source's digest `source` (moe/init, or for the baseline the `largest`
     expert), and the recipe's settings, with `routing`'s config `cfg` for a mixture."""
     if name == "baseline":
         return BaselineSpec.of(rec, largest, source)
-    return FinetuneSpec.of(name, rec, source, cfg, *sparse_options(gate_kind, cfg.topk, len(cfg.expert_names), rec))
+    return FinetuneSpec.of(name, rec, source, routing_of(cfg))
 
 
 def _planned_signature(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict) -> dict:
@@ -81,53 +81,44 @@ def _planned_signature(ws: Workspace, name: str, topk: int | None, rec: MoERecip
     source = _source_digest(ws, name, init_meta)
     if name == "baseline":
         return spec(name, rec, source, largest=init_meta["mixture"]["expert_names"][-1]).signature()
-    cfg, kind = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), init_meta))
-    return spec(name, rec, source, cfg, kind).signature()
+    cfg, _ = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), init_meta))
+    return spec(name, rec, source, cfg).signature()
 
 
-def _unused_flags(name: str, flags: dict, cfg: MixtureConfig | None, gate_kind: str) -> list[str]:
-    """The options given on the command line that cannot change model `name` (the baseline has no gate; the
-    ensemble's is uniform; at k = M every expert is used and the weights already sum to 1)."""
-    def typed(flag: str) -> str:  # --renormalize / --no-renormalize as given
-        return flag if flag != "--renormalize" or flags[flag] else "--no-renormalize"
-
-    if name == "baseline":
-        return [typed(f) for f in flags]
-    m = len(cfg.expert_names)
-    unused = []
-    if name == "ens":
-        unused += [f for f in ("--lambda", "--penalty") if f in flags]
-    if gate_kind == "uniform" or cfg.topk >= m:
-        unused += [f for f in ("--wide-start", "--gate-noise") if f in flags]
-        if "--renormalize" in flags:
-            unused.append(typed("--renormalize"))
-    return unused
+MOOT = ("moe.lam", "moe.penalty", "moe.renormalize")  # the recipe keys that some models cannot use
 
 
-def _note_unused(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict, flags: dict,
-                 log: Callable[[str], None]) -> None:
-    """Name the command line's options that cannot change model `name` (`_unused_flags`), from moe/init's metadata."""
-    if name == "baseline":
-        if unused := _unused_flags(name, flags, None, ""):
-            log(f"note: {', '.join(unused)} cannot change the baseline (the largest expert alone, no gate): ignored")
-        return
-    cfg, kind = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), init_meta))
-    if unused := _unused_flags(name, flags, cfg, kind):
-        why = "every expert is used with equal weights" if name == "ens" else "at k = M every expert is used"
-        log(f"note: {', '.join(unused)} cannot change {name} ({why}): ignored")
-
-
-def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str, force: bool,
-        log: Callable[[str], None], flags: dict | None = None) -> dict:
-    """Finetune model `name` (skipped when finished with the same settings); `flags`: the options given on the command
-    line, {flag: value}, to name those that cannot change this model."""
-    check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
+def _init_meta(ws: Workspace) -> dict:
+    """moe/init's metadata, refused when it is missing or built from experts that changed since."""
     init = ws.model_path("init")
     if not init.exists():
         raise BoostNerfError(f"no mixture to finetune in {ws.root}: run `boostnerf build-moe --workspace {ws.root}` first")
-    init_meta = read_meta(init)
+    meta = read_meta(init)
     check_inputs(ws)
-    _note_unused(ws, name, topk, rec, init_meta, flags or {}, log)  # also when the model is finished and skipped
+    return meta
+
+
+def unused_settings(ws: Workspace, name: str, topk: int | None, rec: MoERecipe,
+                    given: set[str]) -> tuple[list[str], str]:
+    """Which of the recipe keys `given` (on the command line) cannot change model `name`, and why: the baseline has
+    no gate; the ensemble's is uniform, with no auxiliary loss to weigh; at k = M every expert is used and the
+    weights already sum to 1. Read from moe/init's metadata. -> (keys, why), ([], "") when each can."""
+    asked = [key for key in MOOT if key in given]
+    if name == "baseline":
+        return asked, "the largest expert alone, no gate"
+    cfg, kind = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), _init_meta(ws)))
+    unused = [key for key in asked if name == "ens" and key != "moe.renormalize"]
+    if (kind == "uniform" or cfg.topk >= len(cfg.expert_names)) and "moe.renormalize" in asked:
+        unused.append("moe.renormalize")
+    why = "every expert is used with equal weights" if name == "ens" else "at k = M every expert is used"
+    return unused, why if unused else ""
+
+
+def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str, force: bool) -> dict:
+    """Finetune model `name` (skipped when finished with the same settings)."""
+    check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
+    init_meta = _init_meta(ws)
+    init = ws.model_path("init")
     if (found := finished(ws, name)) is not None and not force:  # refused when made from another moe/init or
         decide(found, _planned_signature(ws, name, topk, rec, init_meta)).check()  # expert, or other settings
         log(f"{name}: already finetuned, skipping (use --force to redo it)")
@@ -138,14 +129,14 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     sched = Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every, rec.train.checkpoint_every)
     source = _source_digest(ws, name, init_meta)
     if name == "baseline":
-        return _baseline(ws, scene, mix, rec, sched, device, log, source, force)
+        return _baseline(ws, scene, mix, rec, sched, device, source, force)
     if name == "ens":
         mix.make_ensemble()
     cfg, kind = routing(name, topk, rec, mix.cfg, mix.gate.cfg.kind)
     mix.configure(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)})
     settings = scene.render_settings(mix.cfg.step, mix.bbox, rec.train.color_threshold)
     task = MixtureTask(mix, settings, rec.train, rec)
-    sig = spec(name, rec, source, mix.cfg, mix.gate.cfg.kind).signature()
+    sig = spec(name, rec, source, mix.cfg).signature()
     result = train(task, train_rays(scene, mix.bbox, device, rec.train), sched, rec.seed, name,
                    TrainCheckpoint(ws.checkpoint_path(name), sig, restart_other=force), data_parallel=True)
     mix.eval()
@@ -153,18 +144,9 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     report = {
         "name": name,
         "kind": "mixture",
-        "topk": mix.cfg.topk,
-        "renormalize": mix.cfg.renormalize,
+        **routing_of(mix.cfg),
         "lambda": rec.lam,
-        "penalty": mix.cfg.penalty,
         "seed": rec.seed,
-        "mix": mix.cfg.mix,
-        "aux_norm": mix.cfg.aux_norm,
-        "aux_samples": mix.cfg.aux_samples,
-        "vd_source": mix.cfg.vd_source,
-        "vd_filter": mix.cfg.vd_filter,
-        "wide_steps": task.wide_steps,
-        "gate_noise": task.gate_noise,
         "gate": mix.gate.cfg.kind,
         "experts": mix.cfg.expert_names,
         "iterations": result.iterations,
@@ -188,8 +170,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     return report
 
 
-def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: Schedule, device: str,
-              log: Callable[[str], None], source: str | None, force: bool = False) -> dict:
+def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: Schedule, device: str, source: str | None, force: bool = False) -> dict:
     """The largest expert alone, trained for the same finetuning iterations and schedule."""
     largest = mix.cfg.expert_names[-1]
     model, occ, meta = load_expert(ws.expert_path(largest), device)

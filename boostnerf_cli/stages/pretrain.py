@@ -11,9 +11,9 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from pathlib import Path
-from typing import Callable
 
 import torch
 from torch import Tensor, nn
@@ -51,6 +51,8 @@ from boostnerf_cli.tasks import FieldTask, train_rays
 from boostnerf_cli.train import Schedule, TrainCheckpoint, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
+
 
 def growth_schedule(iters: int, fractions: list[float]) -> tuple[int, ...]:
     """The steps (of 0 .. iters - 1) at which the grid doubles its voxels: one per fraction, those that fall on the
@@ -78,8 +80,7 @@ EDGE_WARN = 0.01
 
 
 # ----------------------------------------------------------------------------------------------
-def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int, device: str,
-                    log: Callable[[str], None], checkpoint_every: int = 500,
+def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int, device: str, checkpoint_every: int = 500,
                     scene_tag: str = "") -> tuple[Tensor, OccupancyGrid, nn.Module]:
     """The shared occupied box, occupancy mask and coarse density (trained once per workspace).
 
@@ -95,7 +96,7 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
         return torch.tensor(meta["fine_bbox"], device=device), occ, model
     t0 = time.perf_counter()
     bbox = scene.bbox.to(device)
-    box, occ, model, cover = _coarse_round(ws, scene, rec, bbox, "geometry", seed, device, log, checkpoint_every,
+    box, occ, model, cover = _coarse_round(ws, scene, rec, bbox, "geometry", seed, device, checkpoint_every,
                                            scene_tag)
     if cover is not None and cover["edge_rays"] > EDGE_WARN * cover["foreground_rays"]:  # over the scene's own box
         log(f"geometry: warning: {cover['edge_rays']} of {cover['foreground_rays']} foreground training rays "
@@ -112,7 +113,7 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     shrink = float((box[1] - box[0]).prod() / (bbox[1] - bbox[0]).prod())
     if rec.refine and cover is not None and shrink < 0.5:  # cells at least 1.26x finer: worth a second round
         log(f"geometry: again inside that box ({shrink:.2f} of the volume), at finer cells")
-        box, occ, model, cover = _coarse_round(ws, scene, rec, box, "geometry-refine", seed, device, log,
+        box, occ, model, cover = _coarse_round(ws, scene, rec, box, "geometry-refine", seed, device,
                                                checkpoint_every, scene_tag)
         rounds.append(cover)
     seconds = round(time.perf_counter() - t0, 2)
@@ -126,8 +127,7 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     return box, occ, model
 
 
-def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor, name: str, seed: int, device: str,
-                  log: Callable[[str], None], checkpoint_every: int,
+def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor, name: str, seed: int, device: str, checkpoint_every: int,
                   scene_tag: str) -> tuple[Tensor, OccupancyGrid, nn.Module, dict | None]:
     """Train the coarse grid over `bbox` and find the box and the mask from it.
 
@@ -181,11 +181,11 @@ def expert_name(model: str, res: int) -> str:
     return f"{model}-{res}"
 
 
-def expert_options(rec: PretrainRecipe, res: int, log: Callable[[str], None] | None = None) -> dict:
+def expert_options(rec: PretrainRecipe, res: int, say: bool = False) -> dict:
     """The family options of the expert at `res`. A mapping from resolution to value sets an option
     per expert (e.g. `hidden: {64: 64, 80: 96, 96: 128}` widens the colour MLP with the grid); for a
     resolution the mapping does not list (`--res 48` over such a recipe) the nearest listed resolution's
-    value is taken (the larger on a tie), and `log` says so."""
+    value is taken (the larger on a tie), and with `say` the log says so."""
     opts = {}
     for key, value in rec.family_config().items():
         if isinstance(value, dict):
@@ -198,7 +198,7 @@ def expert_options(rec: PretrainRecipe, res: int, log: Callable[[str], None] | N
                 raise BoostNerfError(f"recipe key pretrain.{rec.model}.{key} is an empty mapping: give a value per "
                                      "resolution, or a single value")
             res_key = nearest_listed(value, res)
-            if res_key != res and log is not None:
+            if res_key != res and say:
                 log(f"recipe key pretrain.{rec.model}.{key} lists no value for res {res}: using {value[res_key]!r}, "
                     f"the value for the nearest listed resolution ({res_key})")
             value = value[res_key]
@@ -207,7 +207,7 @@ def expert_options(rec: PretrainRecipe, res: int, log: Callable[[str], None] | N
 
 
 def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, box: Tensor, geom: OccupancyGrid,
-                    prior: nn.Module, device: str, scene_tag: str = "", log: Callable[[str], None] | None = None,
+                    prior: nn.Module, device: str, scene_tag: str = "",
                     force: bool = False) -> dict:
     """Train one expert at `res` and write its safetensors file and JSON report (with `rec.skip` off: on the
     scene's whole box instead of `box`, without `geom`)."""
@@ -253,7 +253,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     }
     test = scene.held_out()
     if test is not None:
-        with slow_notice(log or (lambda _: None), f"{name}: scoring its {len(test)} held-out views"):
+        with slow_notice(f"{name}: scoring its {len(test)} held-out views"):
             report["test_psnr"] = round(_test_psnr(model, test, settings, task.skip, device), 3)
     save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step, "scene": scene_tag,
                                                          "signature": signature})
@@ -271,8 +271,7 @@ def assign(res: list[int], world: int) -> list[list[int]]:
     return [sorted(s) for s in shares]
 
 
-def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
-        log: Callable[[str], None]) -> list[dict]:
+def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool) -> list[dict]:
     """Train every expert of the recipe that is not finished yet; -> the reports of all of them.
 
     Under torchrun, rank 0 first prepares the workspace (scene, manifest, the shared geometry) while the
@@ -280,15 +279,14 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
     each rank trains its own and writes their files, and once every rank has succeeded rank 0 alone
     records them in the manifest. A rank's failure stops every rank with its message (docs/distributed.md).
     """
-    scene, tag, box, geom, prior, todo = dist.main_first(
-        lambda: _prepare(ws, data, rec, device, force, dist.main_log(log)))
-    if not rec.pretrain.skip:
-        dist.main_log(log)("pretrain.skip is off (--no-skip): experts train on the whole scene box without an "
-                           "occupancy mask (colour is still computed only where a sample's rendering weight exceeds "
-                           "train.color_threshold)")
+    with dist.others_quiet():  # what every rank would repeat is said once
+        scene, tag, box, geom, prior, todo = dist.main_first(lambda: _prepare(ws, data, rec, device, force))
+        if not rec.pretrain.skip:
+            log("pretrain.skip is off (--no-skip): experts train on the whole scene box without an occupancy mask "
+                "(colour is still computed only where a sample's rendering weight exceeds train.color_threshold)")
     with dist.together():
         for res in assign(todo, dist.world_size())[dist.rank()]:
-            report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, tag, log, force)
+            report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, tag, force)
             log(f"{report['name']}: {report['iterations']} steps in {report['seconds']:.0f}s, train PSNR "
                 f"{report['train_psnr']:.2f}"
                 + (f", held-out PSNR {report['test_psnr']:.2f}" if "test_psnr" in report else ""))
@@ -322,8 +320,7 @@ def check_foreground(scene: Scene, data: Path) -> None:
     )
 
 
-def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
-             log: Callable[[str], None]) -> tuple[Scene, str, Tensor, OccupancyGrid, nn.Module, list[int]]:
+def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool) -> tuple[Scene, str, Tensor, OccupancyGrid, nn.Module, list[int]]:
     """Check the inputs, record them, load the scene and the shared geometry (trained if missing).
 
     -> (scene, scene id, box, occupancy, coarse model, resolutions of the experts left to train).
@@ -331,7 +328,7 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     """
     check_recipe(rec, "setting")  # the recipe was checked when read; flags may have changed it since
     m = ws.manifest()  # read once: nothing below writes it before update_manifest
-    scene, spec, tag, digest = _scene(ws, m, data, rec, force, log)
+    scene, spec, tag, digest = _scene(ws, m, data, rec, force)
     decisions = {}  # every finished expert's, before anything is written (a refusal leaves the manifest as it is)
     for res in sorted(rec.pretrain.res):
         name = expert_name(rec.pretrain.model, res)
@@ -342,8 +339,8 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     if dist.is_main():
         ws.update_manifest(data=spec.record(), scene_id=tag, scene_digest=digest, scene=scene.describe(),
                            recipe=recipe_dict(rec))
-    _describe(scene, log)
-    box, geom, prior = ensure_geometry(ws, scene, rec.pretrain.geometry, rec.pretrain.seed, device, log,
+    _describe(scene)
+    box, geom, prior = ensure_geometry(ws, scene, rec.pretrain.geometry, rec.pretrain.seed, device,
                                        rec.pretrain.train.checkpoint_every, tag)
     todo = []
     for res in sorted(rec.pretrain.res):
@@ -354,7 +351,7 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     return scene, tag, box, geom, prior, todo
 
 
-def _describe(scene: Scene, log: Callable[[str], None]) -> None:
+def _describe(scene: Scene) -> None:
     """Say what was loaded: the format found, the loader's warnings and notes, the views."""
     if "detected" in scene.extra:
         log(f"format: {scene.extra['detected']}")
@@ -371,8 +368,7 @@ SCENE_KEYS = {"image_size": "image size", "holdout_every": "held-out views (hold
               "bbox": "box (data.bbox)"}
 
 
-def _scene(ws: Workspace, m: dict, data: Path | None, rec: Recipe, force: bool,
-           log: Callable[[str], None]) -> tuple[Scene, SceneSpec, str, str]:
+def _scene(ws: Workspace, m: dict, data: Path | None, rec: Recipe, force: bool) -> tuple[Scene, SceneSpec, str, str]:
     """The scene to train on: `data`, or the workspace's own (recorded, or generated when there is none). Another
     scene than the workspace's is refused (with --force: what was trained on it is forgotten); the same images and
     cameras at another path are the workspace's scene, moved. -> (scene, its spec, its id, its digest)."""
@@ -394,11 +390,11 @@ def _scene(ws: Workspace, m: dict, data: Path | None, rec: Recipe, force: bool,
     if generate:
         log(f"no --data given: generating the default procedural scene in {data}")
         make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)  # atomic: never half a scene
-    with slow_notice(log, f"reading the scene at {data} (its images are read and scaled once per stage)"):
+    with slow_notice(f"reading the scene at {data} (its images are read and scaled once per stage)"):
         scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
                            format=rec.data.format, bbox=rec.data.bbox)
     for res in rec.pretrain.res:  # per-expert options are checked (and chosen, said once) before anything trains
-        expert_options(rec.pretrain, res, log)
+        expert_options(rec.pretrain, res, say=True)
     if note := unused_family_note(rec.pretrain):
         log(note)
     check_foreground(scene, data)

@@ -13,9 +13,9 @@ Why these rows and this fill, and what pruning saves: docs/benchmarks.md, "Pruni
 
 from __future__ import annotations
 
+import logging
 import re
 import time
-from typing import Callable
 
 import torch
 from torch import Tensor
@@ -29,6 +29,8 @@ from boostnerf_cli.models import LoadedModel, load_model, n_views, render_split,
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, read_json, write_json
+
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 SUFFIX = "-pruned"
 CHECK_VIEWS = 4  # at most this many of the views pruned on are rendered before and after: unchanged
@@ -105,8 +107,7 @@ def _psnr(images: list[Tensor], split: Split) -> float:
     return sum(mse_to_psnr(float(torch.mean((im - split.images[i]) ** 2))) for i, im in enumerate(images)) / len(images)
 
 
-def run(ws: Workspace, name: str, split_name: str, device: str, views: int | None, force: bool,
-        log: Callable[[str], None]) -> dict:
+def run(ws: Workspace, name: str, split_name: str, device: str, views: int | None, force: bool) -> dict:
     ws.require_manifest()
     if name.endswith(SUFFIX):
         raise BoostNerfError(f"{name!r} is already pruned: prune the model it came from")
