@@ -145,14 +145,8 @@ class FieldTask:
         self.model.resize_to(tuple(state["meta"]["shape"]))
         self.model.load_state_dict(state["model"])
         if state["skip"] is not None:
-            # Until its first refresh the mask is the geometry stage's grid, over the geometry's own box, not the
-            # expert's (a checkpoint of then resumed the mask stretched over the expert's box). A checkpoint written
-            # before the box was stored: the base mask's box when the mask has its shape, as only it can.
-            box = state.get("skip_bbox")
-            if box is None:
-                same = self.base_mask is not None and tuple(state["skip"].shape) == tuple(self.base_mask.occupied.shape)
-                box = self.base_mask.bbox if same else self.model.bbox
-            self.skip = OccupancyGrid(state["skip"], box.to(self.model.bbox.device))
+            # until its first refresh the mask is the geometry stage's grid, over the geometry's own box
+            self.skip = OccupancyGrid(state["skip"], state["skip_bbox"].to(self.model.bbox.device))
 
 
 def occupancy_shape(model: nn.Module) -> tuple[int, int, int]:
@@ -160,14 +154,6 @@ def occupancy_shape(model: nn.Module) -> tuple[int, int, int]:
     s = model.shape
     f = max(1.0, max(s) / 128)
     return tuple(max(2, int(math.ceil(v / f))) for v in s)  # type: ignore[return-value]
-
-
-def sparse_options(gate_kind: str, topk: int, m: int, rec: MoERecipe) -> tuple[int, float]:
-    """(wide_steps, gate_noise) of a finetuning run: both options need a choice to make, a trained gate that leaves
-    some experts out (not the ensemble, not k = M); elsewhere they are 0. wide_steps < iters: the last step narrows;
-    gate_noise: the noisy top-k choice while training (router.top_k)."""
-    sparse = gate_kind != "uniform" and topk < m
-    return (int(rec.wide_start * rec.iters), rec.gate_noise) if sparse else (0, 0.0)
 
 
 @dataclass
@@ -186,23 +172,15 @@ class MixtureTask:
     def __post_init__(self) -> None:
         if self.packer is None:
             self.packer = packer_for(self.mix.bbox.device)
-        # the routing the task ends with; `rec.wide_start` of the steps route to one expert more before it
-        self.final_routing = {"topk": self.mix.cfg.topk, "renormalize": self.mix.cfg.renormalize}
-        self.wide_steps, self.gate_noise = sparse_options(self.mix.gate.cfg.kind, self.mix.cfg.topk, self.mix.m, self.rec)
 
     def before_step(self, step: int) -> bool:
-        """Set the step's routing (a function of the step alone, so a resumed run routes as an uninterrupted one)."""
-        routing = self.final_routing
-        if step < self.wide_steps:
-            routing = {"topk": routing["topk"] + 1, "renormalize": True}
-        if any(getattr(self.mix.cfg, k) != v for k, v in routing.items()):
-            self.mix.configure(**routing)
+        """Nothing changes the mixture's parameters between steps."""
         return False
 
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, alpha: Tensor | None, step: int):
         stats = RoutingStats()
-        bundle = render_rays(self.mix.with_stats(stats, self.gate_noise), origins, dirs, self.settings, self.mix.skip,
-                             jitter=True, packer=self.packer)
+        bundle = render_rays(self.mix.with_stats(stats), origins, dirs, self.settings, self.mix.skip, jitter=True,
+                             packer=self.packer)
         loss, logs = photometric_loss(bundle, rgb, alpha, self.tcfg, self.settings.background, step)
         for ex in self.mix.experts:  # family-specific terms (TensoRF's L1), as in pretraining
             reg = ex.regularization()

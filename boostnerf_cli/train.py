@@ -23,9 +23,10 @@ from torch import Tensor
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.device import from_host
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.lineage import MAKE, Found, decide
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
-from boostnerf_cli.workspace import MALFORMED, kill_point_for_tests, malformed, save_torch
+from boostnerf_cli.workspace import FORMAT_VERSION, MALFORMED, kill_point_for_tests, malformed, save_torch
 
 
 @dataclass
@@ -240,49 +241,6 @@ def _non_finite_entry(obj, where: str = "") -> str | None:
     return None
 
 
-# how a setting of a training signature is given, for messages (others are named by their recipe key)
-SETTING_NAMES = {"iters": "--iters", "seed": "--seed", "lam": "--lambda", "penalty": "--penalty",
-                 "renormalize": "--renormalize", "wide_steps": "--wide-start (in steps)", "gate_noise": "--gate-noise",
-                 "topk": "--topk", "train": "the recipe's train section"}
-
-
-def setting_change(key: str, was, now) -> str:
-    """`key: was, now now` for a message, with the flag's name and "the default" for a setting left at it. A changed
-    source (`from`, the digest of moe/init or of the baseline's expert) is said as such, its digests shortened."""
-    if key == "from":
-        digests = f" (digest {was[:8]}..., now {now[:8]}...)" if isinstance(was, str) and isinstance(now, str) else ""
-        return f"the model it is trained from was made again since{digests}"
-    was, now = (("the default" if v is None else repr(v)) for v in (was, now))
-    return f"{SETTING_NAMES.get(key, key)}: {was}, now {now}"
-
-
-def first_difference(saved: dict, wanted: dict) -> str | None:
-    """The first key (in sorted order) whose value differs between two signatures, or None when they agree."""
-    return next((key for key in sorted(set(saved) | set(wanted)) if saved.get(key) != wanted.get(key)), None)
-
-
-# Signature entries for the training settings that shape a model (`train`, finetune's `lam`): a checkpoint names
-# them when they differ from the defaults, since session 23. A checkpoint without a PSNR trend (written before
-# session 24) may come from a boostnerf that did not record them at all: their absence there says nothing.
-LATE_SETTINGS = ("train", "lam")
-
-
-def unrecorded_settings(state: dict, wanted: dict | None) -> list[str]:
-    """The settings of `wanted` that the checkpoint `state`, written by an earlier boostnerf, may not have recorded."""
-    saved = state.get("signature")
-    if saved is None or wanted is None or state.get("trend") is not None:
-        return []
-    return [key for key in LATE_SETTINGS if key in wanted and key not in saved]
-
-
-def _difference(saved: dict | None, wanted: dict | None, unrecorded: list[str]) -> str | None:
-    """The first setting in which a checkpoint's signature differs from this run's, leaving out the settings it
-    could not record (`unrecorded_settings`); None when they agree or either is missing."""
-    if saved is None or wanted is None:
-        return None
-    return first_difference({**saved, **{key: wanted[key] for key in unrecorded}}, wanted)
-
-
 def batch_gradients(task: TrainTask, rays: RayData, idx: Tensor, step: int,
                     parallel: bool = False) -> tuple[bool, Tensor, dict]:
     """The loss of the batch `idx` and its gradient, accumulated in the parameters' .grad.
@@ -450,18 +408,10 @@ def cuda_rng_state(device: torch.device) -> Tensor | None:
     return torch.cuda.get_rng_state(device) if device.type == "cuda" else None
 
 
-def restore_cuda_rng(state: Tensor | list | None, device: torch.device) -> None:
-    """Give `device` the state `cuda_rng_state` saved. A checkpoint from before session 25 holds every visible GPU's
-    state (`get_rng_state_all`, which `set_rng_state_all` cannot put back with fewer GPUs): the entry of `device`'s
-    index, if there is one. Nothing off CUDA."""
-    if state is None or device.type != "cuda":
-        return
-    if isinstance(state, (list, tuple)):
-        index = device.index if device.index is not None else torch.cuda.current_device()
-        if index >= len(state):
-            return
-        state = state[index]
-    torch.cuda.set_rng_state(state, device)
+def restore_cuda_rng(state: Tensor | None, device: torch.device) -> None:
+    """Give `device` the state `cuda_rng_state` saved; nothing off CUDA."""
+    if state is not None and device.type == "cuda":
+        torch.cuda.set_rng_state(state, device)
 
 
 def kept(path: Path | None) -> str:
@@ -485,10 +435,9 @@ class TrainCheckpoint:
 
     def __init__(self, path: Path, signature: dict | None = None, restart_other: bool = False):
         self.path, self.signature, self.restart_other = path, signature, restart_other
-        self.unrecorded: list[str] = []  # settings an earlier boostnerf's checkpoint did not record
 
     def load(self) -> dict | None:
-        """The state to resume from; None when there is none (no file, or --force over other settings)."""
+        """The saved state, None when there is no file; one line for a damaged one."""
         if not self.path.exists():
             return None
         try:
@@ -499,30 +448,23 @@ class TrainCheckpoint:
         if not isinstance(state, dict):
             raise BoostNerfError(f"training checkpoint {self.path} is not a boostnerf training state; "
                                  "delete it to restart this model")
-        self.unrecorded = unrecorded_settings(state, self.signature)
-        if self.restart_other and _difference(state.get("signature"), self.signature, self.unrecorded) is not None:
-            self.unrecorded = []
-            return None  # --force: a checkpoint of other settings is dropped (overwritten later)
+        if state.get("format_version") != FORMAT_VERSION:
+            raise BoostNerfError(f"training checkpoint {self.path} has file format {state.get('format_version')!r}, "
+                                 f"and this boostnerf reads format {FORMAT_VERSION!r}: delete it to restart this model")
         return state
-
-    def _check_signature(self, saved: dict | None) -> None:
-        """Refuse to resume a checkpoint written with settings that change what is being trained."""
-        if (key := _difference(saved, self.signature, self.unrecorded)) is None:
-            return
-        change = setting_change(key, saved.get(key), self.signature.get(key))
-        raise BoostNerfError(f"training checkpoint {self.path} was written with other settings ({change}): rerun "
-                             "with the settings it was made with to resume, add --force to restart this model with "
-                             "these, or delete it")
 
     def resume(self, task: TrainTask, gen: torch.Generator,
                device: torch.device) -> tuple[torch.optim.Optimizer | None, RunState]:
-        """Bring `task`, a new optimiser, `gen` and torch's random states back to the saved state.
-        -> (the optimiser, the run's counters); (None, a new run) when there is nothing to resume."""
+        """Bring `task`, a new optimiser, `gen` and torch's random states back to the saved state, when
+        `lineage.decide` resumes it. -> (the optimiser, the run's counters); (None, a new run) when there is
+        nothing to resume (no checkpoint, or --force over one of other settings, which is overwritten later)."""
         state = self.load()
         if state is None:
             return None, RunState()
         try:
-            self._check_signature(state.get("signature"))
+            found = Found(str(self.path), state.get("signature"), checkpoint=True)
+            if decide(found, self.signature, self.restart_other).check().action == MAKE:
+                return None, RunState()
             task.load_state(state["task"])
             opt = make_optimizer(task)
             rates = [g["initial_lr"] for g in opt.param_groups]  # this run's recipe's learning rates
@@ -530,8 +472,7 @@ class TrainCheckpoint:
             for g, lr in zip(opt.param_groups, rates):  # the state brought back the interrupted run's; a diverged run
                 g["initial_lr"] = lr  # resumed with lower rates (the advice it gives) trained on at the old ones
             run = RunState(int(state["step"]), float(state["seconds"]), int(state["skipped"]), list(state["history"]))
-            if state.get("trend") is not None:  # checkpoints before session 24 did not keep it
-                run.trend.load_state(state["trend"])
+            run.trend.load_state(state["trend"])
             gen.set_state(state["gen"])
             torch.set_rng_state(state["rng"])
             restore_cuda_rng(state.get("cuda_rng"), device)
@@ -554,6 +495,7 @@ class TrainCheckpoint:
             "task": task_state, "optim": optim_state, "step": run.step, "seconds": run.seconds,
             "skipped": run.skipped, "history": run.history, "gen": gen.get_state(), "rng": torch.get_rng_state(),
             "cuda_rng": cuda_rng_state(device), "signature": self.signature, "trend": run.trend.state(),
+            "format_version": FORMAT_VERSION,
         })
         kill_point_for_tests("checkpoint")  # inert unless a resume test asks for it (workspace.TEST_KILL_ENV)
 
@@ -585,9 +527,6 @@ def train(task: TrainTask, rays: RayData, sched: Schedule, seed: int, title: str
     progress = Progress(title, sched.iters, run.step, sched.log_every, quiet=parallel and not dist.is_main())
     if run.step > 0:
         progress.warn(f"resuming from {checkpoint.path} at step {run.step}/{sched.iters}")
-    if checkpoint is not None and checkpoint.unrecorded:
-        progress.warn(f"note: {checkpoint.path} comes from an earlier boostnerf, which did not record "
-                      f"{' or '.join(SETTING_NAMES.get(k, k) for k in checkpoint.unrecorded)}; resuming with this run's")
     t0 = time.perf_counter() - run.seconds
     outcomes, packer = Outcomes(device), getattr(task, "packer", None)
     try:

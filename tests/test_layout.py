@@ -20,6 +20,7 @@ LAYERS = [
     ["render"],
     ["moe", "scenes"],
     ["recipe", "distributed", "images"],
+    ["lineage"],
     ["train", "models"],
     ["tasks", "costs"],
     ["stages.common"],

@@ -30,9 +30,13 @@ from torch import Tensor, nn
 
 from boostnerf_cli import flops
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.limits import MAX_GRID_RES, OneOf, Range, at_least, limit
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig, softmax
 from boostnerf_cli.moe.router import (
+    AUX_NORMS,
+    AUX_SAMPLES,
+    PENALTY_RULE,
     aux_loss,
     check_penalty,
     check_topk,
@@ -54,22 +58,34 @@ MIN_TRANSMITTANCE = 1e-30
 
 
 @dataclass
-class MixtureConfig:
-    topk: int = 2
-    renormalize: bool = True
+class Routing:
+    """How a mixture routes, mixes and is penalised: keys of the recipe's `moe` section, declared here once
+    (`recipe.MoERecipe` extends this class). build-moe sets them on moe/init, each finetune again on its model."""
+
+    topk: int = limit(2, at_least(1))  # the untrained mixture's k (moe/init; bench's untrained rows): build-moe fits it to the number of experts, with a note; finetune --topk K sets each model's
+    renormalize: bool = True  # top-k weights sum to 1 (k = 1: straight-through 1); False: raw probabilities (docs/results.md)
+    penalty: str = limit("geometric", PENALTY_RULE)  # geometric | linear | quadratic | none | weights "1, 1.5, 2.23" (one per expert)
+    aux_norm: str = limit("batch", OneOf(AUX_NORMS))  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 = k^2 |B|^2 (official code)
+    aux_samples: str = limit("all", OneOf(AUX_SAMPLES))  # auxiliary loss over every routed sample | visible: those whose V_D opacity and V_D rendering weight pass moe.train.color_threshold (official code)
+    vd_source: str = limit("smallest", OneOf(VD_SOURCES))  # V_D: fitted to the smallest expert, frozen | largest: the largest expert's own density as it trains (official code)
+    vd_filter: str = limit("opacity", OneOf(VD_FILTERS))  # V_D drops samples by its opacity over one step | visible: also those its rendering weight along the ray puts at or below the colour threshold (official code)
+    mix: str = limit("density", OneOf(MIX_MODES))  # the routing weights mix density (paper's equation) | alpha: each expert's opacity over one render step (official code)
+    bake_res: int = limit(128, Range(0, MAX_GRID_RES))  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
+
+
+def routing_of(source: Routing) -> dict:
+    """The `Routing` keys of `source` (a recipe's moe section, or a mixture's config), by name."""
+    return {f.name: getattr(source, f.name) for f in dataclasses.fields(Routing)}
+
+
+@dataclass
+class MixtureConfig(Routing):
+    """A mixture's config: its routing, and what build-moe fixed for it."""
+
     threshold: float = 1e-3  # T: alpha of V_D over one render step below which a sample is filtered
-    penalty: str = "geometric"
     vd_res: int = 64  # density volume: vd_res^3 voxels
     step: float = 0.01  # render step (world units)
-    bake_res: int = 0  # > 0: rendering uses the gate baked on a bake_res^3 lattice (Gate.baked)
     expert_names: list[str] = field(default_factory=list)
-    mix: str = "density"  # what the routing weights mix with the colours: density (paper) | alpha (official code)
-    aux_norm: str = "batch"  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 (official code)
-    aux_samples: str = "all"  # auxiliary loss over every routed sample | visible: V_D opacity and weight pass
-                              # the colour threshold (official code)
-    vd_source: str = "smallest"  # V_D: the density volume fitted to the smallest expert at build-moe, frozen |
-                                 # largest: the largest expert's own density, read as it trains (official code)
-    vd_filter: str = "opacity"  # V_D drops samples by opacity over one step | visible: also those it hides (official)
 
 
 def check_config(cfg: MixtureConfig, m: int) -> None:
@@ -180,8 +196,8 @@ class Mixture(nn.Module):
         return MixtureSkip(self)
 
     # --- routing --------------------------------------------------------------------------------
-    def route(self, xyz: Tensor, need_probs: bool = True, noise: float = 0.0) -> tuple[Tensor | None, Tensor, Tensor]:
-        """-> probabilities (N, M), weights (N, k), expert indices (N, k); `noise`: noisy top-k (`router.top_k`).
+    def route(self, xyz: Tensor, need_probs: bool = True) -> tuple[Tensor | None, Tensor, Tensor]:
+        """-> probabilities (N, M), weights (N, k), expert indices (N, k).
 
         Rendering (no autograd, `need_probs` False) with renormalised weights skips the probabilities:
         the renormalised top-k weights are the softmax of the k chosen logits alone (1 for k = 1), and
@@ -192,11 +208,11 @@ class Mixture(nn.Module):
             probs = self.gate.probs(xyz)
             idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
             return probs, probs, idx
-        if not need_probs and self.cfg.renormalize and not torch.is_grad_enabled() and noise == 0:
+        if not need_probs and self.cfg.renormalize and not torch.is_grad_enabled():
             chosen, idx = top_k(self.gate.logits(xyz).float(), self.cfg.topk, renormalize=False)
             return None, (torch.ones_like(chosen) if self.cfg.topk == 1 else softmax(chosen)), idx
         probs = self.gate.probs(xyz)
-        vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize, noise)
+        vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
         return probs, vals, idx
 
     def _mix(self, xyz: Tensor, dirs: Tensor | None, vals: Tensor, idx: Tensor, packer: Packer = DYNAMIC,
@@ -236,11 +252,11 @@ class Mixture(nn.Module):
 
     def batch_view(self, packer: Packer = DYNAMIC) -> "RoutedMixture":
         """A per-batch view for the renderer: the gate runs once per sample (see RoutedMixture)."""
-        return RoutedMixture(self, None, 0.0, packer)
+        return RoutedMixture(self, None, packer)
 
-    def with_stats(self, stats: RoutingStats, noise: float = 0.0) -> "RoutedMixture":
-        """The per-batch view of a training step: routing recorded in `stats`, experts chosen with `noise`."""
-        return RoutedMixture(self, stats, noise)
+    def with_stats(self, stats: RoutingStats) -> "RoutedMixture":
+        """The per-batch view of a training step: routing recorded in `stats`."""
+        return RoutedMixture(self, stats)
 
     def expert_only(self, e: int) -> "SingleExpertView":
         return SingleExpertView(self, e)
@@ -316,8 +332,8 @@ class RoutedMixture:
     `packer` lists for them (render/packing.py); `live` marks a static packing's real samples.
     """
 
-    def __init__(self, mixture: Mixture, stats: RoutingStats | None, noise: float = 0.0, packer: Packer = DYNAMIC):
-        self.mixture, self.stats, self.noise, self.packer = mixture, stats, noise, packer
+    def __init__(self, mixture: Mixture, stats: RoutingStats | None, packer: Packer = DYNAMIC):
+        self.mixture, self.stats, self.packer = mixture, stats, packer
         self._last: tuple[Tensor, Tensor, Tensor] | None = None
 
     def batch_view(self, packer: Packer = DYNAMIC) -> "RoutedMixture":
@@ -325,7 +341,7 @@ class RoutedMixture:
         return self
 
     def density(self, xyz: Tensor, live: Tensor | None = None) -> Tensor:
-        probs, vals, idx = self.mixture.route(xyz, need_probs=self.stats is not None, noise=self.noise)
+        probs, vals, idx = self.mixture.route(xyz, need_probs=self.stats is not None)
         if self.stats is not None:
             self.stats.record(probs, idx, live)
         self._last = (xyz, vals, idx)

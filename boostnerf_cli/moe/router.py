@@ -68,24 +68,15 @@ def check_topk(k: int, experts: list[str], key: str) -> None:
                              f"set {key} between 1 and {len(experts)}")
 
 
-def top_k(probs: Tensor, k: int, renormalize: bool, noise: float = 0.0) -> tuple[Tensor, Tensor]:
+def top_k(probs: Tensor, k: int, renormalize: bool) -> tuple[Tensor, Tensor]:
     """probs (N, M) -> weights (N, k), expert indices (N, k); weights sum to 1 when renormalised.
 
     Renormalising one weight would make it the constant 1 and cut the gate off from the photometric
     loss, so for k = 1 the renormalised weight is a straight-through 1: its value is 1 (the chosen
     expert's output is used as is, not dimmed by a probability below 1) and its gradient is that of
     the raw probability, d w / d p = 1 (the paper's Algorithm 1 multiplies by the raw p).
-
-    noise > 0 (noisy top-k gating, Shazeer et al. 2017; in neither the paper nor the official code): the
-    experts are chosen by the top-k of log p + noise * N(0, 1), a Gaussian draw per sample and expert from
-    torch's global generator, so now and then a sample goes to an expert the gate ranks lower and the gate
-    learns how that expert does there; the weights are still the chosen experts' noiseless probabilities.
     """
-    if noise > 0:
-        scores = probs.detach().clamp_min(1e-30).log() + noise * torch.randn_like(probs)
-        idx = scores.argmax(dim=-1, keepdim=True) if k == 1 else torch.topk(scores, k, dim=-1).indices
-        vals = probs.gather(-1, idx)
-    elif k == 1:  # the same choice and gradient as topk, without its sort (~1.7x faster on CPU)
+    if k == 1:  # the same choice and gradient as topk, without its sort (~1.7x faster on CPU)
         vals, idx = probs.max(dim=-1, keepdim=True)
     else:
         vals, idx = torch.topk(probs, k, dim=-1)
