@@ -36,7 +36,7 @@ from boostnerf_cli.recipe import DataRecipe, GeometryRecipe, MoERecipe, Pretrain
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.workspace import Workspace, read_meta, recorded_path
 
-UNSHAPING = ("log_every", "checkpoint_every")  # training settings that do not change what is trained
+UNSHAPING = ("log_every", "checkpoint_every", "compile")  # training settings that do not change what is trained
 
 
 def shaping(tcfg: TrainRecipe) -> dict:

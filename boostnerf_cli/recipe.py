@@ -89,6 +89,9 @@ class TrainRecipe:
     random_background: bool = False
     log_every: int = limit(100, at_least(1))  # steps between log lines (and entries of the report's history)
     checkpoint_every: int = limit(500, at_least(1))  # steps between training checkpoints (an interrupted run resumes from the last)
+    # torch.compile the step's loss and its gradient into fused kernels: auto = on a GPU (where the step then neither
+    # waits for the device nor launches kernel by kernel), off on a CPU (a compile takes minutes there)
+    compile: str = limit("auto", OneOf(("auto", "on", "off")))
 
 
 def family_sections(cls: type) -> type:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 from torch import Tensor, nn
@@ -24,7 +25,7 @@ from boostnerf_cli.render.packing import Packed, Packer, packer_for
 from boostnerf_cli.render.renderer import RayBundle, RenderSettings, render_rays
 from boostnerf_cli.render.volrend import render_weights
 from boostnerf_cli.scenes import Scene
-from boostnerf_cli.train import RayData
+from boostnerf_cli.train import RayData, compiled, compiles
 
 
 def train_rays(scene: Scene, bbox: Tensor, device: str, tcfg: TrainRecipe) -> RayData:
@@ -78,6 +79,15 @@ def psnr_of(mse: Tensor) -> Tensor:
     return -10.0 * torch.log10(mse.double())
 
 
+def step_setup(loss, tcfg: TrainRecipe, device: torch.device, packer: Packer | None) -> tuple[Packer, Callable]:
+    """A task's packing (`packer`, or the device's: static budgets on a GPU and for a compiled step) and its loss,
+    compiled when train.compile says so (`train.compiles`)."""
+    compiling = compiles(tcfg.compile, device)
+    if packer is None:
+        packer = packer_for(device, static=compiling)
+    return packer, compiled(loss) if compiling else loss
+
+
 @dataclass
 class FieldTask:
     """Train one expert-like field: growth schedule, occupancy refresh, photometric loss."""
@@ -92,8 +102,7 @@ class FieldTask:
     packer: Packer | None = None  # how the renderer lists kept samples (render/packing.py; default: for the device)
 
     def __post_init__(self) -> None:
-        if self.packer is None:
-            self.packer = packer_for(self.model.bbox.device)
+        self.packer, self.loss = step_setup(self.loss, self.tcfg, self.model.bbox.device, self.packer)
 
     def param_groups(self) -> list[dict]:
         return self.model.param_groups(self.tcfg.lr_grid, self.tcfg.lr_mlp)
@@ -170,8 +179,7 @@ class MixtureTask:
         return self.mix.param_groups(self.tcfg.lr_grid, self.tcfg.lr_mlp, self.rec.lr_gate, self.rec.lr_gate_mlp)
 
     def __post_init__(self) -> None:
-        if self.packer is None:
-            self.packer = packer_for(self.mix.bbox.device)
+        self.packer, self.loss = step_setup(self.loss, self.tcfg, self.mix.bbox.device, self.packer)
 
     def before_step(self, step: int) -> bool:
         """Nothing changes the mixture's parameters between steps."""
@@ -179,8 +187,8 @@ class MixtureTask:
 
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, alpha: Tensor | None, step: int):
         stats = RoutingStats()
-        bundle = render_rays(self.mix.with_stats(stats), origins, dirs, self.settings, self.mix.skip, jitter=True,
-                             packer=self.packer)
+        bundle = render_rays(self.mix.with_stats(stats, self.packer), origins, dirs, self.settings, self.mix.skip,
+                             jitter=True, packer=self.packer)
         loss, logs = photometric_loss(bundle, rgb, alpha, self.tcfg, self.settings.background, step)
         for ex in self.mix.experts:  # family-specific terms (TensoRF's L1), as in pretraining
             reg = ex.regularization()

@@ -15,7 +15,7 @@ from contextlib import nullcontext
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Iterator, Protocol
+from typing import Callable, Iterator, Protocol
 
 import torch
 from torch import Tensor
@@ -258,6 +258,20 @@ def batch_gradients(task: TrainTask, rays: RayData, idx: Tensor, step: int,
     if loss.requires_grad:
         loss.backward()  # a non-finite loss gives non-finite gradients; the update is skipped either way
     return loss.requires_grad, ~torch.isfinite(loss.detach()), logs
+
+
+def compiles(mode: str, device: torch.device | str) -> bool:
+    """Whether a training step compiles (recipe key train.compile): "on", "off", or "auto": on a GPU."""
+    return mode == "on" or (mode == "auto" and torch.device(device).type == "cuda")
+
+
+def compiled(fn: Callable) -> Callable:
+    """`fn` (a task's loss) through torch.compile: its operators and their gradients fused into few kernels. Random
+    draws (the samples' jitter) stay torch's own, so a compiled run draws what an eager one does and resumes alike."""
+    import torch._inductor.config as inductor
+
+    inductor.fallback_random = True
+    return torch.compile(fn)
 
 
 def draw_batch(gen: torch.Generator, n: int, size: int, device: torch.device) -> Tensor:

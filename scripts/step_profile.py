@@ -28,6 +28,7 @@ import tempfile
 import time
 from collections import Counter
 from contextlib import nullcontext
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -93,8 +94,9 @@ def build_workspaces(root: Path, kinds: list[str]) -> dict[str, Path]:
 
 
 # --- training steps and render chunks --------------------------------------------------------------
-def training_setup(kind: str, ws: Path, device: str):
-    """The task, its rays and its schedule, built as the stage that trains `kind` builds them."""
+def training_setup(kind: str, ws: Path, device: str, compile: str = "off"):
+    """The task, its rays and its schedule, built as the stage that trains `kind` builds them, with train.compile
+    set to `compile`."""
     from boostnerf_cli import models
     from boostnerf_cli.recipe import recipe_from_dict
     from boostnerf_cli.stages import finetune as ft
@@ -111,7 +113,7 @@ def training_setup(kind: str, ws: Path, device: str):
                        key=lambda n: int(n.rsplit("-", 1)[1]))
         model, occ, meta = models.load_expert(w.expert_path(names[-1]), device)
         model.train()
-        tcfg = rec.pretrain.train if kind != "baseline" else rec.moe.train
+        tcfg = replace(rec.pretrain.train if kind != "baseline" else rec.moe.train, compile=compile)
         settings = scene.render_settings(meta["step"], model.bbox, tcfg.color_threshold)
         occ = occ.to(device) if occ is not None else None
         task = FieldTask(model, settings, tcfg, skip=occ, base_mask=occ)
@@ -126,7 +128,7 @@ def training_setup(kind: str, ws: Path, device: str):
         topk = None if kind == "ens" else int(kind[3:])
         cfg, _ = ft.routing(name, topk, rec.moe, mix.cfg, mix.gate.cfg.kind)
         mix.configure(**{f: getattr(cfg, f) for f in cfg.__dataclass_fields__})
-        tcfg = rec.moe.train
+        tcfg = replace(rec.moe.train, compile=compile)
         settings = scene.render_settings(mix.cfg.step, mix.bbox, tcfg.color_threshold)
         task = MixtureTask(mix, settings, tcfg, rec.moe)
         iters = rec.moe.iters
@@ -155,6 +157,7 @@ class Stepper:
 def render_setup(kind: str, ws: Path, device: str):
     """The model of `kind` as eval loads it, and one chunk of a held-out view's rays. -> a function rendering it."""
     from boostnerf_cli.models import ALL_SKIPS, load_model
+    from boostnerf_cli.render.packing import packer_for
     from boostnerf_cli.render.rays import image_rays
     from boostnerf_cli.render.renderer import render_rays
     from boostnerf_cli.stages.common import workspace_scene
@@ -175,9 +178,11 @@ def render_setup(kind: str, ws: Path, device: str):
     reps = -(-settings.chunk // o.shape[0])
     o, d = o.repeat(reps, 1)[: settings.chunk].to(device), d.repeat(reps, 1)[: settings.chunk].to(device)
 
+    packer = packer_for(device)  # what render_image packs with on this device
+
     @torch.no_grad()
     def chunk() -> None:
-        render_rays(loaded.field, o, d, settings, skip)
+        render_rays(loaded.field, o, d, settings, skip, packer=packer)
 
     return chunk
 
@@ -250,18 +255,27 @@ def time_steps(make, device: str, steps: int, warmup: int) -> float:
     return 1000 * statistics.median(times)
 
 
-def measure(make, device: str, steps: int, warmup: int) -> dict:
-    """`make(device)` -> a function running one step (or chunk): its syncs, kernels and median wall time."""
-    syncs = count_syncs(make, device, steps, warmup)
-    ops = count_ops(make, device, steps, warmup)
-    ms = time_steps(make, device, steps, warmup)
+def measure(make, device: str, steps: int, warmup: int, compile: str = "off") -> dict:
+    """`make(device, compile)` -> a function running one step (or chunk): its syncs (counted on the eager step: the
+    compiler fuses operators, it does not remove waits), kernels and median wall time, and how many graphs the
+    compiler made for it (more than one per setup: it recompiled)."""
+    import torch._dynamo.utils as dynamo_utils
+
+    syncs = count_syncs(lambda dev: make(dev, "off"), device, steps, warmup)
+    graphs = dynamo_utils.counters["stats"]["unique_graphs"]
+    ops = count_ops(lambda dev: make(dev, compile), device, steps, warmup)
+    ms = time_steps(lambda dev: make(dev, compile), device, steps, warmup)
     return {"ops_per_step": round(sum(ops.values()) / steps, 1), "syncs_per_step": round(sum(syncs.values()) / steps, 2),
-            "ms_per_step": round(ms, 2), "syncs": {k: round(v / steps, 2) for k, v in syncs.most_common()},
+            "ms_per_step": round(ms, 2), "compile": compile,
+            "graphs": dynamo_utils.counters["stats"]["unique_graphs"] - graphs,
+            "syncs": {k: round(v / steps, 2) for k, v in syncs.most_common()},
             "top_ops": {k: round(v / steps, 1) for k, v in ops.most_common(8)}}
 
 
-def profile(kinds: list[str], device: str, steps: int, warmup: int, workdir: Path | None = None) -> list[dict]:
-    """Measure every kind; `workdir`: where the tiny workspaces are built (reused when already there)."""
+def profile(kinds: list[str], device: str, steps: int, warmup: int, workdir: Path | None = None,
+            compile: str = "off") -> list[dict]:
+    """Measure every kind; `workdir`: where the tiny workspaces are built (reused when already there); `compile`:
+    train.compile for the training steps."""
     with tempfile.TemporaryDirectory() as tmp:
         root = workdir or Path(tmp)
         spaces = build_workspaces(root, kinds)
@@ -269,15 +283,15 @@ def profile(kinds: list[str], device: str, steps: int, warmup: int, workdir: Pat
         for kind in kinds:
             ws = spaces["dvgo"] if kind not in FAMILY_RES else spaces[kind]
 
-            def train_step(dev: str, kind=kind, ws=ws):
+            def train_step(dev: str, mode: str, kind=kind, ws=ws):
                 torch.manual_seed(0)
-                return Stepper(*training_setup(kind, ws, dev))
+                return Stepper(*training_setup(kind, ws, dev, mode))
 
-            def render_chunk(dev: str, kind=kind, ws=ws):
+            def render_chunk(dev: str, mode: str, kind=kind, ws=ws):
                 return render_setup(kind, ws, dev)
 
             row = {"kind": kind, "device": device, "torch": torch.__version__, "threads": torch.get_num_threads()}
-            row["train"] = measure(train_step, device, steps, warmup)
+            row["train"] = measure(train_step, device, steps, warmup, compile)
             row["render"] = measure(render_chunk, device, steps, warmup)
             rows.append(row)
             print(json.dumps(row), flush=True)
@@ -311,6 +325,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--kinds", default=",".join(TRAIN_KINDS), help="comma-separated, of " + ",".join(TRAIN_KINDS))
     parser.add_argument("--json", type=Path, help="also write the rows to this JSON file")
     parser.add_argument("--table", type=Path, help="also write them as a docs/data generic table (scripts/tables.py)")
+    parser.add_argument("--compile", default="off", choices=("off", "on", "auto"),
+                        help="train.compile for the training steps (default off)")
     parser.add_argument("--workdir", type=Path, help="build the tiny workspaces here and reuse them (default: a "
                         "temporary folder)")
     args = parser.parse_args(argv)
@@ -320,7 +336,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"argument --kinds: unknown {', '.join(unknown)}: give some of {', '.join(TRAIN_KINDS)}")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         parser.error("argument --device: torch sees no CUDA GPU here")
-    rows = profile(kinds, args.device, args.steps, args.warmup, args.workdir)
+    rows = profile(kinds, args.device, args.steps, args.warmup, args.workdir, args.compile)
     print(table(rows))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1) + "\n")

@@ -254,9 +254,9 @@ class Mixture(nn.Module):
         """A per-batch view for the renderer: the gate runs once per sample (see RoutedMixture)."""
         return RoutedMixture(self, None, packer)
 
-    def with_stats(self, stats: RoutingStats) -> "RoutedMixture":
-        """The per-batch view of a training step: routing recorded in `stats`."""
-        return RoutedMixture(self, stats)
+    def with_stats(self, stats: RoutingStats, packer: Packer | None = None) -> "RoutedMixture":
+        """The per-batch view of a training step: routing recorded in `stats`, samples packed by `packer`."""
+        return RoutedMixture(self, stats, DYNAMIC if packer is None else packer)
 
     def expert_only(self, e: int) -> "SingleExpertView":
         return SingleExpertView(self, e)
@@ -332,11 +332,11 @@ class RoutedMixture:
     `packer` lists for them (render/packing.py); `live` marks a static packing's real samples.
     """
 
-    def __init__(self, mixture: Mixture, stats: RoutingStats | None, packer: Packer = DYNAMIC):
+    def __init__(self, mixture: Mixture, stats: RoutingStats | None, packer: Packer):
         self.mixture, self.stats, self.packer = mixture, stats, packer
         self._last: tuple[Tensor, Tensor, Tensor] | None = None
 
-    def batch_view(self, packer: Packer = DYNAMIC) -> "RoutedMixture":
+    def batch_view(self, packer: Packer) -> "RoutedMixture":
         self.packer = packer
         return self
 

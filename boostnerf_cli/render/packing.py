@@ -178,7 +178,8 @@ class Budgets(Packer):
         return {name: b.size for name, b in self.budgets.items()}
 
 
-def packer_for(device: torch.device | str) -> Packer:
-    """How to pack on `device`: static budgets on a GPU, where a wait stalls the device and a compiled step needs
-    fixed shapes; the dynamic packing on the CPU, where nothing waits and the exact lists cost least."""
-    return DYNAMIC if torch.device(device).type == "cpu" else Budgets()
+def packer_for(device: torch.device | str, static: bool = False) -> Packer:
+    """How to pack on `device`: static budgets on a GPU, where a wait stalls the device, and wherever `static` asks
+    for them (a compiled step needs fixed shapes); the dynamic packing on the CPU, where nothing waits and the exact
+    lists cost least."""
+    return Budgets() if static or torch.device(device).type != "cpu" else DYNAMIC
