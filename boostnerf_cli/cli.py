@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.table import Table
 
 from boostnerf_cli.errors import BoostNerfError, out_of_memory
+from boostnerf_cli.startup import CLOCK
 
 app = typer.Typer(
     name="boostnerf",
@@ -533,6 +534,8 @@ PATH_OPTIONS = ("-w", "--workspace", "--data", "--recipe", "--video")  # the opt
 
 def main() -> None:
     import signal
+
+    CLOCK.begin()  # a stage's start-up counts from here (boostnerf_cli/startup.py)
 
     try:
         from typer._click import exceptions as click  # Typer vendors Click (0.29: a Click of its own)

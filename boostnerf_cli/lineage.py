@@ -34,6 +34,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import CONFIGS
 from boostnerf_cli.recipe import DataRecipe, GeometryRecipe, MoERecipe, PretrainRecipe, TrainRecipe
 from boostnerf_cli.scenes import Scene
+from boostnerf_cli.startup import timed
 from boostnerf_cli.workspace import Workspace, read_meta, recorded_path
 
 UNSHAPING = ("log_every", "checkpoint_every", "compile")  # training settings that do not change what is trained
@@ -381,6 +382,7 @@ def moved(previous: dict | None, now: dict, path_key: str = "path") -> bool:
     return bool(previous) and previous != now and {**previous, path_key: ""} == {**now, path_key: ""}
 
 
+@timed("digests")
 def scene_digest(scene: Scene) -> str:
     """Fingerprint of what training sees: every split's images, poses and intrinsics (recorded by pretrain)."""
     h = hashlib.blake2b(digest_size=16)

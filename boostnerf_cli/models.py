@@ -26,6 +26,7 @@ from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split
+from boostnerf_cli.startup import CLOCK, timed
 from boostnerf_cli.workspace import (
     MALFORMED,
     Workspace,
@@ -47,6 +48,7 @@ def save_expert(path: Path, model: nn.Module, occupancy: OccupancyGrid | None, e
     save_tensors(path, tensors, {**model.config_dict(), **(extra_meta or {})})
 
 
+@timed("models")
 def load_expert(path: Path, device: str | torch.device = "cpu") -> tuple[nn.Module, OccupancyGrid | None, dict]:
     """-> (expert in eval mode, its occupancy grid or None, metadata)."""
     tensors, meta = load_tensors(path, device)
@@ -83,6 +85,7 @@ def save_mixture(path: Path, mix: Mixture, extra: dict | None = None) -> None:
     save_tensors(path, tensors, meta)
 
 
+@timed("models")
 def load_mixture(path: Path, device: str | torch.device = "cpu") -> tuple[Mixture, dict]:
     """-> (mixture in eval mode, metadata)."""
     tensors, meta = load_tensors(path, device)
@@ -249,6 +252,7 @@ def render_split(model: LoadedModel, scene: Scene, split: Split, device: str, sk
     A generator: a caller that writes or scores each view as it comes holds one view in memory, not the split
     (200 Blender test views at 800 px held 2.6 GB per model)."""
     settings, skip = model.render_setup(scene, skips)
+    CLOCK.ready(model.name)
     for i in range(n_views(split, views)):
         t0 = time.perf_counter()
         r = render_view(model.field, split, i, settings, skip, device)

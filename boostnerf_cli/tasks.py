@@ -25,14 +25,16 @@ from boostnerf_cli.render.packing import Packed, Packer, packer_for
 from boostnerf_cli.render.renderer import RayBundle, RenderSettings, render_rays
 from boostnerf_cli.render.volrend import render_weights
 from boostnerf_cli.scenes import Scene
+from boostnerf_cli.startup import timed
 from boostnerf_cli.train import RayData, compiled, compiles
 
 
+@timed("rays")
 def train_rays(scene: Scene, bbox: Tensor, device: str, tcfg: TrainRecipe) -> RayData:
     """Every training ray of `scene` that crosses `bbox`, with its pixel colour (and, for `tcfg.random_background`,
     its alpha when the images had one), on `device`."""
-    return RayData.from_split(scene.splits["train"], bbox.cpu(), scene.near, scene.far, scene.ndc,
-                              keep_alpha=tcfg.random_background).to(device)
+    return RayData.from_split(scene.splits["train"], bbox, scene.near, scene.far, scene.ndc,
+                              keep_alpha=tcfg.random_background, device=device)
 
 
 def random_background(n: int, step: int, device: torch.device | str) -> Tensor:

@@ -21,11 +21,13 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli import distributed as dist
+from boostnerf_cli.adam import Adam
 from boostnerf_cli.device import from_host
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.lineage import MAKE, Found, decide
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
+from boostnerf_cli.startup import CLOCK
 from boostnerf_cli.workspace import FORMAT_VERSION, MALFORMED, kill_point_for_tests, malformed, save_torch
 
 
@@ -41,32 +43,29 @@ class RayData:
 
     @staticmethod
     def from_split(split: Split, bbox: Tensor, near: float, far: float, ndc: NDC | None = None,
-                   keep_alpha: bool = False) -> "RayData":
-        """`keep_alpha`: keep the split's alpha (when its images had one), for a loss that composites the pixels on
-        another colour than the scene's background (`train.random_background`)."""
-        # Two passes over the views: which rays hit the box, then the table filled in place. Building every view's
-        # rays and concatenating them held about 85 bytes per training pixel at the peak, 2.4x the 36 of the table
-        # (300 views at 800 px: 16 GB); now the table and one view's rays. The split's rays are built where its
-        # images are (the CPU); the box may be on the model's device.
-        box = bbox.to(split.poses.device)
-        hits = []
-        for i in range(len(split)):
-            o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, ndc)
-            # A ray that misses the box renders the background exactly: nothing to learn from it.
-            hits.append(intersect_box(o, d, box, near, far)[2])
-        n = sum(int(h.sum()) for h in hits)
-        origins, dirs, rgb = (torch.empty(n, 3, dtype=split.images.dtype) for _ in range(3))
-        alpha = torch.empty(n, dtype=split.images.dtype) if keep_alpha and split.alpha is not None else None
+                   keep_alpha: bool = False, device: torch.device | str = "cpu") -> "RayData":
+        """The rays of `split` that hit `bbox`, built on `device` in one pass over the views: each view's rays that
+        hit are written into a table sized for every pixel, then cut to those written (36 bytes a pixel at most:
+        300 views at 800 px, 6.9 GB). A ray that misses the box renders the background exactly: nothing to learn
+        from it. `keep_alpha`: keep the split's alpha (when its images had one), for a loss that composites the
+        pixels on another colour than the scene's background (`train.random_background`)."""
+        device = torch.device(device)
+        box, dtype, pixels = bbox.to(device), split.images.dtype, split.height * split.width
+        origins, dirs, rgb = (torch.empty(len(split) * pixels, 3, dtype=dtype, device=device) for _ in range(3))
+        alpha = None
+        if keep_alpha and split.alpha is not None:
+            alpha = torch.empty(len(split) * pixels, dtype=dtype, device=device)
         at = 0
-        for i, hit in enumerate(hits):
-            o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, ndc)
+        for i in range(len(split)):
+            o, d = image_rays(split.poses[i].to(device), split.intrinsics[i], split.height, split.width, ndc)
+            hit = intersect_box(o, d, box, near, far)[2]
             k = int(hit.sum())
             origins[at : at + k], dirs[at : at + k] = o[hit], d[hit]
-            rgb[at : at + k] = split.images[i].reshape(-1, 3)[hit]
+            rgb[at : at + k] = split.images[i].to(device).reshape(-1, 3)[hit]
             if alpha is not None:
-                alpha[at : at + k] = split.alpha[i].reshape(-1)[hit]
+                alpha[at : at + k] = split.alpha[i].to(device).reshape(-1)[hit]
             at += k
-        return RayData(origins, dirs, rgb, alpha)
+        return RayData(origins[:at], dirs[:at], rgb[:at], None if alpha is None else alpha[:at])
 
     def to(self, device: torch.device | str) -> "RayData":
         return RayData(self.origins.to(device), self.dirs.to(device), self.rgb.to(device),
@@ -111,6 +110,7 @@ class TrainResult:
     seconds: float
     skipped_steps: int
     history: list[dict] = field(default_factory=list)
+    startup_seconds: float = 0.0  # from the command's start (or the model before) to this model's first step
 
 
 class PsnrTrend:
@@ -204,14 +204,14 @@ def _info(logs: dict[str, float]) -> str:
     return " ".join(f"{k}={v:.4g}" for k, v in logs.items())
 
 
-def make_optimizer(task: TrainTask) -> torch.optim.Optimizer:
+def make_optimizer(task: TrainTask) -> Adam:
     groups = task.param_groups()
     for g in groups:
         g.setdefault("initial_lr", g["lr"])
-    return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, fused=True)
+    return Adam(groups, betas=(0.9, 0.99), eps=1e-15)
 
 
-def _set_lr(opt: torch.optim.Optimizer, step: int, sched: Schedule) -> None:
+def _set_lr(opt: Adam, step: int, sched: Schedule) -> None:
     factor = sched.lr_decay ** (step / max(1, sched.iters))
     for g in opt.param_groups:
         g["lr"] = g["initial_lr"] * factor
@@ -292,8 +292,8 @@ class Step:
     params: list[Tensor]
 
 
-def optimizer_step(task: TrainTask, rays: RayData, sched: Schedule, opt: torch.optim.Optimizer | None,
-                   gen: torch.Generator, step: int, parallel: bool) -> tuple[torch.optim.Optimizer | None, Step]:
+def optimizer_step(task: TrainTask, rays: RayData, sched: Schedule, opt: Adam | None,
+                   gen: torch.Generator, step: int, parallel: bool) -> tuple[Adam | None, Step]:
     """One training step: the optimiser (re)built when the task changed its parameters (`before_step`), the step's
     learning rates, a batch drawn from `gen`, its gradient (data parallel: averaged over the ranks), and the update,
     skipped on the device (fused Adam's `found_inf`) unless the loss and every gradient are finite and every sample
@@ -323,7 +323,7 @@ def optimizer_step(task: TrainTask, rays: RayData, sched: Schedule, opt: torch.o
     over = packer.overflowed() if packer is not None else None
     flags = torch.stack([loss_bad, ~grads_finite(params, loss_bad.device),
                          over if over is not None else torch.zeros_like(loss_bad)]).float()
-    opt.found_inf = flags.amax()  # fused Adam leaves every parameter and its state as they were when set
+    opt.found_inf = flags.amax()  # the update leaves every parameter and its state as they were when set
     opt.step()
     return opt, Step(True, flags, logs, params)
 
@@ -334,14 +334,17 @@ def _floats(logs: dict) -> dict[str, float]:
 
 class Outcomes:
     """Each step's flags (`Step.flags`), read back on the host without stopping the device: a copy queued after the
-    step, read once it has arrived (at once off a GPU), and all of them on a logging or checkpoint step."""
+    step, read once it has arrived (at once off a GPU), and all of them on a logging or checkpoint step, when the
+    task's sample budgets (`packer`) are settled too."""
 
-    def __init__(self, device: torch.device):
-        self.cuda = device.type == "cuda"
+    def __init__(self, device: torch.device, packer=None):
+        self.cuda, self.packer = device.type == "cuda", packer
         self.queue: deque = deque()
 
-    def push(self, done: int, flags: Tensor) -> None:
-        host = flags.to("cpu", non_blocking=True)
+    def push(self, done: int, step: Step) -> None:
+        if not step.learnable:
+            return
+        host = step.flags.to("cpu", non_blocking=True)
         event = None
         if self.cuda:
             event = torch.cuda.Event()
@@ -350,6 +353,8 @@ class Outcomes:
 
     def ready(self, wait: bool) -> Iterator[tuple[int, list[float]]]:
         """(step, its flags) of the steps whose flags have arrived, in order; `wait`: of every step pushed."""
+        if wait and self.packer is not None:
+            self.packer.settle()
         while self.queue:
             done, host, event = self.queue[0]
             if event is not None:
@@ -468,7 +473,7 @@ class TrainCheckpoint:
         return state
 
     def resume(self, task: TrainTask, gen: torch.Generator,
-               device: torch.device) -> tuple[torch.optim.Optimizer | None, RunState]:
+               device: torch.device) -> tuple[Adam | None, RunState]:
         """Bring `task`, a new optimiser, `gen` and torch's random states back to the saved state, when
         `lineage.decide` resumes it. -> (the optimiser, the run's counters); (None, a new run) when there is
         nothing to resume (no checkpoint, or --force over one of other settings, which is overwritten later)."""
@@ -495,7 +500,7 @@ class TrainCheckpoint:
                                  f"({malformed(e)}); delete it to restart this model") from None
         return opt, run
 
-    def save(self, task: TrainTask, opt: torch.optim.Optimizer, run: RunState, gen: torch.Generator,
+    def save(self, task: TrainTask, opt: Adam, run: RunState, gen: torch.Generator,
              device: torch.device) -> None:
         """Write the resumable state atomically; a state with NaN or infinity stops the run instead
         (the previous checkpoint stays, so nothing before it is lost)."""
@@ -541,22 +546,20 @@ def train(task: TrainTask, rays: RayData, sched: Schedule, seed: int, title: str
     progress = Progress(title, sched.iters, run.step, sched.log_every, quiet=parallel and not dist.is_main())
     if run.step > 0:
         progress.warn(f"resuming from {checkpoint.path} at step {run.step}/{sched.iters}")
+    startup = CLOCK.ready(title)
     t0 = time.perf_counter() - run.seconds
-    outcomes, packer = Outcomes(device), getattr(task, "packer", None)
+    outcomes = Outcomes(device, getattr(task, "packer", None))
     try:
         for step in range(run.step, sched.iters):
             # --- one step: batch, gradient, update (the rest of the loop is bookkeeping) ---
             opt, result = optimizer_step(task, rays, sched, opt, gen, step, parallel)
             run.step = step + 1
             saving = checkpoint is not None and (run.step % sched.checkpoint_every == 0 or run.step == sched.iters)
-            # --- the steps' outcomes as they arrive (all on a logging or checkpoint step), log and checkpoint ---
-            if result.learnable:
-                outcomes.push(run.step, result.flags)
             logging = run.step % sched.log_every == 0 or run.step == sched.iters
+            # --- the steps' outcomes as they arrive (every one on a logging or checkpoint step), log, checkpoint ---
+            outcomes.push(run.step, result)
             for done, flags in outcomes.ready(wait=logging or saving):
-                run.guard(done, flags, sched, checkpoint and checkpoint.path, progress, result.params, packer)
-            if logging and packer is not None:
-                packer.settle()
+                run.guard(done, flags, sched, checkpoint and checkpoint.path, progress, result.params, outcomes.packer)
             logs = run.log(run.step, result.logs, time.perf_counter() - t0, sched)
             if logs is not None and (warning := run.trend.falling_warning(run.step)):
                 progress.warn(warning)
@@ -570,4 +573,5 @@ def train(task: TrainTask, rays: RayData, sched: Schedule, seed: int, title: str
                     save()
     finally:
         progress.close()
-    return TrainResult(sched.iters, time.perf_counter() - t0, run.skipped, run.history)
+        CLOCK.begin()  # the next model's start-up starts now
+    return TrainResult(sched.iters, time.perf_counter() - t0, run.skipped, run.history, round(startup, 2))

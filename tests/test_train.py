@@ -350,3 +350,48 @@ def test_the_progress_bar_is_drawn_on_stderr_with_its_step_at_80_columns(monkeyp
     finally:
         progress.close()
     assert line.startswith("top1 ") and "1234/2000" in line and "0:00:" in line and "loss=0.1292" in line, line
+
+
+def test_adam_is_torch_fused_adam_bit_for_bit_and_skips_on_found_inf():
+    """boostnerf_cli.adam.Adam runs torch's fused kernel as torch.optim.Adam(fused=True) does: the same parameters and
+    states after steps of two groups with their own rates, a step skipped by found_inf changes nothing, and its state
+    dict resumes to the same numbers; and building and stepping it imports no compiler."""
+    import subprocess
+    import sys
+
+    from boostnerf_cli.adam import Adam
+
+    torch.manual_seed(0)
+    init = [torch.randn(50, 3), torch.randn(7)]
+    ours = [torch.nn.Parameter(t.clone()) for t in init]
+    theirs = [torch.nn.Parameter(t.clone()) for t in init]
+    opt = Adam([{"params": ours[:1], "lr": 0.1}, {"params": ours[1:], "lr": 1e-3}], betas=(0.9, 0.99), eps=1e-15)
+    ref = torch.optim.Adam([{"params": theirs[:1], "lr": 0.1}, {"params": theirs[1:], "lr": 1e-3}],
+                           betas=(0.9, 0.99), eps=1e-15, fused=True)
+    for step in range(6):
+        grads = [torch.randn_like(t) for t in init]
+        skip = step == 3
+        for params, o in ((ours, opt), (theirs, ref)):
+            for p, g in zip(params, grads):
+                p.grad = g.clone()
+            o.found_inf = torch.tensor(1.0 if skip else 0.0)
+            o.step()
+        for a, b in zip(ours, theirs):
+            assert torch.equal(a, b)
+    before = [p.detach().clone() for p in ours]
+    opt.found_inf = torch.tensor(1.0)
+    for p in ours:
+        p.grad = torch.full_like(p, float("nan"))
+    opt.step()
+    assert all(torch.equal(a, b) for a, b in zip(ours, before))
+    assert float(opt.state[ours[0]]["step"]) == 5.0  # six steps, one skipped (the NaN one is skipped too)
+    again = Adam([{"params": [torch.nn.Parameter(t.detach().clone()) for t in ours[:1]], "lr": 0.1},
+                  {"params": [torch.nn.Parameter(ours[1].detach().clone())], "lr": 1e-3}])
+    again.load_state_dict(opt.state_dict())
+    for p, q in zip([p for g in again.param_groups for p in g["params"]], ours):
+        for key in ("step", "exp_avg", "exp_avg_sq"):
+            assert torch.equal(again.state[p][key], opt.state[q][key])
+    code = ("import sys, torch; from boostnerf_cli.adam import Adam; p = torch.nn.Parameter(torch.ones(2)); "
+            "o = Adam([{'params': [p], 'lr': 0.1}]); p.grad = torch.ones(2); o.step(); "
+            "sys.exit('torch._dynamo' in sys.modules)")
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0, "the optimiser imported torch._dynamo"

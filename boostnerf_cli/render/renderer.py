@@ -159,8 +159,7 @@ def render_image(
     whose samples overflowed one is rendered again with the grown budgets, so no sample is ever missing.
     -> {"rgb": (H, W, 3), "depth": (H, W), "acc": (H, W), "n_samples": int, "n_color": int}
     """
-    origins, dirs = image_rays(pose, intrinsics, height, width, settings.ndc)
-    origins, dirs = origins.to(device), dirs.to(device)
+    origins, dirs = image_rays(pose.to(device), intrinsics, height, width, settings.ndc)
     packer = packer_for(device) if packer is None else packer
     while True:
         parts = []

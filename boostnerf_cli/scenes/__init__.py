@@ -22,6 +22,7 @@ from boostnerf_cli.scenes.nerfstudio import is_nerfstudio, load_nerfstudio
 from boostnerf_cli.scenes.nsvf import is_nsvf, is_tanks, load_nsvf, load_tanks
 from boostnerf_cli.scenes.procedural import LAYOUTS, make_scene
 from boostnerf_cli.scenes.scene import Scene, Split
+from boostnerf_cli.startup import timed
 
 # name -> (detector, loader, what the detector looks for)
 FORMATS: dict[str, tuple[Callable[[Path], str], Callable[..., Scene], str]] = {
@@ -78,6 +79,7 @@ def _far_from_origin(scene: Scene) -> str:
             "before training")
 
 
+@timed("scene")
 def load_scene(path, image_size: int | None = None, holdout_every: int = 8, format: str = "auto",
                bbox: list[float] | None = None) -> Scene:
     """Load the scene at `path`; `format` is "auto" or a key of `FORMATS`.

@@ -243,6 +243,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
         "seed": rec.seed,  # pretrain.seed: this expert's initialisation and batches draw from seed + res
         "iterations": result.iterations,
         "seconds": round(result.seconds, 2),
+        "startup_seconds": result.startup_seconds,
         "skipped_steps": result.skipped_steps,
         "params": count_params(model),
         "grid_shape": list(model.shape),
