@@ -574,6 +574,11 @@ class Workspace:
     def geometry_path(self) -> Path:
         return self.experts_dir / "geometry.safetensors"
 
+    @property
+    def scene_cache(self) -> Path:
+        """The workspace's scene as decoded, for the next stage to read back (scenes/cache.py)."""
+        return self.root / "cache" / "scene.safetensors"
+
     def model_path(self, name: str) -> Path:
         return self.moe_dir / f"{name}.safetensors"
 

@@ -393,7 +393,7 @@ def _scene(ws: Workspace, m: dict, data: Path | None, rec: Recipe, force: bool) 
         make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)  # atomic: never half a scene
     with slow_notice(f"reading the scene at {data} (its images are read and scaled once per stage)"):
         scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
-                           format=rec.data.format, bbox=rec.data.bbox)
+                           format=rec.data.format, bbox=rec.data.bbox, cache=ws.scene_cache)
     for res in rec.pretrain.res:  # per-expert options are checked (and chosen, said once) before anything trains
         expert_options(rec.pretrain, res, say=True)
     if note := unused_family_note(rec.pretrain):
