@@ -73,6 +73,7 @@ def _cli(*args: str) -> None:
 
 def build_workspaces(root: Path, kinds: list[str]) -> dict[str, Path]:
     """Tiny workspaces: one per expert family needed, the DVGO one with its mixtures finetuned. -> family: folder."""
+    root.mkdir(parents=True, exist_ok=True)
     recipe = root / "profile.yaml"
     recipe.write_text(yaml.safe_dump(RECIPE, sort_keys=False))
     families = {k for k in kinds if k in FAMILY_RES} | ({"dvgo"} if set(kinds) - set(FAMILY_RES) else set())
