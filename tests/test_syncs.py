@@ -58,6 +58,10 @@ def _occupancy() -> OccupancyGrid:
 
 
 def _mixture(kind: str) -> Mixture:
+    return _mixture_on(kind, GPU)
+
+
+def _mixture_on(kind: str, device: torch.device) -> Mixture:
     experts = [_expert("dvgo", r) for r in (6, 8, 10)]
     gate = Gate(GateConfig(kind="grid", res=4, channels=4, hidden=8, layers=1), 3, TOY_BOX)
     vd = DensityVolume(TOY_BOX, 6)
@@ -68,8 +72,8 @@ def _mixture(kind: str) -> Mixture:
                   MixtureConfig(topk=k, step=0.1, expert_names=["a", "b", "c"]))
     if kind == "ens":
         mix.make_ensemble()
-    mix = mix.to(GPU)
-    mix.occupancy = mix.occupancy.to(GPU)
+    mix = mix.to(device)
+    mix.occupancy = mix.occupancy.to(device)
     return mix
 
 
@@ -136,3 +140,30 @@ def test_the_counter_sees_the_waits_of_the_dynamic_packing():
                          base_mask=None, packer=DYNAMIC)
         counter = _steps_counted(task, _rays())
     assert counter.syncs["aten.nonzero.default"] >= 2 * STEPS, dict(counter.syncs)
+
+
+@pytest.mark.parametrize("kind", ["dvgo", "top2"])
+def test_static_budgets_train_what_the_exact_packing_trains(kind):
+    """On the CPU, a task with static budgets (small ones, so that pads fill them) trains the same parameters as one
+    with the exact lists: pads add nothing and take no gradient."""
+    from boostnerf_cli.render.packing import DYNAMIC, Budgets
+
+    rays, settings = _rays(), RenderSettings(step=0.1, near=0.1, far=6.0, bbox=TOY_BOX)
+    results = []
+    for packer in (DYNAMIC, Budgets(quantum=64)):
+        torch.manual_seed(0)
+        if kind == "dvgo":
+            model = _expert("dvgo")
+            occupied = torch.zeros(8, 8, 8, dtype=torch.bool)
+            occupied[2:6, 2:6, 2:6] = True
+            task = FieldTask(model, settings, TrainRecipe(occupancy_every=0), skip=OccupancyGrid(occupied, TOY_BOX),
+                             base_mask=None, packer=packer)
+        else:
+            mix = _mixture_on("top2", torch.device("cpu"))
+            model, task = mix, MixtureTask(mix, settings, TrainRecipe(), MoERecipe(lam=0.01), packer=packer)
+        train(task, rays, Schedule(6, batch_rays=64, log_every=3, checkpoint_every=1000), seed=0, title="t")
+        results.append({k: v.detach().clone() for k, v in model.state_dict().items()})
+    exact, static = results
+    assert exact.keys() == static.keys()
+    for k in exact:
+        assert torch.allclose(exact[k], static[k], atol=1e-6, rtol=0), k
