@@ -51,8 +51,7 @@ def main(out: Path) -> None:
         scene = load_scene(out / layout, image_size=80)
         ws = Workspace(out / f"ws-{layout}")
         ws.experts_dir.mkdir(parents=True, exist_ok=True)
-        box, occ, model = ensure_geometry(ws, scene, GeometryRecipe(res=32, iters=300, batch_rays=1024), 0, "cpu",
-                                          lambda msg: None)
+        box, occ, model = ensure_geometry(ws, scene, GeometryRecipe(res=32, iters=300, batch_rays=1024), 0, "cpu")
         seen = max_weight_per_cell(model, occ, scene).reshape(occ.occupied.shape)
         print(f"{layout}: box {[round(v, 2) for v in box.flatten().tolist()]}, occupied {occ.fraction():.3f}")
         for tau in (1e-3, 1e-2):

@@ -18,7 +18,7 @@ import pytest
 import torch
 from conftest import assert_clean_failure, make_recipe, merge, run_cli
 
-from boostnerf_cli.workspace import TEST_KILL_ENV, is_temporary, load_tensors
+from boostnerf_cli.workspace import FORMAT_VERSION, TEST_KILL_ENV, is_temporary, load_tensors
 
 RESUME_ATOL = 1e-5  # documented in docs/reliability.md; observed difference: exactly 0
 
@@ -156,22 +156,23 @@ def test_a_checkpoint_is_not_resumed_with_other_training_settings(setup, tmp_pat
     assert json.loads((ws / "moe" / "top2.json").read_text())["lambda"] == 0.5
 
 
-def test_a_checkpoint_from_before_the_training_settings_were_recorded_resumes(setup, tmp_path):
-    """Probe T (session 28): a pretrain interrupted under a boostnerf from before session 23, whose checkpoints did
-    not record the training settings (nor, before session 24, a PSNR trend), was refused by today's with the same
-    command: "written with other settings (the recipe's train section: the default, now {...})". It resumes now,
-    with a note; a checkpoint of today's that names other settings is still refused (the test above)."""
+def test_a_checkpoint_of_an_earlier_file_format_is_refused_in_one_line(setup, tmp_path):
+    """A training checkpoint written by a boostnerf of another file format is not resumed with settings it may not
+    have recorded: one line says to delete it, which restarts the model; the same command then finishes."""
     root, recipe, ref, args = setup
     ws = tmp_path / "ws"
     args = [a if a != str(ref) else str(ws) for a in args]
     run_killed(args, "checkpoint:14")  # inside dvgo-10 (step 8)
     ckpt = ws / "checkpoints" / "dvgo-10.pt"
     state = torch.load(ckpt, map_location="cpu", weights_only=True)
-    assert "train" in state["signature"]  # the tiny recipe's batch_rays are not the default
-    del state["signature"]["train"], state["trend"]  # as the old boostnerf wrote it
+    assert state["format_version"] == FORMAT_VERSION
+    state["format_version"] = "1"  # as an earlier boostnerf wrote it
     torch.save(state, ckpt)
+    assert_clean_failure(run_cli(*args), f"training checkpoint {ckpt} has file format '1'",
+                         f"reads format {FORMAT_VERSION!r}: delete it to restart this model")
+    ckpt.unlink()
     proc = run_cli(*args, check=True)
-    assert "resuming from" in proc.stderr and "earlier boostnerf" in proc.stderr, proc.stderr[-2000:]
+    assert "resuming from" not in proc.stderr and "dvgo-10" in proc.stderr
     assert_clean(ws)
 
 

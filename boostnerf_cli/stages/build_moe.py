@@ -5,22 +5,26 @@ Writes `moe/init.safetensors` (+ `moe/init.json`), the starting point of every `
 
 from __future__ import annotations
 
-from typing import Callable
+import logging
+from dataclasses import asdict
 
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import FAMILIES, count_params
+from boostnerf_cli.lineage import MixtureInitSpec
 from boostnerf_cli.models import load_expert, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
-from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
+from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, routing_of
 from boostnerf_cli.recipe import MoERecipe, check_section
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.workspace import Workspace, read_meta, write_json
 
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
-def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, log: Callable[[str], None]) -> dict:
+
+def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str) -> dict:
     manifest = ws.require_manifest()
     available = ws.expert_names()
     if not available:
@@ -83,12 +87,11 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     if source is not None:
         gate.init_grid_from(source[2].feature_table, source[2].shape, source[2].bbox)
     gate = gate.to(device)
-    cfg = MixtureConfig(topk=topk, renormalize=rec.renormalize, threshold=rec.density_threshold,
-                        penalty=rec.penalty, vd_res=vd_res, step=step, bake_res=rec.bake_res,
-                        expert_names=[e[1] for e in experts], mix=rec.mix, aux_norm=rec.aux_norm,
-                        aux_samples=rec.aux_samples, vd_source=rec.vd_source, vd_filter=rec.vd_filter)
+    cfg = MixtureConfig(**{**routing_of(rec), "topk": topk}, threshold=rec.density_threshold, vd_res=vd_res, step=step,
+                        expert_names=[e[1] for e in experts])
     mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
-    save_mixture(ws.model_path("init"), mix, {"name": "init", "inputs": inputs})
+    spec = MixtureInitSpec(inputs, {"mixture": asdict(cfg), "gate": gate.config_dict(), "seed": rec.seed})
+    save_mixture(ws.model_path("init"), mix, {"name": "init", "signature": spec.signature()})
     report = {
         "name": "init",
         "experts": cfg.expert_names,
