@@ -393,39 +393,6 @@ def test_measure_costs_script_reports_every_measurement(moe_ws):
     assert mix["overhead_seconds"] == pytest.approx(mix["gate_topk_aux_seconds"] + mix["dispatch_gather_seconds"])
 
 
-def test_opacity_check_script_compares_rendered_opacity_with_the_scenes_alpha(moe_ws):
-    """scripts/opacity_check.py (docs/datasets.md's opacity figures): the percentages it averages are those of
-    hand-made pixels, and it runs on a workspace whose scene has alpha (the procedural Blender scene)."""
-    import importlib.util
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    root = Path(__file__).parent.parent
-    script = root / "scripts" / "opacity_check.py"
-    spec = importlib.util.spec_from_file_location("opacity_check", script)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    acc = torch.tensor([0.9, 0.2, 0.0, 0.7, 0.3, 1.0])
-    alpha = torch.tensor([0.0, 0.0, 0.0, 1.0, 1.0, 0.5])  # 1 of 3 transparent pixels opaque, 1 of 2 opaque ones empty
-    assert module.opacity_errors(acc, alpha) == pytest.approx({"background_opaque_pct": 100 / 3, "holes_pct": 50.0})
-    none = module.opacity_errors(acc, None)  # no alpha: every pixel opaque, none transparent
-    assert none["background_opaque_pct"] is None and none["holes_pct"] == pytest.approx(100 * 3 / 6)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
-    proc = subprocess.run([sys.executable, str(script), str(moe_ws), "dvgo-16", "--views", "2"], capture_output=True,
-                          text=True, timeout=300, env=env)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    out = json.loads(proc.stdout)
-    assert out["alpha"] is True and out["views"] == 2 and out["psnr"] > 10
-    assert 0 <= out["background_opaque_pct"] <= 100 and 0 <= out["holes_pct"] <= 100
-    proc = subprocess.run([sys.executable, str(script), str(moe_ws), "nope"], capture_output=True, text=True,
-                          timeout=300, env=env)
-    assert proc.returncode == 2 and proc.stderr.strip().startswith("error: no model named 'nope'"), proc.stderr
-    proc = subprocess.run([sys.executable, str(script), str(moe_ws), "dvgo-16", "--views", "0"], capture_output=True,
-                          text=True, timeout=300, env=env)
-    assert proc.returncode == 2 and proc.stderr.strip() == "error: --views must be at least 1, got 0", proc.stderr
-
-
 def _without_top1(moe_ws, folder):
     """A copy of the built workspace at folder/ws with no top1 model in it."""
     ws = folder / "ws"

@@ -3,7 +3,8 @@
 Each ```bash block of docs/*.md and README.md is a runnable example (plain ``` blocks are synopses
 and are not run). From those blocks this test keeps the lines a user would paste to drive boostnerf:
 `boostnerf ...`, `bash recipes/...` and shell variable assignments, and runs them in order, one bash
-script per document (`set -euo pipefail`), in an empty folder that has the repository's `recipes/`.
+script per document (`set -euo pipefail`), in an empty folder that has the repository's `recipes/` and
+`research/`.
 
 `boostnerf` is a shim on PATH that runs this checkout's CLI (through tests/cli_server.py, which
 imports torch once and forks per command) with tiny settings, so the documented
@@ -151,6 +152,7 @@ def test_every_documented_command_runs(docs_env):
     cwd = base / "user"
     cwd.mkdir()
     (cwd / "recipes").symlink_to(ROOT / "recipes")
+    (cwd / "research").symlink_to(ROOT / "research")  # results.md's commands name research/recipes/
     failures = []
     for doc in order:
         log = cwd / f"{doc}.log"

@@ -6,7 +6,7 @@ per layout, the box `pretrain` draws around the occupied cells, and the box arou
 rendering weight over every training ray is at least tau (cells only hidden space or barely visible floaters
 occupy would go). docs/results.md, issue 17, records the output.
 
-    python scripts/visible_box.py OUT
+    python research/visible_box.py OUT
 """
 
 from __future__ import annotations
@@ -57,8 +57,8 @@ def main(out: Path) -> None:
         print(f"{layout}: box {[round(v, 2) for v in box.flatten().tolist()]}, occupied {occ.fraction():.3f}")
         for tau in (1e-3, 1e-2):
             vis = OccupancyGrid(occ.occupied & (seen >= tau), occ.bbox)
-            print(f"  seen with weight >= {tau:g}: box {[round(v, 2) for v in vis.occupied_bbox(1).flatten().tolist()]}, "
-                  f"occupied {vis.fraction():.3f}")
+            vis_box = [round(v, 2) for v in vis.occupied_bbox(1).flatten().tolist()]
+            print(f"  seen with weight >= {tau:g}: box {vis_box}, occupied {vis.fraction():.3f}")
 
 
 if __name__ == "__main__":
