@@ -324,7 +324,7 @@ def render(
     device: DeviceOpt = "auto",
 ) -> None:
     """Render a split with each model (PNG colour + 16-bit depth), a comparison (--compare) or a video (--path)."""
-    from boostnerf_cli.models import Skips
+    from boostnerf_cli.models import Skips, Viewing
     from boostnerf_cli.stages import render as stage
     from boostnerf_cli.stages.common import resolve_device
 
@@ -332,16 +332,16 @@ def render(
         raise BoostNerfError("--path, --compare and --per-expert are separate outputs: use one per command")
     if path is None and video is not None:
         raise BoostNerfError("--video needs --path orbit or --path spiral")
-    skips = Skips.from_flags(no_skip, skip_off)
+    viewing = Viewing(split, views, Skips.from_flags(no_skip, skip_off), exact_gate)
     ws, lock = _writer(workspace)
     with lock:
         if path is not None:
-            written = stage.run_video(ws, model, path, frames, video, fps, resolve_device(device), skips)
+            video_path = stage.VideoPath(path, frames, fps, video)
+            written = stage.run_video(ws, model, video_path, resolve_device(device), viewing.skips)
         elif compare:
-            written = stage.run_compare(ws, model, split, resolve_device(device), skips, views)
+            written = stage.run_compare(ws, model, viewing, resolve_device(device))
         else:
-            written = stage.run(ws, model, split, resolve_device(device), skips, views, per_expert=per_expert,
-                                exact_gate=exact_gate)
+            written = stage.run(ws, model, viewing, resolve_device(device), per_expert=per_expert)
     for p in written:  # stdout: the files written, one per line, for a script (the prose above is on stderr)
         print(p)
 
@@ -360,16 +360,15 @@ def eval_cmd(
     device: DeviceOpt = "auto",
 ) -> None:
     """PSNR, SSIM, LPIPS (when its weights are on disk) and seconds per image for every model."""
-    from boostnerf_cli.models import Skips
+    from boostnerf_cli.models import Skips, Viewing
     from boostnerf_cli.stages import evaluate as stage
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.workspace import number
 
-    skips = Skips.from_flags(no_skip, skip_off)
+    viewing = Viewing(split, views, Skips.from_flags(no_skip, skip_off), exact_gate)
     ws, lock = _writer(workspace) if report else _reader(workspace)
     with lock:
-        result = stage.run(ws, model, split, resolve_device(device), skips, views, report, costs=not no_costs,
-                          exact_gate=exact_gate)
+        result = stage.run(ws, model, viewing, resolve_device(device), report, costs=not no_costs)
     if report:
         log(f"wrote {ws.reports_dir / 'eval.json'} and eval.md")
     table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")

@@ -193,6 +193,17 @@ class Skips:
 ALL_SKIPS = Skips()
 
 
+@dataclass(frozen=True)
+class Viewing:
+    """Which views a reading stage (eval, render) renders and how: the split, its first `views` (None: all), the
+    skips, and for a mixture its exact gate instead of the baked one (`LoadedModel.for_rendering`)."""
+
+    split: str = "test"
+    views: int | None = None
+    skips: Skips = ALL_SKIPS
+    exact_gate: bool = False
+
+
 @dataclass
 class LoadedModel:
     """A field ready to render, with what rendering it needs."""

@@ -400,11 +400,12 @@ class RunState:
         # Skipping cannot help when the parameters themselves are gone (an overflowing step).
         if not all(bool(torch.isfinite(p).all()) for p in params):
             raise BoostNerfError(f"training diverged: the parameters became non-finite by step {done} (an "
-                                 f"optimiser step overflowed); {kept(checkpoint)}: lower the learning rates in the recipe")
+                                 f"optimiser step overflowed); {kept(checkpoint)}: lower the learning rates in the "
+                                 "recipe")
         if self.bad_run >= sched.max_bad_steps:
             raise BoostNerfError(f"training diverged: {self.bad_run} consecutive steps had a non-finite loss or "
-                                 f"gradient (last at step {done}); {kept(checkpoint)}: lower the learning rates in the recipe "
-                                 "or check the data")
+                                 f"gradient (last at step {done}); {kept(checkpoint)}: lower the learning rates in the "
+                                 "recipe or check the data")
 
     def log(self, done: int, logs: dict, seconds: float, sched: Schedule) -> dict[str, float] | None:
         """Add a step's PSNR to the trend; at a logging step, an entry of the history (the one time a step's logs are

@@ -441,7 +441,7 @@ def test_render_writes_each_view_as_it_comes(trained_ws, tmp_path, monkeypatch):
     import shutil
 
     import boostnerf_cli.models as models
-    from boostnerf_cli.models import ALL_SKIPS
+    from boostnerf_cli.models import Viewing
     from boostnerf_cli.stages import render as stage
     from boostnerf_cli.workspace import Workspace
 
@@ -457,7 +457,7 @@ def test_render_writes_each_view_as_it_comes(trained_ws, tmp_path, monkeypatch):
 
     monkeypatch.setattr(models, "render_view", failing_second)
     with pytest.raises(RuntimeError, match="second view"):
-        stage.run(Workspace(ws), ["dvgo-12"], "test", "cpu", ALL_SKIPS, None)
+        stage.run(Workspace(ws), ["dvgo-12"], Viewing("test"), "cpu")
     written = sorted(p.name for p in (ws / "renders" / "dvgo-12" / "test").glob("*.png"))
     assert len(written) == 2 and sum(n.endswith("_depth.png") for n in written) == 1, written  # view 1: colour, depth
 

@@ -42,7 +42,7 @@ from pathlib import Path
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import CONFIGS
 from boostnerf_cli.lineage import moved, scene_digest
-from boostnerf_cli.models import Skips
+from boostnerf_cli.models import Viewing
 from boostnerf_cli.moe.router import PENALTIES
 from boostnerf_cli.recipe import Recipe, recipe_dict, recorded_recipe
 from boostnerf_cli.workspace import Workspace, atomic_path, read_json, recorded_path, write_json
@@ -280,7 +280,7 @@ class Bench:
             self.build(ws, setup)
             topk = int(row.train[3:]) if row.train.startswith("top") else None
             finetune.run(ws, row.train, topk, setup.recipe.moe, self.device, False)
-        result = evaluate.run(ws, [row.model], "test", self.device, Skips(), self.views, False, costs=True)
+        result = evaluate.run(ws, [row.model], Viewing("test", self.views), self.device)
         ev = result["models"][0]
         out = {
             "name": row.name,

@@ -126,10 +126,10 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     scene = workspace_scene(ws)
     mix, meta = load_mixture(init, device)
     mix.train()
-    sched = Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every, rec.train.checkpoint_every)
-    source = _source_digest(ws, name, init_meta)
     if name == "baseline":
-        return _baseline(ws, scene, mix, rec, sched, device, source, force)
+        return _baseline(ws, scene, mix, rec, device, force)
+    sched = _schedule(rec)
+    source = _source_digest(ws, name, init_meta)
     if name == "ens":
         mix.make_ensemble()
     cfg, kind = routing(name, topk, rec, mix.cfg, mix.gate.cfg.kind)
@@ -171,15 +171,20 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     return report
 
 
-def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: Schedule, device: str, source: str | None, force: bool = False) -> dict:
-    """The largest expert alone, trained for the same finetuning iterations and schedule."""
+def _schedule(rec: MoERecipe) -> Schedule:
+    """The joint training's schedule, the same for every finetuned model."""
+    return Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every, rec.train.checkpoint_every)
+
+
+def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, device: str, force: bool = False) -> dict:
+    """The largest expert of moe/init's mixture `mix` alone, trained for the same finetuning iterations and schedule."""
     largest = mix.cfg.expert_names[-1]
     model, occ, meta = load_expert(ws.expert_path(largest), device)
     model.train()
     settings = scene.render_settings(meta["step"], model.bbox, rec.train.color_threshold)
     task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
-    sig = spec("baseline", rec, source, largest=largest).signature()
-    result = train(task, train_rays(scene, model.bbox, device, rec.train), sched, rec.seed, "baseline",
+    sig = spec("baseline", rec, meta["digest"], largest=largest).signature()
+    result = train(task, train_rays(scene, model.bbox, device, rec.train), _schedule(rec), rec.seed, "baseline",
                    TrainCheckpoint(ws.checkpoint_path("baseline"), sig, restart_other=force), data_parallel=True)
     model.eval()
     final = result.history[-1] if result.history else {}

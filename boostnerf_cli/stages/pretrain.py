@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -79,25 +80,42 @@ def _test_psnr(model: nn.Module, split: Split, settings: RenderSettings, skip, d
 EDGE_WARN = 0.01
 
 
+@dataclass(frozen=True)
+class Site:
+    """Where pretraining works: the workspace, the scene, its id (`lineage.SceneSpec.id`), the device."""
+
+    ws: Workspace
+    scene: Scene
+    tag: str
+    device: str
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """What the shared coarse stage gives every expert: the occupied box (2, 3), the occupancy mask, the coarse model
+    (a DVGO grid with direct colour) whose density warm-starts them."""
+
+    box: Tensor
+    occupancy: OccupancyGrid
+    model: nn.Module
+
+
 # ----------------------------------------------------------------------------------------------
-def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int, device: str, checkpoint_every: int = 500,
-                    scene_tag: str = "") -> tuple[Tensor, OccupancyGrid, nn.Module]:
+def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every: int = 500) -> Geometry:
     """The shared occupied box, occupancy mask and coarse density (trained once per workspace).
 
     The coarse grid trains over the scene's box; the box is drawn around the visible surface it finds (every
     foreground training ray's, render/coverage.py). With `refine`, when that box holds less than half the
     volume, a second coarse grid of the same size trains inside it (finer cells, so a floor or a wall is smeared
-    over fewer of them) and draws the box again.
-
-    -> (box (2, 3), occupancy over the last coarse grid's box, the coarse model: a DVGO grid with direct colour)
+    over fewer of them) and draws the box again. The occupancy is over the last coarse grid's box.
     """
+    ws = site.ws
     if ws.geometry_path.exists():
-        model, occ, meta = load_expert(ws.geometry_path, device)
-        return torch.tensor(meta["fine_bbox"], device=device), occ, model
+        model, occ, meta = load_expert(ws.geometry_path, site.device)
+        return Geometry(torch.tensor(meta["fine_bbox"], device=site.device), occ, model)
     t0 = time.perf_counter()
-    bbox = scene.bbox.to(device)
-    box, occ, model, cover = _coarse_round(ws, scene, rec, bbox, "geometry", seed, device, checkpoint_every,
-                                           scene_tag)
+    bbox = site.scene.bbox.to(site.device)
+    box, occ, model, cover = _coarse_round(site, rec, bbox, "geometry", seed, checkpoint_every)
     if cover is not None and cover["edge_rays"] > EDGE_WARN * cover["foreground_rays"]:  # over the scene's own box
         log(f"geometry: warning: {cover['edge_rays']} of {cover['foreground_rays']} foreground training rays "
             f"({100 * cover['edge_rays'] / cover['foreground_rays']:.1f}%) find their surface on the faces of the "
@@ -113,8 +131,7 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     shrink = float((box[1] - box[0]).prod() / (bbox[1] - bbox[0]).prod())
     if rec.refine and cover is not None and shrink < 0.5:  # cells at least 1.26x finer: worth a second round
         log(f"geometry: again inside that box ({shrink:.2f} of the volume), at finer cells")
-        box, occ, model, cover = _coarse_round(ws, scene, rec, box, "geometry-refine", seed, device,
-                                               checkpoint_every, scene_tag)
+        box, occ, model, cover = _coarse_round(site, rec, box, "geometry-refine", seed, checkpoint_every)
         rounds.append(cover)
     seconds = round(time.perf_counter() - t0, 2)
     save_expert(ws.geometry_path, model, occ, {"name": "geometry", "fine_bbox": box.tolist(), "iters": rec.iters,
@@ -124,16 +141,17 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
         ws.checkpoint_path(name).unlink(missing_ok=True)
     log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {box_text(box)} "
         f"({seconds:.1f}s)")
-    return box, occ, model
+    return Geometry(box, occ, model)
 
 
-def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor, name: str, seed: int, device: str, checkpoint_every: int,
-                  scene_tag: str) -> tuple[Tensor, OccupancyGrid, nn.Module, dict | None]:
+def _coarse_round(site: Site, rec: GeometryRecipe, bbox: Tensor, name: str, seed: int,
+                  checkpoint_every: int) -> tuple[Tensor, OccupancyGrid, nn.Module, dict | None]:
     """Train the coarse grid over `bbox` and find the box and the mask from it.
 
     -> (box (2, 3), occupancy over `bbox`, the coarse model, the covering's counts (None without cover_foreground))
     """
     log(f"{name}: training a {rec.res}^3 coarse grid for {rec.iters} steps to find the occupied box")
+    scene, device = site.scene, site.device
     torch.manual_seed(seed)
     model = DVGOExpert(DVGOConfig(res=rec.res, hidden=0, alpha_init=rec.alpha_init), bbox).to(device)
     step = 0.5 * model.voxel_size
@@ -141,8 +159,8 @@ def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor
     tcfg = TrainRecipe(lr_grid=rec.lr, weight_rgbper=0.0, weight_entropy=rec.weight_entropy, occupancy_every=0)
     task = FieldTask(model, settings, tcfg, skip=None, base_mask=None)
     rays = train_rays(scene, bbox, device, tcfg)
-    ckpt = ws.checkpoint_path(name)  # removed once the geometry is saved
-    spec = GeometrySpec.of(name, scene_tag, rec, seed, bbox.flatten().tolist())
+    ckpt = site.ws.checkpoint_path(name)  # removed once the geometry is saved
+    spec = GeometrySpec.of(name, site.tag, rec, seed, bbox.flatten().tolist())
     train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5),
                                checkpoint_every=checkpoint_every), seed, name, TrainCheckpoint(ckpt, spec.signature()))
     model.eval()
@@ -206,13 +224,12 @@ def expert_options(rec: PretrainRecipe, res: int, say: bool = False) -> dict:
     return {**opts, "res": res}
 
 
-def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, box: Tensor, geom: OccupancyGrid,
-                    prior: nn.Module, device: str, scene_tag: str = "",
-                    force: bool = False) -> dict:
-    """Train one expert at `res` and write its safetensors file and JSON report (with `rec.skip` off: on the
-    scene's whole box instead of `box`, without `geom`)."""
+def pretrain_expert(site: Site, rec: PretrainRecipe, res: int, geometry: Geometry, force: bool = False) -> dict:
+    """Train one expert at `res`, starting from `geometry`, and write its safetensors file and JSON report (with
+    `rec.skip` off: on the scene's whole box instead of the geometry's, without its mask)."""
+    ws, scene, device = site.ws, site.scene, site.device
     name = expert_name(rec.model, res)
-    tcfg = rec.train
+    box, geom, tcfg = geometry.box, geometry.occupancy, rec.train
     if not rec.skip:  # the reference without skipping: the whole scene box, no occupancy mask or refresh
         box, geom = scene.bbox.to(device), None
         tcfg = dataclasses.replace(tcfg, occupancy_every=0)
@@ -225,13 +242,13 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     growth = growth_schedule(rec.iters, tcfg.growth) if model.grows else ()
     if growth:
         model.regrid(final_voxels // (2 ** len(growth)))
-    model.init_density(prior.density)  # warm start: colour is then computed near surfaces only
+    model.init_density(geometry.model.density)  # warm start: colour is then computed near surfaces only
     settings = scene.render_settings(tcfg.step_ratio * model.unit, box, tcfg.color_threshold)
     task = FieldTask(model, settings, tcfg, skip=geom, base_mask=geom, growth_steps=growth, final_voxels=final_voxels)
     rays = train_rays(scene, box, device, tcfg)
     sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
-    signature = ExpertSpec.of(rec, res, expert_options(rec, res), scene_tag,
+    signature = ExpertSpec.of(rec, res, expert_options(rec, res), site.tag,
                               read_meta(ws.geometry_path).get("digest")).signature()
     result = train(task, rays, sched, rec.seed + res, name, TrainCheckpoint(ckpt, signature, restart_other=force))
     model.eval()
@@ -256,7 +273,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     if test is not None:
         with slow_notice(f"{name}: scoring its {len(test)} held-out views"):
             report["test_psnr"] = round(_test_psnr(model, test, settings, task.skip, device), 3)
-    save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step, "scene": scene_tag,
+    save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step, "scene": site.tag,
                                                          "signature": signature})
     write_json(ws.expert_report_path(name), report)
     ckpt.unlink(missing_ok=True)
@@ -281,13 +298,13 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool)
     records them in the manifest. A rank's failure stops every rank with its message (docs/distributed.md).
     """
     with dist.others_quiet():  # what every rank would repeat is said once
-        scene, tag, box, geom, prior, todo = dist.main_first(lambda: _prepare(ws, data, rec, device, force))
+        site, geometry, todo = dist.main_first(lambda: _prepare(ws, data, rec, device, force))
         if not rec.pretrain.skip:
             log("pretrain.skip is off (--no-skip): experts train on the whole scene box without an occupancy mask "
                 "(colour is still computed only where a sample's rendering weight exceeds train.color_threshold)")
     with dist.together():
         for res in assign(todo, dist.world_size())[dist.rank()]:
-            report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, tag, force)
+            report = pretrain_expert(site, rec.pretrain, res, geometry, force)
             log(f"{report['name']}: {report['iterations']} steps in {report['seconds']:.0f}s, train PSNR "
                 f"{report['train_psnr']:.2f}"
                 + (f", held-out PSNR {report['test_psnr']:.2f}" if "test_psnr" in report else ""))
@@ -321,10 +338,11 @@ def check_foreground(scene: Scene, data: Path) -> None:
     )
 
 
-def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool) -> tuple[Scene, str, Tensor, OccupancyGrid, nn.Module, list[int]]:
+def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str,
+             force: bool) -> tuple[Site, Geometry, list[int]]:
     """Check the inputs, record them, load the scene and the shared geometry (trained if missing).
 
-    -> (scene, scene id, box, occupancy, coarse model, resolutions of the experts left to train).
+    -> (where pretraining works, the geometry, resolutions of the experts left to train).
     Under torchrun rank 0 runs this first and alone writes; the other ranks then find everything made.
     """
     check_recipe(rec, "setting")  # the recipe was checked when read; flags may have changed it since
@@ -341,15 +359,15 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
         ws.update_manifest(data=spec.record(), scene_id=tag, scene_digest=digest, scene=scene.describe(),
                            recipe=recipe_dict(rec))
     _describe(scene)
-    box, geom, prior = ensure_geometry(ws, scene, rec.pretrain.geometry, rec.pretrain.seed, device,
-                                       rec.pretrain.train.checkpoint_every, tag)
+    site = Site(ws, scene, tag, device)
+    geometry = ensure_geometry(site, rec.pretrain.geometry, rec.pretrain.seed, rec.pretrain.train.checkpoint_every)
     todo = []
     for res in sorted(rec.pretrain.res):
         if decisions.get(res) is not None and decisions[res].action == SKIP:
             log(f"{expert_name(rec.pretrain.model, res)}: already trained, skipping (use --force to retrain)")
         else:
             todo.append(res)  # with --force, a checkpoint of other settings is dropped when training starts
-    return scene, tag, box, geom, prior, todo
+    return site, geometry, todo
 
 
 def _describe(scene: Scene) -> None:

@@ -13,7 +13,7 @@ Files (all under WS/renders/, see docs/stages.md):
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +32,7 @@ from boostnerf_cli.images import (
     write_video,
 )
 from boostnerf_cli.lineage import require_current, stale
-from boostnerf_cli.models import LoadedModel, Skips, load_model, n_views, render_split
+from boostnerf_cli.models import LoadedModel, Skips, Viewing, load_model, n_views, render_split
 from boostnerf_cli.moe.mixture import GateView
 from boostnerf_cli.render.paths import camera_path
 from boostnerf_cli.render.renderer import render_image, render_view
@@ -45,7 +45,10 @@ log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.p
 COMPARED = ("baseline", "top1", "top2", "ens")  # the paper's comparison models, in its order
 
 
-def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None, per_expert: bool = False, exact_gate: bool = False) -> list[Path]:
+def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, per_expert: bool = False) -> list[Path]:
+    """Render `viewing`'s views with every model of `names` (default: all): PNG colour and 16-bit depth; with
+    `per_expert` a mixture's expert shares and gate maps too. -> the files written."""
+    split_name, views, skips, exact_gate = viewing.split, viewing.views, viewing.skips, viewing.exact_gate
     scene = workspace_scene(ws)
     split = scene.split(split_name)
     written = []
@@ -72,9 +75,20 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
 
 
 # --- videos ---------------------------------------------------------------------------------------
-def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, video: Path | None, fps: int,
-              device: str, skips: Skips) -> list[Path]:
+@dataclass(frozen=True)
+class VideoPath:
+    """A video along a camera path from the training cameras: `kind` (orbit, spiral), its frames and frames per
+    second, and the file to write (None: WS/renders/MODEL/KIND.mp4)."""
+
+    kind: str
+    frames: int = 60
+    fps: int = 24
+    file: Path | None = None
+
+
+def run_video(ws: Workspace, names: list[str] | None, path: VideoPath, device: str, skips: Skips) -> list[Path]:
     """Render one model along a camera path derived from the training cameras -> colour and depth videos."""
+    kind, n_frames, video, fps = path.kind, path.frames, path.file, path.fps
     if not names or len(names) != 1:
         fix = f"keep one of {', '.join(names)}" if names else "add --model NAME"
         current = [n for n in ws.all_model_names() if stale(ws, n) is None]  # what it can render
@@ -127,8 +141,9 @@ def pixel_error(rgb: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean((rgb.astype(np.float64) - gt.astype(np.float64)) ** 2, axis=-1))
 
 
-def run_compare(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None) -> list[Path]:
+def run_compare(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str) -> list[Path]:
     """One image per view: ground truth and each model side by side, each model's error heat map below it."""
+    split_name, views, skips = viewing.split, viewing.views, viewing.skips
     scene = workspace_scene(ws)
     split = scene.split(split_name)
     names = compared_models(ws, names)

@@ -7,14 +7,12 @@ from pathlib import Path
 
 import pytest
 import torch
+from helpers import toy_mixture  # the product suite's (research/tests/conftest.py puts tests/ on the path)
+
+from boostnerf_cli.moe.mixture import RoutingStats
+from boostnerf_cli.recipe import MoERecipe
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tests"))  # the product suite's toy mixture
-
-from helpers import toy_mixture  # noqa: E402
-
-from boostnerf_cli.moe.mixture import RoutingStats  # noqa: E402
-from boostnerf_cli.recipe import MoERecipe  # noqa: E402
 
 
 def _research():
