@@ -24,6 +24,7 @@ from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
 from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.render.packing import packer_for
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.startup import CLOCK, timed
@@ -263,10 +264,11 @@ def render_split(model: LoadedModel, scene: Scene, split: Split, device: str, sk
     A generator: a caller that writes or scores each view as it comes holds one view in memory, not the split
     (200 Blender test views at 800 px held 2.6 GB per model)."""
     settings, skip = model.render_setup(scene, skips)
+    packer = packer_for(device)  # one for the split: each image reuses the budgets the ones before it sized
     CLOCK.ready(model.name)
     for i in range(n_views(split, views)):
         t0 = time.perf_counter()
-        r = render_view(model.field, split, i, settings, skip, device)
+        r = render_view(model.field, split, i, settings, skip, device, packer)
         r["seconds"] = time.perf_counter() - t0
         yield r
 

@@ -9,6 +9,8 @@ logging steps only, which are not counted.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 import torch
 from helpers import TOY_BOX
@@ -167,3 +169,38 @@ def test_static_budgets_train_what_the_exact_packing_trains(kind):
     assert exact.keys() == static.keys()
     for k in exact:
         assert torch.allclose(exact[k], static[k], atol=1e-6, rtol=0), k
+
+
+class _Views(SimpleNamespace):
+    """Four posed cameras: what render_split reads of a dataset split."""
+
+    def __init__(self, poses, intrinsics, height, width):
+        super().__init__(poses=poses, intrinsics=intrinsics, height=height, width=width)
+
+    def __len__(self) -> int:
+        return self.poses.shape[0]
+
+
+def test_rendering_a_split_sizes_its_budgets_once():
+    """Every image of a split reuses the budgets the images before it sized: only the first waits to size them (and
+    a budget sized on one image's first chunk is more likely to overflow on a later chunk, re-rendering the image)."""
+    from boostnerf_cli.models import LoadedModel, render_split
+
+    with simulated_gpu():
+        model = _expert("dvgo").to(GPU)
+        loaded = LoadedModel("dvgo-8", "expert", model, _occupancy(), 0.1, TOY_BOX.to(GPU), 0)
+        scene = SimpleNamespace(render_settings=lambda step, bbox, thr: _settings(step))
+        pose = torch.eye(4)
+        pose[2, 3] = 3.0  # on the +z axis, looking at the box
+        intrinsics = torch.tensor([12.0, 12.0, 8.0, 8.0])  # fx, fy, cx, cy
+        split = _Views(pose.repeat(4, 1, 1), intrinsics.repeat(4, 1), 16, 16)
+        waits = []
+        images = render_split(loaded, scene, split, GPU)
+        while True:
+            with SyncCounter() as counter:
+                if next(images, None) is None:
+                    break
+            waits.append(counter.total)
+    # a later image waits 8 times, to move its pose to the device, its three pictures and two sample counts back,
+    # and to read the peaks of its two budgets (density, colour) when they are settled; sizing them again would add 2
+    assert len(waits) == 4 and waits[0] > 8 and waits[1:] == [8, 8, 8], waits

@@ -44,6 +44,7 @@ from boostnerf_cli.render.coverage import (
     hull_cells,
 )
 from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.render.packing import packer_for
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.scenes.bounds import box_text
@@ -67,8 +68,9 @@ def _test_psnr(model: nn.Module, split: Split, settings: RenderSettings, skip, d
     renderer's default threshold, not train.color_threshold (at 0.999999 the report said 14.77 dB, eval 12.83)."""
     settings = dataclasses.replace(settings, color_threshold=RenderSettings.color_threshold)
     psnrs = []
+    packer = packer_for(device)  # one for the views: each reuses the budgets the ones before it sized
     for i in range(min(len(split), max_views)):
-        out = render_view(model, split, i, settings, skip, device)
+        out = render_view(model, split, i, settings, skip, device, packer)
         mse = float(torch.mean((out["rgb"] - split.images[i]) ** 2))
         psnrs.append(mse_to_psnr(mse))
     return sum(psnrs) / max(1, len(psnrs))

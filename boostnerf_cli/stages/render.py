@@ -34,6 +34,7 @@ from boostnerf_cli.images import (
 from boostnerf_cli.lineage import require_current, stale
 from boostnerf_cli.models import LoadedModel, Skips, Viewing, load_model, n_views, render_split
 from boostnerf_cli.moe.mixture import GateView
+from boostnerf_cli.render.packing import Packer, packer_for
 from boostnerf_cli.render.paths import camera_path
 from boostnerf_cli.render.renderer import render_image, render_view
 from boostnerf_cli.scenes import Scene, Split
@@ -104,10 +105,11 @@ def run_video(ws: Workspace, names: list[str] | None, path: VideoPath, device: s
         log("note: the training cameras all look one way (a forward-facing capture?): --path spiral suits it better")
     poses = camera_path(kind, train.poses, model.bbox.cpu(), scene.near, scene.far, n_frames, scene.ndc)
     settings, skip = model.render_setup(scene, skips)
+    packer = packer_for(device)  # one for the path: each frame reuses the budgets the ones before it sized
     rgb, depth, acc = [], [], []
     for i, pose in enumerate(poses):
         r = render_image(model.field, pose, train.intrinsics[0], train.height, train.width, settings, skip,
-                         device=device)
+                         device=device, packer=packer)
         rgb.append(to_uint8(r["rgb"]))
         depth.append((r["depth"] / r["acc"].clamp_min(1e-6)).numpy())  # expected depth of the surface hit
         acc.append(r["acc"].numpy())
@@ -217,20 +219,22 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
     m = len(names)
     settings, skip = model.render_setup(scene, skips)
     black = replace(settings, background=(0.0, 0.0, 0.0))
+    packers: dict[str, Packer] = {}
     written = []
     for i in range(n_views(split, views)):
         stem = split.stems[i]
         for old in (*folder.glob(f"{stem}_expert[0-9]*-*.png"), *folder.glob(f"{stem}_gate[0-9]*-*.png")):
             old.unlink()  # an earlier mixture's experts (build-moe --experts changed them): not beside this one's
 
-        def draw(field, s, i=i):
-            return render_view(field, split, i, s, skip, device)
+        def draw(key, field, s, i=i):
+            packer = packers.setdefault(key, packer_for(device))  # one per picture kind, reused from view to view
+            return render_view(field, split, i, s, skip, device, packer)
 
-        full = draw(mix, settings)
+        full = draw("mixture", mix, settings)
         shares, gates = [], []
         for e, ename in enumerate(names):
-            share = to_uint8(draw(mix.expert_only(e), settings)["rgb"])
-            g = draw(GateView(mix, e), black)
+            share = to_uint8(draw(f"expert{e}", mix.expert_only(e), settings)["rgb"])
+            g = draw(f"gate{e}", GateView(mix, e), black)
             acc = g["acc"].numpy()
             prob = np.where(acc > 0.1, g["rgb"].numpy()[..., 0] / np.maximum(acc, 1e-6), 0.0).clip(0, 1)
             gates.append(prob)
