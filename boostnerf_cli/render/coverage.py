@@ -144,13 +144,20 @@ def visual_hull(occ: OccupancyGrid, poses: Tensor, intrinsics: Tensor, masks: Te
     return (keep & (seen_by >= min_views)).reshape(occ.shape)
 
 
+def known_background(background: tuple[float, float, float] | None,
+                     ndc: NDC | None) -> tuple[float, float, float] | None:
+    """The colour foreground pixels are told from: a scene's background, but none in a forward-facing capture (NDC),
+    whose white walls and sky are content."""
+    return background if ndc is None else None
+
+
 @torch.no_grad()
 def hull_cells(occ: OccupancyGrid, images: Tensor, poses: Tensor, intrinsics: Tensor,
-               background: tuple[float, float, float] | None, ndc: NDC | None = None,
-               tol: float = FOREGROUND_TOL, alpha: Tensor | None = None) -> OccupancyGrid:
+               background: tuple[float, float, float] | None, tol: float = FOREGROUND_TOL,
+               alpha: Tensor | None = None) -> OccupancyGrid:
     """The occupied cells of `occ` inside the training views' visual hull (module docstring), for the box to
-    be drawn around. Without a known background, or for NDC scenes, the hull says nothing: `occ` itself."""
-    if background is None or ndc is not None:
+    be drawn around. Without a known background (`known_background`) the hull says nothing: `occ` itself."""
+    if background is None:
         return occ
     masks = foreground_masks(images, background, tol, alpha).to(occ.occupied.device)
     hull = visual_hull(occ, poses, intrinsics, masks, footprint=True, min_views=max(2, math.ceil(len(images) / 4)))
@@ -189,9 +196,9 @@ def cover_foreground(
     """
     n, h, w = images.shape[:3]
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
-    known = background is not None and ndc is None
-    # a forward-facing capture (NDC) has no background to tell from: a white wall or sky is foreground too
-    masks = foreground_masks(images, background if known else None, tol, alpha).to(device)
+    background = known_background(background, ndc)
+    known = background is not None
+    masks = foreground_masks(images, background, tol, alpha).to(device)
     # the (tight, footprint) visual hulls, made when a first ray needs them (on most scenes none does)
     hulls = functools.cache(lambda: (
         visual_hull(occ, poses, intrinsics, masks, footprint=False, min_views=max(2, math.ceil(n / 4))),

@@ -42,6 +42,7 @@ from boostnerf_cli.render.coverage import (
     foreground_masks,
     foreground_tol,
     hull_cells,
+    known_background,
 )
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
@@ -170,8 +171,9 @@ def _coarse_round(site: Site, rec: GeometryRecipe, bbox: Tensor, name: str, seed
         train_split = scene.splits["train"]
         framed = occ
         if rec.hull_box:
-            framed = hull_cells(occ, train_split.images, train_split.poses, train_split.intrinsics, scene.background,
-                                scene.ndc, foreground_tol(scene.extra), train_split.alpha)
+            framed = hull_cells(occ, train_split.images, train_split.poses, train_split.intrinsics,
+                                known_background(scene.background, scene.ndc), foreground_tol(scene.extra),
+                                train_split.alpha)
         outside = int((occ.occupied & ~framed.occupied).sum())
         if outside:
             log(f"{name}: {outside} of {int(occ.occupied.sum())} occupied cells lie outside the training views' "
