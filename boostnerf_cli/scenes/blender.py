@@ -25,6 +25,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
     Frame,
+    SceneSpace,
     check_pinhole,
     frame_camera,
     frame_intrinsics,
@@ -129,5 +130,5 @@ def load_blender(
     train = splits["train"]
     near, far, source = _near_far({s: parsed[s][1] for s in found}, folder, train.poses)
     bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
-    return scene_from_splits(folder, splits, near, far, bbox, background, "blender", holdout, native, size,
+    return scene_from_splits(folder, splits, SceneSpace(near, far, bbox, background), "blender", holdout, native,
                              extra={"near_far_source": source, **lossy_extra(frames)})
