@@ -487,14 +487,15 @@ def _interrupt(signum, frame) -> None:
 
 def _interrupt_at_start(signum, frame) -> None:
     """An interrupt before the heavy imports are done (nothing written yet): the line, and the end at once. Raised
-    inside numpy's or torch's import it left them half imported (an ImportError traceback), or was lost (exit 0)."""
+    inside numpy's or torch's import it would leave them half imported (an ImportError traceback), or be lost
+    (exit 0)."""
     err.print(INTERRUPTED, markup=False)
     _die_by(signum)
 
 
 def _die_by(signum: int) -> None:
     """End by the signal received, as the shell expects of an interrupted command (status 128 + N): a script or a
-    loop running boostnerf stops at a Ctrl-C too, where a plain exit 130 let it run the next command."""
+    loop running boostnerf stops at a Ctrl-C too, where a plain exit 130 lets it run the next command."""
     import os
     import signal
 
@@ -507,7 +508,7 @@ def _die_by(signum: int) -> None:
 
 def _usage_error(e) -> str:
     """A command-line mistake Click found (an unknown option, a value of the wrong type, a missing option), as the
-    one line every other refusal is (Typer drew a multi-line box around it, wrapped mid-word on a narrow terminal)."""
+    one line every other refusal is (Typer draws a multi-line box around it, wrapped mid-word on a narrow terminal)."""
     message = " ".join(e.format_message().split())
     ctx = getattr(e, "ctx", None)
     if ctx is not None:

@@ -145,7 +145,7 @@ def camera_path(kind: str, poses: Tensor, bbox: Tensor, near: float, far: float,
     """Poses along path `kind`. With `ndc` (a forward-facing scene), `bbox`, `near` and `far` are in NDC while the
     poses are in world units: the spiral's focus is the world depth of the box centre's NDC depth (z = 1 - 2 near /
     depth; the middle of NDC's [-1, 1] is depth 2 near), not a distance read off the NDC box as if it were world
-    units (that put the focus beside the mean camera, and every frame looked sideways at empty space)."""
+    units (that puts the focus beside the mean camera, and every frame looks sideways at empty space)."""
     if kind == "orbit":
         return orbit_path(poses, n_frames)
     if kind == "spiral":

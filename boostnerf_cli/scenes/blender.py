@@ -7,7 +7,7 @@ optionally `fl_y`, `cx`, `cy`, `w`, `h`, also allowed per frame) and `frames`, e
 a bound the files do not record comes from the cameras (`camera_near_far`: 0.1 r and R + r, r the median
 and R the largest camera distance to the point they look at), as for nerfstudio and NSVF folders without a box. The
 original NeRF loader's fixed 2 / 6 suit only cameras about 4 units from the subject: cameras 16 units
-away would see nothing at all through them, and the box and the coarse stage's samples depended on them.
+away would see nothing at all through them, and the box and the coarse stage's samples depend on them.
 
 Images: RGB or RGBA, 8 or 16 bit (Pillow reads 16-bit colour at 8-bit precision; grey keeps 16). Downscaling is
 area averaging (`frames.area_downscale`) of the premultiplied colour and of alpha; the result is then composited

@@ -93,7 +93,7 @@ def target_size(height: int, width: int, image_size: int | None) -> tuple[int, i
 
 # Pillow's advice to convert palette transparency to RGBA: `_read_mode` does. A filter set once, for this message
 # alone: `warnings.catch_warnings` around each read is not thread-safe (`load_frames` reads in threads), and its
-# exits left other threads' filters in place, an "ignore UserWarning" that silenced the loaders' `DataWarning`s.
+# exits can leave other threads' filters in place, an "ignore UserWarning" that silences the loaders' `DataWarning`s.
 warnings.filterwarnings("ignore", message="Palette images with Transparency", category=UserWarning)
 
 
