@@ -24,6 +24,7 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
     rich_markup_mode=None,  # Click's plain help: it wraps at any width; Rich's boxes cut words and option names
+    context_settings={"max_content_width": 120},  # the terminal's width up to 120 (Click's own cap is 80)
 )
 err = Console(stderr=True, highlight=False, soft_wrap=True)
 
@@ -64,14 +65,18 @@ def show(table: Table) -> None:
 
 WorkspaceOpt = Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory (created if missing).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto (CUDA when available), cpu or cuda.")]
-RecipeOpt = Annotated[Optional[Path], typer.Option("--recipe", help="YAML recipe supplying defaults; flags override it.")]
-SplitOpt = Annotated[str, typer.Option("--split", help="Split to use: test (falls back to val), val or train.")]
+RecipeOpt = Annotated[Optional[Path], typer.Option(
+    "--recipe", help="YAML recipe supplying defaults; flags override it.")]
+SplitOpt = Annotated[str, typer.Option("--split", help="Split: test (val when it has none), val or train.")]
 ModelsOpt = Annotated[Optional[list[str]], typer.Option(
     "--model", help="Model name(s); default: every model of the workspace.",
     callback=lambda names: list(dict.fromkeys(names)) if names else names)]  # a name given twice counts once
-NoSkipOpt = Annotated[bool, typer.Option("--no-skip", help="Turn every skip off: dense sampling, every sample evaluated.")]
-SkipOffOpt = Annotated[Optional[list[str]], typer.Option("--skip-off", help="Turn one skip off (repeatable): empty (occupancy grid and density volume V_D) or terminated (colour only where the rendering weight > 1e-4).")]
-ExactGateOpt = Annotated[bool, typer.Option("--exact-gate", help="Mixtures: run the gate's grid + MLP on every sample instead of its baked logits (moe.bake_res).")]
+NoSkipOpt = Annotated[bool, typer.Option(
+    "--no-skip", help="Turn every skip off: dense sampling, every sample evaluated.")]
+SkipOffOpt = Annotated[Optional[list[str]], typer.Option(
+    "--skip-off", help="Turn one skip off (repeatable): empty (occupancy, V_D) or terminated.")]
+ExactGateOpt = Annotated[bool, typer.Option(
+    "--exact-gate", help="Mixtures: the gate's grid + MLP per sample, not its baked logits.")]
 ViewsOpt = Annotated[Optional[int], typer.Option("--views", min=1, help="Only the first N views of the split.")]
 
 
@@ -186,11 +191,13 @@ def make_scene_cmd(
     n_train: Annotated[int, typer.Option("--train-views", min=1)] = 24,
     n_test: Annotated[int, typer.Option("--test-views", min=0)] = 8,
     seed: Annotated[int, typer.Option()] = 0,
-    layout: Annotated[str, typer.Option("--format", help="Layout to write: blender, nsvf, tanks, llff or nerfstudio.")] = "blender",
-    rig: Annotated[str | None, typer.Option("--rig", help="Cameras: sphere (around the scene) or forward (forward-facing). Default: forward for llff, sphere otherwise.")] = None,
+    layout: Annotated[str, typer.Option(
+        "--format", help="Layout: blender, nsvf, tanks, llff or nerfstudio.")] = "blender",
+    rig: Annotated[str | None, typer.Option(
+        "--rig", help="Cameras: sphere or forward (default: forward for llff, else sphere).")] = None,
     content: Annotated[str, typer.Option("--content", help="objects (floor and four solids), thin (plus rods and a cable 1-2 px wide at 100 px, reaching the scene's edge), large (a floor reaching past the camera-derived box and every view's edge) or empty (background only).")] = "objects",
 ) -> None:
-    """Write a small procedural scene (exact analytic ray casting) in any dataset layout boostnerf reads."""
+    """Write a small procedural scene (exact ray casting) in any dataset layout boostnerf reads."""
     from boostnerf_cli.scenes import make_scene
     from boostnerf_cli.scenes.procedural import SEQUENCE_LAYOUTS, written_test_views
 
@@ -209,17 +216,26 @@ def make_scene_cmd(
 @app.command()
 def pretrain(
     workspace: WorkspaceOpt,
-    data: Annotated[Optional[Path], typer.Option("--data", help="Scene folder. Default: generate the procedural demo scene in WS/scene.")] = None,
+    data: Annotated[Optional[Path], typer.Option(
+        "--data", help="Scene folder (default: a procedural demo scene made in WS/scene).")] = None,
     recipe: RecipeOpt = None,
-    model: Annotated[Optional[str], typer.Option("--model", help="Expert family: dvgo (dense grids), tensorf (VM-factorised grids) or ngp (multi-resolution hash grid).")] = None,
-    res: Annotated[Optional[str], typer.Option("--res", callback=lambda text: _int_list(text, "--res") if text else text, help="Comma-separated resolutions, one expert each. For dvgo and tensorf, --res 160 means a final grid of 160^3 voxels (isotropic voxels over the scene box); for ngp, --res 16 means L = 16 hash-grid levels (the paper's 6, 8, 10, 16, 24).")] = None,
+    model: Annotated[Optional[str], typer.Option(
+        "--model", help="Expert family: dvgo (dense grid), tensorf (VM) or ngp (hash grid).")] = None,
+    res: Annotated[Optional[str], typer.Option(
+        "--res", callback=lambda text: _int_list(text, "--res") if text else text,
+        help="Comma-separated: one expert each, res^3 voxels (ngp: res levels).")] = None,
     iters: Annotated[Optional[int], typer.Option("--iters", min=1, help="Training steps per expert.")] = None,
-    image_size: Annotated[Optional[int], typer.Option("--image-size", min=8, help="Longer image side in pixels after area downscaling.")] = None,
-    holdout_every: Annotated[Optional[int], typer.Option("--holdout-every", help="Datasets with no test split: hold out every N-th train view, N >= 2 (0: none).")] = None,
-    data_format: Annotated[str | None, typer.Option("--format", help="Dataset format: auto (detect), blender, nsvf, tanks, llff or nerfstudio.")] = None,
+    image_size: Annotated[Optional[int], typer.Option(
+        "--image-size", min=8, help="Longer image side in pixels after area downscaling.")] = None,
+    holdout_every: Annotated[Optional[int], typer.Option(
+        "--holdout-every", help="No test split: hold out every N-th train view, N >= 2 (0: none).")] = None,
+    data_format: Annotated[str | None, typer.Option(
+        "--format", help="Dataset format: auto, blender, nsvf, tanks, llff or nerfstudio.")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
-    skip: Annotated[Optional[bool], typer.Option("--skip/--no-skip", help="--no-skip: train without skipping empty space: the whole scene box, no occupancy mask (the reference that skipping is measured against). Default: the recipe's pretrain.skip (on; a rerun keeps the workspace's recorded recipe, --skip turns it back on).", show_default=False)] = None,
+    skip: Annotated[Optional[bool], typer.Option(
+        "--skip/--no-skip", help="--no-skip: train on the whole box, no occupancy mask (pretrain.skip).",
+        show_default=False)] = None,
     force: Annotated[bool, typer.Option("--force", help="Retrain experts that are already finished.")] = False,
 ) -> None:
     """Train one expert per resolution, independently (stage 1 of the paper)."""
@@ -255,12 +271,16 @@ def _recipe(workspace: Path, recipe: Optional[Path]):
 @app.command("build-moe")
 def build_moe(
     workspace: WorkspaceOpt,
-    experts: Annotated[Optional[str], typer.Option("--experts", help="Comma-separated expert names (default: all).")] = None,
+    experts: Annotated[Optional[str], typer.Option(
+        "--experts", help="Comma-separated expert names (default: all).")] = None,
     recipe: RecipeOpt = None,
-    gate_res: Annotated[Optional[int], typer.Option("--gate-res", min=2, help="Gate grid resolution (gate_res^3 voxels; 128 in the paper).")] = None,
+    gate_res: Annotated[Optional[int], typer.Option(
+        "--gate-res", min=2, help="Gate grid resolution (gate_res^3 voxels; 128 in the paper).")] = None,
     gate_type: Annotated[Optional[str], typer.Option("--gate-type", help="grid (paper), linear or switch.")] = None,
-    gate_grid: Annotated[Optional[str], typer.Option("--gate-grid", help="Feature grid of the gate: dense, tensorf (VM-factorised), hash (6-level hash grid), or auto: the experts' family (dvgo dense, tensorf tensorf, ngp hash; dense for mixed families).")] = None,
-    threshold: Annotated[Optional[float], typer.Option("--threshold", min=0.0, help="T: samples whose density-volume opacity per step is below T are filtered.")] = None,
+    gate_grid: Annotated[Optional[str], typer.Option(
+        "--gate-grid", help="Gate's feature grid: dense, tensorf, hash, or auto (the experts').")] = None,
+    threshold: Annotated[Optional[float], typer.Option(
+        "--threshold", min=0.0, help="T: V_D filters samples whose opacity per step is below T.")] = None,
     device: DeviceOpt = "auto",
 ) -> None:
     """Assemble the pretrained experts, the density volume V_D and an untrained gate."""
@@ -277,14 +297,20 @@ def build_moe(
 @app.command()
 def finetune(
     workspace: WorkspaceOpt,
-    topk: Annotated[Optional[int], typer.Option("--topk", min=1, help="Route each sample to its top-k experts (model topK).")] = None,
+    topk: Annotated[Optional[int], typer.Option(
+        "--topk", min=1, help="Route each sample to its top-k experts (model topK).")] = None,
     ensemble: Annotated[bool, typer.Option("--ensemble", help="All experts, equal weights (model ens).")] = False,
-    baseline: Annotated[bool, typer.Option("--baseline", help="The largest expert alone for the same iterations (model baseline).")] = False,
+    baseline: Annotated[bool, typer.Option(
+        "--baseline", help="The largest expert alone, as many steps (model baseline).")] = False,
     recipe: RecipeOpt = None,
     iters: Annotated[Optional[int], typer.Option("--iters", min=1)] = None,
-    lam: Annotated[Optional[float], typer.Option("--lambda", min=0.0, help="Weight of the resolution-weighted auxiliary loss (1e-3 in the paper).")] = None,
-    penalty: Annotated[Optional[str], typer.Option("--penalty", help="geometric (paper), linear, quadratic, none, or one weight per expert, smallest first: '1, 1.5, 2.23' (the official code's).")] = None,
-    renormalize: Annotated[Optional[bool], typer.Option("--renormalize/--no-renormalize", help="Renormalise the top-k weights to sum to 1 (default; for k = 1 a straight-through 1). Off: raw gate probabilities.")] = None,
+    lam: Annotated[Optional[float], typer.Option(
+        "--lambda", min=0.0, help="Auxiliary-loss weight (1e-3 in the paper).")] = None,
+    penalty: Annotated[Optional[str], typer.Option(
+        "--penalty", help="geometric (paper), linear, quadratic, none or '1, 1.5, 2.23'.")] = None,
+    renormalize: Annotated[Optional[bool], typer.Option(
+        "--renormalize/--no-renormalize",
+        help="Top-k weights sum to 1 (default); off: raw gate probabilities.")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
     force: Annotated[bool, typer.Option("--force", help="Redo a model that is already finetuned.")] = False,
@@ -314,16 +340,20 @@ def render(
     views: ViewsOpt = None,
     no_skip: NoSkipOpt = False,
     skip_off: SkipOffOpt = None,
-    per_expert: Annotated[bool, typer.Option("--per-expert", help="Mixtures: also each expert's share, the gate's probability map per expert, and a montage of them.")] = False,
-    compare: Annotated[bool, typer.Option("--compare", help="Instead: one image per view with ground truth and the models (--model, default baseline/top1/top2/ens) side by side over their error heat maps -> WS/renders/compare/.")] = False,
-    path: Annotated[Optional[str], typer.Option("--path", help="Instead: a video along a camera path from the training cameras: orbit (360-degree scenes) or spiral (forward-facing). Needs one --model.")] = None,
+    per_expert: Annotated[bool, typer.Option(
+        "--per-expert", help="Mixtures: also each expert's share and gate map, and a montage.")] = False,
+    compare: Annotated[bool, typer.Option(
+        "--compare", help="Instead: ground truth and each model over its error map, side by side.")] = False,
+    path: Annotated[Optional[str], typer.Option(
+        "--path", help="Instead: a video along an orbit or spiral path; needs one --model.")] = None,
     frames: Annotated[int, typer.Option("--frames", min=1, help="--path: number of frames.")] = 60,
     fps: Annotated[int, typer.Option("--fps", min=1, help="--path: frames per second.")] = 24,
-    video: Annotated[Optional[Path], typer.Option("--video", help="--path: output .mp4 or .gif; depth goes to FILE_depth. Default WS/renders/MODEL/PATH.mp4.")] = None,
+    video: Annotated[Optional[Path], typer.Option(
+        "--video", help="--path: output .mp4 or .gif (default WS/renders/MODEL/PATH.mp4).")] = None,
     exact_gate: ExactGateOpt = False,
     device: DeviceOpt = "auto",
 ) -> None:
-    """Render a split with each model (PNG colour + 16-bit depth), a comparison (--compare) or a video (--path)."""
+    """Render a split with each model (PNG colour, 16-bit depth), a comparison or a video."""
     from boostnerf_cli.models import Skips, Viewing
     from boostnerf_cli.stages import render as stage
     from boostnerf_cli.stages.common import resolve_device
@@ -354,8 +384,10 @@ def eval_cmd(
     views: ViewsOpt = None,
     no_skip: NoSkipOpt = False,
     skip_off: SkipOffOpt = None,
-    report: Annotated[bool, typer.Option("--report", help="Write WS/reports/eval.json and eval.md (the table in Markdown).")] = False,
-    no_costs: Annotated[bool, typer.Option("--no-costs", help="Skip ||w||_0 and GFLOPs (they need an extra pass).")] = False,
+    report: Annotated[bool, typer.Option(
+        "--report", help="Write WS/reports/eval.json and eval.md (the table in Markdown).")] = False,
+    no_costs: Annotated[bool, typer.Option(
+        "--no-costs", help="Skip ||w||_0 and GFLOPs (they need an extra pass).")] = False,
     exact_gate: ExactGateOpt = False,
     device: DeviceOpt = "auto",
 ) -> None:
@@ -387,7 +419,7 @@ def count_params_cmd(
     views: ViewsOpt = None,
     device: DeviceOpt = "auto",
 ) -> None:
-    """Parameters, ||w||_0 (non-zero gradients of the test-set loss) and GFLOPs per image -> WS/reports/count-params.json."""
+    """Parameters, ||w||_0 and GFLOPs per image -> WS/reports/count-params.json."""
     from boostnerf_cli.stages import count_params as stage
     from boostnerf_cli.stages.common import resolve_device
 
@@ -405,12 +437,12 @@ def count_params_cmd(
 def prune(
     workspace: WorkspaceOpt,
     model: Annotated[str, typer.Option("--model", help="The model to prune (e.g. top1); writes model NAME-pruned.")],
-    split: Annotated[str, typer.Option("--split", help="Views whose photometric-loss gradient decides what is kept.")] = "train",
+    split: Annotated[str, typer.Option("--split", help="Views whose loss gradient decides what is kept.")] = "train",
     views: ViewsOpt = None,
     device: DeviceOpt = "auto",
     force: Annotated[bool, typer.Option("--force", help="Redo a model that is already pruned.")] = False,
 ) -> None:
-    """Drop the grid entries no training view uses (zero gradient): -> WS/moe/NAME-pruned.safetensors + .json."""
+    """Drop the grid entries no training view uses -> WS/moe/NAME-pruned.safetensors + .json."""
     from boostnerf_cli.stages import prune as stage
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.workspace import number
@@ -419,21 +451,27 @@ def prune(
     with lock:
         r = stage.run(ws, model, split, resolve_device(device), views, force)
     table = Table("model", "params", "file MB", "test PSNR", "train views max |diff|")
-    table.add_row(r["from"], f"{r['params_before']:,}", f"{r['file_bytes_before'] / 1e6:.2f}", number(r["test_psnr_before"], ".3f"), "")
-    table.add_row(r["name"], f"{r['params_after']:,}", f"{r['file_bytes_after'] / 1e6:.2f}", number(r["test_psnr_after"], ".3f"),
-                  f"{r['train_max_abs_diff']:.1e}")
+    table.add_row(r["from"], f"{r['params_before']:,}", f"{r['file_bytes_before'] / 1e6:.2f}",
+                  number(r["test_psnr_before"], ".3f"), "")
+    table.add_row(r["name"], f"{r['params_after']:,}", f"{r['file_bytes_after'] / 1e6:.2f}",
+                  number(r["test_psnr_after"], ".3f"), f"{r['train_max_abs_diff']:.1e}")
     show(table)
 
 
 @app.command()
 def bench(
-    workspace: Annotated[Path, typer.Option("--workspace", "-w", help="Bench folder: one workspace per variant under WS/variants, the table under WS/reports.")],
-    data: Annotated[Optional[Path], typer.Option("--data", help="Scene folder. Default: generate the procedural demo scene in WS/scene.")] = None,
+    workspace: Annotated[Path, typer.Option(
+        "--workspace", "-w", help="Bench folder: variants in WS/variants, tables in WS/reports.")],
+    data: Annotated[Optional[Path], typer.Option(
+        "--data", help="Scene folder (default: a procedural demo scene made in WS/scene).")] = None,
     recipe: RecipeOpt = None,
-    suite: Annotated[str, typer.Option("--suite", help="quick (experts, baseline, top1, top2, ens, naive alternatives) or full (+ ablations).")] = "quick",
-    only: Annotated[Optional[str], typer.Option("--only", help="Comma-separated row or group names of the suite to run (see --list).")] = None,
-    list_rows: Annotated[bool, typer.Option("--list", help="Print the suite's rows and whether each is finished; run nothing.")] = False,
-    views: Annotated[Optional[int], typer.Option("--views", min=1, help="Evaluate on the first N test views only.")] = None,
+    suite: Annotated[str, typer.Option("--suite", help="quick (the main rows) or full (+ ablations).")] = "quick",
+    only: Annotated[Optional[str], typer.Option(
+        "--only", help="Comma-separated row or group names of the suite to run (see --list).")] = None,
+    list_rows: Annotated[bool, typer.Option(
+        "--list", help="Print the suite's rows and whether each is finished; run nothing.")] = False,
+    views: Annotated[Optional[int], typer.Option(
+        "--views", min=1, help="Evaluate on the first N test views only.")] = None,
     device: DeviceOpt = "auto",
 ) -> None:
     """Run time against error on one scene: train, evaluate and tabulate every variant (resumable)."""
@@ -447,7 +485,8 @@ def bench(
         _, rows = stage.catalogue(rec, suite)
         for note in stage.catalogue_notes(rec, suite):
             log(f"note: {note}")
-        stage.check_config(workspace, data, views, rec, listing=True)  # rows of a bench made with another recipe are not "finished"
+        # rows of a bench made with another recipe are not "finished"
+        stage.check_config(workspace, data, views, rec, listing=True)
         table = Table("row", "group", "workspace", "model", "finished")
         for r in stage.select(rows, names, suite):
             done = stage.row_path(workspace, r.name).exists()
@@ -461,8 +500,9 @@ def bench(
         result = stage.run(workspace, data, rec, suite, names, resolve_device(device), views)
     table = Table(*stage.COLUMNS)
     for r in result["rows"]:
-        table.add_row(r["name"], r["group"], number(r["psnr"], ".3f"), number(r["ssim"], ".4f"), f"{r['train_seconds']:.0f}",
-                      f"{r['seconds_per_image']:.3f}", f"{r['gflops_per_image']:.3f}", f"{r['params']:,}", f"{r['w0']:,}")
+        table.add_row(r["name"], r["group"], number(r["psnr"], ".3f"), number(r["ssim"], ".4f"),
+                      f"{r['train_seconds']:.0f}", f"{r['seconds_per_image']:.3f}", f"{r['gflops_per_image']:.3f}",
+                      f"{r['params']:,}", f"{r['w0']:,}")
     show(table)
     log(f"wrote {workspace / 'reports' / 'bench.json'} and bench.csv"
         + (f" and {len(result['plots'])} plots" if result["plots"] else ""))
@@ -487,14 +527,15 @@ def _interrupt(signum, frame) -> None:
 
 def _interrupt_at_start(signum, frame) -> None:
     """An interrupt before the heavy imports are done (nothing written yet): the line, and the end at once. Raised
-    inside numpy's or torch's import it left them half imported (an ImportError traceback), or was lost (exit 0)."""
+    inside numpy's or torch's import it would leave them half imported (an ImportError traceback), or be lost
+    (exit 0)."""
     err.print(INTERRUPTED, markup=False)
     _die_by(signum)
 
 
 def _die_by(signum: int) -> None:
     """End by the signal received, as the shell expects of an interrupted command (status 128 + N): a script or a
-    loop running boostnerf stops at a Ctrl-C too, where a plain exit 130 let it run the next command."""
+    loop running boostnerf stops at a Ctrl-C too, where a plain exit 130 lets it run the next command."""
     import os
     import signal
 
@@ -507,7 +548,7 @@ def _die_by(signum: int) -> None:
 
 def _usage_error(e) -> str:
     """A command-line mistake Click found (an unknown option, a value of the wrong type, a missing option), as the
-    one line every other refusal is (Typer drew a multi-line box around it, wrapped mid-word on a narrow terminal)."""
+    one line every other refusal is (Typer draws a multi-line box around it, wrapped mid-word on a narrow terminal)."""
     message = " ".join(e.format_message().split())
     ctx = getattr(e, "ctx", None)
     if ctx is not None:

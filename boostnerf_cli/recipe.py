@@ -318,7 +318,7 @@ def nearest_listed(mapping: dict[int, Any], res: int) -> int:
 
 def _family_value(section: dict, key: str, res: int, default: Any) -> Any:
     """The value of family option `key` for the expert at `res`, as pretrain takes it (`nearest_listed`): a check
-    that looked up `res` alone passed a mapping whose nearest value then failed mid-run."""
+    that looks up `res` alone would pass a mapping whose nearest value then fails mid-run."""
     value = section.get(key, default)
     if isinstance(value, dict):
         value = {int(k): v for k, v in value.items()}
@@ -365,8 +365,8 @@ def _check_unused(recipe: Recipe) -> None:
 
 class _RecipeLoader(yaml.SafeLoader):
     """YAML's safe loader, with two of its surprises taken out of recipes: a key given twice in one section (the
-    last silently won, and a second `pretrain:` block threw the whole first one away) is refused, and a number
-    written `1e-2` or `1.0e3` is a float (YAML 1.1 reads it as text, which was refused as "must be float")."""
+    last silently wins, and a second `pretrain:` block throws the whole first one away) is refused, and a number
+    written `1e-2` or `1.0e3` is a float (YAML 1.1 reads it as text, which a float key refuses: "must be float")."""
 
     def construct_mapping(self, node, deep=False):
         seen: dict = {}

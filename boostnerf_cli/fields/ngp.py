@@ -29,7 +29,7 @@ from boostnerf_cli.fields.base import ExpertModule
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.hashgrid import MAX_COORD, HashEncoding
 from boostnerf_cli.fields.mlp import MLP
-from boostnerf_cli.fields.warmstart import fit_batch, fit_density
+from boostnerf_cli.fields.warmstart import fit_density
 from boostnerf_cli.limits import (
     GRID_RES,
     MLP_LAYERS,
@@ -125,8 +125,7 @@ class NGPExpert(ExpertModule):
     def init_density(self, density) -> None:
         """Fit the encoding and the density MLP to `density(xyz) -> sigma` (see fields/warmstart.py)."""
         params = [self.encoding.table] + list(self.sigma_net.parameters())
-        fit_density(self.raw_density, params, density, self.bbox, self.unit, self.shift, steps=self.cfg.fit_steps,
-                    batch=fit_batch(self.shape))
+        fit_density(self, params, density)
 
     def resize_to(self, shape: tuple[int, int, int]) -> None:
         if tuple(shape) != tuple(self.shape):
