@@ -142,9 +142,9 @@ def _gate_part(mix, pts):
 
 def _dispatch_part(m, pts, rows, idx, vals, lin1, lin3) -> None:
     """Dispatch and gather of both passes with stand-in experts (a 3 -> out linear map), forward and backward."""
-    d, _ = dispatch(pts.shape[0], idx, vals, m, lambda e, r: lin1(pts[r]), 1, pts)
+    d = dispatch(pts.shape[0], idx, vals, m, lambda e, r: lin1(pts[r]), 1, pts)
     xr = pts[rows]  # as RoutedMixture.color_rows does
-    c, _ = dispatch(rows.shape[0], idx[rows], vals[rows], m, lambda e, r: lin3(xr[r]), 3, pts)
+    c = dispatch(rows.shape[0], idx[rows], vals[rows], m, lambda e, r: lin3(xr[r]), 3, pts)
     (d.sum() + c.sum()).backward()
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import imageio.v3 as iio
 import numpy as np
@@ -168,7 +169,8 @@ def test_bbox_falls_back_to_frustum_box():
     poses[1, :3, 3] *= -1  # second camera looks away from the first one's view
     poses[1, :3, :3] *= -1
     k = torch.tensor([[10.0, 10.0, 5.0, 5.0]]).repeat(2, 1)
-    box = frustum_overlap_bbox(poses, k, 10, 10, 2.0, 6.0, min_fraction=1.0, grid=16)
+    views = SimpleNamespace(poses=poses, intrinsics=k, height=10, width=10)
+    box = frustum_overlap_bbox(views, 2.0, 6.0, min_fraction=1.0, grid=16)
     assert box.shape == (2, 3) and (box[1] > box[0]).all()
 
 

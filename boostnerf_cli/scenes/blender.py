@@ -129,6 +129,6 @@ def load_blender(
         splits["train"], splits["test"], holdout = hold_out(splits["train"], holdout_every)
     train = splits["train"]
     near, far, source = _near_far({s: parsed[s][1] for s in found}, folder, train.poses)
-    bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
+    bbox = frustum_overlap_bbox(train, near, far)
     return scene_from_splits(folder, splits, SceneSpace(near, far, bbox, background), "blender", holdout, native,
                              extra={"near_far_source": source, **lossy_extra(frames)})

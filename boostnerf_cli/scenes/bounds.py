@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoxWarning
+from boostnerf_cli.render.renderer import Views
 
 
 def box_text(box: Tensor) -> list[float]:
@@ -88,20 +89,14 @@ def lattice_visible_counts(axes: tuple[Tensor, Tensor, Tensor], planes: Tensor) 
     return diff.cumsum(-1)[..., : len(z)]
 
 
-def frustum_overlap_bbox(
-    poses: Tensor,
-    intrinsics: Tensor,
-    height: int,
-    width: int,
-    near: float,
-    far: float,
-    min_fraction: float = 0.9,
-    grid: int = 64,
-    margin: float = 0.1,
-) -> Tensor:
+BOX_MARGIN = 0.1  # the camera-derived box grows by this fraction of its size on every side
+
+
+def frustum_overlap_bbox(views: Views, near: float, far: float, min_fraction: float = 0.9, grid: int = 64) -> Tensor:
     """Axis-aligned box of the region that most cameras see, -> (2, 3) min corner, max corner.
 
-    poses (N, 4, 4) camera-to-world, intrinsics (N, 4) fx, fy, cx, cy for images of height x width.
+    views: the cameras (a split): poses (N, 4, 4) camera-to-world, intrinsics (N, 4) fx, fy, cx, cy for images of
+    height x width.
 
     Heuristic (object-centric captures, where the cameras look inwards at the subject):
     1. take the box spanned by all frustum corner points at depth `near` and `far`;
@@ -109,9 +104,10 @@ def frustum_overlap_bbox(
     3. keep the points that project inside the image with a depth in [near, far] for at least
        `min_fraction` of the cameras (the "frustum overlap");
     4. return the box of the kept points, grown by half a lattice cell (so a single kept point
-       still gives a non-empty box) and then by `margin` times its size on every side.
+       still gives a non-empty box) and then by `BOX_MARGIN` times its size on every side.
     If no point qualifies, the full frustum box of step 1 is returned, with a `BoxWarning`.
     """
+    poses, intrinsics, height, width = views.poses, views.intrinsics, views.height, views.width
     corners = frustum_corners(poses, intrinsics, height, width, near, far).reshape(-1, 3)
     lo, hi = corners.amin(0), corners.amax(0)
     step = (hi - lo) / grid
@@ -129,7 +125,7 @@ def frustum_overlap_bbox(
     index = keep.nonzero()  # (K, 3) lattice indices
     box_lo = torch.stack([axes[i][index[:, i].min()] for i in range(3)]) - step / 2
     box_hi = torch.stack([axes[i][index[:, i].max()] for i in range(3)]) + step / 2
-    pad = margin * (box_hi - box_lo)
+    pad = BOX_MARGIN * (box_hi - box_lo)
     return torch.stack([box_lo - pad, box_hi + pad])
 
 

@@ -83,7 +83,7 @@ def load_nerfstudio(
         splits["train"], splits["test"], holdout = hold_out(splits["train"], holdout_every)
     train = splits["train"]
     near, far = camera_near_far(train.poses)
-    bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
+    bbox = frustum_overlap_bbox(train, near, far)
     return scene_from_splits(folder, splits, SceneSpace(near, far, bbox, background), "nerfstudio", holdout, native,
                              extra=lossy_extra(frames))
 

@@ -222,7 +222,7 @@ def load_nsvf(
         near, far = box_near_far(train.poses, bbox)
     else:
         near, far = camera_near_far(train.poses)
-        bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
+        bbox = frustum_overlap_bbox(train, near, far)
     return scene_from_splits(folder, splits, SceneSpace(near, far, bbox, background), format, holdout, native,
                              extra={"bbox_source": "bbox.txt" if (folder / "bbox.txt").is_file() else "cameras",
                                     **lossy_extra(ordered)})
