@@ -574,5 +574,4 @@ def train(task: TrainTask, rays: RayData, sched: Schedule, seed: int, title: str
                     save()
     finally:
         progress.close()
-        CLOCK.begin()  # the next model's start-up starts now
     return TrainResult(sched.iters, time.perf_counter() - t0, run.skipped, run.history, round(startup, 2))

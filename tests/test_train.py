@@ -99,6 +99,42 @@ def test_isolated_non_finite_steps_are_skipped_and_counted(tiny_scene):
     assert all(torch.isfinite(p).all() for p in task.model.parameters())
 
 
+def test_each_model_says_when_it_is_ready_and_its_report_keeps_the_seconds(tmp_path, tiny_scene, tiny_recipe,
+                                                                           monkeypatch, caplog):
+    """pretrain says `NAME: ready in X s (parts)` for the geometry and each expert, and each expert's report keeps
+    `startup_seconds`: from the end of the model before it (its held-out scoring included) to its first step, so
+    the work of the model before is not counted as this one's start-up."""
+    import json
+    import logging
+    import re
+    import time
+
+    from boostnerf_cli.recipe import load_recipe
+    from boostnerf_cli.stages import pretrain as stage
+    from boostnerf_cli.workspace import Workspace
+
+    rec = load_recipe(tiny_recipe)
+    rec.pretrain.res, rec.pretrain.iters, rec.pretrain.geometry.iters = [8, 12], 4, 4
+    real = stage._test_psnr
+
+    def slow_scoring(*args, **kwargs):
+        time.sleep(5.0)  # a model's own work after training: the next model must not count it
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(stage, "_test_psnr", slow_scoring)
+    ws = Workspace(tmp_path / "ws")
+    with caplog.at_level(logging.INFO, logger="boostnerf_cli"):
+        stage.run(ws, tiny_scene, rec, "cpu", False)
+    said = {m.group(1): float(m.group(2)) for m in
+            (re.match(r"([\w-]+): ready in ([\d.]+) s \((?:scene|rays|models|digests) ", r.getMessage())
+             for r in caplog.records) if m}
+    assert set(said) >= {"geometry", "dvgo-8", "dvgo-12"}, caplog.text
+    for name in ("dvgo-8", "dvgo-12"):
+        report = json.loads(ws.expert_report_path(name).read_text())
+        assert report["startup_seconds"] == pytest.approx(said[name], abs=0.06)
+    assert said["dvgo-12"] < 5.0, said  # dvgo-8's five-second scoring is not dvgo-12's start-up
+
+
 def test_skipped_steps_are_counted_warned_and_in_the_stage_report(tmp_path, tiny_scene, tiny_recipe, monkeypatch,
                                                                    capsys):
     import json

@@ -50,6 +50,7 @@ from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.scenes.bounds import box_text
 from boostnerf_cli.stages.common import slow_notice, workspace_scene_path
+from boostnerf_cli.startup import CLOCK
 from boostnerf_cli.tasks import FieldTask, train_rays
 from boostnerf_cli.train import Schedule, TrainCheckpoint, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
@@ -135,6 +136,7 @@ def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every
     shrink = float((box[1] - box[0]).prod() / (bbox[1] - bbox[0]).prod())
     if rec.refine and cover is not None and shrink < 0.5:  # cells at least 1.26x finer: worth a second round
         log(f"geometry: again inside that box ({shrink:.2f} of the volume), at finer cells")
+        CLOCK.begin()  # the refining round's start-up starts when the first round is done
         box, occ, model, cover = _coarse_round(site, rec, box, "geometry-refine", seed, checkpoint_every)
         rounds.append(cover)
     seconds = round(time.perf_counter() - t0, 2)
@@ -145,6 +147,7 @@ def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every
         ws.checkpoint_path(name).unlink(missing_ok=True)
     log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {box_text(box)} "
         f"({seconds:.1f}s)")
+    CLOCK.begin()  # the first expert's start-up starts when the geometry is done
     return Geometry(box, occ, model)
 
 
@@ -282,6 +285,7 @@ def pretrain_expert(site: Site, rec: PretrainRecipe, res: int, geometry: Geometr
                                                          "signature": signature})
     write_json(ws.expert_report_path(name), report)
     ckpt.unlink(missing_ok=True)
+    CLOCK.begin()  # the next expert's start-up starts when this one is written
     return report
 
 
