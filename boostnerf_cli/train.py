@@ -248,8 +248,8 @@ def first_difference(saved: dict, wanted: dict) -> str | None:
 
 
 # Signature entries for the training settings that shape a model (`train`, finetune's `lam`): a checkpoint names
-# them when they differ from the defaults, since session 23. A checkpoint without a PSNR trend (written before
-# session 24) may come from a boostnerf that did not record them at all: their absence there says nothing.
+# them when they differ from the defaults. A checkpoint without a PSNR trend was written by an older boostnerf,
+# which may not have recorded them at all: their absence there says nothing.
 LATE_SETTINGS = ("train", "lam")
 
 
@@ -383,7 +383,7 @@ def cuda_rng_state(device: torch.device) -> Tensor | None:
 
 
 def restore_cuda_rng(state: Tensor | list | None, device: torch.device) -> None:
-    """Give `device` the state `cuda_rng_state` saved. A checkpoint from before session 25 holds every visible GPU's
+    """Give `device` the state `cuda_rng_state` saved. A checkpoint of an older boostnerf holds every visible GPU's
     state (`get_rng_state_all`, which `set_rng_state_all` cannot put back with fewer GPUs): the entry of `device`'s
     index, if there is one. Nothing off CUDA."""
     if state is None or device.type != "cuda":
@@ -462,7 +462,7 @@ class TrainCheckpoint:
             for g, lr in zip(opt.param_groups, rates):  # the state brought back the interrupted run's; a diverged run
                 g["initial_lr"] = lr  # resumed with lower rates (the advice it gives) trained on at the old ones
             run = RunState(int(state["step"]), float(state["seconds"]), int(state["skipped"]), list(state["history"]))
-            if state.get("trend") is not None:  # checkpoints before session 24 did not keep it
+            if state.get("trend") is not None:  # an older boostnerf's checkpoints do not keep it
                 run.trend.load_state(state["trend"])
             gen.set_state(state["gen"])
             torch.set_rng_state(state["rng"])

@@ -4,7 +4,8 @@
 checkpoints. With gradients its forward is one autograd node (`_ReluMLP`) whose backward computes,
 per layer i with input a_i and output gradient g_i, dW_i = g_i^T a_i, db_i = sum g_i and
 da_i = g_i W_i (masked by the ReLU of layer i-1), taking each matrix product in the orientation that is
-faster for the layer's shape (docs/benchmarks.md, "Session 6": thin layers' backward); equal to
+faster for the layer's shape (docs/benchmarks.md, "What does the mixture cost per step and per image?": thin
+layers' backward); equal to
 `nn.Sequential`'s gradients (tests/test_mlp.py). Without gradients, and under autocast, it is plain
 `nn.Sequential`.
 """

@@ -12,7 +12,7 @@ good. `cover_foreground` makes the mask and the box conservative by construction
    opacity gathered in the occupied cells of the views' visual hull reaches `SURFACE_OPACITY`, or, on a ray
    that gathers less than twice that in all, `PARTIAL_SHARE` of what it gathers (a pixel the surface only
    partly covers, on an anti-aliased rim: its ray passes just beside the surface and would otherwise reach
-   `SURFACE_OPACITY` only in the coarse model's blur behind it, under a floor's rim; session 13);
+   `SURFACE_OPACITY` only in the coarse model's blur behind it, under a floor's rim);
 3. a ray that never reaches `SURFACE_OPACITY` (a wire the coarse grid blurs away) gets, instead, the sample where the
    coarse model puts most of the ray's rendering weight, among the ray's cells in the visual hull of the
    training views (cells that project onto foreground in every view that sees them: first at their
@@ -20,22 +20,22 @@ good. `cover_foreground` makes the mask and the box conservative by construction
 4. the mask grows to hold every point's cell, and the box is drawn around the points, each widened by half
    its pixel's footprint at its depth (where in the pixel the surface lies is unknown to that half), so every
    foreground ray crosses kept space inside the box (`missed_after` counts the rays with no sample in the
-   box at all). Session 12 widened by a coarse cell instead: 0.04-0.07 more on each side, which on the thin
-   scene cost 0.3 dB against NSVF's bbox.txt and on lego made the box 1.25x the volume.
+   box at all). Widening by a coarse cell instead gives 0.04-0.07 more on each side, which on the thin
+   scene costs 0.3 dB against NSVF's bbox.txt and on lego makes the box 1.25x the volume.
 
 Nothing is removed from the mask: it only grows, so what the coarse stage kept stays kept. (Carving the
 mask with the views' visual hull at each cell's centre was tried: it cut silhouette cells of lego, -0.47 dB
-for DVGO-80; docs/results.md, issue 17.)
+for DVGO-80.)
 
 The box, though, holds only what the views show. `hull_cells` keeps the occupied cells inside the views'
 visual hull (`visual_hull` with the footprint test, which keeps a cell as soon as any foreground pixel lies
 in its footprint in every view that sees it, and seen by at least a quarter of the views), so a floater in
-front of the cameras, which other views see against the background, does not count as surface (session 9).
+front of the cameras, which other views see against the background, does not count as surface.
 Space that no view sees (under a floor, inside a solid) is inside the hull, but no ray's surface starts
-there, so it no longer stretches the box either (session 12; before, the box was drawn around every
-occupied cell in the hull and reached 0.75 under the thin scene's floor). Without a known background the
+there, so it does not stretch the box either (a box drawn around every occupied cell in the hull reaches 0.75
+under the thin scene's floor). Without a known background the
 hull says nothing and every pixel is foreground: there a ray is covered when it crosses an occupied cell,
-and the box is drawn around the mask's cells (docs/results.md, issue 17).
+and the box is drawn around the mask's cells (docs/results.md, "Does skipping keep thin structures?").
 """
 
 from __future__ import annotations

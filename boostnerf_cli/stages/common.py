@@ -33,7 +33,7 @@ def _load_recorded(path, data: dict) -> Scene:
 
 def _locate_scene(ws: Workspace, m: dict) -> tuple[Path, Scene | None]:
     """Where a workspace's scene is: its own `scene` folder (the generated one) when the recorded path is elsewhere
-    and that folder holds the recorded images and cameras (a workspace made before session 27 recorded its generated
+    and that folder holds the recorded images and cameras (a workspace made by an older boostnerf recorded its generated
     scene absolute: a renamed or copied one must read its own scene, not what now sits at the old place); else the
     recorded path, and when that is gone, one line saying how to point to where it went (a leftover `scene` folder
     of another scene is not blamed). -> (path, the scene when already loaded to tell)."""
