@@ -65,7 +65,7 @@ def test_pretrain_skips_finished_experts(trained_ws, tiny_scene, tiny_recipe, tm
                    str(ws), "--device", "cpu", "--res", "12", check=True)
     assert "already trained" in proc.stderr
     assert (ws / "experts" / "dvgo-12.safetensors").stat().st_mtime_ns == before
-    # another holdout_every: the refusal names it (probe H, session 28: "another scene, image size or box")
+    # another holdout_every: the refusal names it ("another scene, image size or box")
     assert_clean_failure(run_cli("pretrain", "--workspace", str(ws), "--holdout-every", "4", "--device", "cpu"),
                          "held-out views (holdout_every) 8, now 4")
 
@@ -85,7 +85,7 @@ def test_a_finished_expert_is_not_skipped_under_other_training_settings(tmp_path
     assert (ws / "manifest.json").read_text() == manifest
     quiet = make_recipe(tmp_path / "quiet.yaml", pretrain={"train": {"log_every": 7}})
     assert "already trained" in run_cli(*args, "--recipe", str(quiet), check=True).stderr
-    # an expert saved by a boostnerf that stored no signature (probe T, session 28: skipped under --iters 50, and the
+    # an expert saved by a boostnerf that stored no signature (skipped under --iters 50, and the
     # manifest then recorded 50 beside an expert of 30): the settings its report names are compared
     tensors, meta = load_tensors(ws / "experts" / "dvgo-12.safetensors")
     del meta["signature"]
@@ -94,7 +94,7 @@ def test_a_finished_expert_is_not_skipped_under_other_training_settings(tmp_path
     assert_clean_failure(run_cli(*args, "--recipe", str(more)), "dvgo-12 was trained with other settings",
                          "iters: 30, now 50")
     assert_clean_failure(run_cli(*args, "--recipe", str(quiet), "--seed", "5"), "seed: 0, now 5")  # and its file's
-    wider = make_recipe(tmp_path / "wider.yaml", pretrain={"dvgo": {"hidden": 32}})  # architecture (probe X)
+    wider = make_recipe(tmp_path / "wider.yaml", pretrain={"dvgo": {"hidden": 32}})  # architecture
     assert_clean_failure(run_cli(*args, "--recipe", str(wider)), "dvgo.hidden: 16, now 32")
     assert (ws / "manifest.json").read_text() == manifest
     assert "already trained" in run_cli(*args, "--recipe", str(quiet), check=True).stderr
@@ -121,7 +121,7 @@ def test_eval_report_schema_and_render_outputs(trained_ws, tmp_path):
 
     pngs = sorted((trained_ws / "renders" / "dvgo-16" / "test").glob("*.png"))
     assert len(pngs) == 4  # 2 colour + 2 depth
-    # stdout lists the colour images written, one per line, for a script (probe U, session 28: nothing was on stdout)
+    # stdout lists the colour images written, one per line, for a script (nothing was on stdout)
     assert sorted(proc.stdout.splitlines()) == [str(p) for p in pngs if "depth" not in p.name], proc.stdout
     rgb = iio.imread([p for p in pngs if "depth" not in p.name][0])
     depth = iio.imread([p for p in pngs if "depth" in p.name][0])
@@ -236,7 +236,7 @@ def test_a_moved_scene_or_workspace_is_followed_not_retrained(trained_ws, tmp_pa
     run_cli("pretrain", "--workspace", str(moved), "--data", str(away), "--device", "cpu", check=True)
     run_cli("eval", "--workspace", str(moved), "--no-costs", "--device", "cpu", check=True)
     assert {p.name: read_meta(p)["digest"] for p in (moved / "experts").glob("*.safetensors")} == digests
-    # a `scene` folder of another scene left inside, the recorded one moved again (probe X, session 28: the leftover
+    # a `scene` folder of another scene left inside, the recorded one moved again (the leftover
     # was blamed, "changed since pretrain: retrain ... --data WS/scene --force")
     make_scene(moved / "scene", size=32, n_train=12, n_test=3, seed=1)
     away.rename(tmp_path / "elsewhere-2")
@@ -255,7 +255,7 @@ def test_a_moved_scene_or_workspace_is_followed_not_retrained(trained_ws, tmp_pa
     manifest["data"]["path"] = str(tmp_path / "before-the-move" / "scene")
     (old / "manifest.json").write_text(json.dumps(manifest))
     run_cli("eval", "--workspace", str(old), "--no-costs", "--views", "1", "--device", "cpu", check=True)
-    # probe T (session 28): a new workspace made since at the old place holds another scene there; the renamed one
+    # a new workspace made since at the old place holds another scene there; the renamed one
     # followed the stale path into it ("changed since pretrain: retrain ... --data OTHER --force")
     make_scene(tmp_path / "before-the-move" / "scene", size=32, n_train=12, n_test=3, seed=1)
     run_cli("eval", "--workspace", str(old), "--no-costs", "--views", "1", "--device", "cpu", check=True)
@@ -515,10 +515,10 @@ def test_log_lines_print_brackets_as_written(capsys):
     (["eval", "--wokspace", "ws"], "--wokspace"),
     (["eval"], "'--workspace'"),
     (["render", "-w", "ws", "--views", "0"], "'--views'"),
-    (["eval", "-w"], "'-w' requires an argument"),  # Click gives this one no context (probe X)
+    (["eval", "-w"], "'-w' requires an argument"),  # Click gives this one no context
 ], ids=["type", "unknown", "missing", "range", "no-value"])
 def test_a_command_line_mistake_is_one_error_line(monkeypatch, capsys, args, needle):
-    """Probe U (session 28): Click's own refusals (a value of the wrong type, an unknown or missing option) were a
+    """Click's own refusals (a value of the wrong type, an unknown or missing option) were a
     box of 6+ lines around `Usage:`, the message wrapped mid-word on a narrow terminal, with no `error:` line to grep
     for; every other refusal is one line."""
     code, err = cli_in_process(monkeypatch, capsys, *args)
@@ -528,7 +528,7 @@ def test_a_command_line_mistake_is_one_error_line(monkeypatch, capsys, args, nee
 
 
 def test_a_short_option_written_with_an_equals_sign_is_refused(monkeypatch, capsys, tmp_path):
-    """Probe U (session 28): `pretrain -w=wsX` made a folder named `=wsX` (Click's reading of a short option), and
+    """`pretrain -w=wsX` made a folder named `=wsX` (Click's reading of a short option), and
     `eval -w=ws` said `=ws is not a boostnerf workspace`."""
     monkeypatch.chdir(tmp_path)
     code, err = cli_in_process(monkeypatch, capsys, "eval", "-w=wsX", "--device", "cpu")
@@ -547,7 +547,7 @@ def test_version(monkeypatch, capsys):
 
 
 def test_a_result_table_on_a_narrow_terminal_folds_its_cells_and_cuts_no_digit(monkeypatch):
-    """Probe U (session 28): at 60 columns eval's table showed a PSNR as `11.…` and a GFLOPs figure as `0.01…`."""
+    """At 60 columns eval's table showed a PSNR as `11.…` and a GFLOPs figure as `0.01…`."""
     import io
 
     from rich.table import Table
@@ -566,8 +566,8 @@ def test_a_result_table_on_a_narrow_terminal_folds_its_cells_and_cuts_no_digit(m
 
 
 def test_eval_says_when_it_renders_with_other_bounds_than_pretrain_recorded(trained_ws, tmp_path):
-    """Probe T (session 28): a workspace pretrained by an earlier boostnerf, whose near / far this one widens (so that
-    every camera's rays reach the box, session 26), evaluated up to 0.02 dB away from its reports with no word."""
+    """A workspace pretrained by an earlier boostnerf, whose near / far this one widens (so that
+    every camera's rays reach the box), evaluated up to 0.02 dB away from its reports with no word."""
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
     manifest = json.loads((ws / "manifest.json").read_text())
@@ -581,7 +581,7 @@ def test_eval_says_when_it_renders_with_other_bounds_than_pretrain_recorded(trai
 
 
 def test_an_experts_reported_held_out_psnr_is_what_eval_measures(tmp_path, tiny_scene):
-    """Probe S (session 28): with train.color_threshold 0.999999 pretrain's report scored the expert 14.77 dB, eval
+    """With train.color_threshold 0.999999 pretrain's report scored the expert 14.77 dB, eval
     12.83: the report rendered with the training threshold, eval as every model is rendered (1e-4)."""
     recipe = make_recipe(tmp_path / "r.yaml", pretrain={"res": [10], "train": {"color_threshold": 0.3}})
     ws = tmp_path / "ws"

@@ -133,7 +133,7 @@ def test_the_reliability_table_check_rejects_rows_without_evidence(cell):
 
 
 def test_cli_reference_is_the_help_as_printed_now():
-    """docs/cli.md showed --holdout-every's help of an older release for a session (the check above reads option
+    """docs/cli.md showed --holdout-every's help of an older release (the check above reads option
     names only): each command's section is now compared with its `--help`, as scripts/cli-reference.sh writes it."""
     from conftest import run_cli
 

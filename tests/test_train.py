@@ -181,7 +181,7 @@ def test_a_checkpoint_made_with_other_settings_is_refused(tiny_scene, tmp_path):
 def test_a_changed_source_is_named_as_a_remade_model_not_by_its_digests():
     """A finetuning checkpoint (or a finished model) whose source (moe/init, or the baseline's largest expert) was
     remade since differs in its signature's "from", a digest: the message said "its source: '078c...', now
-    'a1b2...'" (probe H, session 28), which tells a user nothing about what to do."""
+    'a1b2...'", which tells a user nothing about what to do."""
     from boostnerf_cli.train import setting_change
 
     was, now = "078c" * 16, "a1b2" * 16
@@ -324,7 +324,7 @@ def test_the_ray_table_is_every_view_s_box_hitting_rays_in_order(tiny_scene, tmp
 
 
 def test_the_progress_bar_is_drawn_on_stderr_with_its_step_at_80_columns(monkeypatch):
-    """Probe U (session 28): on a terminal the bar went to stdout (a `> results.txt` caught it, the terminal showed
+    """On a terminal the bar went to stdout (a `> results.txt` caught it, the terminal showed
     nothing), and at 80 columns the logged values took the whole line: no bar, step or time were left."""
     import io
 
