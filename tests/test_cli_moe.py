@@ -364,7 +364,7 @@ def test_eval_costs_are_those_of_the_render_it_ran(moe_ws):
 
 
 def test_measure_costs_script_reports_every_measurement(moe_ws):
-    """scripts/measure_costs.py (issue 6's benchmark) runs on a workspace and writes reports/costs.json;
+    """scripts/measure_costs.py (docs/benchmarks.md's cost targets) runs on a workspace and writes reports/costs.json;
     its timings are for docs/benchmarks.md, so only their presence and consistency are checked here."""
     import subprocess
     import sys

@@ -1,4 +1,4 @@
-"""Issue 18: the mixture as the official code trains it (moe.aux_norm, moe.aux_samples, moe.mix, moe.gate_init).
+"""The mixture as the official code trains it (moe.aux_norm, moe.aux_samples, moe.mix, moe.gate_init).
 
 Each option against an independent float64 reference written here with plain loops; then the whole chain
 through the CLI with every official option on.

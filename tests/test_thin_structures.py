@@ -209,7 +209,7 @@ def test_an_unknown_content_is_one_line_and_writes_nothing(tmp_path):
 def test_the_box_leaves_out_floaters_outside_the_visual_hull_but_covers_every_foreground_ray(thin):
     """A coarse model that filled its whole box (floaters everywhere): the box is drawn around the occupied
     cells inside the views' visual hull, which hold every object of the scene, and covering the foreground rays
-    from those cells misses none (docs/results.md, issue 17)."""
+    from those cells misses none (docs/results.md, "Does skipping keep thin structures?")."""
     from boostnerf_cli.render.coverage import hull_cells
     from boostnerf_cli.scenes.procedural import scene_objects
 

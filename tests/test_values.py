@@ -1,4 +1,4 @@
-"""Issue 20: every recipe value is range-checked when read, and every file the tool reads fails with one line.
+"""Every recipe value is range-checked when read, and every file the tool reads fails with one line.
 
 The bad and good values below are written from the code that uses each value (not read from the
 rules declared in boostnerf_cli), so a rule that drifts from what the code needs fails here.
