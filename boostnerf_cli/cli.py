@@ -5,6 +5,7 @@ A `BoostNerfError` becomes one line on stderr and exit code 2, with no traceback
 
 from __future__ import annotations
 
+import logging
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -14,6 +15,7 @@ from rich.console import Console
 from rich.table import Table
 
 from boostnerf_cli.errors import BoostNerfError, out_of_memory
+from boostnerf_cli.startup import CLOCK
 
 app = typer.Typer(
     name="boostnerf",
@@ -22,6 +24,7 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
     rich_markup_mode=None,  # Click's plain help: it wraps at any width; Rich's boxes cut words and option names
+    context_settings={"max_content_width": 120},  # the terminal's width up to 120 (Click's own cap is 80)
 )
 err = Console(stderr=True, highlight=False, soft_wrap=True)
 
@@ -38,6 +41,7 @@ def _version(value: bool) -> None:
 def _app(version: Annotated[bool, typer.Option("--version", is_eager=True, callback=_version,
                                                help="Print boostnerf's version and exit.")] = False) -> None:
     """Boost Your NeRF: train Fast-NeRF experts, mix them with a gate, render and measure."""
+    say_messages()
 out = Console(highlight=False)
 
 
@@ -61,19 +65,74 @@ def show(table: Table) -> None:
 
 WorkspaceOpt = Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory (created if missing).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto (CUDA when available), cpu or cuda.")]
-RecipeOpt = Annotated[Optional[Path], typer.Option("--recipe", help="YAML recipe supplying defaults; flags override it.")]
-SplitOpt = Annotated[str, typer.Option("--split", help="Split to use: test (falls back to val), val or train.")]
+RecipeOpt = Annotated[Optional[Path], typer.Option(
+    "--recipe", help="YAML recipe supplying defaults; flags override it.")]
+SplitOpt = Annotated[str, typer.Option("--split", help="Split: test (val when it has none), val or train.")]
 ModelsOpt = Annotated[Optional[list[str]], typer.Option(
     "--model", help="Model name(s); default: every model of the workspace.",
     callback=lambda names: list(dict.fromkeys(names)) if names else names)]  # a name given twice counts once
-NoSkipOpt = Annotated[bool, typer.Option("--no-skip", help="Turn every skip off: dense sampling, every sample evaluated.")]
-SkipOffOpt = Annotated[Optional[list[str]], typer.Option("--skip-off", help="Turn one skip off (repeatable): empty (occupancy grid and density volume V_D) or terminated (colour only where the rendering weight > 1e-4).")]
-ExactGateOpt = Annotated[bool, typer.Option("--exact-gate", help="Mixtures: run the gate's grid + MLP on every sample instead of its baked logits (moe.bake_res).")]
+NoSkipOpt = Annotated[bool, typer.Option(
+    "--no-skip", help="Turn every skip off: dense sampling, every sample evaluated.")]
+SkipOffOpt = Annotated[Optional[list[str]], typer.Option(
+    "--skip-off", help="Turn one skip off (repeatable): empty (occupancy, V_D) or terminated.")]
+ExactGateOpt = Annotated[bool, typer.Option(
+    "--exact-gate", help="Mixtures: the gate's grid + MLP per sample, not its baked logits.")]
 ViewsOpt = Annotated[Optional[int], typer.Option("--views", min=1, help="Only the first N views of the split.")]
 
 
-def log(msg: str) -> None:
-    err.print(msg, markup=False)  # text as written: "[0.34, 0.66]" or a path "ws[2]" is not a Rich markup tag
+class _Stderr(logging.Handler):
+    """The stages' messages (the `boostnerf_cli` log), one line each on stderr, as written: "[0.34, 0.66]" or a path
+    "ws[2]" is no Rich markup tag."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        err.print(record.getMessage(), markup=False)
+
+
+def say_messages() -> None:
+    """Send the `boostnerf_cli` log, from INFO up, to stderr (once per process)."""
+    logger = logging.getLogger("boostnerf_cli")
+    if not any(isinstance(h, _Stderr) for h in logger.handlers):
+        logger.addHandler(_Stderr())
+        logger.setLevel(logging.INFO)
+
+
+log = logging.getLogger(__name__).info
+
+
+# Every option that sets a recipe key, by command: {parameter: recipe key}. The stages read the recipe alone; the
+# option's spelling is its declaration's (`_flag`).
+RECIPE_OPTIONS = {
+    "pretrain": {"model": "pretrain.model", "res": "pretrain.res", "iters": "pretrain.iters", "seed": "pretrain.seed",
+                 "skip": "pretrain.skip", "image_size": "data.image_size", "holdout_every": "data.holdout_every",
+                 "data_format": "data.format"},
+    "build-moe": {"gate_res": "moe.gate_res", "gate_type": "moe.gate_type", "gate_grid": "moe.gate_grid",
+                  "threshold": "moe.density_threshold"},
+    "finetune": {"iters": "moe.iters", "lam": "moe.lam", "penalty": "moe.penalty", "renormalize": "moe.renormalize",
+                 "seed": "moe.seed"},
+}
+
+
+def _context():
+    try:
+        from typer._click.globals import get_current_context  # Typer vendors Click (0.29: a Click of its own)
+    except ImportError:  # an older Typer: Click itself
+        from click import get_current_context
+    return get_current_context()
+
+
+def _settings() -> dict:
+    """{recipe key: value} of the running command's options that set one (`RECIPE_OPTIONS`), those given."""
+    ctx = _context()
+    table = RECIPE_OPTIONS[ctx.info_name]
+    return {key: ctx.params[name] for name, key in table.items() if ctx.params.get(name) is not None}
+
+
+def _flag(key: str) -> str:
+    """The running command's option that set recipe key `key`, as given (`--no-renormalize` for False)."""
+    ctx = _context()
+    name = next(n for n, k in RECIPE_OPTIONS[ctx.info_name].items() if k == key)
+    option = next(p for p in ctx.command.params if p.name == name)
+    return option.secondary_opts[0] if option.secondary_opts and ctx.params[name] is False else option.opts[0]
 
 
 def _one_process() -> None:
@@ -132,11 +191,13 @@ def make_scene_cmd(
     n_train: Annotated[int, typer.Option("--train-views", min=1)] = 24,
     n_test: Annotated[int, typer.Option("--test-views", min=0)] = 8,
     seed: Annotated[int, typer.Option()] = 0,
-    layout: Annotated[str, typer.Option("--format", help="Layout to write: blender, nsvf, tanks, llff or nerfstudio.")] = "blender",
-    rig: Annotated[str | None, typer.Option("--rig", help="Cameras: sphere (around the scene) or forward (forward-facing). Default: forward for llff, sphere otherwise.")] = None,
+    layout: Annotated[str, typer.Option(
+        "--format", help="Layout: blender, nsvf, tanks, llff or nerfstudio.")] = "blender",
+    rig: Annotated[str | None, typer.Option(
+        "--rig", help="Cameras: sphere or forward (default: forward for llff, else sphere).")] = None,
     content: Annotated[str, typer.Option("--content", help="objects (floor and four solids), thin (plus rods and a cable 1-2 px wide at 100 px, reaching the scene's edge), large (a floor reaching past the camera-derived box and every view's edge) or empty (background only).")] = "objects",
 ) -> None:
-    """Write a small procedural scene (exact analytic ray casting) in any dataset layout boostnerf reads."""
+    """Write a small procedural scene (exact ray casting) in any dataset layout boostnerf reads."""
     from boostnerf_cli.scenes import make_scene
     from boostnerf_cli.scenes.procedural import SEQUENCE_LAYOUTS, written_test_views
 
@@ -155,17 +216,26 @@ def make_scene_cmd(
 @app.command()
 def pretrain(
     workspace: WorkspaceOpt,
-    data: Annotated[Optional[Path], typer.Option("--data", help="Scene folder. Default: generate the procedural demo scene in WS/scene.")] = None,
+    data: Annotated[Optional[Path], typer.Option(
+        "--data", help="Scene folder (default: a procedural demo scene made in WS/scene).")] = None,
     recipe: RecipeOpt = None,
-    model: Annotated[Optional[str], typer.Option("--model", help="Expert family: dvgo (dense grids), tensorf (VM-factorised grids) or ngp (multi-resolution hash grid).")] = None,
-    res: Annotated[Optional[str], typer.Option("--res", help="Comma-separated resolutions, one expert each. For dvgo and tensorf, --res 160 means a final grid of 160^3 voxels (isotropic voxels over the scene box); for ngp, --res 16 means L = 16 hash-grid levels (the paper's 6, 8, 10, 16, 24).")] = None,
+    model: Annotated[Optional[str], typer.Option(
+        "--model", help="Expert family: dvgo (dense grid), tensorf (VM) or ngp (hash grid).")] = None,
+    res: Annotated[Optional[str], typer.Option(
+        "--res", callback=lambda text: _int_list(text, "--res") if text else text,
+        help="Comma-separated: one expert each, res^3 voxels (ngp: res levels).")] = None,
     iters: Annotated[Optional[int], typer.Option("--iters", min=1, help="Training steps per expert.")] = None,
-    image_size: Annotated[Optional[int], typer.Option("--image-size", min=8, help="Longer image side in pixels after area downscaling.")] = None,
-    holdout_every: Annotated[Optional[int], typer.Option("--holdout-every", help="Datasets with no test split: hold out every N-th train view, N >= 2 (0: none).")] = None,
-    data_format: Annotated[str | None, typer.Option("--format", help="Dataset format: auto (detect), blender, nsvf, tanks, llff or nerfstudio.")] = None,
+    image_size: Annotated[Optional[int], typer.Option(
+        "--image-size", min=8, help="Longer image side in pixels after area downscaling.")] = None,
+    holdout_every: Annotated[Optional[int], typer.Option(
+        "--holdout-every", help="No test split: hold out every N-th train view, N >= 2 (0: none).")] = None,
+    data_format: Annotated[str | None, typer.Option(
+        "--format", help="Dataset format: auto, blender, nsvf, tanks, llff or nerfstudio.")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
-    skip: Annotated[Optional[bool], typer.Option("--skip/--no-skip", help="--no-skip: train without skipping empty space: the whole scene box, no occupancy mask (the reference that skipping is measured against). Default: the recipe's pretrain.skip (on; a rerun keeps the workspace's recorded recipe, --skip turns it back on).", show_default=False)] = None,
+    skip: Annotated[Optional[bool], typer.Option(
+        "--skip/--no-skip", help="--no-skip: train on the whole box, no occupancy mask (pretrain.skip).",
+        show_default=False)] = None,
     force: Annotated[bool, typer.Option("--force", help="Retrain experts that are already finished.")] = False,
 ) -> None:
     """Train one expert per resolution, independently (stage 1 of the paper)."""
@@ -174,13 +244,10 @@ def pretrain(
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.workspace import number
 
-    rec = _recipe(workspace, recipe).override({  # a rerun (a moved scene, one more expert) keeps the recipe
-        "pretrain.model": model, "pretrain.res": _int_list(res, "--res") if res is not None else None,
-        "pretrain.iters": iters, "pretrain.seed": seed, "pretrain.skip": skip,
-        "data.image_size": image_size, "data.holdout_every": holdout_every, "data.format": data_format})
+    rec = _recipe(workspace, recipe).override(_settings())  # a rerun (a moved scene, one more expert) keeps the recipe
     ws, lock = _writer(workspace, must_exist=False, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock:
-        reports = stage.run(ws, data, rec, dev, force, log)
+        reports = stage.run(ws, data, rec, dev, force)
         if not dist.is_main():
             return
     table = Table("expert", "params", "steps", "seconds", "train PSNR", "held-out PSNR")
@@ -204,39 +271,46 @@ def _recipe(workspace: Path, recipe: Optional[Path]):
 @app.command("build-moe")
 def build_moe(
     workspace: WorkspaceOpt,
-    experts: Annotated[Optional[str], typer.Option("--experts", help="Comma-separated expert names (default: all).")] = None,
+    experts: Annotated[Optional[str], typer.Option(
+        "--experts", help="Comma-separated expert names (default: all).")] = None,
     recipe: RecipeOpt = None,
-    gate_res: Annotated[Optional[int], typer.Option("--gate-res", min=2, help="Gate grid resolution (gate_res^3 voxels; 128 in the paper).")] = None,
+    gate_res: Annotated[Optional[int], typer.Option(
+        "--gate-res", min=2, help="Gate grid resolution (gate_res^3 voxels; 128 in the paper).")] = None,
     gate_type: Annotated[Optional[str], typer.Option("--gate-type", help="grid (paper), linear or switch.")] = None,
-    gate_grid: Annotated[Optional[str], typer.Option("--gate-grid", help="Feature grid of the gate: dense, tensorf (VM-factorised), hash (6-level hash grid), or auto: the experts' family (dvgo dense, tensorf tensorf, ngp hash; dense for mixed families).")] = None,
-    threshold: Annotated[Optional[float], typer.Option("--threshold", min=0.0, help="T: samples whose density-volume opacity per step is below T are filtered.")] = None,
+    gate_grid: Annotated[Optional[str], typer.Option(
+        "--gate-grid", help="Gate's feature grid: dense, tensorf, hash, or auto (the experts').")] = None,
+    threshold: Annotated[Optional[float], typer.Option(
+        "--threshold", min=0.0, help="T: V_D filters samples whose opacity per step is below T.")] = None,
     device: DeviceOpt = "auto",
 ) -> None:
     """Assemble the pretrained experts, the density volume V_D and an untrained gate."""
     from boostnerf_cli.stages import build_moe as stage
     from boostnerf_cli.stages.common import resolve_device
 
-    rec = _recipe(workspace, recipe).override({"moe.gate_res": gate_res, "moe.gate_type": gate_type,
-                                                   "moe.gate_grid": gate_grid, "moe.density_threshold": threshold})
+    rec = _recipe(workspace, recipe).override(_settings())
     names = [n for n in experts.split(",") if n] if experts else None
     ws, lock = _writer(workspace)
     with lock:
-        stage.build(ws, names, rec.moe, resolve_device(device), log)
+        stage.build(ws, names, rec.moe, resolve_device(device))
 
 
 @app.command()
 def finetune(
     workspace: WorkspaceOpt,
-    topk: Annotated[Optional[int], typer.Option("--topk", min=1, help="Route each sample to its top-k experts (model topK).")] = None,
+    topk: Annotated[Optional[int], typer.Option(
+        "--topk", min=1, help="Route each sample to its top-k experts (model topK).")] = None,
     ensemble: Annotated[bool, typer.Option("--ensemble", help="All experts, equal weights (model ens).")] = False,
-    baseline: Annotated[bool, typer.Option("--baseline", help="The largest expert alone for the same iterations (model baseline).")] = False,
+    baseline: Annotated[bool, typer.Option(
+        "--baseline", help="The largest expert alone, as many steps (model baseline).")] = False,
     recipe: RecipeOpt = None,
     iters: Annotated[Optional[int], typer.Option("--iters", min=1)] = None,
-    lam: Annotated[Optional[float], typer.Option("--lambda", min=0.0, help="Weight of the resolution-weighted auxiliary loss (1e-3 in the paper).")] = None,
-    penalty: Annotated[Optional[str], typer.Option("--penalty", help="geometric (paper), linear, quadratic, none, or one weight per expert, smallest first: '1, 1.5, 2.23' (the official code's).")] = None,
-    renormalize: Annotated[Optional[bool], typer.Option("--renormalize/--no-renormalize", help="Renormalise the top-k weights to sum to 1 (default; for k = 1 a straight-through 1). Off: raw gate probabilities.")] = None,
-    wide_start: Annotated[Optional[float], typer.Option("--wide-start", help="Fraction of the steps routed to k + 1 experts (renormalised) before narrowing to k (not in the paper; docs/paper-map.md).")] = None,
-    gate_noise: Annotated[Optional[float], typer.Option("--gate-noise", help="Training chooses experts by log p + F * N(0, 1), noisy top-k (not in the paper; docs/paper-map.md).")] = None,
+    lam: Annotated[Optional[float], typer.Option(
+        "--lambda", min=0.0, help="Auxiliary-loss weight (1e-3 in the paper).")] = None,
+    penalty: Annotated[Optional[str], typer.Option(
+        "--penalty", help="geometric (paper), linear, quadratic, none or '1, 1.5, 2.23'.")] = None,
+    renormalize: Annotated[Optional[bool], typer.Option(
+        "--renormalize/--no-renormalize",
+        help="Top-k weights sum to 1 (default); off: raw gate probabilities.")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
     force: Annotated[bool, typer.Option("--force", help="Redo a model that is already finetuned.")] = False,
@@ -247,15 +321,15 @@ def finetune(
     from boostnerf_cli.stages.common import resolve_device
 
     name = stage.model_name(topk, ensemble, baseline)
-    rec = _recipe(workspace, recipe).override({"moe.iters": iters, "moe.lam": lam, "moe.penalty": penalty,
-                                                   "moe.renormalize": renormalize, "moe.seed": seed,
-                                                   "moe.wide_start": wide_start, "moe.gate_noise": gate_noise})
-    given = {flag: value for flag, value in (("--lambda", lam), ("--penalty", penalty), ("--renormalize", renormalize),
-                                             ("--wide-start", wide_start), ("--gate-noise", gate_noise))
-             if value is not None}
+    settings = _settings()
+    rec = _recipe(workspace, recipe).override(settings)
     ws, lock = _writer(workspace, distributed=True)
-    with dist.session(resolve_device(device)) as dev, lock:
-        stage.run(ws, name, topk, rec.moe, dev, force, dist.main_log(log), given)
+    with dist.session(resolve_device(device)) as dev, lock, dist.others_quiet():
+        unused, why = stage.unused_settings(ws, name, topk, rec.moe, set(settings))
+        if unused:  # said also when the model is finished and skipped
+            log(f"note: {', '.join(map(_flag, unused))} cannot change {'the baseline' if name == 'baseline' else name} "
+                f"({why}): ignored")
+        stage.run(ws, name, topk, rec.moe, dev, force)
 
 
 @app.command()
@@ -266,17 +340,21 @@ def render(
     views: ViewsOpt = None,
     no_skip: NoSkipOpt = False,
     skip_off: SkipOffOpt = None,
-    per_expert: Annotated[bool, typer.Option("--per-expert", help="Mixtures: also each expert's share, the gate's probability map per expert, and a montage of them.")] = False,
-    compare: Annotated[bool, typer.Option("--compare", help="Instead: one image per view with ground truth and the models (--model, default baseline/top1/top2/ens) side by side over their error heat maps -> WS/renders/compare/.")] = False,
-    path: Annotated[Optional[str], typer.Option("--path", help="Instead: a video along a camera path from the training cameras: orbit (360-degree scenes) or spiral (forward-facing). Needs one --model.")] = None,
+    per_expert: Annotated[bool, typer.Option(
+        "--per-expert", help="Mixtures: also each expert's share and gate map, and a montage.")] = False,
+    compare: Annotated[bool, typer.Option(
+        "--compare", help="Instead: ground truth and each model over its error map, side by side.")] = False,
+    path: Annotated[Optional[str], typer.Option(
+        "--path", help="Instead: a video along an orbit or spiral path; needs one --model.")] = None,
     frames: Annotated[int, typer.Option("--frames", min=1, help="--path: number of frames.")] = 60,
     fps: Annotated[int, typer.Option("--fps", min=1, help="--path: frames per second.")] = 24,
-    video: Annotated[Optional[Path], typer.Option("--video", help="--path: output .mp4 or .gif; depth goes to FILE_depth. Default WS/renders/MODEL/PATH.mp4.")] = None,
+    video: Annotated[Optional[Path], typer.Option(
+        "--video", help="--path: output .mp4 or .gif (default WS/renders/MODEL/PATH.mp4).")] = None,
     exact_gate: ExactGateOpt = False,
     device: DeviceOpt = "auto",
 ) -> None:
-    """Render a split with each model (PNG colour + 16-bit depth), a comparison (--compare) or a video (--path)."""
-    from boostnerf_cli.models import Skips
+    """Render a split with each model (PNG colour, 16-bit depth), a comparison or a video."""
+    from boostnerf_cli.models import Skips, Viewing
     from boostnerf_cli.stages import render as stage
     from boostnerf_cli.stages.common import resolve_device
 
@@ -284,16 +362,16 @@ def render(
         raise BoostNerfError("--path, --compare and --per-expert are separate outputs: use one per command")
     if path is None and video is not None:
         raise BoostNerfError("--video needs --path orbit or --path spiral")
-    skips = Skips.from_flags(no_skip, skip_off)
+    viewing = Viewing(split, views, Skips.from_flags(no_skip, skip_off), exact_gate)
     ws, lock = _writer(workspace)
     with lock:
         if path is not None:
-            written = stage.run_video(ws, model, path, frames, video, fps, resolve_device(device), skips, log)
+            video_path = stage.VideoPath(path, frames, fps, video)
+            written = stage.run_video(ws, model, video_path, resolve_device(device), viewing.skips)
         elif compare:
-            written = stage.run_compare(ws, model, split, resolve_device(device), skips, views, log)
+            written = stage.run_compare(ws, model, viewing, resolve_device(device))
         else:
-            written = stage.run(ws, model, split, resolve_device(device), skips, views, log, per_expert=per_expert,
-                                exact_gate=exact_gate)
+            written = stage.run(ws, model, viewing, resolve_device(device), per_expert=per_expert)
     for p in written:  # stdout: the files written, one per line, for a script (the prose above is on stderr)
         print(p)
 
@@ -306,22 +384,23 @@ def eval_cmd(
     views: ViewsOpt = None,
     no_skip: NoSkipOpt = False,
     skip_off: SkipOffOpt = None,
-    report: Annotated[bool, typer.Option("--report", help="Write WS/reports/eval.json and eval.md (the table in Markdown).")] = False,
-    no_costs: Annotated[bool, typer.Option("--no-costs", help="Skip ||w||_0 and GFLOPs (they need an extra pass).")] = False,
+    report: Annotated[bool, typer.Option(
+        "--report", help="Write WS/reports/eval.json and eval.md (the table in Markdown).")] = False,
+    no_costs: Annotated[bool, typer.Option(
+        "--no-costs", help="Skip ||w||_0 and GFLOPs (they need an extra pass).")] = False,
     exact_gate: ExactGateOpt = False,
     device: DeviceOpt = "auto",
 ) -> None:
     """PSNR, SSIM, LPIPS (when its weights are on disk) and seconds per image for every model."""
-    from boostnerf_cli.models import Skips
+    from boostnerf_cli.models import Skips, Viewing
     from boostnerf_cli.stages import evaluate as stage
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.workspace import number
 
-    skips = Skips.from_flags(no_skip, skip_off)
+    viewing = Viewing(split, views, Skips.from_flags(no_skip, skip_off), exact_gate)
     ws, lock = _writer(workspace) if report else _reader(workspace)
     with lock:
-        result = stage.run(ws, model, split, resolve_device(device), skips, views, report, log, costs=not no_costs,
-                          exact_gate=exact_gate)
+        result = stage.run(ws, model, viewing, resolve_device(device), report, costs=not no_costs)
     if report:
         log(f"wrote {ws.reports_dir / 'eval.json'} and eval.md")
     table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")
@@ -340,13 +419,13 @@ def count_params_cmd(
     views: ViewsOpt = None,
     device: DeviceOpt = "auto",
 ) -> None:
-    """Parameters, ||w||_0 (non-zero gradients of the test-set loss) and GFLOPs per image -> WS/reports/count-params.json."""
+    """Parameters, ||w||_0 and GFLOPs per image -> WS/reports/count-params.json."""
     from boostnerf_cli.stages import count_params as stage
     from boostnerf_cli.stages.common import resolve_device
 
     ws, lock = _writer(workspace)
     with lock:
-        result = stage.run(ws, model, split, resolve_device(device), views, log)
+        result = stage.run(ws, model, split, resolve_device(device), views)
     log(f"wrote {ws.reports_dir / 'count-params.json'}")
     table = Table("model", "params", "||w||_0", "GFLOPs/image")
     for r in result["models"]:
@@ -358,35 +437,41 @@ def count_params_cmd(
 def prune(
     workspace: WorkspaceOpt,
     model: Annotated[str, typer.Option("--model", help="The model to prune (e.g. top1); writes model NAME-pruned.")],
-    split: Annotated[str, typer.Option("--split", help="Views whose photometric-loss gradient decides what is kept.")] = "train",
+    split: Annotated[str, typer.Option("--split", help="Views whose loss gradient decides what is kept.")] = "train",
     views: ViewsOpt = None,
     device: DeviceOpt = "auto",
     force: Annotated[bool, typer.Option("--force", help="Redo a model that is already pruned.")] = False,
 ) -> None:
-    """Drop the grid entries no training view uses (zero gradient): -> WS/moe/NAME-pruned.safetensors + .json."""
+    """Drop the grid entries no training view uses -> WS/moe/NAME-pruned.safetensors + .json."""
     from boostnerf_cli.stages import prune as stage
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.workspace import number
 
     ws, lock = _writer(workspace)
     with lock:
-        r = stage.run(ws, model, split, resolve_device(device), views, force, log)
+        r = stage.run(ws, model, split, resolve_device(device), views, force)
     table = Table("model", "params", "file MB", "test PSNR", "train views max |diff|")
-    table.add_row(r["from"], f"{r['params_before']:,}", f"{r['file_bytes_before'] / 1e6:.2f}", number(r["test_psnr_before"], ".3f"), "")
-    table.add_row(r["name"], f"{r['params_after']:,}", f"{r['file_bytes_after'] / 1e6:.2f}", number(r["test_psnr_after"], ".3f"),
-                  f"{r['train_max_abs_diff']:.1e}")
+    table.add_row(r["from"], f"{r['params_before']:,}", f"{r['file_bytes_before'] / 1e6:.2f}",
+                  number(r["test_psnr_before"], ".3f"), "")
+    table.add_row(r["name"], f"{r['params_after']:,}", f"{r['file_bytes_after'] / 1e6:.2f}",
+                  number(r["test_psnr_after"], ".3f"), f"{r['train_max_abs_diff']:.1e}")
     show(table)
 
 
 @app.command()
 def bench(
-    workspace: Annotated[Path, typer.Option("--workspace", "-w", help="Bench folder: one workspace per variant under WS/variants, the table under WS/reports.")],
-    data: Annotated[Optional[Path], typer.Option("--data", help="Scene folder. Default: generate the procedural demo scene in WS/scene.")] = None,
+    workspace: Annotated[Path, typer.Option(
+        "--workspace", "-w", help="Bench folder: variants in WS/variants, tables in WS/reports.")],
+    data: Annotated[Optional[Path], typer.Option(
+        "--data", help="Scene folder (default: a procedural demo scene made in WS/scene).")] = None,
     recipe: RecipeOpt = None,
-    suite: Annotated[str, typer.Option("--suite", help="quick (experts, baseline, top1, top2, ens, naive alternatives) or full (+ ablations).")] = "quick",
-    only: Annotated[Optional[str], typer.Option("--only", help="Comma-separated row or group names of the suite to run (see --list).")] = None,
-    list_rows: Annotated[bool, typer.Option("--list", help="Print the suite's rows and whether each is finished; run nothing.")] = False,
-    views: Annotated[Optional[int], typer.Option("--views", min=1, help="Evaluate on the first N test views only.")] = None,
+    suite: Annotated[str, typer.Option("--suite", help="quick (the main rows) or full (+ ablations).")] = "quick",
+    only: Annotated[Optional[str], typer.Option(
+        "--only", help="Comma-separated row or group names of the suite to run (see --list).")] = None,
+    list_rows: Annotated[bool, typer.Option(
+        "--list", help="Print the suite's rows and whether each is finished; run nothing.")] = False,
+    views: Annotated[Optional[int], typer.Option(
+        "--views", min=1, help="Evaluate on the first N test views only.")] = None,
     device: DeviceOpt = "auto",
 ) -> None:
     """Run time against error on one scene: train, evaluate and tabulate every variant (resumable)."""
@@ -400,7 +485,8 @@ def bench(
         _, rows = stage.catalogue(rec, suite)
         for note in stage.catalogue_notes(rec, suite):
             log(f"note: {note}")
-        stage.check_config(workspace, data, views, rec, listing=True)  # rows of a bench made with another recipe are not "finished"
+        # rows of a bench made with another recipe are not "finished"
+        stage.check_config(workspace, data, views, rec, listing=True)
         table = Table("row", "group", "workspace", "model", "finished")
         for r in stage.select(rows, names, suite):
             done = stage.row_path(workspace, r.name).exists()
@@ -411,11 +497,12 @@ def bench(
 
     _, lock = _writer(workspace, must_exist=False)
     with lock:
-        result = stage.run(workspace, data, rec, suite, names, resolve_device(device), views, log)
+        result = stage.run(workspace, data, rec, suite, names, resolve_device(device), views)
     table = Table(*stage.COLUMNS)
     for r in result["rows"]:
-        table.add_row(r["name"], r["group"], number(r["psnr"], ".3f"), number(r["ssim"], ".4f"), f"{r['train_seconds']:.0f}",
-                      f"{r['seconds_per_image']:.3f}", f"{r['gflops_per_image']:.3f}", f"{r['params']:,}", f"{r['w0']:,}")
+        table.add_row(r["name"], r["group"], number(r["psnr"], ".3f"), number(r["ssim"], ".4f"),
+                      f"{r['train_seconds']:.0f}", f"{r['seconds_per_image']:.3f}", f"{r['gflops_per_image']:.3f}",
+                      f"{r['params']:,}", f"{r['w0']:,}")
     show(table)
     log(f"wrote {workspace / 'reports' / 'bench.json'} and bench.csv"
         + (f" and {len(result['plots'])} plots" if result["plots"] else ""))
@@ -440,14 +527,15 @@ def _interrupt(signum, frame) -> None:
 
 def _interrupt_at_start(signum, frame) -> None:
     """An interrupt before the heavy imports are done (nothing written yet): the line, and the end at once. Raised
-    inside numpy's or torch's import it left them half imported (an ImportError traceback), or was lost (exit 0)."""
+    inside numpy's or torch's import it would leave them half imported (an ImportError traceback), or be lost
+    (exit 0)."""
     err.print(INTERRUPTED, markup=False)
     _die_by(signum)
 
 
 def _die_by(signum: int) -> None:
     """End by the signal received, as the shell expects of an interrupted command (status 128 + N): a script or a
-    loop running boostnerf stops at a Ctrl-C too, where a plain exit 130 let it run the next command."""
+    loop running boostnerf stops at a Ctrl-C too, where a plain exit 130 lets it run the next command."""
     import os
     import signal
 
@@ -460,7 +548,7 @@ def _die_by(signum: int) -> None:
 
 def _usage_error(e) -> str:
     """A command-line mistake Click found (an unknown option, a value of the wrong type, a missing option), as the
-    one line every other refusal is (Typer drew a multi-line box around it, wrapped mid-word on a narrow terminal)."""
+    one line every other refusal is (Typer draws a multi-line box around it, wrapped mid-word on a narrow terminal)."""
     message = " ".join(e.format_message().split())
     ctx = getattr(e, "ctx", None)
     if ctx is not None:
@@ -486,6 +574,8 @@ PATH_OPTIONS = ("-w", "--workspace", "--data", "--recipe", "--video")  # the opt
 
 def main() -> None:
     import signal
+
+    CLOCK.begin()  # a stage's start-up counts from here (boostnerf_cli/startup.py)
 
     try:
         from typer._click import exceptions as click  # Typer vendors Click (0.29: a Click of its own)

@@ -109,10 +109,10 @@ LEARNING_RATE = Range(0, 10, lo_open=True)
 MLP_WIDTH = Range(1, 4096)  # also a factorisation's ranks and feature widths (TensoRF app_dim, NGP geo_feat, F)
 MLP_LAYERS = Range(0, 16)
 PE_FREQS = Range(0, 16)
-# the render step in voxels of the final grid: at 1e-6 a ray took millions of samples (out of memory), at 1e6 every
-# sample but the first fell past the box (a blank model, exit 0); DVGO's is 0.5
+# the render step in voxels of the final grid: at 1e-6 a ray takes millions of samples (out of memory), at 1e6 every
+# sample but the first falls past the box (a blank model, exit 0); DVGO's is 0.5
 STEP_RATIO = Range(0.05, 4)
-# a scene box coordinate in world units: the box's diagonal in float32 overflowed at 1e30 (a traceback)
+# a scene box coordinate in world units: the box's diagonal in float32 overflows at 1e30 (a traceback)
 BBOX_COORD = Range(-1e6, 1e6)
 
 

@@ -37,7 +37,7 @@ from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.metrics.image import psnr, ssim
-from boostnerf_cli.models import LoadedModel, load_model, model_file
+from boostnerf_cli.models import LoadedModel, load_model
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.render.renderer import RenderSettings, render_rays, sample_rays
 from boostnerf_cli.stages.common import resolve_device, workspace_scene
@@ -196,10 +196,10 @@ def main() -> None:
     scene = None
     for name, root in args.model:
         ws = Workspace(Path(root))
-        scene = scene or workspace_scene(ws, lambda s: print(s, file=sys.stderr))
+        scene = scene or workspace_scene(ws)
         models.append(load_model(ws, name, device))
         # a workspace's baseline is its largest expert trained on: named by that expert (dvgo-80)
-        label = read_meta(model_file(ws, name)).get("from", name) if name == "baseline" else name
+        label = read_meta(ws.model_file(name)).get("from", name) if name == "baseline" else name
         names.append(label if label not in names else f"{label}@{Path(root).name}")
     bbox = models[0].bbox.cpu()
     for m in models[1:]:

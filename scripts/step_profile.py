@@ -8,9 +8,9 @@ each kind (`dvgo`, `tensorf`, `ngp`: the largest expert's step; `top1`, `top2`, 
 `baseline`: the largest expert finetuned alone) and one chunk of rendering of the same model:
 
 - `ops_per_step`: aten operators dispatched (views and other metadata-only operators left out: they launch nothing);
-- `syncs_per_step`: the operators among them that make the host wait for the device on CUDA (`SYNC_OPS`, boolean
-  masks, copies between host and device that are not `non_blocking`). On a CPU the step runs on the simulated GPU of
-  tests/simdevice.py, so that copies to and from the device are seen;
+- `syncs_per_step`: the operators that make the host wait for the device on CUDA (tests/simdevice.py's `is_sync`:
+  `.item()`, `nonzero`, boolean masks, copies between host and device that are not `non_blocking`, ...). On a CPU
+  the step runs on the simulated GPU of tests/simdevice.py, so that copies to and from the device are seen;
 - `ms_per_step`: wall time per step on `--device`, with no operator counting.
 
 Maintenance steps (logging, checkpoints, occupancy refreshes, grid growth) are not measured: the loop may
@@ -28,38 +28,15 @@ import tempfile
 import time
 from collections import Counter
 from contextlib import nullcontext
+from dataclasses import replace
 from pathlib import Path
 
 import torch
 import yaml
-from torch.utils._python_dispatch import TorchDispatchMode
 
 ROOT = Path(__file__).resolve().parent.parent
-aten = torch.ops.aten
 
 TRAIN_KINDS = ("dvgo", "tensorf", "ngp", "top1", "top2", "ens", "baseline")
-
-# Operators that make the host wait for the device when their inputs are on a CUDA device: their output's size or
-# value is read on the host (nerfacc's coding notes; PyTorch's own torch.cuda.set_sync_debug_mode flags them).
-SYNC_OPS = {
-    aten._local_scalar_dense.default,  # .item(), float(t), bool(t), int(t)
-    aten.is_nonzero.default,
-    aten.equal.default,
-    aten.nonzero.default,
-    aten.argwhere.default,
-    aten.masked_select.default,
-    aten._unique.default,
-    aten._unique2.default,
-    aten.unique_dim.default,
-    aten.unique_consecutive.default,
-    aten.bincount.default,  # its length is max + 1, read on the host
-    aten.histogram.bin_ct,
-}
-# repeat_interleave without output_size reads the total on the host
-_REPEAT = {aten.repeat_interleave.Tensor, aten.repeat_interleave.self_Tensor}
-# boolean-mask indexing: the mask is turned into indices with nonzero
-_INDEXING = {aten.index.Tensor, aten.index_put.default, aten.index_put_.default, aten._index_put_impl_.default}
-_COPIES = {aten._to_copy.default, aten.copy_.default}
 
 # Operators that only relabel memory (no kernel runs), left out of ops_per_step.
 METADATA_OPS = {
@@ -67,53 +44,8 @@ METADATA_OPS = {
     "select", "as_strided", "alias", "detach", "unbind", "split", "split_with_sizes", "chunk", "narrow", "view_as",
     "_reshape_alias", "lift_fresh", "empty_like", "empty", "empty_strided", "_has_compatible_shallow_copy_type",
     "is_same_size", "unfold", "diagonal", "movedim", "expand_as", "real", "resolve_conj", "resolve_neg",
-    "_to_copy_noop", "contiguous_noop", "sym_size", "sym_stride", "sym_numel", "dim", "size", "stride",
+    "sym_size", "sym_stride", "sym_numel", "dim", "size", "stride",
 }
-
-
-def _on_device(t) -> bool:
-    return isinstance(t, torch.Tensor) and t.device.type != "cpu"
-
-
-def is_sync(func, args, kwargs) -> bool:
-    """Whether operator `func` on these arguments makes the host wait for a CUDA device (see SYNC_OPS)."""
-    tensors = [a for a in (*args, *kwargs.values()) if isinstance(a, torch.Tensor)]
-    lists = [t for a in (*args, *kwargs.values()) if isinstance(a, (list, tuple)) for t in a
-             if isinstance(t, torch.Tensor)]
-    on_device = any(_on_device(t) for t in (*tensors, *lists))
-    if func in _COPIES:
-        if func is aten._to_copy.default:
-            src, dst = args[0].device, torch.device(kwargs.get("device") or args[0].device)
-        else:
-            dst, src = args[0].device, args[1].device
-        crosses = (src.type == "cpu") != (dst.type == "cpu")
-        if not crosses or (func is aten.copy_.default and args[1].dim() == 0 and src.type == "cpu"):
-            return False  # a 0-dim host scalar goes in the kernel's arguments
-        return not (kwargs.get("non_blocking") or (len(args) > 2 and args[2]))
-    if not on_device:
-        return False
-    if func in SYNC_OPS:
-        return True
-    if func in _REPEAT:
-        return kwargs.get("output_size") is None
-    if func in _INDEXING:
-        indices = args[1] if len(args) > 1 else kwargs.get("indices", ())
-        return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (indices or ()))
-    return False
-
-
-class SyncCounter(TorchDispatchMode):
-    """Counts, by operator, the operators dispatched inside it that synchronise (`is_sync`)."""
-
-    def __init__(self):
-        super().__init__()
-        self.syncs: Counter = Counter()
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        kwargs = kwargs or {}
-        if is_sync(func, args, kwargs):
-            self.syncs[str(func)] += 1
-        return func(*args, **kwargs)
 
 
 # --- the tiny workspace ---------------------------------------------------------------------------
@@ -141,6 +73,7 @@ def _cli(*args: str) -> None:
 
 def build_workspaces(root: Path, kinds: list[str]) -> dict[str, Path]:
     """Tiny workspaces: one per expert family needed, the DVGO one with its mixtures finetuned. -> family: folder."""
+    root.mkdir(parents=True, exist_ok=True)
     recipe = root / "profile.yaml"
     recipe.write_text(yaml.safe_dump(RECIPE, sort_keys=False))
     families = {k for k in kinds if k in FAMILY_RES} | ({"dvgo"} if set(kinds) - set(FAMILY_RES) else set())
@@ -162,8 +95,9 @@ def build_workspaces(root: Path, kinds: list[str]) -> dict[str, Path]:
 
 
 # --- training steps and render chunks --------------------------------------------------------------
-def training_setup(kind: str, ws: Path, device: str):
-    """The task, its rays and its schedule, built as the stage that trains `kind` builds them."""
+def training_setup(kind: str, ws: Path, device: str, compile: str = "off"):
+    """The task, its rays and its schedule, built as the stage that trains `kind` builds them, with train.compile
+    set to `compile`."""
     from boostnerf_cli import models
     from boostnerf_cli.recipe import recipe_from_dict
     from boostnerf_cli.stages import finetune as ft
@@ -180,7 +114,7 @@ def training_setup(kind: str, ws: Path, device: str):
                        key=lambda n: int(n.rsplit("-", 1)[1]))
         model, occ, meta = models.load_expert(w.expert_path(names[-1]), device)
         model.train()
-        tcfg = rec.pretrain.train if kind != "baseline" else rec.moe.train
+        tcfg = replace(rec.pretrain.train if kind != "baseline" else rec.moe.train, compile=compile)
         settings = scene.render_settings(meta["step"], model.bbox, tcfg.color_threshold)
         occ = occ.to(device) if occ is not None else None
         task = FieldTask(model, settings, tcfg, skip=occ, base_mask=occ)
@@ -195,7 +129,7 @@ def training_setup(kind: str, ws: Path, device: str):
         topk = None if kind == "ens" else int(kind[3:])
         cfg, _ = ft.routing(name, topk, rec.moe, mix.cfg, mix.gate.cfg.kind)
         mix.configure(**{f: getattr(cfg, f) for f in cfg.__dataclass_fields__})
-        tcfg = rec.moe.train
+        tcfg = replace(rec.moe.train, compile=compile)
         settings = scene.render_settings(mix.cfg.step, mix.bbox, tcfg.color_threshold)
         task = MixtureTask(mix, settings, tcfg, rec.moe)
         iters = rec.moe.iters
@@ -224,6 +158,7 @@ class Stepper:
 def render_setup(kind: str, ws: Path, device: str):
     """The model of `kind` as eval loads it, and one chunk of a held-out view's rays. -> a function rendering it."""
     from boostnerf_cli.models import ALL_SKIPS, load_model
+    from boostnerf_cli.render.packing import packer_for
     from boostnerf_cli.render.rays import image_rays
     from boostnerf_cli.render.renderer import render_rays
     from boostnerf_cli.stages.common import workspace_scene
@@ -244,9 +179,11 @@ def render_setup(kind: str, ws: Path, device: str):
     reps = -(-settings.chunk // o.shape[0])
     o, d = o.repeat(reps, 1)[: settings.chunk].to(device), d.repeat(reps, 1)[: settings.chunk].to(device)
 
+    packer = packer_for(device)  # what render_image packs with on this device
+
     @torch.no_grad()
     def chunk() -> None:
-        render_rays(loaded.field, o, d, settings, skip)
+        render_rays(loaded.field, o, d, settings, skip, packer=packer)
 
     return chunk
 
@@ -257,34 +194,19 @@ def _sync(device: str) -> None:
 
 
 def count_syncs(make, device: str, steps: int, warmup: int) -> Counter:
-    """Operators that synchronise, over `steps` calls after `warmup` (on the simulated GPU when `device` is the CPU)."""
-    if device == "cpu":
-        sys.path.insert(0, str(ROOT / "tests"))
-        from simdevice import GPU, SimTensor, simulated_gpu
+    """Operators that synchronise, over `steps` calls after `warmup` (on the simulated GPU when `device` is the CPU;
+    tests/simdevice.py's `SyncCounter`)."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from simdevice import GPU, SyncCounter, simulated_gpu
 
-        context, count_device = simulated_gpu, GPU.type
-    else:
-        context, count_device = nullcontext, device
-    counter = SyncCounter()
+    context, count_device = (simulated_gpu, GPU.type) if device == "cpu" else (nullcontext, device)
     with context():
         fn = make(count_device)
         for _ in range(warmup):
             fn()
-        if device == "cpu":  # a device tensor's tolist copies it to the host, past the dispatcher
-            tolist = SimTensor.tolist
-
-            def counted_tolist(self):
-                counter.syncs["Tensor.tolist"] += 1
-                return tolist(self)
-
-            SimTensor.tolist = counted_tolist
-        try:
-            with counter:
-                for _ in range(steps):
-                    fn()
-        finally:
-            if device == "cpu":
-                SimTensor.tolist = tolist
+        with SyncCounter() as counter:
+            for _ in range(steps):
+                fn()
     return counter.syncs
 
 
@@ -334,18 +256,27 @@ def time_steps(make, device: str, steps: int, warmup: int) -> float:
     return 1000 * statistics.median(times)
 
 
-def measure(make, device: str, steps: int, warmup: int) -> dict:
-    """`make(device)` -> a function running one step (or chunk): its syncs, kernels and median wall time."""
-    syncs = count_syncs(make, device, steps, warmup)
-    ops = count_ops(make, device, steps, warmup)
-    ms = time_steps(make, device, steps, warmup)
+def measure(make, device: str, steps: int, warmup: int, compile: str = "off") -> dict:
+    """`make(device, compile)` -> a function running one step (or chunk): its syncs (counted on the eager step: the
+    compiler fuses operators, it does not remove waits), kernels and median wall time, and how many graphs the
+    compiler made for it (more than one per setup: it recompiled)."""
+    import torch._dynamo.utils as dynamo_utils
+
+    syncs = count_syncs(lambda dev: make(dev, "off"), device, steps, warmup)
+    graphs = dynamo_utils.counters["stats"]["unique_graphs"]
+    ops = count_ops(lambda dev: make(dev, compile), device, steps, warmup)
+    ms = time_steps(lambda dev: make(dev, compile), device, steps, warmup)
     return {"ops_per_step": round(sum(ops.values()) / steps, 1), "syncs_per_step": round(sum(syncs.values()) / steps, 2),
-            "ms_per_step": round(ms, 2), "syncs": {k: round(v / steps, 2) for k, v in syncs.most_common()},
+            "ms_per_step": round(ms, 2), "compile": compile,
+            "graphs": dynamo_utils.counters["stats"]["unique_graphs"] - graphs,
+            "syncs": {k: round(v / steps, 2) for k, v in syncs.most_common()},
             "top_ops": {k: round(v / steps, 1) for k, v in ops.most_common(8)}}
 
 
-def profile(kinds: list[str], device: str, steps: int, warmup: int, workdir: Path | None = None) -> list[dict]:
-    """Measure every kind; `workdir`: where the tiny workspaces are built (reused when already there)."""
+def profile(kinds: list[str], device: str, steps: int, warmup: int, workdir: Path | None = None,
+            compile: str = "off") -> list[dict]:
+    """Measure every kind; `workdir`: where the tiny workspaces are built (reused when already there); `compile`:
+    train.compile for the training steps."""
     with tempfile.TemporaryDirectory() as tmp:
         root = workdir or Path(tmp)
         spaces = build_workspaces(root, kinds)
@@ -353,15 +284,15 @@ def profile(kinds: list[str], device: str, steps: int, warmup: int, workdir: Pat
         for kind in kinds:
             ws = spaces["dvgo"] if kind not in FAMILY_RES else spaces[kind]
 
-            def train_step(dev: str, kind=kind, ws=ws):
+            def train_step(dev: str, mode: str, kind=kind, ws=ws):
                 torch.manual_seed(0)
-                return Stepper(*training_setup(kind, ws, dev))
+                return Stepper(*training_setup(kind, ws, dev, mode))
 
-            def render_chunk(dev: str, kind=kind, ws=ws):
+            def render_chunk(dev: str, mode: str, kind=kind, ws=ws):
                 return render_setup(kind, ws, dev)
 
             row = {"kind": kind, "device": device, "torch": torch.__version__, "threads": torch.get_num_threads()}
-            row["train"] = measure(train_step, device, steps, warmup)
+            row["train"] = measure(train_step, device, steps, warmup, compile)
             row["render"] = measure(render_chunk, device, steps, warmup)
             rows.append(row)
             print(json.dumps(row), flush=True)
@@ -395,6 +326,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--kinds", default=",".join(TRAIN_KINDS), help="comma-separated, of " + ",".join(TRAIN_KINDS))
     parser.add_argument("--json", type=Path, help="also write the rows to this JSON file")
     parser.add_argument("--table", type=Path, help="also write them as a docs/data generic table (scripts/tables.py)")
+    parser.add_argument("--compile", default="off", choices=("off", "on", "auto"),
+                        help="train.compile for the training steps (default off)")
     parser.add_argument("--workdir", type=Path, help="build the tiny workspaces here and reuse them (default: a "
                         "temporary folder)")
     args = parser.parse_args(argv)
@@ -404,7 +337,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"argument --kinds: unknown {', '.join(unknown)}: give some of {', '.join(TRAIN_KINDS)}")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         parser.error("argument --device: torch sees no CUDA GPU here")
-    rows = profile(kinds, args.device, args.steps, args.warmup, args.workdir)
+    rows = profile(kinds, args.device, args.steps, args.warmup, args.workdir, args.compile)
     print(table(rows))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1) + "\n")

@@ -120,6 +120,7 @@ class ToyExpert(DVGOExpert):
 '''
 
 
+@pytest.mark.slow
 def test_a_fourth_family_is_one_file_and_one_registry_entry(tmp_path, tiny_scene):
     """docs/design.md's recipe for a new family, followed on a copy of the package: the module, its class added to
     the FAMILIES line, nothing else. Its recipe section, --model, pretrain, build-moe and finetune then work."""
@@ -172,7 +173,7 @@ def test_prune_drops_unused_rows_of_every_family_and_refuses_a_model_with_nothin
         assert report["params_after"] <= report["params_before"]  # these tiny tables: nearly every row is read
     monkeypatch.setattr(prune, "grid_tables", lambda field: {})  # a model with no such table (a future family)
     with pytest.raises(BoostNerfError, match="tensorf-14 has no grid, hash table or VM factor to prune"):
-        prune.run(Workspace(ws), "tensorf-14", "train", "cpu", None, False, print)
+        prune.run(Workspace(ws), "tensorf-14", "train", "cpu", None, False)
     assert not list(ws.glob("moe/tensorf-14-pruned*"))
 
 

@@ -4,8 +4,7 @@
 checkpoints. With gradients its forward is one autograd node (`_ReluMLP`) whose backward computes,
 per layer i with input a_i and output gradient g_i, dW_i = g_i^T a_i, db_i = sum g_i and
 da_i = g_i W_i (masked by the ReLU of layer i-1), taking each matrix product in the orientation that is
-faster for the layer's shape (docs/benchmarks.md, "What does the mixture cost per step and per image?": thin
-layers' backward); equal to
+faster for the layer's shape (docs/benchmarks.md, the gate's matrix products: thin layers' backward); equal to
 `nn.Sequential`'s gradients (tests/test_mlp.py). Without gradients, and under autocast, it is plain
 `nn.Sequential`.
 """
@@ -72,6 +71,6 @@ class MLP(nn.Sequential):
         return [m for m in self if isinstance(m, nn.Linear)]
 
     def forward(self, x: Tensor) -> Tensor:  # type: ignore[override]
-        if not torch.is_grad_enabled() or torch.is_autocast_enabled(x.device.type):
-            return super().forward(x)  # autocast chooses each layer's precision itself
+        if not torch.is_grad_enabled() or torch.is_autocast_enabled(x.device.type) or torch.compiler.is_compiling():
+            return super().forward(x)  # autocast chooses each layer's precision itself; the compiler fuses its own
         return _ReluMLP.apply(x, *[p for lin in self.linears for p in (lin.weight, lin.bias)])

@@ -29,7 +29,7 @@ from boostnerf_cli.fields.base import ExpertModule
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.hashgrid import MAX_COORD, HashEncoding
 from boostnerf_cli.fields.mlp import MLP
-from boostnerf_cli.fields.warmstart import fit_batch, fit_density
+from boostnerf_cli.fields.warmstart import fit_density
 from boostnerf_cli.limits import (
     GRID_RES,
     MLP_LAYERS,
@@ -111,7 +111,7 @@ class NGPExpert(ExpertModule):
         h = self._hidden(xyz)
         return self._sigma(xyz, h[:, 0]), self._rgb(h[:, 1:], dirs)
 
-    def batch_view(self) -> "NGPBatch":
+    def batch_view(self, packer=None) -> "NGPBatch":
         """A per-batch view for the renderer: each sample is encoded once for both passes."""
         return NGPBatch(self)
 
@@ -125,8 +125,7 @@ class NGPExpert(ExpertModule):
     def init_density(self, density) -> None:
         """Fit the encoding and the density MLP to `density(xyz) -> sigma` (see fields/warmstart.py)."""
         params = [self.encoding.table] + list(self.sigma_net.parameters())
-        fit_density(self.raw_density, params, density, self.bbox, self.unit, self.shift, steps=self.cfg.fit_steps,
-                    batch=fit_batch(self.shape))
+        fit_density(self, params, density)
 
     def resize_to(self, shape: tuple[int, int, int]) -> None:
         if tuple(shape) != tuple(self.shape):
@@ -156,12 +155,12 @@ class NGPBatch:
         self.expert = expert
         self._hidden: Tensor | None = None
 
-    def density(self, xyz: Tensor) -> Tensor:
+    def density(self, xyz: Tensor, live: Tensor | None = None) -> Tensor:
         h = self.expert._hidden(xyz)
         self._hidden = h
         return self.expert._sigma(xyz, h[:, 0])
 
-    def color_rows(self, rows: Tensor, dirs: Tensor) -> Tensor:
+    def color_rows(self, rows: Tensor, dirs: Tensor, live: Tensor | None = None) -> Tensor:
         if self._hidden is None:
             raise RuntimeError("color_rows needs a density pass first")
         return self.expert._rgb(self._hidden[rows, 1:], dirs)

@@ -24,7 +24,7 @@ from boostnerf_cli.fields import grid as G
 from boostnerf_cli.fields.base import ExpertModule
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.vm import VMGrid
-from boostnerf_cli.fields.warmstart import fit_batch, fit_density
+from boostnerf_cli.fields.warmstart import fit_density
 from boostnerf_cli.limits import (
     GRID_RES,
     LOSS_WEIGHT,
@@ -112,9 +112,7 @@ class TensoRFExpert(ExpertModule):
 
     def init_density(self, density) -> None:
         """Fit the density planes and lines to `density(xyz) -> sigma` (see fields/warmstart.py)."""
-        fit_density(self.raw_density, list(self.density_vm.parameters()), density, self.bbox, self.unit,
-                    self.shift, steps=self.cfg.fit_steps,
-                    batch=fit_batch(self.shape))
+        fit_density(self, list(self.density_vm.parameters()), density)
 
     def resize_to(self, shape: tuple[int, int, int]) -> None:
         self.density_vm.resize_to(shape)

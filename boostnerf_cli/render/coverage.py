@@ -20,27 +20,29 @@ good. `cover_foreground` makes the mask and the box conservative by construction
 4. the mask grows to hold every point's cell, and the box is drawn around the points, each widened by half
    its pixel's footprint at its depth (where in the pixel the surface lies is unknown to that half), so every
    foreground ray crosses kept space inside the box (`missed_after` counts the rays with no sample in the
-   box at all). Widening by a coarse cell instead gives 0.04-0.07 more on each side, which on the thin
-   scene costs 0.3 dB against NSVF's bbox.txt and on lego makes the box 1.25x the volume.
+   box at all). Half a pixel, not a coarse cell: a coarse cell adds 0.04-0.07 on each side, which costs the
+   thin scene 0.3 dB against NSVF's bbox.txt and makes lego's box 1.25x the volume.
 
 Nothing is removed from the mask: it only grows, so what the coarse stage kept stays kept. (Carving the
-mask with the views' visual hull at each cell's centre was tried: it cut silhouette cells of lego, -0.47 dB
-for DVGO-80.)
+mask with the views' visual hull at each cell's centre cuts silhouette cells of lego: -0.47 dB for DVGO-80;
+docs/results.md, thin structure.)
 
 The box, though, holds only what the views show. `hull_cells` keeps the occupied cells inside the views'
 visual hull (`visual_hull` with the footprint test, which keeps a cell as soon as any foreground pixel lies
 in its footprint in every view that sees it, and seen by at least a quarter of the views), so a floater in
 front of the cameras, which other views see against the background, does not count as surface.
 Space that no view sees (under a floor, inside a solid) is inside the hull, but no ray's surface starts
-there, so it does not stretch the box either (a box drawn around every occupied cell in the hull reaches 0.75
-under the thin scene's floor). Without a known background the
-hull says nothing and every pixel is foreground: there a ray is covered when it crosses an occupied cell,
-and the box is drawn around the mask's cells (docs/results.md, "Does skipping keep thin structures?").
+there, so it does not stretch the box either (a box around every occupied cell in the hull reaches 0.75
+under the thin scene's floor). Without a known background the hull says nothing and every pixel is
+foreground: there a ray is covered when it crosses an occupied cell, and the box is drawn around the mask's
+cells (docs/results.md, thin structure).
 """
 
 from __future__ import annotations
 
+import functools
 import math
+from dataclasses import dataclass
 from typing import Callable
 
 import torch
@@ -54,8 +56,8 @@ from boostnerf_cli.render.volrend import render_weights
 FOREGROUND_TOL = 0.03  # colour difference (max over channels, [0, 1]) from the background: foreground
 # The same for lossy images (JPEG): its ringing and chroma bleed around a silhouette on white reach 0.05-0.1 (a
 # 64 px procedural scene as JPEG q85, 4:2:0: 1,708 background pixels past 0.03, 24 past 0.1, of 8,936 foreground),
-# and each such ray, beside the object, drew a "surface" on the box's faces: a misleading data.bbox warning, and a
-# box never shrunk. The lossless tolerance misses none of them at 0.1 either.
+# and each such ray, beside the object, would draw a "surface" on the box's faces: a misleading data.bbox warning,
+# and a box never shrunk. The lossless tolerance misses none of them at 0.1 either.
 LOSSY_FOREGROUND_TOL = 0.1
 SURFACE_OPACITY = 0.1  # a ray's visible surface starts where the opacity gathered along it reaches this
 PARTIAL_SHARE = 0.5  # ... or, on a ray that gathers less than twice that in all (through a pixel the surface
@@ -142,13 +144,20 @@ def visual_hull(occ: OccupancyGrid, poses: Tensor, intrinsics: Tensor, masks: Te
     return (keep & (seen_by >= min_views)).reshape(occ.shape)
 
 
+def known_background(background: tuple[float, float, float] | None,
+                     ndc: NDC | None) -> tuple[float, float, float] | None:
+    """The colour foreground pixels are told from: a scene's background, but none in a forward-facing capture (NDC),
+    whose white walls and sky are content."""
+    return background if ndc is None else None
+
+
 @torch.no_grad()
 def hull_cells(occ: OccupancyGrid, images: Tensor, poses: Tensor, intrinsics: Tensor,
-               background: tuple[float, float, float] | None, ndc: NDC | None = None,
-               tol: float = FOREGROUND_TOL, alpha: Tensor | None = None) -> OccupancyGrid:
+               background: tuple[float, float, float] | None, tol: float = FOREGROUND_TOL,
+               alpha: Tensor | None = None) -> OccupancyGrid:
     """The occupied cells of `occ` inside the training views' visual hull (module docstring), for the box to
-    be drawn around. Without a known background, or for NDC scenes, the hull says nothing: `occ` itself."""
-    if background is None or ndc is not None:
+    be drawn around. Without a known background (`known_background`) the hull says nothing: `occ` itself."""
+    if background is None:
         return occ
     masks = foreground_masks(images, background, tol, alpha).to(occ.occupied.device)
     hull = visual_hull(occ, poses, intrinsics, masks, footprint=True, min_views=max(2, math.ceil(len(images) / 4)))
@@ -179,86 +188,135 @@ def cover_foreground(
     scene is the whole box anyway).
 
     -> (the grown grid, the box (2, 3): the points' bounds, each widened by half its pixel's footprint, clipped to
-        the box of `occ` (the grown grid's occupied box without points), {"foreground_rays", "missed_before": rays on which the
-        occupied cells never reach `SURFACE_OPACITY` (cross none, without a known background), "missed_after":
-        rays that get no point, "cells_added", "edge_rays": rays whose point lies within a cell of the box's faces, where
-        the coarse model draws content that reaches past the box; 0 without a known background}).
+        the box of `occ` (the grown grid's occupied box without points), {"foreground_rays", "missed_before": rays
+        on which the occupied cells never reach `SURFACE_OPACITY` (cross none, without a known background),
+        "missed_after": rays that get no point, "cells_added", "edge_rays": rays whose point lies within a cell of
+        the box's faces, where the coarse model draws content that reaches past the box; 0 without a known
+        background}).
     """
     n, h, w = images.shape[:3]
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
-    known = background is not None and ndc is None
-    # a forward-facing capture (NDC) has no background to tell from: a white wall or sky is foreground too
-    masks = foreground_masks(images, background if known else None, tol, alpha).to(device)
-    hulls = None  # (tight, footprint) visual hulls, made when a first ray needs them (on most scenes none does)
-    occupied = occ.occupied.clone()
-    kept = occ.occupied.reshape(-1)
-    lo = torch.full((3,), math.inf, device=device)
-    hi = torch.full((3,), -math.inf, device=device)
-    total = missed_before = missed_after = edge = 0
+    background = known_background(background, ndc)
+    known = background is not None
+    masks = foreground_masks(images, background, tol, alpha).to(device)
+    # the (tight, footprint) visual hulls, made when a first ray needs them (on most scenes none does)
+    hulls = functools.cache(lambda: (
+        visual_hull(occ, poses, intrinsics, masks, footprint=False, min_views=max(2, math.ceil(n / 4))),
+        visual_hull(occ, poses, intrinsics, masks)) if known else ())
+    cover = _Covering(occ, known)
     focal = intrinsics[:, :2].amin(-1).tolist()  # pixels per unit of depth, the smaller of fx and fy
-    cell = (occ.bbox[1] - occ.bbox[0]) / torch.tensor(occ.shape, device=device)
     for i in range(n):
         o, d = _fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i])
-        total += o.shape[0]
+        cover.total += o.shape[0]
         for j in range(0, o.shape[0], chunk):
-            oc = o[j : j + chunk]
-            xyz, valid, step = ray_cells(oc, d[j : j + chunk], occ, near, far)
-            idx = occ.cell_index(xyz)  # (R, S) flat cell index, -1 outside
-            ok = valid & (idx >= 0)
-            inside = ok.any(-1)
-            missed_after += int((~inside).sum())  # a foreground ray that misses the box: nothing can hold it
-            on = ok.clone()
-            on[ok] = kept[idx[ok]]
-            if known:  # the surface: the first sample where the opacity gathered in occupied cells reaches SURFACE_OPACITY
-                sigma = torch.zeros(valid.shape, device=xyz.device)
-                sigma[on] = density(xyz[on])
-                weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
-                gathered = weights.sum(-1, keepdim=True)
-                reach = (weights.cumsum(-1) >= (PARTIAL_SHARE * gathered).clamp(max=SURFACE_OPACITY)) & (
-                    gathered >= SURFACE_OPACITY)
-                choice = torch.where(reach.any(-1) & inside, reach.float().argmax(-1), -1)
-                miss = (choice < 0) & inside
+            s = _sample_chunk(o[j : j + chunk], d[j : j + chunk], occ, near, far)
+            cover.missed_after += int((~s.inside).sum())  # a foreground ray that misses the box: nothing can hold it
+            if known:
+                choice = _surface_starts(s, density)
+                miss = (choice < 0) & s.inside
             else:  # every pixel is foreground: a ray is covered when it crosses an occupied cell
-                choice = torch.full(inside.shape, -1, dtype=torch.long, device=device)
-                miss = ~on.any(-1) & inside
+                choice = torch.full(s.inside.shape, -1, dtype=torch.long, device=device)
+                miss = ~s.on.any(-1) & s.inside
             if bool(miss.any()):
-                missed_before += int(miss.sum())
-                # where the coarse model puts most of the ray's weight, among the cells of the tight hull if any,
-                # else of the footprint hull, else among all
+                cover.missed_before += int(miss.sum())
                 rows = miss.nonzero()[:, 0]
-                sel = ok[rows]
-                cells = idx[rows][sel]
-                sigma = torch.zeros(sel.shape, device=xyz.device)
-                sigma[sel] = density(xyz[rows][sel])
-                weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
-                if hulls is None:
-                    hulls = (visual_hull(occ, poses, intrinsics, masks, footprint=False, min_views=max(2, math.ceil(n / 4))),
-                             visual_hull(occ, poses, intrinsics, masks)) if known else ()
-                pick = torch.full(rows.shape, -1, dtype=torch.long, device=device)
-                for table in (*hulls, None):
-                    allowed = sel.clone()
-                    if table is not None:
-                        allowed[sel] = table.reshape(-1)[cells]
-                    todo = (pick < 0) & allowed.any(-1)
-                    score = torch.where(allowed, weights + 1e-12, torch.full_like(weights, -1.0))
-                    pick = torch.where(todo, score.argmax(-1), pick)
-                choice[rows] = pick  # a ray with a sample in the box always gets one (the last table allows them all)
-            rows = (choice >= 0).nonzero()[:, 0]
-            if rows.numel():
-                if known:  # each point widened by half its pixel's footprint: where in the pixel the surface lies
-                    pts = xyz[rows, choice[rows]]
-                    # a surface within a cell of the box's faces: what lies past the box is drawn there
-                    edge += int(((pts - occ.bbox[0] < cell) | (occ.bbox[1] - pts < cell)).any(-1).sum())
-                    half = (pts - oc[rows]).norm(dim=-1, keepdim=True) * (0.5 / focal[i])
-                    lo, hi = torch.minimum(lo, (pts - half).amin(0)), torch.maximum(hi, (pts + half).amax(0))
-                occupied.view(-1)[idx[rows, choice[rows]]] = True  # the point's own cell: the ray crosses kept space
-    stats = {"foreground_rays": total, "missed_before": missed_before, "missed_after": missed_after,
-             "cells_added": int((occupied & ~occ.occupied).sum()), "edge_rays": edge}
-    grid = OccupancyGrid(occupied, occ.bbox)
-    if not known or not bool(torch.isfinite(lo).all()):
-        return grid, grid.occupied_bbox(margin_cells=1), stats
-    box = torch.stack([torch.maximum(lo, occ.bbox[0]), torch.minimum(hi, occ.bbox[1])])
-    return grid, box, stats
+                choice[rows] = _heaviest_samples(s, rows, density, hulls())
+            cover.add(s, choice, focal[i])
+    return cover.result()
+
+
+@dataclass(frozen=True)
+class _Samples:
+    """A chunk of foreground rays, sampled a quarter cell apart inside the occupancy grid's box."""
+
+    origins: Tensor  # (R, 3)
+    xyz: Tensor  # (R, S, 3)
+    idx: Tensor  # (R, S) flat cell index, -1 outside the box
+    ok: Tensor  # (R, S) bool: a valid sample inside the box
+    on: Tensor  # (R, S) bool: ... in an occupied cell
+    inside: Tensor  # (R,) bool: the ray has a sample inside the box
+    step: float
+
+
+def _sample_chunk(origins: Tensor, dirs: Tensor, occ: OccupancyGrid, near: float, far: float) -> _Samples:
+    xyz, valid, step = ray_cells(origins, dirs, occ, near, far)
+    idx = occ.cell_index(xyz)
+    ok = valid & (idx >= 0)
+    on = ok.clone()
+    on[ok] = occ.occupied.reshape(-1)[idx[ok]]
+    return _Samples(origins, xyz, idx, ok, on, ok.any(-1), step)
+
+
+def _surface_starts(s: _Samples, density: Callable[[Tensor], Tensor]) -> Tensor:
+    """(R,) each ray's surface sample (module docstring, step 2): the first at which the opacity gathered in occupied
+    cells reaches `SURFACE_OPACITY`, or `PARTIAL_SHARE` of all the ray gathers when that is under twice as much;
+    -1 on a ray that never reaches `SURFACE_OPACITY` or misses the box."""
+    sigma = torch.zeros(s.ok.shape, device=s.xyz.device)
+    sigma[s.on] = density(s.xyz[s.on])
+    weights, _, _ = render_weights(sigma, torch.full_like(sigma, s.step))
+    gathered = weights.sum(-1, keepdim=True)
+    reach = (weights.cumsum(-1) >= (PARTIAL_SHARE * gathered).clamp(max=SURFACE_OPACITY)) & (
+        gathered >= SURFACE_OPACITY)
+    return torch.where(reach.any(-1) & s.inside, reach.float().argmax(-1), -1)
+
+
+def _heaviest_samples(s: _Samples, rows: Tensor, density: Callable[[Tensor], Tensor],
+                      hulls: tuple[Tensor, ...]) -> Tensor:
+    """(len(rows),) for the rays `rows` (each with a sample in the box) the sample where the coarse model puts most of
+    the ray's rendering weight (module docstring, step 3): among the ray's cells in the first of `hulls` that holds
+    any, else among all its cells."""
+    sel = s.ok[rows]
+    cells = s.idx[rows][sel]
+    sigma = torch.zeros(sel.shape, device=s.xyz.device)
+    sigma[sel] = density(s.xyz[rows][sel])
+    weights, _, _ = render_weights(sigma, torch.full_like(sigma, s.step))
+    pick = torch.full(rows.shape, -1, dtype=torch.long, device=sel.device)
+    for table in (*hulls, None):  # the last allows every cell: a ray with a sample in the box always gets one
+        allowed = sel.clone()
+        if table is not None:
+            allowed[sel] = table.reshape(-1)[cells]
+        todo = (pick < 0) & allowed.any(-1)
+        score = torch.where(allowed, weights + 1e-12, torch.full_like(weights, -1.0))
+        pick = torch.where(todo, score.argmax(-1), pick)
+    return pick
+
+
+class _Covering:
+    """What `cover_foreground` gathers chunk by chunk: the grown mask, the points' widened bounds, the counts."""
+
+    def __init__(self, occ: OccupancyGrid, known: bool):
+        device = occ.occupied.device
+        self.occ, self.known = occ, known
+        self.occupied = occ.occupied.clone()
+        self.lo = torch.full((3,), math.inf, device=device)
+        self.hi = torch.full((3,), -math.inf, device=device)
+        self.cell = (occ.bbox[1] - occ.bbox[0]) / torch.tensor(occ.shape, device=device)
+        self.total = self.missed_before = self.missed_after = self.edge = 0
+
+    def add(self, s: _Samples, choice: Tensor, focal: float) -> None:
+        """Grow the mask by each chosen sample's cell (the ray crosses kept space) and, with a known background, the
+        bounds by the sample widened by half its pixel's footprint (where in the pixel the surface lies)."""
+        rows = (choice >= 0).nonzero()[:, 0]
+        if not rows.numel():
+            return
+        if self.known:
+            pts = s.xyz[rows, choice[rows]]
+            # a surface within a cell of the box's faces: what lies past the box is drawn there
+            bbox = self.occ.bbox
+            self.edge += int(((pts - bbox[0] < self.cell) | (bbox[1] - pts < self.cell)).any(-1).sum())
+            half = (pts - s.origins[rows]).norm(dim=-1, keepdim=True) * (0.5 / focal)
+            self.lo = torch.minimum(self.lo, (pts - half).amin(0))
+            self.hi = torch.maximum(self.hi, (pts + half).amax(0))
+        self.occupied.view(-1)[s.idx[rows, choice[rows]]] = True
+
+    def result(self) -> tuple[OccupancyGrid, Tensor, dict]:
+        stats = {"foreground_rays": self.total, "missed_before": self.missed_before, "missed_after": self.missed_after,
+                 "cells_added": int((self.occupied & ~self.occ.occupied).sum()), "edge_rays": self.edge}
+        grid = OccupancyGrid(self.occupied, self.occ.bbox)
+        if not self.known or not bool(torch.isfinite(self.lo).all()):
+            return grid, grid.occupied_bbox(margin_cells=1), stats
+        box = torch.stack([torch.maximum(self.lo, self.occ.bbox[0]), torch.minimum(self.hi, self.occ.bbox[1])])
+        return grid, box, stats
 
 
 def _fg_rays(pose: Tensor, k: Tensor, h: int, w: int, ndc: NDC | None, mask: Tensor) -> tuple[Tensor, Tensor]:

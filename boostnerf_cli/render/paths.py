@@ -100,15 +100,19 @@ def mean_pose(poses: Tensor) -> Tensor:
     return pose.to(poses.dtype)
 
 
-def spiral_path(poses: Tensor, bbox: Tensor, near: float, far: float, n_frames: int, rotations: float = 2.0,
-                radius_percentile: float = 90.0, focus: float | None = None) -> Tensor:
+SPIRAL_TURNS = 2.0  # turns of the spiral in the mean camera's x-y plane, per pass forward and back along z
+SPIRAL_PERCENTILE = 90.0  # the spiral's radii: this percentile of the cameras' offsets from the mean position
+
+
+def spiral_path(poses: Tensor, bbox: Tensor, near: float, far: float, n_frames: int,
+                focus: float | None = None) -> Tensor:
     """`n_frames` poses (n_frames, 4, 4) on a spiral around the mean pose, looking at a focus point.
 
     Focus depth: the distance of the scene box's centre along the mean viewing axis (the middle of
-    [near, far] when the box centre is not in front of the cameras), or `focus` when given. Radii along the mean camera's
-    x, y, z: the `radius_percentile` of the training cameras' offsets from the mean position (a
+    [near, far] when the box centre is not in front of the cameras), or `focus` when given. Radii along the mean
+    camera's x, y, z: the `SPIRAL_PERCENTILE` of the training cameras' offsets from the mean position (a
     twentieth of the focus depth where the cameras do not move along an axis). The path turns
-    `rotations` times in x-y while moving once forward and back along z.
+    `SPIRAL_TURNS` times in x-y while moving once forward and back along z.
     """
     if n_frames < 1:
         raise BoostNerfError("--frames must be at least 1")
@@ -121,14 +125,14 @@ def spiral_path(poses: Tensor, bbox: Tensor, near: float, far: float, n_frames: 
     if not near < focus < far:
         focus = 0.5 * (near + far)
     offsets = (p[:, :3, 3] - centre) @ rot  # in the mean camera's frame
-    radii = torch.quantile(offsets.abs(), radius_percentile / 100.0, dim=0)
+    radii = torch.quantile(offsets.abs(), SPIRAL_PERCENTILE / 100.0, dim=0)
     radii = torch.where(radii > 1e-6 * max(focus, 1e-6), radii, torch.full_like(radii, focus / 20.0))
     target = centre + focus * forward
     up = rot[:, 1]
     out = []
     for i in range(n_frames):
-        t = 2.0 * math.pi * rotations * i / n_frames
-        local = torch.tensor([math.cos(t), -math.sin(t), -math.sin(t / rotations)], dtype=torch.float64) * radii
+        t = 2.0 * math.pi * SPIRAL_TURNS * i / n_frames
+        local = torch.tensor([math.cos(t), -math.sin(t), -math.sin(t / SPIRAL_TURNS)], dtype=torch.float64) * radii
         out.append(look_at(centre + rot @ local, target, up))
     return torch.stack(out).to(poses.dtype)
 
@@ -141,7 +145,7 @@ def camera_path(kind: str, poses: Tensor, bbox: Tensor, near: float, far: float,
     """Poses along path `kind`. With `ndc` (a forward-facing scene), `bbox`, `near` and `far` are in NDC while the
     poses are in world units: the spiral's focus is the world depth of the box centre's NDC depth (z = 1 - 2 near /
     depth; the middle of NDC's [-1, 1] is depth 2 near), not a distance read off the NDC box as if it were world
-    units (that put the focus beside the mean camera, and every frame looked sideways at empty space)."""
+    units (that puts the focus beside the mean camera, and every frame looks sideways at empty space)."""
     if kind == "orbit":
         return orbit_path(poses, n_frames)
     if kind == "spiral":

@@ -7,7 +7,7 @@ optionally `fl_y`, `cx`, `cy`, `w`, `h`, also allowed per frame) and `frames`, e
 a bound the files do not record comes from the cameras (`camera_near_far`: 0.1 r and R + r, r the median
 and R the largest camera distance to the point they look at), as for nerfstudio and NSVF folders without a box. The
 original NeRF loader's fixed 2 / 6 suit only cameras about 4 units from the subject: cameras 16 units
-away would see nothing at all through them, and the box and the coarse stage's samples depended on them.
+away would see nothing at all through them, and the box and the coarse stage's samples depend on them.
 
 Images: RGB or RGBA, 8 or 16 bit (Pillow reads 16-bit colour at 8-bit precision; grey keeps 16). Downscaling is
 area averaging (`frames.area_downscale`) of the premultiplied colour and of alpha; the result is then composited
@@ -25,6 +25,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
     Frame,
+    SceneSpace,
     check_pinhole,
     frame_camera,
     frame_intrinsics,
@@ -129,5 +130,5 @@ def load_blender(
     train = splits["train"]
     near, far, source = _near_far({s: parsed[s][1] for s in found}, folder, train.poses)
     bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
-    return scene_from_splits(folder, splits, near, far, bbox, background, "blender", holdout, native, size,
+    return scene_from_splits(folder, splits, SceneSpace(near, far, bbox, background), "blender", holdout, native,
                              extra={"near_far_source": source, **lossy_extra(frames)})

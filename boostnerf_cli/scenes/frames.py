@@ -93,7 +93,7 @@ def target_size(height: int, width: int, image_size: int | None) -> tuple[int, i
 
 # Pillow's advice to convert palette transparency to RGBA: `_read_mode` does. A filter set once, for this message
 # alone: `warnings.catch_warnings` around each read is not thread-safe (`load_frames` reads in threads), and its
-# exits left other threads' filters in place, an "ignore UserWarning" that silenced the loaders' `DataWarning`s.
+# exits can leave other threads' filters in place, an "ignore UserWarning" that silences the loaders' `DataWarning`s.
 warnings.filterwarnings("ignore", message="Palette images with Transparency", category=UserWarning)
 
 
@@ -423,25 +423,25 @@ def hold_out(train: Split, every: int) -> tuple[Split, Split, str]:
     return train.subset(kept), train.subset(held), text
 
 
-def scene_from_splits(
-    folder: Path,
-    splits: dict[str, Split],
-    near: float,
-    far: float,
-    bbox: Tensor,
-    background: tuple[float, float, float],
-    format: str,
-    holdout: str,
-    native: tuple[int, int],
-    size: tuple[int, int],
-    extra: dict | None = None,
-    ndc: NDC | None = None,
-) -> Scene:
+@dataclass(frozen=True)
+class SceneSpace:
+    """Where a scene's rays are sampled, and what they meet past it: near, far and the box (in NDC for a
+    forward-facing capture, `ndc` set; `Scene`) and the background colour."""
+
+    near: float
+    far: float
+    bbox: Tensor
+    background: tuple[float, float, float]
+    ndc: NDC | None = None
+
+
+def scene_from_splits(folder: Path, splits: dict[str, Split], space: SceneSpace, format: str, holdout: str,
+                      native: tuple[int, int], extra: dict | None = None) -> Scene:
     """The `Scene` a loader returns for the dataset in `folder`.
 
     name: the folder's own name and source: its absolute path (both after resolving links);
     background: as floats. extra: `native_size` (the images' size on disk) and `image_size` (as
-    stored), each [height, width], then the loader's own `extra` keys.
+    stored: the train views' size), each [height, width], then the loader's own `extra` keys.
     """
     if len(splits["train"]) == 1:
         warnings.warn(DataWarning(
@@ -451,13 +451,14 @@ def scene_from_splits(
     return Scene(
         name=folder.resolve().name,
         splits=splits,
-        near=near,
-        far=far,
-        bbox=bbox,
-        background=tuple(float(c) for c in background),
+        near=space.near,
+        far=space.far,
+        bbox=space.bbox,
+        background=tuple(float(c) for c in space.background),
         source=str(folder.resolve()),
         format=format,
         holdout=holdout,
-        extra={"native_size": list(native), "image_size": list(size), **(extra or {})},
-        ndc=ndc,
+        extra={"native_size": list(native), "image_size": [splits["train"].height, splits["train"].width],
+               **(extra or {})},
+        ndc=space.ndc,
     )

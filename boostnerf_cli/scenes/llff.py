@@ -37,6 +37,7 @@ from boostnerf_cli.render.rays import NDC
 from boostnerf_cli.scenes.frames import (
     IMAGE_SUFFIXES,
     Frame,
+    SceneSpace,
     hold_out,
     load_frames,
     one_line,
@@ -209,7 +210,6 @@ def load_llff(
     ndc = NDC(sx=2 * fx / train.width, sy=2 * fy / train.height, near=NDC_NEAR)
     bbox = ndc_bbox(ndc, train.poses, train.intrinsics, train.height, train.width)
     far = float((bbox[1] - bbox[0]).norm())
-    return scene_from_splits(folder, splits, 0.0, far, bbox, background, "llff", holdout, native, size,
+    return scene_from_splits(folder, splits, SceneSpace(0.0, far, bbox, background, ndc), "llff", holdout, native,
                              extra={"images_folder": sub.name, "world_from_data": world_from_data.tolist(),
-                                    "bounds": (bounds * scale).tolist()},
-                             ndc=ndc)
+                                    "bounds": (bounds * scale).tolist()})

@@ -24,6 +24,7 @@ from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
     FOCAL_KEYS,
     Frame,
+    SceneSpace,
     check_pinhole,
     frame_camera,
     frame_intrinsics,
@@ -83,7 +84,7 @@ def load_nerfstudio(
     train = splits["train"]
     near, far = camera_near_far(train.poses)
     bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
-    return scene_from_splits(folder, splits, near, far, bbox, background, "nerfstudio", holdout, native, size,
+    return scene_from_splits(folder, splits, SceneSpace(near, far, bbox, background), "nerfstudio", holdout, native,
                              extra=lossy_extra(frames))
 
 

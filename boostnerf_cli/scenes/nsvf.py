@@ -35,6 +35,7 @@ from boostnerf_cli.scenes.bounds import (
 from boostnerf_cli.scenes.frames import (
     IMAGE_SUFFIXES,
     Frame,
+    SceneSpace,
     hold_out,
     load_frames,
     lossy_extra,
@@ -222,7 +223,7 @@ def load_nsvf(
     else:
         near, far = camera_near_far(train.poses)
         bbox = frustum_overlap_bbox(train.poses, train.intrinsics, train.height, train.width, near, far)
-    return scene_from_splits(folder, splits, near, far, bbox, background, format, holdout, native, size,
+    return scene_from_splits(folder, splits, SceneSpace(near, far, bbox, background), format, holdout, native,
                              extra={"bbox_source": "bbox.txt" if (folder / "bbox.txt").is_file() else "cameras",
                                     **lossy_extra(ordered)})
 

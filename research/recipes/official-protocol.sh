@@ -94,8 +94,8 @@ tune() {  # tune SIZE W RECIPE MODEL FLAG...: finetune MODEL (FLAG...) on SIZE's
   # evaluate it (NO_COSTS=1: without costs)
   local size="$1" W="$2" recipe="$3" model="$4"
   shift 4
-  from_size "$size" "$W"
-  boostnerf finetune -w "$W" --recipe "$recipe" "$@" --device cpu
+  from_size "$size" "$W"  # finetune with the research switches (--wide-start, --gate-noise) patched in
+  python "$HERE/research/wide_start_noise.py" finetune -w "$W" --recipe "$recipe" "$@" --device cpu
   boostnerf eval -w "$W" --report ${NO_COSTS:+--no-costs} --device cpu --model "$model"
 }
 raw_top1() {  # raw_top1 W FLAG...: Top-1 raw with FLAG... on $SIZE's (default m3) experts, recipe $RECIPE (default
