@@ -1,10 +1,10 @@
-"""Issue 17: does one scene give the same box and held-out PSNR in every dataset layout?
+"""Does one scene give the same box and held-out PSNR in every dataset layout?
 
 Writes the thin procedural scene (`make-scene --content thin`, 80 px, 28 train and 4 test views) in the Blender,
 nerfstudio and NSVF layouts and runs `boostnerf pretrain` on each with the recipe of tests/test_thin_structures.py
 (geometry 32^3 for 300 steps, one DVGO-40 expert for 800 steps) at each seed given, then prints per layout and
-seed the box the geometry stage drew, its coverage counts and the expert's held-out PSNR. docs/results.md, issue
-17, records the output.
+seed the box the geometry stage drew, its coverage counts and the expert's held-out PSNR. docs/results.md,
+"Do the dataset layouts agree?", records the output.
 
     python research/layout_agreement.py OUT [SEED ...]      (default seeds: 0 1)
 """

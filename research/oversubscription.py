@@ -1,5 +1,5 @@
 """Gate bake (128^3, a 24^3 gate) timed alone and beside N busy torch processes, with 2 and 1 intra-op threads:
-`python research/oversubscription.py` (docs/benchmarks.md, "Several jobs on one machine")."""
+`python research/oversubscription.py` (docs/benchmarks.md, "How should several jobs share one machine?")."""
 
 import subprocess
 import sys

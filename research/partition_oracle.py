@@ -1,4 +1,4 @@
-"""Issue 18: can any spatial partition of single models beat the best of them on views it has not seen?
+"""Can any spatial partition of single models beat the best of them on views it has not seen?
 
 A Top-1 mixture renders each sample with one expert, chosen by where the sample is. It can only beat its largest
 expert if some other expert renders some part of the scene better, on views none of them trained on, and if the

@@ -1,10 +1,10 @@
-"""Issue 17 experiment: would dropping coarse cells that no training view sees make the box agree across layouts?
+"""Would dropping coarse cells that no training view sees make the box agree across layouts?
 
 Writes the thin procedural scene (`make-scene --content thin`, 80 px, 28 train views) in the Blender, nerfstudio
 and NSVF layouts, trains the shared coarse geometry (32^3, 300 steps, as tests/test_thin_structures.py) and prints,
 per layout, the box `pretrain` draws around the occupied cells, and the box around the occupied cells whose largest
 rendering weight over every training ray is at least tau (cells only hidden space or barely visible floaters
-occupy would go). docs/results.md, issue 17, records the output.
+occupy would go). docs/results.md, "Do the dataset layouts agree?", records the output.
 
     python research/visible_box.py OUT
 """

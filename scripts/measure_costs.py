@@ -1,4 +1,4 @@
-"""Measure, side by side in one process, what issue 6 ("fast and accurate") asks of a trained workspace.
+"""Measure, side by side in one process, the cost targets of docs/benchmarks.md on a trained workspace.
 
     python scripts/measure_costs.py --workspace WS [--mixture top1] [--views 3] [--steps 12] [--threads 2]
 

@@ -75,7 +75,7 @@ def make_recipe(path: Path, **changes: dict) -> Path:
 # reference within PSNR_MARGIN. The margin is small because these 30-step models are weak: dvgo-16 (17.51 dB)
 # falls to 16.81 dB with its colour MLP zeroed and to 15.34 dB against shuffled test images, and both must fail the
 # check (test_cli.py::test_the_psnr_references_fail_broken_models). Retrain and remeasure when the recipe or the
-# training changes on purpose (last: session 13, the box widened by half a pixel's footprint around each surface
+# training changes on purpose (last: e4fa017, the box widened by half a pixel's footprint around each surface
 # point instead of a coarse cell, +1.4 to +1.6 dB: it was 15.28 / 16.13 with 15.61 zeroed and 14.88 shuffled).
 PSNR_MARGIN = 0.25
 TINY_PSNR = {"dvgo-12": 16.93, "dvgo-16": 17.51}  # pretrain reports, and eval over the 3 test views

@@ -243,7 +243,7 @@ def test_tables_written_to_a_file_or_pipe_keep_every_name_whole(bench_recipe, tm
 
 
 def test_rows_that_could_only_repeat_another_are_left_out_with_a_note():
-    """Probe W (session 26): at moe.lam 0 (blender-tensorf-cpu.yaml's) the six penalty rows were bit-identical
+    """At moe.lam 0 (blender-tensorf-cpu.yaml's) the six penalty rows were bit-identical
     retrainings of top1 and top2, labelled as ablations; with one expert the gate rows too repeated top1; and a
     moe.topk above M was clamped for the gate rows without a word."""
     rec = Recipe()

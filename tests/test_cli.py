@@ -66,7 +66,7 @@ def test_pretrain_skips_finished_experts(trained_ws, tiny_scene, tiny_recipe, tm
                    str(ws), "--device", "cpu", "--res", "12", check=True)
     assert "already trained" in proc.stderr
     assert (ws / "experts" / "dvgo-12.safetensors").stat().st_mtime_ns == before
-    # another holdout_every: the refusal names it (probe H, session 28: "another scene, image size or box")
+    # another holdout_every: the refusal names it ("another scene, image size or box")
     assert_clean_failure(run_cli("pretrain", "--workspace", str(ws), "--holdout-every", "4", "--device", "cpu"),
                          "held-out views (holdout_every) 8, now 4")
 
@@ -117,7 +117,7 @@ def test_eval_report_schema_and_render_outputs(trained_ws, tmp_path):
 
     pngs = sorted((trained_ws / "renders" / "dvgo-16" / "test").glob("*.png"))
     assert len(pngs) == 4  # 2 colour + 2 depth
-    # stdout lists the colour images written, one per line, for a script (probe U, session 28: nothing was on stdout)
+    # stdout lists the colour images written, one per line, for a script (nothing was on stdout)
     assert sorted(proc.stdout.splitlines()) == [str(p) for p in pngs if "depth" not in p.name], proc.stdout
     rgb = iio.imread([p for p in pngs if "depth" not in p.name][0])
     depth = iio.imread([p for p in pngs if "depth" in p.name][0])
@@ -232,7 +232,7 @@ def test_a_moved_scene_or_workspace_is_followed_not_retrained(trained_ws, tmp_pa
     run_cli("pretrain", "--workspace", str(moved), "--data", str(away), "--device", "cpu", check=True)
     run_cli("eval", "--workspace", str(moved), "--no-costs", "--device", "cpu", check=True)
     assert {p.name: read_meta(p)["digest"] for p in (moved / "experts").glob("*.safetensors")} == digests
-    # a `scene` folder of another scene left inside, the recorded one moved again (probe X, session 28: the leftover
+    # a `scene` folder of another scene left inside, the recorded one moved again (the leftover
     # was blamed, "changed since pretrain: retrain ... --data WS/scene --force")
     make_scene(moved / "scene", size=32, n_train=12, n_test=3, seed=1)
     away.rename(tmp_path / "elsewhere-2")
@@ -497,10 +497,10 @@ def test_log_lines_print_brackets_as_written(capsys):
     (["eval", "--wokspace", "ws"], "--wokspace"),
     (["eval"], "'--workspace'"),
     (["render", "-w", "ws", "--views", "0"], "'--views'"),
-    (["eval", "-w"], "'-w' requires an argument"),  # Click gives this one no context (probe X)
+    (["eval", "-w"], "'-w' requires an argument"),  # Click gives this one no context
 ], ids=["type", "unknown", "missing", "range", "no-value"])
 def test_a_command_line_mistake_is_one_error_line(monkeypatch, capsys, args, needle):
-    """Probe U (session 28): Click's own refusals (a value of the wrong type, an unknown or missing option) were a
+    """Click's own refusals (a value of the wrong type, an unknown or missing option) were a
     box of 6+ lines around `Usage:`, the message wrapped mid-word on a narrow terminal, with no `error:` line to grep
     for; every other refusal is one line."""
     code, err = cli_in_process(monkeypatch, capsys, *args)
@@ -510,7 +510,7 @@ def test_a_command_line_mistake_is_one_error_line(monkeypatch, capsys, args, nee
 
 
 def test_a_short_option_written_with_an_equals_sign_is_refused(monkeypatch, capsys, tmp_path):
-    """Probe U (session 28): `pretrain -w=wsX` made a folder named `=wsX` (Click's reading of a short option), and
+    """`pretrain -w=wsX` made a folder named `=wsX` (Click's reading of a short option), and
     `eval -w=ws` said `=ws is not a boostnerf workspace`."""
     monkeypatch.chdir(tmp_path)
     code, err = cli_in_process(monkeypatch, capsys, "eval", "-w=wsX", "--device", "cpu")
@@ -529,7 +529,7 @@ def test_version(monkeypatch, capsys):
 
 
 def test_a_result_table_on_a_narrow_terminal_folds_its_cells_and_cuts_no_digit(monkeypatch):
-    """Probe U (session 28): at 60 columns eval's table showed a PSNR as `11.…` and a GFLOPs figure as `0.01…`."""
+    """At 60 columns eval's table showed a PSNR as `11.…` and a GFLOPs figure as `0.01…`."""
     import io
 
     from rich.table import Table
@@ -566,7 +566,7 @@ def test_a_workspace_of_another_file_format_is_refused_in_one_line(trained_ws, t
 
 
 def test_an_experts_reported_held_out_psnr_is_what_eval_measures(tmp_path, tiny_scene):
-    """Probe S (session 28): with train.color_threshold 0.999999 pretrain's report scored the expert 14.77 dB, eval
+    """With train.color_threshold 0.999999 pretrain's report scored the expert 14.77 dB, eval
     12.83: the report rendered with the training threshold, eval as every model is rendered (1e-4)."""
     recipe = make_recipe(tmp_path / "r.yaml", pretrain={"res": [10], "train": {"color_threshold": 0.3}})
     ws = tmp_path / "ws"

@@ -71,8 +71,8 @@ def test_models_made_from_a_retrained_expert_are_refused_until_made_again(moe_ws
     for name, needle in (("top2", "build-moe"), ("baseline", "--baseline --force")):
         code, err = cli_in_process(monkeypatch, capsys, "eval", "--model", name, *w)
         assert code == 2 and f"{name} is stale" in err and needle in err, err
-    # every stale model at once: each way of making them again is named, not only the first model's (probe H, session
-    # 28: the baseline's `--baseline --force` came up only after the mixtures had been remade)
+    # every stale model at once: each way of making them again is named, not only the first model's (the
+    # baseline's `--baseline --force` came up only after the mixtures had been remade)
     code, err = cli_in_process(monkeypatch, capsys, "eval", *w)
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert f"make baseline again with `boostnerf finetune -w {ws} --baseline --force`; top1, top2, top1-pruned, ens with " \
@@ -233,8 +233,8 @@ def test_render_per_expert_and_gate_maps(moe_ws):
     assert g0.shape == (32, 32, 3) and (g0[..., 0] == g0[..., 1]).all()  # greyscale
     acc_like = g0[..., 0] + g1[..., 0]  # probabilities sum to the pixel's opacity (<= 255 up to rounding)
     assert acc_like.max() <= 256
-    # an earlier mixture's third expert (build-moe --experts changed them since): its images go (probe H, session
-    # 28: they stayed beside the new mixture's)
+    # an earlier mixture's third expert (build-moe --experts changed them since): its images go (they
+    # stayed beside the new mixture's)
     for kind in ("expert2", "gate2"):
         (folder / f"{stem}_{kind}-dvgo-20.png").write_bytes((folder / f"{stem}_gate1-dvgo-16.png").read_bytes())
     run_cli("render", "--workspace", str(moe_ws), "--model", "top2", "--views", "1", "--per-expert", "--device", "cpu",
@@ -367,7 +367,7 @@ def test_eval_costs_are_those_of_the_render_it_ran(moe_ws):
 
 
 def test_measure_costs_script_reports_every_measurement(moe_ws):
-    """scripts/measure_costs.py (issue 6's benchmark) runs on a workspace and writes reports/costs.json;
+    """scripts/measure_costs.py (docs/benchmarks.md's cost targets) runs on a workspace and writes reports/costs.json;
     its timings are for docs/benchmarks.md, so only their presence and consistency are checked here."""
     import subprocess
     import sys
@@ -410,7 +410,7 @@ def _finetune_top1(moe_ws, folder, *flags):
 
 @pytest.mark.slow
 def test_finetuning_learns_and_the_resolution_penalty_moves_load_to_the_small_expert(moe_ws, tmp_path):
-    """Measured (session 11): loss 0.028 over steps 10-50 -> 0.016 over steps 160-200 with the geometric penalty,
+    """Measured: loss 0.028 over steps 10-50 -> 0.016 over steps 160-200 with the geometric penalty,
     0.024 -> 0.013 with none (one batch a logged step, so five are averaged; over 100 steps and three batches the
     fall, 0.84x, was inside the batches' spread once near / far came from the cameras); the smallest expert's share
     of samples 0.68 with the geometric penalty against 0.51 with none (same lambda 1). Without the auxiliary loss (lambda 0)

@@ -1,4 +1,4 @@
-"""Issue 20 through the real CLI: bad recipe values and bad files end in one `error:` line, exit code 2."""
+"""Through the real CLI: bad recipe values and bad files end in one `error:` line, exit code 2."""
 
 import json
 import shutil

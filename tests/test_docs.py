@@ -102,7 +102,7 @@ def _check_how(cell: str, earlier: set[int], previous: str | None) -> str | None
 
 def test_reliability_table_lists_at_least_25_faults_each_backed_by_a_test_or_command():
     text = (DOCS / "reliability.md").read_text()
-    table = text.split("## Faults and bad inputs tried", 1)[1].split("\n### ", 1)[0]
+    table = text.split("## Which faults and bad inputs were tried, and what happens?", 1)[1].split("\n### ", 1)[0]
     rows = [ln for ln in table.splitlines() if ln.startswith("| ") and ln.split("|")[1].strip().isdigit()]
     assert len(rows) >= 25
     assert [int(r.split("|")[1]) for r in rows] == list(range(1, len(rows) + 1))
@@ -133,7 +133,7 @@ def test_the_reliability_table_check_rejects_rows_without_evidence(cell):
 
 
 def test_cli_reference_is_the_help_as_printed_now():
-    """docs/cli.md showed --holdout-every's help of an older release for a session (the check above reads option
+    """docs/cli.md showed --holdout-every's help of an older release (the check above reads option
     names only): each command's section is now compared with its `--help`, as scripts/cli-reference.sh writes it."""
     from conftest import run_cli
 

@@ -210,6 +210,6 @@ def test_chain_skips_finished_models_redoes_the_reports_and_stops_at_the_first_f
     assert "build-moe" not in ran
     proc, _ = _run_chain(cwd, env, "no-such-recipe", "-", "ws-bad")
     assert proc.returncode == 2 and "recipe" in proc.stderr and "blender-dvgo-cpu" in proc.stderr
-    # a typo in MODELS is refused before any stage (probe U, session 28: after pretrain, build-moe and the baseline)
+    # a typo in MODELS is refused before any stage (after pretrain, build-moe and the baseline)
     proc, ran = _run_chain(cwd, {**env, "MODELS": "baseline ensemble"}, "demo-dvgo-cpu", "-", "ws-typo")
     assert proc.returncode == 2 and "unknown model ensemble in MODELS" in proc.stderr and not ran, ran

@@ -173,8 +173,8 @@ def test_interrupt_stops_cleanly_and_the_rerun_resumes(tmp_path, tiny_scene, sig
             proc.send_signal(sig)
             break
     err = proc.stderr.read()
-    # it ends by the signal it got (a shell's status 130 / 143), so a script running it stops too (probe U, session
-    # 28: an exit 130 let a shell loop go on to its next command after a Ctrl-C)
+    # it ends by the signal it got (a shell's status 130 / 143), so a script running it stops too (an
+    # exit 130 let a shell loop go on to its next command after a Ctrl-C)
     assert proc.wait(timeout=120) == -sig
     assert err.strip().splitlines()[-1] == "interrupted: finished files are kept; rerun the same command to go on (a model in training resumes from its last checkpoint, if it had written one)"
     assert "Traceback" not in err

@@ -1,4 +1,4 @@
-"""Issue 18: the mixture as the official code trains it (moe.aux_norm, moe.aux_samples, moe.mix, moe.gate_init).
+"""The mixture as the official code trains it (moe.aux_norm, moe.aux_samples, moe.mix, moe.gate_init).
 
 Each option against an independent float64 reference written here with plain loops; then the whole chain
 through the CLI with every official option on.
@@ -331,7 +331,7 @@ def test_the_official_recipe_selects_every_official_option():
     assert (d.gate_init, d.aux_norm, d.aux_samples, d.mix) == ("random", "batch", "all", "density")
 
 
-# --- the official penalty list and V_D (session 16) -----------------------------------------------------
+# --- the official penalty list and V_D -------------------------------------------------------------------
 OFFICIAL_WEIGHTS = "1, 1.5, 2.23"  # EIDOSLAB/boost-your-nerf, instant-ngp/moe_main.py: weights[:3]
 
 

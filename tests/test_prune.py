@@ -192,7 +192,7 @@ def test_a_prune_stopped_before_its_check_leaves_no_model_the_other_stages_take(
 
 
 def test_prune_of_a_scene_that_holds_no_view_out(tmp_path):
-    """Probe H (session 28): with no test split (one view, holdout_every 0) prune on the train views failed on the
+    """With no test split (one view, holdout_every 0) prune on the train views failed on the
     report's held-out PSNR, after writing the pruned model: that file, without its report, read as a stale prune
     for good, and `prune` again failed the same way. The held-out PSNR is now null there, and a prune that fails
     after writing leaves nothing."""

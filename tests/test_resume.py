@@ -96,7 +96,7 @@ def test_pretrain_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupt
     args = [a if a != str(ref) else str(ws) for a in args]
     # after the geometry stage's 2nd checkpoint (step 8/24); on the rerun, 4 more of its first round and 6 of its
     # second, then dvgo-10's first (step 4/24: before its first growth and refresh, its mask still the geometry's
-    # grid over the geometry's box, which a resume stretched over the expert's box until session 24); then 2 more
+    # grid over the geometry's box, which a resume stretched over the expert's box before 1e7832b); then 2 more
     # (step 12/24); then inside the write of dvgo-10's weights, after its last checkpoint
     kill_at(args, ["checkpoint:2", "checkpoint:11", "checkpoint:2", "write:dvgo-10.safetensors"], ws)
     for p in sorted((ref / "experts").glob("*.safetensors")):
@@ -143,7 +143,7 @@ def test_a_checkpoint_is_not_resumed_with_other_training_settings(setup, tmp_pat
     quiet = make_recipe(tmp_path / "quiet.yaml", **merge(RECIPE_CHANGES, {"pretrain": {"train": {"log_every": 5, "lr_grid": 0.05}}}))
     proc = run_cli(*[a if a != str(recipe) else str(quiet) for a in args], check=True)
     assert "resuming from" in proc.stderr
-    # with the new rate (probe X, session 28: the checkpoint's optimiser state brought the old rates back, so a
+    # with the new rate (the checkpoint's optimiser state brought the old rates back, so a
     # diverged run resumed with lower ones, as its error advises, trained on exactly as before)
     grids, _ = load_tensors(ws / "experts" / "dvgo-10.safetensors")
     before, _ = load_tensors(ref / "experts" / "dvgo-10.safetensors")
@@ -178,7 +178,7 @@ def test_a_checkpoint_of_an_earlier_file_format_is_refused_in_one_line(setup, tm
 
 @pytest.mark.slow
 def test_an_interrupted_force_run_resumes_and_force_drops_a_checkpoint_of_other_settings(setup, tmp_path):
-    """Probe Y (session 26): `finetune --force` (and `pretrain --force`) deleted the model's training checkpoint
+    """`finetune --force` (and `pretrain --force`) deleted the model's training checkpoint
     before training, so an interrupted --force run restarted from step 0 on every rerun of the same command, though
     the interrupt line says "rerun the same command to go on". A checkpoint of the same settings is resumed now;
     --force drops one of other settings instead of refusing it."""

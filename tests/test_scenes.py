@@ -397,7 +397,7 @@ def test_error_bad_json_and_missing_focal(tmp_path):
 
 def test_error_bad_holdout(tmp_path):
     folder = write_blender(tmp_path / "o", {"train": [rgba(4, 4)]})
-    raises_one_line("--holdout-every 0", load_scene, folder)  # the flag (probe H: it named a key=value)
+    raises_one_line("--holdout-every 0", load_scene, folder)  # the flag (not a key=value)
     raises_one_line("at least 2", load_scene, folder, holdout_every=1)
 
 
@@ -488,7 +488,7 @@ def _ring(n: int, radius, height: float = 0.5, outward: bool = False) -> list[np
 def test_cameras_at_mixed_distances_reach_the_subject_from_the_farthest(tmp_path):
     """Half the cameras 3x farther from the subject (4 and 12): far was 2 x the median distance, 8, so the far
     cameras' rays ended 4 units short of the subject and the box (the region most cameras see) came out 16 x 20 x 15
-    units around nothing; held-out PSNR 10.4 against 18.9 (probe P, session 26)."""
+    units around nothing; held-out PSNR 10.4 against 18.9."""
     images = [rgba(16, 16, i) for i in range(8)]
     folder = write_blender(tmp_path / "mixed", {"train": images})
     meta = json.loads((folder / "transforms_train.json").read_text())
@@ -511,7 +511,7 @@ def test_cameras_inside_the_content_looking_out_are_named_and_data_bbox_gives_ne
     """A room captured from inside (cameras 0.2 from the centre, looking out): near / far came from the camera
     cluster (0.02 / 0.41) and the box from every frustum's corners (+-0.64), around no content, with no word but a
     box-faces warning; data.bbox then replaced the box but rays still ended at far 0.41, and the warning went
-    away (probe P, session 26). Now the loader says so, and data.bbox widens near / far to reach the box."""
+    away. Now the loader says so, and data.bbox widens near / far to reach the box."""
     images = [rgba(16, 16, i) for i in range(8)]
     folder = write_blender(tmp_path / "room", {"train": images})
     meta = json.loads((folder / "transforms_train.json").read_text())
@@ -541,7 +541,7 @@ def test_cameras_inside_the_content_looking_out_are_named_and_data_bbox_gives_ne
 
 
 def test_image_kinds_real_captures_come_in(tmp_path):
-    """Probe Q (session 26): a 32-bit integer image (Pillow's mode "I": integer TIFFs, and 16-bit grey PNGs in some
+    """A 32-bit integer image (Pillow's mode "I": integer TIFFs, and 16-bit grey PNGs in some
     Pillow releases) was divided by 2^31 and trained as black, exit 0; HDR float images were clipped without a word;
     a folder named like an image was "not found"; an animated PNG got a bare shape error."""
     from PIL import Image
@@ -629,7 +629,7 @@ def test_boxes_in_messages_keep_their_digits_at_any_scale():
 
 
 def test_cameras_far_from_the_origin_are_warned(tmp_path):
-    """Probe P (session 26): every camera 1e5 from the origin (georeferenced coordinates) loaded without a word,
+    """Every camera 1e5 from the origin (georeferenced coordinates) loaded without a word,
     while float32 rays and boxes there are known to 0.008 (the box moved by a lattice cell, the geometry kept 82%
     of its cells instead of 73%). 1000 units out is fine and says nothing."""
     images = [rgba(16, 16, i) for i in range(6)]
@@ -655,7 +655,7 @@ def test_cameras_far_from_the_origin_are_warned(tmp_path):
 
 
 def test_held_out_cameras_farther_than_the_training_ones_reach_the_box(tmp_path):
-    """Probe Z (session 26): near / far came from the training cameras alone, so test cameras 3x farther out ended
+    """Near / far came from the training cameras alone, so test cameras 3x farther out ended
     every ray before the box: each held-out view rendered as pure background, scored as if the model were at fault,
     with no word. far now reaches the box from every split's cameras, with a note."""
     images = [rgba(16, 16, i) for i in range(6)]

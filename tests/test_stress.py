@@ -18,7 +18,8 @@ from boostnerf_cli.moe.router import aux_loss, penalty_weights, top_k
 from boostnerf_cli.render.renderer import RenderSettings, render_rays
 from boostnerf_cli.render.volrend import composite, render_weights
 
-# documented tolerances (docs/reliability.md, "Numerical tolerances")
+# documented tolerances (docs/reliability.md, "How close are the float32 and reduced-precision results to
+# float64?")
 W_ATOL = 1e-6  # rendering weights, float32 vs float64
 COLOR_ATOL = 1e-6  # composited colour and opacity, float32 vs float64
 GRAD_ATOL_PER_STEP = 1e-5  # d(colour)/d(sigma_i) scales with delta_i: |g32 - g64| <= 1e-5 * delta_i

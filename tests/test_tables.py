@@ -19,7 +19,7 @@ def _marked() -> list[tuple[Path, str]]:
 def test_every_marked_table_matches_its_data():
     marked = _marked()
     names = {n for _, n in marked}
-    assert {"results-session4-dvgo", "results-session6-families", "benchmarks-quick-demo"} <= names
+    assert {"official-paper-layout", "results-cpu-recipes", "benchmarks-quick-demo"} <= names
     for md, _ in {(md, None) for md, _ in marked}:
         text = md.read_text()
         new, changed = tables.rebuild(text)
@@ -40,8 +40,8 @@ def test_every_data_file_has_a_table_and_a_provenance_line():
 
 
 @pytest.mark.parametrize("name, typed, edited", [
-    ("results-session4-dvgo", "| 34.545 | +0.30 |", "| 34.645 | +0.40 |"),  # a model table
-    ("benchmarks-issue6-targets", "**6.47x**", "**6.48x**"),  # a transcribed generic table
+    ("results-cpu-recipes", "| 35.238 | +0.32 |", "| 35.338 | +0.42 |"),  # a model table
+    ("benchmarks-cost-targets", "**6.74x**", "**6.75x**"),  # a transcribed generic table
 ])
 def test_a_hand_edited_table_is_caught(name, typed, edited):
     md = next(x[0] for x in _marked() if x[1] == name)

@@ -112,9 +112,10 @@ def _slab(x: torch.Tensor) -> torch.Tensor:
 
 def test_the_box_holds_the_visible_surface_not_the_space_hidden_under_it(thin):
     """The box is drawn around the point where each foreground ray's surface starts (widened by half its pixel's
-    footprint), so it ends inside the floor slab, just under its top (session 12: a coarse cell under it). Space no view sees (filled here under the floor, inside the views' visual hull) stays in the mask
-    but no longer stretches the box: before, the box was drawn around every occupied cell in the hull, which reach
-    below z -1 here (the thin scene's own pretrain box reached -1.25)."""
+    footprint), so it ends inside the floor slab, just under its top (a coarse cell's widening would end under it).
+    Space no view sees (filled here under the floor, inside the views' visual hull) stays in the mask but does not
+    stretch the box: a box drawn around every occupied cell in the hull would reach below z -1 here (the thin
+    scene's own pretrain box, -1.25)."""
     from boostnerf_cli.render.coverage import hull_cells
 
     scene = load_scene(thin / "blender")
@@ -192,7 +193,7 @@ def test_layouts_without_a_box_file_give_the_same_box(thin):
 @pytest.mark.slow
 def test_layouts_without_a_box_file_give_the_same_psnr(thin):
     """Blender and nerfstudio copies of one scene train to the same held-out PSNR. Both now take near / far from
-    the cameras when the files record none; before (session 10), Blender's fixed 2 / 6 moved the initial box's
+    the cameras when the files record none; with Blender's fixed 2 / 6 moved the initial box's
     lattice and clipped the coarse stage at far 6, and the copies trained to 25.11 against 25.72 dB."""
     blender, nerfstudio = load_scene(thin / "blender"), load_scene(thin / "nerfstudio")
     assert (blender.near, blender.far) == pytest.approx((nerfstudio.near, nerfstudio.far), rel=1e-4)
@@ -203,7 +204,7 @@ def test_layouts_without_a_box_file_give_the_same_psnr(thin):
 @pytest.mark.slow
 def test_a_box_file_gives_the_same_box_as_the_cameras(thin):
     """An NSVF copy (its bbox.txt bounds every seed's objects) and a Blender copy (the box from the views alone) give
-    the same box to a coarse cell and the same held-out PSNR. Session 12's views-only box ended at z -0.72 (0.12 under
+    the same box to a coarse cell and the same held-out PSNR. A views-only box ended at z -0.72 (0.12 under
     the floor: rays through the floor's anti-aliased rim pixels pass beyond the rim and gathered 0.1 opacity only under
     it, and the box kept a coarse cell on each side), and the copies trained 0.60 dB apart (25.93 against 26.53)."""
     a, b = _pretrain(thin, "blender"), _pretrain(thin, "nsvf")
@@ -221,7 +222,7 @@ def test_an_unknown_content_is_one_line_and_writes_nothing(tmp_path):
 def test_the_box_leaves_out_floaters_outside_the_visual_hull_but_covers_every_foreground_ray(thin):
     """A coarse model that filled its whole box (floaters everywhere): the box is drawn around the occupied
     cells inside the views' visual hull, which hold every object of the scene, and covering the foreground rays
-    from those cells misses none (docs/results.md, issue 17)."""
+    from those cells misses none (docs/results.md, "Does skipping keep thin structures?")."""
     from boostnerf_cli.render.coverage import hull_cells
     from boostnerf_cli.scenes.procedural import scene_objects
 
@@ -268,7 +269,7 @@ def test_in_a_forward_facing_scene_every_pixel_is_foreground_even_the_background
 
 
 def test_foreground_rays_that_miss_the_scene_box_are_warned_not_said_to_be_held(tmp_path, tiny_scene):
-    """A box that leaves out part of what the views show (here data.bbox around the middle only; probe D: images
+    """A box that leaves out part of what the views show (here data.bbox around the middle only, or images
     widened without their transforms): rays that miss the box cannot learn what they show. The covering pass
     counted them ("N missed") and then said "the box holds every ray's surface", with no warning."""
     recipe = make_recipe(tmp_path / "r.yaml", data={"image_size": 24, "bbox": [-0.4, -0.4, -0.5, 0.4, 0.4, 0.3]},

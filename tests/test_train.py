@@ -366,7 +366,7 @@ def test_the_ray_table_is_every_view_s_box_hitting_rays_in_order(tiny_scene, tmp
 
 
 def test_the_progress_bar_is_drawn_on_stderr_with_its_step_at_80_columns(monkeypatch):
-    """Probe U (session 28): on a terminal the bar went to stdout (a `> results.txt` caught it, the terminal showed
+    """On a terminal the bar went to stdout (a `> results.txt` caught it, the terminal showed
     nothing), and at 80 columns the logged values took the whole line: no bar, step or time were left."""
     import io
 

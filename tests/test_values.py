@@ -1,4 +1,4 @@
-"""Issue 20: every recipe value is range-checked when read, and every file the tool reads fails with one line.
+"""Every recipe value is range-checked when read, and every file the tool reads fails with one line.
 
 The bad and good values below are written from the code that uses each value (not read from the
 rules declared in boostnerf_cli), so a rule that drifts from what the code needs fails here.
@@ -244,7 +244,7 @@ def test_known_values_from_the_issue(tmp_path):
 
 
 def test_probe_s_values_accepted_before_that_crashed_or_trained_garbage(tmp_path, tiny_scene):
-    """Probe S (session 28): values the recipe accepted that crashed mid-run with a traceback (alpha_init 1e-300, a
+    """Values the recipe accepted that crashed mid-run with a traceback (alpha_init 1e-300, a
     per-resolution ngp mapping checked at the listed resolution only, a box no camera sees), trained a blank or noisy
     model with exit 0 (step_ratio 1e6, lr 1e30) or failed after minutes (view_pe 200, a million layers); and YAML's
     surprises: a key given twice (the last won silently, a second `pretrain:` block dropped the first) and 1e-2 read
@@ -264,7 +264,7 @@ def test_probe_s_values_accepted_before_that_crashed_or_trained_garbage(tmp_path
             "pretrain.ngp.max_res = 8: must be >= base_res (16) (expert ngp-4)",
         "pretrain:\n  iters: 50\n  res: [12]\n  iters: 5000\n": "key 'iters' is given twice (lines 2 and 4): keep one",
         "pretrain:\n  iters: 50\nmoe:\n  iters: 9\npretrain:\n  res: [12]\n": "key 'pretrain' is given twice",
-        # the review's (probe X): an unhashable key was a TypeError traceback; 1e3 where an int belongs, a number
+        # an unhashable key was a TypeError traceback; 1e3 where an int belongs, a number
         # where text belongs; 8 and "8" in one per-resolution mapping; a resolution 8.5
         "pretrain:\n  iters: 30\n  [1, 2]: 3\n": "is not valid YAML",
         "pretrain:\n  iters: 1e3\n": "recipe key pretrain.iters must be int, got 1000.0 (write 1000)",

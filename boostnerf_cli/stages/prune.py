@@ -8,7 +8,7 @@ and through the baked gate that render and eval use (`usage_masks`). MLPs stay d
 `moe/<name>-pruned.safetensors` (`models.save_pruned`), renders and evaluates like any model under the
 name `<name>-pruned`; a dropped row reads back as `fill_row`: the smallest kept value for density
 tables, 0 otherwise. The training views render the same before and after (checked and reported).
-Why these rows and this fill, and what pruning saves: docs/benchmarks.md, "Pruning parameters nothing uses".
+Why these rows and this fill, and what pruning saves: docs/benchmarks.md, "What does pruning save?".
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 17: the lego figures, rechecked when the geometry stage changes (every 8th view held out, 100 px):
+# The lego figures, rechecked when the geometry stage changes (every 8th view held out, 100 px):
 # each family's chain with its CPU recipe (experts, the baseline and Top-2: blender-{dvgo,tensorf,ngp}-cpu.yaml),
 # each in its own workspace under OUT/FAMILY. One thread per process.
 #

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The official code's training protocol at CPU size on lego (every 8th view held out, 100 px), and the questions
-# docs/results.md, issue 18, asks of it. Each CASE trains and evaluates workspaces under OUT; the table of cases is
+# docs/results.md asks of it. Each CASE trains and evaluates workspaces under OUT; the table of cases is
 # run_case below, grouped by question, each with the docs/results.md table that records it (research/README.md).
 #
 # Usage: bash research/recipes/official-protocol.sh DATA OUT CASE...
@@ -186,7 +186,7 @@ ablation_budget() {  # ablation_budget: the ablation's budget factor, 4,000-step
   boostnerf finetune -w "$W" --recipe "$recipe" --baseline --device cpu
   boostnerf eval -w "$W" --report --device cpu --model top1 --model baseline
 }
-collect() {  # collect: every workspace's reports/eval.json with training seconds -> docs/data/issue18-$TAG<ws>.json
+collect() {  # collect: every workspace's reports/eval.json with training seconds -> docs/data/official-$TAG<ws>.json
   python - "$OUT" "$HERE/docs/data" "${TAG:-}" <<'PY'
 import json, sys
 from pathlib import Path
@@ -201,8 +201,8 @@ for ws in sorted(p for p in out.iterdir() if (p / "reports" / "eval.json").exist
         tuned = json.loads(f.read_text())["seconds"] if f.exists() else 0
         own = experts[m["name"]]["seconds"] if m["name"] in experts else (largest if m["name"] == "baseline" else pre)
         m["extra"] = {"train s": str(round(own + tuned))}
-    (data / f"issue18-{tag}{ws.name}.json").write_text(json.dumps(report, indent=2) + "\n")
-    print("wrote", data / f"issue18-{tag}{ws.name}.json")
+    (data / f"official-{tag}{ws.name}.json").write_text(json.dumps(report, indent=2) + "\n")
+    print("wrote", data / f"official-{tag}{ws.name}.json")
 PY
 }
 
@@ -211,7 +211,7 @@ PY
 run_case() {  # run_case CASE: train and evaluate one case
   local what="$1" m
   case $what in
-    # The official protocol at M = 3 / 4 / 5 (tables issue18-protocol, issue18-s10-top2, issue18-s12, issue18-s14)
+    # The official protocol at M = 3 / 4 / 5 (tables official-paper-layout, official-second-seed)
     m3|m4|m5)  # recipes/chain.sh with that size's official recipe: the models $MODELS -> OUT/mM
       chain "$what" "$(official "$what")" ;;
     raw|raw-m3|raw-m4|raw-m5)  # Top-1 raw on mM's experts (raw: each size) -> OUT/mM-raw
@@ -227,19 +227,19 @@ run_case() {  # run_case CASE: train and evaluate one case
       seed1_model "$m" "$(official "$m")" base baseline --baseline
       seed1_model "$m" "$(official "$m")" top2 top2 --topk 2 ;;
 
-    # The paper's appendix table at CPU size, on one commit (table issue18-s18-paper)
+    # The paper's appendix table at CPU size, on one commit (table official-paper-layout)
     paper)  # paper-m3, paper-m4, paper-m5, one after the other
       for m in m3 m4 m5; do run_case "paper-$m"; done ;;
     paper-m3|paper-m4|paper-m5)  # that size alone: experts, baseline, Top-1 raw, Top-2, ensemble -> OUT/paper-mM
       ENS=1 mixtures "$OUT/$what" "$(official "${what#paper-}")" ;;
 
-    # Ablation, one official factor at a time set back to boostnerf's default (table issue18-ablation)
+    # Ablation, one official factor at a time set back to boostnerf's default (table official-ablation)
     ablation)  # on m3's experts, 2,000 joint steps: Top-1 per factor, and the official row's baseline -> OUT/abl-*
       ablation ;;
     ablation-budget)  # the budget factor (after ablation): 4,000-step experts, Top-1 and the baseline -> OUT/abl-budget
       ablation_budget ;;
 
-    # What sets Top-1's partition: its loss, its start, noisy top-k, a longer run (tables issue18-s10, issue18-s11)
+    # What sets Top-1's partition: its loss, its start, noisy top-k, a longer run (table official-top1-loss)
     lam[0-9]*)  # Top-1 raw at lambda X (lam1e-4, lam0) on m3's experts -> OUT/m3-raw-lamX
       raw_top1 "$OUT/m3-raw-$what" --lambda "${what#lam}" ;;
     penalty-official)  # Top-1 raw with the official penalty weights on m3's experts -> OUT/m3-raw-penalty-official
@@ -255,7 +255,7 @@ run_case() {  # run_case CASE: train and evaluate one case
     long-top1)  # Top-1 raw with a 0.3 wide start for $LONG joint steps -> OUT/m3-long-top1
       tune m3 "$OUT/m3-$what" "$OFFICIAL" top1 --topk 1 --no-renormalize --wide-start 0.3 --iters "${LONG:-10000}" ;;
 
-    # The official code's last choices: its V_D, penalty weights and gate layout (table issue18-s16)
+    # The official code's last choices: V_D, penalty weights, gate layout (official-top1-levers, official-second-seed)
     vd-official)  # Top-1 raw with the official V_D (vd_source largest, vd_filter visible) -> OUT/m3-raw-vd-official
       RECIPE="$(official_vd)" raw_top1 "$OUT/m3-raw-$what" ;;
     vd-largest)  # the same with moe.vd_source: largest alone -> OUT/m3-raw-vd-largest
@@ -275,7 +275,7 @@ run_case() {  # run_case CASE: train and evaluate one case
     gate-inside)  # the same with the gate copied from dvgo-72, the mixture's smallest (boostnerf's) -> OUT/m3-88-gate72
       gate_layout dvgo-72 72 ;;
 
-    # Experts past the 100 px plateau, and single models trained alone (table issue18-s14-plateau)
+    # Experts past the 100 px plateau, single models trained alone (official-top1-levers, official-second-seed)
     hires)  # experts 96/112/128 (gate 96^3): the baseline, Top-1 raw and Top-2 -> OUT/hires
       mixtures "$OUT/hires" "$(variant hires "${HIRES[@]}")" ;;
     seed1-hires)  # hires with finetuning seed 1: the baseline and Top-1 raw -> OUT/hires-base-s1, hires-top1-s1
@@ -287,7 +287,7 @@ run_case() {  # run_case CASE: train and evaluate one case
       alone m3-alone64 "56, 64" "56: 64, 64: 64" 56
       alone m3-alone72 "64, 72" "64: 64, 72: 96" 64 ;;
 
-    # The experts' colour MLPs: every expert 2 x 128, as the official code's (table issue18-s17)
+    # Every expert's colour MLP 2 x 128, as the official code's (official-top1-levers, official-second-seed)
     same-mlp)  # m3's experts with 2 x 128 MLPs: Top-1 raw, Top-2, then the baseline -> OUT/m3-mlp128
       BASELINE=last mixtures "$OUT/m3-mlp128" "$(variant m3-mlp128 "${MLP128[@]}")" ;;
     seed1-same-mlp)  # same-mlp's Top-1 raw with finetuning seed 1 -> OUT/m3-mlp128-top1-s1
@@ -303,7 +303,7 @@ run_case() {  # run_case CASE: train and evaluate one case
     ladder)  # experts 50/64/80, 2 x 128 MLPs (the paper's ladder), m3's baseline: Top-1 raw, Top-2 -> OUT/ladder
       BASELINE=none mixtures "$OUT/ladder" "$(variant ladder "50, 64, 80" "50: 128, 64: 128, 80: 128" 50)" ;;
 
-    # Two more regimes: every expert below the plateau, larger views (tables issue18-s18-regimes, issue18-s19-below-vd)
+    # Two more regimes: every expert below the plateau, larger views (tables official-top1-levers, official-second-seed)
     below)  # experts 40/50/64, 2 x 128 MLPs: the baseline (dvgo-64) and Top-1 raw -> OUT/below
       baseline_top1 "$OUT/below" "$(variant below "${BELOW[@]}")" ;;
     seed1-below)  # below with finetuning seed 1: the baseline and Top-1 raw -> OUT/below-base-s1, below-top1-s1
@@ -323,12 +323,12 @@ run_case() {  # run_case CASE: train and evaluate one case
       alone px200-alone96 "88, 96" "88: 64, 96: 64" 88 data.image_size=200
       alone px200-alone112 "96, 112" "96: 64, 112: 96" 96 data.image_size=200 ;;
 
-    # Away from lego: fern (table issue18-s19-llff)
+    # Away from lego: fern (table official-fern)
     llff-m3)  # m3's experts on fern (252 px wide), 3,000 joint steps: baseline, Top-1 raw, Top-2, ens -> OUT/llff-m3
       ENS=1 mixtures "$OUT/llff-m3" "$(variant llff-m3 "64, 72, 80" "64: 64, 72: 96, 80: 128" 64 moe.iters=3000 \
         "data={image_size: 252, holdout_every: 8, format: llff}")" ;;
 
-    # The other families under the official protocol (tables issue18-s20-families, issue18-s20-top1-weight)
+    # The other families under the official protocol (tables official-families, official-families-top1-weight)
     tensorf-m3|ngp-m3)  # the family's CPU experts and gate (random): baseline, Top-1 raw, Top-2 -> OUT/FAMILY-m3
       mixtures "$OUT/$what" "$(family_official "${what%-m3}")" ;;
     tensorf-m3-ens|ngp-m3-ens)  # the ensemble on FAMILY-m3's experts -> OUT/FAMILY-m3-ens
@@ -340,7 +340,7 @@ run_case() {  # run_case CASE: train and evaluate one case
         "$(recipe_with "$(family_official "${what%-m3-fastgate}")" "$OUT/official-$what.yaml" moe.lr_gate=0.1)" \
         top1 --topk 1 --no-renormalize ;;
 
-    # The ceiling of any partition of single models (tables issue18-s29-oracle-*: research/partition_oracle.py)
+    # The ceiling of any partition of single models (tables results-oracle-*: research/partition_oracle.py)
     oracle-64)  # dvgo-64 with a 2 x 128 MLP alone for the baseline's steps -> OUT/oracle-64 (its `baseline`)
       alone oracle-64 "56, 64" "56: 128, 64: 128" 56 ;;
     oracle-80)  # dvgo-80 the same -> OUT/oracle-80
@@ -349,7 +349,7 @@ run_case() {  # run_case CASE: train and evaluate one case
       alone oracle-96 "88, 96" "88: 128, 96: 128" 88 ;;
 
     # The tables' data
-    collect)  # every workspace's reports/eval.json with training seconds -> docs/data/issue18-$TAG<workspace>.json
+    collect)  # every workspace's reports/eval.json with training seconds -> docs/data/official-$TAG<workspace>.json
       collect ;;
     *)
       echo "unknown step $what ($(cases))" >&2

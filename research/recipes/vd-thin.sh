@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Does the mixture's density volume V_D cut thin structure? (docs/results.md, issue 17, "the density volume V_D
-# keeps thin structure")
+# Does the mixture's density volume V_D cut thin structure? (docs/results.md, "Does skipping keep thin structures?",
+# table results-vd-thin)
 # The thin procedural scene at 80 px; DVGO (24/32/40) and Instant-NGP (L = 4/6) experts, Top-2 mixtures. Each model
 # renders the held-out views with every skip on and with the empty-space skip off (V_D and occupancy), and
 # research/thin_pixels.py scores the thin-structure pixels and the rest.
