@@ -40,20 +40,13 @@
 # utilisation and memory over its window, sampled by nvidia-smi every 0.5 s) -> OUT/stages.md. Exits non-zero on any
 # failure or stage cut at the budget, and at once, with one line, when torch sees no CUDA GPU (unless DEVICE=cpu).
 set -uo pipefail
-if [ $# -lt 1 ]; then
-  sed -n '2,10p' "$0" | sed 's/^# \{0,1\}//' >&2
-  exit 2
-fi
-SCENE="$(cd "$(dirname "$1")" 2>/dev/null && pwd)/$(basename "$1")"
-OUT="${2:-gpu-check}"
-HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 NAME=gpu-check
-DEV="${DEVICE:-cuda}"
-SCALE="${SCALE:-full}"
-case "$SCALE" in full|tiny) ;; *) echo "gpu-check: SCALE=$SCALE: use full or tiny" >&2; exit 2 ;; esac
+HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/gpucheck-lib.sh
 . "$HERE/scripts/gpucheck-lib.sh"
-gc_require_device
+gc_begin 1 10 "$@"
+SCENE="$(gc_abs "$1")"
+OUT="${2:-gpu-check}"
 if [ ! -d "$SCENE" ]; then
   echo "gpu-check: scene folder $1 does not exist" >&2
   exit 2

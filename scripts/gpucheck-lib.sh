@@ -2,14 +2,30 @@
 # limits, the utilisation sampler, one stage run under the call's time budget, experts pretrained concurrently, and
 # the closing summary. The Python side (settings per scale, tables, plan, probe) is scripts/gpucheck.py.
 #
-# The sourcing script sets HERE (the checkout), OUT (its work folder), DEV (cuda or cpu), BUDGET_S and NAME (its
-# name, for messages), then calls gc_start; stages run through `check`; gc_finish prints the summary and exits.
+# The sourcing script sets HERE (the checkout) and NAME (its name, for messages), calls gc_begin, sets OUT (its work
+# folder) and BUDGET_S, then calls gc_start; stages run through `check`; gc_finish prints the summary and exits.
 
 PY="${PYTHON:-python3}"
 G="$HERE/scripts/gpucheck.py"
 BN=("$PY" "$G" cli)  # `boostnerf`, with one line at exit saying how long torch.compile took in the process
 export PYTHONPATH="$HERE${PYTHONPATH:+:$PYTHONPATH}"  # the checkout itself, installed or not
 export PYTHONUNBUFFERED=1
+
+gc_begin() {  # gc_begin MIN_ARGS HELP_END ARGS...: the usage (the script's header, lines 2 to HELP_END) when fewer
+  # than MIN_ARGS arguments; DEV (DEVICE: cuda) and SCALE (full or tiny); the device check
+  local min="$1" help_end="$2"
+  shift 2
+  if [ $# -lt "$min" ]; then
+    sed -n "2,${help_end}p" "$0" | sed 's/^# \{0,1\}//' >&2
+    exit 2
+  fi
+  DEV="${DEVICE:-cuda}"
+  SCALE="${SCALE:-full}"
+  case "$SCALE" in full|tiny) ;; *) echo "$NAME: SCALE=$SCALE: use full or tiny" >&2; exit 2 ;; esac
+  gc_require_device
+}
+
+gc_abs() { echo "$(cd "$(dirname "$1")" 2>/dev/null && pwd)/$(basename "$1")"; }  # a path made absolute
 
 gc_require_device() {  # at once, with one line, when torch sees no CUDA GPU (DEVICE=cpu runs on the CPU)
   if [ "$DEV" = cuda ] && ! "$PY" -c "import torch, sys; sys.exit(not torch.cuda.is_available())" 2>/dev/null; then
