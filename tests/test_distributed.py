@@ -175,7 +175,8 @@ def first_step(ws: Path, name: str, parallel: bool, lam: float | None = None,
     idx = torch.randint(0, len(rays), (rec.train.batch_rays,), generator=gen)
     opt = make_optimizer(task)
     params = [p for g in opt.param_groups for p in g["params"]]
-    learnable, finite, logs = batch_gradients(task, rays, idx, 0, parallel)
+    learnable, loss_bad, logs = batch_gradients(task, rays, idx, 0, parallel)
+    finite = not bool(loss_bad)
     if parallel:
         learnable, finite, logs = dist.average_gradients(params, learnable, finite, logs)
     assert learnable and finite
