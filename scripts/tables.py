@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Rebuild the result tables of docs/*.md from the JSON reports under docs/data/.
+"""Rebuild the result tables of README.md and docs/*.md from the JSON reports under docs/data/.
 
 A table in a markdown file sits between two HTML comments and is generated from docs/data/NAME.json:
 
@@ -7,7 +7,7 @@ A table in a markdown file sits between two HTML comments and is generated from 
     | model | PSNR | ... |
     <!-- /table -->
 
-`python scripts/tables.py` rewrites every such table in docs/*.md; `--check` rewrites nothing and exits
+`python scripts/tables.py` rewrites every such table in README.md and docs/*.md; `--check` rewrites nothing and exits
 1 naming the tables that differ from their data (tests/test_tables.py runs it). docs/data/NAME.json is
 one of:
 
@@ -25,6 +25,11 @@ one of:
   difference to the size's baseline, SSIM, ||w||_0, GFLOPs per image and their ratio to the baseline's, and
   training minutes from the reports' "train s" extra), then the reference rows printed as written (the
   paper's own figures);
+
+- a summary {"summary": {"models": [[name, header], ...], "rows": [{"label": str, "report": FILE}, ...],
+  "experts": header}, "first_column": header, "notes": [[cell, ...], ...]}: one row per report, a column of the
+  experts' PSNRs (with "experts"), one column per model: the baseline's PSNR, every other model's PSNR against it and its GFLOPs per image as a ratio of the baseline's; then the notes
+  rows printed as written (figures no report of this layout holds: transcribed, each with its provenance);
 
 - a generic table {"columns": [header, ...], "rows": [[cell, ...], ...]} for a table that is neither a
   model nor a bench table (a transcribed comparison, a list of targets): every cell is a string printed
@@ -97,7 +102,8 @@ def _files(group: dict) -> list[str]:
 
 def reports_of(spec: dict) -> list[str]:
     """Every docs/data file that a table spec reads."""
-    return [f for g in spec.get("groups", []) + spec.get("sizes", []) for f in _files(g)]
+    parts = spec.get("groups", []) + spec.get("sizes", []) + spec.get("summary", {}).get("rows", [])
+    return [f for g in parts for f in _files(g)]
 
 
 def _read(files: list[str]) -> dict:
@@ -169,6 +175,33 @@ def size_table(spec: dict) -> str:
     return _table(columns, rows)
 
 
+def summary_table(spec: dict) -> str:
+    """One row per report: the baseline's PSNR, then each model's PSNR and GFLOPs against the baseline's."""
+    models, experts = spec["summary"]["models"], spec["summary"].get("experts")
+    columns = [spec.get("first_column", ""), *([experts] if experts else []), *(header for _, header in models)]
+    rows = []
+    for line in spec["summary"]["rows"]:
+        by_name = _read(_files(line))
+        base = by_name[line.get("baseline", "baseline")]
+        cells = []
+        if experts:  # the experts trained alone (every expert of the report but the baseline), smallest first
+            alone = [m for m in by_name.values() if m.get("kind") == "expert" and m is not base]
+            cells.append(" / ".join(f"{m['psnr']:.2f}" for m in alone) + " dB")
+        for name, _ in models:
+            m = by_name[name]
+            if m is base:
+                cells.append(f"{m['psnr']:.2f} dB")
+            else:
+                ratio = m["gflops_per_image"] / base["gflops_per_image"]
+                cells.append(f"{m['psnr'] - base['psnr']:+.2f} dB at {ratio:.2f}x")
+        rows.append([line["label"], *cells])
+    for note in spec.get("notes", []):
+        if len(note) != len(columns) or not all(isinstance(c, str) for c in note):
+            raise ValueError(f"summary note {note!r}: want {len(columns)} string cells")
+        rows.append(note)
+    return _table(columns, rows)
+
+
 def bench_table(spec: dict) -> str:
     rows = [[r["name"], r["group"], _num(r["psnr"], 3), _num(r["ssim"], 4), f"{r['train_seconds']:.0f}",
              _num(r["seconds_per_image"], 3), _num(r["gflops_per_image"], 3), _count(r["params"], False),
@@ -192,6 +225,8 @@ def render(name: str) -> str:
         return generic_table(spec)
     if "sizes" in spec:
         return size_table(spec)
+    if "summary" in spec:
+        return summary_table(spec)
     return model_table(spec)
 
 
@@ -208,12 +243,17 @@ def rebuild(text: str) -> tuple[str, list[str]]:
     return BLOCK.sub(one, text), changed
 
 
+def documents() -> list[Path]:
+    """The markdown files whose tables this script makes: README.md and docs/*.md."""
+    return [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--check", action="store_true", help="change nothing; exit 1 if a table differs from its data")
     args = ap.parse_args(argv)
     stale = []
-    for md in sorted(DOCS.glob("*.md")):
+    for md in documents():
         text = md.read_text()
         new, changed = rebuild(text)
         stale += [f"{md.relative_to(ROOT)}: {n}" for n in changed]

@@ -13,7 +13,7 @@ _spec.loader.exec_module(tables)
 
 
 def _marked() -> list[tuple[Path, str]]:
-    return [(md, m["name"]) for md in sorted((ROOT / "docs").glob("*.md")) for m in tables.BLOCK.finditer(md.read_text())]
+    return [(md, m["name"]) for md in tables.documents() for m in tables.BLOCK.finditer(md.read_text())]
 
 
 def test_every_marked_table_matches_its_data():
