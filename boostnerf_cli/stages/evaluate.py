@@ -79,7 +79,8 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
         rows.append(row)
     result = {"split": split_name, "views": n_views(split, views), "skip": skips.empty and skips.terminated,
               "skips": {"empty": skips.empty, "terminated": skips.terminated},
-              "lpips_note": lpips_note or None, "ssim_note": ssim_note, "models": rows}
+              "lpips_note": lpips_note or None, "ssim_note": ssim_note, "models": rows,
+              "finetuned": {k: v for k, v in ws.manifest().get("moe", {}).items() if k in names and "iterations" in v}}
     if report:
         write_json(ws.reports_dir / "eval.json", result)
         with atomic_path(ws.reports_dir / "eval.md") as tmp:
@@ -89,18 +90,40 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
 
 def markdown_table(result: dict) -> str:
     """The eval report as a Markdown table, in the paper's Table 1 columns."""
+    base = next((r.get("gflops_per_image") for r in result["models"] if r["name"] == "baseline"), None)
+    ratio = lambda g: f"{g / base:.2f}x" if g is not None and base else "-"  # noqa: E731
     lines = [
         f"Split `{result['split']}`, {result['views']} views, skips {Skips(**result['skips']).describe()}.",
         "",
-        "| model | PSNR | SSIM | LPIPS | params | ‖w‖₀ | GFLOPs/image | s/image |",
-        "|---|---|---|---|---|---|---|---|",
+        "| model | PSNR | SSIM | LPIPS | params | ‖w‖₀ | GFLOPs/image | GFLOPs vs baseline | s/image |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["models"]:
         lines.append(
             f"| {r['name']} | {number(r['psnr'], '.3f')} | {number(r['ssim'], '.4f')} | {number(r['lpips'], '.4f')} | {r['params']:,} | "
-            f"{number(r.get('w0'), ',')} | {number(r.get('gflops_per_image'), '.3f')} | {r['seconds_per_image']:.3f} |"
+            f"{number(r.get('w0'), ',')} | {number(r.get('gflops_per_image'), '.3f')} | "
+            f"{ratio(r.get('gflops_per_image'))} | {r['seconds_per_image']:.3f} |"
         )
-    notes = [result[k] for k in ("ssim_note", "lpips_note") if result.get(k)]
+    reading = how_to_read(result.get("finetuned") or {})
+    notes = ([reading] if reading else []) + [result[k] for k in ("ssim_note", "lpips_note") if result.get(k)]
     if notes:
         lines += ["", *notes]
     return "\n".join(lines) + "\n"
+
+
+def how_to_read(finetuned: dict) -> str:
+    """One line on the comparison the table makes, from the manifest's `moe` entries of the finetuned models it
+    lists ({name: {from, iterations}}): which row is the baseline and what it was trained for."""
+    base = finetuned.get("baseline")
+    if not base:
+        return ""
+    others = {k: v["iterations"] for k, v in finetuned.items() if k != "baseline"}
+    steps = base["iterations"]
+    if others and set(others.values()) == {steps}:
+        trained = f"for the same {steps} finetuning steps as {', '.join(others)}"
+    else:
+        trained = f"for {steps} finetuning steps" + (
+            f" ({', '.join(f'{k}: {v}' for k, v in others.items())})" if others else "")
+    return (f"How to read it: `baseline` is the largest expert, {base['from']}, trained on alone {trained}; "
+            f"GFLOPs vs baseline is a model's GFLOPs per image over the baseline's. The "
+            f"expert rows are the pretrained experts before those steps.")
