@@ -5,6 +5,7 @@ A `BoostNerfError` becomes one line on stderr and exit code 2, with no traceback
 
 from __future__ import annotations
 
+import logging
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -14,6 +15,7 @@ from rich.console import Console
 from rich.table import Table
 
 from boostnerf_cli.errors import BoostNerfError, out_of_memory
+from boostnerf_cli.startup import CLOCK
 
 app = typer.Typer(
     name="boostnerf",
@@ -38,6 +40,7 @@ def _version(value: bool) -> None:
 def _app(version: Annotated[bool, typer.Option("--version", is_eager=True, callback=_version,
                                                help="Print boostnerf's version and exit.")] = False) -> None:
     """Boost Your NeRF: train Fast-NeRF experts, mix them with a gate, render and measure."""
+    say_messages()
 out = Console(highlight=False)
 
 
@@ -72,8 +75,59 @@ ExactGateOpt = Annotated[bool, typer.Option("--exact-gate", help="Mixtures: run 
 ViewsOpt = Annotated[Optional[int], typer.Option("--views", min=1, help="Only the first N views of the split.")]
 
 
-def log(msg: str) -> None:
-    err.print(msg, markup=False)  # text as written: "[0.34, 0.66]" or a path "ws[2]" is not a Rich markup tag
+class _Stderr(logging.Handler):
+    """The stages' messages (the `boostnerf_cli` log), one line each on stderr, as written: "[0.34, 0.66]" or a path
+    "ws[2]" is no Rich markup tag."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        err.print(record.getMessage(), markup=False)
+
+
+def say_messages() -> None:
+    """Send the `boostnerf_cli` log, from INFO up, to stderr (once per process)."""
+    logger = logging.getLogger("boostnerf_cli")
+    if not any(isinstance(h, _Stderr) for h in logger.handlers):
+        logger.addHandler(_Stderr())
+        logger.setLevel(logging.INFO)
+
+
+log = logging.getLogger(__name__).info
+
+
+# Every option that sets a recipe key, by command: {parameter: recipe key}. The stages read the recipe alone; the
+# option's spelling is its declaration's (`_flag`).
+RECIPE_OPTIONS = {
+    "pretrain": {"model": "pretrain.model", "res": "pretrain.res", "iters": "pretrain.iters", "seed": "pretrain.seed",
+                 "skip": "pretrain.skip", "image_size": "data.image_size", "holdout_every": "data.holdout_every",
+                 "data_format": "data.format"},
+    "build-moe": {"gate_res": "moe.gate_res", "gate_type": "moe.gate_type", "gate_grid": "moe.gate_grid",
+                  "threshold": "moe.density_threshold"},
+    "finetune": {"iters": "moe.iters", "lam": "moe.lam", "penalty": "moe.penalty", "renormalize": "moe.renormalize",
+                 "seed": "moe.seed"},
+}
+
+
+def _context():
+    try:
+        from typer._click.globals import get_current_context  # Typer vendors Click (0.29: a Click of its own)
+    except ImportError:  # an older Typer: Click itself
+        from click import get_current_context
+    return get_current_context()
+
+
+def _settings() -> dict:
+    """{recipe key: value} of the running command's options that set one (`RECIPE_OPTIONS`), those given."""
+    ctx = _context()
+    table = RECIPE_OPTIONS[ctx.info_name]
+    return {key: ctx.params[name] for name, key in table.items() if ctx.params.get(name) is not None}
+
+
+def _flag(key: str) -> str:
+    """The running command's option that set recipe key `key`, as given (`--no-renormalize` for False)."""
+    ctx = _context()
+    name = next(n for n, k in RECIPE_OPTIONS[ctx.info_name].items() if k == key)
+    option = next(p for p in ctx.command.params if p.name == name)
+    return option.secondary_opts[0] if option.secondary_opts and ctx.params[name] is False else option.opts[0]
 
 
 def _one_process() -> None:
@@ -158,7 +212,7 @@ def pretrain(
     data: Annotated[Optional[Path], typer.Option("--data", help="Scene folder. Default: generate the procedural demo scene in WS/scene.")] = None,
     recipe: RecipeOpt = None,
     model: Annotated[Optional[str], typer.Option("--model", help="Expert family: dvgo (dense grids), tensorf (VM-factorised grids) or ngp (multi-resolution hash grid).")] = None,
-    res: Annotated[Optional[str], typer.Option("--res", help="Comma-separated resolutions, one expert each. For dvgo and tensorf, --res 160 means a final grid of 160^3 voxels (isotropic voxels over the scene box); for ngp, --res 16 means L = 16 hash-grid levels (the paper's 6, 8, 10, 16, 24).")] = None,
+    res: Annotated[Optional[str], typer.Option("--res", callback=lambda text: _int_list(text, "--res") if text else text, help="Comma-separated resolutions, one expert each. For dvgo and tensorf, --res 160 means a final grid of 160^3 voxels (isotropic voxels over the scene box); for ngp, --res 16 means L = 16 hash-grid levels (the paper's 6, 8, 10, 16, 24).")] = None,
     iters: Annotated[Optional[int], typer.Option("--iters", min=1, help="Training steps per expert.")] = None,
     image_size: Annotated[Optional[int], typer.Option("--image-size", min=8, help="Longer image side in pixels after area downscaling.")] = None,
     holdout_every: Annotated[Optional[int], typer.Option("--holdout-every", help="Datasets with no test split: hold out every N-th train view, N >= 2 (0: none).")] = None,
@@ -174,13 +228,10 @@ def pretrain(
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.workspace import number
 
-    rec = _recipe(workspace, recipe).override({  # a rerun (a moved scene, one more expert) keeps the recipe
-        "pretrain.model": model, "pretrain.res": _int_list(res, "--res") if res is not None else None,
-        "pretrain.iters": iters, "pretrain.seed": seed, "pretrain.skip": skip,
-        "data.image_size": image_size, "data.holdout_every": holdout_every, "data.format": data_format})
+    rec = _recipe(workspace, recipe).override(_settings())  # a rerun (a moved scene, one more expert) keeps the recipe
     ws, lock = _writer(workspace, must_exist=False, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock:
-        reports = stage.run(ws, data, rec, dev, force, log)
+        reports = stage.run(ws, data, rec, dev, force)
         if not dist.is_main():
             return
     table = Table("expert", "params", "steps", "seconds", "train PSNR", "held-out PSNR")
@@ -216,12 +267,11 @@ def build_moe(
     from boostnerf_cli.stages import build_moe as stage
     from boostnerf_cli.stages.common import resolve_device
 
-    rec = _recipe(workspace, recipe).override({"moe.gate_res": gate_res, "moe.gate_type": gate_type,
-                                                   "moe.gate_grid": gate_grid, "moe.density_threshold": threshold})
+    rec = _recipe(workspace, recipe).override(_settings())
     names = [n for n in experts.split(",") if n] if experts else None
     ws, lock = _writer(workspace)
     with lock:
-        stage.build(ws, names, rec.moe, resolve_device(device), log)
+        stage.build(ws, names, rec.moe, resolve_device(device))
 
 
 @app.command()
@@ -235,8 +285,6 @@ def finetune(
     lam: Annotated[Optional[float], typer.Option("--lambda", min=0.0, help="Weight of the resolution-weighted auxiliary loss (1e-3 in the paper).")] = None,
     penalty: Annotated[Optional[str], typer.Option("--penalty", help="geometric (paper), linear, quadratic, none, or one weight per expert, smallest first: '1, 1.5, 2.23' (the official code's).")] = None,
     renormalize: Annotated[Optional[bool], typer.Option("--renormalize/--no-renormalize", help="Renormalise the top-k weights to sum to 1 (default; for k = 1 a straight-through 1). Off: raw gate probabilities.")] = None,
-    wide_start: Annotated[Optional[float], typer.Option("--wide-start", help="Fraction of the steps routed to k + 1 experts (renormalised) before narrowing to k (not in the paper; docs/paper-map.md).")] = None,
-    gate_noise: Annotated[Optional[float], typer.Option("--gate-noise", help="Training chooses experts by log p + F * N(0, 1), noisy top-k (not in the paper; docs/paper-map.md).")] = None,
     seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
     force: Annotated[bool, typer.Option("--force", help="Redo a model that is already finetuned.")] = False,
@@ -247,15 +295,15 @@ def finetune(
     from boostnerf_cli.stages.common import resolve_device
 
     name = stage.model_name(topk, ensemble, baseline)
-    rec = _recipe(workspace, recipe).override({"moe.iters": iters, "moe.lam": lam, "moe.penalty": penalty,
-                                                   "moe.renormalize": renormalize, "moe.seed": seed,
-                                                   "moe.wide_start": wide_start, "moe.gate_noise": gate_noise})
-    given = {flag: value for flag, value in (("--lambda", lam), ("--penalty", penalty), ("--renormalize", renormalize),
-                                             ("--wide-start", wide_start), ("--gate-noise", gate_noise))
-             if value is not None}
+    settings = _settings()
+    rec = _recipe(workspace, recipe).override(settings)
     ws, lock = _writer(workspace, distributed=True)
-    with dist.session(resolve_device(device)) as dev, lock:
-        stage.run(ws, name, topk, rec.moe, dev, force, dist.main_log(log), given)
+    with dist.session(resolve_device(device)) as dev, lock, dist.others_quiet():
+        unused, why = stage.unused_settings(ws, name, topk, rec.moe, set(settings))
+        if unused:  # said also when the model is finished and skipped
+            log(f"note: {', '.join(map(_flag, unused))} cannot change {'the baseline' if name == 'baseline' else name} "
+                f"({why}): ignored")
+        stage.run(ws, name, topk, rec.moe, dev, force)
 
 
 @app.command()
@@ -276,7 +324,7 @@ def render(
     device: DeviceOpt = "auto",
 ) -> None:
     """Render a split with each model (PNG colour + 16-bit depth), a comparison (--compare) or a video (--path)."""
-    from boostnerf_cli.models import Skips
+    from boostnerf_cli.models import Skips, Viewing
     from boostnerf_cli.stages import render as stage
     from boostnerf_cli.stages.common import resolve_device
 
@@ -284,16 +332,16 @@ def render(
         raise BoostNerfError("--path, --compare and --per-expert are separate outputs: use one per command")
     if path is None and video is not None:
         raise BoostNerfError("--video needs --path orbit or --path spiral")
-    skips = Skips.from_flags(no_skip, skip_off)
+    viewing = Viewing(split, views, Skips.from_flags(no_skip, skip_off), exact_gate)
     ws, lock = _writer(workspace)
     with lock:
         if path is not None:
-            written = stage.run_video(ws, model, path, frames, video, fps, resolve_device(device), skips, log)
+            video_path = stage.VideoPath(path, frames, fps, video)
+            written = stage.run_video(ws, model, video_path, resolve_device(device), viewing.skips)
         elif compare:
-            written = stage.run_compare(ws, model, split, resolve_device(device), skips, views, log)
+            written = stage.run_compare(ws, model, viewing, resolve_device(device))
         else:
-            written = stage.run(ws, model, split, resolve_device(device), skips, views, log, per_expert=per_expert,
-                                exact_gate=exact_gate)
+            written = stage.run(ws, model, viewing, resolve_device(device), per_expert=per_expert)
     for p in written:  # stdout: the files written, one per line, for a script (the prose above is on stderr)
         print(p)
 
@@ -312,16 +360,15 @@ def eval_cmd(
     device: DeviceOpt = "auto",
 ) -> None:
     """PSNR, SSIM, LPIPS (when its weights are on disk) and seconds per image for every model."""
-    from boostnerf_cli.models import Skips
+    from boostnerf_cli.models import Skips, Viewing
     from boostnerf_cli.stages import evaluate as stage
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.workspace import number
 
-    skips = Skips.from_flags(no_skip, skip_off)
+    viewing = Viewing(split, views, Skips.from_flags(no_skip, skip_off), exact_gate)
     ws, lock = _writer(workspace) if report else _reader(workspace)
     with lock:
-        result = stage.run(ws, model, split, resolve_device(device), skips, views, report, log, costs=not no_costs,
-                          exact_gate=exact_gate)
+        result = stage.run(ws, model, viewing, resolve_device(device), report, costs=not no_costs)
     if report:
         log(f"wrote {ws.reports_dir / 'eval.json'} and eval.md")
     table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")
@@ -346,7 +393,7 @@ def count_params_cmd(
 
     ws, lock = _writer(workspace)
     with lock:
-        result = stage.run(ws, model, split, resolve_device(device), views, log)
+        result = stage.run(ws, model, split, resolve_device(device), views)
     log(f"wrote {ws.reports_dir / 'count-params.json'}")
     table = Table("model", "params", "||w||_0", "GFLOPs/image")
     for r in result["models"]:
@@ -370,7 +417,7 @@ def prune(
 
     ws, lock = _writer(workspace)
     with lock:
-        r = stage.run(ws, model, split, resolve_device(device), views, force, log)
+        r = stage.run(ws, model, split, resolve_device(device), views, force)
     table = Table("model", "params", "file MB", "test PSNR", "train views max |diff|")
     table.add_row(r["from"], f"{r['params_before']:,}", f"{r['file_bytes_before'] / 1e6:.2f}", number(r["test_psnr_before"], ".3f"), "")
     table.add_row(r["name"], f"{r['params_after']:,}", f"{r['file_bytes_after'] / 1e6:.2f}", number(r["test_psnr_after"], ".3f"),
@@ -411,7 +458,7 @@ def bench(
 
     _, lock = _writer(workspace, must_exist=False)
     with lock:
-        result = stage.run(workspace, data, rec, suite, names, resolve_device(device), views, log)
+        result = stage.run(workspace, data, rec, suite, names, resolve_device(device), views)
     table = Table(*stage.COLUMNS)
     for r in result["rows"]:
         table.add_row(r["name"], r["group"], number(r["psnr"], ".3f"), number(r["ssim"], ".4f"), f"{r['train_seconds']:.0f}",
@@ -486,6 +533,8 @@ PATH_OPTIONS = ("-w", "--workspace", "--data", "--recipe", "--video")  # the opt
 
 def main() -> None:
     import signal
+
+    CLOCK.begin()  # a stage's start-up counts from here (boostnerf_cli/startup.py)
 
     try:
         from typer._click import exceptions as click  # Typer vendors Click (0.29: a Click of its own)

@@ -13,6 +13,7 @@ import torch
 
 from boostnerf_cli.flops import count_flops
 from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, n_views
+from boostnerf_cli.render.packing import DYNAMIC
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.render.renderer import render_rays, render_view
 from boostnerf_cli.scenes import Scene, Split
@@ -82,8 +83,8 @@ def gflops_per_image(model: LoadedModel, scene: Scene, split: Split, device: str
     n = n_views(split, views)
     total = 0
     for i in range(n):
-        with count_flops() as fc:
-            render_view(model.field, split, i, settings, skip, device)
+        with count_flops() as fc:  # exact packing: the samples the model evaluates, not a budget's pads
+            render_view(model.field, split, i, settings, skip, device, packer=DYNAMIC)
         total += fc.total
     return total / max(1, n) / 1e9
 

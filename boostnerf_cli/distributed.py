@@ -14,6 +14,7 @@ rank that fails anywhere in a step still meets the others (docs/distributed.md).
 
 from __future__ import annotations
 
+import logging
 import os
 from contextlib import ExitStack, contextmanager
 from datetime import timedelta
@@ -78,9 +79,17 @@ def session(device: str) -> Iterator[str]:
         dist.destroy_process_group()
 
 
-def main_log(log: Callable[[str], None]) -> Callable[[str], None]:
-    """`log` on rank 0, silence on the others (for messages every rank would repeat)."""
-    return log if is_main() else (lambda msg: None)
+@contextmanager
+def others_quiet() -> Iterator[None]:
+    """The block's messages (the `boostnerf_cli` log) said by rank 0 alone, for messages every rank would repeat."""
+    logger = logging.getLogger("boostnerf_cli")
+    level = logger.level
+    if not is_main():
+        logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 # --- meeting points ------------------------------------------------------------------------------

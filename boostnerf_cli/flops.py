@@ -39,10 +39,13 @@ class FlopCount:
 
 
 _ACTIVE: ContextVar[FlopCount | None] = ContextVar("boostnerf_flops", default=None)
+_OPEN = 0  # counters open in any context: outside them `add` returns at once (and a compiled step traces nothing)
 
 
 def add(kind: str, flops: int) -> None:
     """Record `flops` of kind `kind` in the open counter, if any."""
+    if not _OPEN:
+        return
     counter = _ACTIVE.get()
     if counter is not None:
         counter.analytic[kind] = counter.analytic.get(kind, 0) + int(flops)
@@ -50,11 +53,14 @@ def add(kind: str, flops: int) -> None:
 
 @contextmanager
 def count_flops() -> Iterator[FlopCount]:
+    global _OPEN
     counter = FlopCount()
     token = _ACTIVE.set(counter)
+    _OPEN += 1
     try:
         with FlopCounterMode(display=False) as mode:
             yield counter
     finally:
+        _OPEN -= 1
         _ACTIVE.reset(token)
     counter.matmul = int(mode.get_total_flops())

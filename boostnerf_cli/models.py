@@ -19,12 +19,14 @@ from torch import Tensor, nn
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import FAMILIES, count_params
+from boostnerf_cli.lineage import PrunedSpec
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split
+from boostnerf_cli.startup import CLOCK, timed
 from boostnerf_cli.workspace import (
     MALFORMED,
     Workspace,
@@ -46,6 +48,7 @@ def save_expert(path: Path, model: nn.Module, occupancy: OccupancyGrid | None, e
     save_tensors(path, tensors, {**model.config_dict(), **(extra_meta or {})})
 
 
+@timed("models")
 def load_expert(path: Path, device: str | torch.device = "cpu") -> tuple[nn.Module, OccupancyGrid | None, dict]:
     """-> (expert in eval mode, its occupancy grid or None, metadata)."""
     tensors, meta = load_tensors(path, device)
@@ -82,6 +85,7 @@ def save_mixture(path: Path, mix: Mixture, extra: dict | None = None) -> None:
     save_tensors(path, tensors, meta)
 
 
+@timed("models")
 def load_mixture(path: Path, device: str | torch.device = "cpu") -> tuple[Mixture, dict]:
     """-> (mixture in eval mode, metadata)."""
     tensors, meta = load_tensors(path, device)
@@ -146,7 +150,8 @@ def save_pruned(src: Path, dst: Path, keep: dict[str, Tensor], fill: Callable[[s
         tables.append({"name": tname, "rows": table.shape[0], "kept_rows": kept, "channels": table.shape[1],
                        "fill": values})
     meta = {k: v for k, v in meta.items() if k != "format_version"}
-    save_tensors(dst, tensors, {**meta, "name": name, "pruned_from": pruned_from, "pruned_from_digest": meta["digest"],
+    save_tensors(dst, tensors, {**meta, "name": name, "from": pruned_from,
+                                "signature": PrunedSpec({pruned_from: meta["digest"]}).signature(),
                                 "packed": packed, "stored_params": params - dropped})
     return tables, dropped
 
@@ -188,6 +193,17 @@ class Skips:
 ALL_SKIPS = Skips()
 
 
+@dataclass(frozen=True)
+class Viewing:
+    """Which views a reading stage (eval, render) renders and how: the split, its first `views` (None: all), the
+    skips, and for a mixture its exact gate instead of the baked one (`LoadedModel.for_rendering`)."""
+
+    split: str = "test"
+    views: int | None = None
+    skips: Skips = ALL_SKIPS
+    exact_gate: bool = False
+
+
 @dataclass
 class LoadedModel:
     """A field ready to render, with what rendering it needs."""
@@ -217,19 +233,14 @@ class LoadedModel:
         return self.settings(scene, 1e-4 if skips.terminated else 0.0), self.skip if skips.empty else None
 
 
-def model_file(ws: Workspace, name: str) -> Path:
-    """Where model `name` of the workspace lives: experts/NAME.safetensors, else moe/NAME.safetensors."""
-    return ws.expert_path(name) if ws.expert_path(name).exists() else ws.model_path(name)
-
-
 def load_model(ws: Workspace, name: str, device: str, exact_gate: bool = False) -> LoadedModel:
     """An expert (`dvgo-64`), a mixture (`top1`, `top2`, `ens`) or the finetuned `baseline` of the workspace.
 
     A mixture is returned ready to render: its gate baked (`Mixture.for_rendering`) unless `exact_gate`.
     """
-    path = model_file(ws, name)
+    path = ws.model_file(name)
     if not path.exists() or name == "geometry":
-        known = ", ".join(all_model_names(ws)) or "none yet"
+        known = ", ".join(ws.all_model_names()) or "none yet"
         raise BoostNerfError(f"no model named {name!r} in {ws.root} (models: {known})")
     if read_meta(path).get("family") == "mixture":
         mix, meta = load_mixture(path, device)
@@ -239,79 +250,6 @@ def load_model(ws: Workspace, name: str, device: str, exact_gate: bool = False) 
     model, occ, meta = load_expert(path, device)
     return LoadedModel(name, "expert", model, occ.to(device) if occ is not None else None, meta["step"],
                        model.bbox, meta.get("stored_params", count_params(model)), dropped_rows(path, meta))
-
-
-def _finetune_flag(name: str) -> str:
-    return {"baseline": "--baseline", "ens": "--ensemble"}.get(name, f"--topk {name[3:]}" if name[3:].isdigit() else name)
-
-
-def stale_reason(ws: Workspace, name: str) -> tuple[str, str] | None:
-    """Why model `name` is stale, as (what changed, the command that makes it again), or None when it is current:
-    it was made from a model (moe/init from its experts, a finetuned mixture from moe/init, the baseline from the
-    largest expert, a pruned model from its source) that changed since. The first stale link from the experts up
-    is named, since remaking it comes first. A pruned model without its report (a prune stopped before its check)
-    is stale too. An expert (or a missing file) is never stale here."""
-    path = model_file(ws, name)
-    if not path.exists():
-        return None
-    meta = read_meta(path)
-    root = ws.root
-    if "pruned_from" in meta and not (ws.moe_dir / f"{name}.json").exists():  # written last, after prune's check
-        return (f"its prune did not finish (no moe/{name}.json, the check of its renders)",
-                f"`boostnerf prune -w {root} --model {meta['pruned_from']}`")
-    if name == "init":
-        for expert, digest in (meta.get("inputs") or {}).items():
-            src = ws.expert_path(expert)
-            now = read_meta(src).get("digest") if src.exists() else None
-            if now != digest:
-                return (f"expert {expert} was {'removed' if now is None else 'retrained'} after build-moe",
-                        f"`boostnerf build-moe -w {root}`, then finetune the mixtures again with --force")
-        return None
-    source, digest = meta.get("pruned_from"), meta.get("pruned_from_digest")
-    if source is None:
-        source, digest = meta.get("from"), meta.get("from_digest")
-    if source is None or digest is None:
-        return None
-    if (earlier := stale_reason(ws, source)) is not None:  # the source's own staleness is remade first
-        return earlier
-    src = model_file(ws, source)
-    now = read_meta(src).get("digest") if src.exists() else None
-    if now == digest:
-        return None
-    change = "removed" if now is None else "changed"
-    if "pruned_from" in meta:
-        return (f"{source} was {change} after {name} was pruned from it",
-                f"`boostnerf prune -w {root} --model {source} --force`")
-    what = f"moe/{source} was rebuilt" if source == "init" else f"expert {source} was {'removed' if now is None else 'retrained'}"
-    return f"{what} after {name} was finetuned from it", f"`boostnerf finetune -w {root} {_finetune_flag(name)} --force`"
-
-
-def current_models(ws: Workspace, names: list[str] | None = None) -> list[str]:
-    """`names` (default: every model of the workspace), refused in one line when one is stale (`stale_reason`):
-    a table or picture of a model made from an expert since retrained would compare it with what it no longer is."""
-    have = all_model_names(ws)
-    names = names or have
-    reasons = {n: stale_reason(ws, n) for n in dict.fromkeys([*names, *have])}
-    stale = {n: reasons[n] for n in names if reasons[n] is not None}
-    if stale:
-        what = next(iter(stale.values()))[0]
-        by_remedy: dict[str, list[str]] = {}  # each way of making stale models again, and the models it makes
-        for n, (_, remedy) in stale.items():
-            by_remedy.setdefault(remedy, []).append(n)
-        others = [n for n in have if reasons[n] is None]
-        raise BoostNerfError(
-            f"{', '.join(stale)} {'is' if len(stale) == 1 else 'are'} stale: {what}; make "
-            + "; ".join(f"{', '.join(names)} again with {remedy}" if i == 0 else f"{', '.join(names)} with {remedy}"
-                        for i, (remedy, names) in enumerate(by_remedy.items()))
-            + (f" (or name current models: {' '.join('--model ' + n for n in others)})" if others else ""))
-    return names
-
-
-def all_model_names(ws: Workspace) -> list[str]:
-    """Experts smallest first, then mixtures in the paper's order."""
-    order = {"baseline": 0, "top1": 1, "top2": 2, "ens": 9}
-    mixtures = sorted((n for n in ws.model_names() if n != "init"), key=lambda n: (order.get(n, 5), n))
-    return ws.expert_names() + mixtures
 
 
 def n_views(split: Split, views: int | None) -> int:
@@ -325,6 +263,7 @@ def render_split(model: LoadedModel, scene: Scene, split: Split, device: str, sk
     A generator: a caller that writes or scores each view as it comes holds one view in memory, not the split
     (200 Blender test views at 800 px held 2.6 GB per model)."""
     settings, skip = model.render_setup(scene, skips)
+    CLOCK.ready(model.name)
     for i in range(n_views(split, views)):
         t0 = time.perf_counter()
         r = render_view(model.field, split, i, settings, skip, device)

@@ -11,7 +11,7 @@ import math
 import re
 import types
 import typing
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -38,8 +38,7 @@ from boostnerf_cli.limits import (
     rule_of,
 )
 from boostnerf_cli.moe.gate import GATE_GRIDS, TRAINABLE_GATES
-from boostnerf_cli.moe.mixture import MIX_MODES, VD_FILTERS, VD_SOURCES
-from boostnerf_cli.moe.router import AUX_NORMS, AUX_SAMPLES, PENALTY_RULE
+from boostnerf_cli.moe.mixture import Routing
 from boostnerf_cli.scenes import FORMATS
 
 # Seeds feed numpy's generator (the procedural scene: no negative seeds) and torch's (64 bits, seed + res).
@@ -90,6 +89,9 @@ class TrainRecipe:
     random_background: bool = False
     log_every: int = limit(100, at_least(1))  # steps between log lines (and entries of the report's history)
     checkpoint_every: int = limit(500, at_least(1))  # steps between training checkpoints (an interrupted run resumes from the last)
+    # torch.compile the step's loss and its gradient into fused kernels: auto = on a GPU (where the step then neither
+    # waits for the device nor launches kernel by kernel), off on a CPU (a compile takes minutes there)
+    compile: str = limit("auto", OneOf(("auto", "on", "off")))
 
 
 def family_sections(cls: type) -> type:
@@ -130,26 +132,16 @@ def unused_family_note(pre: PretrainRecipe) -> str | None:
             f"{pre.model}'s default architecture; its {sections} settings apply only to that family")
 
 
-UNSHAPING = ("log_every", "checkpoint_every")  # training settings that do not change what is trained
-
-
-def shaping_changes(current, default, leave_out: tuple[str, ...] = ()) -> dict:
-    """The fields of the dataclass `current` that shape what is trained and differ from `default`'s, for a
-    checkpoint's signature. Left out: `UNSHAPING`, `leave_out`, and the learning rates (`lr_*`), which a diverged
-    run may lower to resume from its last good checkpoint. A setting is named only when it is not the default, so
-    that a checkpoint written before it was named still resumes, and any change from it is still seen."""
-    return {f.name: getattr(current, f.name) for f in fields(current)
-            if f.name not in UNSHAPING + leave_out and not f.name.startswith("lr_")
-            and getattr(current, f.name) != getattr(default, f.name)}
-
-
 def _finetune_train() -> TrainRecipe:
     """Finetuning continues from trained experts: lower learning rates, no growth."""
     return TrainRecipe(lr_grid=0.03, lr_mlp=5e-4, growth=[], occupancy_every=0)
 
 
 @dataclass
-class MoERecipe:
+class MoERecipe(Routing):
+    """The `moe` section: the mixture's routing (`moe/mixture.py: Routing`, whose keys it holds), its gate and
+    density volume (build-moe), and the joint training (finetune)."""
+
     gate_type: str = limit("grid", OneOf(TRAINABLE_GATES))  # grid: softmax(MLP(grid features)) (paper); linear: softmax of a linear map of them (the paper's ablation); switch: an MLP on encoded positions, no grid (Switch-NeRF)
     gate_grid: str = limit("auto", OneOf(("auto", *GATE_GRIDS)))  # dense | tensorf | hash | auto (the experts' family: dvgo dense, tensorf VM, ngp hash)
     gate_res: int = limit(32, Range(2, MAX_GRID_RES))  # the gate grid has gate_res^3 voxels (128 in the paper)
@@ -161,18 +153,7 @@ class MoERecipe:
     vd_res: int | None = limit(None, GRID_RES)  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
     density_threshold: float = limit(1e-3, THRESHOLD)  # T: samples whose V_D opacity over one step is below it are filtered
     step_from: str = limit("largest", OneOf(("smallest", "largest")))  # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
-    topk: int = limit(2, at_least(1))  # the untrained mixture's k (moe/init; bench's untrained rows): build-moe fits it to the number of experts, with a note; finetune --topk K sets each model's
     lam: float = limit(1e-3, LOSS_WEIGHT)  # lambda: weight of the resolution-weighted auxiliary loss (L_tot = L_nerf + lambda L_rw-aux; the paper uses 1e-3)
-    penalty: str = limit("geometric", PENALTY_RULE)  # geometric | linear | quadratic | none | weights "1, 1.5, 2.23" (one per expert)
-    aux_norm: str = limit("batch", OneOf(AUX_NORMS))  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 = k^2 |B|^2 (official code)
-    aux_samples: str = limit("all", OneOf(AUX_SAMPLES))  # auxiliary loss over every routed sample | visible: those whose V_D opacity and V_D rendering weight pass moe.train.color_threshold (official code)
-    vd_source: str = limit("smallest", OneOf(VD_SOURCES))  # V_D: fitted to the smallest expert, frozen | largest: the largest expert's own density as it trains (official code)
-    vd_filter: str = limit("opacity", OneOf(VD_FILTERS))  # V_D drops samples by its opacity over one step | visible: also those its rendering weight along the ray puts at or below the colour threshold (official code)
-    mix: str = limit("density", OneOf(MIX_MODES))  # the routing weights mix density (paper's equation) | alpha: each expert's opacity over one render step (official code)
-    renormalize: bool = True  # top-k weights sum to 1 (k = 1: straight-through 1); False: raw probabilities (docs/results.md)
-    wide_start: float = limit(0.0, THRESHOLD)  # fraction of the joint steps routed to k + 1 experts (renormalised) before narrowing to k: the gate compares experts before the partition sets (not in the paper; docs/paper-map.md)
-    gate_noise: float = limit(0.0, Range(0.0, 10.0))  # noisy top-k: training chooses experts by log p + gate_noise * N(0, 1) (Shazeer et al. 2017), so a Top-1 gate sees other experts too; rendering never adds it (not in the paper; docs/paper-map.md)
-    bake_res: int = limit(128, Range(0, MAX_GRID_RES))  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
     iters: int = limit(1000, at_least(1))  # joint training steps of each mixture, the ensemble and the baseline
     lr_gate: float = limit(1e-2, LEARNING_RATE)  # learning rate of the gate's grid
     lr_gate_mlp: float = limit(1e-3, LEARNING_RATE)  # learning rate of the gate's MLP

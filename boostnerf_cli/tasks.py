@@ -10,27 +10,31 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 from torch import Tensor, nn
 
 from boostnerf_cli import distributed as dist
-from boostnerf_cli.metrics import mse_to_psnr
+from boostnerf_cli.device import constant, from_host
 from boostnerf_cli.moe.mixture import Mixture, RoutingStats
 from boostnerf_cli.moe.router import aux_denominator, expert_counts
 from boostnerf_cli.recipe import MoERecipe, TrainRecipe
 from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.render.packing import Packed, Packer, packer_for
 from boostnerf_cli.render.renderer import RayBundle, RenderSettings, render_rays
 from boostnerf_cli.render.volrend import render_weights
 from boostnerf_cli.scenes import Scene
-from boostnerf_cli.train import RayData
+from boostnerf_cli.startup import timed
+from boostnerf_cli.train import RayData, compiled, compiles
 
 
+@timed("rays")
 def train_rays(scene: Scene, bbox: Tensor, device: str, tcfg: TrainRecipe) -> RayData:
     """Every training ray of `scene` that crosses `bbox`, with its pixel colour (and, for `tcfg.random_background`,
     its alpha when the images had one), on `device`."""
-    return RayData.from_split(scene.splits["train"], bbox.cpu(), scene.near, scene.far, scene.ndc,
-                              keep_alpha=tcfg.random_background).to(device)
+    return RayData.from_split(scene.splits["train"], bbox, scene.near, scene.far, scene.ndc,
+                              keep_alpha=tcfg.random_background, device=device)
 
 
 def random_background(n: int, step: int, device: torch.device | str) -> Tensor:
@@ -41,7 +45,7 @@ def random_background(n: int, step: int, device: torch.device | str) -> Tensor:
     run draws what an uninterrupted one does, and torch's own random stream (the renderer's jitter) is untouched."""
     gen = torch.Generator().manual_seed(1_000_003 + step)
     colours = torch.rand(dist.world_size() * n, 3, generator=gen)
-    return colours[dist.rank() * n : (dist.rank() + 1) * n].to(device)
+    return from_host(colours[dist.rank() * n : (dist.rank() + 1) * n], device)
 
 
 def photometric_loss(bundle, rgb: Tensor, alpha: Tensor | None, tcfg: TrainRecipe,
@@ -55,7 +59,7 @@ def photometric_loss(bundle, rgb: Tensor, alpha: Tensor | None, tcfg: TrainRecip
     colour does by its opacity: on a scene with alpha (Blender) empty space still matches a transparent pixel."""
     color = bundle.color
     if tcfg.random_background:
-        bg = torch.as_tensor(background, dtype=color.dtype, device=color.device)
+        bg = constant(tuple(background), color.device, color.dtype)
         shift = random_background(color.shape[0], step, color.device).to(color.dtype) - bg
         color = color + (1.0 - bundle.acc)[:, None] * shift
         if alpha is not None:
@@ -68,7 +72,22 @@ def photometric_loss(bundle, rgb: Tensor, alpha: Tensor | None, tcfg: TrainRecip
     if tcfg.weight_entropy > 0:
         acc = bundle.acc.clamp(1e-6, 1 - 1e-6)
         loss = loss + tcfg.weight_entropy * -(acc * torch.log(acc) + (1 - acc) * torch.log(1 - acc)).mean()
-    return loss, {"loss": float(loss.detach()), "psnr": mse_to_psnr(float(mse.detach()))}
+    # device values: the loop reads them on its logging steps only, so the step never waits for the device
+    return loss, {"loss": loss.detach(), "psnr": psnr_of(mse.detach())}
+
+
+def psnr_of(mse: Tensor) -> Tensor:
+    """-10 log10(mse) on the device, in float64 (as `metrics.mse_to_psnr` computes it; inf when mse == 0)."""
+    return -10.0 * torch.log10(mse.double())
+
+
+def step_setup(loss, tcfg: TrainRecipe, device: torch.device, packer: Packer | None) -> tuple[Packer, Callable]:
+    """A task's packing (`packer`, or the device's: static budgets on a GPU and for a compiled step) and its loss,
+    compiled when train.compile says so (`train.compiles`)."""
+    compiling = compiles(tcfg.compile, device)
+    if packer is None:
+        packer = packer_for(device, static=compiling)
+    return packer, compiled(loss) if compiling else loss
 
 
 @dataclass
@@ -82,6 +101,10 @@ class FieldTask:
     base_mask: OccupancyGrid | None  # skips never reopen cells outside it
     growth_steps: tuple[int, ...] = ()
     final_voxels: int = 0
+    packer: Packer | None = None  # how the renderer lists kept samples (render/packing.py; default: for the device)
+
+    def __post_init__(self) -> None:
+        self.packer, self.loss = step_setup(self.loss, self.tcfg, self.model.bbox.device, self.packer)
 
     def param_groups(self) -> list[dict]:
         return self.model.param_groups(self.tcfg.lr_grid, self.tcfg.lr_mlp)
@@ -112,7 +135,7 @@ class FieldTask:
         self.skip = grid
 
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, alpha: Tensor | None, step: int):
-        bundle = render_rays(self.model, origins, dirs, self.settings, self.skip, jitter=True)
+        bundle = render_rays(self.model, origins, dirs, self.settings, self.skip, jitter=True, packer=self.packer)
         loss, logs = photometric_loss(bundle, rgb, alpha, self.tcfg, self.settings.background, step)
         reg = self.model.regularization()
         if reg is not None:
@@ -133,14 +156,8 @@ class FieldTask:
         self.model.resize_to(tuple(state["meta"]["shape"]))
         self.model.load_state_dict(state["model"])
         if state["skip"] is not None:
-            # Until its first refresh the mask is the geometry stage's grid, over the geometry's own box, not the
-            # expert's (a checkpoint of then resumed the mask stretched over the expert's box). A checkpoint written
-            # before the box was stored: the base mask's box when the mask has its shape, as only it can.
-            box = state.get("skip_bbox")
-            if box is None:
-                same = self.base_mask is not None and tuple(state["skip"].shape) == tuple(self.base_mask.occupied.shape)
-                box = self.base_mask.bbox if same else self.model.bbox
-            self.skip = OccupancyGrid(state["skip"], box.to(self.model.bbox.device))
+            # until its first refresh the mask is the geometry stage's grid, over the geometry's own box
+            self.skip = OccupancyGrid(state["skip"], state["skip_bbox"].to(self.model.bbox.device))
 
 
 def occupancy_shape(model: nn.Module) -> tuple[int, int, int]:
@@ -148,14 +165,6 @@ def occupancy_shape(model: nn.Module) -> tuple[int, int, int]:
     s = model.shape
     f = max(1.0, max(s) / 128)
     return tuple(max(2, int(math.ceil(v / f))) for v in s)  # type: ignore[return-value]
-
-
-def sparse_options(gate_kind: str, topk: int, m: int, rec: MoERecipe) -> tuple[int, float]:
-    """(wide_steps, gate_noise) of a finetuning run: both options need a choice to make, a trained gate that leaves
-    some experts out (not the ensemble, not k = M); elsewhere they are 0. wide_steps < iters: the last step narrows;
-    gate_noise: the noisy top-k choice while training (router.top_k)."""
-    sparse = gate_kind != "uniform" and topk < m
-    return (int(rec.wide_start * rec.iters), rec.gate_noise) if sparse else (0, 0.0)
 
 
 @dataclass
@@ -166,27 +175,22 @@ class MixtureTask:
     settings: RenderSettings
     tcfg: TrainRecipe
     rec: MoERecipe
+    packer: Packer | None = None  # how the renderer and the experts list kept samples (default: for the device)
 
     def param_groups(self) -> list[dict]:
         return self.mix.param_groups(self.tcfg.lr_grid, self.tcfg.lr_mlp, self.rec.lr_gate, self.rec.lr_gate_mlp)
 
     def __post_init__(self) -> None:
-        # the routing the task ends with; `rec.wide_start` of the steps route to one expert more before it
-        self.final_routing = {"topk": self.mix.cfg.topk, "renormalize": self.mix.cfg.renormalize}
-        self.wide_steps, self.gate_noise = sparse_options(self.mix.gate.cfg.kind, self.mix.cfg.topk, self.mix.m, self.rec)
+        self.packer, self.loss = step_setup(self.loss, self.tcfg, self.mix.bbox.device, self.packer)
 
     def before_step(self, step: int) -> bool:
-        """Set the step's routing (a function of the step alone, so a resumed run routes as an uninterrupted one)."""
-        routing = self.final_routing
-        if step < self.wide_steps:
-            routing = {"topk": routing["topk"] + 1, "renormalize": True}
-        if any(getattr(self.mix.cfg, k) != v for k, v in routing.items()):
-            self.mix.configure(**routing)
+        """Nothing changes the mixture's parameters between steps."""
         return False
 
     def loss(self, origins: Tensor, dirs: Tensor, rgb: Tensor, alpha: Tensor | None, step: int):
         stats = RoutingStats()
-        bundle = render_rays(self.mix.with_stats(stats, self.gate_noise), origins, dirs, self.settings, self.mix.skip, jitter=True)
+        bundle = render_rays(self.mix.with_stats(stats, self.packer), origins, dirs, self.settings, self.mix.skip,
+                             jitter=True, packer=self.packer)
         loss, logs = photometric_loss(bundle, rgb, alpha, self.tcfg, self.settings.background, step)
         for ex in self.mix.experts:  # family-specific terms (TensoRF's L1), as in pretraining
             reg = ex.regularization()
@@ -200,8 +204,8 @@ class MixtureTask:
         if self.rec.lam > 0 and self.mix.gate.cfg.kind != "uniform":
             loss = loss + self.rec.lam * aux
             logs["aux"] = aux_value
-        for i, f in enumerate(load):
-            logs[f"load{i}"] = f
+        for i in range(self.mix.m):
+            logs[f"load{i}"] = load[i]
         logs["samples"] = bundle.n_samples / origins.shape[0]
         return loss, logs
 
@@ -217,24 +221,26 @@ def visible_samples(mix: Mixture, bundle: RayBundle, origins: Tensor, dirs: Tens
     """Which samples of the density pass are visible, as the official code counts them for its auxiliary loss
     (EIDOSLAB/boost-your-nerf, dvgo/moe.py, DVGOMoE.forward): the density volume's opacity over the step and its
     rendering weight along the ray (V_D alone composited over the density pass's samples) both above `threshold`
-    (its fast_color_thres, 1e-4; here moe.train.color_threshold). -> (n_samples,) bool, in the routing order."""
-    rows, t, step = bundle.extras["rows"], bundle.extras["t"], bundle.extras["step"]
+    (its fast_color_thres, 1e-4; here moe.train.color_threshold). -> (n_samples,) bool, in the routing order (a
+    static packing's pads: False)."""
+    rows, live, t, step = bundle.extras["rows"], bundle.extras["live"], bundle.extras["t"], bundle.extras["step"]
+    dens = Packed(rows, live, t.numel())
     r, s = t.shape
-    ray = rows // s
+    ray = torch.div(rows, s, rounding_mode="floor")
     xyz = origins[ray] + t.reshape(-1)[rows, None] * dirs[ray]  # the renderer's sample positions
-    sigma = torch.zeros(r * s, device=t.device, dtype=t.dtype)
-    sigma[rows] = mix.vd_density(xyz).to(t.dtype)
-    weights, alpha, _ = render_weights(sigma.reshape(r, s), torch.full((r, s), step, device=t.device, dtype=t.dtype))
-    return (alpha.reshape(-1)[rows] > threshold) & (weights.reshape(-1)[rows] > threshold)
+    sigma = dens.scatter(mix.vd_density(xyz).to(t.dtype)).reshape(r, s)
+    weights, alpha, _ = render_weights(sigma, torch.full((r, s), step, device=t.device, dtype=t.dtype))
+    return dens.keep((alpha.reshape(-1)[rows] > threshold) & (weights.reshape(-1)[rows] > threshold))
 
 
 def batch_routing(stats: RoutingStats, weights: Tensor, m: int, norm: str = "batch",
-                  keep: Tensor | None = None) -> tuple[Tensor, float, list[float]]:
+                  keep: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """The auxiliary loss L = M / Z^2 sum_i c_i m_i w_i of the step's whole batch, and the load per expert.
 
     Z = |B| (norm "batch") or sum_i c_i (norm "counts", `router.aux_loss`); the batch is every routed sample, or
     those where `keep` holds (mask over the routed samples; the load is over every routed sample).
-    -> (the term to add to this rank's loss, L's value, the fraction of routed samples each expert got).
+    -> (the term to add to this rank's loss, L's value, the fraction of routed samples each expert got (M,)), the
+    last two detached, on the device.
     Data parallel, the batch is the union of the ranks' shards and L is not a mean of per-shard terms:
     the counts c_i and the number of samples |B| are summed over the ranks (they carry no gradient), and
     each rank's term keeps its own samples' probability mass m_i^(r), times the number of ranks N, so the
@@ -242,22 +248,26 @@ def batch_routing(stats: RoutingStats, weights: Tensor, m: int, norm: str = "bat
     """
     if dist.world_size() == 1:
         aux = stats.aux(weights, norm, keep)
-        return aux, float(aux.detach()), stats.load(m)
+        return aux, aux.detach(), stats.load(m)
     probs = torch.cat(stats.probs) if stats.probs else weights.new_zeros(0, m)
     idx = torch.cat(stats.idx) if stats.idx else torch.zeros(0, 1, dtype=torch.long, device=weights.device)
-    routed, n_routed = expert_counts(idx, m).to(weights), float(idx.shape[0])
+    routed = stats.routed()
+    if routed is not None:  # a static packing's pads count nowhere
+        probs, idx = probs[routed], idx[routed]
+        keep = None if keep is None else keep[routed]
+    n_routed = float(idx.shape[0])
+    routed_counts = expert_counts(idx, m).to(weights)
     if keep is not None:
         probs, idx = probs[keep], idx[keep]
     mass = probs.sum(dim=0)
-    local = torch.cat([expert_counts(idx, m).to(mass), mass, mass.new_tensor([float(probs.shape[0])]), routed.to(mass),
-                       mass.new_tensor([n_routed])])
+    local = torch.cat([expert_counts(idx, m).to(mass), mass, mass.new_tensor([float(probs.shape[0])]),
+                       routed_counts.to(mass), mass.new_tensor([n_routed])])
     total = dist.all_sum(local.double())
     counts, n = total[:m].to(mass), float(total[2 * m])
     routed_total, n_routed = total[2 * m + 1 : 3 * m + 1], float(total[-1])
-    load = (routed_total / n_routed).tolist() if n_routed > 0 else [0.0] * m
+    load = (routed_total / n_routed).to(mass) if n_routed > 0 else mass.new_zeros(m)
     if n == 0:
-        return mass.sum() * 0.0, 0.0, load
+        return mass.sum() * 0.0, mass.new_zeros(()), load
     z = aux_denominator(n, idx.shape[1], norm)
-    value = m / z**2 * float((total[:m] * total[m : 2 * m] * weights.double()).sum())
-    return dist.world_size() * m / z**2 * (counts * mass * weights.to(mass)).sum(), value, load
-
+    value = m / z**2 * (total[:m] * total[m : 2 * m] * weights.double()).sum()
+    return dist.world_size() * m / z**2 * (counts * mass * weights.to(mass)).sum(), value.to(mass), load

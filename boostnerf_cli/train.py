@@ -10,20 +10,25 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections import deque
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import Callable, Iterator, Protocol
 
 import torch
 from torch import Tensor
 
 from boostnerf_cli import distributed as dist
+from boostnerf_cli.adam import Adam
+from boostnerf_cli.device import from_host
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.lineage import MAKE, Found, decide
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
-from boostnerf_cli.workspace import MALFORMED, kill_point_for_tests, malformed, save_torch
+from boostnerf_cli.startup import CLOCK
+from boostnerf_cli.workspace import FORMAT_VERSION, MALFORMED, kill_point_for_tests, malformed, save_torch
 
 
 @dataclass
@@ -38,32 +43,29 @@ class RayData:
 
     @staticmethod
     def from_split(split: Split, bbox: Tensor, near: float, far: float, ndc: NDC | None = None,
-                   keep_alpha: bool = False) -> "RayData":
-        """`keep_alpha`: keep the split's alpha (when its images had one), for a loss that composites the pixels on
-        another colour than the scene's background (`train.random_background`)."""
-        # Two passes over the views: which rays hit the box, then the table filled in place. Building every view's
-        # rays and concatenating them held about 85 bytes per training pixel at the peak, 2.4x the 36 of the table
-        # (300 views at 800 px: 16 GB); now the table and one view's rays. The split's rays are built where its
-        # images are (the CPU); the box may be on the model's device.
-        box = bbox.to(split.poses.device)
-        hits = []
-        for i in range(len(split)):
-            o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, ndc)
-            # A ray that misses the box renders the background exactly: nothing to learn from it.
-            hits.append(intersect_box(o, d, box, near, far)[2])
-        n = sum(int(h.sum()) for h in hits)
-        origins, dirs, rgb = (torch.empty(n, 3, dtype=split.images.dtype) for _ in range(3))
-        alpha = torch.empty(n, dtype=split.images.dtype) if keep_alpha and split.alpha is not None else None
+                   keep_alpha: bool = False, device: torch.device | str = "cpu") -> "RayData":
+        """The rays of `split` that hit `bbox`, built on `device` in one pass over the views: each view's rays that
+        hit are written into a table sized for every pixel, then cut to those written (36 bytes a pixel at most:
+        300 views at 800 px, 6.9 GB). A ray that misses the box renders the background exactly: nothing to learn
+        from it. `keep_alpha`: keep the split's alpha (when its images had one), for a loss that composites the
+        pixels on another colour than the scene's background (`train.random_background`)."""
+        device = torch.device(device)
+        box, dtype, pixels = bbox.to(device), split.images.dtype, split.height * split.width
+        origins, dirs, rgb = (torch.empty(len(split) * pixels, 3, dtype=dtype, device=device) for _ in range(3))
+        alpha = None
+        if keep_alpha and split.alpha is not None:
+            alpha = torch.empty(len(split) * pixels, dtype=dtype, device=device)
         at = 0
-        for i, hit in enumerate(hits):
-            o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, ndc)
+        for i in range(len(split)):
+            o, d = image_rays(split.poses[i].to(device), split.intrinsics[i], split.height, split.width, ndc)
+            hit = intersect_box(o, d, box, near, far)[2]
             k = int(hit.sum())
             origins[at : at + k], dirs[at : at + k] = o[hit], d[hit]
-            rgb[at : at + k] = split.images[i].reshape(-1, 3)[hit]
+            rgb[at : at + k] = split.images[i].to(device).reshape(-1, 3)[hit]
             if alpha is not None:
-                alpha[at : at + k] = split.alpha[i].reshape(-1)[hit]
+                alpha[at : at + k] = split.alpha[i].to(device).reshape(-1)[hit]
             at += k
-        return RayData(origins, dirs, rgb, alpha)
+        return RayData(origins[:at], dirs[:at], rgb[:at], None if alpha is None else alpha[:at])
 
     def to(self, device: torch.device | str) -> "RayData":
         return RayData(self.origins.to(device), self.dirs.to(device), self.rgb.to(device),
@@ -108,6 +110,7 @@ class TrainResult:
     seconds: float
     skipped_steps: int
     history: list[dict] = field(default_factory=list)
+    startup_seconds: float = 0.0  # from the command's start (or the model before) to this model's first step
 
 
 class PsnrTrend:
@@ -120,18 +123,24 @@ class PsnrTrend:
 
     def state(self) -> dict:
         """What a checkpoint keeps, so that a resumed run logs the same means and warns at the same step."""
-        return {"total": self.total, "count": self.count, "means": list(self.means), "warned": self.warned}
+        return {"total": float(self.total), "count": int(self.count), "means": list(self.means), "warned": self.warned}
 
     def load_state(self, state: dict) -> None:
         self.total, self.count = float(state["total"]), int(state["count"])
         self.means, self.warned = [float(m) for m in state["means"]], bool(state["warned"])
 
-    def add(self, psnr: float | None) -> None:
-        if psnr is not None and math.isfinite(psnr):
+    def add(self, psnr: float | Tensor | None) -> None:
+        """Add a step's PSNR (a device value is summed on the device: nothing waits for it)."""
+        if isinstance(psnr, Tensor):
+            finite = torch.isfinite(psnr)
+            self.total = self.total + torch.where(finite, psnr, 0.0)
+            self.count = self.count + finite.to(torch.int64)
+        elif psnr is not None and math.isfinite(psnr):
             self.total, self.count = self.total + psnr, self.count + 1
 
     def close_interval(self) -> float | None:
-        mean = self.total / self.count if self.count else None
+        total, count = float(self.total), int(self.count)
+        mean = total / count if count else None
         if mean is not None:
             self.means.append(mean)
         self.total, self.count = 0.0, 0
@@ -173,12 +182,12 @@ class Progress:
             self.bar.start()
             self.task = self.bar.add_task(title, total=total, completed=start, info="")
 
-    def update(self, step: int, logs: dict[str, float]) -> None:
-        info = " ".join(f"{k}={v:.4g}" for k, v in logs.items())
+    def update(self, step: int, logs: dict[str, float] | None) -> None:
+        """The step count; with `logs` (a logging step's values), also them."""
         if self.bar is not None:
-            self.bar.update(self.task, completed=step, info=info)
-        elif not self.quiet and (step % self.log_every == 0 or step == self.total):
-            print(f"[{self.title}] step {step}/{self.total} {info}", file=sys.stderr, flush=True)
+            self.bar.update(self.task, completed=step, **({} if logs is None else {"info": _info(logs)}))
+        elif not self.quiet and logs is not None and (step % self.log_every == 0 or step == self.total):
+            print(f"[{self.title}] step {step}/{self.total} {_info(logs)}", file=sys.stderr, flush=True)
 
     def warn(self, msg: str) -> None:
         if self.bar is not None:
@@ -191,27 +200,33 @@ class Progress:
             self.bar.stop()
 
 
-def make_optimizer(task: TrainTask) -> torch.optim.Optimizer:
+def _info(logs: dict[str, float]) -> str:
+    return " ".join(f"{k}={v:.4g}" for k, v in logs.items())
+
+
+def make_optimizer(task: TrainTask) -> Adam:
     groups = task.param_groups()
     for g in groups:
         g.setdefault("initial_lr", g["lr"])
-    return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, fused=True)
+    return Adam(groups, betas=(0.9, 0.99), eps=1e-15)
 
 
-def _set_lr(opt: torch.optim.Optimizer, step: int, sched: Schedule) -> None:
+def _set_lr(opt: Adam, step: int, sched: Schedule) -> None:
     factor = sched.lr_decay ** (step / max(1, sched.iters))
     for g in opt.param_groups:
         g["lr"] = g["initial_lr"] * factor
 
 
-def all_finite(params: list[Tensor]) -> bool:
-    """True when no gradient holds a NaN or an infinity: one sum per gradient tensor. A sum is NaN or
-    +-inf when any entry is (+inf and -inf together give NaN); finite entries whose sum overflows float32
-    are refused too, as a gradient that large should be. Measured on CPU over an 80^3 DVGO expert's 6.7M
-    gradients, one thread: 0.9 ms, against 29 ms for a fused max-norm (`_foreach_norm(inf)`, slow on CPU)
-    and ~20% of a small expert's step for an `isfinite` pass per tensor."""
+def grads_finite(params: list[Tensor], device: torch.device | str = "cpu") -> Tensor:
+    """Whether no gradient holds a NaN or an infinity, as a device bool (nothing waits for it): one sum per gradient
+    tensor. A sum is NaN or +-inf when any entry is (+inf and -inf together give NaN); finite entries whose sum
+    overflows float32 are refused too, as a gradient that large should be. Measured on CPU over an 80^3 DVGO
+    expert's 6.7M gradients, one thread: 0.9 ms, against 29 ms for a fused max-norm (`_foreach_norm(inf)`, slow on
+    CPU) and ~20% of a small expert's step for an `isfinite` pass per tensor."""
     grads = [p.grad for p in params if p.grad is not None]
-    return not grads or bool(torch.stack([g.sum() for g in grads]).isfinite().all())
+    if not grads:
+        return torch.ones((), dtype=torch.bool, device=device)
+    return torch.stack([g.sum() for g in grads]).isfinite().all()
 
 
 def _non_finite_entry(obj, where: str = "") -> str | None:
@@ -226,75 +241,13 @@ def _non_finite_entry(obj, where: str = "") -> str | None:
     return None
 
 
-def _kept(checkpoint: Path | None) -> str:
-    """What a stopped run keeps, for its error message."""
-    if checkpoint is None:
-        return "this short stage keeps no checkpoint"
-    if checkpoint.exists():
-        return f"the last good checkpoint {checkpoint} is kept (rerunning resumes from it)"
-    return "no checkpoint had been written yet"
-
-
-# how a setting of a training signature is given, for messages (others are named by their recipe key)
-SETTING_NAMES = {"iters": "--iters", "seed": "--seed", "lam": "--lambda", "penalty": "--penalty",
-                 "renormalize": "--renormalize", "wide_steps": "--wide-start (in steps)", "gate_noise": "--gate-noise",
-                 "topk": "--topk", "train": "the recipe's train section"}
-
-
-def setting_change(key: str, was, now) -> str:
-    """`key: was, now now` for a message, with the flag's name and "the default" for a setting left at it. A changed
-    source (`from`, the digest of moe/init or of the baseline's expert) is said as such, its digests shortened."""
-    if key == "from":
-        digests = f" (digest {was[:8]}..., now {now[:8]}...)" if isinstance(was, str) and isinstance(now, str) else ""
-        return f"the model it is trained from was made again since{digests}"
-    was, now = (("the default" if v is None else repr(v)) for v in (was, now))
-    return f"{SETTING_NAMES.get(key, key)}: {was}, now {now}"
-
-
-def first_difference(saved: dict, wanted: dict) -> str | None:
-    """The first key (in sorted order) whose value differs between two signatures, or None when they agree."""
-    return next((key for key in sorted(set(saved) | set(wanted)) if saved.get(key) != wanted.get(key)), None)
-
-
-# Signature entries for the training settings that shape a model (`train`, finetune's `lam`): a checkpoint names
-# them when they differ from the defaults, since session 23. A checkpoint without a PSNR trend (written before
-# session 24) may come from a boostnerf that did not record them at all: their absence there says nothing.
-LATE_SETTINGS = ("train", "lam")
-
-
-def unrecorded_settings(state: dict, wanted: dict | None) -> list[str]:
-    """The settings of `wanted` that the checkpoint `state`, written by an earlier boostnerf, may not have recorded."""
-    saved = state.get("signature")
-    if saved is None or wanted is None or state.get("trend") is not None:
-        return []
-    return [key for key in LATE_SETTINGS if key in wanted and key not in saved]
-
-
-def _difference(saved: dict | None, wanted: dict | None, unrecorded: list[str]) -> str | None:
-    """The first setting in which a checkpoint's signature differs from this run's, leaving out the settings it
-    could not record (`unrecorded_settings`); None when they agree or either is missing."""
-    if saved is None or wanted is None:
-        return None
-    return first_difference({**saved, **{key: wanted[key] for key in unrecorded}}, wanted)
-
-
-def _check_signature(path: Path, saved: dict | None, wanted: dict | None, unrecorded: list[str]) -> None:
-    """Refuse to resume a checkpoint written with settings that change what is being trained."""
-    if (key := _difference(saved, wanted, unrecorded)) is None:
-        return
-    raise BoostNerfError(
-        f"training checkpoint {path} was written with other settings ({setting_change(key, saved.get(key), wanted.get(key))}): "
-        "rerun with the settings it was made with to resume, add --force to restart this model with these, or delete it"
-    )
-
-
 def batch_gradients(task: TrainTask, rays: RayData, idx: Tensor, step: int,
-                    parallel: bool = False) -> tuple[bool, bool, dict[str, float]]:
+                    parallel: bool = False) -> tuple[bool, Tensor, dict]:
     """The loss of the batch `idx` and its gradient, accumulated in the parameters' .grad.
 
-    -> (learnable: the loss depends on the parameters (False when every sample was skipped), the loss is
-    finite, logs); a non-finite loss is not backpropagated. `parallel` (data parallel): `idx` is the
-    global batch and this rank takes its shard, with the random draws its rays get in the global batch
+    -> (learnable: the loss depends on the parameters (False when every sample was skipped), whether the loss is
+    non-finite (a device bool: the update is then skipped, `optimizer_step`), logs). `parallel` (data parallel):
+    `idx` is the global batch and this rank takes its shard, with the random draws its rays get in the global batch
     (`distributed.rng_share`); the ranks' gradients are then combined by `distributed.average_gradients`.
     """
     if parallel:
@@ -302,154 +255,171 @@ def batch_gradients(task: TrainTask, rays: RayData, idx: Tensor, step: int,
     with dist.rng_share(len(idx), rays.origins.device) if parallel else nullcontext():
         alpha = None if rays.alpha is None else rays.alpha[idx]
         loss, logs = task.loss(rays.origins[idx], rays.dirs[idx], rays.rgb[idx], alpha, step)
-    finite = bool(torch.isfinite(loss))
-    if loss.requires_grad and finite:
-        loss.backward()
-    return loss.requires_grad, finite, logs
+    if loss.requires_grad:
+        loss.backward()  # a non-finite loss gives non-finite gradients; the update is skipped either way
+    return loss.requires_grad, ~torch.isfinite(loss.detach()), logs
 
 
-def train(
-    task: TrainTask,
-    rays: RayData,
-    sched: Schedule,
-    seed: int,
-    title: str,
-    checkpoint: Path | None = None,
-    on_log: Callable[[int, dict], None] | None = None,
-    signature: dict | None = None,
-    data_parallel: bool = False,
-    restart_other: bool = False,
-) -> TrainResult:
-    """Run `sched.iters` steps of `task` on random batches of `rays`, resuming from `checkpoint`.
+def compiles(mode: str, device: torch.device | str) -> bool:
+    """Whether a training step compiles (recipe key train.compile): "on", "off", or "auto": on a GPU."""
+    return mode == "on" or (mode == "auto" and torch.device(device).type == "cuda")
 
-    `checkpoint` is written atomically every `sched.checkpoint_every` steps and after the last step
-    (model, optimiser, step, skipped-step count, history, batch and global RNG states, `signature`);
-    a checkpoint whose `signature` (the settings that define what is trained) differs is refused, or with
-    `restart_other` (pretrain's and finetune's --force) dropped: the model trains from its first step. A checkpoint
-    of the same settings is resumed either way (an interrupted --force run goes on when rerun).
-    A non-finite loss or gradient skips the step (counted, reported); `sched.max_bad_steps`
-    consecutive ones stop the run. A state with non-finite values is never checkpointed.
 
-    `data_parallel` under torchrun: every rank draws the same global batch, trains on its shard, and
-    the gradients are averaged (`batch_gradients`), so a step is the one-process step on the whole
-    batch; every rank keeps the same state, rank 0 alone prints and writes the checkpoint, and the
-    checkpoint does not depend on the number of ranks (docs/distributed.md).
-    """
-    parallel = data_parallel and dist.world_size() > 1
-    if len(rays) == 0:  # torch.randint over no rays raised "random_ expects 'from' to be less than 'to'"
-        raise BoostNerfError(f"{title}: no training ray crosses the box this model is trained in: if the recipe sets "
-                             "data.bbox, it must hold what the cameras see")
-    if parallel and sched.batch_rays % dist.world_size():
-        raise BoostNerfError(f"train.batch_rays ({sched.batch_rays}) must be divisible by the number of processes "
-                             f"({dist.world_size()}) to split every batch evenly: change one of them")
-    gen = torch.Generator(device="cpu").manual_seed(seed)
-    torch.manual_seed(seed)
-    start, elapsed, skipped, history = 0, 0.0, 0, []
-    trend = PsnrTrend()
-    opt: torch.optim.Optimizer | None = None
-    state = None
-    unrecorded: list[str] = []
-    if checkpoint is not None and checkpoint.exists():
-        try:
-            state = torch.load(checkpoint, map_location="cpu", weights_only=True)
-        except Exception as e:  # a damaged checkpoint: say so, do not train from a wrong state
-            raise BoostNerfError(f"training checkpoint {checkpoint} is damaged ({type(e).__name__}); delete it to restart this model") from None
-        if not isinstance(state, dict):
-            raise BoostNerfError(f"training checkpoint {checkpoint} is not a boostnerf training state; "
-                                 "delete it to restart this model")
-        unrecorded = unrecorded_settings(state, signature)
-        if restart_other and _difference(state.get("signature"), signature, unrecorded) is not None:
-            state, unrecorded = None, []  # --force: a checkpoint of other settings is dropped (overwritten later)
-    if state is not None:
-        try:
-            _check_signature(checkpoint, state.get("signature"), signature, unrecorded)
-            task.load_state(state["task"])
-            opt = make_optimizer(task)
-            rates = [g["initial_lr"] for g in opt.param_groups]  # this run's recipe's learning rates
-            opt.load_state_dict(state["optim"])
-            for g, lr in zip(opt.param_groups, rates):  # the state brought back the interrupted run's; a diverged run
-                g["initial_lr"] = lr  # resumed with lower rates (the advice it gives) trained on at the old ones
-            start, elapsed, skipped, history = (int(state["step"]), float(state["seconds"]), int(state["skipped"]),
-                                                list(state["history"]))
-            if state.get("trend") is not None:  # checkpoints before session 24 did not keep it
-                trend.load_state(state["trend"])
-            gen.set_state(state["gen"])
-            torch.set_rng_state(state["rng"])
-            restore_cuda_rng(state.get("cuda_rng"), rays.origins.device)
-        except MALFORMED as e:
-            raise BoostNerfError(f"training checkpoint {checkpoint} does not hold this model's training state "
-                                 f"({malformed(e)}); delete it to restart this model") from None
-    progress = Progress(title, sched.iters, start, sched.log_every, quiet=parallel and not dist.is_main())
-    if start > 0:
-        progress.warn(f"resuming from {checkpoint} at step {start}/{sched.iters}")
-    if unrecorded:
-        progress.warn(f"note: {checkpoint} comes from an earlier boostnerf, which did not record "
-                      f"{' or '.join(SETTING_NAMES.get(k, k) for k in unrecorded)}; resuming with this run's")
-    bad_run = 0
-    t0 = time.perf_counter() - elapsed
+def compiled(fn: Callable) -> Callable:
+    """`fn` (a task's loss) through torch.compile: its operators and their gradients fused into few kernels. Random
+    draws (the samples' jitter) stay torch's own, so a compiled run draws what an eager one does and resumes alike."""
+    import torch._inductor.config as inductor
+
+    inductor.fallback_random = True
+    return torch.compile(fn)
+
+
+def draw_batch(gen: torch.Generator, n: int, size: int, device: torch.device) -> Tensor:
+    """`size` ray indices below `n` from the host generator `gen` (so every device draws the same rays), on `device`
+    (copied without waiting)."""
+    return from_host(torch.randint(0, n, (size,), generator=gen), device)
+
+
+@dataclass
+class Step:
+    """What one optimiser step did: `learnable` (False when every sample of the batch was skipped: nothing to
+    learn), `flags` (None, or a device vector (non-finite loss, non-finite gradient, a sample budget overflowed): the
+    update was skipped when any is set), the logs (device values), and the parameters it updates."""
+
+    learnable: bool
+    flags: Tensor | None
+    logs: dict
+    params: list[Tensor]
+
+
+def optimizer_step(task: TrainTask, rays: RayData, sched: Schedule, opt: Adam | None,
+                   gen: torch.Generator, step: int, parallel: bool) -> tuple[Adam | None, Step]:
+    """One training step: the optimiser (re)built when the task changed its parameters (`before_step`), the step's
+    learning rates, a batch drawn from `gen`, its gradient (data parallel: averaged over the ranks), and the update,
+    skipped on the device (fused Adam's `found_inf`) unless the loss and every gradient are finite and every sample
+    fitted its budget. Nothing here waits for the device (but data parallel). -> (the optimiser, the step)."""
+    learnable, loss_bad, logs, failure = False, None, {}, None
+    packer = getattr(task, "packer", None)
     try:
-        for step in range(start, sched.iters):
-            learnable, finite_loss, logs, failure = False, True, {}, None
-            try:
-                if task.before_step(step) or opt is None:
-                    opt = make_optimizer(task)
-                _set_lr(opt, step, sched)
-                idx = torch.randint(0, len(rays), (sched.batch_rays,), generator=gen).to(rays.origins.device)
-                opt.zero_grad(set_to_none=True)
-                learnable, finite_loss, logs = batch_gradients(task, rays, idx, step, parallel)
-            except Exception as e:
-                if not parallel:
-                    raise
-                failure = e  # every rank stops with this rank's message (in average_gradients)
-            params = [p for g in opt.param_groups for p in g["params"]] if opt is not None else []
-            if parallel:
-                learnable, finite_loss, logs = dist.average_gradients(params, learnable, finite_loss, logs, failure)
-            if learnable:  # False when every sample of the batch was skipped: nothing to learn
-                if finite_loss and all_finite(params):
-                    bad_run = 0
-                    opt.step()
-                else:
-                    skipped += 1
-                    bad_run += 1
-                    opt.zero_grad(set_to_none=True)
-                    progress.warn(f"step {step + 1}: non-finite {'gradient' if finite_loss else 'loss'}, "
-                                  f"step skipped ({skipped} so far)")
-                    # Skipping cannot help when the parameters themselves are gone (an overflowing step).
-                    if not all(bool(torch.isfinite(p).all()) for p in params):
-                        raise BoostNerfError(
-                            f"training diverged: the parameters became non-finite by step {step + 1} (an "
-                            f"optimiser step overflowed); {_kept(checkpoint)}: lower the learning rates in the recipe"
-                        )
-                    if bad_run >= sched.max_bad_steps:
-                        raise BoostNerfError(
-                            f"training diverged: {bad_run} consecutive steps had a non-finite loss or gradient "
-                            f"(last at step {step + 1}); {_kept(checkpoint)}: lower the learning rates in the "
-                            "recipe or check the data"
-                        )
-            done = step + 1
-            trend.add(logs.get("psnr"))
-            if done % sched.log_every == 0 or done == sched.iters:
-                entry = {"step": done, "seconds": round(time.perf_counter() - t0, 2), **logs}
-                mean = trend.close_interval()
-                if mean is not None:
-                    entry["psnr_mean"] = round(mean, 3)
-                history.append(entry)
-                warning = trend.falling_warning(done)
-                if warning:
-                    progress.warn(warning)
-                if on_log is not None:
-                    on_log(done, entry)
-            progress.update(done, logs)
-            if checkpoint is not None and (done % sched.checkpoint_every == 0 or done == sched.iters):
-                save = partial(_save_checkpoint, checkpoint, task, opt, done, time.perf_counter() - t0, skipped,
-                               history, gen, signature, trend, rays.origins.device)
-                if parallel:
-                    dist.on_main(save)  # one file for all ranks (they hold the same state)
-                else:
-                    save()
-    finally:
-        progress.close()
-    return TrainResult(sched.iters, time.perf_counter() - t0, skipped, history)
+        if task.before_step(step) or opt is None:
+            opt = make_optimizer(task)
+        _set_lr(opt, step, sched)
+        idx = draw_batch(gen, len(rays), sched.batch_rays, rays.origins.device)
+        opt.zero_grad(set_to_none=True)
+        if packer is not None:
+            packer.begin()
+        learnable, loss_bad, logs = batch_gradients(task, rays, idx, step, parallel)
+    except Exception as e:
+        if not parallel:
+            raise
+        failure = e  # every rank stops with this rank's message (in average_gradients)
+    params = [p for g in opt.param_groups for p in g["params"]] if opt is not None else []
+    if parallel:
+        finite = failure is not None or not bool(loss_bad)
+        learnable, finite, logs = dist.average_gradients(params, learnable, finite, _floats(logs), failure)
+        loss_bad = torch.tensor(not finite, device=rays.origins.device)
+    if not learnable:
+        return opt, Step(False, None, logs, params)
+    over = packer.overflowed() if packer is not None else None
+    flags = torch.stack([loss_bad, ~grads_finite(params, loss_bad.device),
+                         over if over is not None else torch.zeros_like(loss_bad)]).float()
+    opt.found_inf = flags.amax()  # the update leaves every parameter and its state as they were when set
+    opt.step()
+    return opt, Step(True, flags, logs, params)
+
+
+def _floats(logs: dict) -> dict[str, float]:
+    return {k: float(v) for k, v in logs.items()}
+
+
+class Outcomes:
+    """Each step's flags (`Step.flags`), read back on the host without stopping the device: a copy queued after the
+    step, read once it has arrived (at once off a GPU), and all of them on a logging or checkpoint step, when the
+    task's sample budgets (`packer`) are settled too."""
+
+    def __init__(self, device: torch.device, packer=None):
+        self.cuda, self.packer = device.type == "cuda", packer
+        self.queue: deque = deque()
+
+    def push(self, done: int, step: Step) -> None:
+        if not step.learnable:
+            return
+        host = step.flags.to("cpu", non_blocking=True)
+        event = None
+        if self.cuda:
+            event = torch.cuda.Event()
+            event.record()
+        self.queue.append((done, host, event))
+
+    def ready(self, wait: bool) -> Iterator[tuple[int, list[float]]]:
+        """(step, its flags) of the steps whose flags have arrived, in order; `wait`: of every step pushed."""
+        if wait and self.packer is not None:
+            self.packer.settle()
+        while self.queue:
+            done, host, event = self.queue[0]
+            if event is not None:
+                if not wait and not event.query():
+                    return
+                event.synchronize()
+            self.queue.popleft()
+            yield done, host.tolist()
+
+
+@dataclass
+class RunState:
+    """How far a run is: steps done, seconds trained, non-finite steps skipped, the logged history and the PSNR
+    trend (what a checkpoint keeps besides the model, the optimiser and the random states), and the current run
+    of consecutive non-finite steps."""
+
+    step: int = 0
+    seconds: float = 0.0
+    skipped: int = 0
+    history: list[dict] = field(default_factory=list)
+    trend: PsnrTrend = field(default_factory=PsnrTrend)
+    bad_run: int = 0
+
+    def guard(self, done: int, flags: list[float], sched: Schedule, checkpoint: Path | None, progress: Progress,
+              params: list[Tensor], packer=None) -> None:
+        """The NaN guard, on a learnable step's flags (`Step.flags`): a skipped step is counted and said; the run stops
+        when the parameters themselves are no longer finite (an overflowing update) or after `sched.max_bad_steps`
+        consecutive steps with a non-finite loss or gradient (its message says what the `checkpoint` keeps). A step
+        whose samples overflowed their budget is skipped too, and the budgets grow at once (`packer.settle`)."""
+        loss_bad, grad_bad, overflow = (bool(f) for f in flags)
+        if not (loss_bad or grad_bad or overflow):
+            self.bad_run = 0
+            return
+        self.skipped += 1
+        if not (loss_bad or grad_bad):
+            packer.settle()
+            progress.warn(f"step {done}: more samples than the sample budget held, step skipped ({self.skipped} so "
+                          "far); the budget grows")
+            return
+        self.bad_run += 1
+        progress.warn(f"step {done}: non-finite {'loss' if loss_bad else 'gradient'}, "
+                      f"step skipped ({self.skipped} so far)")
+        # Skipping cannot help when the parameters themselves are gone (an overflowing step).
+        if not all(bool(torch.isfinite(p).all()) for p in params):
+            raise BoostNerfError(f"training diverged: the parameters became non-finite by step {done} (an "
+                                 f"optimiser step overflowed); {kept(checkpoint)}: lower the learning rates in the "
+                                 "recipe")
+        if self.bad_run >= sched.max_bad_steps:
+            raise BoostNerfError(f"training diverged: {self.bad_run} consecutive steps had a non-finite loss or "
+                                 f"gradient (last at step {done}); {kept(checkpoint)}: lower the learning rates in the "
+                                 "recipe or check the data")
+
+    def log(self, done: int, logs: dict, seconds: float, sched: Schedule) -> dict[str, float] | None:
+        """Add a step's PSNR to the trend; at a logging step, an entry of the history (the one time a step's logs are
+        read from the device). -> that step's logs, as numbers (None off a logging step)."""
+        self.trend.add(logs.get("psnr"))
+        if done % sched.log_every and done != sched.iters:
+            return None
+        logs = _floats(logs)
+        entry = {"step": done, "seconds": round(seconds, 2), **logs}
+        mean = self.trend.close_interval()
+        if mean is not None:
+            entry["psnr_mean"] = round(mean, 3)
+        self.history.append(entry)
+        return logs
 
 
 def cuda_rng_state(device: torch.device) -> Tensor | None:
@@ -458,44 +428,151 @@ def cuda_rng_state(device: torch.device) -> Tensor | None:
     return torch.cuda.get_rng_state(device) if device.type == "cuda" else None
 
 
-def restore_cuda_rng(state: Tensor | list | None, device: torch.device) -> None:
-    """Give `device` the state `cuda_rng_state` saved. A checkpoint from before session 25 holds every visible GPU's
-    state (`get_rng_state_all`, which `set_rng_state_all` cannot put back with fewer GPUs): the entry of `device`'s
-    index, if there is one. Nothing off CUDA."""
-    if state is None or device.type != "cuda":
-        return
-    if isinstance(state, (list, tuple)):
-        index = device.index if device.index is not None else torch.cuda.current_device()
-        if index >= len(state):
-            return
-        state = state[index]
-    torch.cuda.set_rng_state(state, device)
+def restore_cuda_rng(state: Tensor | None, device: torch.device) -> None:
+    """Give `device` the state `cuda_rng_state` saved; nothing off CUDA."""
+    if state is not None and device.type == "cuda":
+        torch.cuda.set_rng_state(state, device)
 
 
-def _save_checkpoint(path: Path, task: TrainTask, opt: torch.optim.Optimizer, step: int, seconds: float,
-                     skipped: int, history: list, gen: torch.Generator, signature: dict | None = None,
-                     trend: PsnrTrend | None = None, device: torch.device | None = None) -> None:
-    """Write the resumable state atomically; a state with NaN or infinity stops the run instead
-    (the previous checkpoint stays, so nothing before it is lost)."""
-    task_state, optim_state = task.state(), opt.state_dict()
-    bad = _non_finite_entry(task_state) or _non_finite_entry(optim_state, "optimiser")
-    if bad is not None:
-        raise BoostNerfError(
-            f"training diverged: {bad} holds non-finite values at step {step}, so it is not checkpointed; "
-            f"{_kept(path)}: lower the learning rates in the recipe or check the data"
-        )
-    state = {
-        "task": task_state,
-        "optim": optim_state,
-        "step": step,
-        "seconds": seconds,
-        "skipped": skipped,
-        "history": history,
-        "gen": gen.get_state(),
-        "rng": torch.get_rng_state(),
-        "cuda_rng": None if device is None else cuda_rng_state(device),
-        "signature": signature,
-        "trend": None if trend is None else trend.state(),
-    }
-    save_torch(path, state)
-    kill_point_for_tests("checkpoint")  # inert unless a resume test asks for it (workspace.TEST_KILL_ENV)
+def kept(path: Path | None) -> str:
+    """What a stopped run keeps, for its error message."""
+    if path is None:
+        return "this short stage keeps no checkpoint"
+    if path.exists():
+        return f"the last good checkpoint {path} is kept (rerunning resumes from it)"
+    return "no checkpoint had been written yet"
+
+
+class TrainCheckpoint:
+    """A run's resumable state in one file, written atomically: the task's state, the optimiser's, the run's
+    counters (`RunState`), the batch generator's, torch's and the CUDA device's random states (a resumed run draws
+    what an uninterrupted one does), and `signature`, the settings that define what is trained.
+
+    A checkpoint of another signature is refused, or with `restart_other` (pretrain's and finetune's --force)
+    dropped: the model trains from its first step. A checkpoint of the same settings is resumed either way (an
+    interrupted --force run goes on when rerun). A state with non-finite values is never written.
+    """
+
+    def __init__(self, path: Path, signature: dict | None = None, restart_other: bool = False):
+        self.path, self.signature, self.restart_other = path, signature, restart_other
+
+    def load(self) -> dict | None:
+        """The saved state, None when there is no file; one line for a damaged one."""
+        if not self.path.exists():
+            return None
+        try:
+            state = torch.load(self.path, map_location="cpu", weights_only=True)
+        except Exception as e:  # a damaged checkpoint: say so, do not train from a wrong state
+            raise BoostNerfError(f"training checkpoint {self.path} is damaged ({type(e).__name__}); delete it to "
+                                 "restart this model") from None
+        if not isinstance(state, dict):
+            raise BoostNerfError(f"training checkpoint {self.path} is not a boostnerf training state; "
+                                 "delete it to restart this model")
+        if state.get("format_version") != FORMAT_VERSION:
+            raise BoostNerfError(f"training checkpoint {self.path} has file format {state.get('format_version')!r}, "
+                                 f"and this boostnerf reads format {FORMAT_VERSION!r}: delete it to restart this model")
+        return state
+
+    def resume(self, task: TrainTask, gen: torch.Generator,
+               device: torch.device) -> tuple[Adam | None, RunState]:
+        """Bring `task`, a new optimiser, `gen` and torch's random states back to the saved state, when
+        `lineage.decide` resumes it. -> (the optimiser, the run's counters); (None, a new run) when there is
+        nothing to resume (no checkpoint, or --force over one of other settings, which is overwritten later)."""
+        state = self.load()
+        if state is None:
+            return None, RunState()
+        try:
+            found = Found(str(self.path), state.get("signature"), checkpoint=True)
+            if decide(found, self.signature, self.restart_other).check().action == MAKE:
+                return None, RunState()
+            task.load_state(state["task"])
+            opt = make_optimizer(task)
+            rates = [g["initial_lr"] for g in opt.param_groups]  # this run's recipe's learning rates
+            opt.load_state_dict(state["optim"])
+            for g, lr in zip(opt.param_groups, rates):  # the state brought back the interrupted run's; a diverged run
+                g["initial_lr"] = lr  # resumed with lower rates (the advice it gives) trained on at the old ones
+            run = RunState(int(state["step"]), float(state["seconds"]), int(state["skipped"]), list(state["history"]))
+            run.trend.load_state(state["trend"])
+            gen.set_state(state["gen"])
+            torch.set_rng_state(state["rng"])
+            restore_cuda_rng(state.get("cuda_rng"), device)
+        except MALFORMED as e:
+            raise BoostNerfError(f"training checkpoint {self.path} does not hold this model's training state "
+                                 f"({malformed(e)}); delete it to restart this model") from None
+        return opt, run
+
+    def save(self, task: TrainTask, opt: Adam, run: RunState, gen: torch.Generator,
+             device: torch.device) -> None:
+        """Write the resumable state atomically; a state with NaN or infinity stops the run instead
+        (the previous checkpoint stays, so nothing before it is lost)."""
+        task_state, optim_state = task.state(), opt.state_dict()
+        bad = _non_finite_entry(task_state) or _non_finite_entry(optim_state, "optimiser")
+        if bad is not None:
+            raise BoostNerfError(f"training diverged: {bad} holds non-finite values at step {run.step}, so it is not "
+                                 f"checkpointed; {kept(self.path)}: lower the learning rates in the recipe or check "
+                                 "the data")
+        save_torch(self.path, {
+            "task": task_state, "optim": optim_state, "step": run.step, "seconds": run.seconds,
+            "skipped": run.skipped, "history": run.history, "gen": gen.get_state(), "rng": torch.get_rng_state(),
+            "cuda_rng": cuda_rng_state(device), "signature": self.signature, "trend": run.trend.state(),
+            "format_version": FORMAT_VERSION,
+        })
+        kill_point_for_tests("checkpoint")  # inert unless a resume test asks for it (workspace.TEST_KILL_ENV)
+
+
+def _check_rays(rays: RayData, sched: Schedule, title: str, parallel: bool) -> None:
+    if len(rays) == 0:  # torch.randint over no rays raised "random_ expects 'from' to be less than 'to'"
+        raise BoostNerfError(f"{title}: no training ray crosses the box this model is trained in: if the recipe sets "
+                             "data.bbox, it must hold what the cameras see")
+    if parallel and sched.batch_rays % dist.world_size():
+        raise BoostNerfError(f"train.batch_rays ({sched.batch_rays}) must be divisible by the number of processes "
+                             f"({dist.world_size()}) to split every batch evenly: change one of them")
+
+
+def train(task: TrainTask, rays: RayData, sched: Schedule, seed: int, title: str,
+          checkpoint: TrainCheckpoint | None = None, data_parallel: bool = False) -> TrainResult:
+    """Run `sched.iters` steps of `task` on random batches of `rays`, resuming from `checkpoint` (written every
+    `sched.checkpoint_every` steps and after the last). A non-finite loss or gradient skips the step (`RunState.guard`).
+
+    `data_parallel` under torchrun: every rank draws the same global batch, trains on its shard, and the gradients
+    are averaged (`batch_gradients`), so a step is the one-process step on the whole batch; every rank keeps the
+    same state, rank 0 alone prints and writes the checkpoint, which does not depend on the number of ranks.
+    """
+    parallel = data_parallel and dist.world_size() > 1
+    _check_rays(rays, sched, title, parallel)
+    device = rays.origins.device
+    gen = torch.Generator(device="cpu").manual_seed(seed)
+    torch.manual_seed(seed)
+    opt, run = checkpoint.resume(task, gen, device) if checkpoint is not None else (None, RunState())
+    progress = Progress(title, sched.iters, run.step, sched.log_every, quiet=parallel and not dist.is_main())
+    if run.step > 0:
+        progress.warn(f"resuming from {checkpoint.path} at step {run.step}/{sched.iters}")
+    startup = CLOCK.ready(title)
+    t0 = time.perf_counter() - run.seconds
+    outcomes = Outcomes(device, getattr(task, "packer", None))
+    try:
+        for step in range(run.step, sched.iters):
+            # --- one step: batch, gradient, update (the rest of the loop is bookkeeping) ---
+            opt, result = optimizer_step(task, rays, sched, opt, gen, step, parallel)
+            run.step = step + 1
+            saving = checkpoint is not None and (run.step % sched.checkpoint_every == 0 or run.step == sched.iters)
+            logging = run.step % sched.log_every == 0 or run.step == sched.iters
+            # --- the steps' outcomes as they arrive (every one on a logging or checkpoint step), log, checkpoint ---
+            outcomes.push(run.step, result)
+            for done, flags in outcomes.ready(wait=logging or saving):
+                run.guard(done, flags, sched, checkpoint and checkpoint.path, progress, result.params, outcomes.packer)
+            logs = run.log(run.step, result.logs, time.perf_counter() - t0, sched)
+            if logs is not None and (warning := run.trend.falling_warning(run.step)):
+                progress.warn(warning)
+            progress.update(run.step, logs)
+            if saving:
+                run.seconds = time.perf_counter() - t0
+                save = partial(checkpoint.save, task, opt, run, gen, device)
+                if parallel:
+                    dist.on_main(save)  # one file for all ranks (they hold the same state)
+                else:
+                    save()
+    finally:
+        progress.close()
+        CLOCK.begin()  # the next model's start-up starts now
+    return TrainResult(sched.iters, time.perf_counter() - t0, run.skipped, run.history, round(startup, 2))

@@ -39,7 +39,7 @@ from safetensors.torch import load_file, save_file
 
 from boostnerf_cli.errors import BoostNerfError
 
-FORMAT_VERSION = "1"
+FORMAT_VERSION = "2"
 
 
 # Test hook for tests/test_resume.py, inert unless the variable is set (one environment lookup per file write):
@@ -303,9 +303,19 @@ def read_meta(path: Path) -> dict[str, Any]:
                              "delete it and rerun the stage that writes it")
     if meta.get("format_version") != FORMAT_VERSION:
         raise BoostNerfError(f"checkpoint {path} has file format {meta.get('format_version')!r}, and this boostnerf "
-                             f"reads format {FORMAT_VERSION!r}: read it with the boostnerf that wrote it, or delete it "
-                             "and rerun the stage that writes it")
+                             f"reads format {FORMAT_VERSION!r}: make it again with this one (delete it and rerun "
+                             f"{_maker(path)}), or read it with the boostnerf that wrote it")
     return meta
+
+
+def _maker(path: Path) -> str:
+    """The command that writes a workspace's model file `path`, for messages."""
+    if path.parent.name == "experts":
+        return "`boostnerf pretrain`"
+    if path.parent.name == "moe":
+        return ("`boostnerf build-moe`" if path.stem == "init" else "`boostnerf prune`" if path.stem.endswith("-pruned")
+                else "`boostnerf finetune`")
+    return "the stage that writes it"
 
 
 def load_tensors(path: Path, device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
@@ -564,6 +574,11 @@ class Workspace:
     def geometry_path(self) -> Path:
         return self.experts_dir / "geometry.safetensors"
 
+    @property
+    def scene_cache(self) -> Path:
+        """The workspace's scene as decoded, for the next stage to read back (scenes/cache.py)."""
+        return self.root / "cache" / "scene.safetensors"
+
     def model_path(self, name: str) -> Path:
         return self.moe_dir / f"{name}.safetensors"
 
@@ -577,9 +592,15 @@ class Workspace:
 
     # manifest
     def manifest(self) -> dict:
+        """The workspace's manifest ({} when there is none); one line for one of another file format."""
         if not self.manifest_path.exists():
             return {}
-        return read_json(self.manifest_path, "workspace manifest")
+        m = read_json(self.manifest_path, "workspace manifest")
+        if m and m.get("format_version") != FORMAT_VERSION:
+            raise BoostNerfError(f"workspace {self.root} has file format {m.get('format_version')!r}, and this "
+                                 f"boostnerf reads format {FORMAT_VERSION!r}: make it again in a new workspace "
+                                 "(`boostnerf pretrain --workspace NEW ...`), or use the boostnerf that made it")
+        return m
 
     def require_manifest(self) -> dict:
         m = self.manifest()
@@ -590,7 +611,7 @@ class Workspace:
         return m
 
     def update_manifest(self, **sections: Any) -> dict:
-        m = self.manifest()
+        m = {"format_version": FORMAT_VERSION, **self.manifest()}
         for key, value in sections.items():
             if isinstance(value, dict) and isinstance(m.get(key), dict):
                 m[key] = {**m[key], **value}
@@ -611,3 +632,17 @@ class Workspace:
 
     def model_names(self) -> list[str]:
         return sorted(p.stem for p in self.moe_dir.glob("*.safetensors")) if self.moe_dir.exists() else []
+
+    def all_model_names(self) -> list[str]:
+        """Experts smallest first, then mixtures in the paper's order (moe/init, untrained, is no model to use)."""
+        order = {"baseline": 0, "top1": 1, "top2": 2, "ens": 9}
+        mixtures = sorted((n for n in self.model_names() if n != "init"), key=lambda n: (order.get(n, 5), n))
+        return self.expert_names() + mixtures
+
+    def model_file(self, name: str) -> Path:
+        """Where model `name` lives: experts/NAME.safetensors, else moe/NAME.safetensors."""
+        return self.expert_path(name) if self.expert_path(name).exists() else self.model_path(name)
+
+    def report_path(self, name: str) -> Path:
+        """The report of model `name`, written when it is finished: experts/NAME.json, else moe/NAME.json."""
+        return self.expert_report_path(name) if self.expert_path(name).exists() else self.moe_dir / f"{name}.json"

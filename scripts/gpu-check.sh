@@ -9,7 +9,7 @@
 # (b) a short chain on SCENE at 400 px (recipes/blender-dvgo-paper-gpucheck.yaml: DVGO experts 96/128/160,
 #     baseline, Top-1, Top-2, ensemble): held-out PSNR, GFLOPs per image, training rays per second and
 #     seconds per rendered image, as a markdown table (also written to OUT/gpu-check.md); then whether any spatial
-#     partition of its three experts beats the best of them on held-out views (scripts/partition_oracle.py, issue 18).
+#     partition of its three experts beats the best of them on held-out views (research/partition_oracle.py, issue 18).
 # Exits non-zero on any failure, and at once, with one line, when torch sees no CUDA GPU.
 set -uo pipefail
 if [ $# -lt 1 ]; then
@@ -145,13 +145,13 @@ print("\n".join(lines))
 PYEOF
 # issue 18 at 4x the CPU's pixels: does any spatial partition of the three experts (each trained alone) beat the best
 # of them on held-out views (docs/results.md, session 29)? Its table is added to OUT/gpu-check.md.
-check "400px partition oracle" "$PY" "$HERE/scripts/partition_oracle.py" --model "dvgo-96=$W" --model "dvgo-128=$W" \
+check "400px partition oracle" "$PY" "$HERE/research/partition_oracle.py" --model "dvgo-96=$W" --model "dvgo-128=$W" \
   --model "dvgo-160=$W" --map-res 16,32 --device $DEV --out "$OUT/partition-oracle.json"
 if [ -f "$OUT/partition-oracle.json" ]; then
   "$PY" - "$OUT/partition-oracle.json" "$OUT/gpu-check.md" <<'PYEOF' || FAILED=1
 import json, sys
 t = json.load(open(sys.argv[1]))
-lines = ["", "Partitions of the experts (scripts/partition_oracle.py):", "", "| " + " | ".join(t["columns"]) + " |",
+lines = ["", "Partitions of the experts (research/partition_oracle.py):", "", "| " + " | ".join(t["columns"]) + " |",
          "|" + "---|" * len(t["columns"])] + ["| " + " | ".join(r) + " |" for r in t["rows"]]
 open(sys.argv[2], "a").write("\n".join(lines) + "\n")
 print("\n".join(lines))

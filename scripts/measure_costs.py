@@ -42,7 +42,7 @@ from boostnerf_cli.recipe import Recipe, recipe_from_dict
 from boostnerf_cli.render.renderer import render_image
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.tasks import FieldTask, MixtureTask, train_rays
-from boostnerf_cli.train import all_finite, batch_gradients, make_optimizer
+from boostnerf_cli.train import batch_gradients, grads_finite, make_optimizer
 from boostnerf_cli.workspace import Workspace, write_json
 
 
@@ -86,7 +86,7 @@ class Recorder:
     def __init__(self, field):
         self.field, self.pts, self.cpts, self.cdirs, self.rows = field, None, None, None, None
         if hasattr(field, "batch_view"):
-            self.batch_view = lambda: _RecordingView(self, field.batch_view())
+            self.batch_view = lambda packer=None: _RecordingView(self, field.batch_view(packer))
 
     def density(self, xyz):
         self.pts, self.rows = xyz.detach(), None
@@ -104,21 +104,21 @@ class _RecordingView:
     def __init__(self, rec: Recorder, view):
         self.rec, self.view = rec, view
 
-    def density(self, xyz):
+    def density(self, xyz, live=None):
         self.rec.pts = xyz.detach()
-        return self.view.density(xyz)
+        return self.view.density(xyz, live)
 
-    def color_rows(self, rows, dirs):
+    def color_rows(self, rows, dirs, live=None):
         self.rec.rows, self.rec.cpts, self.rec.cdirs = rows, self.rec.pts[rows], dirs.detach()
-        return self.view.color_rows(rows, dirs)
+        return self.view.color_rows(rows, dirs, live)
 
 
 def _train_step(task, opt, rays, batch: int, gen: torch.Generator) -> None:
     """The body of train.train's loop (without its logging and checkpoints), through its own pieces."""
     idx = torch.randint(0, len(rays), (batch,), generator=gen).to(rays.origins.device)
     opt.zero_grad(set_to_none=True)
-    learnable, finite, _ = batch_gradients(task, rays, idx, 0)
-    if learnable and finite and all_finite([p for g in opt.param_groups for p in g["params"]]):
+    learnable, loss_bad, _ = batch_gradients(task, rays, idx, 0)
+    if learnable and not bool(loss_bad) and bool(grads_finite([p for g in opt.param_groups for p in g["params"]])):
         opt.step()
 
 
@@ -221,13 +221,13 @@ def measure_mixture(ws: Workspace, scene, rec: Recipe, name: str, steps: int, de
     captured = {}
     orig_density, orig_color_rows = RoutedMixture.density, RoutedMixture.color_rows
 
-    def density(self, xyz):  # keeps the samples of the density pass
+    def density(self, xyz, live=None):  # keeps the samples of the density pass
         captured["pts"] = xyz.detach()
-        return orig_density(self, xyz)
+        return orig_density(self, xyz, live)
 
-    def color_rows(self, rows, dirs):
+    def color_rows(self, rows, dirs, live=None):
         captured["rows"], captured["dirs"] = rows.detach(), dirs.detach()
-        return orig_color_rows(self, rows, dirs)
+        return orig_color_rows(self, rows, dirs, live)
 
     RoutedMixture.density, RoutedMixture.color_rows = density, color_rows
     lin1 = torch.nn.Linear(3, 1).to(device)

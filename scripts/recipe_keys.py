@@ -41,8 +41,15 @@ themselves are `pretrain.res` (for `ngp`, the number of levels L).
 
 
 def comments(cls: type) -> dict[str, str]:
-    """{field name: its comment} in the class's source: the comment on the field's line, else the comment lines
-    just above it."""
+    """{field name: its comment} in the source of the class that declares it (`cls` or a base, as the moe section
+    extends `moe.mixture.Routing`): the comment on the field's line, else the comment lines just above it."""
+    found: dict[str, str] = {}
+    for klass in reversed([c for c in cls.__mro__ if dataclasses.is_dataclass(c)]):
+        found.update(_own_comments(klass))
+    return found
+
+
+def _own_comments(cls: type) -> dict[str, str]:
     source = inspect.getsource(cls)
     lines = source.splitlines()
     trailing: dict[int, str] = {}

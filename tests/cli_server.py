@@ -55,6 +55,8 @@ def serve(path: str) -> None:
             os.chdir(request["cwd"])
             os.environ.clear()
             os.environ.update(request["env"])
+            if "OMP_NUM_THREADS" in os.environ:  # what a fresh process takes from it when it imports torch
+                torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
             sys.argv = ["boostnerf", *request["args"]]
             code = 0
             try:

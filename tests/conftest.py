@@ -3,6 +3,7 @@ scenes, a tiny trained workspace (made once per session), and running the real C
 
 from __future__ import annotations
 
+import collections
 import copy
 import os
 import subprocess
@@ -80,6 +81,13 @@ PSNR_MARGIN = 0.25
 TINY_PSNR = {"dvgo-12": 16.93, "dvgo-16": 17.51}  # pretrain reports, and eval over the 3 test views
 TINY_MOE_PSNR_2_VIEWS = {"dvgo-12": 17.48, "dvgo-16": 18.01, "baseline": 18.44, "top1": 18.19, "top2": 18.39,
                          "ens": 18.37}  # eval --views 2 after build-moe and the four finetunes
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Files with more `slow` tests run first. Under `--dist loadfile --no-loadscope-reorder` (pyproject addopts)
+    each file goes whole to one worker, in this order: a long file handed out last would end the run alone."""
+    slow = collections.Counter(item.path for item in items if item.get_closest_marker("slow"))
+    items.sort(key=lambda item: -slow[item.path])  # a stable sort: the order inside each file is kept
 
 
 _SERVER: dict = {}  # this worker's CLI fork server (tests/cli_server.py): its process and socket, started once

@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-from types import ModuleType
-
 import torch
 
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
@@ -72,11 +68,3 @@ def write_lpips_weights(folder, seed: int = 0) -> dict[str, str]:
     torch.save(torchvision_alexnet_layout(model), backbone)
     torch.save(lpips_head_layout(model), heads)
     return {ALEXNET_ENV: str(backbone), LPIPS_ENV: str(heads)}
-
-
-def load_script(name: str) -> ModuleType:
-    """scripts/NAME.py as a module (the scripts are not a package)."""
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).parent.parent / "scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module

@@ -9,11 +9,16 @@ allowed), else the same "Expected all tensors to be on the same device" error a 
 device resolution is patched so that `--device cuda` and `--device auto` pick it. So a tensor that a
 stage leaves on the CPU next to the model's is caught on a CPU-only machine, through the whole pipeline.
 
+`SyncCounter` counts, inside it, the operators that would make the host wait for a real GPU (`is_sync`): on the
+simulated device a copy to or from the host dispatches like any operator, so a step's waits can be counted on a
+CPU (scripts/step_profile.py, tests/test_syncs.py).
+
 Test-only: it proves device placement, not CUDA kernels (those are scripts/gpu-check.sh's job).
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from contextlib import ExitStack, contextmanager
 from typing import Iterator
 from unittest import mock
@@ -138,3 +143,93 @@ def simulated_gpu() -> Iterator[str]:
                                               lambda: [*fused(), GPU.type]))
         stack.enter_context(_Mode())
         yield GPU.type
+
+
+# Operators that make the host wait for the device when their inputs are on a GPU: their output's size or value is
+# read on the host (nerfacc's coding notes; PyTorch's own torch.cuda.set_sync_debug_mode flags them).
+SYNC_OPS = {
+    aten._local_scalar_dense.default,  # .item(), float(t), bool(t), int(t)
+    aten.is_nonzero.default,
+    aten.equal.default,
+    aten.nonzero.default,
+    aten.argwhere.default,
+    aten.masked_select.default,
+    aten._unique.default,
+    aten._unique2.default,
+    aten.unique_dim.default,
+    aten.unique_consecutive.default,
+    aten.bincount.default,  # its length is max + 1, read on the host
+    aten.histogram.bin_ct,
+}
+_REPEAT = {aten.repeat_interleave.Tensor, aten.repeat_interleave.self_Tensor}  # without output_size: reads the total
+_INDEXING = {aten.index.Tensor, aten.index_put.default, aten.index_put_.default, aten._index_put_impl_.default}
+_COPIES = {aten._to_copy.default, aten.copy_.default}
+
+
+def _on_device(t) -> bool:
+    return isinstance(t, torch.Tensor) and t.device.type != "cpu"
+
+
+def is_sync(func, args, kwargs) -> bool:
+    """Whether operator `func` on these arguments makes the host wait for a GPU: a `SYNC_OPS` operator, indexing
+    with a boolean mask (turned into indices by nonzero), repeat_interleave without output_size, on device tensors;
+    or a copy between host and device that is not `non_blocking` (a 0-dim host scalar going into a kernel is not a
+    copy)."""
+    flat, _ = tree_flatten((args, kwargs))
+    if func in _COPIES:
+        if func is aten._to_copy.default:
+            src, dst = args[0].device, torch.device(kwargs.get("device") or args[0].device)
+            scalar = args[0].dim() == 0 and src.type == "cpu"
+        else:
+            dst, src = args[0].device, args[1].device
+            scalar = args[1].dim() == 0 and src.type == "cpu"
+        if (src.type == "cpu") == (dst.type == "cpu") or scalar:
+            return False
+        return not (kwargs.get("non_blocking") or (len(args) > 2 and args[2] is True))
+    if not any(_on_device(t) for t in flat):
+        return False
+    if func in SYNC_OPS:
+        return True
+    if func in _REPEAT:
+        return kwargs.get("output_size") is None
+    if func in _INDEXING:
+        indices = args[1] if len(args) > 1 else kwargs.get("indices", ())
+        return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (indices or ()))
+    return False
+
+
+class SyncCounter(TorchDispatchMode):
+    """Counts, by operator, what would make the host wait for a GPU (`is_sync`) while `active`; also a device
+    tensor's `tolist()`, which copies it to the host past the dispatcher. Use it inside `simulated_gpu()`."""
+
+    def __init__(self):
+        super().__init__()
+        self.syncs: Counter = Counter()
+        self.active = True
+        self._tolist = None
+
+    def __enter__(self):
+        self._tolist = SimTensor.tolist
+        counter = self
+
+        def tolist(tensor):
+            if counter.active:
+                counter.syncs["Tensor.tolist"] += 1
+            return counter._tolist(tensor)
+
+        SimTensor.tolist = tolist
+        return super().__enter__()
+
+    def __exit__(self, *exc):
+        SimTensor.tolist = self._tolist
+        return super().__exit__(*exc)
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if self.active and is_sync(func, args, kwargs):
+            self.syncs[str(func)] += 1
+        return func(*args, **kwargs)
+
+    @property
+    def total(self) -> int:
+        return sum(self.syncs.values())

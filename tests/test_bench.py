@@ -137,16 +137,18 @@ def test_bench_plots_leave_out_rows_whose_psnr_was_not_finite(tmp_path):
     """A bench row read back holds null for a PSNR of inf (a pixel-perfect render): the plots leave it out."""
     rows = [{"name": "top1", "group": "moe", "psnr": 20.0, "gflops_per_image": 1.0, "seconds_per_image": 0.1},
             {"name": "sky", "group": "expert", "psnr": None, "gflops_per_image": 0.0, "seconds_per_image": 0.1}]
-    assert [Path(p).name for p in bench.plot(rows, tmp_path, print)] == ["bench-psnr-gflops.png", "bench-psnr-time.png"]
+    assert [Path(p).name for p in bench.plot(rows, tmp_path)] == ["bench-psnr-gflops.png", "bench-psnr-time.png"]
 
 
-def test_bench_plots_are_skipped_with_one_line_without_matplotlib(tmp_path, monkeypatch):
+def test_bench_plots_are_skipped_with_one_line_without_matplotlib(tmp_path, monkeypatch, caplog):
+    import logging
     import sys
 
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises ImportError
-    said = []
+    caplog.set_level(logging.INFO, logger="boostnerf_cli")
     rows = [{"name": "top1", "group": "moe", "psnr": 20.0, "gflops_per_image": 1.0, "seconds_per_image": 0.1}]
-    assert bench.plot(rows, tmp_path, said.append) == []
+    assert bench.plot(rows, tmp_path) == []
+    said = caplog.messages
     assert len(said) == 1 and "matplotlib is not installed" in said[0]
     assert list(tmp_path.iterdir()) == []
 
@@ -290,7 +292,7 @@ def test_an_interrupted_bench_leaves_the_table_of_what_it_finished(quick_bench, 
 
     monkeypatch.setattr(bench.Bench, "run_row", stop_at_the_second)
     with pytest.raises(KeyboardInterrupt):
-        bench.run(root, tiny_scene, load_recipe(bench_recipe), "quick", None, "cpu", None, lambda _: None)
+        bench.run(root, tiny_scene, load_recipe(bench_recipe), "quick", None, "cpu", None)
     table = json.loads((root / "reports" / "bench.json").read_text())
     assert len(table["rows"]) == 8 and table["missing"] == ["naive-wide"]
     assert len((root / "reports" / "bench.csv").read_text().splitlines()) == 1 + 8

@@ -1,6 +1,7 @@
 """The staged pipeline through the real CLI: artifacts, reports, resumable stages, bad input."""
 
 import json
+import logging
 import shutil
 
 import pytest
@@ -11,7 +12,7 @@ from safetensors import safe_open
 
 from boostnerf_cli.metrics import ALEXNET_ENV, LPIPS_ENV
 from boostnerf_cli.scenes import make_scene
-from boostnerf_cli.workspace import load_tensors, read_meta, save_tensors
+from boostnerf_cli.workspace import FORMAT_VERSION, read_meta
 
 
 def test_pretrain_writes_experts_reports_and_manifest(trained_ws):
@@ -85,17 +86,12 @@ def test_a_finished_expert_is_not_skipped_under_other_training_settings(tmp_path
     assert (ws / "manifest.json").read_text() == manifest
     quiet = make_recipe(tmp_path / "quiet.yaml", pretrain={"train": {"log_every": 7}})
     assert "already trained" in run_cli(*args, "--recipe", str(quiet), check=True).stderr
-    # an expert saved by a boostnerf that stored no signature (probe T, session 28: skipped under --iters 50, and the
-    # manifest then recorded 50 beside an expert of 30): the settings its report names are compared
-    tensors, meta = load_tensors(ws / "experts" / "dvgo-12.safetensors")
-    del meta["signature"]
-    save_tensors(ws / "experts" / "dvgo-12.safetensors", tensors, meta)
+    # every setting that shapes the expert is compared, named by its recipe key: its seed, its architecture (the
+    # family's options, defaults filled in)
     manifest = (ws / "manifest.json").read_text()
-    assert_clean_failure(run_cli(*args, "--recipe", str(more)), "dvgo-12 was trained with other settings",
-                         "iters: 30, now 50")
-    assert_clean_failure(run_cli(*args, "--recipe", str(quiet), "--seed", "5"), "seed: 0, now 5")  # and its file's
-    wider = make_recipe(tmp_path / "wider.yaml", pretrain={"dvgo": {"hidden": 32}})  # architecture (probe X)
-    assert_clean_failure(run_cli(*args, "--recipe", str(wider)), "dvgo.hidden: 16, now 32")
+    assert_clean_failure(run_cli(*args, "--recipe", str(quiet), "--seed", "5"), "pretrain.seed: 0, now 5")
+    wider = make_recipe(tmp_path / "wider.yaml", pretrain={"dvgo": {"hidden": 32}})
+    assert_clean_failure(run_cli(*args, "--recipe", str(wider)), "pretrain.dvgo.hidden: 16, now 32")
     assert (ws / "manifest.json").read_text() == manifest
     assert "already trained" in run_cli(*args, "--recipe", str(quiet), check=True).stderr
 
@@ -247,21 +243,6 @@ def test_a_moved_scene_or_workspace_is_followed_not_retrained(trained_ws, tmp_pa
     other = make_scene(tmp_path / "other", size=32, n_train=12, n_test=3, seed=1)  # another scene: still refused
     assert_clean_failure(run_cli("pretrain", "--workspace", str(moved), "--data", str(other), "--device", "cpu"),
                          "is not the one this workspace was trained on", "--force")
-    # a demo workspace made before this: its generated scene recorded absolute, at the place it was moved from
-    old = tmp_path / "old-demo"
-    shutil.copytree(trained_ws, old, ignore=shutil.ignore_patterns("reports", "renders"))
-    shutil.copytree(tiny_scene, old / "scene")
-    manifest = json.loads((old / "manifest.json").read_text())
-    manifest["data"]["path"] = str(tmp_path / "before-the-move" / "scene")
-    (old / "manifest.json").write_text(json.dumps(manifest))
-    run_cli("eval", "--workspace", str(old), "--no-costs", "--views", "1", "--device", "cpu", check=True)
-    # probe T (session 28): a new workspace made since at the old place holds another scene there; the renamed one
-    # followed the stale path into it ("changed since pretrain: retrain ... --data OTHER --force")
-    make_scene(tmp_path / "before-the-move" / "scene", size=32, n_train=12, n_test=3, seed=1)
-    run_cli("eval", "--workspace", str(old), "--no-costs", "--views", "1", "--device", "cpu", check=True)
-    proc = run_cli("pretrain", "--workspace", str(old), "--device", "cpu", check=True)
-    assert "already trained, skipping" in proc.stderr and "] step " not in proc.stderr  # nothing retrained
-    assert json.loads((old / "manifest.json").read_text())["data"]["path"] == "scene"
 
 
 def test_a_rerun_of_pretrain_keeps_the_recorded_recipe_and_names_it_when_it_is_damaged(trained_ws, tmp_path):
@@ -460,7 +441,7 @@ def test_render_writes_each_view_as_it_comes(trained_ws, tmp_path, monkeypatch):
     import shutil
 
     import boostnerf_cli.models as models
-    from boostnerf_cli.models import ALL_SKIPS
+    from boostnerf_cli.models import Viewing
     from boostnerf_cli.stages import render as stage
     from boostnerf_cli.workspace import Workspace
 
@@ -476,35 +457,36 @@ def test_render_writes_each_view_as_it_comes(trained_ws, tmp_path, monkeypatch):
 
     monkeypatch.setattr(models, "render_view", failing_second)
     with pytest.raises(RuntimeError, match="second view"):
-        stage.run(Workspace(ws), ["dvgo-12"], "test", "cpu", ALL_SKIPS, None, lambda _: None)
+        stage.run(Workspace(ws), ["dvgo-12"], Viewing("test"), "cpu")
     written = sorted(p.name for p in (ws / "renders" / "dvgo-12" / "test").glob("*.png"))
     assert len(written) == 2 and sum(n.endswith("_depth.png") for n in written) == 1, written  # view 1: colour, depth
 
 
-def test_a_slow_stage_says_what_it_is_doing_and_a_fast_one_stays_quiet():
+def test_a_slow_stage_says_what_it_is_doing_and_a_fast_one_stays_quiet(caplog):
     """Reading 120 JPEGs at 4000 x 3000 (53 s) and scoring 200 held-out views (122 s) printed nothing; a line printed
     up front, though, made every one-line refusal of a bad scene two lines. The notice comes only when it is slow."""
     import time
 
     from boostnerf_cli.stages.common import slow_notice
 
-    said = []
-    with slow_notice(said.append, "reading the scene", after=0.05):
+    caplog.set_level(logging.INFO, logger="boostnerf_cli")
+    with slow_notice("reading the scene", after=0.05):
         time.sleep(0.3)
-    assert said == ["reading the scene"]
-    with slow_notice(said.append, "scoring", after=0.5):
+    assert caplog.messages == ["reading the scene"]
+    with slow_notice("scoring", after=0.5):
         pass
-    with pytest.raises(ValueError), slow_notice(said.append, "failing", after=0.05):
+    with pytest.raises(ValueError), slow_notice("failing", after=0.05):
         raise ValueError("at once")
     time.sleep(0.2)
-    assert said == ["reading the scene"]
+    assert caplog.messages == ["reading the scene"]
 
 
 def test_log_lines_print_brackets_as_written(capsys):
     """Progress lines are plain text: Rich took "[0.34, 0.66]" or "[dvgo-8]" for a markup tag and dropped it, so
     `render --per-expert` printed "on detailed pixels , on smooth pixels " and a path like ws[2] lost its part."""
-    from boostnerf_cli.cli import log
+    from boostnerf_cli.cli import log, say_messages
 
+    say_messages()  # as every command does first
     text = "on detailed pixels [0.34, 0.66], [nan, nan], [dvgo-8] and ws[x]/scene [bold]"
     log(text)
     assert capsys.readouterr().err.strip() == text
@@ -565,19 +547,22 @@ def test_a_result_table_on_a_narrow_terminal_folds_its_cells_and_cuts_no_digit(m
         assert all(ch in it for ch in cell), cell
 
 
-def test_eval_says_when_it_renders_with_other_bounds_than_pretrain_recorded(trained_ws, tmp_path):
-    """Probe T (session 28): a workspace pretrained by an earlier boostnerf, whose near / far this one widens (so that
-    every camera's rays reach the box, session 26), evaluated up to 0.02 dB away from its reports with no word."""
+def test_a_workspace_of_another_file_format_is_refused_in_one_line(trained_ws, tmp_path):
+    """A workspace an earlier boostnerf made (its manifest of another file format) is read by no command: one line
+    says to make it again in a new workspace, before anything is read or written (its figures and files could differ
+    from what this boostnerf makes)."""
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
     manifest = json.loads((ws / "manifest.json").read_text())
-    near, far = manifest["scene"]["near"], manifest["scene"]["far"]
-    proc = run_cli("eval", "--workspace", str(ws), "--no-costs", "--views", "1", "--device", "cpu", check=True)
-    assert "near / far" not in proc.stderr  # the bounds it was pretrained with: nothing to say
-    manifest["scene"]["far"] = far * 0.6  # as an earlier boostnerf recorded them
+    assert manifest["format_version"] == FORMAT_VERSION
+    manifest["format_version"] = "1"
     (ws / "manifest.json").write_text(json.dumps(manifest))
-    proc = run_cli("eval", "--workspace", str(ws), "--no-costs", "--views", "1", "--device", "cpu", check=True)
-    assert f"near / far {near:.4g} / {far:.4g} here, {near:.4g} / {far * 0.6:.4g} when this workspace" in proc.stderr
+    before = {p: p.stat().st_mtime_ns for p in ws.rglob("*")}
+    for args in (["eval", "--no-costs"], ["pretrain"], ["build-moe"], ["render", "--views", "1"]):
+        proc = run_cli(*args, "--workspace", str(ws), "--device", "cpu")
+        assert_clean_failure(proc, f"workspace {ws} has file format '1', and this boostnerf reads format "
+                                   f"{FORMAT_VERSION!r}: make it again in a new workspace")
+    assert {p: p.stat().st_mtime_ns for p in ws.rglob("*")} == before
 
 
 def test_an_experts_reported_held_out_psnr_is_what_eval_measures(tmp_path, tiny_scene):

@@ -7,6 +7,8 @@ import pytest
 import torch
 from conftest import REMOVE, assert_clean_failure, make_recipe, run_cli
 
+from boostnerf_cli.workspace import FORMAT_VERSION
+
 
 def test_recipe_that_is_a_folder(tmp_path):
     (tmp_path / "recipes").mkdir()
@@ -80,7 +82,8 @@ def test_training_checkpoint_with_the_wrong_structure(tmp_path, trained_ws, tiny
     for suffix in (".safetensors", ".json"):
         (ws / "experts" / f"dvgo-16{suffix}").unlink()
     (ws / "checkpoints").mkdir(exist_ok=True)
-    torch.save({"task": {"model": {}}, "step": 3}, ws / "checkpoints" / "dvgo-16.pt")  # a dict, the wrong one
+    torch.save({"format_version": FORMAT_VERSION, "task": {"model": {}}, "step": 3},
+               ws / "checkpoints" / "dvgo-16.pt")  # a dict of this file format, the wrong one
     proc = run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws),
                    "--device", "cpu")
     assert_clean_failure(proc, "dvgo-16.pt does not hold this model's training state", "delete it")

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import make_recipe
+from conftest import make_recipe, run_cli
 
 from boostnerf_cli.workspace import is_temporary, load_tensors
 
@@ -65,8 +65,9 @@ def run(cmd: list[str], check: bool = True) -> subprocess.CompletedProcess:
     return proc
 
 
-def one_process(*args: str) -> list[str]:
-    return [sys.executable, "-m", "boostnerf_cli", *args]
+def one_process(*args: str) -> subprocess.CompletedProcess:
+    """`boostnerf ARGS` in one process (forked from the CLI server) with one thread, as each rank has."""
+    return run_cli(*args, check=True, env_extra={"OMP_NUM_THREADS": "1"})
 
 
 def files(ws: Path) -> dict[str, bytes]:
@@ -84,10 +85,10 @@ def setup(tmp_path_factory, tiny_scene):
     root = tmp_path_factory.mktemp("dist")
     recipe = make_recipe(root / "dist.yaml", **RECIPE_CHANGES)
     args = ["pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "--device", "cpu"]
-    run(one_process(*args, "--workspace", str(root / "one")))
+    one_process(*args, "--workspace", str(root / "one"))
     two = run(torchrun(*args, "--workspace", str(root / "two")))
     manifest = json.loads((root / "one" / "manifest.json").read_text())
-    run(one_process("build-moe", "--workspace", str(root / "one"), "--device", "cpu"))
+    one_process("build-moe", "--workspace", str(root / "one"), "--device", "cpu")
     return root, recipe, two, manifest
 
 
@@ -100,6 +101,7 @@ def test_experts_are_shared_out_by_cost():
     assert assign([8], 2) == [[8], []]
 
 
+@pytest.mark.slow
 def test_pretrain_under_torchrun_equals_one_process(setup):
     root, _, proc, manifest = setup
     stderr = proc.stderr
@@ -192,6 +194,7 @@ def dp_worker(ws: str, out: str, official: bool = False) -> None:
         torch.save(result, Path(out) / f"rank{dist.rank()}.pt")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("official", [False, True])
 def test_a_data_parallel_step_equals_one_process_step_on_the_union(setup, tmp_path, official):
     ws = setup[0] / "one"
@@ -221,6 +224,7 @@ def test_a_data_parallel_step_equals_one_process_step_on_the_union(setup, tmp_pa
 
 
 # --- resume with another number of processes, failures --------------------------------------------
+@pytest.mark.slow
 def test_finetune_checkpointed_by_two_ranks_resumes_in_one_process(setup, tmp_path):
     ws = tmp_path / "ws"
     shutil.copytree(setup[0] / "one", ws)
@@ -236,7 +240,7 @@ def test_finetune_checkpointed_by_two_ranks_resumes_in_one_process(setup, tmp_pa
     assert "interrupted: finished files are kept" in rest, rest[-3000:]
     state = torch.load(ws / "checkpoints" / "top2.pt", weights_only=True)
     assert 8 <= state["step"] < 24
-    resumed = run(one_process(*args))
+    resumed = one_process(*args)
     assert f"resuming from {ws / 'checkpoints' / 'top2.pt'} at step {state['step']}/24" in resumed.stderr
     report = json.loads((ws / "moe" / "top2.json").read_text())
     assert [h["step"] for h in report["history"]] == list(range(1, 25)) and report["skipped_steps"] == 0
@@ -246,6 +250,7 @@ def test_finetune_checkpointed_by_two_ranks_resumes_in_one_process(setup, tmp_pa
     assert_clean(ws)
 
 
+@pytest.mark.slow
 def test_a_failing_rank_stops_every_rank_with_its_message_and_keeps_finished_files(setup, tmp_path):
     root, recipe = setup[0], setup[1]
     ws = tmp_path / "ws"

@@ -3,7 +3,8 @@
 Each ```bash block of docs/*.md and README.md is a runnable example (plain ``` blocks are synopses
 and are not run). From those blocks this test keeps the lines a user would paste to drive boostnerf:
 `boostnerf ...`, `bash recipes/...` and shell variable assignments, and runs them in order, one bash
-script per document (`set -euo pipefail`), in an empty folder that has the repository's `recipes/`.
+script per document (`set -euo pipefail`), in an empty folder that has the repository's `recipes/` and
+`research/`.
 
 `boostnerf` is a shim on PATH that runs this checkout's CLI (through tests/cli_server.py, which
 imports torch once and forks per command) with tiny settings, so the documented
@@ -34,7 +35,7 @@ DOCS = sorted((ROOT / "docs").glob("*.md")) + [ROOT / "README.md"]
 # the tiny recipe's changes: the smallest chain that still exercises every stage (two experts, a gate, a few
 # steps each)
 DOCS_CHANGES = {
-    "data": {"image_size": 24},
+    "data": {"image_size": 16},
     "pretrain": {
         "res": [8, 12],
         "iters": 8,
@@ -45,8 +46,8 @@ DOCS_CHANGES = {
     "moe": {"gate_res": 4, "iters": 4, "train": {"batch_rays": 128, "log_every": 2, "checkpoint_every": 2}},
 }
 
-TINY_VALUES = {"--iters": "4", "--res": "8,12", "--image-size": "24", "--gate-res": "4", "--frames": "3",
-               "--size": "24", "--train-views": "6", "--test-views": "2", "--device": "cpu"}
+TINY_VALUES = {"--iters": "4", "--res": "8,12", "--image-size": "16", "--gate-res": "4", "--frames": "3",
+               "--size": "16", "--train-views": "6", "--test-views": "2", "--device": "cpu"}
 NEEDS_DEVICE = {"pretrain", "build-moe", "finetune", "render", "eval", "count-params"}
 
 SHIM = r'''#!{python}
@@ -119,7 +120,7 @@ def docs_env(tmp_path_factory):
     from boostnerf_cli.scenes import make_scene
 
     base = tmp_path_factory.mktemp("docs")
-    scene = make_scene(base / "scene", size=24, n_train=8, n_test=2, seed=0)
+    scene = make_scene(base / "scene", size=16, n_train=8, n_test=2, seed=0)
     recipe = make_recipe(base / "docs-recipe.yaml", **DOCS_CHANGES)
     bin_dir = base / "bin"
     bin_dir.mkdir()
@@ -142,6 +143,7 @@ def docs_env(tmp_path_factory):
         server.wait(timeout=30)
 
 
+@pytest.mark.slow
 def test_every_documented_command_runs(docs_env):
     """The documents in a user's reading order (quickstart first), in one folder, so later documents can
     use the workspaces the quickstart made; every document is run even when an earlier one failed."""
@@ -151,6 +153,7 @@ def test_every_documented_command_runs(docs_env):
     cwd = base / "user"
     cwd.mkdir()
     (cwd / "recipes").symlink_to(ROOT / "recipes")
+    (cwd / "research").symlink_to(ROOT / "research")  # results.md's commands name research/recipes/
     failures = []
     for doc in order:
         log = cwd / f"{doc}.log"
@@ -175,6 +178,7 @@ def _run_chain(cwd: Path, env: dict, *args: str) -> tuple[subprocess.CompletedPr
     return proc, log.read_text() if log.exists() else ""
 
 
+@pytest.mark.slow
 def test_chain_skips_finished_models_redoes_the_reports_and_stops_at_the_first_failure(docs_env):
     base, env = docs_env
     cwd = base / "chain"

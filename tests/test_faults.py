@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import errno
 import json
+import logging
 import os
 import shutil
 import signal
@@ -36,7 +37,7 @@ def moe_copy(trained_ws, tmp_path):
     """A private copy of the tiny workspace with a built (untrained) mixture."""
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws)
-    build_moe.build(Workspace(ws), None, load_recipe(None).moe.__class__(gate_res=8), "cpu", lambda m: None)
+    build_moe.build(Workspace(ws), None, load_recipe(None).moe.__class__(gate_res=8), "cpu")
     return ws
 
 
@@ -205,7 +206,7 @@ def test_disk_full_while_writing_an_artifact_keeps_the_previous_one(moe_copy, mo
     monkeypatch.setattr(wsmod, "save_file", half_then_full)
     rec = load_recipe(None).moe.__class__(gate_res=6)
     with pytest.raises(BoostNerfError, match=r"could not write .*init\.safetensors \(No space left on device\)"):
-        build_moe.build(ws, None, rec, "cpu", lambda m: None)
+        build_moe.build(ws, None, rec, "cpu")
     assert ws.model_path("init").read_bytes() == before
     assert (ws.moe_dir / "init.json").read_text() == report_before
     assert not _tmp_files(moe_copy)
@@ -253,8 +254,8 @@ def test_generating_a_scene_is_atomic(tmp_path, monkeypatch, who):
     ws = Workspace(tmp_path / "ws")
     scene = {"make-scene": tmp_path / "scene", "pretrain": ws.root / "scene", "bench": ws.root / "scene"}[who]
     run = {"make-scene": lambda: make_scene(scene, size=16, n_train=3, n_test=1),
-           "pretrain": lambda: pretrain.run(ws, None, rec, "cpu", False, lambda m: None),
-           "bench": lambda: bench.run(ws.root, None, rec, "quick", None, "cpu", 1, lambda m: None)}[who]
+           "pretrain": lambda: pretrain.run(ws, None, rec, "cpu", False),
+           "bench": lambda: bench.run(ws.root, None, rec, "quick", None, "cpu", 1)}[who]
     monkeypatch.setattr(procedural, "_write_blender", dies_half_way)
     with pytest.raises(KeyboardInterrupt):
         run()
@@ -303,21 +304,22 @@ def test_experts_retrained_or_removed_after_build_moe_are_detected(moe_copy):
     assert_clean_failure(proc, "expert dvgo-12 was removed after build-moe")
 
 
-def test_a_model_finetuned_from_an_older_init_is_not_silently_kept(moe_copy, monkeypatch):
+def test_a_model_finetuned_from_an_older_init_is_not_silently_kept(moe_copy, caplog):
     from boostnerf_cli.stages import finetune
 
     ws = Workspace(moe_copy)
     rec = load_recipe(None).moe.__class__(gate_res=8, iters=2)
     rec.train.batch_rays = 64
-    finetune.run(ws, "top1", 1, rec, "cpu", False, lambda m: None)
+    finetune.run(ws, "top1", 1, rec, "cpu", False)
     assert json.loads(ws.manifest_path.read_text())["moe"]["init"]["inputs"].keys() == {"dvgo-12", "dvgo-16"}
-    logs = []
-    finetune.run(ws, "top1", 1, rec, "cpu", False, logs.append)
-    assert "already finetuned" in logs[-1]
-    build_moe.build(ws, None, load_recipe(None).moe.__class__(gate_res=6), "cpu", lambda m: None)  # a new init
-    with pytest.raises(BoostNerfError, match="top1 was finetuned from an older moe/init .* --force"):
-        finetune.run(ws, "top1", 1, rec, "cpu", False, lambda m: None)
-    finetune.run(ws, "top1", 1, rec, "cpu", True, lambda m: None)  # --force redoes it from the new init
+    caplog.set_level(logging.INFO, logger="boostnerf_cli")
+    finetune.run(ws, "top1", 1, rec, "cpu", False)
+    assert "already finetuned" in caplog.messages[-1]
+    build_moe.build(ws, None, load_recipe(None).moe.__class__(gate_res=6), "cpu")  # a new init
+    with pytest.raises(BoostNerfError, match="top1 is stale: moe/init was rebuilt after top1 was finetuned from it; "
+                                             "make it again with `boostnerf finetune -w .* --topk 1 --force`"):
+        finetune.run(ws, "top1", 1, rec, "cpu", False)
+    finetune.run(ws, "top1", 1, rec, "cpu", True)  # --force redoes it from the new init
 
 
 def test_a_different_or_changed_scene_is_refused(trained_ws, tiny_scene, tiny_recipe, tmp_path):

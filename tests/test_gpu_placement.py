@@ -82,14 +82,21 @@ FAMILY_CHANGES = {
     "tensorf": {"model": "tensorf", "dvgo": REMOVE,
                 "tensorf": {"hidden": 16, "layers": 1, "density_rank": 4, "app_rank": 4, "app_dim": 8, "fit_steps": 20}},
     "ngp": {"model": "ngp", "res": [4, 6], "dvgo": REMOVE,
-            "ngp": {"hidden": 16, "log2_table": 10, "base_res": 4, "max_res": 32, "grid_res": 16}},
+            "ngp": {"hidden": 16, "log2_table": 10, "base_res": 4, "max_res": 32, "grid_res": 16, "fit_steps": 20}},
 }
+# Fewer steps than the tiny recipe's (the simulator makes each ~4x slower): every code path still runs, from the first
+# step (warm start, 3 grid growths, an occupancy refresh, checkpoints every 4 steps of every stage, finetuning too).
+SHORT = {"pretrain": {"iters": 12, "geometry": {"iters": 30},
+                      "train": {"log_every": 4, "checkpoint_every": 4, "occupancy_every": 8}},
+         "moe": {"iters": 8, "train": {"log_every": 4, "checkpoint_every": 4}}}
 
 
 def _recipe(tmp_path: Path, family: str = "dvgo") -> Path:
-    return make_recipe(tmp_path / f"{family}.yaml", pretrain=FAMILY_CHANGES[family])
+    return make_recipe(tmp_path / f"{family}.yaml", pretrain={**FAMILY_CHANGES[family], **SHORT["pretrain"]},
+                       moe=SHORT["moe"])
 
 
+@pytest.mark.slow
 def test_every_stage_on_the_simulated_gpu_gives_the_cpu_numbers(tmp_path, tiny_scene):
     """The reference is a plain CPU run, outside the simulator (whose dispatch mode makes a run ~4x slower)."""
     recipe = _recipe(tmp_path)
@@ -121,15 +128,14 @@ def test_every_stage_on_the_simulated_gpu_gives_the_cpu_numbers(tmp_path, tiny_s
     assert (tmp_path / "gpu" / "moe" / "top1-pruned.safetensors").exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("family", ["tensorf", "ngp"])
 def test_other_families_on_the_simulated_gpu(tmp_path, tiny_scene, family):
-    """Placement only (no figure is compared): a shorter geometry stage and fewer expert steps than the tiny recipe's,
-    as every code path runs from the first step (the simulator makes each step ~4x slower)."""
+    """Placement only (no figure is compared), with the SHORT steps."""
     ws = str(tmp_path / "ws")
     with simulated_gpu():
-        short = make_recipe(tmp_path / f"{family}-short.yaml",
-                            pretrain={**FAMILY_CHANGES[family], "iters": 12, "geometry": {"iters": 30}})
-        _invoke("pretrain", "--data", str(tiny_scene), "--recipe", str(short), "-w", ws, "--device", "cuda")
+        _invoke("pretrain", "--data", str(tiny_scene), "--recipe", str(_recipe(tmp_path, family)), "-w", ws,
+                "--device", "cuda")
         _invoke("build-moe", "-w", ws, "--device", "cuda")
         _invoke("finetune", "-w", ws, "--topk", "2", "--iters", "10", "--device", "cuda")
         _invoke("eval", "-w", ws, "--model", "top2", "--device", "cuda")
@@ -143,6 +149,7 @@ def test_other_families_on_the_simulated_gpu(tmp_path, tiny_scene, family):
     assert (report["vd_source"], report["vd_filter"], report["penalty"]) == ("largest", "visible", "1, 1.5")
 
 
+@pytest.mark.slow
 def test_a_run_interrupted_on_the_gpu_resumes_there(tmp_path, tiny_scene, monkeypatch):
     """A checkpoint written from the GPU (read back with map_location=cpu) resumes on the GPU: model, Adam
     state and random state go back to the device, and the result equals an uninterrupted run. That run is on
@@ -153,25 +160,26 @@ def test_a_run_interrupted_on_the_gpu_resumes_there(tmp_path, tiny_scene, monkey
     _invoke("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "-w", str(tmp_path / "whole"),
             "--device", "cpu")
     with simulated_gpu():
-        real_save, saves = train_mod._save_checkpoint, []
+        real_save, saves = train_mod.TrainCheckpoint.save, []
 
-        def save_then_stop(path, *args, **kwargs):
-            real_save(path, *args, **kwargs)
-            saves.append(path)
-            if path.name.startswith("dvgo-16") and len([p for p in saves if p == path]) == 2:
+        def save_then_stop(self, *args, **kwargs):
+            real_save(self, *args, **kwargs)
+            saves.append(self.path)
+            if self.path.name.startswith("dvgo-16") and len([p for p in saves if p == self.path]) == 2:
                 raise KeyboardInterrupt  # as if stopped right after the second checkpoint
 
-        monkeypatch.setattr(train_mod, "_save_checkpoint", save_then_stop)
+        monkeypatch.setattr(train_mod.TrainCheckpoint, "save", save_then_stop)
         result = CliRunner().invoke(app, ["pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "-w",
                                           str(tmp_path / "cut"), "--device", "cuda"])
         assert result.exit_code != 0 and (tmp_path / "cut" / "checkpoints" / "dvgo-16.pt").exists()
-        monkeypatch.setattr(train_mod, "_save_checkpoint", real_save)
+        monkeypatch.setattr(train_mod.TrainCheckpoint, "save", real_save)
         _invoke("pretrain", "--data", str(tiny_scene), "--recipe", str(recipe), "-w", str(tmp_path / "cut"),
                 "--device", "cuda")
     whole, cut = (json.loads((tmp_path / w / "experts" / "dvgo-16.json").read_text()) for w in ("whole", "cut"))
     assert cut["test_psnr"] == pytest.approx(whole["test_psnr"], abs=1e-4)
 
 
+@pytest.mark.slow
 def test_bench_on_the_simulated_gpu(tmp_path, tiny_scene):
     with simulated_gpu():
         _invoke("bench", "--data", str(tiny_scene), "--recipe", str(_recipe(tmp_path)), "-w", str(tmp_path / "b"),

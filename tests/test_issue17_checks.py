@@ -4,6 +4,7 @@ checkpoint signatures (a changed TensoRF or NGP setting is noticed on resume).""
 from __future__ import annotations
 
 import json
+import logging
 
 import pytest
 import torch
@@ -72,14 +73,16 @@ def test_the_training_loop_warns_when_the_train_psnr_keeps_falling(capsys):
     assert [h["psnr_mean"] for h in result.history][:3] == [30.0, 29.0, 28.0]
 
 
-def test_a_resolution_the_recipe_does_not_list_takes_the_nearest_listed_value():
+def test_a_resolution_the_recipe_does_not_list_takes_the_nearest_listed_value(caplog):
     rec = PretrainRecipe(model="dvgo", res=[48, 64, 100], dvgo={"hidden": {64: 64, 72: 96, 80: 128}, "layers": 2})
-    said = []
-    assert expert_options(rec, 72, said.append) == {"hidden": 96, "layers": 2, "res": 72} and said == []
-    assert expert_options(rec, 48, said.append)["hidden"] == 64
-    assert expert_options(rec, 100, said.append)["hidden"] == 128
-    assert expert_options(rec, 76, said.append)["hidden"] == 128  # a tie: the larger
+    caplog.set_level(logging.INFO, logger="boostnerf_cli")
+    assert expert_options(rec, 72, say=True) == {"hidden": 96, "layers": 2, "res": 72} and caplog.messages == []
+    assert expert_options(rec, 48, say=True)["hidden"] == 64
+    assert expert_options(rec, 100, say=True)["hidden"] == 128
+    assert expert_options(rec, 76, say=True)["hidden"] == 128  # a tie: the larger
+    said = caplog.messages
     assert len(said) == 3 and "no value for res 48: using 64" in said[0] and "(64)" in said[0]
+    assert expert_options(rec, 48)["hidden"] == 64 and len(caplog.messages) == 3  # said only when asked to
     with pytest.raises(BoostNerfError, match="empty mapping"):
         expert_options(PretrainRecipe(dvgo={"hidden": {}}), 64)
 
@@ -138,4 +141,5 @@ def test_a_changed_family_setting_is_noticed_on_resume(tmp_path, tiny_scene, fam
     changed = _family_recipe(tmp_path / "b.yaml", family, hidden=12)
     proc = run_cli("pretrain", "-w", str(ws), "--data", str(tiny_scene), "--recipe", str(changed), "--device", "cpu",
                    "--iters", "40")
-    assert proc.returncode == 2 and "other settings" in proc.stderr and f"{family}:" in proc.stderr, proc.stderr
+    assert proc.returncode == 2 and "other settings" in proc.stderr and f"pretrain.{family}.hidden:" in proc.stderr, \
+        proc.stderr

@@ -15,11 +15,12 @@ PACKAGE = ROOT / "boostnerf_cli"
 # each other), never a higher layer nor another package of its own layer.
 LAYERS = [
     ["errors"],
-    ["limits", "flops", "metrics", "workspace"],
+    ["limits", "flops", "metrics", "workspace", "device", "startup", "adam"],
     ["fields"],
     ["render"],
     ["moe", "scenes"],
     ["recipe", "distributed", "images"],
+    ["lineage"],
     ["train", "models"],
     ["tasks", "costs"],
     ["stages.common"],

@@ -516,7 +516,7 @@ def test_the_gate_can_start_from_an_expert_left_out_of_the_mixture(trained_ws, t
     mix, meta = load_mixture(ws / "moe" / "init.safetensors")
     expert, _, _ = load_expert(ws / "experts" / "dvgo-12.safetensors")
     assert mix.m == 1 and torch.equal(mix.gate.table, expert.feature_table)  # an exact copy, from outside
-    assert set(meta["inputs"]) == {"dvgo-12", "dvgo-16"}  # retraining the gate's source makes moe/init stale
+    assert set(meta["signature"]["inputs"]) == {"dvgo-12", "dvgo-16"}  # retraining the gate's source makes moe/init stale
 
     shutil.rmtree(ws / "moe")
     bad = make_recipe(tmp_path / "bad.yaml", moe={**OFFICIAL, "topk": 1, "gate_from": "dvgo-99"})
@@ -525,86 +525,3 @@ def test_the_gate_can_start_from_an_expert_left_out_of_the_mixture(trained_ws, t
     assert not (ws / "moe" / "init.safetensors").exists()
 
 
-def test_wide_start_routes_to_one_expert_more_then_narrows_by_step():
-    """moe.wide_start: the first floor(fraction * iters) steps route to k + 1 experts with renormalised weights,
-    then to k with the recipe's weights; the routing is a function of the step alone (a resumed run, which starts
-    at a later step, routes as an uninterrupted one), the last step is always narrow, and the ensemble is left as
-    it is."""
-    from helpers import toy_mixture
-
-    from boostnerf_cli.tasks import MixtureTask
-
-    mix = toy_mixture(m=3, k=1, renormalize=False)
-    task = MixtureTask(mix, None, None, MoERecipe(iters=10, wide_start=0.35))
-    assert task.wide_steps == 3
-    seen = []
-    for step in (0, 2, 3, 9, 1, 5):  # out of order, as after a resume
-        task.before_step(step)
-        seen.append((mix.cfg.topk, mix.cfg.renormalize))
-    assert seen == [(2, True), (2, True), (1, False), (1, False), (2, True), (1, False)]
-    assert MixtureTask(toy_mixture(3, k=1), None, None, MoERecipe(iters=10, wide_start=0.99)).wide_steps == 9
-    assert MixtureTask(toy_mixture(3, k=3), None, None, MoERecipe(iters=10, wide_start=0.5)).wide_steps == 0
-    ens = toy_mixture(3, k=1)
-    ens.make_ensemble()
-    assert MixtureTask(ens, None, None, MoERecipe(iters=10, wide_start=0.5)).wide_steps == 0
-    with pytest.raises(BoostNerfError, match="moe.wide_start = 1.0: must be in"):
-        from boostnerf_cli.recipe import recipe_from_dict
-
-        recipe_from_dict({"moe": {"wide_start": 1.0}})
-
-
-def test_noisy_top_k_chooses_by_perturbed_log_probabilities_and_weights_by_the_clean_ones():
-    """moe.gate_noise (float64 reference): the choice is the top-k of log p + noise * N(0, 1) drawn from torch's
-    generator, the weights are the chosen experts' noiseless probabilities (renormalised over k for k > 1, the
-    straight-through 1 for k = 1), gradients reach exactly the chosen probabilities, and noise 0 is the old top-k."""
-    from boostnerf_cli.moe.router import top_k
-
-    probs = torch.softmax(torch.randn(64, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(1)), -1)
-    for k, renorm in ((1, False), (1, True), (2, True), (2, False)):
-        p = probs.clone().requires_grad_(True)
-        torch.manual_seed(7)
-        vals, idx = top_k(p, k, renorm, noise=0.8)
-        torch.manual_seed(7)
-        ref_idx = torch.topk(probs.log() + 0.8 * torch.randn_like(probs), k, dim=-1).indices
-        assert torch.equal(idx, ref_idx)
-        chosen = probs.gather(-1, ref_idx)
-        ref = chosen / chosen.sum(-1, keepdim=True) if renorm and k > 1 else chosen
-        assert torch.allclose(vals, torch.ones_like(ref) if renorm and k == 1 else ref, rtol=0, atol=1e-15)
-        (vals * torch.linspace(1, 2, k, dtype=vals.dtype)).sum().backward()  # renormalised weights sum to 1
-        assert torch.equal(p.grad.abs() > 1e-12, torch.zeros_like(probs, dtype=torch.bool).scatter(-1, ref_idx, True))
-        # noise 0: the plain top-k, whatever the generator
-        a, b = top_k(probs, k, renorm), top_k(probs, k, renorm, noise=0.0)
-        assert torch.equal(a[1], torch.topk(probs, k, dim=-1).indices) and torch.equal(a[1], b[1])
-    # some samples leave the top choice, at a rate that grows with the noise; a large noise is nearly uniform
-    top = probs.argmax(-1, keepdim=True)
-    torch.manual_seed(0)
-    moved = [float((top_k(probs, 1, False, noise=s)[1] != top).double().mean()) for s in (0.1, 1.0)]
-    assert 0 < moved[0] < moved[1]
-    many = probs[:1].expand(30000, 4)
-    share = torch.bincount(top_k(many, 1, False, noise=50.0)[1].reshape(-1), minlength=4) / 30000
-    assert torch.allclose(share, torch.full((4,), 0.25, dtype=share.dtype), atol=0.02), share
-
-
-def test_gate_noise_only_perturbs_training_steps_of_a_sparse_gate():
-    """The task passes moe.gate_noise to its training renders only; a mixture rendered (or evaluated) without it
-    routes deterministically, and the ensemble or k = M, which choose every expert, get none."""
-    from helpers import toy_mixture
-
-    from boostnerf_cli.moe.mixture import RoutingStats
-    from boostnerf_cli.tasks import MixtureTask
-
-    mix = toy_mixture(m=3, k=1, renormalize=False)
-    assert MixtureTask(mix, None, None, MoERecipe(iters=10, gate_noise=1.0)).gate_noise == 1.0
-    assert MixtureTask(toy_mixture(3, k=3), None, None, MoERecipe(iters=10, gate_noise=1.0)).gate_noise == 0.0
-    ens = toy_mixture(3, k=1)
-    ens.make_ensemble()
-    assert MixtureTask(ens, None, None, MoERecipe(iters=10, gate_noise=1.0)).gate_noise == 0.0
-    xyz = torch.rand(2000, 3) * 2 - 1
-    with torch.no_grad():
-        assert torch.equal(mix.density(xyz), mix.density(xyz))
-    plain, noisy = RoutingStats(), RoutingStats()
-    mix.with_stats(plain).density(xyz)
-    torch.manual_seed(0)
-    mix.with_stats(noisy, 1.0).density(xyz)
-    assert torch.equal(plain.probs[0], noisy.probs[0])  # the same gate
-    assert bool((plain.idx[0] != noisy.idx[0]).any()) and bool((plain.idx[0] == noisy.idx[0]).float().mean() > 0.3)

@@ -139,7 +139,8 @@ def test_a_model_finetuned_again_after_prune_is_not_silently_kept(pruned_ws, tmp
     shutil.copytree(pruned_ws, ws)
     run_cli("finetune", "--workspace", str(ws), "--topk", "1", "--force", "--iters", "2", "--device", "cpu", check=True)
     proc = run_cli("prune", "--workspace", str(ws), "--model", "top1", "--device", "cpu")
-    assert_clean_failure(proc, "top1 changed since it was pruned", "--force")
+    assert_clean_failure(proc, "top1-pruned is stale: top1 was changed after top1-pruned was pruned from it",
+                         "--model top1 --force")
     run_cli("prune", "--workspace", str(ws), "--model", "top1", "--force", "--device", "cpu", check=True)
     proc = run_cli("prune", "--workspace", str(ws), "--model", "top1", "--device", "cpu", check=True)
     assert "already pruned" in proc.stderr

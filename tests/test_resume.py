@@ -1,8 +1,8 @@
 """kill -9, rerun the same command: the result equals an uninterrupted run.
 
-The real CLI runs in a subprocess and SIGKILLs itself at known points (workspace.TEST_KILL_ENV): right
-after its N-th training checkpoint, or inside the atomic write of a named artifact (temporary file
-written, not yet renamed). Rerunning the same command resumes from the last checkpoint; the final
+The real CLI runs in a process of its own (conftest.run_cli) and SIGKILLs itself at known points
+(workspace.TEST_KILL_ENV): right after its N-th training checkpoint, or inside the atomic write of a named
+artifact (temporary file written, not yet renamed). Rerunning the same command resumes from the last checkpoint; the final
 artifacts must match an uninterrupted run with the same seed within RESUME_ATOL (docs/reliability.md),
 and the killed runs must leave no partial file, checkpoint or lock behind once the command has completed.
 """
@@ -10,18 +10,15 @@ and the killed runs must leave no partial file, checkpoint or lock behind once t
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 from conftest import assert_clean_failure, make_recipe, merge, run_cli
 
-from boostnerf_cli.workspace import TEST_KILL_ENV, is_temporary, load_tensors
+from boostnerf_cli.workspace import FORMAT_VERSION, TEST_KILL_ENV, is_temporary, load_tensors
 
 RESUME_ATOL = 1e-5  # documented in docs/reliability.md; observed difference: exactly 0
 
@@ -39,14 +36,9 @@ RECIPE_CHANGES = {
     "moe": {"gate_res": 6, "iters": 24, "train": {"batch_rays": 128, "log_every": 3, "checkpoint_every": 4}},
 }
 
-def _cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "boostnerf_cli", *args]
-
-
 def run_killed(args: list[str], point: str) -> None:
     """Run the CLI until it SIGKILLs itself at `point` (workspace.TEST_KILL_ENV: "checkpoint:N", "write:NAME")."""
-    env = {**os.environ, "PYTHONWARNINGS": "ignore", TEST_KILL_ENV: point}
-    proc = subprocess.run(_cli(*args), capture_output=True, text=True, env=env, timeout=600)
+    proc = run_cli(*args, env_extra={TEST_KILL_ENV: point})
     assert proc.returncode == -signal.SIGKILL, f"{point}: not killed ({proc.returncode}):\n{proc.stderr[-2000:]}"
 
 
@@ -97,6 +89,7 @@ def setup(tmp_path_factory, tiny_scene):
     return root, recipe, ref, args
 
 
+@pytest.mark.slow
 def test_pretrain_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupted_result(setup):
     root, _, ref, args = setup
     ws = root / "killed-pretrain"
@@ -115,6 +108,7 @@ def test_pretrain_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupt
     assert_clean(ws)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how", [["--topk", "2"]], ids=["top2"])
 def test_finetune_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupted_result(setup, how):
     root, _, ref, _ = setup
@@ -133,6 +127,7 @@ def test_finetune_killed_at_checkpoints_and_mid_write_resumes_to_the_uninterrupt
     assert_clean(ws)
 
 
+@pytest.mark.slow
 def test_a_checkpoint_is_not_resumed_with_other_training_settings(setup, tmp_path):
     """A checkpoint resumes only with the settings that shape what is trained: a finetune killed at --lambda 0.5
     resumed at --lambda 0 (its report said 0 for a model half trained at 0.5), and a pretrain resumed with another
@@ -161,25 +156,27 @@ def test_a_checkpoint_is_not_resumed_with_other_training_settings(setup, tmp_pat
     assert json.loads((ws / "moe" / "top2.json").read_text())["lambda"] == 0.5
 
 
-def test_a_checkpoint_from_before_the_training_settings_were_recorded_resumes(setup, tmp_path):
-    """Probe T (session 28): a pretrain interrupted under a boostnerf from before session 23, whose checkpoints did
-    not record the training settings (nor, before session 24, a PSNR trend), was refused by today's with the same
-    command: "written with other settings (the recipe's train section: the default, now {...})". It resumes now,
-    with a note; a checkpoint of today's that names other settings is still refused (the test above)."""
+def test_a_checkpoint_of_an_earlier_file_format_is_refused_in_one_line(setup, tmp_path):
+    """A training checkpoint written by a boostnerf of another file format is not resumed with settings it may not
+    have recorded: one line says to delete it, which restarts the model; the same command then finishes."""
     root, recipe, ref, args = setup
     ws = tmp_path / "ws"
     args = [a if a != str(ref) else str(ws) for a in args]
     run_killed(args, "checkpoint:14")  # inside dvgo-10 (step 8)
     ckpt = ws / "checkpoints" / "dvgo-10.pt"
     state = torch.load(ckpt, map_location="cpu", weights_only=True)
-    assert "train" in state["signature"]  # the tiny recipe's batch_rays are not the default
-    del state["signature"]["train"], state["trend"]  # as the old boostnerf wrote it
+    assert state["format_version"] == FORMAT_VERSION
+    state["format_version"] = "1"  # as an earlier boostnerf wrote it
     torch.save(state, ckpt)
+    assert_clean_failure(run_cli(*args), f"training checkpoint {ckpt} has file format '1'",
+                         f"reads format {FORMAT_VERSION!r}: delete it to restart this model")
+    ckpt.unlink()
     proc = run_cli(*args, check=True)
-    assert "resuming from" in proc.stderr and "earlier boostnerf" in proc.stderr, proc.stderr[-2000:]
+    assert "resuming from" not in proc.stderr and "dvgo-10" in proc.stderr
     assert_clean(ws)
 
 
+@pytest.mark.slow
 def test_an_interrupted_force_run_resumes_and_force_drops_a_checkpoint_of_other_settings(setup, tmp_path):
     """Probe Y (session 26): `finetune --force` (and `pretrain --force`) deleted the model's training checkpoint
     before training, so an interrupted --force run restarted from step 0 on every rerun of the same command, though

@@ -671,3 +671,35 @@ def test_held_out_cameras_farther_than_the_training_ones_reach_the_box(tmp_path)
         [corners[(k >> a) & 1, a] for a in range(3)])).norm()) for i in range(2) for k in range(8))
     assert scene.far >= farthest - 1e-4 > plain.far, (scene.far, farthest, plain.far)
     assert "train and test" in scene.extra["notes"][0] and "notes" not in plain.extra
+
+
+@pytest.mark.parametrize("layout", ["blender", "llff"])
+def test_a_cached_scene_is_the_decoded_scene_until_its_files_or_settings_change(tmp_path, monkeypatch, layout):
+    """load_scene(cache=...) decodes once and reads the same scene back (images, alpha, cameras, box, NDC, notes);
+    a changed file or another setting decodes again."""
+    import os
+
+    from boostnerf_cli import scenes
+
+    folder = make_scene(tmp_path / "scene", size=16, n_train=4, n_test=2, seed=0, layout=layout)
+    cache = tmp_path / "ws" / "cache" / "scene.safetensors"
+    decoded = load_scene(folder, image_size=12, cache=cache)
+    assert cache.exists()
+    real = scenes._decode
+    monkeypatch.setattr(scenes, "_decode", lambda *a: pytest.fail("decoded although the cache fits"))
+    again = load_scene(folder, image_size=12, cache=cache)
+    assert again.describe() == decoded.describe() and again.extra == decoded.extra and again.ndc == decoded.ndc
+    for name, split in decoded.splits.items():
+        other = again.splits[name]
+        assert split.names == other.names
+        for a, b in ((split.images, other.images), (split.poses, other.poses), (split.intrinsics, other.intrinsics),
+                     (split.alpha, other.alpha)):
+            assert (a is None and b is None) or torch.equal(a, b)
+    calls = []
+    monkeypatch.setattr(scenes, "_decode", lambda *a: calls.append(a) or real(*a))
+    load_scene(folder, image_size=8, cache=cache)  # another setting
+    image = next(p for p in sorted(folder.rglob("*.png")))
+    stat = image.stat()
+    os.utime(image, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # a file changed (its time)
+    load_scene(folder, image_size=8, cache=cache)
+    assert len(calls) == 2

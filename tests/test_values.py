@@ -360,10 +360,10 @@ def test_safetensors_whose_metadata_is_not_an_object(tmp_path):
         read_meta(path)
 
 
-@pytest.mark.parametrize("version", ["2", None])
+@pytest.mark.parametrize("version", ["1", "3", None])
 def test_a_file_of_another_format_version_is_one_line(tmp_path, version):
-    """A file from a later boostnerf (format "2"), or a safetensors file with boostnerf metadata but no version, is
-    refused in one line naming both formats, before any of its tensors is interpreted."""
+    """A file from an earlier boostnerf (format "1") or a later one ("3"), or a safetensors file with boostnerf
+    metadata but no version, is refused in one line naming both formats, before any of its tensors is interpreted."""
     from safetensors.torch import save_file
 
     path = tmp_path / "x.safetensors"
@@ -372,7 +372,7 @@ def test_a_file_of_another_format_version_is_one_line(tmp_path, version):
     with pytest.raises(BoostNerfError) as e:
         read_meta(path)
     msg = str(e.value)
-    assert "\n" not in msg and f"file format {version!r}" in msg and "reads format '1'" in msg, msg
+    assert "\n" not in msg and f"file format {version!r}" in msg and "reads format '2'" in msg, msg
 
 
 def _tiny_expert_file(tmp_path, **meta_changes):
@@ -429,7 +429,8 @@ def test_mixture_file_with_the_wrong_structure_is_one_line(tmp_path):
 
 
 def test_training_checkpoint_with_the_wrong_structure_is_one_line(tmp_path):
-    from boostnerf_cli.train import RayData, Schedule, train
+    from boostnerf_cli.train import RayData, Schedule, TrainCheckpoint, train
+    from boostnerf_cli.workspace import FORMAT_VERSION
 
     class Task:
         def param_groups(self):
@@ -440,10 +441,12 @@ def test_training_checkpoint_with_the_wrong_structure_is_one_line(tmp_path):
 
     ckpt = tmp_path / "c.pt"
     rays = RayData(torch.zeros(4, 3), torch.ones(4, 3), torch.zeros(4, 3))
-    for state in ({"task": {}, "step": 1}, [1, 2, 3], {"task": {"weights": 1}, "signature": 5}):
+    v = {"format_version": FORMAT_VERSION}
+    for state in ({**v, "task": {}, "step": 1}, [1, 2, 3], {**v, "task": {"weights": 1}, "signature": 5},
+                  {"task": {"weights": 1}}):  # the last: no file format, an earlier boostnerf's
         torch.save(state, ckpt)
         with pytest.raises(BoostNerfError, match=r"training checkpoint .*c.pt .*delete it to restart this model") as e:
-            train(Task(), rays, Schedule(iters=2), 0, "t", checkpoint=ckpt, signature={"stage": "x"})
+            train(Task(), rays, Schedule(iters=2), 0, "t", TrainCheckpoint(ckpt, {"stage": "x"}))
         assert "\n" not in str(e.value)
 
 

@@ -15,8 +15,9 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.recipe import load_recipe
 from boostnerf_cli.workspace import Workspace, atomic_path, load_tensors, save_tensors, write_json
 
-RECIPES = sorted((Path(__file__).parent.parent / "recipes").glob("*.yaml"))
-EXPERIMENTS = sorted((Path(__file__).parent.parent / "recipes" / "experiments").glob("*.yaml"))  # docs/results.md
+ROOT = Path(__file__).parent.parent
+RECIPES = sorted((ROOT / "recipes").glob("*.yaml"))
+SHELL_SCRIPTS = sorted((ROOT / "recipes").glob("*.sh")) + sorted((ROOT / "scripts").glob("*.sh"))
 
 
 def test_failed_write_keeps_the_previous_file(tmp_path):
@@ -90,13 +91,19 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
         assert (tmp_path / ".lock").read_text() == f"{socket.gethostname()} {os.getpid()}"
 
 
-@pytest.mark.parametrize("path", RECIPES + EXPERIMENTS, ids=[p.name for p in RECIPES + EXPERIMENTS])
+@pytest.mark.parametrize("path", RECIPES, ids=[p.name for p in RECIPES])
 def test_every_recipe_loads(path):
     from boostnerf_cli.fields.registry import CONFIGS
 
     rec = load_recipe(path)
     assert rec.pretrain.res and rec.pretrain.iters > 0
     CONFIGS[rec.pretrain.model](**{**rec.pretrain.family_config(), "res": rec.pretrain.res[0]})  # known keys only
+
+
+@pytest.mark.parametrize("script", SHELL_SCRIPTS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_shell_script_parses(script):
+    proc = subprocess.run(["bash", "-n", str(script)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
 
 
 def test_recipes_follow_the_naming_contract():

@@ -6,9 +6,10 @@ Shapes: N points; xyz (N, 3) world coordinates; dirs (N, 3) unit view directions
 the camera into the scene). Density sigma (N,) is non-negative, per world unit; rgb (N, 3) in [0, 1].
 
 Optional, for fields that share work between the renderer's two passes (the mixture of experts
-routes each sample once; an Instant-NGP-style expert encodes each sample once): `batch_view()`
-returns a per-batch view whose `color_rows(rows, dirs)` gives the colour of the samples `rows` of its
-last `density` call. The renderer uses them when present.
+routes each sample once; an Instant-NGP-style expert encodes each sample once): `batch_view(packer)`
+returns a per-batch view whose `density(xyz, live)` works as the field's and `color_rows(rows, dirs, live)` gives
+the colour of the samples `rows` of its last `density` call; `live` (None, or a bool per sample) tells the samples
+from the pads of a static packing (render/packing.py), which must not count. The renderer uses them when present.
 """
 
 from __future__ import annotations

@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from boostnerf_cli import flops
+from boostnerf_cli.device import constant
 
 
 def lattice_shape(bbox: Tensor, n_voxels: int) -> tuple[int, int, int]:
@@ -41,7 +42,7 @@ def lattice_shape(bbox: Tensor, n_voxels: int) -> tuple[int, int, int]:
 def corners(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
     """Trilinear support of points: (N, 3) -> row indices (N, 8) int64, weights (N, 8)."""
     flops.add("interp", flops.CORNER_FLOPS * xyz.shape[0])
-    res = torch.tensor(shape, device=xyz.device, dtype=xyz.dtype)
+    res = constant(tuple(shape), xyz.device, xyz.dtype)
     p = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * (res - 1)
     p = torch.minimum(p.clamp_min(0), res - 1)
     p0 = torch.minimum(p.floor(), res - 2)
@@ -50,7 +51,7 @@ def corners(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> tuple[Ten
     sy, sz = shape[1] * shape[2], shape[2]
     base = i0[:, 0] * sy + i0[:, 1] * sz + i0[:, 2]
     # corner k = dx*4 + dy*2 + dz; weights built from contiguous (N,) vectors (fast on CPU)
-    offs = torch.tensor([0, 1, sz, sz + 1, sy, sy + 1, sy + sz, sy + sz + 1], device=xyz.device)
+    offs = constant((0, 1, sz, sz + 1, sy, sy + 1, sy + sz, sy + sz + 1), xyz.device, torch.long)
     fx, fy, fz = f.unbind(-1)
     gx, gy, gz = 1 - fx, 1 - fy, 1 - fz
     xy = (gx * gy, gx * fy, fx * gy, fx * fy)
@@ -98,6 +99,8 @@ def lookup(table: Tensor, idx: Tensor, w: Tensor) -> Tensor:
     if idx.shape[0] == 0:
         return table.new_zeros(0, table.shape[1])
     flops.add("interp", 2 * idx.shape[1] * table.shape[1] * idx.shape[0])  # K corners x C multiply-adds
+    if torch.compiler.is_compiling():  # a gather and a weighted sum, which the compiler fuses (and its backward)
+        return (table[idx] * w[..., None].to(table.dtype)).sum(1)
     if table.requires_grad and torch.is_grad_enabled():
         return _Lookup.apply(table, idx, w)
     return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")

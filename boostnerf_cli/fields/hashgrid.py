@@ -30,6 +30,7 @@ import torch
 from torch import Tensor, nn
 
 from boostnerf_cli import flops
+from boostnerf_cli.device import constant
 from boostnerf_cli.fields import grid as G
 
 PRIMES = (1, 2654435761, 805459861)
@@ -96,8 +97,8 @@ class HashEncoding(nn.Module):
         trailing (2, 2, 2) corner dimensions.
         """
         n, dev, L = xyz.shape[0], xyz.device, self.levels
-        res = torch.tensor(self.resolutions, device=dev, dtype=xyz.dtype)[:, None]  # (L, 1)
-        hi = torch.tensor(self.verts, device=dev, dtype=xyz.dtype) - 1  # (L, 3): last vertex per axis
+        res = constant(tuple(self.resolutions), dev, xyz.dtype)[:, None]  # (L, 1)
+        hi = constant(tuple(tuple(v - 1 for v in vs) for vs in self.verts), dev, xyz.dtype)  # (L, 3): last vertex
         u = ((xyz - self.bbox[0]) / self.extent).clamp_min(0).T.contiguous()  # (3, N), in [0, rel_a]
         i0, f = [], []
         for a in range(3):
@@ -115,10 +116,10 @@ class HashEncoding(nn.Module):
                 for dz in (0, 1):
                     torch.mul(wxy, wz[dz], out=w[:, :, dx * 4 + dy * 2 + dz])
         rows = torch.empty(L, n, 8, dtype=torch.long, device=dev)
-        offs = torch.tensor(self.offsets[:-1], device=dev)[:, None]  # (L, 1)
+        offs = constant(tuple(self.offsets[:-1]), dev, torch.long)[:, None]  # (L, 1)
         nd = sum(self.dense)  # levels grow finer, so the dense ones come first
         if nd > 0:  # dense rows: x + y V_x + z V_x V_y (+ the level's offset, folded into x)
-            v = torch.tensor(self.verts[:nd], device=dev, dtype=torch.long)
+            v = constant(tuple(self.verts[:nd]), dev, torch.long)
             sy, sz = v[:, 0, None], (v[:, 0] * v[:, 1])[:, None]
             x0, y0, z0 = i0[0][:nd] + offs[:nd], i0[1][:nd] * sy, i0[2][:nd] * sz
             self._combine(rows[:nd], (x0, x0 + 1), (y0, y0 + sy), (z0, z0 + sz), torch.add)

@@ -71,6 +71,6 @@ class MLP(nn.Sequential):
         return [m for m in self if isinstance(m, nn.Linear)]
 
     def forward(self, x: Tensor) -> Tensor:  # type: ignore[override]
-        if not torch.is_grad_enabled() or torch.is_autocast_enabled(x.device.type):
-            return super().forward(x)  # autocast chooses each layer's precision itself
+        if not torch.is_grad_enabled() or torch.is_autocast_enabled(x.device.type) or torch.compiler.is_compiling():
+            return super().forward(x)  # autocast chooses each layer's precision itself; the compiler fuses its own
         return _ReluMLP.apply(x, *[p for lin in self.linears for p in (lin.weight, lin.bias)])

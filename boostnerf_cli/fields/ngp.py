@@ -111,7 +111,7 @@ class NGPExpert(ExpertModule):
         h = self._hidden(xyz)
         return self._sigma(xyz, h[:, 0]), self._rgb(h[:, 1:], dirs)
 
-    def batch_view(self) -> "NGPBatch":
+    def batch_view(self, packer=None) -> "NGPBatch":
         """A per-batch view for the renderer: each sample is encoded once for both passes."""
         return NGPBatch(self)
 
@@ -156,12 +156,12 @@ class NGPBatch:
         self.expert = expert
         self._hidden: Tensor | None = None
 
-    def density(self, xyz: Tensor) -> Tensor:
+    def density(self, xyz: Tensor, live: Tensor | None = None) -> Tensor:
         h = self.expert._hidden(xyz)
         self._hidden = h
         return self.expert._sigma(xyz, h[:, 0])
 
-    def color_rows(self, rows: Tensor, dirs: Tensor) -> Tensor:
+    def color_rows(self, rows: Tensor, dirs: Tensor, live: Tensor | None = None) -> Tensor:
         if self._hidden is None:
             raise RuntimeError("color_rows needs a density pass first")
         return self.expert._rgb(self._hidden[rows, 1:], dirs)

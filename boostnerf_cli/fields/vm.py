@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from boostnerf_cli import flops
+from boostnerf_cli.device import constant
 from boostnerf_cli.fields import grid as G
 
 PLANE_AXES = ((0, 1), (0, 2), (1, 2))
@@ -29,7 +30,7 @@ CORNER1_FLOPS = 7  # normalise 3, floor/clamp 3, 1 complement
 
 def _norm(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> Tensor:
     """World points -> continuous lattice coordinates (N, 3), clamped to the lattice."""
-    res = torch.tensor(shape, device=xyz.device, dtype=xyz.dtype)
+    res = constant(tuple(shape), xyz.device, xyz.dtype)
     p = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * (res - 1)
     return torch.minimum(p.clamp_min(0), res - 1)
 

@@ -13,6 +13,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from boostnerf_cli.adam import Adam
 from boostnerf_cli.fields.dvgo import raw_from_sigma
 
 RAW_CLAMP = 10.0
@@ -27,7 +28,7 @@ def fit_density(raw: Callable[[Tensor], Tensor], params: list[Tensor], density: 
     -> the final mean squared error of the pre-activation.
     """
     gen = torch.Generator(device="cpu").manual_seed(seed)
-    opt = torch.optim.Adam(params, lr=lr, betas=(0.9, 0.99), eps=1e-15)
+    opt = Adam([{"params": params, "lr": lr}], betas=(0.9, 0.99), eps=1e-15)
     lo, size = bbox[0], bbox[1] - bbox[0]
     err = float("nan")
     for _ in range(steps):

@@ -17,7 +17,7 @@ when a ray needs more than the renderer's max_samples, composites 1 - (1 - alpha
 
 vd_filter: visible (the official code) also drops, before the gate, the samples whose rendering weight under
 V_D alone (V_D composited along the ray over the samples that pass T) is at most the renderer's colour
-threshold: samples hidden behind V_D's surfaces reach neither the gate nor the experts (`MixtureSkip.visible`).
+threshold: samples hidden behind V_D's surfaces reach neither the gate nor the experts (`MixtureSkip.filter`).
 """
 
 from __future__ import annotations
@@ -30,10 +30,23 @@ from torch import Tensor, nn
 
 from boostnerf_cli import flops
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.limits import MAX_GRID_RES, OneOf, Range, at_least, limit
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig, softmax
-from boostnerf_cli.moe.router import aux_loss, check_penalty, check_topk, dispatch, penalty_weights, top_k
+from boostnerf_cli.moe.router import (
+    AUX_NORMS,
+    AUX_SAMPLES,
+    PENALTY_RULE,
+    aux_loss,
+    check_penalty,
+    check_topk,
+    dispatch,
+    expert_counts,
+    penalty_weights,
+    top_k,
+)
 from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.render.packing import DYNAMIC, Packer
 from boostnerf_cli.render.volrend import render_weights
 
 MIX_MODES = ("density", "alpha")
@@ -45,22 +58,34 @@ MIN_TRANSMITTANCE = 1e-30
 
 
 @dataclass
-class MixtureConfig:
-    topk: int = 2
-    renormalize: bool = True
+class Routing:
+    """How a mixture routes, mixes and is penalised: keys of the recipe's `moe` section, declared here once
+    (`recipe.MoERecipe` extends this class). build-moe sets them on moe/init, each finetune again on its model."""
+
+    topk: int = limit(2, at_least(1))  # the untrained mixture's k (moe/init; bench's untrained rows): build-moe fits it to the number of experts, with a note; finetune --topk K sets each model's
+    renormalize: bool = True  # top-k weights sum to 1 (k = 1: straight-through 1); False: raw probabilities (docs/results.md)
+    penalty: str = limit("geometric", PENALTY_RULE)  # geometric | linear | quadratic | none | weights "1, 1.5, 2.23" (one per expert)
+    aux_norm: str = limit("batch", OneOf(AUX_NORMS))  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 = k^2 |B|^2 (official code)
+    aux_samples: str = limit("all", OneOf(AUX_SAMPLES))  # auxiliary loss over every routed sample | visible: those whose V_D opacity and V_D rendering weight pass moe.train.color_threshold (official code)
+    vd_source: str = limit("smallest", OneOf(VD_SOURCES))  # V_D: fitted to the smallest expert, frozen | largest: the largest expert's own density as it trains (official code)
+    vd_filter: str = limit("opacity", OneOf(VD_FILTERS))  # V_D drops samples by its opacity over one step | visible: also those its rendering weight along the ray puts at or below the colour threshold (official code)
+    mix: str = limit("density", OneOf(MIX_MODES))  # the routing weights mix density (paper's equation) | alpha: each expert's opacity over one render step (official code)
+    bake_res: int = limit(128, Range(0, MAX_GRID_RES))  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
+
+
+def routing_of(source: Routing) -> dict:
+    """The `Routing` keys of `source` (a recipe's moe section, or a mixture's config), by name."""
+    return {f.name: getattr(source, f.name) for f in dataclasses.fields(Routing)}
+
+
+@dataclass
+class MixtureConfig(Routing):
+    """A mixture's config: its routing, and what build-moe fixed for it."""
+
     threshold: float = 1e-3  # T: alpha of V_D over one render step below which a sample is filtered
-    penalty: str = "geometric"
     vd_res: int = 64  # density volume: vd_res^3 voxels
     step: float = 0.01  # render step (world units)
-    bake_res: int = 0  # > 0: rendering uses the gate baked on a bake_res^3 lattice (Gate.baked)
     expert_names: list[str] = field(default_factory=list)
-    mix: str = "density"  # what the routing weights mix with the colours: density (paper) | alpha (official code)
-    aux_norm: str = "batch"  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 (official code)
-    aux_samples: str = "all"  # auxiliary loss over every routed sample | visible: V_D opacity and weight pass
-                              # the colour threshold (official code)
-    vd_source: str = "smallest"  # V_D: the density volume fitted to the smallest expert at build-moe, frozen |
-                                 # largest: the largest expert's own density, read as it trains (official code)
-    vd_filter: str = "opacity"  # V_D drops samples by opacity over one step | visible: also those it hides (official)
 
 
 def check_config(cfg: MixtureConfig, m: int) -> None:
@@ -96,26 +121,42 @@ def _alpha_and_trans(sigma: Tensor, step: float) -> Tensor:
 
 @dataclass
 class RoutingStats:
-    """Explicit per-step record of the density pass's routing, for the auxiliary loss and load logs."""
+    """Explicit per-step record of the density pass's routing, for the auxiliary loss and load logs: per density
+    call, the probabilities, the choices and which samples are real (`live`; None when every one is)."""
 
     probs: list[Tensor] = field(default_factory=list)
     idx: list[Tensor] = field(default_factory=list)
+    live: list[Tensor | None] = field(default_factory=list)
+
+    def record(self, probs: Tensor, idx: Tensor, live: Tensor | None) -> None:
+        self.probs.append(probs)
+        self.idx.append(idx)
+        self.live.append(live)
+
+    def routed(self) -> Tensor | None:
+        """(N,) bool: the recorded samples that are real; None when every one is."""
+        if all(live is None for live in self.live):
+            return None
+        return torch.cat([torch.ones(p.shape[0], dtype=torch.bool, device=p.device) if live is None else live
+                          for p, live in zip(self.probs, self.live)])
 
     def aux(self, weights: Tensor, norm: str = "batch", keep: Tensor | None = None) -> Tensor:
         """The auxiliary loss over the recorded samples, or those of them where `keep` (a bool mask) holds."""
         if not self.probs:
             return torch.zeros((), device=weights.device)
-        probs, idx = torch.cat(self.probs), torch.cat(self.idx)
-        if keep is not None:
-            probs, idx = probs[keep], idx[keep]
-        return aux_loss(probs, idx, weights, norm)
+        probs, idx, routed = torch.cat(self.probs), torch.cat(self.idx), self.routed()
+        sel = keep if routed is None else routed if keep is None else routed & keep
+        if sel is not None and routed is None:  # the dynamic path's mask: the samples it keeps
+            probs, idx, sel = probs[sel], idx[sel], None
+        return aux_loss(probs, idx, weights, norm, sel)
 
-    def load(self, m: int) -> list[float]:
-        """Fraction of routed samples that each expert received (sums to k)."""
+    def load(self, m: int) -> Tensor:
+        """(M,) the fraction of routed samples that each expert received (sums to k), on the device."""
         if not self.idx:
-            return [0.0] * m
-        idx = torch.cat(self.idx)
-        return (torch.bincount(idx.reshape(-1), minlength=m).float() / max(1, idx.shape[0])).tolist()
+            return torch.zeros(m)
+        idx, routed = torch.cat(self.idx), self.routed()
+        n = idx.shape[0] if routed is None else routed.sum().clamp_min(1)
+        return expert_counts(idx, m, routed) / (max(1, n) if isinstance(n, int) else n)
 
 
 class Mixture(nn.Module):
@@ -151,12 +192,12 @@ class Mixture(nn.Module):
 
     @property
     def skip(self) -> "MixtureSkip":
-        """The renderer's empty-space filter: called on (N, 3) points, and along the rays (`MixtureSkip.visible`)."""
+        """The renderer's empty-space filter: along the rays (`MixtureSkip.filter`), or called on (N, 3) points."""
         return MixtureSkip(self)
 
     # --- routing --------------------------------------------------------------------------------
-    def route(self, xyz: Tensor, need_probs: bool = True, noise: float = 0.0) -> tuple[Tensor | None, Tensor, Tensor]:
-        """-> probabilities (N, M), weights (N, k), expert indices (N, k); `noise`: noisy top-k (`router.top_k`).
+    def route(self, xyz: Tensor, need_probs: bool = True) -> tuple[Tensor | None, Tensor, Tensor]:
+        """-> probabilities (N, M), weights (N, k), expert indices (N, k).
 
         Rendering (no autograd, `need_probs` False) with renormalised weights skips the probabilities:
         the renormalised top-k weights are the softmax of the k chosen logits alone (1 for k = 1), and
@@ -167,25 +208,29 @@ class Mixture(nn.Module):
             probs = self.gate.probs(xyz)
             idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
             return probs, probs, idx
-        if not need_probs and self.cfg.renormalize and not torch.is_grad_enabled() and noise == 0:
+        if not need_probs and self.cfg.renormalize and not torch.is_grad_enabled():
             chosen, idx = top_k(self.gate.logits(xyz).float(), self.cfg.topk, renormalize=False)
             return None, (torch.ones_like(chosen) if self.cfg.topk == 1 else softmax(chosen)), idx
         probs = self.gate.probs(xyz)
-        vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize, noise)
+        vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
         return probs, vals, idx
 
-    def _mix(self, xyz: Tensor, dirs: Tensor | None, vals: Tensor, idx: Tensor) -> Tensor:
-        """Run each expert on its routed samples only: density (dirs None) -> (N,), colour -> (N, 3)."""
+    def _mix(self, xyz: Tensor, dirs: Tensor | None, vals: Tensor, idx: Tensor, packer: Packer = DYNAMIC,
+             live: Tensor | None = None) -> Tensor:
+        """Run each expert on its routed samples only: density (dirs None) -> (N,), colour -> (N, 3); `packer` and
+        `live` (the real samples of a static packing) as `router.dispatch` takes them."""
+        n, experts = xyz.shape[0], self.experts
         if dirs is None and self.cfg.mix == "alpha":
             step = self.cfg.step
-            out, _ = dispatch(xyz.shape[0], idx, vals, self.m,
-                              lambda e, r: _alpha_and_trans(self.experts[e].density(xyz[r]), step), 2, xyz)
+            out = dispatch(n, idx, vals, self.m, lambda e, r: _alpha_and_trans(experts[e].density(xyz[r]), step), 2,
+                           xyz, packer, live, "density")
             return alpha_mix_density(out[:, 0], out[:, 1], vals.sum(-1), step)
         if dirs is None:
-            out, _ = dispatch(xyz.shape[0], idx, vals, self.m, lambda e, r: self.experts[e].density(xyz[r])[:, None], 1, xyz)
+            out = dispatch(n, idx, vals, self.m, lambda e, r: experts[e].density(xyz[r])[:, None], 1, xyz, packer,
+                           live, "density")
             return out[:, 0]
-        out, _ = dispatch(xyz.shape[0], idx, vals, self.m, lambda e, r: self.experts[e].color(xyz[r], dirs[r]), 3, xyz)
-        return out
+        return dispatch(n, idx, vals, self.m, lambda e, r: experts[e].color(xyz[r], dirs[r]), 3, xyz, packer, live,
+                        "color")
 
     # --- the Field contract ---------------------------------------------------------------------
     def density(self, xyz: Tensor) -> Tensor:
@@ -205,13 +250,13 @@ class Mixture(nn.Module):
             self.gate = self.gate.baked(self.cfg.bake_res)
         return self
 
-    def batch_view(self) -> "RoutedMixture":
+    def batch_view(self, packer: Packer = DYNAMIC) -> "RoutedMixture":
         """A per-batch view for the renderer: the gate runs once per sample (see RoutedMixture)."""
-        return RoutedMixture(self, None)
+        return RoutedMixture(self, None, packer)
 
-    def with_stats(self, stats: RoutingStats, noise: float = 0.0) -> "RoutedMixture":
-        """The per-batch view of a training step: routing recorded in `stats`, experts chosen with `noise`."""
-        return RoutedMixture(self, stats, noise)
+    def with_stats(self, stats: RoutingStats, packer: Packer | None = None) -> "RoutedMixture":
+        """The per-batch view of a training step: routing recorded in `stats`, samples packed by `packer`."""
+        return RoutedMixture(self, stats, DYNAMIC if packer is None else packer)
 
     def expert_only(self, e: int) -> "SingleExpertView":
         return SingleExpertView(self, e)
@@ -243,73 +288,71 @@ class Mixture(nn.Module):
 class MixtureSkip:
     """A mixture's empty-space filter for the renderer (`render.renderer.render_rays`'s `skip`).
 
-    Called on (N, 3) points: keep those in an occupied cell whose V_D opacity over one step exceeds T.
-    `visible` (None unless vd_filter is visible): the renderer calls it instead, on the (R, S) samples along the
-    rays, and it keeps, of the samples that pass, those whose rendering weight under V_D alone exceeds the
-    renderer's colour threshold (the official code's second filter), reading V_D once per sample."""
+    `filter` (what the renderer calls) keeps, of the (R, S) samples along the rays, those in an occupied cell whose V_D
+    opacity over one step exceeds T, reading V_D once per sample that passes the occupancy grid; with vd_filter:
+    visible, also only those whose rendering weight under V_D alone (V_D composited over the samples that pass)
+    exceeds the renderer's colour threshold (the official code's second filter). Called on (N, 3) points, it is the
+    first filter alone."""
 
     def __init__(self, mixture: Mixture):
         self.mixture = mixture
-        self.visible = self._visible if mixture.cfg.vd_filter == "visible" else None
-
-    def _pass(self, xyz: Tensor) -> tuple[Tensor, Tensor]:
-        """(N, 3) -> keep mask (N,), and V_D's density at the kept points (in their order)."""
-        mix = self.mixture
-        keep = mix.occupancy(xyz) if mix.occupancy is not None else torch.ones(xyz.shape[0], dtype=torch.bool,
-                                                                               device=xyz.device)
-        if not keep.any():
-            return keep, xyz.new_zeros(0)
-        sigma = mix.vd_density(xyz[keep])
-        opaque = -torch.expm1(-sigma * mix.cfg.step) > mix.cfg.threshold
-        keep = keep.clone()
-        keep[keep.clone()] = opaque
-        return keep, sigma[opaque]
-
-    def __call__(self, xyz: Tensor) -> Tensor:
-        return self._pass(xyz)[0]
 
     @torch.no_grad()
-    def _visible(self, xyz: Tensor, valid: Tensor, step: float, threshold: float) -> Tensor:
-        """xyz (R, S, 3) samples, valid (R, S) those inside the box, `step` the sampling step -> (R, S) the
-        samples that pass the filter and whose V_D rendering weight (V_D composited over the samples that pass)
-        exceeds `threshold` (0: the filter alone)."""
-        keep = valid.clone()
-        keep[valid], sigma = self._pass(xyz[valid])
-        if threshold <= 0 or not keep.any():
+    def filter(self, xyz: Tensor, valid: Tensor, step: float, threshold: float, packer: Packer = DYNAMIC) -> Tensor:
+        """xyz (R, S, 3) samples, valid (R, S) those inside the box, `step` the sampling step -> (R, S) the samples
+        that pass (see the class); V_D is read on the samples `packer` lists."""
+        mix = self.mixture
+        flat = xyz.reshape(-1, 3)
+        keep = valid.reshape(-1)
+        if mix.occupancy is not None:
+            keep = keep & mix.occupancy(flat)
+        inside = packer.pack("vd", keep)
+        sigma = mix.vd_density(flat[inside.rows])
+        opaque = inside.keep(-torch.expm1(-sigma * mix.cfg.step) > mix.cfg.threshold)
+        keep = inside.scatter(opaque, fill=False).reshape(valid.shape)
+        if mix.cfg.vd_filter != "visible" or threshold <= 0:
             return keep
-        density = torch.zeros(keep.shape, device=xyz.device, dtype=xyz.dtype)
-        density[keep] = sigma.to(density.dtype)
+        density = inside.scatter(torch.where(opaque, sigma, sigma.new_zeros(())).to(xyz.dtype)).reshape(valid.shape)
         weights, _, _ = render_weights(density, torch.full_like(density, step))
         return keep & (weights > threshold)
+
+    def __call__(self, xyz: Tensor) -> Tensor:
+        """(N, 3) -> (N,) bool: in an occupied cell, with V_D opacity over one step above T."""
+        return self.filter(xyz[:, None], torch.ones(xyz.shape[0], 1, dtype=torch.bool, device=xyz.device), 1.0,
+                           0.0)[:, 0]
 
 
 class RoutedMixture:
     """A per-batch Field view of a mixture that routes each sample once.
 
-    `density(xyz)` runs the gate and remembers the routing of those samples; the renderer's colour
-    pass then calls `color_rows(rows, dirs)` for a subset `rows` of them, which reuses that routing
+    `density(xyz, live)` runs the gate and remembers the routing of those samples; the renderer's colour
+    pass then calls `color_rows(rows, dirs, live)` for a subset `rows` of them, which reuses that routing
     instead of running the gate again. When `stats` is given, the density pass's probabilities and
-    choices are also recorded there (for the auxiliary loss and the load logs).
+    choices are also recorded there (for the auxiliary loss and the load logs). Experts run on the samples
+    `packer` lists for them (render/packing.py); `live` marks a static packing's real samples.
     """
 
-    def __init__(self, mixture: Mixture, stats: RoutingStats | None, noise: float = 0.0):
-        self.mixture, self.stats, self.noise = mixture, stats, noise
+    def __init__(self, mixture: Mixture, stats: RoutingStats | None, packer: Packer):
+        self.mixture, self.stats, self.packer = mixture, stats, packer
         self._last: tuple[Tensor, Tensor, Tensor] | None = None
 
-    def density(self, xyz: Tensor) -> Tensor:
-        probs, vals, idx = self.mixture.route(xyz, need_probs=self.stats is not None, noise=self.noise)
-        if self.stats is not None:
-            self.stats.probs.append(probs)
-            self.stats.idx.append(idx)
-        self._last = (xyz, vals, idx)
-        return self.mixture._mix(xyz, None, vals, idx)
+    def batch_view(self, packer: Packer) -> "RoutedMixture":
+        self.packer = packer
+        return self
 
-    def color_rows(self, rows: Tensor, dirs: Tensor) -> Tensor:
+    def density(self, xyz: Tensor, live: Tensor | None = None) -> Tensor:
+        probs, vals, idx = self.mixture.route(xyz, need_probs=self.stats is not None)
+        if self.stats is not None:
+            self.stats.record(probs, idx, live)
+        self._last = (xyz, vals, idx)
+        return self.mixture._mix(xyz, None, vals, idx, self.packer, live)
+
+    def color_rows(self, rows: Tensor, dirs: Tensor, live: Tensor | None = None) -> Tensor:
         """Colour of the samples `rows` of the last `density` call, seen from `dirs` (len(rows), 3)."""
         if self._last is None:
             raise RuntimeError("color_rows needs a density pass first")
         xyz, vals, idx = self._last
-        return self.mixture._mix(xyz[rows], dirs, vals[rows], idx[rows])
+        return self.mixture._mix(xyz[rows], dirs, vals[rows], idx[rows], self.packer, live)
 
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
         return self.mixture.color(xyz, dirs)

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.limits import MAX_LOSS_WEIGHT, OneOfOrNumbers, Range, comma_numbers
+from boostnerf_cli.render.packing import DYNAMIC, Packer
 
 PENALTIES = ("geometric", "linear", "quadratic", "none")
 # moe.penalty: a named scheme, or explicit weights "w_0, w_1, ..." (`penalty_weights`)
@@ -67,24 +68,15 @@ def check_topk(k: int, experts: list[str], key: str) -> None:
                              f"set {key} between 1 and {len(experts)}")
 
 
-def top_k(probs: Tensor, k: int, renormalize: bool, noise: float = 0.0) -> tuple[Tensor, Tensor]:
+def top_k(probs: Tensor, k: int, renormalize: bool) -> tuple[Tensor, Tensor]:
     """probs (N, M) -> weights (N, k), expert indices (N, k); weights sum to 1 when renormalised.
 
     Renormalising one weight would make it the constant 1 and cut the gate off from the photometric
     loss, so for k = 1 the renormalised weight is a straight-through 1: its value is 1 (the chosen
     expert's output is used as is, not dimmed by a probability below 1) and its gradient is that of
     the raw probability, d w / d p = 1 (the paper's Algorithm 1 multiplies by the raw p).
-
-    noise > 0 (noisy top-k gating, Shazeer et al. 2017; in neither the paper nor the official code): the
-    experts are chosen by the top-k of log p + noise * N(0, 1), a Gaussian draw per sample and expert from
-    torch's global generator, so now and then a sample goes to an expert the gate ranks lower and the gate
-    learns how that expert does there; the weights are still the chosen experts' noiseless probabilities.
     """
-    if noise > 0:
-        scores = probs.detach().clamp_min(1e-30).log() + noise * torch.randn_like(probs)
-        idx = scores.argmax(dim=-1, keepdim=True) if k == 1 else torch.topk(scores, k, dim=-1).indices
-        vals = probs.gather(-1, idx)
-    elif k == 1:  # the same choice and gradient as topk, without its sort (~1.7x faster on CPU)
+    if k == 1:  # the same choice and gradient as topk, without its sort (~1.7x faster on CPU)
         vals, idx = probs.max(dim=-1, keepdim=True)
     else:
         vals, idx = torch.topk(probs, k, dim=-1)
@@ -96,37 +88,48 @@ def top_k(probs: Tensor, k: int, renormalize: bool, noise: float = 0.0) -> tuple
     return vals, idx
 
 
-def expert_counts(idx: Tensor, m: int) -> Tensor:
-    """c_i: how many samples are dispatched to each expert, (M,) float (no gradient)."""
-    return torch.bincount(idx.reshape(-1), minlength=m).to(torch.float32)
+def expert_counts(idx: Tensor, m: int, weight: Tensor | None = None) -> Tensor:
+    """c_i: how many samples are dispatched to each expert, (M,) float32 (no gradient). `weight` (N,): each sample's
+    share (0 for a pad of a static packing); a sum on the device, so nothing waits to learn the counts' length."""
+    ones = torch.ones_like(idx, dtype=torch.float32) if weight is None else weight.to(torch.float32)[:, None].expand(
+        idx.shape)
+    return torch.zeros(m, device=idx.device).index_add_(0, idx.reshape(-1), ones.reshape(-1))
 
 
 AUX_NORMS = ("batch", "counts")
 AUX_SAMPLES = ("all", "visible")
 
 
-def aux_loss(probs: Tensor, idx: Tensor, weights: Tensor, norm: str = "batch") -> Tensor:
+def aux_loss(probs: Tensor, idx: Tensor, weights: Tensor, norm: str = "batch", sel: Tensor | None = None) -> Tensor:
     """L_rw-aux = M / Z^2 * sum_i c_i m_i w_i, m_i = sum over the batch of G(x)_i.
 
-    probs (N, M) gate probabilities, idx (N, k) chosen experts, weights (M,). An empty batch gives 0.
+    probs (N, M) gate probabilities, idx (N, k) chosen experts, weights (M,), `sel` (N,) bool: the samples that form
+    the batch (None: all; a static packing's pads, and samples the caller leaves out, are not in it). An empty batch
+    gives 0.
     norm "batch":  Z = |B| = N, the paper's Eq. (the project's default);
     norm "counts": Z = sum_i c_i = k N, the official code's (EIDOSLAB/boost-your-nerf, instant-ngp/moe_main.py,
                    train_moe: `num_experts / sum(c_s)**2`), k^2 times smaller than "batch" for Top-k.
     Which samples form the batch (every routed sample, or the visible ones) is the caller's choice.
     """
-    n, m = probs.shape
-    if n == 0:
-        return probs.sum() * 0.0
-    c = expert_counts(idx, m).to(probs.device)
-    mass = probs.sum(dim=0)
-    return m / aux_denominator(n, idx.shape[1], norm) ** 2 * (c * mass * weights.to(probs)).sum()
+    m = probs.shape[1]
+    if sel is None:
+        n = probs.shape[0]
+        if n == 0:
+            return probs.sum() * 0.0
+        c = expert_counts(idx, m).to(probs.device)
+        return m / aux_denominator(n, idx.shape[1], norm) ** 2 * (c * probs.sum(dim=0) * weights.to(probs)).sum()
+    c = expert_counts(idx, m, sel).to(probs.device)
+    mass = torch.where(sel[:, None], probs, probs.new_zeros(())).sum(dim=0)
+    z = aux_denominator(sel.sum().to(probs.dtype), idx.shape[1], norm)
+    return torch.where(z > 0, m / z.clamp_min(1) ** 2, 0.0) * (c * mass * weights.to(probs)).sum()
 
 
-def aux_denominator(n: int | float, k: int, norm: str) -> float:
-    """Z of the auxiliary loss for n routed samples, k experts each: n ("batch") or sum_i c_i = k n ("counts")."""
+def aux_denominator(n, k: int, norm: str):
+    """Z of the auxiliary loss for n routed samples (a number or a device count), k experts each: n ("batch") or
+    sum_i c_i = k n ("counts")."""
     if norm not in AUX_NORMS:
         raise ValueError(f"unknown auxiliary-loss normalisation {norm!r}")
-    return float(n) * (k if norm == "counts" else 1)
+    return (float(n) if isinstance(n, int) else n) * (k if norm == "counts" else 1)
 
 
 def dispatch(
@@ -137,26 +140,25 @@ def dispatch(
     run: Callable[[int, Tensor], Tensor],
     out_dim: int,
     like: Tensor,
-) -> tuple[Tensor, Tensor]:
+    packer: Packer = DYNAMIC,
+    live: Tensor | None = None,
+    name: str = "expert",
+) -> Tensor:
     """Sparse mixture: out[s] = sum_j vals[s, j] * run(idx[s, j], rows)[s], each expert run once.
 
-    `run(e, rows)` evaluates expert e on sample rows `rows` (1-D LongTensor) -> (len(rows), out_dim).
-    Samples are grouped per expert by one stable sort, so every expert sees only the samples routed
-    to it (no mask over all samples, no loop over samples). -> (out (n, out_dim), load (M,) counts).
+    `run(e, rows)` evaluates expert e on sample rows `rows` (1-D LongTensor) -> (len(rows), out_dim). The samples
+    routed to expert e (by any of their k choices; of the `live` ones, when given) are packed by `packer`
+    (render/packing.py: dynamic, exactly them, in order; static, a fixed budget per expert and pass `name`), so every
+    expert sees only the samples routed to it, and the outputs are weighted and added back. -> out (n, out_dim).
     """
-    k = idx.shape[1]
-    flat_e = idx.reshape(-1)
-    order = torch.argsort(flat_e, stable=True)
-    rows = torch.div(order, k, rounding_mode="floor")
-    counts = torch.bincount(flat_e, minlength=m)
-    w = vals.reshape(-1)[order]
     out = like.new_zeros(n, out_dim)
-    start = 0
-    for e, c in enumerate(counts.tolist()):
-        if c == 0:
+    for e in range(m):
+        hit = idx == e
+        chosen = hit.any(-1) if live is None else hit.any(-1) & live
+        rows = packer.pack(f"{name}{e}", chosen)
+        if not packer.static and len(rows) == 0:
             continue
-        r = rows[start : start + c]
-        y = run(e, r).reshape(c, out_dim)
-        out = out.index_add(0, r, y * w[start : start + c, None])
-        start += c
-    return out, counts
+        w = torch.where(hit, vals, vals.new_zeros(())).sum(-1)[rows.rows]
+        y = run(e, rows.rows).reshape(len(rows), out_dim)
+        out = rows.add(out, y * w[:, None])
+    return out

@@ -60,15 +60,15 @@ class NDC:
         return {"sx": self.sx, "sy": self.sy, "near": self.near}
 
 
-def pixel_directions(height: int, width: int, intrinsics: Tensor) -> Tensor:
-    """Camera-space ray directions for every pixel centre, not normalised.
+def pixel_directions(height: int, width: int, intrinsics: Tensor, device: torch.device | str = "cpu") -> Tensor:
+    """Camera-space ray directions for every pixel centre, not normalised, on `device`.
 
     intrinsics (4,) = fx, fy, cx, cy -> (H, W, 3) with z = -1.
     """
     fx, fy, cx, cy = (float(v) for v in intrinsics)
     v, u = torch.meshgrid(
-        torch.arange(height, dtype=torch.float32) + 0.5,
-        torch.arange(width, dtype=torch.float32) + 0.5,
+        torch.arange(height, dtype=torch.float32, device=device) + 0.5,
+        torch.arange(width, dtype=torch.float32, device=device) + 0.5,
         indexing="ij",
     )
     return torch.stack([(u - cx) / fx, -(v - cy) / fy, -torch.ones_like(u)], dim=-1)
@@ -89,9 +89,10 @@ def image_rays(pose: Tensor, intrinsics: Tensor, height: int, width: int,
                ndc: NDC | None = None) -> tuple[Tensor, Tensor]:
     """All rays of one image, flattened row-major: origins (H*W, 3), unit directions (H*W, 3).
 
-    With `ndc` (forward-facing scenes) the rays are returned in normalized device coordinates.
+    With `ndc` (forward-facing scenes) the rays are returned in normalized device coordinates. Built on the pose's
+    device (the intrinsics are read on the host).
     """
-    o, d = camera_rays(pose, pixel_directions(height, width, intrinsics))
+    o, d = camera_rays(pose, pixel_directions(height, width, intrinsics, pose.device))
     o, d = o.reshape(-1, 3), d.reshape(-1, 3)
     return ndc.rays(o, d) if ndc is not None else (o, d)
 

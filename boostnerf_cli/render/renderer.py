@@ -13,7 +13,9 @@ Setting both skips off (`skip=None`, `color_threshold=0`) evaluates every sample
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Callable, Protocol
 
 import torch
@@ -21,6 +23,7 @@ from torch import Tensor
 
 from boostnerf_cli import flops
 from boostnerf_cli.fields.base import Field
+from boostnerf_cli.render.packing import DYNAMIC, Packer, packer_for
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.render.volrend import composite, render_weights
 
@@ -35,9 +38,19 @@ class RenderSettings:
     bbox: Tensor  # (2, 3)
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     color_threshold: float = 1e-4  # weight below which a sample's colour is not computed
-    max_samples: int = 1024  # per ray; the step grows if a ray would need more (never with Scene.render_settings)
+    max_samples: int = 1024  # per ray; the step grows if the box's diagonal needs more (never with Scene.render_settings)
     chunk: int = 8192  # rays per chunk when rendering whole images
     ndc: NDC | None = None  # forward-facing scenes: camera rays are warped to NDC (step, near, far, bbox in NDC)
+
+    @cached_property
+    def sampling(self) -> tuple[int, float]:
+        """(samples per ray, step): as many samples as the box's diagonal holds at `step`, at most `max_samples`
+        (the step grows to fit). No ray crosses the box over a longer chord, so every ray of every batch has the
+        same number of sample slots and no batch waits to learn its longest ray. Computed once (the box is read
+        from its device)."""
+        diagonal = float((self.bbox[1] - self.bbox[0]).norm())
+        step = max(self.step, diagonal / self.max_samples)
+        return max(1, min(self.max_samples, math.ceil(diagonal / step) + 1)), step
 
 
 @dataclass
@@ -45,8 +58,8 @@ class RayBundle:
     color: Tensor  # (R, 3)
     depth: Tensor  # (R,)
     acc: Tensor  # (R,)
-    n_samples: int  # samples evaluated by the density pass
-    n_color: int  # samples evaluated by the colour pass
+    n_samples: int | Tensor  # samples evaluated by the density pass (a device count with a static packer)
+    n_color: int | Tensor  # samples evaluated by the colour pass
     extras: dict
 
 
@@ -55,21 +68,28 @@ def sample_rays(
 ) -> tuple[Tensor, Tensor, Tensor, float]:
     """Fixed-step samples inside the box.
 
-    -> t (R, S) sample distances, valid (R, S) bool, xyz (R, S, 3), step used.
+    -> t (R, S) sample distances, valid (R, S) bool, xyz (R, S, 3), step used (`RenderSettings.sampling`).
     Samples sit at t_enter + (j + u) * step with u = 0.5 (or one uniform draw per ray when jitter).
     """
+    n, step = settings.sampling
     bbox = settings.bbox.to(origins.device)
     t0, t1, hit = intersect_box(origins, dirs, bbox, settings.near, settings.far)
-    span = torch.where(hit, t1 - t0, torch.zeros_like(t0))
-    longest = float(span.max()) if span.numel() else 0.0
-    step = max(settings.step, longest / settings.max_samples)
-    n = max(1, int(torch.ceil(torch.tensor(longest / step)).item()))
     j = torch.arange(n, device=origins.device, dtype=origins.dtype)
     u = torch.rand_like(t0)[:, None] if jitter else torch.full_like(t0, 0.5)[:, None]
     t = t0[:, None] + (j[None, :] + u) * step
     valid = hit[:, None] & (t < t1[:, None])
     xyz = origins[:, None, :] + t[..., None] * dirs[:, None, :]
     return t, valid, xyz, step
+
+
+def kept_samples(skip, xyz: Tensor, valid: Tensor, step: float, threshold: float, packer: Packer) -> Tensor:
+    """(R, S) the samples inside the box that `skip` keeps: a filter of points (an occupancy grid: called on every
+    sample), or one with `filter` (a mixture's V_D, which packs its own work and may filter along the rays)."""
+    if skip is None:
+        return valid
+    if hasattr(skip, "filter"):
+        return skip.filter(xyz, valid, step, threshold, packer)
+    return valid & skip(xyz.reshape(-1, 3)).reshape(valid.shape)
 
 
 def render_rays(
@@ -80,47 +100,43 @@ def render_rays(
     skip: Callable[[Tensor], Tensor] | None = None,
     jitter: bool = False,
     color_threshold: float | None = None,
+    packer: Packer = DYNAMIC,
 ) -> RayBundle:
-    """Render a batch of rays (R, 3), (R, 3) through `field`; differentiable w.r.t. the field."""
+    """Render a batch of rays (R, 3), (R, 3) through `field`; differentiable w.r.t. the field. `packer`: how the
+    kept samples are listed (render/packing.py); with a static one nothing here waits for the device, and
+    `packer.overflowed()` says afterwards whether the result misses samples."""
     t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter)
     r, s = t.shape
-    if hasattr(field, "batch_view"):  # shares the density pass's work with the colour pass
-        field = field.batch_view()
+    # a per-batch view shares the density pass's work with the colour pass, and is told which slots are pads
+    view = field.batch_view(packer) if hasattr(field, "batch_view") else None
     thr = settings.color_threshold if color_threshold is None else color_threshold
-    visible = getattr(skip, "visible", None)  # a filter along the rays (a mixture's MixtureSkip), else per point
-    if skip is None or not valid.any():
-        keep = valid
-    elif visible is not None:
-        keep = visible(xyz, valid, step, thr)
-    else:
-        keep = valid.clone()
-        keep[valid] = skip(xyz[valid])
-    flat = keep.reshape(-1).nonzero().squeeze(-1)
-    pts = xyz.reshape(-1, 3)[flat]
-    sigma = torch.zeros(r * s, device=origins.device, dtype=origins.dtype)
-    if flat.numel():
-        sigma = sigma.index_put((flat,), field.density(pts).to(sigma.dtype))  # float32 under autocast too
-    sigma = sigma.reshape(r, s)
+    keep = kept_samples(skip, xyz, valid, step, thr, packer)
+    dens = packer.pack("density", keep.reshape(-1))
+    pts = xyz.reshape(-1, 3)[dens.rows]
+    sigma = torch.zeros(r, s, device=origins.device, dtype=origins.dtype)
+    if len(dens):  # none kept (dynamic packing): the rays see only the background, cut off from the field
+        sigma = view.density(pts, dens.live) if view is not None else field.density(pts)
+        sigma = dens.scatter(sigma.to(origins.dtype)).reshape(r, s)  # float32 under autocast too
     weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
 
-    wk = weights.reshape(-1)[flat]
-    sel = wk.detach() > thr if thr > 0 else torch.ones_like(wk, dtype=torch.bool)
-    cflat = flat[sel]
-    rgb = torch.zeros(r * s, 3, device=origins.device, dtype=origins.dtype)
-    if cflat.numel():
-        ray_of = cflat // s
-        if hasattr(field, "color_rows"):  # reuses the density pass's work (routing, encoding)
-            colors = field.color_rows(sel.nonzero().squeeze(-1), dirs[ray_of])
+    wk = weights.reshape(-1)[dens.rows]
+    sel = dens.keep(wk.detach() > thr if thr > 0 else torch.ones_like(wk, dtype=torch.bool))
+    col = packer.pack("color", sel)  # slots of the density pass
+    cflat = dens.sub(col)  # the same samples, as rows of the (R, S) samples
+    ray_of = torch.div(cflat.rows, s, rounding_mode="floor")
+    rgb = torch.zeros(r, s, 3, device=origins.device, dtype=origins.dtype)
+    if len(col):
+        if view is not None:
+            colors = view.color_rows(col.rows, dirs[ray_of], col.live)
         else:
-            colors = field.color(pts[sel], dirs[ray_of])
-        rgb = rgb.index_put((cflat,), colors.to(rgb.dtype))
-    rgb = rgb.reshape(r, s, 3)
+            colors = field.color(pts[col.rows], dirs[ray_of])
+        rgb = cflat.scatter(colors.to(origins.dtype)).reshape(r, s, 3)
     color, depth, acc = composite(weights, rgb, t, settings.background)
     flops.add("composite", flops.COMPOSITE_FLOPS * r * s)
     # rows: the density pass's samples (indices into the flattened (R, S) samples, in the order `field.density`
-    # saw them); step: the sampling step used
-    return RayBundle(color, depth, acc, int(flat.numel()), int(cflat.numel()),
-                     {"weights": weights, "t": t, "rgb": rgb, "rows": flat, "step": step})
+    # saw them; with a static packer, `live` says which slots hold one); step: the sampling step used
+    return RayBundle(color, depth, acc, dens.count(), cflat.count(),
+                     {"weights": weights, "t": t, "rgb": rgb, "rows": dens.rows, "live": dens.live, "step": step})
 
 
 @torch.no_grad()
@@ -134,28 +150,35 @@ def render_image(
     skip: Callable[[Tensor], Tensor] | None = None,
     color_threshold: float | None = None,
     device: torch.device | str = "cpu",
+    packer: Packer | None = None,
 ) -> dict[str, Tensor | int]:
     """Render one image in chunks of `settings.chunk` rays (bounded memory).
 
+    `packer` (default: `packer_for(device)`; keep one per model to reuse its budgets from image to image): with
+    static budgets no chunk waits for the device; the budgets are settled once the image is done, and an image
+    whose samples overflowed one is rendered again with the grown budgets, so no sample is ever missing.
     -> {"rgb": (H, W, 3), "depth": (H, W), "acc": (H, W), "n_samples": int, "n_color": int}
     """
-    origins, dirs = image_rays(pose, intrinsics, height, width, settings.ndc)
-    origins, dirs = origins.to(device), dirs.to(device)
-    parts = []
-    n_samples = n_color = 0
-    for i in range(0, origins.shape[0], settings.chunk):
-        b = render_rays(field, origins[i : i + settings.chunk], dirs[i : i + settings.chunk], settings, skip,
-                        color_threshold=color_threshold)
-        parts.append((b.color, b.depth, b.acc))
-        n_samples += b.n_samples
-        n_color += b.n_color
+    origins, dirs = image_rays(pose.to(device), intrinsics, height, width, settings.ndc)
+    packer = packer_for(device) if packer is None else packer
+    while True:
+        parts = []
+        n_samples = n_color = 0
+        for i in range(0, origins.shape[0], settings.chunk):
+            b = render_rays(field, origins[i : i + settings.chunk], dirs[i : i + settings.chunk], settings, skip,
+                            color_threshold=color_threshold, packer=packer)
+            parts.append((b.color, b.depth, b.acc))
+            n_samples += b.n_samples
+            n_color += b.n_color
+        if not packer.settle():  # static: every chunk fitted its budgets (the one wait of the image)
+            break
     color, depth, acc = (torch.cat(p).cpu() for p in zip(*parts))
     return {
         "rgb": color.reshape(height, width, 3).clamp(0, 1),
         "depth": depth.reshape(height, width),
         "acc": acc.reshape(height, width),
-        "n_samples": n_samples,
-        "n_color": n_color,
+        "n_samples": int(n_samples),
+        "n_color": int(n_color),
     }
 
 
@@ -169,7 +192,8 @@ class Views(Protocol):
 
 
 def render_view(field: Field, views: Views, i: int, settings: RenderSettings,
-                skip: Callable[[Tensor], Tensor] | None = None, device: torch.device | str = "cpu") -> dict:
+                skip: Callable[[Tensor], Tensor] | None = None, device: torch.device | str = "cpu",
+                packer: Packer | None = None) -> dict:
     """`render_image` of camera `i` of `views` (a dataset split)."""
     return render_image(field, views.poses[i], views.intrinsics[i], views.height, views.width, settings, skip,
-                        device=device)
+                        device=device, packer=packer)

@@ -22,6 +22,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from boostnerf_cli.device import constant
+
 
 def optical_depth(sigma: Tensor, delta: Tensor) -> Tensor:
     """sigma, delta (R, S) -> sigma * delta (R, S), non-negative."""
@@ -62,7 +64,7 @@ def composite(
     ray is empty), accumulated opacity (R,).
     """
     acc = weights.sum(dim=-1)
-    bg = torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device)
+    bg = background if isinstance(background, Tensor) else constant(tuple(background), rgb.device, rgb.dtype)
     color = accumulate(weights, rgb) + (1.0 - acc)[:, None] * bg
     depth = (weights * t).sum(dim=-1)
     return color, depth, acc

@@ -17,11 +17,13 @@ import torch
 from boostnerf_cli.errors import BoostNerfError, BoxWarning, DataWarning
 from boostnerf_cli.scenes.blender import is_blender, load_blender
 from boostnerf_cli.scenes.bounds import box_gaps, box_near_far
+from boostnerf_cli.scenes.cache import cached
 from boostnerf_cli.scenes.llff import is_llff, load_llff
 from boostnerf_cli.scenes.nerfstudio import is_nerfstudio, load_nerfstudio
 from boostnerf_cli.scenes.nsvf import is_nsvf, is_tanks, load_nsvf, load_tanks
 from boostnerf_cli.scenes.procedural import LAYOUTS, make_scene
 from boostnerf_cli.scenes.scene import Scene, Split
+from boostnerf_cli.startup import timed
 
 # name -> (detector, loader, what the detector looks for)
 FORMATS: dict[str, tuple[Callable[[Path], str], Callable[..., Scene], str]] = {
@@ -78,18 +80,25 @@ def _far_from_origin(scene: Scene) -> str:
             "before training")
 
 
+@timed("scene")
 def load_scene(path, image_size: int | None = None, holdout_every: int = 8, format: str = "auto",
-               bbox: list[float] | None = None) -> Scene:
+               bbox: list[float] | None = None, cache: Path | None = None) -> Scene:
     """Load the scene at `path`; `format` is "auto" or a key of `FORMATS`.
 
     With "auto", `scene.extra["detected"]` says which format was recognised from which files; `scene.extra["warnings"]`
     holds what the loader found doubtful (`DataWarning`, one line each). `bbox`
     ([xmin, ymin, zmin, xmax, ymax, zmax], world units) replaces the box the loader gives, for content that
-    reaches past it; a forward-facing scene's box is NDC's and cannot be replaced.
+    reaches past it; a forward-facing scene's box is NDC's and cannot be replaced. `cache`: a file that keeps the
+    decoded scene for the next load of the same files with the same settings (scenes/cache.py).
     """
     folder = Path(path)
     if not folder.is_dir():
         raise BoostNerfError(f"scene folder {folder} does not exist: check the path")
+    settings = {"image_size": image_size, "holdout_every": holdout_every, "format": format, "bbox": bbox}
+    return cached(lambda: _decode(folder, image_size, holdout_every, format, bbox), folder, settings, cache)
+
+
+def _decode(folder: Path, image_size: int | None, holdout_every: int, format: str, bbox: list[float] | None) -> Scene:
     detected = ""
     if format == "auto":
         format, found = detect_format(folder)

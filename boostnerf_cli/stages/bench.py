@@ -32,19 +32,22 @@ import csv
 import dataclasses
 import io
 import json
+import logging
 import math
 import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import CONFIGS
-from boostnerf_cli.models import Skips
+from boostnerf_cli.lineage import moved, scene_digest
+from boostnerf_cli.models import Viewing
 from boostnerf_cli.moe.router import PENALTIES
 from boostnerf_cli.recipe import Recipe, recipe_dict, recorded_recipe
 from boostnerf_cli.workspace import Workspace, atomic_path, read_json, recorded_path, write_json
+
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 SUITES = ("quick", "full")
 COLUMNS = ("name", "group", "psnr", "ssim", "train_seconds", "seconds_per_image", "gflops_per_image", "params", "w0")
@@ -219,9 +222,8 @@ def _link(src: Path, dst: Path) -> None:
 
 
 class Bench:
-    def __init__(self, root: Path, data: Path, setups: dict[str, Setup], device: str, views: int | None,
-                 log: Callable[[str], None]):
-        self.root, self.data, self.setups, self.device, self.views, self.log = root, data, setups, device, views, log
+    def __init__(self, root: Path, data: Path, setups: dict[str, Setup], device: str, views: int | None):
+        self.root, self.data, self.setups, self.device, self.views = root, data, setups, device, views
         self.ready: set[str] = set()
 
     def ws(self, name: str) -> Workspace:
@@ -239,7 +241,7 @@ class Bench:
             return ws
         main = self.ws("main")
         if setup.kind == "main":
-            pretrain.run(ws, self.data, setup.recipe, self.device, False, self.log)
+            pretrain.run(ws, self.data, setup.recipe, self.device, False)
         else:
             self.prepare(self.setups["main"])
             _link(main.geometry_path, ws.geometry_path)
@@ -252,7 +254,7 @@ class Bench:
                 if not ws.manifest_path.exists():
                     write_json(ws.manifest_path, {**main.manifest(), "recipe": recipe_dict(setup.recipe)})
             else:
-                pretrain.run(ws, self.data, setup.recipe, self.device, False, self.log)
+                pretrain.run(ws, self.data, setup.recipe, self.device, False)
             if setup.link_init:
                 self.build(main, self.setups["main"])
                 _link(main.model_path("init"), ws.model_path("init"))
@@ -267,7 +269,7 @@ class Bench:
             # Each row finetunes with its own top-k; the untrained mixture's only has to fit its experts.
             moe = setup.recipe.moe
             moe = dataclasses.replace(moe, topk=min(moe.topk, len(setup.recipe.pretrain.res)))
-            build_moe.build(ws, None, moe, self.device, self.log)
+            build_moe.build(ws, None, moe, self.device)
 
     def run_row(self, row: Row) -> dict:
         from boostnerf_cli.stages import evaluate, finetune
@@ -277,8 +279,8 @@ class Bench:
         if row.train is not None:
             self.build(ws, setup)
             topk = int(row.train[3:]) if row.train.startswith("top") else None
-            finetune.run(ws, row.train, topk, setup.recipe.moe, self.device, False, self.log)
-        result = evaluate.run(ws, [row.model], "test", self.device, Skips(), self.views, False, self.log, costs=True)
+            finetune.run(ws, row.train, topk, setup.recipe.moe, self.device, False)
+        result = evaluate.run(ws, [row.model], Viewing("test", self.views), self.device)
         ev = result["models"][0]
         out = {
             "name": row.name,
@@ -339,12 +341,12 @@ def check_config(root: Path, data: Path | None, views: int | None, rec: Recipe, 
     if data is None:
         data = root / previous["data"] if listing and previous and "data" in previous else root / "scene"
     config = bench_config(data, views, rec, root)
-    if previous is not None and previous != config:
-        changed = next(k for k in config if previous.get(k) != config[k])
-        if changed != "data" or {**previous, "data": ""} != {**config, "data": ""}:
-            raise BoostNerfError(f"{root} holds a bench made with another {changed} ({config_path}): "
-                                 "use a new --workspace, or delete it to start over")
+    if moved(previous, config, "data"):
         _check_moved_scene(root, Path(data), rec, root / previous["data"])
+    elif previous is not None and previous != config:
+        changed = next(k for k in config if previous.get(k) != config[k])
+        raise BoostNerfError(f"{root} holds a bench made with another {changed} ({config_path}): "
+                             "use a new --workspace, or delete it to start over")
     return config
 
 
@@ -356,7 +358,6 @@ def _check_moved_scene(root: Path, data: Path, rec: Recipe, was: Path) -> None:
     if not digests:
         return  # nothing trained on the old one
     from boostnerf_cli.scenes import load_scene
-    from boostnerf_cli.stages.common import scene_digest
 
     scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
                        format=rec.data.format, bbox=rec.data.bbox)
@@ -366,7 +367,7 @@ def _check_moved_scene(root: Path, data: Path, rec: Recipe, was: Path) -> None:
 
 
 def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] | None, device: str,
-        views: int | None, log: Callable[[str], None]) -> dict:
+        views: int | None) -> dict:
     setups, rows = catalogue(rec, suite)
     chosen = select(rows, only, suite)
     for note in catalogue_notes(rec, suite):
@@ -384,7 +385,7 @@ def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] 
     config_path = root / "bench-config.json"
     if not config_path.exists() or read_json(config_path, "bench config") != config:  # new, or its scene moved
         write_json(config_path, config)
-    bench = Bench(root, Path(data), setups, device, views, log)
+    bench = Bench(root, Path(data), setups, device, views)
     for i, row in enumerate(chosen, 1):
         if bench.row_path(row.name).exists():
             log(f"bench [{i}/{len(chosen)}] {row.name}: finished, skipping")
@@ -394,11 +395,11 @@ def run(root: Path, data: Path | None, rec: Recipe, suite: str, only: list[str] 
         log(f"bench [{i}/{len(chosen)}] {row.name}: PSNR {r['psnr']:.3f}, {r['gflops_per_image']:.3f} GFLOPs/image, "
             f"{r['seconds_per_image']:.3f} s/image, trained in {r['train_seconds']:.0f}s")
         if i < len(chosen):  # the table of every finished row stays current: an interrupted bench leaves it too
-            write_table(root, suite, rows, lambda _: None, plots=False)
-    return write_table(root, suite, rows, log)
+            write_table(root, suite, rows, plots=False)
+    return write_table(root, suite, rows)
 
 
-def write_table(root: Path, suite: str, rows: list[Row], log: Callable[[str], None], plots: bool = True) -> dict:
+def write_table(root: Path, suite: str, rows: list[Row], plots: bool = True) -> dict:
     """bench.json / bench.csv / plots of every finished row of the suite, in catalogue order."""
     done = [read_json(row_path(root, r.name), "bench row") for r in rows if row_path(root, r.name).exists()]
     reports = root / "reports"
@@ -411,7 +412,7 @@ def write_table(root: Path, suite: str, rows: list[Row], log: Callable[[str], No
         writer.writerow([r[c] for c in COLUMNS])
     with atomic_path(reports / "bench.csv") as tmp:
         tmp.write_text(buf.getvalue())
-    table["plots"] = plot(done, reports, log) if plots else []
+    table["plots"] = plot(done, reports) if plots else []
     return table
 
 
@@ -419,7 +420,7 @@ GROUP_STYLE = {"expert": "o", "baseline": "s", "moe": "*", "naive": "^", "topk":
                "gate-type": "P", "penalty": "X"}
 
 
-def plot(rows: list[dict], folder: Path, log: Callable[[str], None]) -> list[str]:
+def plot(rows: list[dict], folder: Path) -> list[str]:
     """PSNR against GFLOPs per image and against seconds per image; [] without matplotlib."""
     def finite(v: float | None) -> bool:  # a row read back holds null for a value that was not finite
         return v is not None and math.isfinite(v)

@@ -5,22 +5,72 @@ Writes `moe/init.safetensors` (+ `moe/init.json`), the starting point of every `
 
 from __future__ import annotations
 
-from typing import Callable
+import logging
+from dataclasses import asdict
 
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import FAMILIES, count_params
+from boostnerf_cli.lineage import MixtureInitSpec
 from boostnerf_cli.models import load_expert, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
-from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
+from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, routing_of
 from boostnerf_cli.recipe import MoERecipe, check_section
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.workspace import Workspace, read_meta, write_json
 
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
-def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, log: Callable[[str], None]) -> dict:
+
+def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str) -> dict:
+    """Build moe/init from the experts `names` (default: every finished one) with the recipe's moe section."""
+    check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
+    experts, outside, inputs = _experts(ws, names, rec, device)
+    topk = rec.topk
+    if topk > len(experts):  # the untrained mixture's k is used by nothing but bench's untrained rows: fit it, say so
+        topk = len(experts)
+        log(f"note: moe.topk = {rec.topk} but the mixture has {len(experts)} expert{'s' if len(experts) > 1 else ''}: "
+            f"moe/init routes to {topk} (finetune --topk K sets each finetuned model's k)")
+    vd, occ, step = _density_volume(rec, experts, device)
+    gate_grid = resolve_gate_grid(rec.gate_grid, [e[2].family for e in experts])
+    source = gate_source(rec, gate_grid, experts, outside)
+    channels = rec.gate_channels if source is None else source[2].feature_table.shape[1]
+    torch.manual_seed(rec.seed)  # the gate's random initialisation: the same for the same recipe
+    gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=channels, hidden=rec.gate_hidden,
+                           layers=rec.gate_layers, grid=gate_grid, init=rec.gate_init), len(experts), vd.bbox)
+    if source is not None:
+        gate.init_grid_from(source[2].feature_table, source[2].shape, source[2].bbox)
+    gate = gate.to(device)
+    cfg = MixtureConfig(**{**routing_of(rec), "topk": topk}, threshold=rec.density_threshold, vd_res=vd.res,
+                        step=step, expert_names=[e[1] for e in experts])
+    mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
+    spec = MixtureInitSpec(inputs, {"mixture": asdict(cfg), "gate": gate.config_dict(), "seed": rec.seed})
+    save_mixture(ws.model_path("init"), mix, {"name": "init", "signature": spec.signature()})
+    report = {
+        "name": "init",
+        "experts": cfg.expert_names,
+        "expert_params": [e[0] for e in experts],
+        "gate": gate.config_dict(),
+        "gate_params": count_params(gate),
+        "gate_init": "random" if source is None else source[1],
+        "density_volume": {"res": cfg.vd_res, "threshold": rec.density_threshold, "from": cfg.expert_names[0],
+                           "occupied_fraction": occ.fraction(), "source": rec.vd_source, "filter": rec.vd_filter},
+        "step": step,
+    }
+    write_json(ws.moe_dir / "init.json", report)
+    ws.update_manifest(moe={"init": {"experts": cfg.expert_names, "gate": rec.gate_type, "gate_grid": gate_grid,
+                                     "inputs": inputs, "digest": read_meta(ws.model_path("init")).get("digest")}})
+    _say_built(rec, cfg, gate, gate_grid, source, occ)
+    return report
+
+
+def _experts(ws: Workspace, names: list[str] | None, rec: MoERecipe,
+             device: str) -> tuple[list[tuple], tuple | None, dict[str, str]]:
+    """The mixture's experts, loaded: (params, name, model, render step) smallest first; the gate's source when
+    moe.gate_from names one left out of the mixture; {name: digest} of both (retraining either makes moe/init stale).
+    Refused: no expert, an unknown or repeated name, experts of different scenes."""
     manifest = ws.require_manifest()
     available = ws.expert_names()
     if not available:
@@ -36,18 +86,12 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:
         raise BoostNerfError(f"--experts names {twice[0]} more than once: a mixture holds each expert once")
-    check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
-    topk = rec.topk
-    if topk > len(names):  # the untrained mixture's k is used by nothing but bench's untrained rows: fit it, and say so
-        topk = len(names)
-        log(f"note: moe.topk = {rec.topk} but the mixture has {len(names)} expert{'s' if len(names) > 1 else ''}: "
-            f"moe/init routes to {topk} (finetune --topk K sets each finetuned model's k)")
     extra = [rec.gate_from] if rec.gate_from and rec.gate_from not in names else []  # the gate's source, left out
     if extra and extra[0] not in available:
         raise BoostNerfError(f"moe.gate_from = {rec.gate_from!r}: no pretrained expert of that name in {ws.root} "
                              f"(experts: {', '.join(available)})")
     loaded, scenes, inputs = {}, set(), {}
-    for n in names + extra:  # the gate's source is an input too: retraining it makes moe/init stale
+    for n in names + extra:
         inputs[n] = read_meta(ws.expert_path(n)).get("digest")
         model, occ, meta = load_expert(ws.expert_path(n), device)
         loaded[n] = (count_params(model), n, model, meta["step"])
@@ -58,60 +102,42 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str, l
             "`boostnerf pretrain --force`, or pass --experts with experts of one scene"
         )
     experts = sorted((loaded[n] for n in names), key=lambda e: (e[0], e[1]))
-    outside = loaded[extra[0]] if extra else None  # moe.gate_from: an expert of the workspace left out of the mixture
+    return experts, loaded[extra[0]] if extra else None, inputs
+
+
+def _density_volume(rec: MoERecipe, experts: list[tuple],
+                    device: str) -> tuple[DensityVolume, OccupancyGrid, float]:
+    """V_D fitted to the smallest expert's density, its occupancy at the mixture's render step (refused when it
+    keeps no cell), and that step. -> (V_D, occupancy, step)."""
     smallest = experts[0][2]
     bbox = smallest.bbox
     step = experts[0][3] if rec.step_from == "smallest" else experts[-1][3]
-    vd_res = rec.vd_res or smallest.spatial_res
-    vd = DensityVolume(bbox, vd_res).to(device)
+    vd = DensityVolume(bbox, rec.vd_res or smallest.spatial_res).to(device)
     vd.init_from(smallest.density)
     occ = OccupancyGrid.from_density(vd.density, bbox, vd.shape, step, rec.density_threshold)
     if occ.fraction() == 0:
+        coarse = rec.vd_res and 2 * rec.vd_res <= smallest.spatial_res
         raise BoostNerfError(
             f"V_D from {experts[0][1]} keeps no cell: its opacity over one render step is at most moe.density_threshold "
             f"= {rec.density_threshold:g} everywhere, so every sample would be filtered and the mixture could not "
             "train; lower it (--threshold)"
             + (f" or raise moe.vd_res (= {rec.vd_res}: a volume this coarse reads the expert's density at few points; "
-               f"unset, it is the smallest expert's {smallest.spatial_res})" if rec.vd_res and 2 * rec.vd_res <= smallest.spatial_res else "")
+               f"unset, it is the smallest expert's {smallest.spatial_res})" if coarse else "")
             + " or train the experts longer (pretrain --iters N --force), unless the scene shows nothing but empty space")
-    gate_grid = resolve_gate_grid(rec.gate_grid, [e[2].family for e in experts])
-    source = gate_source(rec, gate_grid, experts, outside)
-    channels = rec.gate_channels if source is None else source[2].feature_table.shape[1]
-    torch.manual_seed(rec.seed)  # the gate's random initialisation: the same for the same recipe
-    gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=channels, hidden=rec.gate_hidden,
-                           layers=rec.gate_layers, grid=gate_grid, init=rec.gate_init), len(experts), bbox)
-    if source is not None:
-        gate.init_grid_from(source[2].feature_table, source[2].shape, source[2].bbox)
-    gate = gate.to(device)
-    cfg = MixtureConfig(topk=topk, renormalize=rec.renormalize, threshold=rec.density_threshold,
-                        penalty=rec.penalty, vd_res=vd_res, step=step, bake_res=rec.bake_res,
-                        expert_names=[e[1] for e in experts], mix=rec.mix, aux_norm=rec.aux_norm,
-                        aux_samples=rec.aux_samples, vd_source=rec.vd_source, vd_filter=rec.vd_filter)
-    mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
-    save_mixture(ws.model_path("init"), mix, {"name": "init", "inputs": inputs})
-    report = {
-        "name": "init",
-        "experts": cfg.expert_names,
-        "expert_params": [e[0] for e in experts],
-        "gate": gate.config_dict(),
-        "gate_params": count_params(gate),
-        "gate_init": "random" if source is None else source[1],
-        "density_volume": {"res": vd_res, "threshold": rec.density_threshold, "from": cfg.expert_names[0],
-                           "occupied_fraction": occ.fraction(), "source": rec.vd_source, "filter": rec.vd_filter},
-        "step": step,
-    }
-    write_json(ws.moe_dir / "init.json", report)
-    ws.update_manifest(moe={"init": {"experts": cfg.expert_names, "gate": rec.gate_type, "gate_grid": gate_grid,
-                                     "inputs": inputs, "digest": read_meta(ws.model_path("init")).get("digest")}})
+    return vd, occ, step
+
+
+def _say_built(rec: MoERecipe, cfg: MixtureConfig, gate: Gate, gate_grid: str, source: tuple | None,
+               occ: OccupancyGrid) -> None:
     has_grid = rec.gate_type in ("grid", "linear")  # a switch gate encodes positions: it has no grid to size
     grid_text = f" ({gate_grid} features) {'x'.join(map(str, gate.shape))}" if has_grid else ""
     if source is not None:
         same = tuple(source[2].shape) == tuple(gate.shape)
         grid_text += f" started from {source[1]}'s feature grid ({'copied' if same else 'resampled trilinearly'})"
-    log(f"built a mixture of {len(experts)} experts ({', '.join(cfg.expert_names)}), gate {rec.gate_type}{grid_text}"
-        f", V_D from {cfg.expert_names[0]} keeps {100 * occ.fraction():.1f}% of cells"
-        + (f" (its filter then reads {cfg.expert_names[-1]}'s density as it trains)" if rec.vd_source == "largest" else ""))
-    return report
+    log(f"built a mixture of {len(cfg.expert_names)} experts ({', '.join(cfg.expert_names)}), gate {rec.gate_type}"
+        f"{grid_text}, V_D from {cfg.expert_names[0]} keeps {100 * occ.fraction():.1f}% of cells"
+        + (f" (its filter then reads {cfg.expert_names[-1]}'s density as it trains)" if rec.vd_source == "largest"
+           else ""))
 
 
 def gate_source(rec: MoERecipe, gate_grid: str, experts: list[tuple], outside: tuple | None = None) -> tuple | None:

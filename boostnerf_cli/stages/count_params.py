@@ -3,20 +3,22 @@
 
 from __future__ import annotations
 
-from typing import Callable
+import logging
 
 from boostnerf_cli.costs import model_costs
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.models import current_models, load_model, n_views
+from boostnerf_cli.lineage import require_current
+from boostnerf_cli.models import load_model, n_views
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, write_json
 
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
-def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, views: int | None,
-        log: Callable[[str], None]) -> dict:
-    scene = workspace_scene(ws, log)
+
+def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, views: int | None) -> dict:
+    scene = workspace_scene(ws)
     split = scene.split(split_name)
-    names = current_models(ws, names)
+    names = require_current(ws, names)
     if not names:
         raise BoostNerfError(f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
     rows = []

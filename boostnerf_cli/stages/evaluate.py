@@ -8,16 +8,19 @@ reports/eval.json schema (documented in docs/reports.md):
 
 from __future__ import annotations
 
-from typing import Callable
+import logging
 
 from boostnerf_cli.costs import model_costs
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.lineage import require_current
 from boostnerf_cli.metrics import image_metrics, load_lpips
 from boostnerf_cli.metrics.image import LPIPS_MIN_SIZE, SSIM_WINDOW
-from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, current_models, load_model, n_views, render_split
+from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, Viewing, load_model, n_views, render_split
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, atomic_path, number, write_json
+
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 
 def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, lpips_model, skips: Skips = ALL_SKIPS,
@@ -45,11 +48,14 @@ def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, 
     }
 
 
-def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
-             report: bool, log: Callable[[str], None], costs: bool = True, exact_gate: bool = False) -> dict:
-    scene = workspace_scene(ws, log)
+def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, report: bool = False,
+        costs: bool = True) -> dict:
+    """Score every model of `names` (default: all) on `viewing`'s views; `report`: write reports/eval.json and .md;
+    `costs`: also ||w||_0 and GFLOPs per image."""
+    split_name, views, skips, exact_gate = viewing.split, viewing.views, viewing.skips, viewing.exact_gate
+    scene = workspace_scene(ws)
     split = scene.split(split_name)
-    names = current_models(ws, names)
+    names = require_current(ws, names)
     if not names:
         raise BoostNerfError(f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
     lpips_model, lpips_note = load_lpips(device)

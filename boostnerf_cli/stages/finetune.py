@@ -11,27 +11,23 @@ by `tasks.batch_routing`); rank 0 alone writes the outputs (docs/distributed.md)
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+import logging
 
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import count_params
-from boostnerf_cli.models import (
-    load_expert,
-    load_mixture,
-    mixture_routing_meta,
-    save_expert,
-    save_mixture,
-    stale_reason,
-)
-from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, check_config
+from boostnerf_cli.lineage import BaselineSpec, FinetuneSpec, decide, finished, stale
+from boostnerf_cli.models import load_expert, load_mixture, mixture_routing_meta, save_expert, save_mixture
+from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, Routing, check_config, routing_of
 from boostnerf_cli.moe.router import check_topk
-from boostnerf_cli.recipe import MoERecipe, check_section, shaping_changes
+from boostnerf_cli.recipe import MoERecipe, check_section
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.stages.common import workspace_scene
-from boostnerf_cli.tasks import FieldTask, MixtureTask, sparse_options, train_rays
-from boostnerf_cli.train import Schedule, first_difference, setting_change, train
+from boostnerf_cli.tasks import FieldTask, MixtureTask, train_rays
+from boostnerf_cli.train import Schedule, TrainCheckpoint, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
+
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 
 def model_name(topk: int | None, ensemble: bool, baseline: bool) -> str:
@@ -43,8 +39,8 @@ def model_name(topk: int | None, ensemble: bool, baseline: bool) -> str:
 
 def check_inputs(ws: Workspace) -> None:
     """Refuse a moe/init built from experts that have been retrained or removed since build-moe."""
-    if (stale := stale_reason(ws, "init")) is not None:
-        what, remedy = stale
+    if (why := stale(ws, "init")) is not None:
+        what, remedy = why
         raise BoostNerfError(f"{what}, so moe/init is stale: rerun {remedy}")
 
 
@@ -58,158 +54,104 @@ def _source_digest(ws: Workspace, name: str, init_meta: dict) -> str | None:
 
 def routing(name: str, topk: int | None, rec: MoERecipe, cfg: MixtureConfig, gate_kind: str) -> tuple[MixtureConfig, str]:
     """How finetuning configures moe/init's mixture (its config `cfg`, its gate's kind) for model `name`: the recipe's
-    mixing and V_D options, then the ensemble's uniform gate and k = M, or top-k's k, weights and penalty.
+    routing (`moe.mixture.Routing`), then the ensemble's uniform gate and k = M, or top-k's k.
     -> (the mixture's config, the gate's kind)."""
-    cfg = dataclasses.replace(cfg, mix=rec.mix, aux_norm=rec.aux_norm, aux_samples=rec.aux_samples,
-                              vd_source=rec.vd_source, vd_filter=rec.vd_filter)
+    cfg = dataclasses.replace(cfg, **routing_of(rec))
     m = len(cfg.expert_names)
-    if name == "ens":  # equal weights over every expert: renormalising and the penalty change nothing (`_unused_flags`)
-        return dataclasses.replace(cfg, topk=m, renormalize=True, penalty=MixtureConfig().penalty), "uniform"
+    if name == "ens":  # equal weights over every expert: renormalising and the penalty change nothing
+        return dataclasses.replace(cfg, topk=m, renormalize=True, penalty=Routing().penalty), "uniform"
     check_topk(topk, cfg.expert_names, "--topk")
     # at k = M every expert is used and the weights already sum to 1: renormalising changes nothing
-    renormalize = True if topk == m else rec.renormalize
-    cfg = dataclasses.replace(cfg, topk=topk, renormalize=renormalize, penalty=rec.penalty, bake_res=rec.bake_res)
+    cfg = dataclasses.replace(cfg, topk=topk, renormalize=True if topk == m else rec.renormalize)
     check_config(cfg, m)
     return cfg, gate_kind
 
 
-def signature(name: str, rec: MoERecipe, source: str | None, cfg: MixtureConfig | None = None,
-              gate_kind: str = "") -> dict:
-    """What defines finetuned model `name` (its training checkpoint's signature, and stored in the finished model):
-    its source, steps, seed, routing (`routing`'s config; None for the baseline) and the shaping settings."""
-    sig = {"stage": "finetune", "model": name, "from": source, "iters": rec.iters, "seed": rec.seed}
-    if rec.train.random_background:  # named only when set: older checkpoints still resume
-        sig["random_background"] = True
-    if cfg is not None:
-        sig.update(topk=cfg.topk, renormalize=cfg.renormalize, penalty=cfg.penalty)
-        defaults = MixtureConfig()
-        for key in ("mix", "aux_norm", "aux_samples", "vd_source", "vd_filter"):  # named only when not the default: older checkpoints still resume
-            if getattr(cfg, key) != getattr(defaults, key):
-                sig[key] = getattr(cfg, key)
-        wide_steps, gate_noise = sparse_options(gate_kind, cfg.topk, len(cfg.expert_names), rec)
-        if wide_steps:
-            sig["wide_steps"] = wide_steps
-        if gate_noise:
-            sig["gate_noise"] = gate_noise
-    sig.update(_shaping(rec, ("lam",) if cfg is not None and name != "ens" else ()))  # no aux loss to weigh: ens
-    return sig
+def spec(name: str, rec: MoERecipe, source: str | None, cfg: MixtureConfig | None = None,
+         largest: str = "") -> FinetuneSpec | BaselineSpec:
+    """What defines finetuned model `name`: its source's digest `source` (moe/init, or for the baseline the `largest`
+    expert), and the recipe's settings, with `routing`'s config `cfg` for a mixture."""
+    if name == "baseline":
+        return BaselineSpec.of(rec, largest, source)
+    return FinetuneSpec.of(name, rec, source, routing_of(cfg))
 
 
 def _planned_signature(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict) -> dict:
     """The signature this run would give `name`, from moe/init's metadata alone (nothing loaded)."""
     source = _source_digest(ws, name, init_meta)
     if name == "baseline":
-        return signature(name, rec, source)
-    cfg, kind = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), init_meta))
-    return signature(name, rec, source, cfg, kind)
+        return spec(name, rec, source, largest=init_meta["mixture"]["expert_names"][-1]).signature()
+    cfg, _ = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), init_meta))
+    return spec(name, rec, source, cfg).signature()
 
 
-def _check_finished(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict) -> None:
-    """Refuse to skip a finished model that this run would finetune differently (--lambda, --no-renormalize, --iters,
-    another recipe, ...): its report would stand for settings it was not trained with. A model saved before its
-    signature was stored is skipped as before."""
-    stored = read_meta(ws.model_path(name)).get("finetune_signature")
-    if stored is None:
-        return
-    now = _planned_signature(ws, name, topk, rec, init_meta)
-    if (key := first_difference(stored, now)) is not None:
-        raise BoostNerfError(f"{name} was finetuned with other settings ({setting_change(key, stored.get(key), now.get(key))}): "
-                             "add --force to finetune it again, or rerun with the settings it was finetuned with")
+MOOT = ("moe.lam", "moe.penalty", "moe.renormalize")  # the recipe keys that some models cannot use
 
 
-def _unused_flags(name: str, flags: dict, cfg: MixtureConfig | None, gate_kind: str) -> list[str]:
-    """The options given on the command line that cannot change model `name` (the baseline has no gate; the
-    ensemble's is uniform; at k = M every expert is used and the weights already sum to 1)."""
-    def typed(flag: str) -> str:  # --renormalize / --no-renormalize as given
-        return flag if flag != "--renormalize" or flags[flag] else "--no-renormalize"
-
-    if name == "baseline":
-        return [typed(f) for f in flags]
-    m = len(cfg.expert_names)
-    unused = []
-    if name == "ens":
-        unused += [f for f in ("--lambda", "--penalty") if f in flags]
-    if gate_kind == "uniform" or cfg.topk >= m:
-        unused += [f for f in ("--wide-start", "--gate-noise") if f in flags]
-        if "--renormalize" in flags:
-            unused.append(typed("--renormalize"))
-    return unused
-
-
-def _note_unused(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict, flags: dict,
-                 log: Callable[[str], None]) -> None:
-    """Name the command line's options that cannot change model `name` (`_unused_flags`), from moe/init's metadata."""
-    if name == "baseline":
-        if unused := _unused_flags(name, flags, None, ""):
-            log(f"note: {', '.join(unused)} cannot change the baseline (the largest expert alone, no gate): ignored")
-        return
-    cfg, kind = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), init_meta))
-    if unused := _unused_flags(name, flags, cfg, kind):
-        why = "every expert is used with equal weights" if name == "ens" else "at k = M every expert is used"
-        log(f"note: {', '.join(unused)} cannot change {name} ({why}): ignored")
-
-
-def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str, force: bool,
-        log: Callable[[str], None], flags: dict | None = None) -> dict:
-    """Finetune model `name` (skipped when finished with the same settings); `flags`: the options given on the command
-    line, {flag: value}, to name those that cannot change this model."""
-    check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
+def _init_meta(ws: Workspace) -> dict:
+    """moe/init's metadata, refused when it is missing or built from experts that changed since."""
     init = ws.model_path("init")
     if not init.exists():
         raise BoostNerfError(f"no mixture to finetune in {ws.root}: run `boostnerf build-moe --workspace {ws.root}` first")
-    init_meta = read_meta(init)
+    meta = read_meta(init)
     check_inputs(ws)
-    _note_unused(ws, name, topk, rec, init_meta, flags or {}, log)  # also when the model is finished and skipped
-    if ws.model_path(name).exists() and (ws.moe_dir / f"{name}.json").exists() and not force:
-        if stale_reason(ws, name) is not None:  # moe/init is current (above), so: finetuned from an older one
-            raise BoostNerfError(
-                f"{name} was finetuned from an older {'expert' if name == 'baseline' else 'moe/init'} "
-                f"(build-moe or pretrain ran again since): add --force to finetune it again"
-            )
-        _check_finished(ws, name, topk, rec, init_meta)
+    return meta
+
+
+def unused_settings(ws: Workspace, name: str, topk: int | None, rec: MoERecipe,
+                    given: set[str]) -> tuple[list[str], str]:
+    """Which of the recipe keys `given` (on the command line) cannot change model `name`, and why: the baseline has
+    no gate; the ensemble's is uniform, with no auxiliary loss to weigh; at k = M every expert is used and the
+    weights already sum to 1. Read from moe/init's metadata. -> (keys, why), ([], "") when each can."""
+    asked = [key for key in MOOT if key in given]
+    if name == "baseline":
+        return asked, "the largest expert alone, no gate"
+    cfg, kind = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), _init_meta(ws)))
+    unused = [key for key in asked if name == "ens" and key != "moe.renormalize"]
+    if (kind == "uniform" or cfg.topk >= len(cfg.expert_names)) and "moe.renormalize" in asked:
+        unused.append("moe.renormalize")
+    why = "every expert is used with equal weights" if name == "ens" else "at k = M every expert is used"
+    return unused, why if unused else ""
+
+
+def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str, force: bool) -> dict:
+    """Finetune model `name` (skipped when finished with the same settings)."""
+    check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
+    init_meta = _init_meta(ws)
+    init = ws.model_path("init")
+    if (found := finished(ws, name)) is not None and not force:  # refused when made from another moe/init or
+        decide(found, _planned_signature(ws, name, topk, rec, init_meta)).check()  # expert, or other settings
         log(f"{name}: already finetuned, skipping (use --force to redo it)")
         return read_json(ws.moe_dir / f"{name}.json", "finetune report")
-    scene = workspace_scene(ws, log)
+    scene = workspace_scene(ws)
     mix, meta = load_mixture(init, device)
-    if name != "baseline" and mix.occupancy is not None and mix.occupancy.fraction() == 0:  # build-moe refuses one
-        raise BoostNerfError(f"{init} holds a density volume V_D that keeps no cell (an earlier boostnerf's "  # since
-                             "build-moe): every sample would be filtered and the mixture could not train; run "
-                             f"`boostnerf build-moe --workspace {ws.root}` again, which says what to change")
     mix.train()
-    sched = Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every, rec.train.checkpoint_every)
-    source = _source_digest(ws, name, init_meta)
     if name == "baseline":
-        return _baseline(ws, scene, mix, rec, sched, device, log, source, force)
+        return _baseline(ws, scene, mix, rec, device, force)
+    sched = _schedule(rec)
+    source = _source_digest(ws, name, init_meta)
     if name == "ens":
         mix.make_ensemble()
     cfg, kind = routing(name, topk, rec, mix.cfg, mix.gate.cfg.kind)
     mix.configure(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)})
     settings = scene.render_settings(mix.cfg.step, mix.bbox, rec.train.color_threshold)
     task = MixtureTask(mix, settings, rec.train, rec)
-    sig = signature(name, rec, source, mix.cfg, mix.gate.cfg.kind)
-    result = train(task, train_rays(scene, mix.bbox, device, rec.train), sched, rec.seed, name, checkpoint=ws.checkpoint_path(name),
-                   signature=sig, data_parallel=True, restart_other=force)
+    sig = spec(name, rec, source, mix.cfg).signature()
+    result = train(task, train_rays(scene, mix.bbox, device, rec.train), sched, rec.seed, name,
+                   TrainCheckpoint(ws.checkpoint_path(name), sig, restart_other=force), data_parallel=True)
     mix.eval()
     final = result.history[-1] if result.history else {}
     report = {
         "name": name,
         "kind": "mixture",
-        "topk": mix.cfg.topk,
-        "renormalize": mix.cfg.renormalize,
+        **routing_of(mix.cfg),
         "lambda": rec.lam,
-        "penalty": mix.cfg.penalty,
         "seed": rec.seed,
-        "mix": mix.cfg.mix,
-        "aux_norm": mix.cfg.aux_norm,
-        "aux_samples": mix.cfg.aux_samples,
-        "vd_source": mix.cfg.vd_source,
-        "vd_filter": mix.cfg.vd_filter,
-        "wide_steps": task.wide_steps,
-        "gate_noise": task.gate_noise,
         "gate": mix.gate.cfg.kind,
         "experts": mix.cfg.expert_names,
         "iterations": result.iterations,
         "seconds": round(result.seconds, 2),
+        "startup_seconds": result.startup_seconds,
         "skipped_steps": result.skipped_steps,
         "params": count_params(mix),
         "load": [final.get(f"load{i}", 0.0) for i in range(mix.m)],
@@ -218,8 +160,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     }
 
     def write() -> None:
-        save_mixture(ws.model_path(name), mix, {"name": name, "from": "init", "from_digest": source,
-                                                "finetune_signature": sig})
+        save_mixture(ws.model_path(name), mix, {"name": name, "from": "init", "signature": sig})
         write_json(ws.moe_dir / f"{name}.json", report)
         ws.checkpoint_path(name).unlink(missing_ok=True)
         ws.update_manifest(moe={name: {"from": "init", "iterations": rec.iters}})
@@ -230,27 +171,21 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     return report
 
 
-def _shaping(rec: MoERecipe, keys: tuple[str, ...]) -> dict:
-    """The signature's entries for the joint training settings that differ from the defaults (`shaping_changes`):
-    `train` (batch, thresholds, loss weights; not the learning rates), and the MoE section's `keys` (lambda)."""
-    default = MoERecipe()
-    out = {k: getattr(rec, k) for k in keys if getattr(rec, k) != getattr(default, k)}
-    if changed := shaping_changes(rec.train, default.train, leave_out=("random_background",)):
-        out["train"] = changed
-    return out
+def _schedule(rec: MoERecipe) -> Schedule:
+    """The joint training's schedule, the same for every finetuned model."""
+    return Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every, rec.train.checkpoint_every)
 
 
-def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: Schedule, device: str,
-              log: Callable[[str], None], source: str | None, force: bool = False) -> dict:
-    """The largest expert alone, trained for the same finetuning iterations and schedule."""
+def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, device: str, force: bool = False) -> dict:
+    """The largest expert of moe/init's mixture `mix` alone, trained for the same finetuning iterations and schedule."""
     largest = mix.cfg.expert_names[-1]
     model, occ, meta = load_expert(ws.expert_path(largest), device)
     model.train()
     settings = scene.render_settings(meta["step"], model.bbox, rec.train.color_threshold)
     task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
-    sig = signature("baseline", rec, source)
-    result = train(task, train_rays(scene, model.bbox, device, rec.train), sched, rec.seed, "baseline",
-                   checkpoint=ws.checkpoint_path("baseline"), signature=sig, data_parallel=True, restart_other=force)
+    sig = spec("baseline", rec, meta["digest"], largest=largest).signature()
+    result = train(task, train_rays(scene, model.bbox, device, rec.train), _schedule(rec), rec.seed, "baseline",
+                   TrainCheckpoint(ws.checkpoint_path("baseline"), sig, restart_other=force), data_parallel=True)
     model.eval()
     final = result.history[-1] if result.history else {}
     report = {
@@ -260,6 +195,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
         "seed": rec.seed,
         "iterations": result.iterations,
         "seconds": round(result.seconds, 2),
+        "startup_seconds": result.startup_seconds,
         "skipped_steps": result.skipped_steps,
         "params": count_params(model),
         "train_psnr": final.get("psnr"),
@@ -268,7 +204,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, sched: 
 
     def write() -> None:
         save_expert(ws.model_path("baseline"), model, task.skip,
-                    {**meta, "name": "baseline", "from": largest, "from_digest": source, "finetune_signature": sig})
+                    {**meta, "name": "baseline", "from": largest, "signature": sig})
         write_json(ws.moe_dir / "baseline.json", report)
         ws.checkpoint_path("baseline").unlink(missing_ok=True)
         ws.update_manifest(moe={"baseline": {"from": largest, "iterations": rec.iters}})

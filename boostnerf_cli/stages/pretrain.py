@@ -11,11 +11,10 @@
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
+import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import torch
 from torch import Tensor, nn
@@ -24,6 +23,7 @@ from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.fields.registry import build_expert, count_params
+from boostnerf_cli.lineage import SKIP, ExpertSpec, GeometrySpec, SceneSpec, decide, finished, moved, scene_digest
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.models import load_expert, save_expert
 from boostnerf_cli.recipe import (
@@ -34,7 +34,6 @@ from boostnerf_cli.recipe import (
     check_recipe,
     nearest_listed,
     recipe_dict,
-    shaping_changes,
     unused_family_note,
 )
 from boostnerf_cli.render.coverage import (
@@ -48,10 +47,12 @@ from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.scenes.bounds import box_text
-from boostnerf_cli.stages.common import scene_digest, slow_notice, workspace_scene_path
+from boostnerf_cli.stages.common import slow_notice, workspace_scene_path
 from boostnerf_cli.tasks import FieldTask, train_rays
-from boostnerf_cli.train import Schedule, first_difference, train
-from boostnerf_cli.workspace import Workspace, read_json, read_meta, recorded_path, write_json
+from boostnerf_cli.train import Schedule, TrainCheckpoint, train
+from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
+
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 
 def growth_schedule(iters: int, fractions: list[float]) -> tuple[int, ...]:
@@ -79,26 +80,42 @@ def _test_psnr(model: nn.Module, split: Split, settings: RenderSettings, skip, d
 EDGE_WARN = 0.01
 
 
+@dataclass(frozen=True)
+class Site:
+    """Where pretraining works: the workspace, the scene, its id (`lineage.SceneSpec.id`), the device."""
+
+    ws: Workspace
+    scene: Scene
+    tag: str
+    device: str
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """What the shared coarse stage gives every expert: the occupied box (2, 3), the occupancy mask, the coarse model
+    (a DVGO grid with direct colour) whose density warm-starts them."""
+
+    box: Tensor
+    occupancy: OccupancyGrid
+    model: nn.Module
+
+
 # ----------------------------------------------------------------------------------------------
-def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int, device: str,
-                    log: Callable[[str], None], checkpoint_every: int = 500,
-                    scene_tag: str = "") -> tuple[Tensor, OccupancyGrid, nn.Module]:
+def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every: int = 500) -> Geometry:
     """The shared occupied box, occupancy mask and coarse density (trained once per workspace).
 
     The coarse grid trains over the scene's box; the box is drawn around the visible surface it finds (every
     foreground training ray's, render/coverage.py). With `refine`, when that box holds less than half the
     volume, a second coarse grid of the same size trains inside it (finer cells, so a floor or a wall is smeared
-    over fewer of them) and draws the box again.
-
-    -> (box (2, 3), occupancy over the last coarse grid's box, the coarse model: a DVGO grid with direct colour)
+    over fewer of them) and draws the box again. The occupancy is over the last coarse grid's box.
     """
+    ws = site.ws
     if ws.geometry_path.exists():
-        model, occ, meta = load_expert(ws.geometry_path, device)
-        return torch.tensor(meta["fine_bbox"], device=device), occ, model
+        model, occ, meta = load_expert(ws.geometry_path, site.device)
+        return Geometry(torch.tensor(meta["fine_bbox"], device=site.device), occ, model)
     t0 = time.perf_counter()
-    bbox = scene.bbox.to(device)
-    box, occ, model, cover = _coarse_round(ws, scene, rec, bbox, "geometry", seed, device, log, checkpoint_every,
-                                           scene_tag)
+    bbox = site.scene.bbox.to(site.device)
+    box, occ, model, cover = _coarse_round(site, rec, bbox, "geometry", seed, checkpoint_every)
     if cover is not None and cover["edge_rays"] > EDGE_WARN * cover["foreground_rays"]:  # over the scene's own box
         log(f"geometry: warning: {cover['edge_rays']} of {cover['foreground_rays']} foreground training rays "
             f"({100 * cover['edge_rays'] / cover['foreground_rays']:.1f}%) find their surface on the faces of the "
@@ -114,8 +131,7 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
     shrink = float((box[1] - box[0]).prod() / (bbox[1] - bbox[0]).prod())
     if rec.refine and cover is not None and shrink < 0.5:  # cells at least 1.26x finer: worth a second round
         log(f"geometry: again inside that box ({shrink:.2f} of the volume), at finer cells")
-        box, occ, model, cover = _coarse_round(ws, scene, rec, box, "geometry-refine", seed, device, log,
-                                               checkpoint_every, scene_tag)
+        box, occ, model, cover = _coarse_round(site, rec, box, "geometry-refine", seed, checkpoint_every)
         rounds.append(cover)
     seconds = round(time.perf_counter() - t0, 2)
     save_expert(ws.geometry_path, model, occ, {"name": "geometry", "fine_bbox": box.tolist(), "iters": rec.iters,
@@ -125,17 +141,17 @@ def ensure_geometry(ws: Workspace, scene: Scene, rec: GeometryRecipe, seed: int,
         ws.checkpoint_path(name).unlink(missing_ok=True)
     log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {box_text(box)} "
         f"({seconds:.1f}s)")
-    return box, occ, model
+    return Geometry(box, occ, model)
 
 
-def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor, name: str, seed: int, device: str,
-                  log: Callable[[str], None], checkpoint_every: int,
-                  scene_tag: str) -> tuple[Tensor, OccupancyGrid, nn.Module, dict | None]:
+def _coarse_round(site: Site, rec: GeometryRecipe, bbox: Tensor, name: str, seed: int,
+                  checkpoint_every: int) -> tuple[Tensor, OccupancyGrid, nn.Module, dict | None]:
     """Train the coarse grid over `bbox` and find the box and the mask from it.
 
     -> (box (2, 3), occupancy over `bbox`, the coarse model, the covering's counts (None without cover_foreground))
     """
     log(f"{name}: training a {rec.res}^3 coarse grid for {rec.iters} steps to find the occupied box")
+    scene, device = site.scene, site.device
     torch.manual_seed(seed)
     model = DVGOExpert(DVGOConfig(res=rec.res, hidden=0, alpha_init=rec.alpha_init), bbox).to(device)
     step = 0.5 * model.voxel_size
@@ -143,11 +159,10 @@ def _coarse_round(ws: Workspace, scene: Scene, rec: GeometryRecipe, bbox: Tensor
     tcfg = TrainRecipe(lr_grid=rec.lr, weight_rgbper=0.0, weight_entropy=rec.weight_entropy, occupancy_every=0)
     task = FieldTask(model, settings, tcfg, skip=None, base_mask=None)
     rays = train_rays(scene, bbox, device, tcfg)
-    ckpt = ws.checkpoint_path(name)  # removed once the geometry is saved
+    ckpt = site.ws.checkpoint_path(name)  # removed once the geometry is saved
+    spec = GeometrySpec.of(name, site.tag, rec, seed, bbox.flatten().tolist())
     train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5),
-                               checkpoint_every=checkpoint_every), seed, name, checkpoint=ckpt,
-          signature={"stage": name, "scene": scene_tag, "recipe": dataclasses.asdict(rec), "seed": seed,
-                     "bbox": [round(v, 6) for v in bbox.flatten().tolist()]})
+                               checkpoint_every=checkpoint_every), seed, name, TrainCheckpoint(ckpt, spec.signature()))
     model.eval()
     occ = OccupancyGrid.from_density(model.density, bbox, model.shape, step, rec.alpha_threshold)
     cover = None
@@ -184,11 +199,11 @@ def expert_name(model: str, res: int) -> str:
     return f"{model}-{res}"
 
 
-def expert_options(rec: PretrainRecipe, res: int, log: Callable[[str], None] | None = None) -> dict:
+def expert_options(rec: PretrainRecipe, res: int, say: bool = False) -> dict:
     """The family options of the expert at `res`. A mapping from resolution to value sets an option
     per expert (e.g. `hidden: {64: 64, 80: 96, 96: 128}` widens the colour MLP with the grid); for a
     resolution the mapping does not list (`--res 48` over such a recipe) the nearest listed resolution's
-    value is taken (the larger on a tie), and `log` says so."""
+    value is taken (the larger on a tie), and with `say` the log says so."""
     opts = {}
     for key, value in rec.family_config().items():
         if isinstance(value, dict):
@@ -201,7 +216,7 @@ def expert_options(rec: PretrainRecipe, res: int, log: Callable[[str], None] | N
                 raise BoostNerfError(f"recipe key pretrain.{rec.model}.{key} is an empty mapping: give a value per "
                                      "resolution, or a single value")
             res_key = nearest_listed(value, res)
-            if res_key != res and log is not None:
+            if res_key != res and say:
                 log(f"recipe key pretrain.{rec.model}.{key} lists no value for res {res}: using {value[res_key]!r}, "
                     f"the value for the nearest listed resolution ({res_key})")
             value = value[res_key]
@@ -209,57 +224,12 @@ def expert_options(rec: PretrainRecipe, res: int, log: Callable[[str], None] | N
     return {**opts, "res": res}
 
 
-def expert_signature(rec: PretrainRecipe, res: int, scene_tag: str, geometry: str | None) -> dict:
-    """The settings that define the expert at `res` (its training checkpoint's signature, also stored in the finished
-    expert): scene, family and its section, steps, seed, skipping, growth, the geometry it started from, and the
-    training settings that shape it (`shaping_changes`), in JSON's types."""
-    tcfg = rec.train if rec.skip else dataclasses.replace(rec.train, occupancy_every=0)
-    signature = {"stage": "pretrain", "scene": scene_tag, "model": rec.model, "res": res,
-                 rec.model: rec.family_config(), "iters": rec.iters, "skip": rec.skip, "growth": list(tcfg.growth),
-                 "seed": rec.seed + res, "geometry": geometry}
-    if tcfg.random_background:  # named only when set: older checkpoints still resume
-        signature["random_background"] = True
-    if changed := shaping_changes(tcfg, TrainRecipe(), leave_out=("growth", "random_background")):
-        signature["train"] = changed
-    return json.loads(json.dumps(signature))
-
-
-def _check_finished(ws: Workspace, rec: PretrainRecipe, scene_tag: str, force: bool) -> None:
-    """Refuse to skip a finished expert that the recipe would train differently (another family section, steps,
-    batch, ...): its report would stand for settings it was not trained with. The geometry it started from is
-    not compared (the geometry stage checks its own settings)."""
-    for res in rec.res:
-        name = expert_name(rec.model, res)
-        path = ws.expert_path(name)
-        if force or not path.exists() or not ws.expert_report_path(name).exists():
-            continue
-        meta = read_meta(path)
-        stored = meta.get("signature")
-        if stored is None:  # saved by a boostnerf that stored no signature: what its report and its file name
-            report = read_json(ws.expert_report_path(name), "expert report")
-            named = {"model": ("model", rec.model), "iters": ("iterations", rec.iters), "skip": ("skip", rec.skip),
-                     "seed": ("seed", rec.seed)}
-            stored = {key: report[field] for key, (field, _) in named.items() if field in report}
-            now = {key: value for key, (field, value) in named.items() if field in report}
-            config, options = meta.get("config"), expert_options(rec, res)
-            for key, value in (config.items() if isinstance(config, dict) else ()):  # the architecture it was built with
-                if key in options:
-                    stored[f"{rec.model}.{key}"], now[f"{rec.model}.{key}"] = value, options[key]
-        else:
-            now = expert_signature(rec, res, scene_tag, stored.get("geometry"))
-        if (key := first_difference(stored, now)) is not None:
-            raise BoostNerfError(
-                f"{name} was trained with other settings ({key}: {stored.get(key)!r}, now {now.get(key)!r}): "
-                "add --force to retrain it, or rerun with the recipe it was trained with")
-
-
-def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, box: Tensor, geom: OccupancyGrid,
-                    prior: nn.Module, device: str, scene_tag: str = "", log: Callable[[str], None] | None = None,
-                    force: bool = False) -> dict:
-    """Train one expert at `res` and write its safetensors file and JSON report (with `rec.skip` off: on the
-    scene's whole box instead of `box`, without `geom`)."""
+def pretrain_expert(site: Site, rec: PretrainRecipe, res: int, geometry: Geometry, force: bool = False) -> dict:
+    """Train one expert at `res`, starting from `geometry`, and write its safetensors file and JSON report (with
+    `rec.skip` off: on the scene's whole box instead of the geometry's, without its mask)."""
+    ws, scene, device = site.ws, site.scene, site.device
     name = expert_name(rec.model, res)
-    tcfg = rec.train
+    box, geom, tcfg = geometry.box, geometry.occupancy, rec.train
     if not rec.skip:  # the reference without skipping: the whole scene box, no occupancy mask or refresh
         box, geom = scene.bbox.to(device), None
         tcfg = dataclasses.replace(tcfg, occupancy_every=0)
@@ -272,14 +242,15 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     growth = growth_schedule(rec.iters, tcfg.growth) if model.grows else ()
     if growth:
         model.regrid(final_voxels // (2 ** len(growth)))
-    model.init_density(prior.density)  # warm start: colour is then computed near surfaces only
+    model.init_density(geometry.model.density)  # warm start: colour is then computed near surfaces only
     settings = scene.render_settings(tcfg.step_ratio * model.unit, box, tcfg.color_threshold)
     task = FieldTask(model, settings, tcfg, skip=geom, base_mask=geom, growth_steps=growth, final_voxels=final_voxels)
     rays = train_rays(scene, box, device, tcfg)
     sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
-    signature = expert_signature(rec, res, scene_tag, read_meta(ws.geometry_path).get("digest"))
-    result = train(task, rays, sched, rec.seed + res, name, checkpoint=ckpt, signature=signature, restart_other=force)
+    signature = ExpertSpec.of(rec, res, expert_options(rec, res), site.tag,
+                              read_meta(ws.geometry_path).get("digest")).signature()
+    result = train(task, rays, sched, rec.seed + res, name, TrainCheckpoint(ckpt, signature, restart_other=force))
     model.eval()
     task.refresh_occupancy()
     report = {
@@ -289,6 +260,7 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
         "seed": rec.seed,  # pretrain.seed: this expert's initialisation and batches draw from seed + res
         "iterations": result.iterations,
         "seconds": round(result.seconds, 2),
+        "startup_seconds": result.startup_seconds,
         "skipped_steps": result.skipped_steps,
         "params": count_params(model),
         "grid_shape": list(model.shape),
@@ -299,34 +271,13 @@ def pretrain_expert(ws: Workspace, scene: Scene, rec: PretrainRecipe, res: int, 
     }
     test = scene.held_out()
     if test is not None:
-        with slow_notice(log or (lambda _: None), f"{name}: scoring its {len(test)} held-out views"):
+        with slow_notice(f"{name}: scoring its {len(test)} held-out views"):
             report["test_psnr"] = round(_test_psnr(model, test, settings, task.skip, device), 3)
-    save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step, "scene": scene_tag,
+    save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step, "scene": site.tag,
                                                          "signature": signature})
     write_json(ws.expert_report_path(name), report)
     ckpt.unlink(missing_ok=True)
     return report
-
-
-def scene_inputs(data: Path, rec: Recipe, root: Path) -> dict:
-    """What identifies the scene a workspace is trained on (recorded in the manifest; the path: `recorded_path`)."""
-    inputs = {"path": recorded_path(data, root), "image_size": rec.data.image_size,
-              "holdout_every": rec.data.holdout_every, "format": rec.data.format}
-    if rec.data.bbox is not None:  # named only when set: workspaces made before the key keep their scene id
-        inputs["bbox"] = list(rec.data.bbox)
-    return inputs
-
-
-def scene_id(inputs: dict) -> str:
-    """A short fingerprint of the scene inputs, stored in every expert so mixtures can check them."""
-    return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()[:16]
-
-
-def _forget_trained(ws: Workspace) -> None:
-    """--force on another scene: the experts, the geometry and every training checkpoint go."""
-    for folder in (ws.experts_dir, ws.checkpoints_dir):
-        for p in list(folder.glob("*")) if folder.exists() else []:
-            p.unlink()
 
 
 def assign(res: list[int], world: int) -> list[list[int]]:
@@ -338,8 +289,7 @@ def assign(res: list[int], world: int) -> list[list[int]]:
     return [sorted(s) for s in shares]
 
 
-def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
-        log: Callable[[str], None]) -> list[dict]:
+def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool) -> list[dict]:
     """Train every expert of the recipe that is not finished yet; -> the reports of all of them.
 
     Under torchrun, rank 0 first prepares the workspace (scene, manifest, the shared geometry) while the
@@ -347,15 +297,14 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
     each rank trains its own and writes their files, and once every rank has succeeded rank 0 alone
     records them in the manifest. A rank's failure stops every rank with its message (docs/distributed.md).
     """
-    scene, tag, box, geom, prior, todo = dist.main_first(
-        lambda: _prepare(ws, data, rec, device, force, dist.main_log(log)))
-    if not rec.pretrain.skip:
-        dist.main_log(log)("pretrain.skip is off (--no-skip): experts train on the whole scene box without an "
-                           "occupancy mask (colour is still computed only where a sample's rendering weight exceeds "
-                           "train.color_threshold)")
+    with dist.others_quiet():  # what every rank would repeat is said once
+        site, geometry, todo = dist.main_first(lambda: _prepare(ws, data, rec, device, force))
+        if not rec.pretrain.skip:
+            log("pretrain.skip is off (--no-skip): experts train on the whole scene box without an occupancy mask "
+                "(colour is still computed only where a sample's rendering weight exceeds train.color_threshold)")
     with dist.together():
         for res in assign(todo, dist.world_size())[dist.rank()]:
-            report = pretrain_expert(ws, scene, rec.pretrain, res, box, geom, prior, device, tag, log, force)
+            report = pretrain_expert(site, rec.pretrain, res, geometry, force)
             log(f"{report['name']}: {report['iterations']} steps in {report['seconds']:.0f}s, train PSNR "
                 f"{report['train_psnr']:.2f}"
                 + (f", held-out PSNR {report['test_psnr']:.2f}" if "test_psnr" in report else ""))
@@ -389,71 +338,40 @@ def check_foreground(scene: Scene, data: Path) -> None:
     )
 
 
-def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool,
-             log: Callable[[str], None]) -> tuple[Scene, str, Tensor, OccupancyGrid, nn.Module, list[int]]:
+def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str,
+             force: bool) -> tuple[Site, Geometry, list[int]]:
     """Check the inputs, record them, load the scene and the shared geometry (trained if missing).
 
-    -> (scene, scene id, box, occupancy, coarse model, resolutions of the experts left to train).
+    -> (where pretraining works, the geometry, resolutions of the experts left to train).
     Under torchrun rank 0 runs this first and alone writes; the other ranks then find everything made.
     """
-    main = dist.is_main()
     check_recipe(rec, "setting")  # the recipe was checked when read; flags may have changed it since
     m = ws.manifest()  # read once: nothing below writes it before update_manifest
-    previous = m.get("data")
-    if data is None and previous:  # a rerun without --data: the workspace's own scene, wherever it is
-        data = workspace_scene_path(ws, m)
-    generate = data is None and not (ws.root / "scene" / "transforms_train.json").exists()
-    data = ws.root / "scene" if data is None else data
-    inputs = scene_inputs(Path(data), rec, ws.root)
-    # the same inputs at another path: the workspace or its scene was moved, if the images and cameras are the same
-    moved = (bool(previous) and previous != inputs and {**previous, "path": ""} == {**inputs, "path": ""}
-             and Path(data).exists())  # not a default scene to generate: that is another scene, refused first
-    was = str(ws.root / previous["path"]) if previous else ""  # as given: absolute, or relative to the workspace
-    if previous and previous != inputs and not moved:  # before a default scene is generated: nothing written if refused
-        if not force:
-            changed = [k for k in sorted(set(previous) | set(inputs)) if k != "path" and previous.get(k) != inputs.get(k)]
-            names = {"image_size": "image size", "holdout_every": "held-out views (holdout_every)", "format": "format",
-                     "bbox": "box (data.bbox)"}
-            what = ", ".join(f"{names.get(k, k)} {previous.get(k)!r}, now {inputs.get(k)!r}" for k in changed)
-            raise BoostNerfError(
-                f"workspace {ws.root} was made for another scene, image size or box ({was}"
-                + (f"; {what}" if what else "")
-                + "): use a new --workspace, or --force to retrain everything"
-            )
-        _forget_trained(ws)
-    if generate:
-        log(f"no --data given: generating the default procedural scene in {data}")
-        make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)  # atomic: never half a scene
-    with slow_notice(log, f"reading the scene at {data} (its images are read and scaled once per stage)"):
-        scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
-                           format=rec.data.format, bbox=rec.data.bbox)
-    for res in rec.pretrain.res:  # per-expert options are checked (and chosen, said once) before anything trains
-        expert_options(rec.pretrain, res, log)
-    note = unused_family_note(rec.pretrain)
-    if note:
-        log(note)
-    check_foreground(scene, data)
-    digest = scene_digest(scene)
-    recorded = m.get("scene_digest")
-    if recorded and recorded != digest and not force:
-        raise BoostNerfError(
-            (f"the scene at {data} is not the one this workspace was trained on, at {was} (its images "
-             "or cameras differ)" if moved else
-             f"the scene at {data} changed since this workspace was trained on it (its images or cameras differ)")
-            + ": restore it, use a new --workspace, or --force to retrain everything"
-        )
-    if recorded and recorded != digest:
-        _forget_trained(ws)
-    # the scene's id, recorded in every expert: kept when the scene moved (same content), new with new content
-    tag = m["scene_id"] if previous and m.get("scene_id") and (previous == inputs or moved) and (
-        not recorded or recorded == digest) else scene_id(inputs)
-    _check_finished(ws, rec.pretrain, tag, force)
-    if main:
-        ws.update_manifest(data=inputs, scene_id=tag, scene_digest=digest, scene=scene.describe(),
+    scene, spec, tag, digest = _scene(ws, m, data, rec, force)
+    decisions = {}  # every finished expert's, before anything is written (a refusal leaves the manifest as it is)
+    for res in sorted(rec.pretrain.res):
+        name = expert_name(rec.pretrain.model, res)
+        if (found := finished(ws, name)) is not None:
+            geometry = (found.signature or {}).get("geometry")  # the geometry stage checks its own settings
+            wanted = ExpertSpec.of(rec.pretrain, res, expert_options(rec.pretrain, res), tag, geometry).signature()
+            decisions[res] = decide(found, wanted, force).check()
+    if dist.is_main():
+        ws.update_manifest(data=spec.record(), scene_id=tag, scene_digest=digest, scene=scene.describe(),
                            recipe=recipe_dict(rec))
-    if moved and tag == m.get("scene_id") and Path(was).resolve() != Path(data).resolve():  # not just re-recorded
-        log(f"note: the workspace's scene is now {data} (it was {was}; the same images and cameras): nothing is "
-            "retrained for the move")
+    _describe(scene)
+    site = Site(ws, scene, tag, device)
+    geometry = ensure_geometry(site, rec.pretrain.geometry, rec.pretrain.seed, rec.pretrain.train.checkpoint_every)
+    todo = []
+    for res in sorted(rec.pretrain.res):
+        if decisions.get(res) is not None and decisions[res].action == SKIP:
+            log(f"{expert_name(rec.pretrain.model, res)}: already trained, skipping (use --force to retrain)")
+        else:
+            todo.append(res)  # with --force, a checkpoint of other settings is dropped when training starts
+    return site, geometry, todo
+
+
+def _describe(scene: Scene) -> None:
+    """Say what was loaded: the format found, the loader's warnings and notes, the views."""
     if "detected" in scene.extra:
         log(f"format: {scene.extra['detected']}")
     for warning in scene.extra.get("warnings", []):
@@ -463,13 +381,61 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: 
     log(f"scene {scene.name}: {len(scene.splits['train'])} train views "
         f"{scene.splits['train'].width}x{scene.splits['train'].height}"
         + (f", {scene.holdout}" if scene.holdout else ""))
-    box, geom, prior = ensure_geometry(ws, scene, rec.pretrain.geometry, rec.pretrain.seed, device, log,
-                                       rec.pretrain.train.checkpoint_every, tag)
-    todo = []
-    for res in sorted(rec.pretrain.res):
-        name = expert_name(rec.pretrain.model, res)
-        if ws.expert_path(name).exists() and ws.expert_report_path(name).exists() and not force:
-            log(f"{name}: already trained, skipping (use --force to retrain)")
-            continue
-        todo.append(res)  # with --force, a checkpoint of other settings is dropped when training starts
-    return scene, tag, box, geom, prior, todo
+
+
+SCENE_KEYS = {"image_size": "image size", "holdout_every": "held-out views (holdout_every)", "format": "format",
+              "bbox": "box (data.bbox)"}
+
+
+def _scene(ws: Workspace, m: dict, data: Path | None, rec: Recipe, force: bool) -> tuple[Scene, SceneSpec, str, str]:
+    """The scene to train on: `data`, or the workspace's own (recorded, or generated when there is none). Another
+    scene than the workspace's is refused (with --force: what was trained on it is forgotten); the same images and
+    cameras at another path are the workspace's scene, moved. -> (scene, its spec, its id, its digest)."""
+    previous = m.get("data")
+    if data is None and previous:  # a rerun without --data: the workspace's own scene, wherever it is
+        data = workspace_scene_path(ws, m)
+    generate = data is None and not (ws.root / "scene" / "transforms_train.json").exists()
+    data = Path(ws.root / "scene" if data is None else data)
+    spec = SceneSpec.of(data, rec.data, ws.root)
+    inputs = spec.record()
+    is_moved = moved(previous, inputs) and data.exists()  # not a default scene to generate: another scene
+    was = str(ws.root / previous["path"]) if previous else ""  # as given: absolute, or relative to the workspace
+    if previous and previous != inputs and not is_moved:  # before a default scene is generated: nothing written
+        changed = [k for k in inputs if k != "path" and previous.get(k) != inputs[k]]
+        what = ", ".join(f"{SCENE_KEYS.get(k, k)} {previous.get(k)!r}, now {inputs[k]!r}" for k in changed)
+        _forget_or_refuse(ws, force, f"workspace {ws.root} was made for another scene, image size or box ({was}"
+                                     + (f"; {what}" if what else "") + "): use a new --workspace, or --force to "
+                                     "retrain everything")
+    if generate:
+        log(f"no --data given: generating the default procedural scene in {data}")
+        make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)  # atomic: never half a scene
+    with slow_notice(f"reading the scene at {data} (its images are read and scaled once per stage)"):
+        scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
+                           format=rec.data.format, bbox=rec.data.bbox, cache=ws.scene_cache)
+    for res in rec.pretrain.res:  # per-expert options are checked (and chosen, said once) before anything trains
+        expert_options(rec.pretrain, res, say=True)
+    if note := unused_family_note(rec.pretrain):
+        log(note)
+    check_foreground(scene, data)
+    digest, recorded = scene_digest(scene), m.get("scene_digest")
+    if recorded and recorded != digest:
+        _forget_or_refuse(ws, force, (f"the scene at {data} is not the one this workspace was trained on, at {was} "
+                                      "(its images or cameras differ)" if is_moved else f"the scene at {data} changed "
+                                      "since this workspace was trained on it (its images or cameras differ)")
+                          + ": restore it, use a new --workspace, or --force to retrain everything")
+    same = previous and m.get("scene_id") and (previous == inputs or is_moved) and (not recorded or recorded == digest)
+    tag = m["scene_id"] if same else spec.id()  # kept when the scene moved (same content), new with new content
+    if is_moved and same and Path(was).resolve() != data.resolve():  # not just re-recorded
+        log(f"note: the workspace's scene is now {data} (it was {was}; the same images and cameras): nothing is "
+            "retrained for the move")
+    return scene, spec, tag, digest
+
+
+def _forget_or_refuse(ws: Workspace, force: bool, message: str) -> None:
+    """Another scene than the workspace's: refused in one line, or with --force its experts, geometry and training
+    checkpoints go."""
+    if not force:
+        raise BoostNerfError(message)
+    for folder in (ws.experts_dir, ws.checkpoints_dir):
+        for p in list(folder.glob("*")) if folder.exists() else []:
+            p.unlink()

@@ -13,9 +13,9 @@ Why these rows and this fill, and what pruning saves: docs/benchmarks.md, "Pruni
 
 from __future__ import annotations
 
+import logging
 import re
 import time
-from typing import Callable
 
 import torch
 from torch import Tensor
@@ -23,20 +23,14 @@ from torch import Tensor
 from boostnerf_cli.costs import photometric_grads
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import grid as G
+from boostnerf_cli.lineage import decide, finished, require_current
 from boostnerf_cli.metrics import mse_to_psnr
-from boostnerf_cli.models import (
-    LoadedModel,
-    current_models,
-    load_model,
-    model_file,
-    n_views,
-    render_split,
-    save_pruned,
-    stale_reason,
-)
+from boostnerf_cli.models import LoadedModel, load_model, n_views, render_split, save_pruned
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, read_json, write_json
+
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 SUFFIX = "-pruned"
 CHECK_VIEWS = 4  # at most this many of the views pruned on are rendered before and after: unchanged
@@ -113,18 +107,16 @@ def _psnr(images: list[Tensor], split: Split) -> float:
     return sum(mse_to_psnr(float(torch.mean((im - split.images[i]) ** 2))) for i, im in enumerate(images)) / len(images)
 
 
-def run(ws: Workspace, name: str, split_name: str, device: str, views: int | None, force: bool,
-        log: Callable[[str], None]) -> dict:
+def run(ws: Workspace, name: str, split_name: str, device: str, views: int | None, force: bool) -> dict:
     ws.require_manifest()
     if name.endswith(SUFFIX):
         raise BoostNerfError(f"{name!r} is already pruned: prune the model it came from")
-    current_models(ws, [name])  # a model made from what changed since is made again first
+    require_current(ws, [name])  # a model made from what changed since is made again first
     out_name = name + SUFFIX
     out_path, report_path = ws.model_path(out_name), ws.moe_dir / f"{out_name}.json"
-    src = model_file(ws, name)
-    if out_path.exists() and report_path.exists() and not force:
-        if stale_reason(ws, out_name) is not None:  # its source is current (above), so: pruned before it changed
-            raise BoostNerfError(f"{name} changed since it was pruned (trained again): add --force to prune it again")
+    src = ws.model_file(name)
+    if (found := finished(ws, out_name)) is not None and not force:
+        decide(found, None).check()  # its source is current (above): stale when it changed after the prune
         log(f"{out_name}: already pruned, skipping (use --force to redo it)")
         return read_json(report_path, "prune report")
     before = load_model(ws, name, device)  # also: a clear error for an unknown name, before any work

@@ -12,8 +12,8 @@ Files (all under WS/renders/, see docs/stages.md):
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import replace
+import logging
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,16 +31,8 @@ from boostnerf_cli.images import (
     write_png,
     write_video,
 )
-from boostnerf_cli.models import (
-    LoadedModel,
-    Skips,
-    all_model_names,
-    current_models,
-    load_model,
-    n_views,
-    render_split,
-    stale_reason,
-)
+from boostnerf_cli.lineage import require_current, stale
+from boostnerf_cli.models import LoadedModel, Skips, Viewing, load_model, n_views, render_split
 from boostnerf_cli.moe.mixture import GateView
 from boostnerf_cli.render.paths import camera_path
 from boostnerf_cli.render.renderer import render_image, render_view
@@ -48,15 +40,19 @@ from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace
 
+log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
+
 COMPARED = ("baseline", "top1", "top2", "ens")  # the paper's comparison models, in its order
 
 
-def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
-               log: Callable[[str], None], per_expert: bool = False, exact_gate: bool = False) -> list[Path]:
-    scene = workspace_scene(ws, log)
+def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, per_expert: bool = False) -> list[Path]:
+    """Render `viewing`'s views with every model of `names` (default: all): PNG colour and 16-bit depth; with
+    `per_expert` a mixture's expert shares and gate maps too. -> the files written."""
+    split_name, views, skips, exact_gate = viewing.split, viewing.views, viewing.skips, viewing.exact_gate
+    scene = workspace_scene(ws)
     split = scene.split(split_name)
     written = []
-    for name in current_models(ws, names):
+    for name in require_current(ws, names):
         model = load_model(ws, name, device, exact_gate)
         folder = ws.renders_dir(name, split_name)
         mine = []
@@ -68,7 +64,7 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
         n_drawn = len(mine)
         extra = []
         if per_expert and model.kind == "mixture":
-            extra = render_experts_and_gate(model, scene, split, folder, device, skips, views, log)
+            extra = render_experts_and_gate(model, scene, split, folder, device, skips, views)
         elif per_expert:
             log(f"note: {name} is not a mixture, so --per-expert draws nothing more for it (it has no gate or shares)")
         log(f"{name}: wrote {n_drawn} view{'s' if n_drawn != 1 else ''} (a colour and a 16-bit depth PNG each"
@@ -79,15 +75,26 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, sk
 
 
 # --- videos ---------------------------------------------------------------------------------------
-def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, video: Path | None, fps: int,
-              device: str, skips: Skips, log: Callable[[str], None]) -> list[Path]:
+@dataclass(frozen=True)
+class VideoPath:
+    """A video along a camera path from the training cameras: `kind` (orbit, spiral), its frames and frames per
+    second, and the file to write (None: WS/renders/MODEL/KIND.mp4)."""
+
+    kind: str
+    frames: int = 60
+    fps: int = 24
+    file: Path | None = None
+
+
+def run_video(ws: Workspace, names: list[str] | None, path: VideoPath, device: str, skips: Skips) -> list[Path]:
     """Render one model along a camera path derived from the training cameras -> colour and depth videos."""
+    kind, n_frames, video, fps = path.kind, path.frames, path.file, path.fps
     if not names or len(names) != 1:
         fix = f"keep one of {', '.join(names)}" if names else "add --model NAME"
-        current = [n for n in all_model_names(ws) if stale_reason(ws, n) is None]  # what it can render
+        current = [n for n in ws.all_model_names() if stale(ws, n) is None]  # what it can render
         raise BoostNerfError(f"--path renders one model: {fix} (models: {', '.join(current) or 'none yet'})")
-    scene = workspace_scene(ws, log)
-    model = load_model(ws, current_models(ws, names)[0], device)
+    scene = workspace_scene(ws)
+    model = load_model(ws, require_current(ws, names)[0], device)
     target, fmt = video_target(video or ws.renders_dir(model.name) / f"{kind}.mp4")  # refused before rendering
     train = scene.split("train")
     facing = float(torch.linalg.norm(train.poses[:, :3, 2].mean(0)))  # 1: all cameras look the same way
@@ -121,12 +128,12 @@ def run_video(ws: Workspace, names: list[str] | None, kind: str, n_frames: int, 
 def compared_models(ws: Workspace, names: list[str] | None) -> list[str]:
     """`names`, else the paper's comparison models the workspace has, else every model it has."""
     if names:
-        return current_models(ws, names)
-    have = all_model_names(ws)
+        return require_current(ws, names)
+    have = ws.all_model_names()
     chosen = [n for n in COMPARED if n in have] or have
     if not chosen:
         raise BoostNerfError(f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
-    return current_models(ws, chosen)
+    return require_current(ws, chosen)
 
 
 def pixel_error(rgb: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -134,10 +141,10 @@ def pixel_error(rgb: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean((rgb.astype(np.float64) - gt.astype(np.float64)) ** 2, axis=-1))
 
 
-def run_compare(ws: Workspace, names: list[str] | None, split_name: str, device: str, skips: Skips, views: int | None,
-                log: Callable[[str], None]) -> list[Path]:
+def run_compare(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str) -> list[Path]:
     """One image per view: ground truth and each model side by side, each model's error heat map below it."""
-    scene = workspace_scene(ws, log)
+    split_name, views, skips = viewing.split, viewing.views, viewing.skips
+    scene = workspace_scene(ws)
     split = scene.split(split_name)
     names = compared_models(ws, names)
     n = n_views(split, views)
@@ -193,7 +200,7 @@ def gate_by_detail(probs: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple
 
 
 def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, folder: Path, device: str, skips: Skips,
-                            views: int | None, log: Callable[[str], None] | None = None) -> list[Path]:
+                            views: int | None) -> list[Path]:
     """Per expert (ordered by size): its contribution to the mixture, and the gate's probability map; plus a montage.
 
     - `<view>_expert<i>-<name>.png`: expert i's share of the mixture: its density times its routed weight,
@@ -202,8 +209,8 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
       weights (white = every visible sample prefers expert i); black where the ray hits nothing (opacity < 0.1);
     - `<view>_experts.png`: the mixture's render, the expert shares and the gate maps side by side, and a
       routing map (each pixel coloured by the gate's probabilities: blue = smallest expert, then cyan, green, orange, red = the fifth).
-    `log` (when given) gets, per view, the mean gate probability of each expert over the more detailed
-    and the smoother half of the object's pixels (`gate_by_detail`).
+    The log says, per view, the mean gate probability of each expert over the more detailed and the smoother half
+    of the object's pixels (`gate_by_detail`).
     """
     mix = model.field
     names = list(mix.cfg.expert_names)
@@ -233,14 +240,13 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
                 write_png(path, img)
                 written.append(path)
         probs = np.stack(gates, -1)  # (H, W, M)
-        if log is not None:
-            hi, lo = gate_by_detail(probs, split.images[i].numpy(), full["acc"].numpy() > 0.5)
-            if np.isnan(hi).any():
-                log(f"{model.name} {stem}: no mean gate probability per expert: fewer than 2 pixels of the render "
-                    "are opaque (opacity > 0.5)")
-            else:
-                log(f"{model.name} {stem}: mean gate probability per expert ({', '.join(names)}) on detailed pixels "
-                    f"{[round(float(v), 2) for v in hi]}, on smooth pixels {[round(float(v), 2) for v in lo]}")
+        hi, lo = gate_by_detail(probs, split.images[i].numpy(), full["acc"].numpy() > 0.5)
+        if np.isnan(hi).any():
+            log(f"{model.name} {stem}: no mean gate probability per expert: fewer than 2 pixels of the render "
+                "are opaque (opacity > 0.5)")
+        else:
+            log(f"{model.name} {stem}: mean gate probability per expert ({', '.join(names)}) on detailed pixels "
+                f"{[round(float(v), 2) for v in hi]}, on smooth pixels {[round(float(v), 2) for v in lo]}")
         routing = to_uint8(probs @ _palette(m))
         top = [("mixture", to_uint8(full["rgb"]))] + [(f"{names[e]} share", shares[e]) for e in range(m)]
         bottom = [("routing (smallest first: blue, cyan, green, orange, red)", routing)] + [

@@ -3,9 +3,9 @@
 A pixel counts as thin structure when more than 20% of its 4 x 4 sub-rays first hit one of the scene's capsules
 (rods, cable, wire of `make-scene --content thin`), found by the generator's own exact ray casting (objects.json).
 A model that skipping cut thin structure from scores low on those pixels and normally elsewhere. Prints one line
-per view: `view I: thin PSNR (pixels) other PSNR (pixels)`. recipes/experiments/vd-thin.sh uses it.
+per view: `view I: thin PSNR (pixels) other PSNR (pixels)`. research/recipes/vd-thin.sh uses it.
 
-    python scripts/thin_pixels.py SCENE RENDERS     # SCENE: a Blender-layout make-scene folder; RENDERS: r_I.png
+    python research/thin_pixels.py SCENE RENDERS     # SCENE: a Blender-layout make-scene folder; RENDERS: r_I.png
 """
 
 from __future__ import annotations

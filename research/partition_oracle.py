@@ -17,12 +17,11 @@ another:
 Controls: each model alone at the common sample positions (the finest model's step), and a random partition
 with the held-out choice's proportions (what the seams between models cost). Prints one JSON document.
 
-    python scripts/partition_oracle.py --model NAME=WORKSPACE [--model NAME=WORKSPACE ...] [--map-res 16,32]
+    python research/partition_oracle.py --model NAME=WORKSPACE [--model NAME=WORKSPACE ...] [--map-res 16,32]
         [--train-views 24] [--out FILE] [--device cuda]
 
 NAME=WORKSPACE names a model (`baseline`, `dvgo-80`, ...) of a workspace; give them smallest first. A baseline is
-labelled by the expert it was trained on (dvgo-80). Every workspace
-must be of one scene, with one box.
+labelled by the expert it was trained on (dvgo-80). Every workspace must be of one scene, with one box.
 """
 
 from __future__ import annotations
@@ -38,7 +37,7 @@ from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.metrics.image import psnr, ssim
-from boostnerf_cli.models import LoadedModel, load_model, model_file
+from boostnerf_cli.models import LoadedModel, load_model
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.render.renderer import RenderSettings, render_rays, sample_rays
 from boostnerf_cli.stages.common import resolve_device, workspace_scene
@@ -135,7 +134,8 @@ def score(field, skip, split, views: list[int], settings: RenderSettings) -> dic
         rgb, _ = render(field, skip, split, i, settings)
         pred = rgb.reshape(split.height, split.width, 3)
         rows.append((psnr(pred, split.images[i]), ssim(pred, split.images[i])))
-    return {"psnr": round(sum(r[0] for r in rows) / len(rows), 4), "ssim": round(sum(r[1] for r in rows) / len(rows), 5)}
+    return {"psnr": round(sum(r[0] for r in rows) / len(rows), 4),
+            "ssim": round(sum(r[1] for r in rows) / len(rows), 5)}
 
 
 def choose(err: Tensor, default: int) -> Tensor:
@@ -196,21 +196,23 @@ def main() -> None:
     scene = None
     for name, root in args.model:
         ws = Workspace(Path(root))
-        scene = scene or workspace_scene(ws, lambda s: print(s, file=sys.stderr))
+        scene = scene or workspace_scene(ws)
         models.append(load_model(ws, name, device))
         # a workspace's baseline is its largest expert trained on: named by that expert (dvgo-80)
-        label = read_meta(model_file(ws, name)).get("from", name) if name == "baseline" else name
+        label = read_meta(ws.model_file(name)).get("from", name) if name == "baseline" else name
         names.append(label if label not in names else f"{label}@{Path(root).name}")
     bbox = models[0].bbox.cpu()
     for m in models[1:]:
         if not torch.allclose(m.bbox.cpu(), bbox, atol=1e-4):
-            sys.exit(f"error: {m.name} has another box ({m.bbox.tolist()} against {bbox.tolist()}): give models of one box")
+            sys.exit(f"error: {m.name} has another box ({m.bbox.tolist()} against {bbox.tolist()}): "
+                     "give models of one box")
     step = min(m.step for m in models)
     settings = scene.render_settings(step, bbox)
     test, train = scene.split("test"), scene.split("train")
     if len(test) < 2:
-        sys.exit(f"error: the scene holds out {len(test)} view(s); the cells are chosen on one half of the held-out views "
-                 "and scored on the other, so it needs at least 2 (pretrain with --holdout-every 8, or a test split)")
+        sys.exit(f"error: the scene holds out {len(test)} view(s); the cells are chosen on one half of the held-out "
+                 "views and scored on the other, so it needs at least 2 (pretrain with --holdout-every 8, or a test "
+                 "split)")
     even, odd = list(range(0, len(test), 2)), list(range(1, len(test), 2))
     train_views = list(range(0, len(train), max(1, len(train) // args.train_views)))[: args.train_views]
     t0 = time.time()

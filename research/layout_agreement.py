@@ -6,7 +6,7 @@ nerfstudio and NSVF layouts and runs `boostnerf pretrain` on each with the recip
 seed the box the geometry stage drew, its coverage counts and the expert's held-out PSNR. docs/results.md, issue
 17, records the output.
 
-    python scripts/layout_agreement.py OUT [SEED ...]      (default seeds: 0 1)
+    python research/layout_agreement.py OUT [SEED ...]      (default seeds: 0 1)
 """
 
 from __future__ import annotations
@@ -44,8 +44,9 @@ def main(out: Path, seeds: list[int]) -> None:
         for layout in LAYOUTS:
             ws = out / f"ws-{layout}-s{seed}"
             if not (ws / "experts" / "dvgo-40.json").exists():
-                subprocess.run([sys.executable, "-m", "boostnerf_cli", "pretrain", "-w", str(ws), "--data", str(out / layout),
-                                "--recipe", str(r), "--device", "cpu", "--seed", str(seed)], check=True, capture_output=True)
+                subprocess.run([sys.executable, "-m", "boostnerf_cli", "pretrain", "-w", str(ws), "--data",
+                                str(out / layout), "--recipe", str(r), "--device", "cpu", "--seed", str(seed)],
+                               check=True, capture_output=True)
             meta = json.loads(safe_open(str(ws / "experts" / "geometry.safetensors"), "pt").metadata()["boostnerf"])
             psnr = json.loads((ws / "experts" / "dvgo-40.json").read_text())["test_psnr"]
             lo, hi = meta["fine_bbox"]

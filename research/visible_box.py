@@ -6,7 +6,7 @@ per layout, the box `pretrain` draws around the occupied cells, and the box arou
 rendering weight over every training ray is at least tau (cells only hidden space or barely visible floaters
 occupy would go). docs/results.md, issue 17, records the output.
 
-    python scripts/visible_box.py OUT
+    python research/visible_box.py OUT
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.render.renderer import render_rays
 from boostnerf_cli.scenes import load_scene, make_scene
-from boostnerf_cli.stages.pretrain import ensure_geometry
+from boostnerf_cli.stages.pretrain import Site, ensure_geometry
 from boostnerf_cli.workspace import Workspace
 
 
@@ -51,14 +51,14 @@ def main(out: Path) -> None:
         scene = load_scene(out / layout, image_size=80)
         ws = Workspace(out / f"ws-{layout}")
         ws.experts_dir.mkdir(parents=True, exist_ok=True)
-        box, occ, model = ensure_geometry(ws, scene, GeometryRecipe(res=32, iters=300, batch_rays=1024), 0, "cpu",
-                                          lambda msg: None)
+        geometry = ensure_geometry(Site(ws, scene, "", "cpu"), GeometryRecipe(res=32, iters=300, batch_rays=1024), 0)
+        box, occ, model = geometry.box, geometry.occupancy, geometry.model
         seen = max_weight_per_cell(model, occ, scene).reshape(occ.occupied.shape)
         print(f"{layout}: box {[round(v, 2) for v in box.flatten().tolist()]}, occupied {occ.fraction():.3f}")
         for tau in (1e-3, 1e-2):
             vis = OccupancyGrid(occ.occupied & (seen >= tau), occ.bbox)
-            print(f"  seen with weight >= {tau:g}: box {[round(v, 2) for v in vis.occupied_bbox(1).flatten().tolist()]}, "
-                  f"occupied {vis.fraction():.3f}")
+            vis_box = [round(v, 2) for v in vis.occupied_bbox(1).flatten().tolist()]
+            print(f"  seen with weight >= {tau:g}: box {vis_box}, occupied {vis.fraction():.3f}")
 
 
 if __name__ == "__main__":

@@ -1,23 +1,24 @@
-"""scripts/partition_oracle.py (issue 18, docs/results.md session 29): a partition of single models, rendered as it
-claims to be, and its choice of model per cell."""
+"""research/partition_oracle.py (docs/results.md, issue 18): a partition of single models, rendered as it claims to
+be, and its choice of model per cell."""
 
 from __future__ import annotations
 
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 import torch
-from helpers import load_script
 
 from boostnerf_cli.models import load_model
 from boostnerf_cli.scenes import load_scene
 from boostnerf_cli.workspace import Workspace
+from research import partition_oracle as oracle
 
-ROOT = Path(__file__).parent.parent
-oracle = load_script("partition_oracle")
+
+def run_script(*args: str) -> subprocess.CompletedProcess:
+    """`python research/partition_oracle.py ARGS`, as a user runs it."""
+    return subprocess.run([sys.executable, oracle.__file__, *args], capture_output=True, text=True)
 
 
 def test_cells_index_the_lattice_and_clamp_the_box_edges():
@@ -33,7 +34,7 @@ def test_each_cell_goes_to_its_lowest_error_model_and_unseen_cells_to_the_defaul
 
 
 def test_a_models_share_is_the_rendering_weight_its_cells_hold_not_their_count(trained_ws, tiny_scene):
-    """The table's last column: session 29's first runs counted the cells the held-out views saw, not their weight."""
+    """The table's last column is the rendering weight each model's cells hold, not the count of cells seen."""
     assert oracle.shares(torch.tensor([0, 1, 1]), torch.tensor([3.0, 1.0, 0.0], dtype=torch.float64), 2) == [0.75, 0.25]
     ws = Workspace(trained_ws)
     models = [load_model(ws, name, "cpu") for name in ws.expert_names()]
@@ -72,8 +73,7 @@ def test_a_partition_that_sends_every_cell_to_one_model_renders_that_model(train
 def test_the_script_scores_every_choice_and_the_models_alone(trained_ws, tmp_path):
     out = tmp_path / "oracle.json"
     specs = [f"--model={name}={trained_ws}" for name in Workspace(trained_ws).expert_names()]
-    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "partition_oracle.py"), *specs, "--map-res", "4",
-                           "--train-views", "2", "--out", str(out)], capture_output=True, text=True)
+    proc = run_script(*specs, "--map-res", "4", "--train-views", "2", "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     result = json.loads(out.read_text())
     assert json.loads(proc.stdout) == result
@@ -89,10 +89,10 @@ def test_the_script_scores_every_choice_and_the_models_alone(trained_ws, tmp_pat
 
 
 def test_a_model_the_workspace_lacks_is_one_line(trained_ws):
-    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "partition_oracle.py"),
-                           f"--model=dvgo-99={trained_ws}", f"--model=dvgo-16={trained_ws}"], capture_output=True, text=True)
+    proc = run_script(f"--model=dvgo-99={trained_ws}", f"--model=dvgo-16={trained_ws}")
     assert proc.returncode == 1 and proc.stdout == ""
-    assert proc.stderr.strip().splitlines() == [f"error: no model named 'dvgo-99' in {trained_ws} (models: dvgo-12, dvgo-16)"]
+    assert proc.stderr.strip().splitlines() == [
+        f"error: no model named 'dvgo-99' in {trained_ws} (models: dvgo-12, dvgo-16)"]
 
 
 @pytest.mark.parametrize("args, says", [
@@ -102,20 +102,34 @@ def test_a_model_the_workspace_lacks_is_one_line(trained_ws):
     (["--model", "dvgo-16"], "argument --model: 'dvgo-16': give NAME=WORKSPACE"),
 ])
 def test_a_bad_value_is_one_line_not_a_traceback(trained_ws, args, says):
-    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "partition_oracle.py"),
-                           f"--model=dvgo-12={trained_ws}", f"--model=dvgo-16={trained_ws}", *args],
-                          capture_output=True, text=True)
+    proc = run_script(f"--model=dvgo-12={trained_ws}", f"--model=dvgo-16={trained_ws}", *args)
     assert proc.returncode == 2 and proc.stdout == "" and "Traceback" not in proc.stderr, proc.stderr
     assert says in proc.stderr.strip().splitlines()[-1]
 
 
 def test_one_model_or_cuda_without_a_gpu_is_refused_in_one_line(trained_ws):
-    run = lambda *a: subprocess.run([sys.executable, str(ROOT / "scripts" / "partition_oracle.py"), *a],  # noqa: E731
-                                    capture_output=True, text=True)
-    proc = run(f"--model=dvgo-16={trained_ws}")
+    proc = run_script(f"--model=dvgo-16={trained_ws}")
     assert proc.returncode == 2 and "give at least two --model" in proc.stderr and "Traceback" not in proc.stderr
     if not torch.cuda.is_available():
-        proc = run(f"--model=dvgo-12={trained_ws}", f"--model=dvgo-16={trained_ws}", "--device", "cuda")
+        proc = run_script(f"--model=dvgo-12={trained_ws}", f"--model=dvgo-16={trained_ws}", "--device", "cuda")
         assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
         assert proc.stderr.strip().splitlines() == [
             "error: --device cuda was asked for but torch sees no CUDA GPU: use --device cpu or auto"]
+
+
+def test_the_partition_routes_models_of_any_family(family_ws, tiny_scene):
+    """The oracle treats models as black boxes, as the mixture does: a route that sends every cell to one TensoRF or
+    Instant-NGP model renders exactly that model, and a split route renders both families in one image."""
+    ws = Workspace(family_ws)
+    models = [load_model(ws, name, "cpu") for name in ("tensorf-14", "ngp-3")]
+    assert torch.allclose(models[0].bbox, models[1].bbox)
+    scene = load_scene(tiny_scene)
+    settings = scene.render_settings(min(m.step for m in models), models[0].bbox)
+    test = scene.split("test")
+    alone = [oracle.render(m.field, m.skip, test, 0, settings)[0] for m in models]
+    for e in range(2):
+        routed = oracle.Routed(models, torch.full((8,), e, dtype=torch.long), models[0].bbox)
+        assert torch.equal(oracle.render(routed, routed.skip, test, 0, settings)[0], alone[e])
+    half = oracle.Routed(models, torch.tensor([0, 0, 0, 0, 1, 1, 1, 1]), models[0].bbox)  # x below / above the middle
+    mixed = oracle.render(half, half.skip, test, 0, settings)[0]
+    assert not torch.equal(mixed, alone[0]) and not torch.equal(mixed, alone[1])

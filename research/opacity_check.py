@@ -1,14 +1,14 @@
 """Where a model's opacity disagrees with the views: background learned as surface, surface learned as empty space.
 
 Renders the held-out views of a workspace's model and compares each pixel's rendered opacity (acc) with the
-scene's alpha. A transparent pixel (alpha < 0.01) rendered with acc > 0.5 is background made opaque (what
-`train.random_background` did on Blender scenes before it read the alpha, session 20); an opaque pixel
-(alpha > 0.99, every pixel of a scene without alpha: LLFF photographs) rendered with acc < 0.5 is a hole, whose
-colour may still be right against the background but whose depth reads empty (fern's white ceiling, session 19).
-Prints one JSON line: the held-out PSNR and both percentages, averaged over the views. docs/datasets.md records
+scene's alpha. A transparent pixel (alpha < 0.01) rendered with acc > 0.5 is background made opaque (what a
+random training background that ignores a Blender scene's alpha teaches); an opaque pixel (alpha > 0.99, every
+pixel of a scene without alpha: LLFF photographs) rendered with acc < 0.5 is a hole, whose colour may still be
+right against the background but whose depth reads empty (fern's white ceiling). Prints one JSON line: the
+held-out PSNR and both percentages, averaged over the views. docs/datasets.md, "Forward-facing scenes", records
 what it measured.
 
-    python scripts/opacity_check.py WORKSPACE MODEL [--views N] [--device cpu]
+    python research/opacity_check.py WORKSPACE MODEL [--views N] [--device cpu]
 """
 
 from __future__ import annotations

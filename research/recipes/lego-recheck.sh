@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# Issue 17: the lego figures rechecked after a change to the geometry stage (every 8th view held out, 100 px):
+# Issue 17: the lego figures, rechecked when the geometry stage changes (every 8th view held out, 100 px):
 # each family's chain with its CPU recipe (experts, the baseline and Top-2: blender-{dvgo,tensorf,ngp}-cpu.yaml),
 # each in its own workspace under OUT/FAMILY. One thread per process.
 #
-# Usage: bash recipes/experiments/lego-recheck.sh LEGO OUT [dvgo] [tensorf] [ngp]
+# Usage: bash research/recipes/lego-recheck.sh LEGO OUT [dvgo] [tensorf] [ngp]
 set -euo pipefail
 LEGO="$1" OUT="$2"
 shift 2

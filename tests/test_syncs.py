@@ -1,0 +1,169 @@
+"""On a GPU, nothing in a training step or a render chunk makes the host wait for the device.
+
+Each step runs on the simulated GPU (tests/simdevice.py), where every copy between host and device dispatches like
+any operator, and `SyncCounter` counts what would make a real GPU's host wait (`.item()`, `nonzero`, boolean masks,
+blocking copies, ...). After the warm-up (a budget is sized by one wait on its first use) an expert's training step,
+a mixture's, and a chunk of rendering wait not once; the training loop reads the steps' outcomes and logs on its
+logging steps only, which are not counted.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from helpers import TOY_BOX
+from simdevice import GPU, SyncCounter, simulated_gpu
+
+from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.fields.ngp import NGPConfig, NGPExpert
+from boostnerf_cli.fields.tensorf import TensoRFConfig, TensoRFExpert
+from boostnerf_cli.moe.density_volume import DensityVolume
+from boostnerf_cli.moe.gate import Gate, GateConfig
+from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
+from boostnerf_cli.recipe import MoERecipe, TrainRecipe
+from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.render.renderer import RenderSettings, render_rays
+from boostnerf_cli.tasks import FieldTask, MixtureTask
+from boostnerf_cli.train import RayData, Schedule, train
+
+WARMUP, STEPS = 3, 4
+
+
+def _expert(family: str, res: int = 8):
+    torch.manual_seed(0)
+    if family == "dvgo":
+        return DVGOExpert(DVGOConfig(res=res, hidden=8, layers=1), TOY_BOX)
+    if family == "tensorf":
+        return TensoRFExpert(TensoRFConfig(res=res, hidden=8, layers=1, density_rank=2, app_rank=2, app_dim=4), TOY_BOX)
+    return NGPExpert(NGPConfig(res=2, log2_table=8, base_res=2, max_res=8, grid_res=8, hidden=8, color_hidden=8,
+                               color_layers=1, fit_steps=0), TOY_BOX)
+
+
+def _rays(n: int = 128) -> RayData:
+    g = torch.Generator().manual_seed(1)
+    origins = torch.tensor([0.0, 0.0, 3.0]) + 0.3 * torch.randn(n, 3, generator=g)
+    target = 0.5 * (torch.rand(n, 3, generator=g) - 0.5)
+    dirs = torch.nn.functional.normalize(target - origins, dim=-1)
+    return RayData(origins, dirs, torch.rand(n, 3, generator=g))
+
+
+def _settings(step: float = 0.1) -> RenderSettings:
+    return RenderSettings(step=step, near=0.1, far=6.0, bbox=TOY_BOX.to(GPU), color_threshold=1e-4)
+
+
+def _occupancy() -> OccupancyGrid:
+    occupied = torch.zeros(8, 8, 8, dtype=torch.bool)
+    occupied[2:6, 2:6, 2:6] = True
+    return OccupancyGrid(occupied, TOY_BOX).to(GPU)
+
+
+def _mixture(kind: str) -> Mixture:
+    return _mixture_on(kind, GPU)
+
+
+def _mixture_on(kind: str, device: torch.device) -> Mixture:
+    experts = [_expert("dvgo", r) for r in (6, 8, 10)]
+    gate = Gate(GateConfig(kind="grid", res=4, channels=4, hidden=8, layers=1), 3, TOY_BOX)
+    vd = DensityVolume(TOY_BOX, 6)
+    with torch.no_grad():
+        vd.table.fill_(2.0)
+    k = {"top1": 1, "top2": 2, "ens": 3}[kind]
+    mix = Mixture(experts, gate, vd, OccupancyGrid(torch.ones(6, 6, 6, dtype=torch.bool), TOY_BOX),
+                  MixtureConfig(topk=k, step=0.1, expert_names=["a", "b", "c"]))
+    if kind == "ens":
+        mix.make_ensemble()
+    mix = mix.to(device)
+    mix.occupancy = mix.occupancy.to(device)
+    return mix
+
+
+def _steps_counted(task, rays: RayData) -> SyncCounter:
+    """Train `task` for WARMUP + STEPS + 1 steps on the simulated GPU; count the waits of the STEPS steps after the
+    warm-up (the last step is a logging step, and not counted)."""
+    counter = SyncCounter()
+    before = task.before_step
+
+    def before_step(step: int) -> bool:
+        counter.active = WARMUP <= step < WARMUP + STEPS
+        return before(step)
+
+    task.before_step = before_step
+    counter.active = False
+    with counter:
+        train(task, rays.to(GPU), Schedule(WARMUP + STEPS + 1, batch_rays=64, log_every=1000,
+                                           checkpoint_every=1000), seed=0, title="t")
+    return counter
+
+
+@pytest.mark.parametrize("family", ["dvgo", "tensorf", "ngp"])
+def test_an_experts_training_step_and_render_chunk_never_wait(family):
+    with simulated_gpu():
+        model = _expert(family).to(GPU)
+        task = FieldTask(model, _settings(), TrainRecipe(occupancy_every=0), skip=_occupancy(), base_mask=None)
+        assert task.packer.static  # what a GPU gets
+        counter = _steps_counted(task, _rays())
+        assert counter.total == 0, dict(counter.syncs)
+
+        rays, settings, occupancy = _rays(256).to(GPU), _settings(), _occupancy()
+        with torch.no_grad():
+            for _ in range(WARMUP):
+                render_rays(model, rays.origins, rays.dirs, settings, occupancy, packer=task.packer)
+            with SyncCounter() as chunk:
+                render_rays(model, rays.origins, rays.dirs, settings, occupancy, packer=task.packer)
+        assert chunk.total == 0, dict(chunk.syncs)
+
+
+@pytest.mark.parametrize("kind", ["top1", "top2", "ens"])
+def test_a_mixtures_training_step_and_render_chunk_never_wait(kind):
+    with simulated_gpu():
+        mix = _mixture(kind)
+        task = MixtureTask(mix, _settings(), TrainRecipe(), MoERecipe(lam=0.01))
+        counter = _steps_counted(task, _rays())
+        assert counter.total == 0, dict(counter.syncs)
+
+        rays, settings = _rays(256).to(GPU), _settings()
+        with torch.no_grad():
+            mix.eval()
+            for _ in range(WARMUP):
+                render_rays(mix, rays.origins, rays.dirs, settings, mix.skip, packer=task.packer)
+            with SyncCounter() as chunk:
+                render_rays(mix, rays.origins, rays.dirs, settings, mix.skip, packer=task.packer)
+        assert chunk.total == 0, dict(chunk.syncs)
+
+
+def test_the_counter_sees_the_waits_of_the_dynamic_packing():
+    """The same expert step with the exact (dynamic) packing waits on every filter: the counter is not blind."""
+    from boostnerf_cli.render.packing import DYNAMIC
+
+    with simulated_gpu():
+        task = FieldTask(_expert("dvgo").to(GPU), _settings(), TrainRecipe(occupancy_every=0), skip=_occupancy(),
+                         base_mask=None, packer=DYNAMIC)
+        counter = _steps_counted(task, _rays())
+    assert counter.syncs["aten.nonzero.default"] >= 2 * STEPS, dict(counter.syncs)
+
+
+@pytest.mark.parametrize("kind", ["dvgo", "top2"])
+def test_static_budgets_train_what_the_exact_packing_trains(kind):
+    """On the CPU, a task with static budgets (small ones, so that pads fill them) trains the same parameters as one
+    with the exact lists: pads add nothing and take no gradient."""
+    from boostnerf_cli.render.packing import DYNAMIC, Budgets
+
+    rays, settings = _rays(), RenderSettings(step=0.1, near=0.1, far=6.0, bbox=TOY_BOX)
+    results = []
+    for packer in (DYNAMIC, Budgets(quantum=64)):
+        torch.manual_seed(0)
+        if kind == "dvgo":
+            model = _expert("dvgo")
+            occupied = torch.zeros(8, 8, 8, dtype=torch.bool)
+            occupied[2:6, 2:6, 2:6] = True
+            task = FieldTask(model, settings, TrainRecipe(occupancy_every=0), skip=OccupancyGrid(occupied, TOY_BOX),
+                             base_mask=None, packer=packer)
+        else:
+            mix = _mixture_on("top2", torch.device("cpu"))
+            model, task = mix, MixtureTask(mix, settings, TrainRecipe(), MoERecipe(lam=0.01), packer=packer)
+        train(task, rays, Schedule(6, batch_rays=64, log_every=3, checkpoint_every=1000), seed=0, title="t")
+        results.append({k: v.detach().clone() for k, v in model.state_dict().items()})
+    exact, static = results
+    assert exact.keys() == static.keys()
+    for k in exact:
+        assert torch.allclose(exact[k], static[k], atol=1e-6, rtol=0), k
