@@ -3,9 +3,7 @@
 import numpy as np
 
 from boostnerf_cli import images
-
-# the gate montage's legend (stages/render.py), wider than a 192 px panel
-ROUTING_LEGEND = "routing (smallest first: blue, cyan, green, orange, red)"
+from boostnerf_cli.stages.render import ROUTING_LEGEND
 
 
 def test_a_label_wider_than_its_panel_wraps_and_stays_off_the_next_panel():
@@ -50,9 +48,28 @@ def test_the_eval_table_gives_each_models_gflops_over_the_baselines_and_says_wha
     assert "| GFLOPs/image | GFLOPs vs baseline |" in table
     assert "| baseline | 28.000 |" in table and "| 0.200 | 1.00x |" in table
     assert "| 0.100 | 0.50x |" in table and "| 0.300 | 1.50x |" in table
-    assert ("`baseline` is the largest expert, dvgo-32, trained on alone for the same 200 finetuning steps as top1, "
+    assert ("`baseline` is the largest expert, dvgo-32, trained alone for the same 200 finetuning steps as top1, "
             "top2") in table
     result["finetuned"]["top2"]["iterations"] = 100
     assert "for 200 finetuning steps (top1: 200, top2: 100)" in markdown_table(result)
     no_baseline = {**result, "models": result["models"][:1], "finetuned": {}}
     assert "How to read it" not in markdown_table(no_baseline) and "| 0.250 | - |" in markdown_table(no_baseline)
+
+
+def test_the_eval_table_says_why_a_top1_below_its_baseline_is_below_it():
+    from boostnerf_cli.stages.evaluate import TOP1_WHY, markdown_table
+
+    row = lambda name, psnr, gflops, k=None: {"name": name, "kind": "mixture" if k else "expert", "psnr": psnr,  # noqa: E731
+                                              "ssim": None, "lpips": None, "params": 1, "w0": 1,
+                                              "gflops_per_image": gflops, "seconds_per_image": 0.1,
+                                              **({"routing": {"topk": k, "renormalize": True}} if k else {})}
+    result = {"split": "test", "views": 8, "skips": {"empty": True, "terminated": True}, "lpips_note": None,
+              "ssim_note": None, "finetuned": {},
+              "models": [row("baseline", 28.0, 0.2), row("top1", 26.5, 0.12, 1), row("top2", 28.3, 0.25, 2)]}
+    table = markdown_table(result)
+    assert "`top1` is 1.50 dB below `baseline`, at 0.60x its GFLOPs: it renders each sample with one expert" in table
+    assert TOP1_WHY in table and table.count(TOP1_WHY) == 1  # top2 gets no such line
+    above = {**result, "models": [row("baseline", 28.0, 0.2), row("top1", 28.1, 0.12, 1)]}
+    assert TOP1_WHY not in markdown_table(above)
+    no_costs = {**result, "models": [row("baseline", 28.0, None), row("top1", 26.5, None, 1)]}
+    assert "`top1` is 1.50 dB below `baseline`: it renders" in markdown_table(no_costs)

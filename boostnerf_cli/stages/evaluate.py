@@ -3,7 +3,8 @@
 reports/eval.json schema (documented in docs/reports.md):
 {"split": str, "views": int, "lpips_note": str | null, "ssim_note": str | null,
  "models": [{"name", "kind", "psnr", "ssim" (null under 11 px), "lpips" (null when unavailable), "seconds_per_image",
-             "samples_per_image", "colored_per_image", "params", "w0", "gflops_per_image"}, ...]}
+             "samples_per_image", "colored_per_image", "params", "w0", "gflops_per_image"}, ...],
+ "finetuned": {name: {"from", "iterations"}} (the finetuned models among them, from the manifest)}
 """
 
 from __future__ import annotations
@@ -110,8 +111,8 @@ def markdown_table(result: dict) -> str:
             f"{number(r.get('w0'), ',')} | {number(r.get('gflops_per_image'), '.3f')} | "
             f"{ratio(r.get('gflops_per_image'))} | {r['seconds_per_image']:.3f} |"
         )
-    reading = how_to_read(result.get("finetuned") or {})
-    notes = ([reading] if reading else []) + [result[k] for k in ("ssim_note", "lpips_note") if result.get(k)]
+    reading = [how_to_read(result.get("finetuned") or {}), top1_note(result["models"])]
+    notes = [n for n in reading if n] + [result[k] for k in ("ssim_note", "lpips_note") if result.get(k)]
     if notes:
         lines += ["", *notes]
     return "\n".join(lines) + "\n"
@@ -130,6 +131,26 @@ def how_to_read(finetuned: dict) -> str:
     else:
         trained = f"for {steps} finetuning steps" + (
             f" ({', '.join(f'{k}: {v}' for k, v in others.items())})" if others else "")
-    return (f"How to read it: `baseline` is the largest expert, {base['from']}, trained on alone {trained}; "
+    return (f"How to read it: `baseline` is the largest expert, {base['from']}, trained alone {trained}; "
             f"GFLOPs vs baseline is a model's GFLOPs per image over the baseline's. The "
             f"expert rows are the pretrained experts before those steps.")
+
+
+# docs/results.md's answer to why a Top-1 mixture stays below its baseline on CPU-sized scenes
+TOP1_WHY = "docs/results.md#why-does-top-1-stay-below-its-baseline-at-100-px"
+
+
+def top1_note(models: list[dict]) -> str:
+    """A line for each Top-1 mixture of the table below the baseline: by how much, at what cost, and why."""
+    base = next((r for r in models if r["name"] == "baseline"), None)
+    below = [r for r in models if base and r.get("routing", {}).get("topk") == 1 and r["psnr"] < base["psnr"]]
+    lines = []
+    for r in below:
+        cost = (f", at {r['gflops_per_image'] / base['gflops_per_image']:.2f}x its GFLOPs"
+                if r.get("gflops_per_image") is not None and base.get("gflops_per_image") else "")
+        lines.append(
+            f"`{r['name']}` is {base['psnr'] - r['psnr']:.2f} dB below `baseline`{cost}: it renders each sample with one "
+            "expert, most often a smaller one, and where the largest expert renders every part of the scene best (on "
+            "lego at 100 px no spatial partition of single models beats the best of them), routing to a smaller one "
+            f"saves cost and loses quality ({TOP1_WHY}).")
+    return "\n\n".join(lines)
