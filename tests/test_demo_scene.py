@@ -92,14 +92,14 @@ def test_on_the_quickstart_scene_top2_beats_its_same_steps_baseline_and_top1_cos
     assert 'make-scene "$WS/scene" --size 48 --content detail --seed "$SEED"' in quickstart
     assert 'chain.sh" demo-dvgo-cpu "$WS/scene" "$WS" --seed "$SEED"' in quickstart
     scene, ws, recipe = tmp_path / "scene", str(tmp_path / "ws"), str(RECIPES / "demo-dvgo-cpu.yaml")
+    cli = lambda *args: run_cli(*args, "--device", "cpu", check=True, timeout=3600)  # noqa: E731 (a loaded machine: over 10 min a stage)
     run_cli("make-scene", str(scene), "--size", "48", "--content", "detail", "--seed", str(seed), check=True)
-    run_cli("pretrain", "--workspace", ws, "--data", str(scene), "--recipe", recipe, "--seed", str(seed),
-            "--device", "cpu", check=True)
-    run_cli("build-moe", "--workspace", ws, "--recipe", recipe, "--device", "cpu", check=True)
+    cli("pretrain", "--workspace", ws, "--data", str(scene), "--recipe", recipe, "--seed", str(seed))
+    cli("build-moe", "--workspace", ws, "--recipe", recipe)
     for flag in (["--baseline"], ["--topk", "1"], ["--topk", "2"]):
-        run_cli("finetune", "--workspace", ws, "--recipe", recipe, *flag, "--device", "cpu", check=True)
-    run_cli("eval", "--workspace", ws, "--split", "test", "--report", "--model", "baseline", "--model", "top1",
-            "--model", "top2", "--device", "cpu", check=True)
+        cli("finetune", "--workspace", ws, "--recipe", recipe, *flag)
+    cli("eval", "--workspace", ws, "--split", "test", "--report", "--model", "baseline", "--model", "top1", "--model",
+        "top2")
     report = json.loads((tmp_path / "ws" / "reports" / "eval.json").read_text())
     rows = {r["name"]: r for r in report["models"]}
     base, top1, top2 = rows["baseline"], rows["top1"], rows["top2"]
