@@ -188,7 +188,11 @@ def make_scene_cmd(
     seed: Annotated[int, typer.Option()] = 0,
     layout: Annotated[str, typer.Option("--format", help="Layout to write: blender, nsvf, tanks, llff or nerfstudio.")] = "blender",
     rig: Annotated[str | None, typer.Option("--rig", help="Cameras: sphere (around the scene) or forward (forward-facing). Default: forward for llff, sphere otherwise.")] = None,
-    content: Annotated[str, typer.Option("--content", help="objects (floor and four solids), thin (plus rods and a cable 1-2 px wide at 100 px, reaching the scene's edge), large (a floor reaching past the camera-derived box and every view's edge), empty (background only) or detail (fine checkers and stripes on one half of the scene, smooth content on the other: the quickstart's scene).")] = "objects",
+    content: Annotated[str, typer.Option("--content", help=(
+        "objects (floor and four solids), thin (plus rods and a cable 1-2 px wide at 100 px, reaching the scene's "
+        "edge), large (a floor reaching past the camera-derived box and every view's edge), empty (background only) "
+        "or detail (fine checkers and stripes on one half of the scene, smooth content on the other: the quickstart's "
+        "scene)."))] = "objects",
 ) -> None:
     """Write a small procedural scene (exact analytic ray casting) in any dataset layout boostnerf reads."""
     from boostnerf_cli.scenes import make_scene

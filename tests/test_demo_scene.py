@@ -43,13 +43,16 @@ def test_wrap_text_cuts_a_word_only_when_it_alone_is_too_wide():
 def test_the_eval_table_gives_each_models_gflops_over_the_baselines_and_says_what_the_baseline_is():
     from boostnerf_cli.stages.evaluate import markdown_table
 
-    row = lambda name, kind, psnr, gflops: {"name": name, "kind": kind, "psnr": psnr, "ssim": 0.9, "lpips": None,  # noqa: E731
-                                            "params": 10, "w0": 5, "gflops_per_image": gflops, "seconds_per_image": 0.1}
+    def row(name, kind, psnr, gflops):
+        return {"name": name, "kind": kind, "psnr": psnr, "ssim": 0.9, "lpips": None, "params": 10, "w0": 5,
+                "gflops_per_image": gflops, "seconds_per_image": 0.1}
+
     result = {"split": "test", "views": 8, "skips": {"empty": True, "terminated": True}, "lpips_note": None,
               "ssim_note": None,
               "models": [row("dvgo-32", "expert", 27.0, 0.25), row("baseline", "expert", 28.0, 0.2),
                          row("top1", "mixture", 27.5, 0.1), row("top2", "mixture", 28.5, 0.3)],
-              "finetuned": {"baseline": {"from": "dvgo-32", "iterations": 200}, "top1": {"from": "init", "iterations": 200},
+              "finetuned": {"baseline": {"from": "dvgo-32", "iterations": 200},
+                            "top1": {"from": "init", "iterations": 200},
                             "top2": {"from": "init", "iterations": 200}}}
     table = markdown_table(result)
     assert "| GFLOPs/image | GFLOPs vs baseline |" in table
@@ -66,10 +69,11 @@ def test_the_eval_table_gives_each_models_gflops_over_the_baselines_and_says_wha
 def test_the_eval_table_says_why_a_top1_below_its_baseline_is_below_it():
     from boostnerf_cli.stages.evaluate import TOP1_WHY, markdown_table
 
-    row = lambda name, psnr, gflops, k=None: {"name": name, "kind": "mixture" if k else "expert", "psnr": psnr,  # noqa: E731
-                                              "ssim": None, "lpips": None, "params": 1, "w0": 1,
-                                              "gflops_per_image": gflops, "seconds_per_image": 0.1,
-                                              **({"routing": {"topk": k, "renormalize": True}} if k else {})}
+    def row(name, psnr, gflops, k=None):
+        return {"name": name, "kind": "mixture" if k else "expert", "psnr": psnr, "ssim": None, "lpips": None,
+                "params": 1, "w0": 1, "gflops_per_image": gflops, "seconds_per_image": 0.1,
+                **({"routing": {"topk": k, "renormalize": True}} if k else {})}
+
     result = {"split": "test", "views": 8, "skips": {"empty": True, "terminated": True}, "lpips_note": None,
               "ssim_note": None, "finetuned": {},
               "models": [row("baseline", 28.0, 0.2), row("top1", 26.5, 0.12, 1), row("top2", 28.3, 0.25, 2)]}
@@ -92,7 +96,9 @@ def test_on_the_quickstart_scene_top2_beats_its_same_steps_baseline_and_top1_cos
     assert 'make-scene "$WS/scene" --size 48 --content detail --seed "$SEED"' in quickstart
     assert 'chain.sh" demo-dvgo-cpu "$WS/scene" "$WS" --seed "$SEED"' in quickstart
     scene, ws, recipe = tmp_path / "scene", str(tmp_path / "ws"), str(RECIPES / "demo-dvgo-cpu.yaml")
-    cli = lambda *args: run_cli(*args, "--device", "cpu", check=True, timeout=3600)  # noqa: E731 (a loaded machine: over 10 min a stage)
+    def cli(*args):  # an hour a stage: on a loaded machine one takes over the default 10 minutes
+        return run_cli(*args, "--device", "cpu", check=True, timeout=3600)
+
     run_cli("make-scene", str(scene), "--size", "48", "--content", "detail", "--seed", str(seed), check=True)
     cli("pretrain", "--workspace", ws, "--data", str(scene), "--recipe", recipe, "--seed", str(seed))
     cli("build-moe", "--workspace", ws, "--recipe", recipe)

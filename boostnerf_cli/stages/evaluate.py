@@ -113,8 +113,8 @@ def markdown_table(result: dict) -> str:
         )
     reading = [how_to_read(result.get("finetuned") or {}), top1_note(result["models"])]
     notes = [n for n in reading if n] + [result[k] for k in ("ssim_note", "lpips_note") if result.get(k)]
-    if notes:
-        lines += ["", *notes]
+    for note in notes:  # each a paragraph of its own
+        lines += ["", note]
     return "\n".join(lines) + "\n"
 
 
@@ -149,8 +149,8 @@ def top1_note(models: list[dict]) -> str:
         cost = (f", at {r['gflops_per_image'] / base['gflops_per_image']:.2f}x its GFLOPs"
                 if r.get("gflops_per_image") is not None and base.get("gflops_per_image") else "")
         lines.append(
-            f"`{r['name']}` is {base['psnr'] - r['psnr']:.2f} dB below `baseline`{cost}: it renders each sample with one "
-            "expert, most often a smaller one, and where the largest expert renders every part of the scene best (on "
-            "lego at 100 px no spatial partition of single models beats the best of them), routing to a smaller one "
-            f"saves cost and loses quality ({TOP1_WHY}).")
+            f"`{r['name']}` is {base['psnr'] - r['psnr']:.2f} dB below `baseline`{cost}: it renders each sample with "
+            "one expert, most often a smaller one, and where the largest expert renders every part of the scene "
+            "best (on lego at 100 px no spatial partition of single models beats the best of them), routing to a "
+            f"smaller one saves cost and loses quality ({TOP1_WHY}).")
     return "\n\n".join(lines)

@@ -173,7 +173,8 @@ def run_compare(ws: Workspace, names: list[str] | None, viewing: Viewing, device
 # --- per-expert pictures of a mixture -----------------------------------------------------------------
 # routing colours for the montage, smallest expert first: blue, cyan, green, orange, red, then grey
 _PALETTE = np.array([[40, 90, 255], [0, 200, 220], [60, 200, 60], [255, 160, 0], [230, 30, 30]], dtype=np.float64) / 255
-ROUTING_LEGEND = "routing (smallest first: blue, cyan, green, orange, red)"  # the routing map's label: wider than a panel
+# the routing map's label in the montage, wider than its panel (images.panel_grid wraps it)
+ROUTING_LEGEND = "routing (smallest first: blue, cyan, green, orange, red)"
 
 
 def _palette(m: int) -> np.ndarray:
