@@ -195,7 +195,9 @@ def make_scene_cmd(
         "--format", help="Layout: blender, nsvf, tanks, llff or nerfstudio.")] = "blender",
     rig: Annotated[str | None, typer.Option(
         "--rig", help="Cameras: sphere or forward (default: forward for llff, else sphere).")] = None,
-    content: Annotated[str, typer.Option("--content", help="objects (floor and four solids), thin (plus rods and a cable 1-2 px wide at 100 px, reaching the scene's edge), large (a floor reaching past the camera-derived box and every view's edge) or empty (background only).")] = "objects",
+    content: Annotated[str, typer.Option("--content", help=(
+        "objects, thin (rods and a cable 1-2 px wide), large (a floor past the box), empty, or detail (fine "
+        "patterns on one half, smooth content on the other: the quickstart's scene); docs/datasets.md."))] = "objects",
 ) -> None:
     """Write a small procedural scene (exact ray casting) in any dataset layout boostnerf reads."""
     from boostnerf_cli.scenes import make_scene

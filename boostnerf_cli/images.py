@@ -73,12 +73,35 @@ def _font(size: int):
         return ImageFont.load_default()
 
 
+def wrap_text(text: str, font, width: int) -> list[str]:
+    """`text` broken into lines no wider than `width` px in `font`: at spaces, and inside a word only where the word
+    alone is wider than that. Nothing is dropped: the lines joined back (with a space where they broke at one) give
+    `text` again."""
+    lines: list[str] = []
+    for word in text.split(" "):
+        trial = f"{lines[-1]} {word}" if lines else word
+        if lines and font.getlength(trial) <= width:
+            lines[-1] = trial
+            continue
+        lines.append("")
+        for ch in word:  # a new line for the word; cut it where it alone does not fit
+            if lines[-1] and font.getlength(lines[-1] + ch) > width:
+                lines.append("")
+            lines[-1] += ch
+    return lines or [""]
+
+
+LINE_H = 15  # pixels per line of text at font size 13
+
+
 def panel_grid(rows: list[list[tuple[str, np.ndarray | None]]], min_width: int = 192, caption: str = "") -> np.ndarray:
     """Labelled panels in a grid -> uint8 RGB image.
 
     rows: lists of (label, uint8 RGB (H, W, 3) image or None for an empty cell); every image has
     the same size. Panels are enlarged by an integer factor to be at least `min_width` wide, each
-    gets its label above it, and `caption` (optional) goes under the grid.
+    gets its label above it, and `caption` (optional) goes under the grid. A label wider than its panel is
+    wrapped onto more lines (`wrap_text`), and its row's label band grows to hold them, so that no text runs into
+    the next panel's; the caption wraps at the grid's width.
     """
     from PIL import Image, ImageDraw
 
@@ -87,21 +110,27 @@ def panel_grid(rows: list[list[tuple[str, np.ndarray | None]]], min_width: int =
         raise BoostNerfError("nothing to draw")
     h, w = images[0].shape[:2]
     k = max(1, -(-min_width // w))
-    ph, pw, pad, label_h = h * k, w * k, 4, 18
+    ph, pw, pad = h * k, w * k, 4
     ncols = max(len(r) for r in rows)
-    cap_h = 20 if caption else 0
-    canvas = Image.new("RGB", (ncols * (pw + pad) + pad, len(rows) * (ph + label_h + pad) + pad + cap_h), "white")
-    draw = ImageDraw.Draw(canvas)
+    width = ncols * (pw + pad) + pad
     font = _font(13)
+    labels = [[wrap_text(label, font, pw - 4) for label, _ in row] for row in rows]
+    label_h = [3 + LINE_H * max(len(lines) for lines in row) for row in labels]  # one line: 18 px
+    cap_lines = wrap_text(caption, font, width - 2 * pad - 4) if caption else []
+    cap_h = 5 + LINE_H * len(cap_lines) if caption else 0  # one line: 20 px
+    canvas = Image.new("RGB", (width, sum(label_h) + len(rows) * (ph + pad) + pad + cap_h), "white")
+    draw = ImageDraw.Draw(canvas)
+    y = pad
     for r, row in enumerate(rows):
-        y = pad + r * (ph + label_h + pad)
-        for c, (label, img) in enumerate(row):
+        for c, (_, img) in enumerate(row):
             x = pad + c * (pw + pad)
-            draw.text((x + 2, y + 2), label, fill=(0, 0, 0), font=font)
+            for j, line in enumerate(labels[r][c]):
+                draw.text((x + 2, y + 2 + LINE_H * j), line, fill=(0, 0, 0), font=font)
             if img is not None:
-                canvas.paste(Image.fromarray(upscale(np.ascontiguousarray(img), k)), (x, y + label_h))
-    if caption:
-        draw.text((pad + 2, canvas.height - cap_h + 3), caption, fill=(0, 0, 0), font=font)
+                canvas.paste(Image.fromarray(upscale(np.ascontiguousarray(img), k)), (x, y + label_h[r]))
+        y += label_h[r] + ph + pad
+    for j, line in enumerate(cap_lines):
+        draw.text((pad + 2, y + 3 + LINE_H * j), line, fill=(0, 0, 0), font=font)
     return np.asarray(canvas)
 
 

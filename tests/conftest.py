@@ -112,10 +112,11 @@ def _cli_server() -> str:
 
 
 def run_cli(*args: str, cwd: Path | None = None, check: bool = False,
-            env_extra: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+            env_extra: dict[str, str] | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
     """Run the real CLI (`boostnerf ARGS`) in a process of its own, with `env_extra` set: a child forked from this
     worker's CLI server (tests/cli_server.py), which has imported torch already; a fresh `python -m boostnerf_cli`
-    when the test changed PYTHONPATH (a stand-in module or a plugin the server's imports cannot see)."""
+    when the test changed PYTHONPATH (a stand-in module or a plugin the server's imports cannot see). `timeout`:
+    seconds the command may take."""
     import tempfile
 
     from cli_server import request
@@ -123,11 +124,11 @@ def run_cli(*args: str, cwd: Path | None = None, check: bool = False,
     env = {**os.environ, "PYTHONWARNINGS": "ignore", **(env_extra or {})}
     if env.get("PYTHONPATH") != _BASE_ENV.get("PYTHONPATH"):
         proc = subprocess.run([sys.executable, "-m", "boostnerf_cli", *args], capture_output=True, text=True,
-                              cwd=cwd, env=env, timeout=600)
+                              cwd=cwd, env=env, timeout=timeout)
     else:
         with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, open(os.devnull, "rb") as null:
             code = request(_cli_server(), list(args), str(cwd or Path.cwd()), env,
-                           [null.fileno(), out.fileno(), err.fileno()], timeout=600)
+                           [null.fileno(), out.fileno(), err.fileno()], timeout=timeout)
             out.seek(0)
             err.seek(0)
             proc = subprocess.CompletedProcess(["boostnerf", *args], code, out.read().decode(), err.read().decode())

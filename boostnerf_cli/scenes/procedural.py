@@ -50,7 +50,7 @@ def _place(rng: np.random.Generator) -> np.ndarray:
     return quadrants * 0.45 + rng.uniform(-0.1, 0.1, (4, 2))
 
 
-CONTENTS = ("objects", "thin", "large", "empty")
+CONTENTS = ("objects", "thin", "large", "empty", "detail")
 LARGE_FLOOR_RADIUS = 3.0  # the "large" content's floor: past the camera-derived box (about +-1.7) and out of every view
 THIN_RADIUS = 0.018  # rods and cable of the "thin" content: about 1.2 px wide at 100 px (2 px at 160 px)
 
@@ -77,12 +77,45 @@ def thin_objects(seed: int = 0) -> list[dict]:
     ]
 
 
+DETAIL_CELL = 0.12  # the "detail" content's checker cell: about 2 px at 48 px, 2.4 voxels of a 32^3 grid, 1.2 of a 16^3
+
+
+def detail_objects(seed: int = 0) -> list[dict]:
+    """Fine detail in one half of the scene (x > 0), smooth content in the other (x < 0): a floor disc
+    checkered (cell `DETAIL_CELL`) where x > 0 and with a smooth gradient where x < 0; in the two x > 0 quadrants a
+    checkered box and a striped sphere (period 2 `DETAIL_CELL`), in light and dark colours; in the two x < 0
+    quadrants two low domes (spheres sunk into the floor) in the floor's colours, shaded smoothly."""
+    rng = np.random.default_rng(seed + 2000)
+
+    def contrast() -> list[list[float]]:  # a light colour and a dark one: the detail is visible in every seed
+        light = rng.uniform(0.6, 0.95, 3)
+        return [[round(float(v), 4) for v in light], [round(float(v), 4) for v in light * rng.uniform(0.2, 0.35)]]
+
+    xy = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=float)[[*rng.permutation(2), *(2 + rng.permutation(2))]]
+    xy = xy * 0.5 + rng.uniform(-0.08, 0.08, (4, 2))
+    r = float(rng.uniform(0.3, 0.36))
+    half = [float(v) for v in rng.uniform([0.22, 0.22, 0.2], [0.28, 0.28, 0.3])]
+    domes = [float(v) for v in rng.uniform(0.36, 0.4, 2)]  # sunk by 0.35 r: a cap 0.65 r high, 0.94 r wide
+    floor = contrast()
+    pos = lambda i, z: [float(xy[i][0]), float(xy[i][1]), z]  # noqa: E731
+    return [
+        {"kind": "disc", "centre": [0.0, 0.0, FLOOR_Z], "radius": 1.0, "texture": "half-checker", "cell": DETAIL_CELL,
+         "colours": floor},
+        {"kind": "box", "centre": pos(0, FLOOR_Z + half[2]), "half": half, "angle": float(rng.uniform(0, math.pi / 2)),
+         "texture": "checker", "cell": DETAIL_CELL, "colours": contrast()},
+        {"kind": "sphere", "centre": pos(1, FLOOR_Z + r), "radius": r, "texture": "stripes",
+         "period": 2 * DETAIL_CELL, "colours": contrast()},
+        *({"kind": "sphere", "centre": pos(i, FLOOR_Z - 0.35 * rd), "radius": rd, "texture": "gradient",
+           "colours": floor} for i, rd in zip((2, 3), domes)),
+    ]
+
+
 def scene_objects(seed: int = 0, content: str = "objects") -> list[dict]:
     """The seeded object list (JSON-able): kind, geometry, colours and texture of each object.
 
     content: "objects" (the floor and four solids), "thin" (the same, plus `thin_objects`), "large" (the same
     with a floor of radius `LARGE_FLOOR_RADIUS`, which reaches past the scene box derived from the cameras and
-    leaves every view at its edge) or "empty" (nothing: every pixel is background)."""
+    leaves every view at its edge), "empty" (nothing: every pixel is background) or "detail" (`detail_objects`)."""
     if content not in CONTENTS:
         raise BoostNerfError(f"unknown scene content {content!r}: use one of {', '.join(CONTENTS)}")
     if content == "thin":
@@ -92,6 +125,8 @@ def scene_objects(seed: int = 0, content: str = "objects") -> list[dict]:
         return [{**floor, "radius": LARGE_FLOOR_RADIUS}, *solids]
     if content == "empty":
         return []
+    if content == "detail":
+        return detail_objects(seed)
     rng = np.random.default_rng(seed)
     colour = lambda: [round(float(v), 4) for v in rng.uniform(0.15, 0.95, 3)]  # noqa: E731
     xy = _place(rng)
@@ -190,6 +225,9 @@ def shade(obj: dict, normal: Tensor, p: Tensor) -> Tensor:
         w = torch.zeros_like(p[:, 0])
     elif obj["texture"] == "gradient":  # smooth: blend weight varies slowly over the object
         w = 0.5 + 0.5 * torch.sin(2.0 * p[:, 0] + 1.5 * p[:, 1] + 3.0 * p[:, 2])
+    elif obj["texture"] == "half-checker":  # checker (2-D) where x > 0, the smooth gradient where x < 0
+        checker = torch.floor(p[:, :2] / obj["cell"]).sum(-1).remainder(2)
+        w = torch.where(p[:, 0] > 0, checker, 0.5 + 0.5 * torch.sin(2.0 * p[:, 0] + 1.5 * p[:, 1]))
     elif obj["texture"] == "stripes":
         w = torch.floor(p[:, 2] / (obj["period"] / 2)).remainder(2)
     else:  # checker: 2-D on the disc (its z is constant), 3-D on boxes
@@ -347,6 +385,11 @@ the rim and a slanted wire to the far corner, capsules of radius {THIN_RADIUS}."
         "Content (inside about [-1, 1]^2 x [-0.5, 0.3])", "Content (content 'large': the floor reaches past every view's "
         "edge)"),
     "empty": "Content (content 'empty'): none; every pixel is background.",
+    "detail": f"""Content (content 'detail', inside about [-1, 1]^2 x [-0.5, 0.2]): fine detail where x > 0 and smooth
+content where x < 0. A floor disc with a checkerboard (cell {DETAIL_CELL}) on its x > 0 half and a smooth colour
+gradient on the other; on the detailed half a rotated box with a 3-D checkerboard (cell {DETAIL_CELL}) and a sphere
+with stripes (period {2 * DETAIL_CELL:g}), on the smooth half a sphere and a box with smooth gradients; Lambertian
+shading under a fixed directional light, no shadows.""",
 }
 
 RIG_TEXT = {

@@ -3,7 +3,8 @@
 reports/eval.json schema (documented in docs/reports.md):
 {"split": str, "views": int, "lpips_note": str | null, "ssim_note": str | null,
  "models": [{"name", "kind", "psnr", "ssim" (null under 11 px), "lpips" (null when unavailable), "seconds_per_image",
-             "samples_per_image", "colored_per_image", "params", "w0", "gflops_per_image"}, ...]}
+             "samples_per_image", "colored_per_image", "params", "w0", "gflops_per_image"}, ...],
+ "finetuned": {name: {"from", "iterations"}} (the finetuned models among them, from the manifest)}
 """
 
 from __future__ import annotations
@@ -85,7 +86,8 @@ def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, r
         rows.append(row)
     result = {"split": split_name, "views": n_views(split, views), "skip": skips.empty and skips.terminated,
               "skips": {"empty": skips.empty, "terminated": skips.terminated},
-              "lpips_note": lpips_note or None, "ssim_note": ssim_note, "models": rows}
+              "lpips_note": lpips_note or None, "ssim_note": ssim_note, "models": rows,
+              "finetuned": {k: v for k, v in ws.manifest().get("moe", {}).items() if k in names and "iterations" in v}}
     if report:
         write_json(ws.reports_dir / "eval.json", result)
         with atomic_path(ws.reports_dir / "eval.md") as tmp:
@@ -95,18 +97,60 @@ def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, r
 
 def markdown_table(result: dict) -> str:
     """The eval report as a Markdown table, in the paper's Table 1 columns."""
+    base = next((r.get("gflops_per_image") for r in result["models"] if r["name"] == "baseline"), None)
+    ratio = lambda g: f"{g / base:.2f}x" if g is not None and base else "-"  # noqa: E731
     lines = [
         f"Split `{result['split']}`, {result['views']} views, skips {Skips(**result['skips']).describe()}.",
         "",
-        "| model | PSNR | SSIM | LPIPS | params | ‖w‖₀ | GFLOPs/image | s/image |",
-        "|---|---|---|---|---|---|---|---|",
+        "| model | PSNR | SSIM | LPIPS | params | ‖w‖₀ | GFLOPs/image | GFLOPs vs baseline | s/image |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["models"]:
         lines.append(
             f"| {r['name']} | {number(r['psnr'], '.3f')} | {number(r['ssim'], '.4f')} | {number(r['lpips'], '.4f')} | {r['params']:,} | "
-            f"{number(r.get('w0'), ',')} | {number(r.get('gflops_per_image'), '.3f')} | {r['seconds_per_image']:.3f} |"
+            f"{number(r.get('w0'), ',')} | {number(r.get('gflops_per_image'), '.3f')} | "
+            f"{ratio(r.get('gflops_per_image'))} | {r['seconds_per_image']:.3f} |"
         )
-    notes = [result[k] for k in ("ssim_note", "lpips_note") if result.get(k)]
-    if notes:
-        lines += ["", *notes]
+    reading = [how_to_read(result.get("finetuned") or {}), top1_note(result["models"])]
+    notes = [n for n in reading if n] + [result[k] for k in ("ssim_note", "lpips_note") if result.get(k)]
+    for note in notes:  # each a paragraph of its own
+        lines += ["", note]
     return "\n".join(lines) + "\n"
+
+
+def how_to_read(finetuned: dict) -> str:
+    """One line on the comparison the table makes, from the manifest's `moe` entries of the finetuned models it
+    lists ({name: {from, iterations}}): which row is the baseline and what it was trained for."""
+    base = finetuned.get("baseline")
+    if not base:
+        return ""
+    others = {k: v["iterations"] for k, v in finetuned.items() if k != "baseline"}
+    steps = base["iterations"]
+    if others and set(others.values()) == {steps}:
+        trained = f"for the same {steps} finetuning steps as {', '.join(others)}"
+    else:
+        trained = f"for {steps} finetuning steps" + (
+            f" ({', '.join(f'{k}: {v}' for k, v in others.items())})" if others else "")
+    return (f"How to read it: `baseline` is the largest expert, {base['from']}, trained alone {trained}; "
+            f"GFLOPs vs baseline is a model's GFLOPs per image over the baseline's. The "
+            f"expert rows are the pretrained experts before those steps.")
+
+
+# docs/results.md's answer to why a Top-1 mixture stays below its baseline on CPU-sized scenes
+TOP1_WHY = "docs/results.md#why-does-top-1-stay-below-its-baseline-at-100-px"
+
+
+def top1_note(models: list[dict]) -> str:
+    """A line for each Top-1 mixture of the table below the baseline: by how much, at what cost, and why."""
+    base = next((r for r in models if r["name"] == "baseline"), None)
+    below = [r for r in models if base and r.get("routing", {}).get("topk") == 1 and r["psnr"] < base["psnr"]]
+    lines = []
+    for r in below:
+        cost = (f", at {r['gflops_per_image'] / base['gflops_per_image']:.2f}x its GFLOPs"
+                if r.get("gflops_per_image") is not None and base.get("gflops_per_image") else "")
+        lines.append(
+            f"`{r['name']}` is {base['psnr'] - r['psnr']:.2f} dB below `baseline`{cost}: it renders each sample with "
+            "one expert, most often a smaller one, and where the largest expert renders every part of the scene "
+            "best (on lego at 100 px no spatial partition of single models beats the best of them), routing to a "
+            f"smaller one saves cost and loses quality ({TOP1_WHY}).")
+    return "\n\n".join(lines)

@@ -175,6 +175,8 @@ def run_compare(ws: Workspace, names: list[str] | None, viewing: Viewing, device
 # --- per-expert pictures of a mixture -----------------------------------------------------------------
 # routing colours for the montage, smallest expert first: blue, cyan, green, orange, red, then grey
 _PALETTE = np.array([[40, 90, 255], [0, 200, 220], [60, 200, 60], [255, 160, 0], [230, 30, 30]], dtype=np.float64) / 255
+# the routing map's label in the montage, wider than its panel (images.panel_grid wraps it)
+ROUTING_LEGEND = "routing (smallest first: blue, cyan, green, orange, red)"
 
 
 def _palette(m: int) -> np.ndarray:
@@ -253,7 +255,7 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
                 f"{[round(float(v), 2) for v in hi]}, on smooth pixels {[round(float(v), 2) for v in lo]}")
         routing = to_uint8(probs @ _palette(m))
         top = [("mixture", to_uint8(full["rgb"]))] + [(f"{names[e]} share", shares[e]) for e in range(m)]
-        bottom = [("routing (smallest first: blue, cyan, green, orange, red)", routing)] + [
+        bottom = [(ROUTING_LEGEND, routing)] + [
             (f"gate p({names[e]})", to_uint8(np.repeat(gates[e][..., None], 3, -1))) for e in range(m)]
         path = folder / f"{stem}_experts.png"
         write_png(path, panel_grid([top, bottom], caption=f"{model.name}, {split.names[i]}: experts smallest first; "
