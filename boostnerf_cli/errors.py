@@ -18,7 +18,8 @@ class DataWarning(UserWarning):
 
 
 class BoxWarning(DataWarning):
-    """A doubt about the scene box or near / far derived from the cameras; moot (dropped) when data.bbox gives the box."""
+    """A doubt about the scene box or near / far derived from the cameras; moot (dropped) when data.bbox gives the
+    box."""
 
 
 # what the allocators say when a tensor does not fit (CPU, CUDA, and sizes past what can be addressed)

@@ -48,8 +48,10 @@ SEED = Range(0, 2**63 - 1)
 @dataclass
 class DataRecipe:
     image_size: int | None = limit(None, at_least(8))  # longer side in pixels after area downscaling; None = native
-    holdout_every: int = limit(8, Range(2, also=(0,)))  # datasets without a test split: every N-th train view is held out
-    format: str = limit("auto", OneOf(("auto", *FORMATS)))  # the dataset layout (docs/datasets.md); auto: told by the files the folder holds
+    # datasets without a test split: every N-th train view is held out
+    holdout_every: int = limit(8, Range(2, also=(0,)))
+    # the dataset layout (docs/datasets.md); auto: told by the files the folder holds
+    format: str = limit("auto", OneOf(("auto", *FORMATS)))
     # the scene box [xmin, ymin, zmin, xmax, ymax, zmax] in world units, instead of the one the loader gives (bbox.txt,
     # or the region most cameras see): for content that reaches past it (docs/datasets.md, "The scene box")
     bbox: list[float] | None = limit(None, BBOX_COORD)
@@ -65,7 +67,8 @@ class GeometryRecipe:
     lr: float = limit(0.1, LEARNING_RATE)  # learning rate of the coarse density grid
     alpha_init: float = limit(1e-4, OPEN_UNIT)  # opacity over one voxel of the coarse grid before training
     alpha_threshold: float = limit(1e-3, THRESHOLD)  # per coarse step: cells below it are empty
-    weight_entropy: float = limit(0.1, LOSS_WEIGHT)  # pushes ray opacity to 0 or 1: clears floaters against the background
+    # pushes ray opacity to 0 or 1: clears floaters against the background
+    weight_entropy: float = limit(0.1, LOSS_WEIGHT)
     cover_foreground: bool = True  # grow the mask until every foreground training ray crosses it (render/coverage.py)
     hull_box: bool = True  # with cover_foreground: only occupied cells in the views' visual hull count as surface
     refine: bool = True  # with cover_foreground: a second coarse grid trains inside the box the first found (if < half)
@@ -77,18 +80,27 @@ class TrainRecipe:
     lr_grid: float = limit(0.1, LEARNING_RATE)  # learning rate of the grids (hash tables, VM factors)
     lr_mlp: float = limit(1e-3, LEARNING_RATE)  # learning rate of the MLPs
     lr_decay: float = limit(0.1, Range(0, 1, lo_open=True))  # learning rates fall to this fraction at the last step
-    step_ratio: float = limit(0.5, STEP_RATIO)  # sampling step in voxels of the final grid (pretrain only: finetuning samples at the experts' step, moe.step_from)
+    # sampling step in voxels of the final grid (pretrain only: finetuning samples at the experts' step, moe.step_from)
+    step_ratio: float = limit(0.5, STEP_RATIO)
     color_threshold: float = limit(1e-4, THRESHOLD)  # samples with a smaller weight skip the colour MLP
-    weight_rgbper: float = limit(0.01, LOSS_WEIGHT)  # weight of the per-sample colour loss (each sample's colour against the pixel, by its rendering weight; DVGO's rgbper)
-    weight_entropy: float = limit(1e-3, LOSS_WEIGHT)  # weight of the ray-opacity entropy loss, which pushes each ray to fully opaque or empty
-    growth: list[float] = limit(rule=OPEN_UNIT, factory=lambda: [0.1, 0.2, 0.3])  # progressive growth (pretrain only; DVGO and TensoRF grids, not Instant-NGP hash grids, which keep their size): the grid starts at 1/2^n of its voxels and doubles them at each of these n fractions of iters
-    occupancy_every: int = limit(500, NON_NEGATIVE)  # steps between refreshes of the occupancy mask from the density (0 = never; while finetuning only the baseline has one, the mixtures skip by V_D)
+    # weight of the per-sample colour loss (each sample's colour
+    # against the pixel, by its rendering weight; DVGO's rgbper)
+    weight_rgbper: float = limit(0.01, LOSS_WEIGHT)
+    # weight of the ray-opacity entropy loss, which pushes each ray to fully opaque or empty
+    weight_entropy: float = limit(1e-3, LOSS_WEIGHT)
+    # progressive growth (pretrain only; DVGO and TensoRF grids, not Instant-NGP hash grids, which keep their
+    # size): the grid starts at 1/2^n of its voxels and doubles them at each of these n fractions of iters
+    growth: list[float] = limit(rule=OPEN_UNIT, factory=lambda: [0.1, 0.2, 0.3])
+    # steps between refreshes of the occupancy mask from the density (0 = never;
+    # while finetuning only the baseline has one, the mixtures skip by V_D)
+    occupancy_every: int = limit(500, NON_NEGATIVE)
     occupancy_threshold: float = limit(1e-4, THRESHOLD)  # alpha per step below which a cell is skipped
     # composite each training ray on a random colour, not the scene's background (for captures whose every pixel is
     # opaque, LLFF: empty space can then fake no colour; docs/datasets.md)
     random_background: bool = False
     log_every: int = limit(100, at_least(1))  # steps between log lines (and entries of the report's history)
-    checkpoint_every: int = limit(500, at_least(1))  # steps between training checkpoints (an interrupted run resumes from the last)
+    # steps between training checkpoints (an interrupted run resumes from the last)
+    checkpoint_every: int = limit(500, at_least(1))
     # torch.compile the step's loss and its gradient into fused kernels: auto = on a GPU (where the step then neither
     # waits for the device nor launches kernel by kernel), off on a CPU (a compile takes minutes there)
     compile: str = limit("auto", OneOf(("auto", "on", "off")))
@@ -106,8 +118,10 @@ def family_sections(cls: type) -> type:
 @dataclass
 @family_sections
 class PretrainRecipe:
-    model: str = limit("dvgo", OneOf(tuple(FAMILIES)))  # the experts' family (its architecture: the section of that name)
-    res: list[int] = limit(rule=GRID_RES, factory=lambda: [64, 96, 128], min_items=1)  # one expert per value: its grid has res^3 voxels (ngp: res levels)
+    # the experts' family (its architecture: the section of that name)
+    model: str = limit("dvgo", OneOf(tuple(FAMILIES)))
+    # one expert per value: its grid has res^3 voxels (ngp: res levels)
+    res: list[int] = limit(rule=GRID_RES, factory=lambda: [64, 96, 128], min_items=1)
     iters: int = limit(3000, at_least(1))  # training steps of each expert
     seed: int = limit(0, SEED)  # expert at res trains with seed + res (also the procedural scene's seed)
     skip: bool = True  # False (--no-skip): experts train on the whole scene box, no occupancy mask
@@ -142,18 +156,29 @@ class MoERecipe(Routing):
     """The `moe` section: the mixture's routing (`moe/mixture.py: Routing`, whose keys it holds), its gate and
     density volume (build-moe), and the joint training (finetune)."""
 
-    gate_type: str = limit("grid", OneOf(TRAINABLE_GATES))  # grid: softmax(MLP(grid features)) (paper); linear: softmax of a linear map of them (the paper's ablation); switch: an MLP on encoded positions, no grid (Switch-NeRF)
-    gate_grid: str = limit("auto", OneOf(("auto", *GATE_GRIDS)))  # dense | tensorf | hash | auto (the experts' family: dvgo dense, tensorf VM, ngp hash)
+    # grid: softmax(MLP(grid features)) (paper); linear: softmax of a linear map of them
+    # (the paper's ablation); switch: an MLP on encoded positions, no grid (Switch-NeRF)
+    gate_type: str = limit("grid", OneOf(TRAINABLE_GATES))
+    # dense | tensorf | hash | auto (the experts' family: dvgo dense, tensorf VM, ngp hash)
+    gate_grid: str = limit("auto", OneOf(("auto", *GATE_GRIDS)))
     gate_res: int = limit(32, Range(2, MAX_GRID_RES))  # the gate grid has gate_res^3 voxels (128 in the paper)
     gate_channels: int = limit(8, Range(1, 512))  # features per vertex of the gate's grid
     gate_hidden: int = limit(64, MLP_WIDTH)  # width of the gate's MLP
     gate_layers: int = limit(2, MLP_LAYERS)  # hidden layers of the gate's MLP (0: a linear map to the M logits)
-    gate_init: str = limit("random", OneOf(("random", "expert")))  # the gate's dense feature grid: random, or expert: the smallest (dvgo) expert's feature grid, copied (same lattice) or resampled trilinearly, gate_channels then = its channels (the official code's)
-    gate_from: str = ""  # with gate_init expert: the expert whose feature grid the gate copies, by name, in the mixture or not (the official code copies a 128^3 model it leaves out of the mixture); empty: the mixture's smallest expert
-    vd_res: int | None = limit(None, GRID_RES)  # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
-    density_threshold: float = limit(1e-3, THRESHOLD)  # T: samples whose V_D opacity over one step is below it are filtered
-    step_from: str = limit("largest", OneOf(("smallest", "largest")))  # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
-    lam: float = limit(1e-3, LOSS_WEIGHT)  # lambda: weight of the resolution-weighted auxiliary loss (L_tot = L_nerf + lambda L_rw-aux; the paper uses 1e-3)
+    # the gate's dense feature grid: random, or expert: the smallest (dvgo) expert's feature grid, copied
+    # (same lattice) or resampled trilinearly, gate_channels then = its channels (the official code's)
+    gate_init: str = limit("random", OneOf(("random", "expert")))
+    # with gate_init expert: the expert whose feature grid the gate copies, by name, in the mixture or not (the
+    # official code copies a 128^3 model it leaves out of the mixture); empty: the mixture's smallest expert
+    gate_from: str = ""
+    # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
+    vd_res: int | None = limit(None, GRID_RES)
+    # T: samples whose V_D opacity over one step is below it are filtered
+    density_threshold: float = limit(1e-3, THRESHOLD)
+    # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
+    step_from: str = limit("largest", OneOf(("smallest", "largest")))
+    # lambda: weight of the resolution-weighted auxiliary loss (L_tot = L_nerf + lambda L_rw-aux; the paper uses 1e-3)
+    lam: float = limit(1e-3, LOSS_WEIGHT)
     iters: int = limit(1000, at_least(1))  # joint training steps of each mixture, the ensemble and the baseline
     lr_gate: float = limit(1e-2, LEARNING_RATE)  # learning rate of the gate's grid
     lr_gate_mlp: float = limit(1e-3, LEARNING_RATE)  # learning rate of the gate's MLP
@@ -206,7 +231,8 @@ def _build(cls: type, data: Any, where: str) -> Any:
             # rates when only batch_rays is given), not those of the section's class.
             default = fields[key].default_factory() if fields[key].default_factory is not dataclasses.MISSING else None
             built = _build(hints[key], value, path)
-            kwargs[key] = built if default is None else dataclasses.replace(default, **{k: getattr(built, k) for k in value})
+            kwargs[key] = (built if default is None
+                           else dataclasses.replace(default, **{k: getattr(built, k) for k in value}))
         else:
             kwargs[key] = _coerce(hints[key], value, path)
     return cls(**kwargs)
@@ -236,7 +262,8 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
             return float(value)
         except OverflowError:
             raise BoostNerfError(f"recipe key {where} = {value}: too large for a float") from None
-    if hint in (int, float, str, bool) and not (isinstance(value, hint) and not (hint is int and isinstance(value, bool))):
+    if hint in (int, float, str, bool) and not (isinstance(value, hint)
+                                                and not (hint is int and isinstance(value, bool))):
         fix = ""
         if hint is int and isinstance(value, float) and value.is_integer() and abs(value) < 1e18:
             fix = f" (write {int(value)})"  # `1e3` is a float in YAML 1.2
@@ -358,9 +385,9 @@ def _check_unused(recipe: Recipe) -> None:
     for key in ("step_ratio", "growth"):
         value = getattr(recipe.moe.train, key)
         if value != getattr(unused, key):
-            raise BoostNerfError(f"recipe key moe.train.{key} = {value!r}: finetuning does not use it (the mixtures and "
-                                 "the baseline sample at their experts' step, moe.step_from, and no grid grows while "
-                                 f"finetuning): remove it (pretrain.train.{key} sets it for the experts)")
+            raise BoostNerfError(f"recipe key moe.train.{key} = {value!r}: finetuning does not use it (the mixtures "
+                                 "and the baseline sample at their experts' step, moe.step_from, and no grid grows "
+                                 f"while finetuning): remove it (pretrain.train.{key} sets it for the experts)")
 
 
 class _RecipeLoader(yaml.SafeLoader):

@@ -105,7 +105,8 @@ def stale_temporaries(root: Path) -> list[Path]:
             if top == root:
                 dirs.clear()  # root's own files only: its folders are the written ones above, or the user's
             else:
-                dirs[:] = [d for d in dirs if not d.startswith(".") and not os.path.lexists(os.path.join(folder, d, ".lock"))]
+                dirs[:] = [d for d in dirs
+                           if not d.startswith(".") and not os.path.lexists(os.path.join(folder, d, ".lock"))]
             matches = ((f, _TEMP_FILE.fullmatch(f)) for f in files)
             found += [Path(folder, f) for f, m in matches if m and (top != root or m.group(1) in ROOT_FILES)]
     return sorted(found)
@@ -209,12 +210,14 @@ def read_json(path: Path, what: str = "file") -> dict:
     except IsADirectoryError:
         raise BoostNerfError(f"{what} {path} is a folder, not a file: move it away and rerun the stage") from None
     except OSError as e:
-        raise BoostNerfError(f"cannot read {what} {path} ({e.strerror or type(e).__name__}): fix its permissions") from None
+        raise BoostNerfError(f"cannot read {what} {path} ({e.strerror or type(e).__name__}): "
+                             "fix its permissions") from None
     except (json.JSONDecodeError, UnicodeDecodeError, ValueError, RecursionError) as e:
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise BoostNerfError(f"{what} {path} is not valid JSON ({reason}); delete it and rerun the stage") from None
     if not isinstance(data, dict):
-        raise BoostNerfError(f"{what} {path} holds a JSON {type(data).__name__}, not an object: delete it and rerun the stage")
+        raise BoostNerfError(f"{what} {path} holds a JSON {type(data).__name__}, not an object: "
+                             "delete it and rerun the stage")
     return data
 
 
@@ -606,7 +609,8 @@ class Workspace:
         m = self.manifest()
         if not m:
             raise BoostNerfError(
-                f"{self.root} is not a boostnerf workspace (no manifest.json): run `boostnerf pretrain --workspace {self.root} ...` first"
+                f"{self.root} is not a boostnerf workspace (no manifest.json): "
+                f"run `boostnerf pretrain --workspace {self.root} ...` first"
             )
         return m
 

@@ -69,8 +69,9 @@ def measure_skips(ws: Workspace, scene, names: list[str], views: int, device: st
                            settings, skip_fn, None, device)
             secs[(name, skip)].append(t)
             psnr[(name, skip)].append(mse_to_psnr(float(torch.mean((out["rgb"] - split.images[i]) ** 2))))
-    rows = [{"model": name, "skips": "on" if skip else "off", "seconds_per_image": statistics.median(secs[(name, skip)]),
-             "psnr": sum(psnr[(name, skip)]) / n} for name, skip in variants]
+    rows = [{"model": name, "skips": "on" if skip else "off",
+             "seconds_per_image": statistics.median(secs[(name, skip)]), "psnr": sum(psnr[(name, skip)]) / n}
+            for name, skip in variants]
     on, off = rows[0], rows[-1]
     return {"views": n, "rows": rows, "speedup": off["seconds_per_image"] / on["seconds_per_image"],
             "psnr_drop": off["psnr"] - on["psnr"]}
@@ -284,7 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     if "step" in only:
         s = result["step"] = measure_step(ws, scene, rec, largest, args.steps, args.device)
         print(f"step of {largest}: {s['step_seconds']:.3f} s, bare density+colour fwd+bwd {s['bare_seconds']:.3f} s "
-              f"-> {100 * s['throughput_ratio']:.1f}% ({s['density_samples']} density, {s['color_samples']} colour samples)")
+              f"-> {100 * s['throughput_ratio']:.1f}% ({s['density_samples']} density, "
+              f"{s['color_samples']} colour samples)")
     if "view" in only:
         v = result["view"] = measure_view(ws, scene, rec, largest, args.steps, args.device)
         if v is not None:

@@ -33,7 +33,8 @@ flag overrides both (docs/recipes.md). Values out of the allowed range are refus
 
 """
 
-FAMILY_NOTE = """A family section (`pretrain.dvgo`, `pretrain.tensorf`, `pretrain.ngp`) sets the architecture of that family's
+FAMILY_NOTE = """A family section (`pretrain.dvgo`, `pretrain.tensorf`, `pretrain.ngp`) sets the \
+architecture of that family's
 experts. Each value is one value for every expert, or a mapping from resolution to value, one per expert
 (`hidden: {64: 64, 96: 128}`; a resolution it does not list takes the nearest listed one's). The resolutions
 themselves are `pretrain.res` (for `ngp`, the number of levels L).

@@ -266,7 +266,8 @@ def measure(make, device: str, steps: int, warmup: int, compile: str = "off") ->
     graphs = dynamo_utils.counters["stats"]["unique_graphs"]
     ops = count_ops(lambda dev: make(dev, compile), device, steps, warmup)
     ms = time_steps(lambda dev: make(dev, compile), device, steps, warmup)
-    return {"ops_per_step": round(sum(ops.values()) / steps, 1), "syncs_per_step": round(sum(syncs.values()) / steps, 2),
+    return {"ops_per_step": round(sum(ops.values()) / steps, 1),
+            "syncs_per_step": round(sum(syncs.values()) / steps, 2),
             "ms_per_step": round(ms, 2), "compile": compile,
             "graphs": dynamo_utils.counters["stats"]["unique_graphs"] - graphs,
             "syncs": {k: round(v / steps, 2) for k, v in syncs.most_common()},

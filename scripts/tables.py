@@ -28,8 +28,9 @@ one of:
 
 - a summary {"summary": {"models": [[name, header], ...], "rows": [{"label": str, "report": FILE}, ...],
   "experts": header}, "first_column": header, "notes": [[cell, ...], ...]}: one row per report, a column of the
-  experts' PSNRs (with "experts"), one column per model: the baseline's PSNR, every other model's PSNR against it and its GFLOPs per image as a ratio of the baseline's; then the notes
-  rows printed as written (figures no report of this layout holds: transcribed, each with its provenance);
+  experts' PSNRs (with "experts"), one column per model: the baseline's PSNR, every other model's PSNR against it
+  and its GFLOPs per image as a ratio of the baseline's; then the notes rows printed as written (figures no report
+  of this layout holds: transcribed, each with its provenance);
 
 - a generic table {"columns": [header, ...], "rows": [[cell, ...], ...]} for a table that is neither a
   model nor a bench table (a transcribed comparison, a list of targets): every cell is a string printed

@@ -128,7 +128,8 @@ def simulated_gpu() -> Iterator[str]:
         stack.enter_context(mock.patch.object(common, "resolve_device", resolve))
         # autocast knows no `meta` device type: the simulated GPU's autocast is the CPU's.
         stack.enter_context(mock.patch.object(
-            torch, "autocast", lambda device_type, *a, **k: autocast("cpu" if device_type == GPU.type else device_type, *a, **k)))
+            torch, "autocast",
+            lambda device_type, *a, **k: autocast("cpu" if device_type == GPU.type else device_type, *a, **k)))
         stack.enter_context(mock.patch.object(
             torch, "is_autocast_enabled", lambda *a: autocast_enabled(*("cpu" if d == GPU.type else d for d in a))))
         # torch.tensor / as_tensor with a device move the data in C++, past the dispatch mode: build on

@@ -109,7 +109,8 @@ def test_images_without_alpha_among_images_with_alpha_are_named(tmp_path):
     (warning,) = load_scene(scene).extra["warnings"]
     assert re.search(r"2 of 6 images have no alpha channel .*test/r_0\.png", warning), warning
     assert "warnings" not in load_scene(make_scene(tmp_path / "rgba", size=16, n_train=4, n_test=2)).extra
-    recipe = make_recipe(tmp_path / "r.yaml", data={"image_size": 16}, pretrain={"res": [8], "iters": 2, "geometry": {"iters": 2}})
+    recipe = make_recipe(tmp_path / "r.yaml", data={"image_size": 16},
+                         pretrain={"res": [8], "iters": 2, "geometry": {"iters": 2}})
     proc = run_cli("pretrain", "-w", str(tmp_path / "ws"), "--data", str(scene), "--recipe", str(recipe), "--device",
                    "cpu", check=True)
     assert "warning: 2 of 6 images have no alpha channel" in proc.stdout + proc.stderr

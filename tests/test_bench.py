@@ -204,7 +204,8 @@ def test_a_moved_bench_folder_or_scene_keeps_its_finished_rows(quick_bench, tiny
     shutil.copytree(tiny_scene, scene)
     proc = run_cli("bench", "--data", str(scene), "--recipe", str(bench_recipe), "--workspace", str(root),
                    "--device", "cpu", check=True)
-    assert proc.stderr.count("finished, skipping") == len(json.loads((root / "reports" / "bench.json").read_text())["rows"])
+    assert proc.stderr.count("finished, skipping") == len(
+        json.loads((root / "reports" / "bench.json").read_text())["rows"])
     assert json.loads((root / "bench-config.json").read_text())["data"] == str(scene)
     other = tmp_path / "scene-edited"
     shutil.copytree(tiny_scene, other)
@@ -230,7 +231,8 @@ def test_bench_config_of_a_recipe_with_per_resolution_options_reads_back_equal(t
     rec.pretrain.dvgo = {"hidden": {64: 64, 80: 128}}
     config = bench.bench_config(tmp_path, None, rec, tmp_path)
     write_json(tmp_path / "bench-config.json", config)
-    assert read_json(tmp_path / "bench-config.json", "bench config") == bench.bench_config(tmp_path, None, rec, tmp_path)
+    assert (read_json(tmp_path / "bench-config.json", "bench config")
+            == bench.bench_config(tmp_path, None, rec, tmp_path))
 
 
 def test_tables_written_to_a_file_or_pipe_keep_every_name_whole(bench_recipe, tmp_path):

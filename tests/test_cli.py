@@ -22,7 +22,8 @@ def test_pretrain_writes_experts_reports_and_manifest(trained_ws):
             meta = json.loads(f.metadata()["boostnerf"])
         assert meta["family"] == "dvgo" and meta["config"]["res"] == int(name.split("-")[1])
         report = json.loads((trained_ws / "experts" / f"{name}.json").read_text())
-        assert report["name"] == name and report["iterations"] == 30 and report["seed"] == 0  # the seed, in the report too
+        # the seed, in the report too
+        assert report["name"] == name and report["iterations"] == 30 and report["seed"] == 0
         assert report["seconds"] > 0 and report["params"] > 0
         assert report["test_psnr"] >= TINY_PSNR[name] - PSNR_MARGIN, (name, report["test_psnr"])
     manifest = json.loads((trained_ws / "manifest.json").read_text())
@@ -165,8 +166,8 @@ def test_images_too_small_for_ssim_leave_it_out_with_a_note(tmp_path, tiny_scene
     from boostnerf_cli.stages.evaluate import markdown_table
 
     ws = tmp_path / "ws"
-    run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws), "--device", "cpu",
-            "--res", "12", "--image-size", "8", check=True)
+    run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws),
+            "--device", "cpu", "--res", "12", "--image-size", "8", check=True)
     proc = run_cli("eval", "--workspace", str(ws), "--report", "--no-costs", "--device", "cpu", check=True)
     report = json.loads((ws / "reports" / "eval.json").read_text())
     (row,) = report["models"]
@@ -181,8 +182,8 @@ def test_images_too_small_for_lpips_leave_it_out_with_a_note_not_the_whole_table
     """AlexNet needs 31 px a side: at --image-size 24 eval reports PSNR and SSIM, LPIPS null and why (it stopped
     with `error: lpips: need ... H, W >= 31` after the first model's costs, and wrote no table)."""
     ws = tmp_path / "ws"
-    run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws), "--device", "cpu",
-            "--res", "12", "--image-size", "24", check=True)
+    run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws),
+            "--device", "cpu", "--res", "12", "--image-size", "24", check=True)
     proc = run_cli("eval", "--workspace", str(ws), "--report", "--no-costs", "--device", "cpu", check=True,
                    env_extra=write_lpips_weights(tmp_path))
     report = json.loads((ws / "reports" / "eval.json").read_text())
@@ -199,7 +200,8 @@ def test_pretrain_without_data_reruns_on_the_workspace_s_own_scene_and_never_gen
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws, ignore=shutil.ignore_patterns("reports", "renders"))
     proc = run_cli("pretrain", "--workspace", str(ws), "--recipe", str(tiny_recipe), "--device", "cpu", check=True)
-    assert "already trained, skipping" in proc.stderr and "] step " not in proc.stderr and "generating" not in proc.stderr
+    assert ("already trained, skipping" in proc.stderr and "] step " not in proc.stderr
+            and "generating" not in proc.stderr)
     manifest = json.loads((ws / "manifest.json").read_text())
     assert manifest["data"]["path"] == str(tiny_scene)
     manifest["data"]["path"] = str(tmp_path / "gone")
@@ -320,7 +322,8 @@ def test_a_view_of_empty_sky_scores_an_infinite_psnr_that_the_reports_write_as_n
     assert "inf" in proc.stdout
     rerun = run_cli("pretrain", "--data", str(scene), "--recipe", str(tiny_recipe), "--workspace", str(ws),
                     "--device", "cpu", check=True)  # finished: its table is read back from the reports
-    assert "inf" not in rerun.stdout and [line for line in rerun.stdout.splitlines() if "dvgo-16" in line and " - " in line]
+    assert "inf" not in rerun.stdout and [line for line in rerun.stdout.splitlines()
+                                          if "dvgo-16" in line and " - " in line]
 
 
 def test_missing_data_path(tmp_path):
@@ -514,7 +517,8 @@ def test_a_short_option_written_with_an_equals_sign_is_refused(monkeypatch, caps
     `eval -w=ws` said `=ws is not a boostnerf workspace`."""
     monkeypatch.chdir(tmp_path)
     code, err = cli_in_process(monkeypatch, capsys, "eval", "-w=wsX", "--device", "cpu")
-    assert code == 2 and err.strip() == "error: -w=wsX names the folder '=wsX' (a short option takes no '='): write -w wsX"
+    assert code == 2 and err.strip() == ("error: -w=wsX names the folder '=wsX' (a short option takes no '='): "
+                                         "write -w wsX")
     assert list(tmp_path.iterdir()) == []
 
 

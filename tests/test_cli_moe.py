@@ -75,8 +75,8 @@ def test_models_made_from_a_retrained_expert_are_refused_until_made_again(moe_ws
     # baseline's `--baseline --force` came up only after the mixtures had been remade)
     code, err = cli_in_process(monkeypatch, capsys, "eval", *w)
     assert code == 2 and len(err.strip().splitlines()) == 1, err
-    assert f"make baseline again with `boostnerf finetune -w {ws} --baseline --force`; top1, top2, top1-pruned, ens with " \
-           f"`boostnerf build-moe -w {ws}`, then finetune" in err, err
+    assert f"make baseline again with `boostnerf finetune -w {ws} --baseline --force`; top1, top2, top1-pruned, " \
+           f"ens with `boostnerf build-moe -w {ws}`, then finetune" in err, err
     proc = run_cli("eval", "--model", "dvgo-12", "--model", "dvgo-16", "--views", "1", "--no-costs", *w, check=True)
     assert "PSNR" in proc.stderr
     run_cli("build-moe", *w, check=True)
@@ -286,7 +286,8 @@ def test_a_video_killed_mid_write_leaves_no_temporary_file_once_the_workspace_is
 
     ws = tmp_path / "ws"
     shutil.copytree(moe_ws, ws, ignore=shutil.ignore_patterns("renders", "reports"))
-    args = ["render", "--workspace", str(ws), "--model", "dvgo-12", "--path", "orbit", "--frames", "2", "--device", "cpu"]
+    args = ["render", "--workspace", str(ws), "--model", "dvgo-12", "--path", "orbit", "--frames", "2",
+            "--device", "cpu"]
     killed = run_cli(*args, env_extra={"BOOSTNERF_TEST_KILL": "write:orbit.mp4"})
     folder = ws / "renders" / "dvgo-12"
     assert killed.returncode == -9 and [p.name for p in folder.iterdir() if p.name.startswith(".orbit")], killed.stderr
@@ -413,9 +414,9 @@ def test_finetuning_learns_and_the_resolution_penalty_moves_load_to_the_small_ex
     """Measured: loss 0.028 over steps 10-50 -> 0.016 over steps 160-200 with the geometric penalty,
     0.024 -> 0.013 with none (one batch a logged step, so five are averaged; over 100 steps and three batches the
     fall, 0.84x, was inside the batches' spread once near / far came from the cameras); the smallest expert's share
-    of samples 0.68 with the geometric penalty against 0.51 with none (same lambda 1). Without the auxiliary loss (lambda 0)
-    this tiny Top-1 collapses onto one expert (the smallest here, share 1.0), so the share is compared between
-    penalties at equal lambda: the weighting w_i, not lambda alone, is what prefers the cheap expert."""
+    of samples 0.68 with the geometric penalty against 0.51 with none (same lambda 1). Without the auxiliary loss
+    (lambda 0) this tiny Top-1 collapses onto one expert (the smallest here, share 1.0), so the share is compared
+    between penalties at equal lambda: the weighting w_i, not lambda alone, is what prefers the cheap expert."""
     weighted = _finetune_top1(moe_ws, tmp_path / "geometric", "--lambda", "1", "--penalty", "geometric")
     flat = _finetune_top1(moe_ws, tmp_path / "none", "--lambda", "1", "--penalty", "none")
     for report in (weighted, flat):

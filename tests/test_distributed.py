@@ -261,8 +261,9 @@ def test_a_failing_rank_stops_every_rank_with_its_message_and_keeps_finished_fil
     (ws / "experts" / "dvgo-8.safetensors" / "blocked").mkdir(parents=True)  # its rank cannot write it
     before = files(ws)
     # experts left: dvgo-12 (rank 0) and dvgo-8 (rank 1, fails when it writes its result)
-    proc = run(torchrun("pretrain", "--data", json.loads((root / "one" / "manifest.json").read_text())["data"]["path"], "--recipe", str(recipe), "--res", "8,10,12,14",
-                        "--workspace", str(ws), "--device", "cpu"), check=False)
+    proc = run(torchrun("pretrain", "--data", json.loads((root / "one" / "manifest.json").read_text())["data"]["path"],
+                        "--recipe", str(recipe), "--res", "8,10,12,14", "--workspace", str(ws), "--device", "cpu"),
+               check=False)
     assert proc.returncode != 0
     assert "error: rank 1 of 2 failed: could not write" in proc.stderr  # rank 0, with rank 1's reason
     assert "dvgo-8.safetensors (Is a directory)" in proc.stderr

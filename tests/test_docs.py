@@ -60,7 +60,8 @@ def test_readme_has_exactly_two_setup_commands():
 
 
 TESTS = Path(__file__).parent
-REF = re.compile(r"^(?:(?P<file>test_\w+\.py)(?:::)?)?(?P<name>test_\w+|\.\.\.)?(?P<dots>\.\.\.)?(?:\[(?P<param>.+)\])?$")
+REF = re.compile(r"^(?:(?P<file>test_\w+\.py)(?:::)?)?(?P<name>test_\w+|\.\.\.)?"
+                 r"(?P<dots>\.\.\.)?(?:\[(?P<param>.+)\])?$")
 
 
 def _check_how(cell: str, earlier: set[int], previous: str | None) -> str | None:

@@ -103,7 +103,8 @@ def test_readers_share_a_workspace_and_a_read_only_one_can_be_evaluated(trained_
         raise OSError(errno.ENOLCK, "No locks available")
 
     monkeypatch.setattr(wsmod.fcntl, "flock", no_locks)
-    with pytest.raises(BoostNerfError, match="cannot take the reader lock .*No locks available"), Workspace(ws).reading():
+    with (pytest.raises(BoostNerfError, match="cannot take the reader lock .*No locks available"),
+          Workspace(ws).reading()):
         pass
     assert not (ws / ".lock").exists() or (ws / ".lock").read_text() == ""
 
@@ -176,7 +177,9 @@ def test_interrupt_stops_cleanly_and_the_rerun_resumes(tmp_path, tiny_scene, sig
     # it ends by the signal it got (a shell's status 130 / 143), so a script running it stops too (an
     # exit 130 let a shell loop go on to its next command after a Ctrl-C)
     assert proc.wait(timeout=120) == -sig
-    assert err.strip().splitlines()[-1] == "interrupted: finished files are kept; rerun the same command to go on (a model in training resumes from its last checkpoint, if it had written one)"
+    assert err.strip().splitlines()[-1] == (
+        "interrupted: finished files are kept; rerun the same command to go on (a model in training resumes from its "
+        "last checkpoint, if it had written one)")
     assert "Traceback" not in err
     assert not (ws / ".lock").exists() and not _tmp_files(ws)
     step = torch.load(ws / "checkpoints" / "dvgo-10.pt", weights_only=True)["step"]

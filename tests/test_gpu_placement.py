@@ -80,7 +80,8 @@ def test_a_gate_is_built_for_a_box_on_the_gpu_and_baked_there(grid):
 FAMILY_CHANGES = {
     "dvgo": {},
     "tensorf": {"model": "tensorf", "dvgo": REMOVE,
-                "tensorf": {"hidden": 16, "layers": 1, "density_rank": 4, "app_rank": 4, "app_dim": 8, "fit_steps": 20}},
+                "tensorf": {"hidden": 16, "layers": 1, "density_rank": 4, "app_rank": 4, "app_dim": 8,
+                            "fit_steps": 20}},
     "ngp": {"model": "ngp", "res": [4, 6], "dvgo": REMOVE,
             "ngp": {"hidden": 16, "log2_table": 10, "base_res": 4, "max_res": 32, "grid_res": 16, "fit_steps": 20}},
 }

@@ -64,7 +64,8 @@ def test_points_outside_are_clamped_to_the_border():
 def test_resample_reproduces_a_linear_function():
     shape, new_shape = (4, 5, 6), (7, 3, 9)
     verts = lambda s, b: torch.stack(torch.meshgrid(*[torch.linspace(float(b[0, a]), float(b[1, a]), s[a],  # noqa: E731
-                                                       dtype=torch.float64) for a in range(3)], indexing="ij"), -1).reshape(-1, 3)
+                                                       dtype=torch.float64) for a in range(3)], indexing="ij"),
+                                     -1).reshape(-1, 3)
     f = lambda p: (p @ torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64))[:, None] + 0.3  # noqa: E731
     inner = torch.tensor([[-0.5, 0.0, -1.5], [0.5, 1.0, -0.5]], dtype=torch.float64)
     out = G.resample(f(verts(shape, BOX)), shape, BOX, new_shape, inner)

@@ -234,7 +234,9 @@ def test_the_rules_see_each_kind_of_violation(tmp_path):
     assert any("fields.leaky" in w and "scenes.blender" in w for w in layers), layers  # upward, inside a function
     assert any("stages.count_params" in w and "another stage" in w for w in layers), layers
     assert not any("workspace" in w for w in layers)  # a lower layer is allowed
-    assert find_cycle(tmp_path) in (["boostnerf_cli.scenes.llff", "boostnerf_cli.scenes.nsvf", "boostnerf_cli.scenes.llff"],
-                                    ["boostnerf_cli.scenes.nsvf", "boostnerf_cli.scenes.llff", "boostnerf_cli.scenes.nsvf"])
-    assert private_imports([leaky], tmp_path) == ["boostnerf_cli/fields/leaky.py:3 imports _frame from boostnerf_cli.scenes.blender"]
+    assert find_cycle(tmp_path) in (
+        ["boostnerf_cli.scenes.llff", "boostnerf_cli.scenes.nsvf", "boostnerf_cli.scenes.llff"],
+        ["boostnerf_cli.scenes.nsvf", "boostnerf_cli.scenes.llff", "boostnerf_cli.scenes.nsvf"])
+    assert private_imports([leaky], tmp_path) == [
+        "boostnerf_cli/fields/leaky.py:3 imports _frame from boostnerf_cli.scenes.blender"]
     assert file_imports_in_maths(tmp_path) == ["boostnerf_cli.fields.leaky:1 imports boostnerf_cli.workspace"]

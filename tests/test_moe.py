@@ -51,7 +51,8 @@ def test_aux_loss_equals_a_float64_hand_computation():
     assert abs(float(aux_loss(uniform, bal_idx, torch.ones(4, dtype=torch.float64))) - 1.0) < 1e-12
     one_hot = torch.zeros(8, 4, dtype=torch.float64)
     one_hot[:, 0] = 1
-    assert abs(float(aux_loss(one_hot, torch.zeros(8, 1, dtype=torch.long), torch.ones(4, dtype=torch.float64))) - 4.0) < 1e-12
+    assert abs(float(aux_loss(one_hot, torch.zeros(8, 1, dtype=torch.long),
+                              torch.ones(4, dtype=torch.float64))) - 4.0) < 1e-12
 
 
 def test_aux_loss_empty_batch_is_zero_with_a_gradient_path():
@@ -330,7 +331,8 @@ def test_rendering_a_mixture_uses_the_baked_gate_unless_asked_for_the_exact_one(
 
 @pytest.mark.parametrize("k", [1, 2])
 def test_topk_routing_changes_with_the_gate(k):
-    """The experts chosen are the gate's: perturbing the gate's parameters changes them, restoring them restores them."""
+    """The experts chosen are the gate's: perturbing the gate's parameters changes them, restoring them restores
+    them."""
     mix = toy_mixture(m=3, k=k)
     xyz, _ = _points(500)
     with torch.no_grad():

@@ -180,7 +180,8 @@ def test_alpha_mixing_renders_the_hand_composited_colour():
                 color += trans * alpha * rgb
                 trans *= 1.0 - alpha
             color += trans * bg
-            assert torch.allclose(bundle.color[r], color, rtol=0, atol=1e-10), (r, (bundle.color[r] - color).abs().max())
+            assert torch.allclose(bundle.color[r], color, rtol=0, atol=1e-10), (
+                r, (bundle.color[r] - color).abs().max())
 
 
 def test_density_and_alpha_mixing_differ_as_the_issue_says():
@@ -242,7 +243,8 @@ def _trilinear_reference(table, shape, bbox, point):
     for dx in (0, 1):
         for dy in (0, 1):
             for dz in (0, 1):
-                wt = ((frac[0] if dx else 1 - frac[0]) * (frac[1] if dy else 1 - frac[1]) * (frac[2] if dz else 1 - frac[2]))
+                wt = ((frac[0] if dx else 1 - frac[0]) * (frac[1] if dy else 1 - frac[1])
+                      * (frac[2] if dz else 1 - frac[2]))
                 row = ((base[0] + dx) * shape[1] + (base[1] + dy)) * shape[2] + (base[2] + dz)
                 out += wt * table[row].double()
     return out
@@ -314,7 +316,8 @@ def test_the_options_are_saved_and_old_files_load_with_the_paper_defaults(tmp_pa
     meta.pop("digest", None), meta.pop("format_version", None)
     save_tensors(tmp_path / "old.safetensors", tensors, meta)
     old, _ = load_mixture(tmp_path / "old.safetensors")
-    assert (old.cfg.mix, old.cfg.aux_norm, old.cfg.aux_samples, old.gate.cfg.init) == ("density", "batch", "all", "random")
+    assert (old.cfg.mix, old.cfg.aux_norm, old.cfg.aux_samples, old.gate.cfg.init) == (
+        "density", "batch", "all", "random")
     with torch.no_grad():
         assert not torch.allclose(old.density(xyz), loaded.density(xyz))
 
@@ -353,8 +356,8 @@ def test_explicit_penalty_weights_are_used_as_listed_in_the_official_loss():
 def test_explicit_penalty_weights_are_checked_in_one_line(tmp_path):
     (tmp_path / "ok.yaml").write_text(f"moe:\n  penalty: {OFFICIAL_WEIGHTS}\n")  # plain YAML text, no quotes
     assert load_recipe(tmp_path / "ok.yaml").moe.penalty == OFFICIAL_WEIGHTS
-    for bad, says in (("1, 0, 2", r"numbers in \(0, 1e\+06\]"), ("1, x", "one of geometric"), ("1, nan, 2", r"numbers in \(0, 1e\+06\]"),
-                      ("steep", "one of geometric")):
+    for bad, says in (("1, 0, 2", r"numbers in \(0, 1e\+06\]"), ("1, x", "one of geometric"),
+                      ("1, nan, 2", r"numbers in \(0, 1e\+06\]"), ("steep", "one of geometric")):
         with pytest.raises(BoostNerfError, match=says):
             (tmp_path / "r.yaml").write_text(f"moe:\n  penalty: '{bad}'\n")
             load_recipe(tmp_path / "r.yaml")
@@ -516,7 +519,8 @@ def test_the_gate_can_start_from_an_expert_left_out_of_the_mixture(trained_ws, t
     mix, meta = load_mixture(ws / "moe" / "init.safetensors")
     expert, _, _ = load_expert(ws / "experts" / "dvgo-12.safetensors")
     assert mix.m == 1 and torch.equal(mix.gate.table, expert.feature_table)  # an exact copy, from outside
-    assert set(meta["signature"]["inputs"]) == {"dvgo-12", "dvgo-16"}  # retraining the gate's source makes moe/init stale
+    # retraining the gate's source makes moe/init stale
+    assert set(meta["signature"]["inputs"]) == {"dvgo-12", "dvgo-16"}
 
     shutil.rmtree(ws / "moe")
     bad = make_recipe(tmp_path / "bad.yaml", moe={**OFFICIAL, "topk": 1, "gate_from": "dvgo-99"})

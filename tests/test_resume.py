@@ -2,8 +2,8 @@
 
 The real CLI runs in a process of its own (conftest.run_cli) and SIGKILLs itself at known points
 (workspace.TEST_KILL_ENV): right after its N-th training checkpoint, or inside the atomic write of a named
-artifact (temporary file written, not yet renamed). Rerunning the same command resumes from the last checkpoint; the final
-artifacts must match an uninterrupted run with the same seed within RESUME_ATOL (docs/reliability.md),
+artifact (temporary file written, not yet renamed). Rerunning the same command resumes from the last checkpoint; the
+final artifacts must match an uninterrupted run with the same seed within RESUME_ATOL (docs/reliability.md),
 and the killed runs must leave no partial file, checkpoint or lock behind once the command has completed.
 """
 
@@ -137,10 +137,12 @@ def test_a_checkpoint_is_not_resumed_with_other_training_settings(setup, tmp_pat
     ws = tmp_path / "ws"
     args = [a if a != str(ref) else str(ws) for a in args]
     run_killed(args, "checkpoint:14")  # inside dvgo-10 (step 8), after both geometry rounds (6 checkpoints each)
-    changed = make_recipe(tmp_path / "changed.yaml", **merge(RECIPE_CHANGES, {"pretrain": {"train": {"batch_rays": 96}}}))
+    changed = make_recipe(tmp_path / "changed.yaml",
+                          **merge(RECIPE_CHANGES, {"pretrain": {"train": {"batch_rays": 96}}}))
     assert_clean_failure(run_cli(*[a if a != str(recipe) else str(changed) for a in args]),
                          "other settings", "batch_rays")
-    quiet = make_recipe(tmp_path / "quiet.yaml", **merge(RECIPE_CHANGES, {"pretrain": {"train": {"log_every": 5, "lr_grid": 0.05}}}))
+    quiet = make_recipe(tmp_path / "quiet.yaml",
+                        **merge(RECIPE_CHANGES, {"pretrain": {"train": {"log_every": 5, "lr_grid": 0.05}}}))
     proc = run_cli(*[a if a != str(recipe) else str(quiet) for a in args], check=True)
     assert "resuming from" in proc.stderr
     # with the new rate (the checkpoint's optimiser state brought the old rates back, so a

@@ -93,7 +93,8 @@ def test_generation_is_deterministic(tmp_path):
 def test_analytic_render_hits_known_geometry(generated):
     objects = scene_objects(0)
     spheres = [o for o in objects if o["kind"] == "sphere"]
-    reach = max(np.linalg.norm(o["centre"]) + max(o.get("radius", 0), np.linalg.norm(o.get("half", 0))) for o in objects)
+    reach = max(np.linalg.norm(o["centre"]) + max(o.get("radius", 0), np.linalg.norm(o.get("half", 0)))
+                for o in objects)
     meta = json.loads((generated / "transforms_train.json").read_text())
     focal = 0.5 * SIZE / math.tan(0.5 * meta["camera_angle_x"])
     k = torch.tensor([focal, focal, SIZE / 2, SIZE / 2])

@@ -296,7 +296,8 @@ def test_interpolation_hits_vertex_values_exactly_at_box_corners():
     corners_xyz = torch.tensor([[x, y, z] for x in (-1.0, 1.0) for y in (-2.0, 2.0) for z in (0.0, 3.0)])
     idx, w = G.corners(corners_xyz, BOX, shape)
     out = G.lookup(table, idx, w)
-    rows = [(2 if i else 0) * 20 + (3 if j else 0) * 5 + (4 if k else 0) for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+    rows = [(2 if i else 0) * 20 + (3 if j else 0) * 5 + (4 if k else 0)
+            for i in (0, 1) for j in (0, 1) for k in (0, 1)]
     assert torch.allclose(out, table[rows], atol=1e-6)
 
 

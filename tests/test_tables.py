@@ -54,8 +54,8 @@ def test_a_hand_edited_table_is_caught(name, typed, edited):
 def test_a_table_from_raw_eval_reports_with_deltas_against_each_baseline(tmp_path, monkeypatch):
     """What the lead engineer does with new runs: copy WS/reports/eval.json files to docs/data/ and list them."""
     def report(psnr_base, psnr_top2):
-        row = {"kind": "mixture", "lpips": None, "seconds_per_image": 0.1, "samples_per_image": 1, "colored_per_image": 1,
-               "params": 2_000_000}
+        row = {"kind": "mixture", "lpips": None, "seconds_per_image": 0.1, "samples_per_image": 1,
+               "colored_per_image": 1, "params": 2_000_000}
         return {"split": "test", "views": 8, "lpips_note": None, "models": [
             {**row, "name": "dvgo-80", "kind": "expert", "psnr": 33.781, "ssim": 0.9801, "w0": 1_090_123,
              "gflops_per_image": 2.789},
@@ -68,7 +68,8 @@ def test_a_table_from_raw_eval_reports_with_deltas_against_each_baseline(tmp_pat
     (data / "dvgo-eval.json").write_text(json.dumps(report(34.2494, 34.5451)))
     (data / "ngp-eval.json").write_text(json.dumps(report(33.1271, 33.4482)))
     (data / "families.json").write_text(json.dumps({"groups": [
-        {"label": "DVGO", "report": "dvgo-eval.json"}, {"label": "NGP", "report": "ngp-eval.json", "models": ["baseline", "top2"]}]}))
+        {"label": "DVGO", "report": "dvgo-eval.json"},
+        {"label": "NGP", "report": "ngp-eval.json", "models": ["baseline", "top2"]}]}))
     monkeypatch.setattr(tables, "DATA", data)
     assert tables.render("families") == (
         "| model | PSNR | vs baseline | SSIM | ‖w‖₀ | GFLOPs / image |\n"
@@ -92,7 +93,8 @@ def test_a_table_from_raw_eval_reports_with_deltas_against_each_baseline(tmp_pat
 
 
 @pytest.mark.parametrize("value,compact,text", [(593_532, True, "594k"), (1_072_525, True, "1.07M"),
-                                                (1_072_525, False, "1,072,525"), (None, True, "-"), ("1.1M", False, "1.1M")])
+                                                (1_072_525, False, "1,072,525"), (None, True, "-"),
+                                                ("1.1M", False, "1.1M")])
 def test_parameter_counts(value, compact, text):
     assert tables._count(value, compact) == text
 
@@ -134,7 +136,8 @@ def test_the_paper_layout_puts_each_size_and_model_in_a_column(tmp_path, monkeyp
     (data / "m4.json").write_text(json.dumps(report(34.4271, 34.5, (391, 702))))
     (data / "m4-top1.json").write_text(json.dumps({"models": [
         {"name": "top1", "psnr": 34.9, "ssim": 0.9875, "w0": 3_000_000, "gflops_per_image": 2.0}]}))
-    spec = {"sizes": [{"label": "M = 3", "report": "m3.json"}, {"label": "M = 4", "report": ["m4.json", "m4-top1.json"]}],
+    spec = {"sizes": [{"label": "M = 3", "report": "m3.json"},
+                      {"label": "M = 4", "report": ["m4.json", "m4-top1.json"]}],
             "models": [["baseline", "baseline"], ["top1", "Top-1"]],
             "reference": [{"label": "paper: PSNR", "cells": ["32.97", "33.17", "33.07", "33.34"]}]}
     (data / "paper.json").write_text(json.dumps(spec))

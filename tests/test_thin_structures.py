@@ -280,7 +280,8 @@ def test_foreground_rays_that_miss_the_scene_box_are_warned_not_said_to_be_held(
     meta = read_meta(tmp_path / "ws" / "experts" / "geometry.safetensors")
     missed, total = meta["rounds"][0]["missed_after"], meta["rounds"][0]["foreground_rays"]
     assert missed > 0.05 * total, meta["rounds"]
-    assert f"warning: {missed} of {total} foreground training rays" in proc.stderr and "miss the scene box" in proc.stderr
+    assert (f"warning: {missed} of {total} foreground training rays" in proc.stderr
+            and "miss the scene box" in proc.stderr)
     assert "the box holds every ray's surface" not in proc.stderr
 
 
@@ -293,9 +294,11 @@ def test_content_past_the_scene_box_is_named_and_data_bbox_holds_it(tmp_path):
     content's own box, and 4-5% of the rays, the floor's, lay within a cell of its bottom face)."""
     recipe = {"pretrain": {"res": [8], "iters": 1, "geometry": {"res": 16, "iters": 150, "batch_rays": 512}},
               "moe": REMOVE}
-    wide = [-3.3, -3.3, -0.9, 3.3, 3.3, 0.6]  # a coarse cell (0.22) of room around the content: nearer, it is on the faces
+    # a coarse cell (0.22) of room around the content: nearer, it is on the faces
+    wide = [-3.3, -3.3, -0.9, 3.3, 3.3, 0.6]
     runs = {}
-    for name, content, data, layout in (("large", "large", {}, "blender"), ("large-box", "large", {"bbox": wide}, "blender"),
+    for name, content, data, layout in (("large", "large", {}, "blender"),
+                                        ("large-box", "large", {"bbox": wide}, "blender"),
                                         ("objects", "objects", {}, "blender"), ("objects-nsvf", "objects", {}, "nsvf")):
         scene = tmp_path / f"{content}-{layout}"
         if not scene.exists():

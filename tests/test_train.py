@@ -259,7 +259,8 @@ def test_all_finite_finds_any_non_finite_gradient(bad):
     def all_finite(params):
         return bool(grads_finite(params))
 
-    params = [torch.zeros(5, requires_grad=True), torch.zeros(3, 2, requires_grad=True), torch.zeros(2, requires_grad=True)]
+    params = [torch.zeros(5, requires_grad=True), torch.zeros(3, 2, requires_grad=True),
+              torch.zeros(2, requires_grad=True)]
     params[0].grad = torch.tensor([1.0, -3e38, 0.0, 2.0, 3e38])  # huge but finite
     params[1].grad = torch.ones(3, 2)
     if bad is not None:

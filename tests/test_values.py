@@ -72,7 +72,8 @@ BAD: dict[str, st.SearchStrategy] = {
     "pretrain.train.lr_grid": st.one_of(NOT_POSITIVE, st.floats(min_value=10.0, exclude_min=True)),  # Adam's step
     "pretrain.train.lr_mlp": NOT_POSITIVE,
     "pretrain.train.lr_decay": st.one_of(st.floats(max_value=0.0, allow_nan=False),
-                                         st.floats(min_value=1.0, exclude_min=True, allow_nan=False), st.just(math.nan)),
+                                         st.floats(min_value=1.0, exclude_min=True, allow_nan=False),
+                                         st.just(math.nan)),
     "pretrain.train.step_ratio": st.one_of(NOT_POSITIVE, st.floats(0, 0.05, exclude_max=True), st.floats(min_value=4.0,
                                            exclude_min=True)),  # samples per ray: out of memory, or past the box
     "pretrain.train.color_threshold": OUTSIDE_THRESHOLD,
@@ -173,7 +174,8 @@ def test_out_of_range_values_are_one_line_naming_the_key(tmp_path, data, key):
 
 
 @settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(data=st.data(), key=st.sampled_from(["pretrain.dvgo.alpha_init", "pretrain.dvgo.hidden", "pretrain.ngp.log2_table"]),
+@given(data=st.data(),
+       key=st.sampled_from(["pretrain.dvgo.alpha_init", "pretrain.dvgo.hidden", "pretrain.ngp.log2_table"]),
        res=st.integers(2, 512))
 def test_per_resolution_values_are_checked_each(tmp_path, data, key, res):
     value = data.draw(BAD[key], label=key)
@@ -209,7 +211,8 @@ ANY_VALUE = st.recursive(st.one_of(st.none(), st.booleans(), st.integers(), st.f
        value=ANY_VALUE)
 @example(key="pretrain.dvgo", value={"\n": None})  # a key that is a newline: the message spanned two lines
 def test_any_value_loads_or_is_one_line(tmp_path, key, value):
-    """Whatever YAML holds at a key: the recipe loads, or one BoostNerfError line naming the key; never another exception."""
+    """Whatever YAML holds at a key: the recipe loads, or one BoostNerfError line naming the key; never another
+    exception."""
     try:
         load_recipe(_write(tmp_path, _nested(key, value)))
     except BoostNerfError as e:
@@ -221,14 +224,16 @@ def test_known_values_from_the_issue(tmp_path):
     cases = {
         "pretrain:\n  dvgo: {alpha_init: 0}\n": "recipe key pretrain.dvgo.alpha_init = 0.0: must be in (0, 1)",
         "pretrain:\n  dvgo: {alpha_init: 1}\n": "recipe key pretrain.dvgo.alpha_init = 1.0: must be in (0, 1)",
-        "pretrain:\n  model: ngp\n  ngp: {log2_table: 40}\n": "recipe key pretrain.ngp.log2_table = 40: must be in [1, 30]",
+        "pretrain:\n  model: ngp\n  ngp: {log2_table: 40}\n":
+            "recipe key pretrain.ngp.log2_table = 40: must be in [1, 30]",
         "pretrain:\n  train: {batch_rays: -4}\n": "recipe key pretrain.train.batch_rays = -4: must be >= 1",
         "pretrain:\n  train: {growth: [0.1, 1.2]}\n": "recipe key pretrain.train.growth = 1.2: must be in (0, 1)",
         "moe:\n  train: {lr_decay: 1.5}\n": "recipe key moe.train.lr_decay = 1.5: must be in (0, 1]",
         "moe:\n  gate_res: 1\n": "recipe key moe.gate_res = 1: must be in [2, 1024]",
         "moe:\n  gate_res: 3000\n": "recipe key moe.gate_res = 3000: must be in [2, 1024]",
         "pretrain:\n  res: [64, 4096]\n": "recipe key pretrain.res = 4096: must be in [1, 1024]",
-        "moe:\n  penalty: cubic\n": "recipe key moe.penalty = 'cubic': must be one of geometric, linear, quadratic, none",
+        "moe:\n  penalty: cubic\n": "recipe key moe.penalty = 'cubic': must be one of geometric, linear, "
+                                    "quadratic, none",
         "pretrain:\n  res: []\n": "recipe key pretrain.res = []: needs at least 1 value(s)",
         "pretrain:\n  res: [64, 96, 64]\n": "recipe key pretrain.res = [64, 96, 64] lists 64 more than once: each "
                                           "expert is named by its resolution",  # build-moe's topk error, before
@@ -284,8 +289,9 @@ def test_probe_s_values_accepted_before_that_crashed_or_trained_garbage(tmp_path
     expert = DVGOExpert(DVGOConfig(res=4, alpha_init=1e-300), torch.tensor([[-1.0] * 3, [1.0] * 3]))
     assert math.isfinite(expert.shift) and expert.shift < -600  # log(1e-300): math domain error before
     far = make_recipe(tmp_path / "far.yaml", data={"image_size": 16, "bbox": [100, 100, 100, 101, 101, 101]})
-    assert_clean_failure(run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(far), "-w", str(tmp_path / "ws"),
-                                 "--device", "cpu"), "no training ray crosses the box", "data.bbox")
+    assert_clean_failure(run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(far),
+                                 "-w", str(tmp_path / "ws"), "--device", "cpu"),
+                         "no training ray crosses the box", "data.bbox")
 
 
 def test_loss_weights_that_overflow_float32_and_finetuning_keys_finetuning_ignores_are_refused(tmp_path):
@@ -296,12 +302,14 @@ def test_loss_weights_that_overflow_float32_and_finetuning_keys_finetuning_ignor
         "moe:\n  penalty: '1, 1e39, 2'\n": "recipe key moe.penalty = '1, 1e39, 2': must be one of geometric, linear, "
                                           "quadratic, none, or numbers in (0, 1e+06]",
         "moe:\n  lam: 1.0e+39\n": "recipe key moe.lam = 1e+39: must be in [0, 1e+06]",
-        "pretrain:\n  train: {weight_entropy: 1.0e+39}\n": "pretrain.train.weight_entropy = 1e+39: must be in [0, 1e+06]",
+        "pretrain:\n  train: {weight_entropy: 1.0e+39}\n":
+            "pretrain.train.weight_entropy = 1e+39: must be in [0, 1e+06]",
         "moe:\n  train: {step_ratio: 0.25}\n": "recipe key moe.train.step_ratio = 0.25: finetuning does not use it",
         "moe:\n  train: {growth: [0.5]}\n": "recipe key moe.train.growth = [0.5]: finetuning does not use it",
     }
     _assert_refused(tmp_path, cases)
-    (tmp_path / "r.yaml").write_text("moe:\n  lam: 1.0e+6\n  penalty: '1, 1e6'\n  train: {step_ratio: 0.5, growth: []}\n")
+    (tmp_path / "r.yaml").write_text("moe:\n  lam: 1.0e+6\n  penalty: '1, 1e6'\n"
+                                     "  train: {step_ratio: 0.5, growth: []}\n")
     assert load_recipe(tmp_path / "r.yaml").moe.lam == 1e6  # the bounds and the defaults themselves load
 
 
@@ -424,7 +432,8 @@ def test_mixture_file_with_the_wrong_structure_is_one_line(tmp_path):
     meta["gate"]["config"]["kind"] = "octree"  # Gate raised ValueError outside any handler before
     meta.pop("digest"), meta.pop("format_version")
     save_tensors(path, tensors, meta)
-    with pytest.raises(BoostNerfError, match=r"m.safetensors does not hold a valid mixture \(ValueError: unknown gate type"):
+    with pytest.raises(BoostNerfError,
+                       match=r"m.safetensors does not hold a valid mixture \(ValueError: unknown gate type"):
         load_mixture(path)
 
 

@@ -96,7 +96,8 @@ class ExpertModule(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.register_buffer("bbox", bbox.detach().clone().float())
-        self.shift = math.log(cfg.alpha_init) - math.log1p(-cfg.alpha_init)  # log(1/(1-a) - 1), finite for any a in (0, 1)
+        # log(1/(1-a) - 1), finite for any a in (0, 1)
+        self.shift = math.log(cfg.alpha_init) - math.log1p(-cfg.alpha_init)
 
     def spacing(self, shape: tuple[int, int, int]) -> float:
         """Mean distance between the vertices of a lattice `shape` spanning the box."""

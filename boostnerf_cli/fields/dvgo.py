@@ -37,11 +37,14 @@ class DVGOConfig:
     """Architecture of a DVGO-style expert. `res`: the final grid has res^3 voxels."""
 
     res: int = limit(128, GRID_RES)
-    feat_dim: int = limit(12, Range(1, 512))  # feature channels of the colour grid (with hidden 0: 3, the colour itself)
-    hidden: int = limit(128, Range(0, MLP_WIDTH.hi))  # width of the colour MLP; 0 = no MLP, colour = sigmoid of 3 grid channels
+    # feature channels of the colour grid (with hidden 0: 3, the colour itself)
+    feat_dim: int = limit(12, Range(1, 512))
+    # width of the colour MLP; 0 = no MLP, colour = sigmoid of 3 grid channels
+    hidden: int = limit(128, Range(0, MLP_WIDTH.hi))
     layers: int = limit(2, MLP_LAYERS)  # hidden layers of the colour MLP
     view_pe: int = limit(4, PE_FREQS)  # frequencies of the view-direction encoding
-    alpha_init: float = limit(1e-2, OPEN_UNIT)  # opacity over one voxel before training (the density's shift is log(1/(1 - a) - 1))
+    # opacity over one voxel before training (the density's shift is log(1/(1 - a) - 1))
+    alpha_init: float = limit(1e-2, OPEN_UNIT)
 
 
 def direction_encoding(dirs: Tensor, n_freq: int) -> Tensor:

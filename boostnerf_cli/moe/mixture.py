@@ -50,7 +50,8 @@ from boostnerf_cli.render.packing import DYNAMIC, Packer
 from boostnerf_cli.render.volrend import render_weights
 
 MIX_MODES = ("density", "alpha")
-VD_SOURCES = ("smallest", "largest")  # V_D: the frozen density volume fitted to the smallest expert | the largest's density
+# V_D: the frozen density volume fitted to the smallest expert | the largest's density
+VD_SOURCES = ("smallest", "largest")
 VD_FILTERS = ("opacity", "visible")  # V_D drops samples by its opacity over one step | and by its weight along the ray
 # Smallest one-step transmittance of a mixed sample (alpha_f <= 1 - 1e-30, optical depth <= 69): keeps the
 # optical depth and its gradient finite when every chosen expert is opaque.
@@ -62,15 +63,29 @@ class Routing:
     """How a mixture routes, mixes and is penalised: keys of the recipe's `moe` section, declared here once
     (`recipe.MoERecipe` extends this class). build-moe sets them on moe/init, each finetune again on its model."""
 
-    topk: int = limit(2, at_least(1))  # the untrained mixture's k (moe/init; bench's untrained rows): build-moe fits it to the number of experts, with a note; finetune --topk K sets each model's
-    renormalize: bool = True  # top-k weights sum to 1 (k = 1: straight-through 1); False: raw probabilities (docs/results.md)
-    penalty: str = limit("geometric", PENALTY_RULE)  # geometric | linear | quadratic | none | weights "1, 1.5, 2.23" (one per expert)
-    aux_norm: str = limit("batch", OneOf(AUX_NORMS))  # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 = k^2 |B|^2 (official code)
-    aux_samples: str = limit("all", OneOf(AUX_SAMPLES))  # auxiliary loss over every routed sample | visible: those whose V_D opacity and V_D rendering weight pass moe.train.color_threshold (official code)
-    vd_source: str = limit("smallest", OneOf(VD_SOURCES))  # V_D: fitted to the smallest expert, frozen | largest: the largest expert's own density as it trains (official code)
-    vd_filter: str = limit("opacity", OneOf(VD_FILTERS))  # V_D drops samples by its opacity over one step | visible: also those its rendering weight along the ray puts at or below the colour threshold (official code)
-    mix: str = limit("density", OneOf(MIX_MODES))  # the routing weights mix density (paper's equation) | alpha: each expert's opacity over one render step (official code)
-    bake_res: int = limit(128, Range(0, MAX_GRID_RES))  # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
+    # the untrained mixture's k (moe/init; bench's untrained rows): build-moe fits
+    # it to the number of experts, with a note; finetune --topk K sets each model's
+    topk: int = limit(2, at_least(1))
+    # top-k weights sum to 1 (k = 1: straight-through 1); False: raw probabilities (docs/results.md)
+    renormalize: bool = True
+    # geometric | linear | quadratic | none | weights "1, 1.5, 2.23" (one per expert)
+    penalty: str = limit("geometric", PENALTY_RULE)
+    # auxiliary loss over |B|^2 (paper) | counts: over (sum_i c_i)^2 = k^2 |B|^2 (official code)
+    aux_norm: str = limit("batch", OneOf(AUX_NORMS))
+    # auxiliary loss over every routed sample | visible: those whose V_D opacity
+    # and V_D rendering weight pass moe.train.color_threshold (official code)
+    aux_samples: str = limit("all", OneOf(AUX_SAMPLES))
+    # V_D: fitted to the smallest expert, frozen | largest: the
+    # largest expert's own density as it trains (official code)
+    vd_source: str = limit("smallest", OneOf(VD_SOURCES))
+    # V_D drops samples by its opacity over one step | visible: also those its rendering
+    # weight along the ray puts at or below the colour threshold (official code)
+    vd_filter: str = limit("opacity", OneOf(VD_FILTERS))
+    # the routing weights mix density (paper's equation) | alpha:
+    # each expert's opacity over one render step (official code)
+    mix: str = limit("density", OneOf(MIX_MODES))
+    # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
+    bake_res: int = limit(128, Range(0, MAX_GRID_RES))
 
 
 def routing_of(source: Routing) -> dict:

@@ -107,8 +107,9 @@ DYNAMIC = Packer()
 
 def pack_static(mask: Tensor, size: int, count: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """mask (N,) bool -> (rows (size,): the indices of its first `size` True entries in order, then 0;
-    live (size,) bool: which slots hold one). `count`: mask.sum(), when the caller has it. An exclusive prefix sum gives each kept entry its slot, and one
-    scatter writes them (what `torch.nonzero_static` computes, in operators every device and the compiler have)."""
+    live (size,) bool: which slots hold one). `count`: mask.sum(), when the caller has it. An exclusive prefix sum
+    gives each kept entry its slot, and one scatter writes them (what `torch.nonzero_static` computes, in operators
+    every device and the compiler have)."""
     n = mask.shape[0]
     slot = torch.cumsum(mask, 0) - 1
     slot = torch.where(mask & (slot < size), slot, size)  # dropped entries go to a spare slot, cut off below

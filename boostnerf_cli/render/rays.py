@@ -109,7 +109,8 @@ def project_points(points: Tensor, pose: Tensor, intrinsics: Tensor) -> tuple[Te
     return torch.stack([u, v], dim=-1), depth
 
 
-def intersect_box(origins: Tensor, dirs: Tensor, bbox: Tensor, near: float, far: float) -> tuple[Tensor, Tensor, Tensor]:
+def intersect_box(origins: Tensor, dirs: Tensor, bbox: Tensor, near: float,
+                  far: float) -> tuple[Tensor, Tensor, Tensor]:
     """Slab test of rays against an axis-aligned box, clipped to [near, far].
 
     origins, dirs (R, 3); bbox (2, 3) -> t_enter (R,), t_exit (R,), hit (R,) bool.

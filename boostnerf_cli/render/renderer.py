@@ -38,7 +38,8 @@ class RenderSettings:
     bbox: Tensor  # (2, 3)
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     color_threshold: float = 1e-4  # weight below which a sample's colour is not computed
-    max_samples: int = 1024  # per ray; the step grows if the box's diagonal needs more (never with Scene.render_settings)
+    # per ray; the step grows if the box's diagonal needs more (never with Scene.render_settings)
+    max_samples: int = 1024
     chunk: int = 8192  # rays per chunk when rendering whole images
     ndc: NDC | None = None  # forward-facing scenes: camera rays are warped to NDC (step, near, far, bbox in NDC)
 

@@ -122,12 +122,13 @@ def _decode(folder: Path, image_size: int | None, holdout_every: int, format: st
         scene.extra["detected"] = detected
     if bbox is not None:
         if scene.ndc is not None:
-            raise BoostNerfError(f"data.bbox does not apply to {folder}: a forward-facing scene is sampled in normalized "
-                                 "device coordinates, whose box is fixed; remove the key")
+            raise BoostNerfError(f"data.bbox does not apply to {folder}: a forward-facing scene is sampled in "
+                                 "normalized device coordinates, whose box is fixed; remove the key")
         try:
             box = torch.tensor(bbox, dtype=torch.float32)
         except (TypeError, ValueError):
-            raise BoostNerfError(f"data.bbox = {bbox!r}: must be six numbers, xmin, ymin, zmin, xmax, ymax, zmax") from None
+            raise BoostNerfError(f"data.bbox = {bbox!r}: "
+                                 "must be six numbers, xmin, ymin, zmin, xmax, ymax, zmax") from None
         # `Scene` refuses any other shape, and a max not above its min, in one line
         scene = dataclasses.replace(scene, bbox=box.view(2, 3) if box.numel() == 6 else box,
                                     extra={**scene.extra, "bbox": "data.bbox"})

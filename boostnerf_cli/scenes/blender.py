@@ -65,7 +65,8 @@ def _parse_split(folder: Path, split: str) -> tuple[list[Frame], dict]:
         image = resolve_image(folder, str(frame["file_path"]), f"{source} in {folder}")
         camera = frame_camera(frame, meta)
         name = str(image.relative_to(folder).with_suffix("")) if image.is_relative_to(folder) else image.stem
-        frames.append(Frame(image, name, parse_pose(frame["transform_matrix"], f"{source} in {folder}"), camera, source))
+        frames.append(Frame(image, name, parse_pose(frame["transform_matrix"], f"{source} in {folder}"), camera,
+                            source))
     return frames, meta
 
 
@@ -109,7 +110,8 @@ def load_blender(
     if not found:
         raise BoostNerfError(f"no transforms_{{train,val,test}}.json in {folder}: not a Blender-format scene")
     if "train" not in found:
-        raise BoostNerfError(f"{folder} has {', '.join(f'transforms_{s}.json' for s in found)} but no transforms_train.json")
+        raise BoostNerfError(f"{folder} has {', '.join(f'transforms_{s}.json' for s in found)} "
+                             "but no transforms_train.json")
     parsed = {s: _parse_split(folder, s) for s in found}
     found = [s for s in found if parsed[s][0]]  # a val / test file with no frames: no such split
     frames = [f for s in found for f in parsed[s][0]]

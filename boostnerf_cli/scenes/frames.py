@@ -229,7 +229,8 @@ def load_frames(frames: list[Frame], image_size: int | None,
 
 
 def lossy_extra(frames) -> dict:
-    """`Scene.extra` entry for frames read from lossy files (JPEG): {"lossy": True}, else {} (`coverage.foreground_tol`)."""
+    """`Scene.extra` entry for frames read from lossy files (JPEG): {"lossy": True}, else {}
+    (`coverage.foreground_tol`)."""
     return {"lossy": True} if any(Path(f.image).suffix.lower() in (".jpg", ".jpeg") for f in frames) else {}
 
 
@@ -323,13 +324,14 @@ def parse_pose(matrix, source: str) -> np.ndarray:
     if pose.shape == (3, 4):  # the last row 0 0 0 1 left out
         pose = np.vstack([pose, [0.0, 0.0, 0.0, 1.0]])
     if pose.shape != (4, 4):
-        raise BoostNerfError(f"{source}: transform_matrix must be a 4x4 (or 3x4) matrix of numbers, got shape {pose.shape}")
+        raise BoostNerfError(f"{source}: transform_matrix must be a 4x4 (or 3x4) matrix of numbers, "
+                             f"got shape {pose.shape}")
     if not np.isfinite(pose).all():
         raise BoostNerfError(f"{source}: transform_matrix contains NaN or infinite values; fix the pose")
     det = float(np.linalg.det(pose[:3, :3]))
     if abs(det) < 1e-6:
-        raise BoostNerfError(f"{source}: transform_matrix's rotation (its 3x3 block) is singular (determinant {det:.2g}), "
-                             "not a camera orientation; fix the pose")
+        raise BoostNerfError(f"{source}: transform_matrix's rotation (its 3x3 block) is singular "
+                             f"(determinant {det:.2g}), not a camera orientation; fix the pose")
     return pose
 
 
@@ -417,7 +419,8 @@ def hold_out(train: Split, every: int) -> tuple[Split, Split, str]:
     kept = [i for i in range(len(train)) if i % every != 0]
     if not kept:
         raise BoostNerfError(
-            f"only {len(train)} train view(s): holding out every {every}th leaves none; hold none out with --holdout-every 0 (recipe key data.holdout_every: 0)"
+            f"only {len(train)} train view(s): holding out every {every}th leaves none; hold none out with "
+            "--holdout-every 0 (recipe key data.holdout_every: 0)"
         )
     text = f"every {every}th train view ({len(held)} of {len(train)}) held out as test"
     return train.subset(kept), train.subset(held), text

@@ -178,7 +178,8 @@ def load_llff(
     sub, files = choose_folder(folder, image_size)
     if len(files) != len(raw):
         raise BoostNerfError(
-            f"{pb.name} has {len(raw)} poses but {sub.name}/ holds {len(files)} images: each image needs exactly one pose row"
+            f"{pb.name} has {len(raw)} poses but {sub.name}/ holds {len(files)} images: "
+            "each image needs exactly one pose row"
         )
     poses = llff_to_opengl(raw)
     scale = 1.0 / (bounds.min() * BOUND_FACTOR)

@@ -125,7 +125,8 @@ def read_intrinsics(folder: Path) -> list[float]:
     else:
         raise BoostNerfError(f"{expected}, got {len(flat)} numbers in {len(rows)} lines")
     if not np.isfinite(values).all() or values[0] <= 0 or values[1] <= 0:
-        raise BoostNerfError(f"{path}: focal lengths must be positive finite numbers, got fx={values[0]} fy={values[1]}")
+        raise BoostNerfError(f"{path}: focal lengths must be positive finite numbers, "
+                             f"got fx={values[0]} fy={values[1]}")
     return [float(v) for v in values]
 
 
@@ -210,8 +211,8 @@ def load_nsvf(
     for s in order:
         fs = frames[s]
         poses = torch.tensor(np.stack([f.pose for f in fs]), dtype=torch.float32)
-        splits[s] = Split(images[start : start + len(fs)], poses, k.expand(len(fs), 4).clone(), tuple(f.name for f in fs),
-                          None if alpha is None else alpha[start : start + len(fs)])
+        splits[s] = Split(images[start : start + len(fs)], poses, k.expand(len(fs), 4).clone(),
+                          tuple(f.name for f in fs), None if alpha is None else alpha[start : start + len(fs)])
         start += len(fs)
     holdout = ""
     if order == ["train"] and holdout_every:

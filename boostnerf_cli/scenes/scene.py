@@ -44,7 +44,8 @@ class Split:
         if self.intrinsics.shape != (n, 4):
             raise BoostNerfError(f"expected {n} intrinsics (fx, fy, cx, cy), got {tuple(self.intrinsics.shape)}")
         if self.alpha is not None and self.alpha.shape != self.images.shape[:3]:
-            raise BoostNerfError(f"split alpha must be (N, H, W) = {tuple(self.images.shape[:3])}, got {tuple(self.alpha.shape)}")
+            raise BoostNerfError(f"split alpha must be (N, H, W) = {tuple(self.images.shape[:3])}, "
+                                 f"got {tuple(self.alpha.shape)}")
         if len(self.names) != n:
             raise BoostNerfError(f"expected {n} view names, got {len(self.names)}")
         if not torch.isfinite(self.poses).all():
@@ -53,8 +54,8 @@ class Split:
         if bool(bad.any()):
             i = int(bad.nonzero()[0])
             values = ", ".join(f"{float(v):g}" for v in self.intrinsics[i])
-            raise BoostNerfError(f"camera intrinsics of view {self.names[i]} are fx, fy, cx, cy = {values}: focal lengths "
-                                 "must be positive and every value finite; fix the dataset's camera file")
+            raise BoostNerfError(f"camera intrinsics of view {self.names[i]} are fx, fy, cx, cy = {values}: "
+                                 "focal lengths must be positive and every value finite; fix the dataset's camera file")
 
     def __len__(self) -> int:
         return self.images.shape[0]
@@ -72,7 +73,8 @@ class Split:
         """File stems for the views' outputs (renders): each name's last path part, or, where two views share it
         (one folder per camera: `cam0/0000`, `cam1/0000`), the shortest suffix of parts that tells every view
         apart, joined by `_` (`cam0_0000`). Views whose whole names repeat get `_2`, `_3`, ..."""
-        parts = [tuple(p for p in n.replace("\\", "/").split("/") if p not in ("", ".")) or ("view",) for n in self.names]
+        parts = [tuple(p for p in n.replace("\\", "/").split("/") if p not in ("", ".")) or ("view",)
+                 for n in self.names]
         for k in range(1, max(len(p) for p in parts) + 1):
             stems = ["_".join(p[-k:]) for p in parts]
             if len(set(stems)) == len(stems):

@@ -353,7 +353,8 @@ def check_config(root: Path, data: Path | None, views: int | None, rec: Recipe, 
 def _check_moved_scene(root: Path, data: Path, rec: Recipe, was: Path) -> None:
     """Refuse a scene at a new path whose images or cameras differ from those the bench's variants were trained on
     (their manifests' scene digest); the variants repoint themselves when they next run (pretrain's `moved`)."""
-    digests = {read_json(m, "workspace manifest").get("scene_digest") for m in (root / "variants").glob("*/manifest.json")}
+    digests = {read_json(m, "workspace manifest").get("scene_digest")
+               for m in (root / "variants").glob("*/manifest.json")}
     digests.discard(None)
     if not digests:
         return  # nothing trained on the old one

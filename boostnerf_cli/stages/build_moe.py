@@ -74,7 +74,8 @@ def _experts(ws: Workspace, names: list[str] | None, rec: MoERecipe,
     manifest = ws.require_manifest()
     available = ws.expert_names()
     if not available:
-        raise BoostNerfError(f"{ws.root} has no pretrained experts: run `boostnerf pretrain --workspace {ws.root}` first")
+        raise BoostNerfError(f"{ws.root} has no pretrained experts: "
+                             f"run `boostnerf pretrain --workspace {ws.root}` first")
     unfinished = [n for n in ws.expert_files() if n not in available]
     if unfinished and not names:
         log(f"build-moe: leaving out {', '.join(unfinished)}: weights without a training report (pretrain did not "
@@ -118,12 +119,13 @@ def _density_volume(rec: MoERecipe, experts: list[tuple],
     if occ.fraction() == 0:
         coarse = rec.vd_res and 2 * rec.vd_res <= smallest.spatial_res
         raise BoostNerfError(
-            f"V_D from {experts[0][1]} keeps no cell: its opacity over one render step is at most moe.density_threshold "
-            f"= {rec.density_threshold:g} everywhere, so every sample would be filtered and the mixture could not "
-            "train; lower it (--threshold)"
+            f"V_D from {experts[0][1]} keeps no cell: its opacity over one render step is at most "
+            f"moe.density_threshold = {rec.density_threshold:g} everywhere, so every sample would be filtered and "
+            "the mixture could not train; lower it (--threshold)"
             + (f" or raise moe.vd_res (= {rec.vd_res}: a volume this coarse reads the expert's density at few points; "
                f"unset, it is the smallest expert's {smallest.spatial_res})" if coarse else "")
-            + " or train the experts longer (pretrain --iters N --force), unless the scene shows nothing but empty space")
+            + " or train the experts longer (pretrain --iters N --force), unless the scene shows nothing but "
+            "empty space")
     return vd, occ, step
 
 
@@ -158,8 +160,9 @@ def gate_source(rec: MoERecipe, gate_grid: str, experts: list[tuple], outside: t
         raise BoostNerfError(f"moe.gate_init = expert needs a dvgo expert (the gate copies a dense feature grid); "
                              f"{source[1]} is {source[2].family}: set moe.gate_init to random")
     if rec.gate_type not in ("grid", "linear") or gate_grid != "dense":
-        raise BoostNerfError(f"moe.gate_init = expert needs a grid or linear gate with a dense feature grid (moe.gate_type "
-                             f"= {rec.gate_type}, gate grid {gate_grid}): set moe.gate_init to random or moe.gate_grid to dense")
+        raise BoostNerfError(f"moe.gate_init = expert needs a grid or linear gate with a dense feature grid "
+                             f"(moe.gate_type = {rec.gate_type}, gate grid {gate_grid}): set moe.gate_init to random "
+                             "or moe.gate_grid to dense")
     return source
 
 

@@ -20,7 +20,8 @@ def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, vi
     split = scene.split(split_name)
     names = require_current(ws, names)
     if not names:
-        raise BoostNerfError(f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
+        raise BoostNerfError(f"{ws.root} has no trained models yet: "
+                             f"run `boostnerf pretrain --workspace {ws.root}` first")
     rows = []
     for name in names:
         row = model_costs(load_model(ws, name, device, exact_gate=True), scene, split, device, views)

@@ -52,7 +52,8 @@ def _source_digest(ws: Workspace, name: str, init_meta: dict) -> str | None:
     return init_meta.get("digest")
 
 
-def routing(name: str, topk: int | None, rec: MoERecipe, cfg: MixtureConfig, gate_kind: str) -> tuple[MixtureConfig, str]:
+def routing(name: str, topk: int | None, rec: MoERecipe, cfg: MixtureConfig,
+            gate_kind: str) -> tuple[MixtureConfig, str]:
     """How finetuning configures moe/init's mixture (its config `cfg`, its gate's kind) for model `name`: the recipe's
     routing (`moe.mixture.Routing`), then the ensemble's uniform gate and k = M, or top-k's k.
     -> (the mixture's config, the gate's kind)."""
@@ -92,7 +93,8 @@ def _init_meta(ws: Workspace) -> dict:
     """moe/init's metadata, refused when it is missing or built from experts that changed since."""
     init = ws.model_path("init")
     if not init.exists():
-        raise BoostNerfError(f"no mixture to finetune in {ws.root}: run `boostnerf build-moe --workspace {ws.root}` first")
+        raise BoostNerfError(f"no mixture to finetune in {ws.root}: "
+                             f"run `boostnerf build-moe --workspace {ws.root}` first")
     meta = read_meta(init)
     check_inputs(ws)
     return meta
@@ -173,7 +175,8 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
 
 def _schedule(rec: MoERecipe) -> Schedule:
     """The joint training's schedule, the same for every finetuned model."""
-    return Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every, rec.train.checkpoint_every)
+    return Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every,
+                    rec.train.checkpoint_every)
 
 
 def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, device: str, force: bool = False) -> dict:
@@ -210,5 +213,6 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, device:
         ws.update_manifest(moe={"baseline": {"from": largest, "iterations": rec.iters}})
 
     dist.on_main(write)
-    log(f"baseline ({largest}): {result.iterations} steps in {result.seconds:.0f}s, train PSNR {report['train_psnr']:.2f}")
+    log(f"baseline ({largest}): {result.iterations} steps in {result.seconds:.0f}s, "
+        f"train PSNR {report['train_psnr']:.2f}")
     return report

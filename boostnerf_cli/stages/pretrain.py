@@ -187,8 +187,8 @@ def _coarse_round(site: Site, rec: GeometryRecipe, bbox: Tensor, name: str, seed
         log(f"{name}: checking that every foreground ray of the {len(train_split)} training views reaches kept "
             "space")  # a pass over every training ray: minutes for a large capture
         framed, box, cover = cover_foreground(framed, model.density, train_split.images, train_split.poses,
-                                              train_split.intrinsics, scene.background, scene.near, scene.far, scene.ndc,
-                                              tol=foreground_tol(scene.extra), alpha=train_split.alpha)
+                                              train_split.intrinsics, scene.background, scene.near, scene.far,
+                                              scene.ndc, tol=foreground_tol(scene.extra), alpha=train_split.alpha)
         cover["outside_hull"] = outside
         log(f"{name}: {cover['missed_before']} of {cover['foreground_rays']} foreground training rays reach no surface "
             f"in occupied cells; {cover['cells_added']} cells added along them ({cover['missed_after']} missed)"

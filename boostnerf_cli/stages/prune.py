@@ -121,8 +121,8 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
         return read_json(report_path, "prune report")
     before = load_model(ws, name, device)  # also: a clear error for an unknown name, before any work
     if not grid_tables(before.field):
-        raise BoostNerfError(f"{name} has no grid, hash table or VM factor to prune (prune drops the rows of those that "
-                             "no training view reads): nothing written")
+        raise BoostNerfError(f"{name} has no grid, hash table or VM factor to prune (prune drops the rows of those "
+                             "that no training view reads): nothing written")
     scene = workspace_scene(ws)
     split = scene.split(split_name)
     t0 = time.perf_counter()

@@ -122,7 +122,8 @@ def run_video(ws: Workspace, names: list[str] | None, path: VideoPath, device: s
     write_video(target, rgb, fps, fmt)
     write_video(depth_target, depth_frames, fps, fmt)
     log(f"{model.name}: wrote {fmt.upper()} {target} and {depth_target} ({len(poses)} frames, {fps} fps, "
-        f"{kind} path; depth: near bright, far dark, {lo:.3g} .. {hi:.3g} {'NDC' if scene.ndc is not None else 'world'} units)")
+        f"{kind} path; depth: near bright, far dark, {lo:.3g} .. {hi:.3g} "
+        f"{'NDC' if scene.ndc is not None else 'world'} units)")
     return [target, depth_target]
 
 
@@ -134,7 +135,8 @@ def compared_models(ws: Workspace, names: list[str] | None) -> list[str]:
     have = ws.all_model_names()
     chosen = [n for n in COMPARED if n in have] or have
     if not chosen:
-        raise BoostNerfError(f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
+        raise BoostNerfError(f"{ws.root} has no trained models yet: "
+                             f"run `boostnerf pretrain --workspace {ws.root}` first")
     return require_current(ws, chosen)
 
 
@@ -152,14 +154,16 @@ def run_compare(ws: Workspace, names: list[str] | None, viewing: Viewing, device
     n = n_views(split, views)
     renders = {}
     for name in names:
-        renders[name] = [r["rgb"].numpy() for r in render_split(load_model(ws, name, device), scene, split, device, skips, n)]
+        renders[name] = [r["rgb"].numpy()
+                         for r in render_split(load_model(ws, name, device), scene, split, device, skips, n)]
     folder = ws.renders_dir("compare", split_name)
     written = []
     for i in range(n):
         gt = split.images[i].numpy()
         errors = {name: pixel_error(renders[name][i], gt) for name in names}
         hi = max(max(float(np.percentile(e, 99.5)) for e in errors.values()), 1e-3)
-        top, bottom = [("ground truth", to_uint8(gt))], [(f"RMS error: black 0, white {hi:.2f}", colorbar(gt.shape[0], gt.shape[1], 0.0, hi))]
+        top = [("ground truth", to_uint8(gt))]
+        bottom = [(f"RMS error: black 0, white {hi:.2f}", colorbar(gt.shape[0], gt.shape[1], 0.0, hi))]
         for name in names:
             mse = float(np.mean((renders[name][i].astype(np.float64) - gt) ** 2))
             psnr = -10.0 * np.log10(max(mse, 1e-10))
@@ -212,7 +216,8 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
     - `<view>_gate<i>-<name>.png`: greyscale probability G(x)_i averaged along each ray with the rendering
       weights (white = every visible sample prefers expert i); black where the ray hits nothing (opacity < 0.1);
     - `<view>_experts.png`: the mixture's render, the expert shares and the gate maps side by side, and a
-      routing map (each pixel coloured by the gate's probabilities: blue = smallest expert, then cyan, green, orange, red = the fifth).
+      routing map (each pixel coloured by the gate's probabilities: blue = smallest expert, then cyan, green,
+      orange, red = the fifth).
     The log says, per view, the mean gate probability of each expert over the more detailed and the smoother half
     of the object's pixels (`gate_by_detail`).
     """
