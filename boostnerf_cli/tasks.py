@@ -104,7 +104,7 @@ class FieldTask:
     packer: Packer | None = None  # how the renderer lists kept samples (render/packing.py; default: for the device)
 
     def __post_init__(self) -> None:
-        self.packer, self.loss = step_setup(self.loss, self.tcfg, self.model.bbox.device, self.packer)
+        self.packer, self.loss = step_setup(self.loss, self.tcfg, self.settings.bbox.device, self.packer)
 
     def param_groups(self) -> list[dict]:
         return self.model.param_groups(self.tcfg.lr_grid, self.tcfg.lr_mlp)

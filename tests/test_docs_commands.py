@@ -10,7 +10,8 @@ script per document (`set -euo pipefail`), in an empty folder that has the repos
 imports torch once and forks per command) with tiny settings, so the documented
 long runs (lego, 20k iterations, 800 px) finish in seconds; the command lines themselves are
 unchanged. The shim replaces the values of:
-  --data (the tiny generated scene, unless an earlier command made that folder), --recipe (a tiny recipe; the recipe named must exist),
+  --data (the tiny generated scene, unless an earlier command made that folder), --recipe (a tiny recipe; the
+  recipe named must exist),
   --iters, --res, --image-size, --gate-res, --frames, --size, --train-views, --test-views,
   --device (cpu; added when missing).
 A command that exits non-zero fails the test with the document and the command named.
@@ -112,7 +113,8 @@ def test_the_docs_show_commands_and_the_extractor_reads_them():
     assert {"quickstart.md", "recipes.md", "stages.md", "README.md"} <= set(found)
     sample = "```bash\nR=recipes/x.yaml; WS=ws\nboostnerf pretrain --data d \\\n    --workspace $WS  # c\n" \
              "python -m pip install x\n```\n"
-    assert runnable_lines(bash_blocks(sample)[0]) == ["R=recipes/x.yaml; WS=ws", "boostnerf pretrain --data d --workspace $WS  # c"]
+    assert runnable_lines(bash_blocks(sample)[0]) == ["R=recipes/x.yaml; WS=ws",
+                                                      "boostnerf pretrain --data d --workspace $WS  # c"]
 
 
 @pytest.fixture(scope="module")

@@ -111,6 +111,7 @@ def test_each_model_says_when_it_is_ready_and_its_report_keeps_the_seconds(tmp_p
 
     from boostnerf_cli.recipe import load_recipe
     from boostnerf_cli.stages import pretrain as stage
+    from boostnerf_cli.startup import CLOCK
     from boostnerf_cli.workspace import Workspace
 
     rec = load_recipe(tiny_recipe)
@@ -123,6 +124,7 @@ def test_each_model_says_when_it_is_ready_and_its_report_keeps_the_seconds(tmp_p
 
     monkeypatch.setattr(stage, "_test_psnr", slow_scoring)
     ws = Workspace(tmp_path / "ws")
+    CLOCK.begin()  # as the CLI does for each command (an earlier test in this process has used the clock)
     with caplog.at_level(logging.INFO, logger="boostnerf_cli"):
         stage.run(ws, tiny_scene, rec, "cpu", False)
     said = {m.group(1): float(m.group(2)) for m in

@@ -72,7 +72,8 @@ def thin_objects(seed: int = 0) -> list[dict]:
          "colours": [dark(), dark()]},
         {"kind": "capsule", "a": p2 + [FLOOR_Z], "b": p2 + [0.3], "radius": r, "texture": "plain",
          "colours": [dark(), dark()]},
-        {"kind": "capsule", "a": p1 + [0.35], "b": [1.08 * math.copysign(1, -p1[0]), 1.08 * math.copysign(1, -p1[1]), 0.38],
+        {"kind": "capsule", "a": p1 + [0.35],
+         "b": [1.08 * math.copysign(1, -p1[0]), 1.08 * math.copysign(1, -p1[1]), 0.38],
          "radius": r, "texture": "plain", "colours": [dark(), dark()]},
     ]
 
@@ -346,7 +347,8 @@ def content_radius(objects: list[dict]) -> float:
 
 LAYOUT_TEXT = {
     "blender": "Blender / nerf_synthetic layout: transforms_train.json and transforms_test.json, train/r_*.png and "
-               "test/r_*.png RGBA 8-bit with a transparent background, camera_angle_x, OpenGL camera-to-world matrices.",
+               "test/r_*.png RGBA 8-bit with a transparent background, camera_angle_x, OpenGL camera-to-world "
+               "matrices.",
     "nsvf": "NSVF layout: rgb/0_*.png (train) and rgb/2_*.png (test) RGBA 8-bit with a transparent background, "
             "pose/<same name>.txt OpenCV camera-to-world 4x4 matrices, intrinsics.txt ('f cx cy 0' first line), "
             "bbox.txt (xmin ymin zmin xmax ymax zmax voxel_size).",
@@ -355,7 +357,8 @@ LAYOUT_TEXT = {
              "intrinsics.txt (4x4 matrix K), bbox.txt.",
     "llff": "LLFF layout: poses_bounds.npy (3x5 [R|t|hwf] per image in LLFF axis order down/right/backwards, then "
             "near and far depth bounds), images/ and images_2/ (2x area-downscaled) RGB 8-bit PNGs on a white "
-            "background; the test views at every 8th position (0, 8, ...), so the loader's every-8th hold-out gives the test split.",
+            "background; the test views at every 8th position (0, 8, ...), so the loader's every-8th hold-out gives "
+            "the test split.",
     "nerfstudio": "nerfstudio layout: transforms.json (camera_model OPENCV, fl_x fl_y cx cy w h, zero distortion, "
                   "OpenGL camera-to-world matrices), images/frame_*.png RGBA 8-bit, the test views at every 8th "
                   "position (0, 8, ...), so the loader's every-8th hold-out gives the test split.",
@@ -382,8 +385,8 @@ CONTENT_TEXT = {
     "thin": OBJECTS_TEXT + f""" Thin structures (content 'thin'): a cable on the floor near its rim, two upright rods at
 the rim and a slanted wire to the far corner, capsules of radius {THIN_RADIUS}.""",
     "large": OBJECTS_TEXT.replace("a floor disc", f"a floor disc of radius {LARGE_FLOOR_RADIUS}").replace(
-        "Content (inside about [-1, 1]^2 x [-0.5, 0.3])", "Content (content 'large': the floor reaches past every view's "
-        "edge)"),
+        "Content (inside about [-1, 1]^2 x [-0.5, 0.3])",
+        "Content (content 'large': the floor reaches past every view's edge)"),
     "empty": "Content (content 'empty'): none; every pixel is background.",
     "detail": f"""Content (content 'detail', inside about [-1, 1]^2 x [-0.5, 0.2]): fine detail where x > 0 and smooth
 content where x < 0. A floor disc with a checkerboard (cell {DETAIL_CELL}) on its x > 0 half and a smooth colour

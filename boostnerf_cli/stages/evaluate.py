@@ -58,7 +58,8 @@ def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, r
     split = scene.split(split_name)
     names = require_current(ws, names)
     if not names:
-        raise BoostNerfError(f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
+        raise BoostNerfError(
+            f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
     lpips_model, lpips_note = load_lpips(device)
     if lpips_model is not None and min(split.height, split.width) < LPIPS_MIN_SIZE:
         lpips_model, lpips_note = None, (
@@ -68,8 +69,9 @@ def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, r
         log(lpips_note)
     ssim_note = None
     if min(split.height, split.width) < SSIM_WINDOW:
-        ssim_note = (f"SSIM left out: its {SSIM_WINDOW} x {SSIM_WINDOW} window needs images of at least {SSIM_WINDOW} px "
-                     f"a side, these are {split.width} x {split.height} (pretrain at a larger --image-size to have it)")
+        ssim_note = (f"SSIM left out: its {SSIM_WINDOW} x {SSIM_WINDOW} window needs images of at least "
+                     f"{SSIM_WINDOW} px a side, these are {split.width} x {split.height} "
+                     "(pretrain at a larger --image-size to have it)")
         log(ssim_note)
     rows = []
     for name in names:
@@ -80,7 +82,8 @@ def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, r
         if costs:
             c = model_costs(model, scene, split, device, views, exact_gate, skips)  # leaves it ready to render
             cost = {"w0": c["w0"], "gflops_per_image": c["gflops_per_image"]}
-        row = {**evaluate_model(model.for_rendering(exact_gate), scene, split, device, lpips_model, skips, views), **cost}
+        scores = evaluate_model(model.for_rendering(exact_gate), scene, split, device, lpips_model, skips, views)
+        row = {**scores, **cost}
         log(f"{name}: PSNR {number(row['psnr'], '.3f')}  SSIM {number(row['ssim'], '.4f')}  "
             f"{row['seconds_per_image']:.3f}s/image")
         rows.append(row)
@@ -107,7 +110,8 @@ def markdown_table(result: dict) -> str:
     ]
     for r in result["models"]:
         lines.append(
-            f"| {r['name']} | {number(r['psnr'], '.3f')} | {number(r['ssim'], '.4f')} | {number(r['lpips'], '.4f')} | {r['params']:,} | "
+            f"| {r['name']} | {number(r['psnr'], '.3f')} | {number(r['ssim'], '.4f')} | "
+            f"{number(r['lpips'], '.4f')} | {r['params']:,} | "
             f"{number(r.get('w0'), ',')} | {number(r.get('gflops_per_image'), '.3f')} | "
             f"{ratio(r.get('gflops_per_image'))} | {r['seconds_per_image']:.3f} |"
         )
