@@ -29,6 +29,18 @@ def _invoke(*args: str) -> None:
         raise AssertionError(f"boostnerf {' '.join(args)} failed on the simulated GPU") from result.exception
 
 
+@pytest.fixture(autouse=True)
+def budgets_that_hold_the_tiny_scenes(monkeypatch):
+    """On a GPU every filter packs into a static budget and a step that overflows one is skipped (test_syncs.py
+    tests that). Here the budgets hold every sample of the tiny scenes, so a GPU run takes every step a CPU run
+    takes and must give its numbers."""
+    import functools
+
+    from boostnerf_cli.render import packing
+
+    monkeypatch.setattr(packing, "Budgets", functools.partial(packing.Budgets, quantum=1 << 16))
+
+
 def test_the_simulator_catches_a_cpu_tensor_next_to_a_gpu_one():
     with simulated_gpu() as dev:
         a = torch.randn(4, 3).to(dev)
@@ -122,6 +134,8 @@ def test_every_stage_on_the_simulated_gpu_gives_the_cpu_numbers(tmp_path, tiny_s
     cpu, gpu = ({r["name"]: r for r in json.loads((tmp_path / w / "reports" / "eval.json").read_text())["models"]}
                 for w in ("cpu", "gpu"))
     assert set(cpu) == set(gpu) and {"baseline", "top1", "top2", "ens"} <= set(cpu)
+    for name in ("baseline", "top1", "top2", "ens"):
+        assert json.loads((tmp_path / "gpu" / "moe" / f"{name}.json").read_text())["skipped_steps"] == 0, name
     for name in cpu:
         assert gpu[name]["psnr"] == pytest.approx(cpu[name]["psnr"], abs=1e-4), name
         assert gpu[name]["gflops_per_image"] == pytest.approx(cpu[name]["gflops_per_image"], rel=1e-6), name

@@ -171,6 +171,36 @@ def test_static_budgets_train_what_the_exact_packing_trains(kind):
         assert torch.allclose(exact[k], static[k], atol=1e-6, rtol=0), k
 
 
+def test_a_step_that_overflows_its_budget_is_skipped_counted_and_the_budget_grows(capsys):
+    """Budgets sized exactly (no margin) on the first step overflow on a later batch that keeps more samples: that
+    step's update is skipped (the parameters stay as they were), counted in the result and said, and the budget
+    grows past the largest count seen, so the run goes on."""
+    from boostnerf_cli.render.packing import Budgets
+
+    packer = Budgets(margin=1.0, quantum=1)
+    model = _expert("dvgo")
+    occupied = torch.zeros(8, 8, 8, dtype=torch.bool)
+    occupied[2:6, 2:6, 2:6] = True
+    task = FieldTask(model, RenderSettings(step=0.1, near=0.1, far=6.0, bbox=TOY_BOX), TrainRecipe(occupancy_every=0),
+                     skip=OccupancyGrid(occupied, TOY_BOX), base_mask=None, packer=packer)
+    sizes = []
+    real_settle = packer.settle
+
+    def settle():
+        sizes.append(dict(packer.sizes()))
+        return real_settle()
+
+    packer.settle = settle
+    rays = _rays(512)
+    away = torch.arange(512) % 2 == 1
+    rays = RayData(rays.origins, torch.where(away[:, None], -rays.dirs, rays.dirs), rays.rgb)  # half miss the box
+    result = train(task, rays, Schedule(12, batch_rays=32, log_every=100, checkpoint_every=1000), seed=0, title="t")
+    assert result.skipped_steps > 0
+    assert "more samples than the sample budget held, step skipped" in capsys.readouterr().err
+    grown = packer.sizes()
+    assert any(grown[name] > sizes[0][name] for name in sizes[0]), (sizes[0], grown)
+
+
 class _Views(SimpleNamespace):
     """Four posed cameras: what render_split reads of a dataset split."""
 
