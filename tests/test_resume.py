@@ -66,7 +66,7 @@ def assert_same_tensors(a: Path, b: Path) -> None:
 
 
 def _without_timing(report: dict) -> dict:
-    out = {k: v for k, v in report.items() if k != "seconds"}
+    out = {k: v for k, v in report.items() if k not in ("seconds", "startup_seconds")}  # wall times
     out["history"] = [{k: v for k, v in h.items() if k != "seconds"} for h in report.get("history", [])]
     return out
 

@@ -10,7 +10,7 @@ import torch
 from helpers import toy_mixture  # the product suite's (research/tests/conftest.py puts tests/ on the path)
 
 from boostnerf_cli.moe.mixture import RoutingStats
-from boostnerf_cli.recipe import MoERecipe
+from boostnerf_cli.recipe import MoERecipe, TrainRecipe
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -28,7 +28,7 @@ def _task(ws, mix, **switches):
         pass
 
     Task.switches = ws.Switches(**switches)
-    return Task(mix, None, None, MoERecipe(iters=10))
+    return Task(mix, None, TrainRecipe(), MoERecipe(iters=10))
 
 
 def test_a_wide_start_routes_to_one_expert_more_then_narrows_by_step():
