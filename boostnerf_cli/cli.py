@@ -5,10 +5,12 @@ A `BoostNerfError` becomes one line on stderr and exit code 2, with no traceback
 
 from __future__ import annotations
 
+import functools
+import inspect
 import logging
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, NamedTuple, Optional
 
 import typer
 from rich.console import Console
@@ -99,19 +101,6 @@ def say_messages() -> None:
 log = logging.getLogger(__name__).info
 
 
-# Every option that sets a recipe key, by command: {parameter: recipe key}. The stages read the recipe alone; the
-# option's spelling is its declaration's (`_flag`).
-RECIPE_OPTIONS = {
-    "pretrain": {"model": "pretrain.model", "res": "pretrain.res", "iters": "pretrain.iters", "seed": "pretrain.seed",
-                 "skip": "pretrain.skip", "image_size": "data.image_size", "holdout_every": "data.holdout_every",
-                 "data_format": "data.format"},
-    "build-moe": {"gate_res": "moe.gate_res", "gate_type": "moe.gate_type", "gate_grid": "moe.gate_grid",
-                  "threshold": "moe.density_threshold"},
-    "finetune": {"iters": "moe.iters", "lam": "moe.lam", "penalty": "moe.penalty", "renormalize": "moe.renormalize",
-                 "seed": "moe.seed"},
-}
-
-
 def _context():
     try:
         from typer._click.globals import get_current_context  # Typer vendors Click (0.29: a Click of its own)
@@ -124,13 +113,13 @@ def _settings() -> dict:
     """{recipe key: value} of the running command's options that set one (`RECIPE_OPTIONS`), those given."""
     ctx = _context()
     table = RECIPE_OPTIONS[ctx.info_name]
-    return {key: ctx.params[name] for name, key in table.items() if ctx.params.get(name) is not None}
+    return {opt.key: ctx.params[name] for name, opt in table.items() if ctx.params.get(name) is not None}
 
 
 def _flag(key: str) -> str:
     """The running command's option that set recipe key `key`, as given (`--no-renormalize` for False)."""
     ctx = _context()
-    name = next(n for n, k in RECIPE_OPTIONS[ctx.info_name].items() if k == key)
+    name = next(n for n, opt in RECIPE_OPTIONS[ctx.info_name].items() if opt.key == key)
     option = next(p for p in ctx.command.params if p.name == name)
     return option.secondary_opts[0] if option.secondary_opts and ctx.params[name] is False else option.opts[0]
 
@@ -184,6 +173,83 @@ def _int_list(text: str, what: str) -> list[int]:
     return values  # each value's range: the recipe's check (pretrain.res), as for a YAML recipe
 
 
+class RecipeOption(NamedTuple):
+    """An option that sets a recipe key: the key, and the option's declaration (its type and `typer.Option`)."""
+
+    key: str
+    declaration: object
+
+
+# Every option that sets a recipe key, by command: {parameter: RecipeOption}. The stages read the recipe alone; the
+# option's spelling is its declaration's (`_flag`). `_recipe_options` adds them to their command.
+RECIPE_OPTIONS = {
+    "pretrain": {
+        "model": RecipeOption("pretrain.model", Annotated[Optional[str], typer.Option(
+            "--model", help="Expert family: dvgo (dense grid), tensorf (VM) or ngp (hash grid).")]),
+        "res": RecipeOption("pretrain.res", Annotated[Optional[str], typer.Option(
+            "--res", callback=lambda text: _int_list(text, "--res") if text else text,
+            help="Comma-separated: one expert each, res^3 voxels (ngp: res levels).")]),
+        "iters": RecipeOption("pretrain.iters", Annotated[Optional[int], typer.Option(
+            "--iters", min=1, help="Training steps per expert.")]),
+        "image_size": RecipeOption("data.image_size", Annotated[Optional[int], typer.Option(
+            "--image-size", min=8, help="Longer image side in pixels after area downscaling.")]),
+        "holdout_every": RecipeOption("data.holdout_every", Annotated[Optional[int], typer.Option(
+            "--holdout-every", help="No test split: hold out every N-th train view, N >= 2 (0: none).")]),
+        "data_format": RecipeOption("data.format", Annotated[Optional[str], typer.Option(
+            "--format", help="Dataset format: auto, blender, nsvf, tanks, llff or nerfstudio.")]),
+        "seed": RecipeOption("pretrain.seed", Annotated[Optional[int], typer.Option("--seed")]),
+        "skip": RecipeOption("pretrain.skip", Annotated[Optional[bool], typer.Option(
+            "--skip/--no-skip", help="--no-skip: train on the whole box, no occupancy mask (pretrain.skip).",
+            show_default=False)]),
+    },
+    "build-moe": {
+        "gate_res": RecipeOption("moe.gate_res", Annotated[Optional[int], typer.Option(
+            "--gate-res", min=2, help="Gate grid resolution (gate_res^3 voxels; 128 in the paper).")]),
+        "gate_type": RecipeOption("moe.gate_type", Annotated[Optional[str], typer.Option(
+            "--gate-type", help="grid (paper), linear or switch.")]),
+        "gate_grid": RecipeOption("moe.gate_grid", Annotated[Optional[str], typer.Option(
+            "--gate-grid", help="Gate's feature grid: dense, tensorf, hash, or auto (the experts').")]),
+        "threshold": RecipeOption("moe.density_threshold", Annotated[Optional[float], typer.Option(
+            "--threshold", min=0.0, help="T: V_D filters samples whose opacity per step is below T.")]),
+    },
+    "finetune": {
+        "iters": RecipeOption("moe.iters", Annotated[Optional[int], typer.Option("--iters", min=1)]),
+        "lam": RecipeOption("moe.lam", Annotated[Optional[float], typer.Option(
+            "--lambda", min=0.0, help="Auxiliary-loss weight (1e-3 in the paper).")]),
+        "penalty": RecipeOption("moe.penalty", Annotated[Optional[str], typer.Option(
+            "--penalty", help="geometric (paper), linear, quadratic, none or '1, 1.5, 2.23'.")]),
+        "renormalize": RecipeOption("moe.renormalize", Annotated[Optional[bool], typer.Option(
+            "--renormalize/--no-renormalize", help="Top-k weights sum to 1 (default); off: raw gate probabilities.")]),
+        "seed": RecipeOption("moe.seed", Annotated[Optional[int], typer.Option("--seed")]),
+    },
+}
+
+
+def _recipe_options(command: str):
+    """Declare `RECIPE_OPTIONS[command]` as options of the decorated command, after its --recipe: Typer reads the
+    signature made here, and the command reads their values with `_settings()`, so its own parameters are the
+    options that set no recipe key."""
+    table = RECIPE_OPTIONS[command]
+
+    def decorate(fn):
+        signature = inspect.signature(fn, eval_str=True)
+        own = list(signature.parameters.values())
+        at = [p.name for p in own].index("recipe") + 1
+        added = [inspect.Parameter(name, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=None,
+                                   annotation=opt.declaration) for name, opt in table.items()]
+        params = own[:at] + added + own[at:]
+
+        @functools.wraps(fn)
+        def command_with_recipe_options(**kwargs):
+            return fn(**{name: value for name, value in kwargs.items() if name not in table})
+
+        command_with_recipe_options.__signature__ = signature.replace(parameters=params)
+        command_with_recipe_options.__annotations__ = {p.name: p.annotation for p in params}
+        return command_with_recipe_options
+
+    return decorate
+
+
 @app.command("make-scene")
 def make_scene_cmd(
     out_dir: Annotated[Path, typer.Argument(help="Folder to write the scene to.")],
@@ -216,28 +282,13 @@ def make_scene_cmd(
 
 
 @app.command()
+@_recipe_options("pretrain")
 def pretrain(
     workspace: WorkspaceOpt,
     data: Annotated[Optional[Path], typer.Option(
         "--data", help="Scene folder (default: a procedural demo scene made in WS/scene).")] = None,
     recipe: RecipeOpt = None,
-    model: Annotated[Optional[str], typer.Option(
-        "--model", help="Expert family: dvgo (dense grid), tensorf (VM) or ngp (hash grid).")] = None,
-    res: Annotated[Optional[str], typer.Option(
-        "--res", callback=lambda text: _int_list(text, "--res") if text else text,
-        help="Comma-separated: one expert each, res^3 voxels (ngp: res levels).")] = None,
-    iters: Annotated[Optional[int], typer.Option("--iters", min=1, help="Training steps per expert.")] = None,
-    image_size: Annotated[Optional[int], typer.Option(
-        "--image-size", min=8, help="Longer image side in pixels after area downscaling.")] = None,
-    holdout_every: Annotated[Optional[int], typer.Option(
-        "--holdout-every", help="No test split: hold out every N-th train view, N >= 2 (0: none).")] = None,
-    data_format: Annotated[str | None, typer.Option(
-        "--format", help="Dataset format: auto, blender, nsvf, tanks, llff or nerfstudio.")] = None,
-    seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
-    skip: Annotated[Optional[bool], typer.Option(
-        "--skip/--no-skip", help="--no-skip: train on the whole box, no occupancy mask (pretrain.skip).",
-        show_default=False)] = None,
     force: Annotated[bool, typer.Option("--force", help="Retrain experts that are already finished.")] = False,
 ) -> None:
     """Train one expert per resolution, independently (stage 1 of the paper)."""
@@ -271,18 +322,12 @@ def _recipe(workspace: Path, recipe: Optional[Path]):
 
 
 @app.command("build-moe")
+@_recipe_options("build-moe")
 def build_moe(
     workspace: WorkspaceOpt,
     experts: Annotated[Optional[str], typer.Option(
         "--experts", help="Comma-separated expert names (default: all).")] = None,
     recipe: RecipeOpt = None,
-    gate_res: Annotated[Optional[int], typer.Option(
-        "--gate-res", min=2, help="Gate grid resolution (gate_res^3 voxels; 128 in the paper).")] = None,
-    gate_type: Annotated[Optional[str], typer.Option("--gate-type", help="grid (paper), linear or switch.")] = None,
-    gate_grid: Annotated[Optional[str], typer.Option(
-        "--gate-grid", help="Gate's feature grid: dense, tensorf, hash, or auto (the experts').")] = None,
-    threshold: Annotated[Optional[float], typer.Option(
-        "--threshold", min=0.0, help="T: V_D filters samples whose opacity per step is below T.")] = None,
     device: DeviceOpt = "auto",
 ) -> None:
     """Assemble the pretrained experts, the density volume V_D and an untrained gate."""
@@ -297,6 +342,7 @@ def build_moe(
 
 
 @app.command()
+@_recipe_options("finetune")
 def finetune(
     workspace: WorkspaceOpt,
     topk: Annotated[Optional[int], typer.Option(
@@ -305,15 +351,6 @@ def finetune(
     baseline: Annotated[bool, typer.Option(
         "--baseline", help="The largest expert alone, as many steps (model baseline).")] = False,
     recipe: RecipeOpt = None,
-    iters: Annotated[Optional[int], typer.Option("--iters", min=1)] = None,
-    lam: Annotated[Optional[float], typer.Option(
-        "--lambda", min=0.0, help="Auxiliary-loss weight (1e-3 in the paper).")] = None,
-    penalty: Annotated[Optional[str], typer.Option(
-        "--penalty", help="geometric (paper), linear, quadratic, none or '1, 1.5, 2.23'.")] = None,
-    renormalize: Annotated[Optional[bool], typer.Option(
-        "--renormalize/--no-renormalize",
-        help="Top-k weights sum to 1 (default); off: raw gate probabilities.")] = None,
-    seed: Annotated[Optional[int], typer.Option("--seed")] = None,
     device: DeviceOpt = "auto",
     force: Annotated[bool, typer.Option("--force", help="Redo a model that is already finetuned.")] = False,
 ) -> None:

@@ -37,9 +37,9 @@ from boostnerf_cli.fields.base import BareField
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.models import Skips, load_expert, load_mixture, load_model
 from boostnerf_cli.moe.mixture import RoutedMixture
-from boostnerf_cli.moe.router import aux_loss, dispatch, top_k
+from boostnerf_cli.moe.router import Routes, aux_loss, dispatch, top_k
 from boostnerf_cli.recipe import Recipe, recipe_from_dict
-from boostnerf_cli.render.renderer import render_image
+from boostnerf_cli.render.renderer import render_view
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.tasks import FieldTask, MixtureTask, train_rays
 from boostnerf_cli.train import batch_gradients, grads_finite, make_optimizer
@@ -65,8 +65,7 @@ def measure_skips(ws: Workspace, scene, names: list[str], views: int, device: st
         for name, skip in variants[i % len(variants):] + variants[:i % len(variants)]:
             model = models[name]
             settings, skip_fn = model.render_setup(scene, Skips() if skip else Skips.from_flags(no_skip=True))
-            t, out = timed(render_image, model.field, split.poses[i], split.intrinsics[i], split.height, split.width,
-                           settings, skip_fn, None, device)
+            t, out = timed(render_view, model.field, split, i, settings, skip_fn, device)
             secs[(name, skip)].append(t)
             psnr[(name, skip)].append(mse_to_psnr(float(torch.mean((out["rgb"] - split.images[i]) ** 2))))
     rows = [{"model": name, "skips": "on" if skip else "off",
@@ -143,9 +142,9 @@ def _gate_part(mix, pts):
 
 def _dispatch_part(m, pts, rows, idx, vals, lin1, lin3) -> None:
     """Dispatch and gather of both passes with stand-in experts (a 3 -> out linear map), forward and backward."""
-    d = dispatch(pts.shape[0], idx, vals, m, lambda e, r: lin1(pts[r]), 1, pts)
+    d = dispatch(Routes(vals, idx, m), lambda e, r: lin1(pts[r]), 1, pts)
     xr = pts[rows]  # as RoutedMixture.color_rows does
-    c = dispatch(rows.shape[0], idx[rows], vals[rows], m, lambda e, r: lin3(xr[r]), 3, pts)
+    c = dispatch(Routes(vals[rows], idx[rows], m), lambda e, r: lin3(xr[r]), 3, pts)
     (d.sum() + c.sum()).backward()
 
 

@@ -10,7 +10,7 @@ from reference import dispatch_dense_reference
 from boostnerf_cli.fields.base import BareField
 from boostnerf_cli.models import load_mixture, save_mixture
 from boostnerf_cli.moe.mixture import RoutingStats
-from boostnerf_cli.moe.router import aux_loss, dispatch, penalty_weights, top_k
+from boostnerf_cli.moe.router import Routes, aux_loss, dispatch, penalty_weights, top_k
 from boostnerf_cli.render.packing import DYNAMIC, Budgets
 from boostnerf_cli.render.renderer import RenderSettings, render_rays
 
@@ -154,8 +154,8 @@ def test_sparse_dispatch_matches_dense_reference_in_values_and_gradients(k, stat
     packer = Budgets(quantum=16) if static else DYNAMIC
 
     def sparse():
-        s = dispatch(300, idx, vals, 3, lambda e, r: mix.experts[e].density(xyz[r])[:, None], 1, xyz, packer)
-        c = dispatch(300, idx, vals, 3, lambda e, r: mix.experts[e].color(xyz[r], d[r]), 3, xyz, packer)
+        s = dispatch(Routes(vals, idx, 3), lambda e, r: mix.experts[e].density(xyz[r])[:, None], 1, xyz, packer)
+        c = dispatch(Routes(vals, idx, 3), lambda e, r: mix.experts[e].color(xyz[r], d[r]), 3, xyz, packer)
         return s, c
 
     def dense():

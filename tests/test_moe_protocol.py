@@ -422,7 +422,7 @@ def test_the_visible_filter_drops_what_V_D_hides_as_a_per_ray_reference_does(sou
     assert torch.equal(rows, _visible_rows_reference(mix, origins, dirs, settings, 1e-4))
     assert 0 < rows.numel() < opacity_only.numel()  # hidden samples reach neither the gate nor the experts
     assert torch.isin(rows, opacity_only).all()
-    everything = render_rays(mix, origins, dirs, settings, mix.skip, color_threshold=0.0).extras["rows"]
+    everything = render_rays(mix, origins, dirs, _settings(color_threshold=0.0), mix.skip).extras["rows"]
     assert torch.equal(everything, opacity_only)  # the terminated skip off (threshold 0): nothing more is dropped
     mix.configure(vd_filter="opacity")
     assert torch.equal(render_rays(mix, origins, dirs, settings, mix.skip).extras["rows"], opacity_only)

@@ -76,7 +76,7 @@ def test_prune_writes_a_smaller_model_and_its_report(pruned_ws):
 
 def test_pruned_model_matches_the_original_on_kept_rows_and_renders_the_train_views_alike(pruned_ws):
     from boostnerf_cli.models import load_model
-    from boostnerf_cli.render.renderer import render_image
+    from boostnerf_cli.render.renderer import render_view
     from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.workspace import Workspace
 
@@ -100,10 +100,8 @@ def test_pruned_model_matches_the_original_on_kept_rows_and_renders_the_train_vi
         b, a = load_model(ws, "top1", "cpu", exact), load_model(ws, "top1-pruned", "cpu", exact)
         assert a.params == report["params_after"] and b.params == report["params_before"]
         for i in range(0, len(train), 2):
-            rb = render_image(b.field, train.poses[i], train.intrinsics[i], train.height, train.width,
-                              b.settings(scene), b.skip)
-            ra = render_image(a.field, train.poses[i], train.intrinsics[i], train.height, train.width,
-                              a.settings(scene), a.skip)
+            rb = render_view(b.field, train, i, b.settings(scene), b.skip)
+            ra = render_view(a.field, train, i, a.settings(scene), a.skip)
             assert torch.allclose(ra["rgb"], rb["rgb"], atol=1e-5, rtol=0), (exact, i)
 
 

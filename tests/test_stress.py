@@ -123,10 +123,10 @@ def test_render_rays_through_a_field_under_autocast(seed, dtype, log_step):
     model = _expert()
     o, d = _rays(24, seed)
     step = 10.0**log_step
-    settings64 = RenderSettings(step=step, near=0.1, far=12.0, bbox=BOX.double())
-    ref = render_rays(copy.deepcopy(model).double(), o.double(), d.double(), settings64, color_threshold=0.0)
+    settings64 = RenderSettings(step=step, near=0.1, far=12.0, bbox=BOX.double(), color_threshold=0.0)
+    ref = render_rays(copy.deepcopy(model).double(), o.double(), d.double(), settings64)
     with torch.autocast("cpu", dtype=dtype):
-        out = render_rays(model, o, d, RenderSettings(step=step, near=0.1, far=12.0, bbox=BOX), color_threshold=0.0)
+        out = render_rays(model, o, d, RenderSettings(step=step, near=0.1, far=12.0, bbox=BOX, color_threshold=0.0))
     (out.color.sum() + out.depth.sum()).backward()
     assert out.color.dtype == torch.float32
     for x in (out.color, out.depth, out.acc, *(p.grad for p in model.parameters())):

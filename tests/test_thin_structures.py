@@ -9,6 +9,7 @@ expert trained with `--no-skip` (the whole scene box, every sample evaluated).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -87,8 +88,8 @@ def test_cover_foreground_reaches_every_foreground_ray(thin):
     scene = load_scene(thin / "blender")
     tr = scene.splits["train"]
     empty = OccupancyGrid(torch.zeros(24, 24, 24, dtype=torch.bool), scene.bbox)
-    grown, box, stats = cover_foreground(empty, lambda x: torch.zeros(x.shape[0]), tr.images, tr.poses,
-                                         tr.intrinsics, scene.background, scene.near, scene.far)
+    colour_only = dataclasses.replace(tr, alpha=None)  # foreground told by colour alone, as `masks` below
+    grown, box, stats = cover_foreground(empty, lambda x: torch.zeros(x.shape[0]), colour_only, scene)
     masks = foreground_masks(tr.images, scene.background)
     assert stats["foreground_rays"] == int(masks.sum()) > 0
     # no density: no ray reaches a surface, each gets a cell of its own
@@ -131,8 +132,7 @@ def test_the_box_holds_the_visible_surface_not_the_space_hidden_under_it(thin):
     occ = OccupancyGrid.from_density(_slab, scene.bbox, (32, 32, 32), 0.05, 1e-3)
     framed = hull_cells(occ, images, tr.poses, tr.intrinsics, scene.background)
     assert framed.occupied_bbox(1)[0, 2] < -1.0  # the hidden space is (mostly) inside the hull
-    grown, box, stats = cover_foreground(framed, _slab, images, tr.poses, tr.intrinsics, scene.background,
-                                         scene.near, scene.far)
+    grown, box, stats = cover_foreground(framed, _slab, dataclasses.replace(tr, images=images, alpha=None), scene)
     cell = (scene.bbox[1] - scene.bbox[0]) / 32
     assert -0.44 - 1.5 * float(cell[2]) < float(box[0, 2]) < -0.44, box  # within the slab, under its top
     assert float(box[1, 2]) < -0.44 + 0.5 * float(cell[2]), box  # the top: the floor's top and half a pixel
@@ -240,8 +240,8 @@ def test_the_box_leaves_out_floaters_outside_the_visual_hull_but_covers_every_fo
             ends += [torch.tensor(obj["a"], dtype=torch.float32), torch.tensor(obj["b"], dtype=torch.float32)]
     ends = torch.stack(ends)
     assert bool(((ends >= box[0]) & (ends <= box[1])).all()), (ends, box)
-    _, _, stats = cover_foreground(framed, lambda x: torch.zeros(x.shape[0]), tr.images, tr.poses, tr.intrinsics,
-                                   scene.background, scene.near, scene.far)
+    _, _, stats = cover_foreground(framed, lambda x: torch.zeros(x.shape[0]), dataclasses.replace(tr, alpha=None),
+                                   scene)
     assert stats["missed_after"] == 0
     # without a known background the hull says nothing: the grid is kept whole
     assert hull_cells(full, tr.images, tr.poses, tr.intrinsics, None) is full
@@ -257,8 +257,8 @@ def test_in_a_forward_facing_scene_every_pixel_is_foreground_even_the_background
     white = ~foreground_masks(tr.images, scene.background)
     assert int(white.sum()) > 100  # the procedural scene shows white behind its objects
     empty = OccupancyGrid(torch.zeros(16, 16, 16, dtype=torch.bool), scene.bbox)
-    grown, _, stats = cover_foreground(empty, lambda x: torch.zeros(x.shape[0]), tr.images, tr.poses, tr.intrinsics,
-                                       scene.background, scene.near, scene.far, scene.ndc)
+    grown, _, stats = cover_foreground(empty, lambda x: torch.zeros(x.shape[0]), dataclasses.replace(tr, alpha=None),
+                                       scene)
     assert stats["foreground_rays"] == tr.images.shape[0] * tr.height * tr.width
     assert stats["missed_before"] == stats["foreground_rays"] and stats["missed_after"] == 0
     # each white pixel's ray crosses a kept cell

@@ -37,6 +37,7 @@ from boostnerf_cli.moe.router import (
     AUX_NORMS,
     AUX_SAMPLES,
     PENALTY_RULE,
+    Routes,
     aux_loss,
     check_penalty,
     check_topk,
@@ -234,18 +235,16 @@ class Mixture(nn.Module):
              live: Tensor | None = None) -> Tensor:
         """Run each expert on its routed samples only: density (dirs None) -> (N,), colour -> (N, 3); `packer` and
         `live` (the real samples of a static packing) as `router.dispatch` takes them."""
-        n, experts = xyz.shape[0], self.experts
+        experts, routes = self.experts, Routes(vals, idx, self.m)
         if dirs is None and self.cfg.mix == "alpha":
             step = self.cfg.step
-            out = dispatch(n, idx, vals, self.m, lambda e, r: _alpha_and_trans(experts[e].density(xyz[r]), step), 2,
-                           xyz, packer, live, "density")
+            out = dispatch(routes, lambda e, r: _alpha_and_trans(experts[e].density(xyz[r]), step), 2, xyz, packer,
+                           live, "density")
             return alpha_mix_density(out[:, 0], out[:, 1], vals.sum(-1), step)
         if dirs is None:
-            out = dispatch(n, idx, vals, self.m, lambda e, r: experts[e].density(xyz[r])[:, None], 1, xyz, packer,
-                           live, "density")
+            out = dispatch(routes, lambda e, r: experts[e].density(xyz[r])[:, None], 1, xyz, packer, live, "density")
             return out[:, 0]
-        return dispatch(n, idx, vals, self.m, lambda e, r: experts[e].color(xyz[r], dirs[r]), 3, xyz, packer, live,
-                        "color")
+        return dispatch(routes, lambda e, r: experts[e].color(xyz[r], dirs[r]), 3, xyz, packer, live, "color")
 
     # --- the Field contract ---------------------------------------------------------------------
     def density(self, xyz: Tensor) -> Tensor:

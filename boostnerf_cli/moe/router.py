@@ -6,7 +6,7 @@ Shapes: N samples, M experts, k chosen experts per sample.
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import torch
 from torch import Tensor
@@ -132,11 +132,16 @@ def aux_denominator(n, k: int, norm: str):
     return (float(n) if isinstance(n, int) else n) * (k if norm == "counts" else 1)
 
 
+class Routes(NamedTuple):
+    """Where each of N samples goes: weights (N, k) and indices (N, k) of its k experts out of m (`top_k`'s choice)."""
+
+    vals: Tensor
+    idx: Tensor
+    m: int
+
+
 def dispatch(
-    n: int,
-    idx: Tensor,
-    vals: Tensor,
-    m: int,
+    routes: Routes,
     run: Callable[[int, Tensor], Tensor],
     out_dim: int,
     like: Tensor,
@@ -149,8 +154,11 @@ def dispatch(
     `run(e, rows)` evaluates expert e on sample rows `rows` (1-D LongTensor) -> (len(rows), out_dim). The samples
     routed to expert e (by any of their k choices; of the `live` ones, when given) are packed by `packer`
     (render/packing.py: dynamic, exactly them, in order; static, a fixed budget per expert and pass `name`), so every
-    expert sees only the samples routed to it, and the outputs are weighted and added back. -> out (n, out_dim).
+    expert sees only the samples routed to it, and the outputs are weighted and added back. `like`: a tensor of the
+    output's dtype and device. -> out (N, out_dim).
     """
+    vals, idx, m = routes
+    n = idx.shape[0]
     out = like.new_zeros(n, out_dim)
     for e in range(m):
         hit = idx == e

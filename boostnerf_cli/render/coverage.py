@@ -43,7 +43,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Protocol
 
 import torch
 import torch.nn.functional as F
@@ -164,23 +164,36 @@ def hull_cells(occ: OccupancyGrid, images: Tensor, poses: Tensor, intrinsics: Te
     return OccupancyGrid(occ.occupied & hull, occ.bbox)
 
 
+class Photos(Protocol):
+    """Posed images, e.g. a dataset split: images (N, H, W, 3), poses (N, 4, 4), intrinsics (N, 4) and alpha
+    (N, H, W) or None."""
+
+    images: Tensor
+    poses: Tensor
+    intrinsics: Tensor
+    alpha: Tensor | None
+
+
+class Capture(Protocol):
+    """What a scene says of its rays: near and far, its background colour (None: unknown) and its NDC warp."""
+
+    near: float
+    far: float
+    background: tuple[float, float, float] | None
+    ndc: NDC | None
+
+
 @torch.no_grad()
 def cover_foreground(
     occ: OccupancyGrid,
     density: Callable[[Tensor], Tensor],
-    images: Tensor,
-    poses: Tensor,
-    intrinsics: Tensor,
-    background: tuple[float, float, float] | None,
-    near: float,
-    far: float,
-    ndc: NDC | None = None,
-    chunk: int = 4096,
+    photos: Photos,
+    capture: Capture,
     tol: float = FOREGROUND_TOL,
-    alpha: Tensor | None = None,
+    chunk: int = 4096,
 ) -> tuple[OccupancyGrid, Tensor, dict]:
-    """One point on every foreground training ray, the mask grown to hold them and the box drawn around them
-    (module docstring).
+    """One point on every foreground ray of `photos` (the training views of the scene `capture`), the mask grown to
+    hold them and the box drawn around them (module docstring).
 
     Without a known background (or in NDC) every pixel is foreground and the hull says nothing: a ray that crosses
     an occupied cell is covered, the others get a cell each, and the box is drawn around the grown grid's cells (a
@@ -194,11 +207,13 @@ def cover_foreground(
         the box's faces, where the coarse model draws content that reaches past the box; 0 without a known
         background}).
     """
+    images, poses, intrinsics = photos.images, photos.poses, photos.intrinsics
+    near, far, ndc = capture.near, capture.far, capture.ndc
     n, h, w = images.shape[:3]
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
-    background = known_background(background, ndc)
+    background = known_background(capture.background, ndc)
     known = background is not None
-    masks = foreground_masks(images, background, tol, alpha).to(device)
+    masks = foreground_masks(images, background, tol, photos.alpha).to(device)
     # the (tight, footprint) visual hulls, made when a first ray needs them (on most scenes none does)
     hulls = functools.cache(lambda: (
         visual_hull(occ, poses, intrinsics, masks, footprint=False, min_views=max(2, math.ceil(n / 4))),

@@ -8,7 +8,7 @@ Two passes per batch of rays:
 2. colour pass: only samples whose rendering weight exceeds `color_threshold` go through
    `field.color`. This drops samples behind terminated rays (their transmittance, hence weight,
    is ~0) and samples in near-empty space, which together hold almost none of the pixel's colour.
-Setting both skips off (`skip=None`, `color_threshold=0`) evaluates every sample in the box.
+Setting both skips off (`skip=None`, `settings.color_threshold=0`) evaluates every sample in the box.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Callable, Protocol
+from typing import Callable, NamedTuple, Protocol
 
 import torch
 from torch import Tensor
@@ -100,7 +100,6 @@ def render_rays(
     settings: RenderSettings,
     skip: Callable[[Tensor], Tensor] | None = None,
     jitter: bool = False,
-    color_threshold: float | None = None,
     packer: Packer = DYNAMIC,
 ) -> RayBundle:
     """Render a batch of rays (R, 3), (R, 3) through `field`; differentiable w.r.t. the field. `packer`: how the
@@ -110,7 +109,7 @@ def render_rays(
     r, s = t.shape
     # a per-batch view shares the density pass's work with the colour pass, and is told which slots are pads
     view = field.batch_view(packer) if hasattr(field, "batch_view") else None
-    thr = settings.color_threshold if color_threshold is None else color_threshold
+    thr = settings.color_threshold
     keep = kept_samples(skip, xyz, valid, step, thr, packer)
     dens = packer.pack("density", keep.reshape(-1))
     pts = xyz.reshape(-1, 3)[dens.rows]
@@ -140,26 +139,33 @@ def render_rays(
                      {"weights": weights, "t": t, "rgb": rgb, "rows": dens.rows, "live": dens.live, "step": step})
 
 
+class Camera(NamedTuple):
+    """One posed pinhole camera: pose (4, 4) camera-to-world, intrinsics (4,) fx, fy, cx, cy in pixels, and the
+    image's size in pixels."""
+
+    pose: Tensor
+    intrinsics: Tensor
+    height: int
+    width: int
+
+
 @torch.no_grad()
 def render_image(
     field: Field,
-    pose: Tensor,
-    intrinsics: Tensor,
-    height: int,
-    width: int,
+    camera: Camera,
     settings: RenderSettings,
     skip: Callable[[Tensor], Tensor] | None = None,
-    color_threshold: float | None = None,
     device: torch.device | str = "cpu",
     packer: Packer | None = None,
 ) -> dict[str, Tensor | int]:
-    """Render one image in chunks of `settings.chunk` rays (bounded memory).
+    """Render the image `camera` sees in chunks of `settings.chunk` rays (bounded memory).
 
     `packer` (default: `packer_for(device)`; keep one per model to reuse its budgets from image to image): with
     static budgets no chunk waits for the device; the budgets are settled once the image is done, and an image
     whose samples overflowed one is rendered again with the grown budgets, so no sample is ever missing.
     -> {"rgb": (H, W, 3), "depth": (H, W), "acc": (H, W), "n_samples": int, "n_color": int}
     """
+    pose, intrinsics, height, width = camera
     origins, dirs = image_rays(pose.to(device), intrinsics, height, width, settings.ndc)
     packer = packer_for(device) if packer is None else packer
     while True:
@@ -167,7 +173,7 @@ def render_image(
         n_samples = n_color = 0
         for i in range(0, origins.shape[0], settings.chunk):
             b = render_rays(field, origins[i : i + settings.chunk], dirs[i : i + settings.chunk], settings, skip,
-                            color_threshold=color_threshold, packer=packer)
+                            packer=packer)
             parts.append((b.color, b.depth, b.acc))
             n_samples += b.n_samples
             n_color += b.n_color
@@ -196,5 +202,5 @@ def render_view(field: Field, views: Views, i: int, settings: RenderSettings,
                 skip: Callable[[Tensor], Tensor] | None = None, device: torch.device | str = "cpu",
                 packer: Packer | None = None) -> dict:
     """`render_image` of camera `i` of `views` (a dataset split)."""
-    return render_image(field, views.poses[i], views.intrinsics[i], views.height, views.width, settings, skip,
+    return render_image(field, Camera(views.poses[i], views.intrinsics[i], views.height, views.width), settings, skip,
                         device=device, packer=packer)

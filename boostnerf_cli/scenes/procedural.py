@@ -8,7 +8,7 @@ placed and coloured by the seed:
 - a box (rotated about z) with a fine 3-D checkerboard (cell 0.04: period 0.08);
 - a box with a smooth gradient.
 Shading is Lambertian under one fixed directional light plus ambient; no shadows. The background
-is transparent. Each pixel averages `supersample`^2 sub-pixel rays (premultiplied colour), so the
+is transparent. Each pixel averages `SUPERSAMPLE`^2 sub-pixel rays (premultiplied colour), so the
 silhouettes and texture edges are antialiased; the fine textures are near the Nyquist limit at
 64-128 px, so low- and high-resolution grids differ in what they can represent.
 
@@ -238,7 +238,11 @@ def shade(obj: dict, normal: Tensor, p: Tensor) -> Tensor:
     return (albedo * light[:, None]).clamp(0, 1)
 
 
-def render_view(objects: list[dict], pose: Tensor, intrinsics: Tensor, size: int, supersample: int = 2) -> np.ndarray:
+SUPERSAMPLE = 2  # each pixel averages SUPERSAMPLE^2 sub-pixel rays
+
+
+def render_view(objects: list[dict], pose: Tensor, intrinsics: Tensor, size: int,
+                supersample: int = SUPERSAMPLE) -> np.ndarray:
     """Ray-cast one square view -> (size, size, 4) float64 straight RGBA in [0, 1].
 
     pose (4, 4) camera-to-world, intrinsics (4,) fx, fy, cx, cy for `size` px. Sub-pixel rays are
@@ -531,7 +535,7 @@ def _write_nerfstudio(out: Path, views: dict, focal: float, size: int) -> None:
     (out / "transforms.json").write_text(json.dumps(meta, indent=2))
 
 
-def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8, seed: int = 0, supersample: int = 2,
+def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8, seed: int = 0,
                layout: str = "blender", rig: str | None = None, content: str = "objects") -> Path:
     """Render the seeded procedural scene into `out_dir` in `layout` (one of `LAYOUTS`) and return `out_dir`.
 
@@ -546,10 +550,10 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     "large" (a floor reaching past the camera-derived box) or "empty" (`scene_objects`).
     Deterministic: the same arguments give byte-identical files. Refuses a folder that already holds files.
     """
-    if size < 4 or n_train < 1 or n_test < 0 or supersample < 1 or seed < 0:
+    if size < 4 or n_train < 1 or n_test < 0 or seed < 0:
         raise BoostNerfError(
-            f"make-scene needs size >= 4, n_train >= 1, n_test >= 0, supersample >= 1, seed >= 0 "
-            f"(got size={size}, n_train={n_train}, n_test={n_test}, supersample={supersample}, seed={seed})"
+            f"make-scene needs size >= 4, n_train >= 1, n_test >= 0, seed >= 0 "
+            f"(got size={size}, n_train={n_train}, n_test={n_test}, seed={seed})"
         )
     if layout not in LAYOUTS:
         raise BoostNerfError(f"unknown scene layout {layout!r}: use one of {', '.join(LAYOUTS)}")
@@ -571,7 +575,7 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     with _single_thread():
         for split, poses in (("train", train), ("test", test)):
             if len(poses):
-                views[split] = (poses, [render_view(objects, torch.from_numpy(p).float(), k, size, supersample)
+                views[split] = (poses, [render_view(objects, torch.from_numpy(p).float(), k, size, SUPERSAMPLE)
                                         for p in poses])
     # Written to `.NAME.tmp` beside the folder and renamed when complete: a run stopped half way never leaves a
     # half-written scene that a later run would take for a complete one (a workspace's lock removes the leftover).
@@ -589,7 +593,7 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         else:
             _write_nerfstudio(tmp, views, focal, size)
         (tmp / "objects.json").write_text(json.dumps({"seed": seed, "content": content, "objects": objects}, indent=2))
-        text = README.format(seed=seed, ss=supersample, n_train=n_train, n_test=n_test, size=size,
+        text = README.format(seed=seed, ss=SUPERSAMPLE, n_train=n_train, n_test=n_test, size=size,
                              angle=CAMERA_ANGLE_X, rig_text=RIG_TEXT[rig].format(radius=RADIUS),
                              layout_text=LAYOUT_TEXT[layout], content_text=CONTENT_TEXT[content])
         (tmp / "README.txt").write_text(text)

@@ -186,9 +186,7 @@ def _coarse_round(site: Site, rec: GeometryRecipe, bbox: Tensor, name: str, seed
                 "visual hull (floaters, hidden space); they stay in the mask but do not count as surface")
         log(f"{name}: checking that every foreground ray of the {len(train_split)} training views reaches kept "
             "space")  # a pass over every training ray: minutes for a large capture
-        framed, box, cover = cover_foreground(framed, model.density, train_split.images, train_split.poses,
-                                              train_split.intrinsics, scene.background, scene.near, scene.far,
-                                              scene.ndc, tol=foreground_tol(scene.extra), alpha=train_split.alpha)
+        framed, box, cover = cover_foreground(framed, model.density, train_split, scene, foreground_tol(scene.extra))
         cover["outside_hull"] = outside
         log(f"{name}: {cover['missed_before']} of {cover['foreground_rays']} foreground training rays reach no surface "
             f"in occupied cells; {cover['cells_added']} cells added along them ({cover['missed_after']} missed)"

@@ -36,7 +36,7 @@ from boostnerf_cli.models import LoadedModel, Skips, Viewing, load_model, n_view
 from boostnerf_cli.moe.mixture import GateView
 from boostnerf_cli.render.packing import Packer, packer_for
 from boostnerf_cli.render.paths import camera_path
-from boostnerf_cli.render.renderer import render_image, render_view
+from boostnerf_cli.render.renderer import Camera, render_image, render_view
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace
@@ -108,7 +108,7 @@ def run_video(ws: Workspace, names: list[str] | None, path: VideoPath, device: s
     packer = packer_for(device)  # one for the path: each frame reuses the budgets the ones before it sized
     rgb, depth, acc = [], [], []
     for i, pose in enumerate(poses):
-        r = render_image(model.field, pose, train.intrinsics[0], train.height, train.width, settings, skip,
+        r = render_image(model.field, Camera(pose, train.intrinsics[0], train.height, train.width), settings, skip,
                          device=device, packer=packer)
         rgb.append(to_uint8(r["rgb"]))
         depth.append((r["depth"] / r["acc"].clamp_min(1e-6)).numpy())  # expected depth of the surface hit
