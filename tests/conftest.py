@@ -83,11 +83,24 @@ TINY_MOE_PSNR_2_VIEWS = {"dvgo-12": 17.48, "dvgo-16": 18.01, "baseline": 18.44, 
                          "ens": 18.37}  # eval --views 2 after build-moe and the four finetunes
 
 
+# Test files that are split into one work unit per test: their tests share no fixture, and each takes minutes.
+SPLIT_FILES = {"test_demo_scene.py"}
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own hook reads the xdist_group marks
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Files with more `slow` tests run first. Under `--dist loadfile --no-loadscope-reorder` (pyproject addopts)
-    each file goes whole to one worker, in this order: a long file handed out last would end the run alone."""
-    slow = collections.Counter(item.path for item in items if item.get_closest_marker("slow"))
-    items.sort(key=lambda item: -slow[item.path])  # a stable sort: the order inside each file is kept
+    """The work units of `--dist loadgroup --no-loadscope-reorder` (pyproject addopts): a test file is one unit, which
+    one worker runs whole (its module fixtures are made once), but a `SPLIT_FILES` test is a unit of its own, so two
+    workers can share that file. Those units run first, then the units with more `slow` tests: a long one handed
+    out last would end the run alone."""
+    def unit(item: pytest.Item) -> str:
+        return item.nodeid if item.path.name in SPLIT_FILES else item.nodeid.split("::")[0]
+
+    slow = collections.Counter(unit(item) for item in items if item.get_closest_marker("slow"))
+    for item in items:
+        item.add_marker(pytest.mark.xdist_group(unit(item)))
+    # a stable sort: the order inside each unit is kept
+    items.sort(key=lambda item: (item.path.name not in SPLIT_FILES or not slow[unit(item)], -slow[unit(item)]))
 
 
 _SERVER: dict = {}  # this worker's CLI fork server (tests/cli_server.py): its process and socket, started once
