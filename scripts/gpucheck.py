@@ -394,7 +394,8 @@ def _model_entry(name: str, ws: Path, stage: str, rec: dict, calls: list) -> dic
 
 
 # --- paper-check's plan ---------------------------------------------------------------------------------------------
-# The speeds the chain is sized from: issue 43's targets on one H100 / H200 (lego, 8192 rays a step), times SPEED
+# The speeds the chain is sized from: the GPU speed targets (docs/gpu.md) on one H100 / H200 (lego, 8192 rays a
+# step), times SPEED
 # (1: the targets; e.g. 0.16 for a DVGO-160 expert at 0.79 M rays/s, as OUT/gpu-check.md's table gives it).
 TARGET_RAYS_PER_S = 5e6  # a DVGO 160^3 expert's training step
 TARGET_RES = 160
@@ -477,7 +478,7 @@ def describe_plan(plan: dict) -> str:
         f"      = ({plan['budget_s']:g} - {plan['fixed_s']:g} - {plan['pretrain_s']:g} - {plan['seconds_per_image']:g}"
         f" * ({r['eval']} + {r['oracle']})) / ({st['baseline'] * 1000:.3g} + {st['top1'] * 1000:.3g} + "
         f"{st['top2'] * 1000:.3g} ms) = {plan['raw_iters']:g} -> {plan['iters']}",
-        f"    speeds: issue 43's targets x SPEED = {plan['speed']:g} (DVGO-160 at "
+        f"    speeds: the GPU speed targets x SPEED = {plan['speed']:g} (DVGO-160 at "
         f"{TARGET_RAYS_PER_S / 1e6 * plan['speed']:g}"
         f" M rays/s, a mixture step {TARGET_MIXTURE:g}x its largest expert's, an 800 px dvgo-160 image in "
         f"{TARGET_IMAGE_S / plan['speed']:.3g} s)",

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The paper-scale M = 3 chain on lego in one call of at most 9 minutes on one H200: does Top-1 beat its baseline at
-# 800 px with 160^3-256^3 experts, and does any spatial partition of the experts beat the best of them (issue 18)?
+# 800 px with 160^3-256^3 experts, and does any spatial partition of the experts beat the best of them
+# (docs/results.md, "Why does Top-1 stay below its baseline at 100 px?")?
 #
 # Usage: bash scripts/paper-check.sh LEGO OUT
 #   LEGO  the Blender lego scene (transforms_train.json + train/; every 8th view held out); OUT the work folder, kept:
@@ -8,12 +9,13 @@
 #   DEVICE=cpu SCALE=tiny checks the script's logic on a CPU in minutes (40 px, experts 12/16/20, few steps). Every
 #   setting is in scripts/gpucheck.py, SCALES["paper-check"], and an environment variable of its name overrides it:
 #   BUDGET_S (540: stages still running then are stopped, marked CUT, and resumed by the next call), SPEED (1: the
-#   speeds the plan assumes, as a fraction of issue 43's targets), FIXED_S, F_MIN, F_ROUND, COST_VIEWS, ORACLE_*.
+#   speeds the plan assumes, as a fraction of the GPU speed targets, docs/gpu.md), FIXED_S, F_MIN, F_ROUND,
+#   COST_VIEWS, ORACLE_*.
 #   THREADS / COMPILE_THREADS as gpu-check.sh.
 #
 # The chain (recipes/blender-dvgo-paper-official.yaml: the official code's protocol at 800 px):
 #  0. the plan, by the first call (OUT/plan.json, kept by later calls; scripts/gpucheck.py plan_chain): the joint
-#     steps F of the baseline, Top-1 and Top-2, sized from issue 43's target speeds on one H100 / H200 (lego, 8192
+#     steps F of the baseline, Top-1 and Top-2, sized from the GPU speed targets on one H100 / H200 (lego, 8192
 #     rays a step: a DVGO-160 step at 5 M rays/s, a DVGO step's seconds growing with its grid's side as its samples
 #     per ray do; a Top-1 / Top-2 step 2.5x its largest expert's; an 800 px dvgo-160 image in 0.1 s), times SPEED:
 #         F = (BUDGET_S - FIXED_S - pretraining - s_image * renders) / (s_baseline + s_top1 + s_top2),

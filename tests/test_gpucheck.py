@@ -40,7 +40,7 @@ def test_held_out_views_as_eval_renders_them(tmp_path):
 
 
 def test_plan_at_the_targets_gives_the_official_steps_inside_the_budget(tmp_path):
-    """At issue 43's target speeds the paper chain fits the official 20,000 joint steps in 540 s; the plan's
+    """At the GPU speed targets (docs/gpu.md) the paper chain fits the official 20,000 joint steps in 540 s; the plan's
     numbers are the formula's."""
     rec = _recipe("full", tmp_path)
     s = gc.settings("paper-check", "full", env={})

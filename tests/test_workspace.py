@@ -135,5 +135,5 @@ def test_family_options_may_be_given_per_expert():
     assert expert_options(rec, 32) == {"hidden": 16, "feat_dim": 6, "res": 32}
     assert expert_options(rec, 96)["hidden"] == 64
     assert expert_options(PretrainRecipe(res=[32], dvgo={"hidden": {"32": 8}}), 32)["hidden"] == 8  # from JSON
-    # a resolution the mapping does not list: the nearest listed one's value (tests/test_issue17_checks.py)
+    # a resolution the mapping does not list: the nearest listed one's value (tests/test_training_checks.py)
     assert expert_options(PretrainRecipe(res=[32, 128], dvgo={"hidden": {32: 16, 64: 32}}), 128)["hidden"] == 32
