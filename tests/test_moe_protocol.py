@@ -98,7 +98,7 @@ def test_counts_normalisation_is_the_official_sum_of_counts_squared(k):
 
 def _visible_reference(mix, origins, dirs, settings, rows, threshold):
     """V_D composited alone over the density pass's samples, ray by ray in float64: alpha and weight > threshold."""
-    t, _, xyz, step = sample_rays(origins, dirs, settings, jitter=False)
+    t, _, xyz, step = sample_rays(origins, dirs, settings, jitter=False, fit=True)  # the CPU renderer's slots
     s = t.shape[1]
     trans = {}  # ray -> transmittance so far
     out, opaque = [], []
@@ -389,7 +389,7 @@ def test_vd_source_largest_reads_the_largest_experts_density_as_it_trains():
 def _visible_rows_reference(mix, origins, dirs, settings, threshold):
     """The samples the official filters keep, ray by ray in float64: V_D opacity over the step above T, then
     V_D's rendering weight (composited over the samples that pass T) above `threshold`. -> flat sample indices."""
-    t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter=False)
+    t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter=False, fit=True)  # the CPU renderer's slots
     s = t.shape[1]
     rows = []
     for ray in range(t.shape[0]):

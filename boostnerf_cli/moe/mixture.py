@@ -319,7 +319,7 @@ class MixtureSkip:
         flat = xyz.reshape(-1, 3)
         keep = valid.reshape(-1)
         if mix.occupancy is not None:
-            keep = keep & mix.occupancy(flat)
+            keep = packer.keep_where(mix.occupancy, flat, keep)
         inside = packer.pack("vd", keep)
         sigma = mix.vd_density(flat[inside.rows])
         opaque = inside.keep(-torch.expm1(-sigma * mix.cfg.step) > mix.cfg.threshold)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 from torch import Tensor
@@ -88,6 +89,13 @@ class Packer:
     def pack(self, name: str, mask: Tensor) -> Packed:
         """mask (N,) bool -> the kept entries. `name` tells filters apart (each has its own budget)."""
         return Packed(mask.nonzero().squeeze(-1), None, mask.shape[0])
+
+    def keep_where(self, test: Callable[[Tensor], Tensor], points: Tensor, keep: Tensor) -> Tensor:
+        """keep & test(points), points (N, 3), keep (N,) bool: only the kept points are tested (fewer; listing them
+        costs nothing on the CPU). A static packer tests every point instead, so nothing waits for the device."""
+        out = keep.clone()
+        out[keep] = test(points[keep])
+        return out
 
     def overflowed(self) -> Tensor | None:
         """Whether a filter since `begin` kept more than its budget (a device bool), or None (nothing can)."""
@@ -165,6 +173,9 @@ class Budgets(Packer):
         packed, over = budget.pack(mask)
         self._over = over if self._over is None else self._over | over
         return packed
+
+    def keep_where(self, test: Callable[[Tensor], Tensor], points: Tensor, keep: Tensor) -> Tensor:
+        return keep & test(points)
 
     def overflowed(self) -> Tensor | None:
         return self._over

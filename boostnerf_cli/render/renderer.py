@@ -65,16 +65,21 @@ class RayBundle:
 
 
 def sample_rays(
-    origins: Tensor, dirs: Tensor, settings: RenderSettings, jitter: bool
+    origins: Tensor, dirs: Tensor, settings: RenderSettings, jitter: bool, fit: bool = False
 ) -> tuple[Tensor, Tensor, Tensor, float]:
     """Fixed-step samples inside the box.
 
     -> t (R, S) sample distances, valid (R, S) bool, xyz (R, S, 3), step used (`RenderSettings.sampling`).
-    Samples sit at t_enter + (j + u) * step with u = 0.5 (or one uniform draw per ray when jitter).
+    Samples sit at t_enter + (j + u) * step with u = 0.5 (or one uniform draw per ray when jitter). S is the slots
+    the box's diagonal needs, or with `fit` the slots this batch's longest ray needs (fewer samples, for one wait
+    for the device: the CPU's way); the samples of a ray are the same either way.
     """
     n, step = settings.sampling
     bbox = settings.bbox.to(origins.device)
     t0, t1, hit = intersect_box(origins, dirs, bbox, settings.near, settings.far)
+    if fit and t0.numel():
+        longest = float(torch.where(hit, t1 - t0, torch.zeros_like(t0)).max())
+        n = max(1, min(n, math.ceil(longest / step)))
     j = torch.arange(n, device=origins.device, dtype=origins.dtype)
     u = torch.rand_like(t0)[:, None] if jitter else torch.full_like(t0, 0.5)[:, None]
     t = t0[:, None] + (j[None, :] + u) * step
@@ -90,7 +95,7 @@ def kept_samples(skip, xyz: Tensor, valid: Tensor, step: float, threshold: float
         return valid
     if hasattr(skip, "filter"):
         return skip.filter(xyz, valid, step, threshold, packer)
-    return valid & skip(xyz.reshape(-1, 3)).reshape(valid.shape)
+    return packer.keep_where(skip, xyz.reshape(-1, 3), valid.reshape(-1)).reshape(valid.shape)
 
 
 def render_rays(
@@ -105,7 +110,7 @@ def render_rays(
     """Render a batch of rays (R, 3), (R, 3) through `field`; differentiable w.r.t. the field. `packer`: how the
     kept samples are listed (render/packing.py); with a static one nothing here waits for the device, and
     `packer.overflowed()` says afterwards whether the result misses samples."""
-    t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter)
+    t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter, fit=not packer.static)
     r, s = t.shape
     # a per-batch view shares the density pass's work with the colour pass, and is told which slots are pads
     view = field.batch_view(packer) if hasattr(field, "batch_view") else None
