@@ -108,7 +108,7 @@ def splat(models: list[LoadedModel], split, views: list[int], settings: RenderSe
         gt = split.images[i].reshape(-1, 3)
         outs = [render(m.field, m.skip, split, i, settings) for m in models]
         o, d = image_rays(split.poses[i], split.intrinsics[i], split.height, split.width, settings.ndc)
-        _, valid, xyz, _ = sample_rays(o, d, settings, jitter=False)
+        _, valid, xyz, _ = sample_rays(o, d, settings, jitter=False, fit=True)  # the slots render_rays used
         w = torch.stack([wt for _, wt in outs]).mean(0)  # (R, S)
         where = valid & (w > 1e-4)
         ws = w[where].double()
