@@ -180,47 +180,47 @@ class RecipeOption(NamedTuple):
     declaration: object
 
 
+def _sets(key: str, kind: type, *names: str, **option) -> RecipeOption:
+    """The option `names` (`typer.Option` with `option`) of type `kind` that sets recipe key `key`; not given: None."""
+    return RecipeOption(key, Annotated[Optional[kind], typer.Option(*names, **option)])
+
+
 # Every option that sets a recipe key, by command: {parameter: RecipeOption}. The stages read the recipe alone; the
 # option's spelling is its declaration's (`_flag`). `_recipe_options` adds them to their command.
 RECIPE_OPTIONS = {
     "pretrain": {
-        "model": RecipeOption("pretrain.model", Annotated[Optional[str], typer.Option(
-            "--model", help="Expert family: dvgo (dense grid), tensorf (VM) or ngp (hash grid).")]),
-        "res": RecipeOption("pretrain.res", Annotated[Optional[str], typer.Option(
-            "--res", callback=lambda text: _int_list(text, "--res") if text else text,
-            help="Comma-separated: one expert each, res^3 voxels (ngp: res levels).")]),
-        "iters": RecipeOption("pretrain.iters", Annotated[Optional[int], typer.Option(
-            "--iters", min=1, help="Training steps per expert.")]),
-        "image_size": RecipeOption("data.image_size", Annotated[Optional[int], typer.Option(
-            "--image-size", min=8, help="Longer image side in pixels after area downscaling.")]),
-        "holdout_every": RecipeOption("data.holdout_every", Annotated[Optional[int], typer.Option(
-            "--holdout-every", help="No test split: hold out every N-th train view, N >= 2 (0: none).")]),
-        "data_format": RecipeOption("data.format", Annotated[Optional[str], typer.Option(
-            "--format", help="Dataset format: auto, blender, nsvf, tanks, llff or nerfstudio.")]),
-        "seed": RecipeOption("pretrain.seed", Annotated[Optional[int], typer.Option("--seed")]),
-        "skip": RecipeOption("pretrain.skip", Annotated[Optional[bool], typer.Option(
-            "--skip/--no-skip", help="--no-skip: train on the whole box, no occupancy mask (pretrain.skip).",
-            show_default=False)]),
+        "model": _sets("pretrain.model", str, "--model",
+                       help="Expert family: dvgo (dense grid), tensorf (VM) or ngp (hash grid)."),
+        "res": _sets("pretrain.res", str, "--res", callback=lambda text: _int_list(text, "--res") if text else text,
+                     help="Comma-separated: one expert each, res^3 voxels (ngp: res levels)."),
+        "iters": _sets("pretrain.iters", int, "--iters", min=1, help="Training steps per expert."),
+        "image_size": _sets("data.image_size", int, "--image-size", min=8,
+                            help="Longer image side in pixels after area downscaling."),
+        "holdout_every": _sets("data.holdout_every", int, "--holdout-every",
+                               help="No test split: hold out every N-th train view, N >= 2 (0: none)."),
+        "data_format": _sets("data.format", str, "--format",
+                             help="Dataset format: auto, blender, nsvf, tanks, llff or nerfstudio."),
+        "seed": _sets("pretrain.seed", int, "--seed"),
+        "skip": _sets("pretrain.skip", bool, "--skip/--no-skip", show_default=False,
+                      help="--no-skip: train on the whole box, no occupancy mask (pretrain.skip)."),
     },
     "build-moe": {
-        "gate_res": RecipeOption("moe.gate_res", Annotated[Optional[int], typer.Option(
-            "--gate-res", min=2, help="Gate grid resolution (gate_res^3 voxels; 128 in the paper).")]),
-        "gate_type": RecipeOption("moe.gate_type", Annotated[Optional[str], typer.Option(
-            "--gate-type", help="grid (paper), linear or switch.")]),
-        "gate_grid": RecipeOption("moe.gate_grid", Annotated[Optional[str], typer.Option(
-            "--gate-grid", help="Gate's feature grid: dense, tensorf, hash, or auto (the experts').")]),
-        "threshold": RecipeOption("moe.density_threshold", Annotated[Optional[float], typer.Option(
-            "--threshold", min=0.0, help="T: V_D filters samples whose opacity per step is below T.")]),
+        "gate_res": _sets("moe.gate_res", int, "--gate-res", min=2,
+                          help="Gate grid resolution (gate_res^3 voxels; 128 in the paper)."),
+        "gate_type": _sets("moe.gate_type", str, "--gate-type", help="grid (paper), linear or switch."),
+        "gate_grid": _sets("moe.gate_grid", str, "--gate-grid",
+                           help="Gate's feature grid: dense, tensorf, hash, or auto (the experts')."),
+        "threshold": _sets("moe.density_threshold", float, "--threshold", min=0.0,
+                           help="T: V_D filters samples whose opacity per step is below T."),
     },
     "finetune": {
-        "iters": RecipeOption("moe.iters", Annotated[Optional[int], typer.Option("--iters", min=1)]),
-        "lam": RecipeOption("moe.lam", Annotated[Optional[float], typer.Option(
-            "--lambda", min=0.0, help="Auxiliary-loss weight (1e-3 in the paper).")]),
-        "penalty": RecipeOption("moe.penalty", Annotated[Optional[str], typer.Option(
-            "--penalty", help="geometric (paper), linear, quadratic, none or '1, 1.5, 2.23'.")]),
-        "renormalize": RecipeOption("moe.renormalize", Annotated[Optional[bool], typer.Option(
-            "--renormalize/--no-renormalize", help="Top-k weights sum to 1 (default); off: raw gate probabilities.")]),
-        "seed": RecipeOption("moe.seed", Annotated[Optional[int], typer.Option("--seed")]),
+        "iters": _sets("moe.iters", int, "--iters", min=1),
+        "lam": _sets("moe.lam", float, "--lambda", min=0.0, help="Auxiliary-loss weight (1e-3 in the paper)."),
+        "penalty": _sets("moe.penalty", str, "--penalty",
+                         help="geometric (paper), linear, quadratic, none or '1, 1.5, 2.23'."),
+        "renormalize": _sets("moe.renormalize", bool, "--renormalize/--no-renormalize",
+                             help="Top-k weights sum to 1 (default); off: raw gate probabilities."),
+        "seed": _sets("moe.seed", int, "--seed"),
     },
 }
 
