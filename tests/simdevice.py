@@ -25,7 +25,6 @@ from unittest import mock
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
-from torch.utils._pytree import tree_flatten, tree_map
 
 GPU = torch.device("meta")
 aten = torch.ops.aten
@@ -75,9 +74,39 @@ def _device_of(t: torch.Tensor) -> str | None:
     return str(t.device)
 
 
+def _tensors(obj, out: list) -> list:
+    """The tensors in an operator's arguments (nested lists, tuples and dicts): what `tree_flatten` finds, faster."""
+    if isinstance(obj, torch.Tensor):
+        out.append(obj)
+    elif isinstance(obj, (list, tuple)):
+        for x in obj:
+            _tensors(x, out)
+    elif isinstance(obj, dict):
+        for x in obj.values():
+            _tensors(x, out)
+    return out
+
+
+def _plain(obj):
+    """The arguments with each SimTensor replaced by its CPU data (`tree_map`'s result, faster)."""
+    if isinstance(obj, SimTensor):
+        return obj.elem
+    if isinstance(obj, (list, tuple)) and obj:
+        return _rebuilt(obj, [_plain(x) for x in obj])
+    if isinstance(obj, dict) and obj:
+        return {k: _plain(v) for k, v in obj.items()}
+    return obj
+
+
+def _rebuilt(like: list | tuple, items: list) -> list | tuple:
+    """`items` in a sequence of the type of `like` (a list, a tuple, a named tuple or a torch.return_types one)."""
+    if isinstance(like, list) or type(like) is tuple:
+        return items if isinstance(like, list) else tuple(items)
+    return type(like)(*items) if hasattr(like, "_fields") else type(like)(items)
+
+
 def _dispatch(func, args, kwargs):
-    flat, _ = tree_flatten((args, kwargs))
-    devices = {d for d in (_device_of(a) for a in flat if isinstance(a, torch.Tensor)) if d is not None}
+    devices = {d for d in map(_device_of, _tensors((args, kwargs), [])) if d is not None}
     if len(devices) > 1 and func not in _CROSS_DEVICE:
         raise RuntimeError("Expected all tensors to be on the same device, but found at least two devices, "
                            f"{' and '.join(sorted(d.replace('gpu', 'the simulated GPU') for d in devices))} "
@@ -88,13 +117,22 @@ def _dispatch(func, args, kwargs):
     if kwargs.get("device") is not None:
         on_gpu = torch.device(kwargs["device"]).type == GPU.type
         kwargs = {**kwargs, "device": torch.device("cpu")}
-    plain_args, plain_kwargs = tree_map(lambda x: x.elem if isinstance(x, SimTensor) else x, (args, kwargs))
+    plain_args, plain_kwargs = _plain(args), _plain(kwargs)
     out = func(*plain_args, **plain_kwargs)
     if args and isinstance(args[0], torch.Tensor) and out is plain_args[0]:
         return args[0]  # in-place operators return their argument
     if func is aten._local_scalar_dense.default or not on_gpu:
         return out
-    return tree_map(lambda x: SimTensor(x) if isinstance(x, torch.Tensor) and not isinstance(x, SimTensor) else x, out)
+    return _on_gpu(out)
+
+
+def _on_gpu(obj):
+    """The outputs with each plain tensor wrapped as a SimTensor (`tree_map`'s result, faster)."""
+    if isinstance(obj, torch.Tensor):
+        return obj if isinstance(obj, SimTensor) else SimTensor(obj)
+    if isinstance(obj, (list, tuple)) and obj:
+        return _rebuilt(obj, [_on_gpu(x) for x in obj])
+    return obj
 
 
 class _Mode(TorchDispatchMode):
@@ -176,7 +214,7 @@ def is_sync(func, args, kwargs) -> bool:
     with a boolean mask (turned into indices by nonzero), repeat_interleave without output_size, on device tensors;
     or a copy between host and device that is not `non_blocking` (a 0-dim host scalar going into a kernel is not a
     copy)."""
-    flat, _ = tree_flatten((args, kwargs))
+    flat = _tensors((args, kwargs), [])
     if func in _COPIES:
         if func is aten._to_copy.default:
             src, dst = args[0].device, torch.device(kwargs.get("device") or args[0].device)
