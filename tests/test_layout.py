@@ -1,5 +1,5 @@
-"""The import rules of docs/design.md, read from the source: which packages may import which, no cycles, no
-private names across modules, and the maths packages free of files."""
+"""The rules of docs/design.md, read from the source: which packages may import which, no cycles, no private names
+across modules, the maths packages free of files; and functions a reader can hold (length, parameters)."""
 
 from __future__ import annotations
 
@@ -240,3 +240,29 @@ def test_the_rules_see_each_kind_of_violation(tmp_path):
     assert private_imports([leaky], tmp_path) == [
         "boostnerf_cli/fields/leaky.py:3 imports _frame from boostnerf_cli.scenes.blender"]
     assert file_imports_in_maths(tmp_path) == ["boostnerf_cli.fields.leaky:1 imports boostnerf_cli.workspace"]
+
+
+def _functions():
+    """(module path, function) for every function and method of boostnerf_cli."""
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                yield path.relative_to(PACKAGE.parent), node
+
+
+def test_no_function_is_over_80_lines():
+    long = [f"{path}:{f.lineno} {f.name} ({f.end_lineno - f.lineno + 1} lines)" for path, f in _functions()
+            if f.end_lineno - f.lineno + 1 > 80]
+    assert not long, long
+
+
+def test_at_most_five_functions_take_eight_or_more_parameters():
+    """Typer commands count with the parameters they declare (the recipe's options are added by
+    `cli._recipe_options`); `self` and `cls` do not count."""
+    def count(f) -> int:
+        a = f.args
+        names = [x.arg for x in a.posonlyargs + a.args + a.kwonlyargs]
+        return len(names) - (names[:1] in (["self"], ["cls"]))
+
+    many = [f"{path} {f.name} ({count(f)})" for path, f in _functions() if count(f) >= 8]
+    assert len(many) <= 5, many
