@@ -87,22 +87,27 @@ def _tensors(obj, out: list) -> list:
     return out
 
 
-def _plain(obj):
-    """The arguments with each SimTensor replaced by its CPU data (`tree_map`'s result, faster)."""
-    if isinstance(obj, SimTensor):
-        return obj.elem
-    if isinstance(obj, (list, tuple)) and obj:
-        return _rebuilt(obj, [_plain(x) for x in obj])
+def _map_tensors(fn, obj):
+    """`obj` (an operator's arguments or outputs: nested lists, tuples and dicts) with `fn` applied to each tensor
+    (`tree_map`'s result, faster). A sequence keeps its type: list, tuple, named tuple or torch.return_types."""
+    if isinstance(obj, torch.Tensor):
+        return fn(obj)
     if isinstance(obj, dict) and obj:
-        return {k: _plain(v) for k, v in obj.items()}
-    return obj
+        return {k: _map_tensors(fn, v) for k, v in obj.items()}
+    if not isinstance(obj, (list, tuple)) or not obj:
+        return obj
+    items = [_map_tensors(fn, x) for x in obj]
+    if isinstance(obj, list) or type(obj) is tuple:
+        return items if isinstance(obj, list) else tuple(items)
+    return type(obj)(*items) if hasattr(obj, "_fields") else type(obj)(items)
 
 
-def _rebuilt(like: list | tuple, items: list) -> list | tuple:
-    """`items` in a sequence of the type of `like` (a list, a tuple, a named tuple or a torch.return_types one)."""
-    if isinstance(like, list) or type(like) is tuple:
-        return items if isinstance(like, list) else tuple(items)
-    return type(like)(*items) if hasattr(like, "_fields") else type(like)(items)
+def _plain(t: torch.Tensor) -> torch.Tensor:
+    return t.elem if isinstance(t, SimTensor) else t
+
+
+def _on_gpu(t: torch.Tensor) -> torch.Tensor:
+    return t if isinstance(t, SimTensor) else SimTensor(t)
 
 
 def _dispatch(func, args, kwargs):
@@ -117,22 +122,13 @@ def _dispatch(func, args, kwargs):
     if kwargs.get("device") is not None:
         on_gpu = torch.device(kwargs["device"]).type == GPU.type
         kwargs = {**kwargs, "device": torch.device("cpu")}
-    plain_args, plain_kwargs = _plain(args), _plain(kwargs)
+    plain_args, plain_kwargs = _map_tensors(_plain, args), _map_tensors(_plain, kwargs)
     out = func(*plain_args, **plain_kwargs)
     if args and isinstance(args[0], torch.Tensor) and out is plain_args[0]:
         return args[0]  # in-place operators return their argument
     if func is aten._local_scalar_dense.default or not on_gpu:
         return out
-    return _on_gpu(out)
-
-
-def _on_gpu(obj):
-    """The outputs with each plain tensor wrapped as a SimTensor (`tree_map`'s result, faster)."""
-    if isinstance(obj, torch.Tensor):
-        return obj if isinstance(obj, SimTensor) else SimTensor(obj)
-    if isinstance(obj, (list, tuple)) and obj:
-        return _rebuilt(obj, [_on_gpu(x) for x in obj])
-    return obj
+    return _map_tensors(_on_gpu, out)
 
 
 class _Mode(TorchDispatchMode):
