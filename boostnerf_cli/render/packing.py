@@ -93,9 +93,8 @@ class Packer:
     def keep_where(self, test: Callable[[Tensor], Tensor], points: Tensor, keep: Tensor) -> Tensor:
         """keep & test(points), points (N, 3), keep (N,) bool: only the kept points are tested (fewer; listing them
         costs nothing on the CPU). A static packer tests every point instead, so nothing waits for the device."""
-        out = keep.clone()
-        out[keep] = test(points[keep])
-        return out
+        rows = keep.nonzero().squeeze(-1)  # listed once, for the lookup and the write back
+        return keep.index_put((rows,), test(points[rows]))
 
     def overflowed(self) -> Tensor | None:
         """Whether a filter since `begin` kept more than its budget (a device bool), or None (nothing can)."""
