@@ -32,13 +32,18 @@ def _invoke(*args: str) -> None:
 @pytest.fixture(autouse=True)
 def budgets_that_hold_the_tiny_scenes(monkeypatch):
     """On a GPU every filter packs into a static budget and a step that overflows one is skipped (test_syncs.py
-    tests that). Here the budgets hold every sample of the tiny scenes, so a GPU run takes every step a CPU run
-    takes and must give its numbers."""
-    import functools
-
+    tests that). Here a budget grows, before it packs, to hold every sample its filter keeps, so a GPU run takes
+    every step a CPU run takes and must give its numbers; it packs through the GPU's static code path, into slots
+    sized as the GPU sizes them (`Budget.fit`: a margin over the count)."""
     from boostnerf_cli.render import packing
 
-    monkeypatch.setattr(packing, "Budgets", functools.partial(packing.Budgets, quantum=1 << 16))
+    pack = packing.Budget.pack
+
+    def pack_all(self, mask):
+        self.size = max(self.size or 0, self.fit(int(mask.sum())))
+        return pack(self, mask)
+
+    monkeypatch.setattr(packing.Budget, "pack", pack_all)
 
 
 def test_the_simulator_catches_a_cpu_tensor_next_to_a_gpu_one():
