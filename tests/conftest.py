@@ -1,5 +1,5 @@
 """Shared fixtures and helpers: the tiny recipe (`make_recipe` writes it and its variants), tiny generated
-scenes, a tiny trained workspace (made once per session), and running the real CLI."""
+scenes, a tiny trained workspace (made once per test run and worker), and running the real CLI."""
 
 from __future__ import annotations
 
