@@ -1,13 +1,16 @@
 """A fork server for the tests: imports torch and the CLI once, then runs each `boostnerf ...` call in a
 forked child, so the hundreds of CLI calls of the suite (`conftest.run_cli`) and the documented commands
-(the docs test's `boostnerf` shim) do not each pay torch's import (seconds).
+(the docs test's `boostnerf` shim) do not each pay torch's import (seconds). It runs a script the same way
+(`python SCRIPT ARGS`: `conftest.run_script`, for scripts/ and research/).
 
     python tests/cli_server.py SOCKET          # serve until killed
     python tests/cli_server.py --client SOCKET ARGS...   # what the `boostnerf` shim runs
 
 The client sends its arguments, working folder and environment as JSON and its stdin, stdout and
 stderr as file descriptors; the child adopts them, runs `boostnerf_cli.cli.main()` and the client
-exits with the child's exit code. One command at a time (each xdist worker starts its own server). The
+exits with the child's exit code. A script runs as `python SCRIPT` runs it: as `__main__`, with its own folder
+first on `sys.path` and then PYTHONPATH's entries (modules the server imported stay the ones it imported). One
+command at a time (each xdist worker starts its own server). The
 child is a fresh process as far as the CLI can tell: its own pid (a kill test's SIGKILL ends the child
 only), folder, environment and file descriptors; the server never runs a parallel region before forking,
 so the child's OpenMP threads start fresh.
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import runpy
 import socket
 import sys
 
@@ -57,12 +61,21 @@ def serve(path: str) -> None:
             os.environ.update(request["env"])
             if "OMP_NUM_THREADS" in os.environ:  # what a fresh process takes from it when it imports torch
                 torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
-            sys.argv = ["boostnerf", *request["args"]]
+            script = request.get("script")
+            sys.argv = [script or "boostnerf", *request["args"]]
             code = 0
             try:
-                boostnerf_cli.cli.main()
-            except SystemExit as e:
+                if script:
+                    paths = [os.path.dirname(os.path.abspath(script)),
+                             *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+                    sys.path[0:1] = [p for p in paths if p not in sys.path[1:]]
+                    runpy.run_path(script, run_name="__main__")
+                else:
+                    boostnerf_cli.cli.main()
+            except SystemExit as e:  # as the interpreter ends: a code that is not a number is printed, exit 1
                 code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+                if not isinstance(e.code, (int, type(None))):
+                    print(e.code, file=sys.stderr)
             except BaseException:  # noqa: BLE001  (report any crash as a failed command)
                 import traceback
 
@@ -80,13 +93,15 @@ def serve(path: str) -> None:
 
 
 def request(path: str, args: list[str], cwd: str, env: dict[str, str], fds: list[int],
-            timeout: float | None = None) -> int:
-    """Run `boostnerf ARGS` in a child of the server at `path`, in folder `cwd` with environment `env` and
-    `fds` as its stdin, stdout and stderr -> its exit code (-N when signal N ended it)."""
+            timeout: float | None = None, script: str | None = None) -> int:
+    """Run `boostnerf ARGS` (with `script`: `python SCRIPT ARGS`) in a child of the server at `path`, in folder
+    `cwd` with environment `env` and `fds` as its stdin, stdout and stderr -> its exit code (-N when signal N
+    ended it)."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn:
         conn.settimeout(timeout)
         conn.connect(path)
-        socket.send_fds(conn, [json.dumps({"args": args, "cwd": cwd, "env": env}).encode()], fds)
+        msg = {"args": args, "cwd": cwd, "env": env, "script": script}
+        socket.send_fds(conn, [json.dumps(msg).encode()], fds)
         reply = conn.recv(16)
     return int(reply or b"1")
 

@@ -130,24 +130,38 @@ def run_cli(*args: str, cwd: Path | None = None, check: bool = False,
     worker's CLI server (tests/cli_server.py), which has imported torch already; a fresh `python -m boostnerf_cli`
     when the test changed PYTHONPATH (a stand-in module or a plugin the server's imports cannot see). `timeout`:
     seconds the command may take."""
-    import tempfile
-
-    from cli_server import request
-
     env = {**os.environ, "PYTHONWARNINGS": "ignore", **(env_extra or {})}
     if env.get("PYTHONPATH") != _BASE_ENV.get("PYTHONPATH"):
         proc = subprocess.run([sys.executable, "-m", "boostnerf_cli", *args], capture_output=True, text=True,
                               cwd=cwd, env=env, timeout=timeout)
     else:
-        with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, open(os.devnull, "rb") as null:
-            code = request(_cli_server(), list(args), str(cwd or Path.cwd()), env,
-                           [null.fileno(), out.fileno(), err.fileno()], timeout=timeout)
-            out.seek(0)
-            err.seek(0)
-            proc = subprocess.CompletedProcess(["boostnerf", *args], code, out.read().decode(), err.read().decode())
+        proc = _forked(["boostnerf", *args], None, cwd, env, timeout)
     if check and proc.returncode != 0:
         raise AssertionError(f"boostnerf {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
     return proc
+
+
+def run_script(script: Path | str, *args: str, cwd: Path | None = None,
+               env_extra: dict[str, str] | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
+    """`python SCRIPT ARGS` (a script of scripts/ or research/, as a user runs it), with `env_extra` set, in a
+    child forked from this worker's CLI server (tests/cli_server.py: as `__main__`, its folder first on the path),
+    which has imported torch already."""
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", **(env_extra or {})}
+    return _forked([sys.executable, str(script), *args], str(script), cwd, env, timeout)
+
+
+def _forked(argv: list[str], script: str | None, cwd: Path | None, env: dict[str, str],
+            timeout: float) -> subprocess.CompletedProcess:
+    import tempfile
+
+    from cli_server import request
+
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, open(os.devnull, "rb") as null:
+        code = request(_cli_server(), argv[2 if script else 1:], str(cwd or Path.cwd()), env,
+                       [null.fileno(), out.fileno(), err.fileno()], timeout=timeout, script=script)
+        out.seek(0)
+        err.seek(0)
+        return subprocess.CompletedProcess(argv, code, out.read().decode(), err.read().decode())
 
 
 def cli_in_process(monkeypatch, capsys, *args: str) -> tuple[int, str]:

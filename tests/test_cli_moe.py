@@ -14,6 +14,7 @@ from conftest import (
     make_recipe,
     no_temp_files,
     run_cli,
+    run_script,
 )
 from safetensors.torch import save_file
 
@@ -370,15 +371,12 @@ def test_eval_costs_are_those_of_the_render_it_ran(moe_ws):
 def test_measure_costs_script_reports_every_measurement(moe_ws):
     """scripts/measure_costs.py (docs/benchmarks.md's cost targets) runs on a workspace and writes reports/costs.json;
     its timings are for docs/benchmarks.md, so only their presence and consistency are checked here."""
-    import subprocess
-    import sys
     from pathlib import Path
 
     root = Path(__file__).parent.parent
     script = root / "scripts" / "measure_costs.py"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
-    proc = subprocess.run([sys.executable, str(script), "--workspace", str(moe_ws), "--views", "1", "--steps", "1",
-                           "--threads", "1"], capture_output=True, text=True, timeout=300, env=env)
+    proc = run_script(script, "--workspace", str(moe_ws), "--views", "1", "--steps", "1", "--threads", "1",
+                      timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     costs = json.loads((moe_ws / "reports" / "costs.json").read_text())
     rows = costs["skips"]["rows"]

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from conftest import run_script  # the product suite's (research/tests/conftest.py puts tests/ on the path)
 
 from research import opacity_check
 
@@ -25,11 +24,9 @@ def test_opacity_check_script_compares_rendered_opacity_with_the_scenes_alpha(tr
                                                                      "holes_pct": 50.0})
     none = opacity_check.opacity_errors(acc, None)  # no alpha: every pixel opaque, none transparent
     assert none["background_opaque_pct"] is None and none["holes_pct"] == pytest.approx(100 * 3 / 6)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
 
     def run(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, opacity_check.__file__, str(trained_ws), *args], capture_output=True,
-                              text=True, timeout=300, env=env)
+        return run_script(opacity_check.__file__, str(trained_ws), *args, timeout=300)
 
     proc = run("dvgo-16", "--views", "2")
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 
 import pytest
 import torch
+from conftest import run_script  # the product suite's (research/tests/conftest.py puts tests/ on the path)
 
 from boostnerf_cli.models import load_model
 from boostnerf_cli.scenes import load_scene
@@ -16,9 +16,9 @@ from boostnerf_cli.workspace import Workspace
 from research import partition_oracle as oracle
 
 
-def run_script(*args: str) -> subprocess.CompletedProcess:
+def run_oracle(*args: str) -> subprocess.CompletedProcess:
     """`python research/partition_oracle.py ARGS`, as a user runs it."""
-    return subprocess.run([sys.executable, oracle.__file__, *args], capture_output=True, text=True)
+    return run_script(oracle.__file__, *args)
 
 
 def test_cells_index_the_lattice_and_clamp_the_box_edges():
@@ -73,7 +73,7 @@ def test_a_partition_that_sends_every_cell_to_one_model_renders_that_model(train
 def test_the_script_scores_every_choice_and_the_models_alone(trained_ws, tmp_path):
     out = tmp_path / "oracle.json"
     specs = [f"--model={name}={trained_ws}" for name in Workspace(trained_ws).expert_names()]
-    proc = run_script(*specs, "--map-res", "4", "--train-views", "2", "--out", str(out))
+    proc = run_oracle(*specs, "--map-res", "4", "--train-views", "2", "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     result = json.loads(out.read_text())
     assert json.loads(proc.stdout) == result
@@ -89,7 +89,7 @@ def test_the_script_scores_every_choice_and_the_models_alone(trained_ws, tmp_pat
 
 
 def test_a_model_the_workspace_lacks_is_one_line(trained_ws):
-    proc = run_script(f"--model=dvgo-99={trained_ws}", f"--model=dvgo-16={trained_ws}")
+    proc = run_oracle(f"--model=dvgo-99={trained_ws}", f"--model=dvgo-16={trained_ws}")
     assert proc.returncode == 1 and proc.stdout == ""
     assert proc.stderr.strip().splitlines() == [
         f"error: no model named 'dvgo-99' in {trained_ws} (models: dvgo-12, dvgo-16)"]
@@ -102,16 +102,16 @@ def test_a_model_the_workspace_lacks_is_one_line(trained_ws):
     (["--model", "dvgo-16"], "argument --model: 'dvgo-16': give NAME=WORKSPACE"),
 ])
 def test_a_bad_value_is_one_line_not_a_traceback(trained_ws, args, says):
-    proc = run_script(f"--model=dvgo-12={trained_ws}", f"--model=dvgo-16={trained_ws}", *args)
+    proc = run_oracle(f"--model=dvgo-12={trained_ws}", f"--model=dvgo-16={trained_ws}", *args)
     assert proc.returncode == 2 and proc.stdout == "" and "Traceback" not in proc.stderr, proc.stderr
     assert says in proc.stderr.strip().splitlines()[-1]
 
 
 def test_one_model_or_cuda_without_a_gpu_is_refused_in_one_line(trained_ws):
-    proc = run_script(f"--model=dvgo-16={trained_ws}")
+    proc = run_oracle(f"--model=dvgo-16={trained_ws}")
     assert proc.returncode == 2 and "give at least two --model" in proc.stderr and "Traceback" not in proc.stderr
     if not torch.cuda.is_available():
-        proc = run_script(f"--model=dvgo-12={trained_ws}", f"--model=dvgo-16={trained_ws}", "--device", "cuda")
+        proc = run_oracle(f"--model=dvgo-12={trained_ws}", f"--model=dvgo-16={trained_ws}", "--device", "cuda")
         assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
         assert proc.stderr.strip().splitlines() == [
             "error: --device cuda was asked for but torch sees no CUDA GPU: use --device cpu or auto"]

@@ -1,12 +1,12 @@
 """research/wide_start_noise.py: the wide start and noisy top-k gating patched into finetuning."""
 
 import importlib.util
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 import torch
+from conftest import run_script  # noqa: I001
 from helpers import toy_mixture  # the product suite's (research/tests/conftest.py puts tests/ on the path)
 
 from boostnerf_cli.moe.mixture import RoutingStats
@@ -108,6 +108,5 @@ def test_gate_noise_only_perturbs_the_training_steps_of_a_sparse_gate():
                "finetune options]"),
 ])
 def test_a_bad_switch_is_one_line(args, needle):
-    proc = subprocess.run([sys.executable, str(ROOT / "research" / "wide_start_noise.py"), *args],
-                          capture_output=True, text=True, timeout=120)
+    proc = run_script(ROOT / "research" / "wide_start_noise.py", *args, timeout=120)
     assert proc.returncode != 0 and proc.stderr.strip() == f"error: {needle}", proc.stderr
