@@ -106,41 +106,32 @@ class HashEncoding(nn.Module):
             p0 = torch.minimum(p.floor(), (hi[:, a : a + 1] - 1).clamp_min(0))
             f.append(p - p0)
             i0.append(p0.long())
-        w = torch.empty(L, n, 8, dtype=xyz.dtype, device=dev)
+        # into preallocated slots on the CPU (fastest); stacked when compiled (the compiler cannot trace `out=` into
+        # a strided slot, and fuses the stack itself)
+        stacked = torch.compiler.is_compiling()
         wx = (1 - f[0], f[0])
         wy = (1 - f[1], f[1])
         wz = (1 - f[2], f[2])
-        for dx in (0, 1):
-            for dy in (0, 1):
-                wxy = wx[dx] * wy[dy]
-                for dz in (0, 1):
-                    torch.mul(wxy, wz[dz], out=w[:, :, dx * 4 + dy * 2 + dz])
-        rows = torch.empty(L, n, 8, dtype=torch.long, device=dev)
+        w = _corners(wx, wy, wz, torch.mul, None if stacked else torch.empty(L, n, 8, dtype=xyz.dtype, device=dev))
+        rows = None if stacked else torch.empty(L, n, 8, dtype=torch.long, device=dev)
+        parts = []  # the dense levels' rows, the hashed levels' rows (when stacked)
         offs = constant(tuple(self.offsets[:-1]), dev, torch.long)[:, None]  # (L, 1)
         nd = sum(self.dense)  # levels grow finer, so the dense ones come first
         if nd > 0:  # dense rows: x + y V_x + z V_x V_y (+ the level's offset, folded into x)
             v = constant(tuple(self.verts[:nd]), dev, torch.long)
             sy, sz = v[:, 0, None], (v[:, 0] * v[:, 1])[:, None]
             x0, y0, z0 = i0[0][:nd] + offs[:nd], i0[1][:nd] * sy, i0[2][:nd] * sz
-            self._combine(rows[:nd], (x0, x0 + 1), (y0, y0 + sy), (z0, z0 + sz), torch.add)
+            parts.append(_corners((x0, x0 + 1), (y0, y0 + sy), (z0, z0 + sz), torch.add,
+                                  None if rows is None else rows[:nd]))
         if nd < L:  # hashed rows: (x p0 XOR y p1 XOR z p2) mod 2^T, then + the level's offset
             mask = (1 << self.log2_table) - 1
             hx, hy, hz = ([(i0[a][nd:] + d) * PRIMES[a] for d in (0, 1)] for a in range(3))
-            hashed = rows[nd:]
-            self._combine(hashed, hx, hy, hz, torch.bitwise_xor)
+            hashed = _corners(hx, hy, hz, torch.bitwise_xor, None if rows is None else rows[nd:])
             hashed &= mask
             hashed += offs[nd:, :, None]
+            parts.append(hashed)
         flops.add("hash", (flops.CORNER_FLOPS * L + HASH_EXTRA_FLOPS * (L - nd)) * n)
-        return rows, w
-
-    @staticmethod
-    def _combine(out: Tensor, xs, ys, zs, op) -> None:
-        """out[..., dx*4 + dy*2 + dz] = op(op(xs[dx], ys[dy]), zs[dz])."""
-        for dx in (0, 1):
-            for dy in (0, 1):
-                xy = op(xs[dx], ys[dy])
-                for dz in (0, 1):
-                    op(xy, zs[dz], out=out[:, :, dx * 4 + dy * 2 + dz])
+        return (torch.cat(parts) if rows is None else rows), w
 
     def forward(self, xyz: Tensor) -> Tensor:
         if xyz.shape[0] == 0:
@@ -154,3 +145,16 @@ class HashEncoding(nn.Module):
                 "base_res": self.base_res, "max_res": self.max_res, "resolutions": self.resolutions,
                 "growth_factor": growth_factor(self.levels, self.base_res, self.max_res),
                 "dense_levels": sum(self.dense)}
+
+
+def _corners(xs, ys, zs, op, out: Tensor | None) -> Tensor:
+    """(..., 8) with corner dx*4 + dy*2 + dz = op(op(xs[dx], ys[dy]), zs[dz]): written into `out`'s slots, or
+    stacked when `out` is None (the same values)."""
+    if out is None:
+        return torch.stack([op(op(xs[dx], ys[dy]), zs[dz]) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], -1)
+    for dx in (0, 1):
+        for dy in (0, 1):
+            xy = op(xs[dx], ys[dy])
+            for dz in (0, 1):
+                op(xy, zs[dz], out=out[..., dx * 4 + dy * 2 + dz])
+    return out

@@ -14,8 +14,7 @@ Setting both skips off (`skip=None`, `settings.color_threshold=0`) evaluates eve
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from functools import cached_property
+from dataclasses import dataclass, field
 from typing import Callable, NamedTuple, Protocol
 
 import torch
@@ -43,15 +42,18 @@ class RenderSettings:
     chunk: int = 8192  # rays per chunk when rendering whole images
     ndc: NDC | None = None  # forward-facing scenes: camera rays are warped to NDC (step, near, far, bbox in NDC)
 
-    @cached_property
-    def sampling(self) -> tuple[int, float]:
-        """(samples per ray, step): as many samples as the box's diagonal holds at `step`, at most `max_samples`
-        (the step grows to fit). No ray crosses the box over a longer chord, so every ray of every batch has the
-        same number of sample slots and no batch waits to learn its longest ray. Computed once (the box is read
-        from its device)."""
+    # (samples per ray, step): as many samples as the box's diagonal holds at `step`, at most `max_samples` (the step
+    # grows to fit). No ray crosses the box over a longer chord, so every ray of every batch has the same number of
+    # sample slots and no batch waits to learn its longest ray.
+    sampling: tuple[int, float] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        """Works out `sampling` when the settings are made, outside any step (the box is read from its device once),
+        so that a compiled step finds it ready: worked out lazily inside a step, it stops the compiler there (Python
+        3.11's cached_property takes a lock), which then runs that function eagerly for good."""
         diagonal = float((self.bbox[1] - self.bbox[0]).norm())
         step = max(self.step, diagonal / self.max_samples)
-        return max(1, min(self.max_samples, math.ceil(diagonal / step) + 1)), step
+        object.__setattr__(self, "sampling", (max(1, min(self.max_samples, math.ceil(diagonal / step) + 1)), step))
 
 
 @dataclass
