@@ -271,7 +271,16 @@ def compiled(fn: Callable) -> Callable:
     import torch._inductor.config as inductor
 
     inductor.fallback_random = True
-    return torch.compile(fn)
+    fast, calls = torch.compile(fn), 0
+
+    def step(*args, **kwargs):
+        # The first call runs eagerly: it sizes the sample budgets, each with its one wait for the device, which the
+        # compiler cannot trace (it would split the step there, for good); the later calls find their sizes set.
+        nonlocal calls
+        calls += 1
+        return (fn if calls == 1 else fast)(*args, **kwargs)
+
+    return step
 
 
 def draw_batch(gen: torch.Generator, n: int, size: int, device: torch.device) -> Tensor:

@@ -190,6 +190,7 @@ class Mixture(nn.Module):
         self.occupancy = occupancy
         self.cfg = cfg
         self.register_buffer("penalty", penalty_weights(len(experts), cfg.penalty))
+        self._skip = MixtureSkip(self)
 
     @property
     def m(self) -> int:
@@ -208,8 +209,10 @@ class Mixture(nn.Module):
 
     @property
     def skip(self) -> "MixtureSkip":
-        """The renderer's empty-space filter: along the rays (`MixtureSkip.filter`), or called on (N, 3) points."""
-        return MixtureSkip(self)
+        """The renderer's empty-space filter: along the rays (`MixtureSkip.filter`), or called on (N, 3) points. One
+        for the mixture's life: a compiled step traces the methods of an object it reaches from its inputs, not of
+        one made inside the step."""
+        return self._skip
 
     # --- routing --------------------------------------------------------------------------------
     def route(self, xyz: Tensor, need_probs: bool = True) -> tuple[Tensor | None, Tensor, Tensor]:
