@@ -5,10 +5,14 @@ from __future__ import annotations
 import torch
 
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
+from boostnerf_cli.fields.ngp import NGPConfig, NGPExpert
+from boostnerf_cli.fields.tensorf import TensoRFConfig, TensoRFExpert
 from boostnerf_cli.metrics import ALEXNET_ENV, LPIPS_ENV, LPIPSModel
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
+from boostnerf_cli.render.occupancy import OccupancyGrid
+from boostnerf_cli.train import RayData
 
 TOY_BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -68,3 +72,41 @@ def write_lpips_weights(folder, seed: int = 0) -> dict[str, str]:
     torch.save(torchvision_alexnet_layout(model), backbone)
     torch.save(lpips_head_layout(model), heads)
     return {ALEXNET_ENV: str(backbone), LPIPS_ENV: str(heads)}
+
+
+def family_expert(family: str, res: int = 8):
+    """A small untrained expert of `family` (dvgo, tensorf, ngp) in `TOY_BOX`, seed 0."""
+    torch.manual_seed(0)
+    if family == "dvgo":
+        return DVGOExpert(DVGOConfig(res=res, hidden=8, layers=1), TOY_BOX)
+    if family == "tensorf":
+        return TensoRFExpert(TensoRFConfig(res=res, hidden=8, layers=1, density_rank=2, app_rank=2, app_dim=4), TOY_BOX)
+    return NGPExpert(NGPConfig(res=2, log2_table=8, base_res=2, max_res=8, grid_res=8, hidden=8, color_hidden=8,
+                               color_layers=1, fit_steps=0), TOY_BOX)
+
+
+def toward_box_rays(n: int = 128) -> RayData:
+    """`n` training rays from around (0, 0, 3) toward the middle of `TOY_BOX`, with random colours (seed 1)."""
+    g = torch.Generator().manual_seed(1)
+    origins = torch.tensor([0.0, 0.0, 3.0]) + 0.3 * torch.randn(n, 3, generator=g)
+    target = 0.5 * (torch.rand(n, 3, generator=g) - 0.5)
+    dirs = torch.nn.functional.normalize(target - origins, dim=-1)
+    return RayData(origins, dirs, torch.rand(n, 3, generator=g))
+
+
+def routed_mixture(kind: str, device: torch.device | str) -> Mixture:
+    """A mixture of three `family_expert` DVGO experts (res 6, 8, 10) as `kind` (top1, top2, ens), with a full
+    occupancy grid and a dense density volume, on `device`."""
+    experts = [family_expert("dvgo", r) for r in (6, 8, 10)]
+    gate = Gate(GateConfig(kind="grid", res=4, channels=4, hidden=8, layers=1), 3, TOY_BOX)
+    vd = DensityVolume(TOY_BOX, 6)
+    with torch.no_grad():
+        vd.table.fill_(2.0)
+    k = {"top1": 1, "top2": 2, "ens": 3}[kind]
+    mix = Mixture(experts, gate, vd, OccupancyGrid(torch.ones(6, 6, 6, dtype=torch.bool), TOY_BOX),
+                  MixtureConfig(topk=k, step=0.1, expert_names=["a", "b", "c"]))
+    if kind == "ens":
+        mix.make_ensemble()
+    mix = mix.to(device)
+    mix.occupancy = mix.occupancy.to(device)
+    return mix

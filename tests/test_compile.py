@@ -70,7 +70,7 @@ def test_a_compiled_training_step_traces_whole_after_its_first_step(monkeypatch,
     budgets, each with one wait for the device, which the compiler cannot trace. Every later step must trace as one
     graph: a mixture's step broke at each budget's first wait and at its empty-space filter, a new object made inside
     the step, and ran in 26 pieces."""
-    from test_syncs import _expert, _mixture_on, _rays
+    from helpers import TOY_BOX, family_expert, routed_mixture, toward_box_rays
 
     from boostnerf_cli.recipe import MoERecipe, TrainRecipe
     from boostnerf_cli.render.occupancy import OccupancyGrid
@@ -79,14 +79,15 @@ def test_a_compiled_training_step_traces_whole_after_its_first_step(monkeypatch,
 
     real = torch.compile
     monkeypatch.setattr(torch, "compile", lambda fn, **kw: real(fn, backend="eager"))
-    settings = RenderSettings(step=0.1, near=0.1, far=6.0, bbox=_mixture_on("top1", "cpu").bbox, color_threshold=1e-4)
+    settings = RenderSettings(step=0.1, near=0.1, far=6.0, bbox=TOY_BOX, color_threshold=1e-4)
     tcfg = TrainRecipe(compile="on", occupancy_every=0)
     if kind in ("top1", "top2", "ens"):
-        task = MixtureTask(_mixture_on(kind, "cpu"), settings, tcfg, MoERecipe(lam=0.01))
+        task = MixtureTask(routed_mixture(kind, "cpu"), settings, tcfg, MoERecipe(lam=0.01))
     else:
         occupied = torch.zeros(8, 8, 8, dtype=torch.bool)
         occupied[2:6, 2:6, 2:6] = True
-        task = FieldTask(_expert(kind), settings, tcfg, skip=OccupancyGrid(occupied, settings.bbox), base_mask=None)
+        task = FieldTask(family_expert(kind), settings, tcfg, skip=OccupancyGrid(occupied, TOY_BOX), base_mask=None)
     assert task.packer.static
-    train(task, _rays(), Schedule(4, batch_rays=64, log_every=1000, checkpoint_every=1000), seed=0, title="t")
+    schedule = Schedule(4, batch_rays=64, log_every=1000, checkpoint_every=1000)
+    train(task, toward_box_rays(), schedule, seed=0, title="t")
     assert breaks() == {}

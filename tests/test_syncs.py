@@ -13,15 +13,10 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from helpers import TOY_BOX
+from helpers import TOY_BOX, family_expert, routed_mixture, toward_box_rays
 from simdevice import GPU, SyncCounter, simulated_gpu
 
-from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
-from boostnerf_cli.fields.ngp import NGPConfig, NGPExpert
-from boostnerf_cli.fields.tensorf import TensoRFConfig, TensoRFExpert
-from boostnerf_cli.moe.density_volume import DensityVolume
-from boostnerf_cli.moe.gate import Gate, GateConfig
-from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
+from boostnerf_cli.moe.mixture import Mixture
 from boostnerf_cli.recipe import MoERecipe, TrainRecipe
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.renderer import RenderSettings, render_rays
@@ -29,24 +24,6 @@ from boostnerf_cli.tasks import FieldTask, MixtureTask
 from boostnerf_cli.train import RayData, Schedule, train
 
 WARMUP, STEPS = 3, 4
-
-
-def _expert(family: str, res: int = 8):
-    torch.manual_seed(0)
-    if family == "dvgo":
-        return DVGOExpert(DVGOConfig(res=res, hidden=8, layers=1), TOY_BOX)
-    if family == "tensorf":
-        return TensoRFExpert(TensoRFConfig(res=res, hidden=8, layers=1, density_rank=2, app_rank=2, app_dim=4), TOY_BOX)
-    return NGPExpert(NGPConfig(res=2, log2_table=8, base_res=2, max_res=8, grid_res=8, hidden=8, color_hidden=8,
-                               color_layers=1, fit_steps=0), TOY_BOX)
-
-
-def _rays(n: int = 128) -> RayData:
-    g = torch.Generator().manual_seed(1)
-    origins = torch.tensor([0.0, 0.0, 3.0]) + 0.3 * torch.randn(n, 3, generator=g)
-    target = 0.5 * (torch.rand(n, 3, generator=g) - 0.5)
-    dirs = torch.nn.functional.normalize(target - origins, dim=-1)
-    return RayData(origins, dirs, torch.rand(n, 3, generator=g))
 
 
 def _settings(step: float = 0.1) -> RenderSettings:
@@ -60,23 +37,7 @@ def _occupancy() -> OccupancyGrid:
 
 
 def _mixture(kind: str) -> Mixture:
-    return _mixture_on(kind, GPU)
-
-
-def _mixture_on(kind: str, device: torch.device) -> Mixture:
-    experts = [_expert("dvgo", r) for r in (6, 8, 10)]
-    gate = Gate(GateConfig(kind="grid", res=4, channels=4, hidden=8, layers=1), 3, TOY_BOX)
-    vd = DensityVolume(TOY_BOX, 6)
-    with torch.no_grad():
-        vd.table.fill_(2.0)
-    k = {"top1": 1, "top2": 2, "ens": 3}[kind]
-    mix = Mixture(experts, gate, vd, OccupancyGrid(torch.ones(6, 6, 6, dtype=torch.bool), TOY_BOX),
-                  MixtureConfig(topk=k, step=0.1, expert_names=["a", "b", "c"]))
-    if kind == "ens":
-        mix.make_ensemble()
-    mix = mix.to(device)
-    mix.occupancy = mix.occupancy.to(device)
-    return mix
+    return routed_mixture(kind, GPU)
 
 
 def _steps_counted(task, rays: RayData) -> SyncCounter:
@@ -100,13 +61,13 @@ def _steps_counted(task, rays: RayData) -> SyncCounter:
 @pytest.mark.parametrize("family", ["dvgo", "tensorf", "ngp"])
 def test_an_experts_training_step_and_render_chunk_never_wait(family):
     with simulated_gpu():
-        model = _expert(family).to(GPU)
+        model = family_expert(family).to(GPU)
         task = FieldTask(model, _settings(), TrainRecipe(occupancy_every=0), skip=_occupancy(), base_mask=None)
         assert task.packer.static  # what a GPU gets
-        counter = _steps_counted(task, _rays())
+        counter = _steps_counted(task, toward_box_rays())
         assert counter.total == 0, dict(counter.syncs)
 
-        rays, settings, occupancy = _rays(256).to(GPU), _settings(), _occupancy()
+        rays, settings, occupancy = toward_box_rays(256).to(GPU), _settings(), _occupancy()
         with torch.no_grad():
             for _ in range(WARMUP):
                 render_rays(model, rays.origins, rays.dirs, settings, occupancy, packer=task.packer)
@@ -120,10 +81,10 @@ def test_a_mixtures_training_step_and_render_chunk_never_wait(kind):
     with simulated_gpu():
         mix = _mixture(kind)
         task = MixtureTask(mix, _settings(), TrainRecipe(), MoERecipe(lam=0.01))
-        counter = _steps_counted(task, _rays())
+        counter = _steps_counted(task, toward_box_rays())
         assert counter.total == 0, dict(counter.syncs)
 
-        rays, settings = _rays(256).to(GPU), _settings()
+        rays, settings = toward_box_rays(256).to(GPU), _settings()
         with torch.no_grad():
             mix.eval()
             for _ in range(WARMUP):
@@ -138,9 +99,9 @@ def test_the_counter_sees_the_waits_of_the_dynamic_packing():
     from boostnerf_cli.render.packing import DYNAMIC
 
     with simulated_gpu():
-        task = FieldTask(_expert("dvgo").to(GPU), _settings(), TrainRecipe(occupancy_every=0), skip=_occupancy(),
+        task = FieldTask(family_expert("dvgo").to(GPU), _settings(), TrainRecipe(occupancy_every=0), skip=_occupancy(),
                          base_mask=None, packer=DYNAMIC)
-        counter = _steps_counted(task, _rays())
+        counter = _steps_counted(task, toward_box_rays())
     assert counter.syncs["aten.nonzero.default"] >= 2 * STEPS, dict(counter.syncs)
 
 
@@ -150,18 +111,18 @@ def test_static_budgets_train_what_the_exact_packing_trains(kind):
     with the exact lists: pads add nothing and take no gradient."""
     from boostnerf_cli.render.packing import DYNAMIC, Budgets
 
-    rays, settings = _rays(), RenderSettings(step=0.1, near=0.1, far=6.0, bbox=TOY_BOX)
+    rays, settings = toward_box_rays(), RenderSettings(step=0.1, near=0.1, far=6.0, bbox=TOY_BOX)
     results = []
     for packer in (DYNAMIC, Budgets(quantum=64)):
         torch.manual_seed(0)
         if kind == "dvgo":
-            model = _expert("dvgo")
+            model = family_expert("dvgo")
             occupied = torch.zeros(8, 8, 8, dtype=torch.bool)
             occupied[2:6, 2:6, 2:6] = True
             task = FieldTask(model, settings, TrainRecipe(occupancy_every=0), skip=OccupancyGrid(occupied, TOY_BOX),
                              base_mask=None, packer=packer)
         else:
-            mix = _mixture_on("top2", torch.device("cpu"))
+            mix = routed_mixture("top2", torch.device("cpu"))
             model, task = mix, MixtureTask(mix, settings, TrainRecipe(), MoERecipe(lam=0.01), packer=packer)
         train(task, rays, Schedule(6, batch_rays=64, log_every=3, checkpoint_every=1000), seed=0, title="t")
         results.append({k: v.detach().clone() for k, v in model.state_dict().items()})
@@ -178,7 +139,7 @@ def test_a_step_that_overflows_its_budget_is_skipped_counted_and_the_budget_grow
     from boostnerf_cli.render.packing import Budgets
 
     packer = Budgets(margin=1.0, quantum=1)
-    model = _expert("dvgo")
+    model = family_expert("dvgo")
     occupied = torch.zeros(8, 8, 8, dtype=torch.bool)
     occupied[2:6, 2:6, 2:6] = True
     task = FieldTask(model, RenderSettings(step=0.1, near=0.1, far=6.0, bbox=TOY_BOX), TrainRecipe(occupancy_every=0),
@@ -191,7 +152,7 @@ def test_a_step_that_overflows_its_budget_is_skipped_counted_and_the_budget_grow
         return real_settle()
 
     packer.settle = settle
-    rays = _rays(512)
+    rays = toward_box_rays(512)
     away = torch.arange(512) % 2 == 1
     rays = RayData(rays.origins, torch.where(away[:, None], -rays.dirs, rays.dirs), rays.rgb)  # half miss the box
     result = train(task, rays, Schedule(12, batch_rays=32, log_every=100, checkpoint_every=1000), seed=0, title="t")
@@ -217,7 +178,7 @@ def test_rendering_a_split_sizes_its_budgets_once():
     from boostnerf_cli.models import LoadedModel, render_split
 
     with simulated_gpu():
-        model = _expert("dvgo").to(GPU)
+        model = family_expert("dvgo").to(GPU)
         loaded = LoadedModel("dvgo-8", "expert", model, _occupancy(), 0.1, TOY_BOX.to(GPU), 0)
         scene = SimpleNamespace(render_settings=lambda step, bbox, thr: _settings(step))
         pose = torch.eye(4)
