@@ -18,6 +18,7 @@ Test-only: it proves device placement, not CUDA kernels (those are scripts/gpu-c
 
 from __future__ import annotations
 
+import importlib
 from collections import Counter
 from contextlib import ExitStack, contextmanager
 from typing import Iterator
@@ -152,6 +153,10 @@ def simulated_gpu() -> Iterator[str]:
     from boostnerf_cli.stages import common
 
     autocast, autocast_enabled = torch.autocast, torch.is_autocast_enabled
+    # The compiler lists torch's functions when it is first imported (`torch.is_autocast_enabled` among those it
+    # folds): imported inside the block, it would list the stand-ins below for good, and a compiled step traced later
+    # would break at torch's own.
+    importlib.import_module("torch._dynamo.variables.torch")
 
     def resolve(name: str) -> str:
         if name not in ("auto", "cuda", "cpu"):
