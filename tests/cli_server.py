@@ -73,9 +73,11 @@ def serve(path: str) -> None:
                 else:
                     boostnerf_cli.cli.main()
             except SystemExit as e:  # as the interpreter ends: a code that is not a number is printed, exit 1
-                code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-                if not isinstance(e.code, (int, type(None))):
+                if e.code is None or isinstance(e.code, int):
+                    code = e.code or 0
+                else:
                     print(e.code, file=sys.stderr)
+                    code = 1
             except BaseException:  # noqa: BLE001  (report any crash as a failed command)
                 import traceback
 

@@ -135,7 +135,7 @@ def run_cli(*args: str, cwd: Path | None = None, check: bool = False,
         proc = subprocess.run([sys.executable, "-m", "boostnerf_cli", *args], capture_output=True, text=True,
                               cwd=cwd, env=env, timeout=timeout)
     else:
-        proc = _forked(["boostnerf", *args], None, cwd, env, timeout)
+        proc = _forked(list(args), cwd, env, timeout)
     if check and proc.returncode != 0:
         raise AssertionError(f"boostnerf {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
     return proc
@@ -147,18 +147,20 @@ def run_script(script: Path | str, *args: str, cwd: Path | None = None,
     child forked from this worker's CLI server (tests/cli_server.py: as `__main__`, its folder first on the path),
     which has imported torch already."""
     env = {**os.environ, "PYTHONWARNINGS": "ignore", **(env_extra or {})}
-    return _forked([sys.executable, str(script), *args], str(script), cwd, env, timeout)
+    return _forked(list(args), cwd, env, timeout, str(script))
 
 
-def _forked(argv: list[str], script: str | None, cwd: Path | None, env: dict[str, str],
-            timeout: float) -> subprocess.CompletedProcess:
+def _forked(args: list[str], cwd: Path | None, env: dict[str, str], timeout: float,
+            script: str | None = None) -> subprocess.CompletedProcess:
+    """`boostnerf ARGS` (with `script`: `python SCRIPT ARGS`) in a child of this worker's CLI server."""
     import tempfile
 
     from cli_server import request
 
+    argv = [sys.executable, script, *args] if script else ["boostnerf", *args]
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, open(os.devnull, "rb") as null:
-        code = request(_cli_server(), argv[2 if script else 1:], str(cwd or Path.cwd()), env,
-                       [null.fileno(), out.fileno(), err.fileno()], timeout=timeout, script=script)
+        code = request(_cli_server(), args, str(cwd or Path.cwd()), env, [null.fileno(), out.fileno(), err.fileno()],
+                       timeout=timeout, script=script)
         out.seek(0)
         err.seek(0)
         return subprocess.CompletedProcess(argv, code, out.read().decode(), err.read().decode())
