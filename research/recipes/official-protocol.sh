@@ -4,7 +4,7 @@
 # run_case below, grouped by question, each with the docs/results.md table that records it (research/README.md).
 #
 # Usage: bash research/recipes/official-protocol.sh DATA OUT CASE...
-#   DATA  the scene folder: lego's (../shared/data/lego) for every case but llff-m3, which takes fern's
+#   DATA  the scene folder: lego's (data/nerf_synthetic/lego) for every case but llff-m3, which takes fern's
 #   CASE  a case of run_case's table, run in the order given (an unknown one lists them all)
 # Environment: MODELS (m3, m4, m5: the models recipes/chain.sh makes; default "baseline top1 top2"), ENS=1 (tensorf-m3,
 # ngp-m3: also the ensemble), LONG (long-*: joint steps, default 10000), TAG (collect: the files' name prefix).
