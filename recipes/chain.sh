@@ -8,7 +8,8 @@
 #   WS      the workspace folder
 #   PRETRAIN_OPTIONS are passed to pretrain only (e.g. --format llff, --image-size 200, --device cpu)
 # Environment: DEVICE (auto, cpu or cuda; default auto), MODELS (finetuned models to make; default
-# "baseline top1 top2 ens").
+# "baseline top1 top2 ens"), TOP1_WEIGHT (renormalized, the default: Top-1's weight is 1; raw: the gate's
+# probability, `finetune --topk 1 --no-renormalize`, as the official code weighs Top-1).
 #
 # Stops at the first failing stage (set -euo pipefail) and says which. Rerunnable: pretrain and
 # finetune skip the models they already finished (and resume an interrupted one from its
@@ -17,7 +18,7 @@
 # and the reports always cover the whole test split and every model.
 set -euo pipefail
 if [ $# -lt 3 ]; then
-  sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//' >&2
+  sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//' >&2
   exit 2
 fi
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
@@ -25,6 +26,7 @@ RECIPE="$1" DATA="$2" WS="$3"
 shift 3
 DEVICE="${DEVICE:-auto}"
 MODELS="${MODELS:-baseline top1 top2 ens}"
+TOP1_WEIGHT="${TOP1_WEIGHT:-renormalized}"
 case "$RECIPE" in
   */*|*.yaml|*.yml) ;;
   *) RECIPE="$HERE/$RECIPE.yaml" ;;
@@ -39,6 +41,11 @@ for m in $MODELS; do  # before any stage: a typo found after an hour of pretrain
     *) echo "chain: unknown model $m in MODELS (use baseline, topK, ens)" >&2; exit 2 ;;
   esac
 done
+case "$TOP1_WEIGHT" in
+  renormalized) TOP1=() ;;
+  raw) TOP1=(--no-renormalize) ;;
+  *) echo "chain: unknown TOP1_WEIGHT $TOP1_WEIGHT (use renormalized or raw)" >&2; exit 2 ;;
+esac
 DATA_ARGS=()
 [ "$DATA" = "-" ] || DATA_ARGS=(--data "$DATA")
 
@@ -57,6 +64,7 @@ for m in $MODELS; do
   case "$m" in
     baseline) flag=(--baseline) ;;
     ens) flag=(--ensemble) ;;
+    top1) flag=(--topk 1 "${TOP1[@]}") ;;
     *) flag=(--topk "${m#top}") ;;  # topK, checked above
   esac
   stage "finetune $m" boostnerf finetune --workspace "$WS" --recipe "$RECIPE" "${flag[@]}" --device "$DEVICE"

@@ -186,10 +186,13 @@ def test_chain_skips_finished_models_redoes_the_reports_and_stops_at_the_first_f
     cwd = base / "chain"
     cwd.mkdir()
     (cwd / "recipes").symlink_to(ROOT / "recipes")
+    env = {**env, "TOP1_WEIGHT": "raw"}  # Top-1 weighted by the gate's probability, as the official code does
     proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", "-", "ws")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert [line.split()[1] for line in ran.splitlines() if line.startswith("boostnerf")] == [
         "pretrain", "build-moe", "finetune", "finetune", "finetune", "finetune", "eval", "count-params"]
+    finetunes = [line for line in ran.splitlines() if line.startswith("boostnerf finetune")]
+    assert [("--no-renormalize" in line) for line in finetunes] == [False, True, False, False], finetunes
     # a report of one model over one view, then a rerun: nothing is trained again (build-moe rebuilds a bit-identical
     # moe/init, so every mixture is current), and the reports cover every model and view again (the chain kept any
     # report newer than the models, this one too)
@@ -215,3 +218,5 @@ def test_chain_skips_finished_models_redoes_the_reports_and_stops_at_the_first_f
     # a typo in MODELS is refused before any stage (after pretrain, build-moe and the baseline)
     proc, ran = _run_chain(cwd, {**env, "MODELS": "baseline ensemble"}, "demo-dvgo-cpu", "-", "ws-typo")
     assert proc.returncode == 2 and "unknown model ensemble in MODELS" in proc.stderr and not ran, ran
+    proc, ran = _run_chain(cwd, {**env, "TOP1_WEIGHT": "probability"}, "demo-dvgo-cpu", "-", "ws-typo")
+    assert proc.returncode == 2 and "unknown TOP1_WEIGHT probability" in proc.stderr and not ran, ran
