@@ -193,6 +193,7 @@ class Viewer:
         self.clients: dict[int, ClientView] = {}
         self.server = None
         self.gui: dict = {}
+        self.following = models.follow  # show the newest model (the page's "follow training" box)
         labels = models.labels()
         if model is not None and model not in labels:
             raise BoostNerfError(f"no model named {model!r} in {ws.root} (models: {', '.join(labels) or 'none yet'})")
@@ -270,7 +271,7 @@ class Viewer:
         if "model" in self.gui and list(self.gui["model"].options) != labels and labels:
             self.gui["model"].options = labels
         target = self.label
-        if self.models.follow and self.gui.get("follow", None) is not None and self.gui["follow"].value:
+        if self.following:
             target = self.models.newest() or target
         elif target is None and labels:
             target = _preferred(labels)
@@ -395,8 +396,12 @@ def add_controls(viewer: Viewer, server) -> None:
     @g["model"].on_update
     def _(event) -> None:
         if g["model"].value != viewer.label and g["model"].value in viewer.models.labels():
-            g["follow"].value = False
+            g["follow"].value = viewer.following = False  # a model picked by hand stays
             viewer.choose(g["model"].value)
+
+    @g["follow"].on_update
+    def _(event) -> None:
+        viewer.following = bool(g["follow"].value)
 
     @g["mode"].on_update
     def _(event) -> None:
