@@ -562,7 +562,7 @@ def view(
     follow: Annotated[bool, typer.Option(
         "--follow", help="Show the newest model or training checkpoint; reload it as training writes it.")] = False,
     size: Annotated[Optional[int], typer.Option(
-        "--size", min=16, help="Height of a still frame in pixels (default: the images', at most 256).")] = None,
+        "--size", min=16, help="Height of a still frame in pixels (default: the images', within 128-256).")] = None,
     device: DeviceOpt = "auto",
 ) -> None:
     """A web page showing the scene, its cameras and each model's render, live (needs the viewer extra)."""

@@ -237,7 +237,8 @@ def test_the_page_in_headless_chromium_shows_a_frame_and_switching_model_changes
     try:
         browser.open(f"http://127.0.0.1:{server.get_port()}/")
         first = wait_for(lambda: shown_full(viewer, "top2"), "the first full frame")
-        time.sleep(1.0)  # the frame reaches the page
+        browser.js("document.querySelectorAll('.mantine-Notification-root button').forEach(b => b.click())")
+        time.sleep(1.0)  # the frame reaches the page; the browser's notice (software WebGL) is closed
         before = browser.screenshot()
         if os.environ.get(SCREENSHOT_ENV):
             Path(os.environ[SCREENSHOT_ENV]).write_bytes(before)

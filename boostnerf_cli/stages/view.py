@@ -13,7 +13,9 @@ models, reloaded when their file changes), `Viewer` (the state, the scene and th
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import io
 import logging
 import socket
 import threading
@@ -184,7 +186,7 @@ class Viewer:
                  model: str | None = None):
         self.ws, self.scene, self.models = ws, scene, models
         train = scene.split("train")
-        self.size = size or min(train.height, 256)
+        self.size = size or min(max(train.height, 128), 256)
         self.lock = threading.RLock()
         self.packers: dict = {}
         self.look = Look()
@@ -330,14 +332,15 @@ def free_port(host: str, port: int) -> int:
 def start_server(viewer: Viewer, host: str, port: int):
     """Serve `viewer` on `host`:`port` (the next free port when it is taken) -> the viser server."""
     viser = import_viser()
-    server = viser.ViserServer(host=host, port=free_port(host, port), verbose=False)
+    with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: `run` says the address in one line
+        server = viser.ViserServer(host=host, port=free_port(host, port), verbose=False)
     viewer.server = server
     up = scene_up(viewer.scene.split("train").poses).numpy()
     server.scene.set_up_direction(tuple(float(v) for v in up))
     first = opencv_pose(viewer.scene.split("train").poses[0])[:3, 3]
     box = viewer.scene.bbox if viewer.model is None else viewer.model.bbox
     centre = box.mean(0).double().cpu().numpy()
-    server.initial_camera.position = tuple(float(v) for v in centre + 1.5 * (first - centre))  # behind the first camera
+    server.initial_camera.position = tuple(float(v) for v in centre + 1.2 * (first - centre))  # behind the first camera
     server.initial_camera.look_at = tuple(float(v) for v in centre)
     server.initial_camera.up = tuple(float(v) for v in up)
     add_controls(viewer, server)
@@ -551,4 +554,5 @@ def run(ws: Workspace, device: str, host: str = "127.0.0.1", port: int = 8080, m
         serve(viewer, stop)
     finally:
         stop.set()
-        server.stop()
+        with contextlib.redirect_stdout(io.StringIO()):  # "(viser) Server stopped"
+            server.stop()
