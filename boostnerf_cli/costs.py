@@ -9,9 +9,9 @@ GFLOPs per image: matrix products counted by torch's FlopCounterMode plus the an
 
 from __future__ import annotations
 
-import torch
-
 from typing import Callable, TypeVar
+
+import torch
 
 from boostnerf_cli.flops import count_flops
 from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, n_views
@@ -96,7 +96,7 @@ def gflops_per_image(model: LoadedModel, scene: Scene, split: Split, device: str
     n = n_views(split, views)
     total = 0.0
     for i in range(n):  # exact packing: the samples the model evaluates, not a budget's pads
-        total += gflops_of(lambda: render_view(model.field, split, i, settings, skip, device, packer=DYNAMIC))[1]
+        total += gflops_of(lambda i=i: render_view(model.field, split, i, settings, skip, device, packer=DYNAMIC))[1]
     return total / max(1, n)
 
 

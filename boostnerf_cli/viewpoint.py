@@ -11,7 +11,6 @@ the OpenCV convention (looks down +z, +y down) that a browser viewer's cameras u
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, replace
@@ -136,7 +135,8 @@ def picture(model: LoadedModel, scene: Scene, camera: Camera, look: Look, device
     if look.mode == "share":
         return expert_share(mix, look.expert, camera, settings, skip, device, packer(f"expert{look.expert}")), None
     if look.mode == "gate":
-        return grey(gate_probability(mix, look.expert, camera, settings, skip, device, packer(f"gate{look.expert}"))), None
+        prob = gate_probability(mix, look.expert, camera, settings, skip, device, packer(f"gate{look.expert}"))
+        return grey(prob), None
     probs = np.stack([gate_probability(mix, e, camera, settings, skip, device, packer(f"gate{e}"))
                       for e in range(mix.m)], -1)
     return routing_colours(probs), None

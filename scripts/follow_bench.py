@@ -99,8 +99,8 @@ def main(argv: list[str] | None = None) -> int:
               f"(load average {os.getloadavg()[0]:.2f})")
     alone, followed = (sum(times[k]) / len(times[k]) for k in (False, True))
     print(f"dvgo-{args.res}, {args.iters} steps, a checkpoint every {args.checkpoint_every}, {args.threads} thread(s): "
-          f"alone {alone:.2f} s, followed {followed:.2f} s, slowdown {100 * (followed / alone - 1):+.1f}%; load average "
-          f"at start {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, at end "
+          f"alone {alone:.2f} s, followed {followed:.2f} s, slowdown {100 * (followed / alone - 1):+.1f}%; "
+          f"load average at start {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, at end "
           f"{' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     return 0
 

@@ -21,7 +21,7 @@ from boostnerf_cli.models import load_model
 from boostnerf_cli.render.renderer import render_view
 from boostnerf_cli.stages import view
 from boostnerf_cli.stages.common import workspace_scene
-from boostnerf_cli.viewpoint import Look, camera_for_view, dataset_camera, opencv_pose, fov_of, read_view
+from boostnerf_cli.viewpoint import Look, camera_for_view, dataset_camera, fov_of, opencv_pose, read_view
 from boostnerf_cli.workspace import Workspace
 
 REPO = Path(__file__).resolve().parents[1]
@@ -55,8 +55,8 @@ def test_the_page_draws_every_camera_the_box_and_the_routed_cells(served):
     assert server.scene.get_handle_by_name("/box") is not None
     points, colours = viewer.model_parts()[1]
     assert server.scene.get_handle_by_name("/cells") is not None and len(points) > 0
-    inside = (points >= viewer.model.bbox[0].numpy() - 1e-6).all(1) & (points <= viewer.model.bbox[1].numpy() + 1e-6).all(1)
-    assert inside.all()
+    lo, hi = viewer.model.bbox.numpy()
+    assert ((points >= lo - 1e-6) & (points <= hi + 1e-6)).all()
     assert len({tuple(c) for c in colours}) == 2  # the gate picks both experts somewhere
     assert viewer.label == "top2" and list(viewer.gui["model"].options) == ["dvgo-12", "dvgo-16", "top2"]
 
@@ -246,6 +246,10 @@ def test_the_page_in_headless_chromium_shows_a_frame_and_switching_model_changes
         wait_for(lambda: shown_full(viewer, "dvgo-12"), "a frame of the model picked in the page")
         time.sleep(1.0)
         after = browser.screenshot()
+        press(browser, "go to view N")  # train view 0
+        wait_for(lambda: "PSNR" in viewer.gui["truth"].content, "the dataset view's PSNR")
+        time.sleep(2.0)  # the page reports the camera it was snapped to: it stays on the dataset view
+        assert [v.pinned for v in viewer.clients.values()] == [("train", 0)] and viewer.gui["gt"].visible
     finally:
         browser.close()
     import imageio.v3 as iio
@@ -270,14 +274,24 @@ def wait_for(condition, what: str, seconds: float = 60.0):
     return True
 
 
+def click(browser, element: str) -> None:
+    """Click the page's `element` (a JavaScript expression) in its centre, as a user does."""
+    wait_for(lambda: browser.js(f"!!({element})"), f"the page's {element}", 20)
+    centre = browser.js(f"(() => {{ const r = ({element}).getBoundingClientRect(); "
+                        "return [r.x + r.width / 2, r.y + r.height / 2] })()")
+    for kind in ("mousePressed", "mouseReleased"):
+        browser.call("Input.dispatchMouseEvent", type=kind, x=centre[0], y=centre[1], button="left", clickCount=1)
+    time.sleep(0.3)
+
+
+def press(browser, text: str) -> None:
+    click(browser, f"Array.from(document.querySelectorAll('button')).find(b => b.textContent.trim() === {text!r})")
+
+
 def pick(browser, label: str, option: str) -> None:
     """Choose `option` in the page's dropdown `label` by clicking it, as a user does."""
     field = (f"document.getElementById(Array.from(document.querySelectorAll('label'))"
              f".find(l => l.textContent === {label!r}).htmlFor)")
     item = f"Array.from(document.querySelectorAll('[role=option]')).find(e => e.textContent === {option!r})"
     for element in (field, item):
-        centre = wait_for(lambda: browser.js(f"!!({element})"), f"the page's {element}", 20) and browser.js(
-            f"(() => {{ const r = ({element}).getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2] }})()")
-        for kind in ("mousePressed", "mouseReleased"):
-            browser.call("Input.dispatchMouseEvent", type=kind, x=centre[0], y=centre[1], button="left", clickCount=1)
-        time.sleep(0.3)
+        click(browser, element)

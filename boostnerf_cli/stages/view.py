@@ -50,7 +50,7 @@ from boostnerf_cli.viewpoint import (
     save_view,
     scaled,
 )
-from boostnerf_cli.workspace import Workspace, read_meta
+from boostnerf_cli.workspace import Workspace
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
@@ -240,6 +240,11 @@ class Viewer:
         for view in self.clients.values():
             view.version += 1
 
+    def touch_done(self) -> None:
+        """Take what every page shows as rendered (after a frame that failed: not tried again until a change)."""
+        for view in self.clients.values():
+            view.shown = (view.version, True)
+
     def draw(self, camera: Camera, count: bool = False) -> Frame | None:
         """`camera` rendered with the current model and look (None when no model is loaded yet)."""
         with self.lock:
@@ -260,8 +265,12 @@ class Viewer:
 
     def save(self, camera: Camera, shot: Frame) -> Path:
         """Write `shot` and its camera as the next WS/renders/views/view-N.png and .json -> the PNG."""
+        name = (self.label or "").removesuffix(TRAINING)
         with self.lock:
-            path = save_view(self.ws.root / "renders" / "views", shot.image, camera, self.label or "", self.look)
+            path = save_view(self.ws.root / "renders" / "views", shot.image, camera, name, self.look)
+        if self.label != name:
+            log(f"note: this frame shows {name} as its training checkpoint held it; `render --camera` renders the "
+                "model as it is when run (the finished one once training ends)")
         log(f"saved {path} and {path.with_suffix('.json').name}: `boostnerf render --workspace {self.ws.root} "
             f"--camera {path.with_suffix('.json')}` renders it again")
         return path
@@ -298,7 +307,8 @@ class Viewer:
             if mixture is None and label in self.models.labels():
                 mixture = self.models.get(label)
         box = self.model.bbox if self.model is not None else self.scene.bbox
-        cells = routed_cells(mixture.field) if mixture is not None and mixture.field.gate.cfg.kind != "uniform" else None
+        routed = mixture is not None and mixture.field.gate.cfg.kind != "uniform"  # the ensemble routes nowhere
+        cells = routed_cells(mixture.field) if routed else None
         return box_edges(box.cpu()), cells
 
 
@@ -360,8 +370,8 @@ def draw_cameras(viewer: Viewer, server) -> None:
     for k, f in enumerate(frustums(viewer.scene)):
         server.scene.add_camera_frustum(
             f"/cameras/{f.split}/{k:04d}", fov=f.fov, aspect=f.aspect, scale=0.1 * size, image=f.thumbnail,
-            color=(40, 90, 230) if f.split == "train" else (230, 120, 30), wxyz=vtf.SO3.from_matrix(f.pose[:3, :3]).wxyz,
-            position=f.pose[:3, 3])
+            color=(40, 90, 230) if f.split == "train" else (230, 120, 30),
+            wxyz=vtf.SO3.from_matrix(f.pose[:3, :3]).wxyz, position=f.pose[:3, 3])
 
 
 def draw_model_parts(viewer: Viewer, server) -> None:
@@ -379,7 +389,8 @@ def add_controls(viewer: Viewer, server) -> None:
     """The panel: model, map, expert, go to view, save, what the scene shows, and the last frame's figures."""
     gui, g = server.gui, viewer.gui
     labels = viewer.models.labels()
-    g["model"] = gui.add_dropdown("model", labels or ["(none yet)"], initial_value=viewer.label or (labels or ["(none yet)"])[0])
+    offered = labels or ["(none yet)"]
+    g["model"] = gui.add_dropdown("model", offered, initial_value=viewer.label or offered[0])
     g["mode"] = gui.add_dropdown("show", MODES, initial_value=viewer.look.mode)
     g["expert"] = gui.add_number("expert (share, gate)", 0, min=0, step=1)
     g["follow"] = gui.add_checkbox("follow training", viewer.models.follow)
@@ -453,8 +464,8 @@ def camera_of(viewer: Viewer, handle) -> Camera:
 
 def _close(a: Camera, b: Camera) -> bool:
     """Whether two cameras look from about the same place the same way (the page rounds what it reports)."""
-    size = 1e-3 * max(1.0, float(a.pose[:3, 3].norm()))
-    return bool((a.pose[:3, 3] - b.pose[:3, 3]).norm() < size and (a.pose[:3, :3] - b.pose[:3, :3]).abs().max() < 1e-3)
+    size = 1e-2 * max(1.0, float(a.pose[:3, 3].norm()))
+    return bool((a.pose[:3, 3] - b.pose[:3, 3]).norm() < size and (a.pose[:3, :3] - b.pose[:3, :3]).abs().max() < 1e-2)
 
 
 def go_to(viewer: Viewer, client) -> None:
@@ -489,7 +500,8 @@ def save(viewer: Viewer, client) -> None:
     """Write the page's last full-size frame and its camera."""
     view = viewer.clients.get(client.client_id)
     if view is None or view.last is None:
-        client.add_notification("save", "no full-size frame yet: hold the camera still a moment", auto_close_seconds=5.0)
+        client.add_notification("save", "no full-size frame yet: hold the camera still a moment",
+                                auto_close_seconds=5.0)
         return
     path = viewer.save(*view.last)
     client.add_notification("saved", f"{path} and its camera {path.with_suffix('.json').name}", auto_close_seconds=8.0)
@@ -529,15 +541,22 @@ def render_pending(viewer: Viewer) -> bool:
 
 
 def serve(viewer: Viewer, stop: threading.Event) -> None:
-    """The render loop: frames as pages need them, the model files looked at every `POLL` seconds, until `stop`."""
+    """The render loop: frames as pages need them, the model files looked at every `POLL` seconds, until `stop`. A
+    frame or a look that fails is said in one line, and the page stays up."""
     checked = 0.0
     while not stop.is_set():
-        if time.monotonic() - checked >= POLL:
-            checked = time.monotonic()
-            if viewer.poll() and viewer.server is not None:
-                draw_model_parts(viewer, viewer.server)
-        if not render_pending(viewer):
-            stop.wait(0.02)
+        try:
+            if time.monotonic() - checked >= POLL:
+                checked = time.monotonic()
+                if viewer.poll() and viewer.server is not None:
+                    draw_model_parts(viewer, viewer.server)
+            if not render_pending(viewer):
+                stop.wait(0.02)
+        except Exception as e:  # noqa: BLE001  the page stays up; the next change tries again
+            why = str(e) if isinstance(e, BoostNerfError) else f"{type(e).__name__}: {e}"
+            log(f"could not render {viewer.label}: {why}")
+            viewer.touch_done()
+            stop.wait(POLL)
 
 
 def run(ws: Workspace, device: str, host: str = "127.0.0.1", port: int = 8080, model: str | None = None,
