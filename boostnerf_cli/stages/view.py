@@ -57,6 +57,7 @@ log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.p
 INSTALL = "boostnerf view needs viser, an optional extra: pip install 'boostnerf[viewer]' (or: pip install viser)"
 STILL = 0.25  # seconds without a camera change after which the full-resolution frame is rendered
 POLL = 1.0  # seconds between looks at the workspace's model files
+SNAP = 1.0  # seconds a page takes to move to a dataset view it was snapped to (what it reports meanwhile is no move)
 TRAINING = " (training)"  # the label of a model read from its training checkpoint
 
 
@@ -104,6 +105,7 @@ class Models:
     follow: bool = False
     loaded: dict[str, tuple[tuple, LoadedModel]] = field(default_factory=dict)
     failed: dict[str, tuple] = field(default_factory=dict)
+    reads: int = 0  # model files read
 
     def path(self, label: str) -> Path:
         if label.endswith(TRAINING):
@@ -146,6 +148,7 @@ class Models:
             return held[1] if held else None
         self.failed.pop(label, None)
         self.loaded[label] = (stamp, model)
+        self.reads += 1
         return model
 
     def changed(self, label: str) -> bool:
@@ -196,6 +199,7 @@ class Viewer:
         self.server = None
         self.gui: dict = {}
         self.following = models.follow  # show the newest model (the page's "follow training" box)
+        self.frames = 0  # frames rendered
         labels = models.labels()
         if model is not None and model not in labels:
             raise BoostNerfError(f"no model named {model!r} in {ws.root} (models: {', '.join(labels) or 'none yet'})")
@@ -250,6 +254,7 @@ class Viewer:
         with self.lock:
             if self.model is None:
                 return None
+            self.frames += 1
             return frame(self.model, self.scene, camera, self.look, self.models.device, self.packers, count)
 
     def go_to(self, split: str, i: int) -> tuple[Camera, Frame | None, np.ndarray, float | None]:
@@ -444,8 +449,9 @@ def connect(viewer: Viewer, client) -> None:
     @client.camera.on_update
     def _(camera) -> None:
         moved = camera_of(viewer, camera)
-        if view.pinned is not None and view.camera is not None and _close(moved, view.camera):
-            return  # the page reporting the dataset view it was snapped to
+        if view.pinned is not None and view.camera is not None and (
+                _close(moved, view.camera) or time.monotonic() - view.changed_at < SNAP):
+            return  # the page moving to the dataset view it was snapped to, and reporting it
         with viewer.lock:
             view.camera, view.changed_at, view.pinned = moved, time.monotonic(), None
             view.version += 1
@@ -481,7 +487,7 @@ def go_to(viewer: Viewer, client) -> None:
     view = viewer.clients.setdefault(client.client_id, ClientView())
     pose = opencv_pose(camera.pose)
     with viewer.lock:
-        view.camera, view.pinned = camera, (split, i)
+        view.camera, view.pinned, view.changed_at = camera, (split, i), time.monotonic()
         view.shown = (view.version, True)
     with client.atomic():
         client.camera.position = tuple(pose[:3, 3])
@@ -575,3 +581,5 @@ def run(ws: Workspace, device: str, host: str = "127.0.0.1", port: int = 8080, m
         stop.set()
         with contextlib.redirect_stdout(io.StringIO()):  # "(viser) Server stopped"
             server.stop()
+        log(f"the viewer rendered {viewer.frames} frame{'s' if viewer.frames != 1 else ''} and read "
+            f"{viewer.models.reads} model file{'s' if viewer.models.reads != 1 else ''}")
