@@ -7,7 +7,9 @@ Files (all under WS/renders/, see docs/stages.md):
   `<...>_depth.mp4`; an MP4 without the ffmpeg backend is refused before anything is rendered;
 - `render --compare`: `compare/<split>/<view>.png`;
 - `render --per-expert` (mixtures): `<model>/<split>/<view>_expert<i>-<name>.png`,
-  `<view>_gate<i>-<name>.png` and the montage `<view>_experts.png`.
+  `<view>_gate<i>-<name>.png` and the montage `<view>_experts.png` (the maps: `viewpoint.py`, which the viewer
+  shares);
+- `render --camera VIEW.json`: `<model>/views/VIEW.png`, a view `boostnerf view` saved, rendered again.
 """
 
 from __future__ import annotations

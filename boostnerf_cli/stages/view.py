@@ -567,8 +567,11 @@ def serve(viewer: Viewer, stop: threading.Event) -> None:
 
 def run(ws: Workspace, device: str, host: str = "127.0.0.1", port: int = 8080, model: str | None = None,
         follow: bool = False, size: int | None = None) -> None:
-    """Serve the page until interrupted (Ctrl-C)."""
+    """Serve the page until interrupted (Ctrl-C). Following training, it renders on one thread: the training keeps
+    the other cores."""
     import_viser()
+    if follow:
+        torch.set_num_threads(1)
     scene = workspace_scene(ws)
     viewer = Viewer(ws, scene, Models(ws, device, follow), size, model)
     server = start_server(viewer, host, port)
