@@ -195,6 +195,7 @@ def test_a_model_file_being_written_keeps_the_last_good_model(mixture_ws, tmp_pa
     assert again is not good and torch.equal(again.field.gate.logit_table, good.field.gate.logit_table)
 
 
+@pytest.mark.slow
 def test_follow_shows_a_model_in_training_from_its_checkpoint(mixture_ws, tmp_path):
     """A finetune killed after its first checkpoint leaves top1's training state: --follow offers it, reads it, and
     reads it again when training writes the next one."""
@@ -217,6 +218,36 @@ def test_follow_shows_a_model_in_training_from_its_checkpoint(mixture_ws, tmp_pa
     assert not np.array_equal(viewer.draw(camera).image, first)
     run_cli("finetune", "-w", str(ws.root), "--topk", "1", "--device", "cpu", check=True)  # finished: the model
     assert viewer.poll() and viewer.label == "top1" and "top1 (training)" not in models.labels()
+
+
+def test_the_command_serves_the_page_on_the_next_port_and_stops_at_ctrl_c(mixture_ws):
+    import signal
+    import subprocess
+    import sys
+    import urllib.request
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        proc = subprocess.Popen([sys.executable, "-m", "boostnerf_cli", "view", "-w", str(mixture_ws), "--port",
+                                 str(port), "--device", "cpu"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+        try:
+            lines = []
+            while not lines or not lines[-1].startswith("viewer at "):
+                line = proc.stderr.readline()
+                assert line, f"the viewer ended: {''.join(lines)}"
+                lines.append(line)
+            url = lines[-1].split()[2]
+            assert f"port {port} is in use (another viewer?): serving on" in "".join(lines)
+            page = urllib.request.urlopen(url.replace("localhost", "127.0.0.1"), timeout=30).read().decode()
+            assert "<html" in page.lower()
+        finally:
+            proc.send_signal(signal.SIGINT)
+            out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and out == "" and "Traceback" not in err
+    assert err.strip().splitlines()[-1] == "viewer stopped"
 
 
 # --- a real browser -----------------------------------------------------------------------------------------------
