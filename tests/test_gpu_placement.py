@@ -199,6 +199,7 @@ def test_bench_on_the_simulated_gpu(tmp_path, tiny_scene):
     assert {r["name"] for r in rows} == {"dvgo-12", "top1"}
 
 
+@pytest.mark.slow
 def test_the_viewer_renders_on_the_simulated_gpu_what_it_renders_on_the_cpu(mixture_ws):
     """`boostnerf view --device cuda`: every map of a dataset view, its GFLOPs and the routed cells, as on the CPU."""
     import numpy as np
