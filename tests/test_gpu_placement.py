@@ -201,12 +201,15 @@ def test_bench_on_the_simulated_gpu(tmp_path, tiny_scene):
 
 @pytest.mark.slow
 def test_the_viewer_renders_on_the_simulated_gpu_what_it_renders_on_the_cpu(mixture_ws):
-    """`boostnerf view --device cuda`: every map of a dataset view, its GFLOPs and the routed cells, as on the CPU."""
+    """`boostnerf view --device cuda`: the maps of a dataset view (routing renders every gate map; depth is colour's
+    render), their GFLOPs and the routed cells, as on the CPU."""
     import numpy as np
 
     from boostnerf_cli.stages import view
     from boostnerf_cli.stages.common import workspace_scene
-    from boostnerf_cli.viewpoint import MODES, Look
+    from boostnerf_cli.viewpoint import Look
+
+    MAPS = ("colour", "routing", "share")
     from boostnerf_cli.workspace import Workspace
 
     ws = Workspace(mixture_ws)
@@ -216,11 +219,11 @@ def test_the_viewer_renders_on_the_simulated_gpu_what_it_renders_on_the_cpu(mixt
         with simulated_gpu() if device == "gpu" else nullcontext() as dev:
             viewer = view.Viewer(ws, scene, view.Models(ws, dev or "cpu"), model="top2")
             assert viewer.model.bbox.device.type == (dev or "cpu")
-            for mode in MODES:
+            for mode in MAPS:
                 viewer.show(Look(mode, 1))
                 shots[device, mode] = viewer.go_to("test", 0)[1]
             shots[device, "cells"] = viewer.model_parts()[1]
-    for mode in MODES:
+    for mode in MAPS:
         cpu, gpu = shots["cpu", mode], shots["gpu", mode]
         assert np.abs(cpu.image.astype(int) - gpu.image.astype(int)).max() <= 1, mode
         assert gpu.gflops == pytest.approx(cpu.gflops, rel=1e-6), mode

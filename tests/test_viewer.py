@@ -118,7 +118,7 @@ def test_the_maps_are_those_render_per_expert_writes(viewer, tmp_path):
             assert np.array_equal(viewer.draw(camera).image, iio.imread(folder / f"{stem}_{kind}{e}-{name}.png"))
 
 
-@pytest.mark.parametrize("look", [Look("colour"), Look("routing"), Look("gate", 1)])
+@pytest.mark.parametrize("look", [Look("colour"), Look("gate", 1)])
 def test_a_saved_view_renders_again_identically(mixture_ws, tmp_path, look):
     shutil.copytree(mixture_ws, tmp_path / "ws")
     ws = Workspace(tmp_path / "ws")
