@@ -389,16 +389,18 @@ def render(
     fps: Annotated[int, typer.Option("--fps", min=1, help="--path: frames per second.")] = 24,
     video: Annotated[Optional[Path], typer.Option(
         "--video", help="--path: output .mp4 or .gif (default WS/renders/MODEL/PATH.mp4).")] = None,
+    camera: Annotated[Optional[Path], typer.Option(
+        "--camera", help="Instead: a view `boostnerf view` saved (JSON), at its full size.")] = None,
     exact_gate: ExactGateOpt = False,
     device: DeviceOpt = "auto",
 ) -> None:
-    """Render a split with each model (PNG colour, 16-bit depth), a comparison or a video."""
+    """Render a split with each model (PNG colour, 16-bit depth), a comparison, a video or a saved view."""
     from boostnerf_cli.models import Skips, Viewing
     from boostnerf_cli.stages import render as stage
     from boostnerf_cli.stages.common import resolve_device
 
-    if sum((path is not None, compare, per_expert)) > 1:
-        raise BoostNerfError("--path, --compare and --per-expert are separate outputs: use one per command")
+    if sum((path is not None, compare, per_expert, camera is not None)) > 1:
+        raise BoostNerfError("--path, --compare, --per-expert and --camera are separate outputs: use one per command")
     if path is None and video is not None:
         raise BoostNerfError("--video needs --path orbit or --path spiral")
     viewing = Viewing(split, views, Skips.from_flags(no_skip, skip_off), exact_gate)
@@ -407,6 +409,8 @@ def render(
         if path is not None:
             video_path = stage.VideoPath(path, frames, fps, video)
             written = stage.run_video(ws, model, video_path, resolve_device(device), viewing.skips)
+        elif camera is not None:
+            written = stage.run_camera(ws, model, camera, resolve_device(device), viewing.skips)
         elif compare:
             written = stage.run_compare(ws, model, viewing, resolve_device(device))
         else:
@@ -547,6 +551,33 @@ def bench(
         + (f" and {len(result['plots'])} plots" if result["plots"] else ""))
 
 
+@app.command()
+def view(
+    workspace: WorkspaceOpt,
+    model: Annotated[Optional[str], typer.Option("--model", help="The model shown first (default: top2, top1 or the "
+                                                 "largest; with --follow the newest).")] = None,
+    port: Annotated[int, typer.Option("--port", min=0, max=65535, help="Port (the next free one if taken).")] = 8080,
+    host: Annotated[str, typer.Option("--host", help="Address to serve on; 0.0.0.0 opens it to the network.")] = (
+        "127.0.0.1"),
+    follow: Annotated[bool, typer.Option(
+        "--follow", help="Show the newest model or training checkpoint; reload it as training writes it.")] = False,
+    size: Annotated[Optional[int], typer.Option(
+        "--size", min=16, help="Height of a still frame in pixels (default: the images', within 128-256).")] = None,
+    device: DeviceOpt = "auto",
+) -> None:
+    """A web page showing the scene, its cameras and each model's render, live (needs the viewer extra)."""
+    from boostnerf_cli.stages import view as stage
+    from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.workspace import Workspace
+
+    _one_process()
+    stage.import_viser()  # before the scene is read: without viser, the one line saying how to install it
+    try:
+        stage.run(Workspace(workspace), resolve_device(device), host, port, model, follow, size)
+    except Interrupted:
+        log("viewer stopped")
+
+
 class Interrupted(BaseException):
     """Ctrl-C or SIGTERM. A BaseException like KeyboardInterrupt (no `except Exception` swallows it),
     but not one, because Typer turns KeyboardInterrupt into a silent exit."""
@@ -608,7 +639,7 @@ def _during_interrupt(e: BaseException) -> BaseException | None:
     return None
 
 
-PATH_OPTIONS = ("-w", "--workspace", "--data", "--recipe", "--video")  # the options that take a path
+PATH_OPTIONS = ("-w", "--workspace", "--data", "--recipe", "--video", "--camera")  # the options that take a path
 
 
 def main() -> None:

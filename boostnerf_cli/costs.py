@@ -9,6 +9,8 @@ GFLOPs per image: matrix products counted by torch's FlopCounterMode plus the an
 
 from __future__ import annotations
 
+from typing import Callable, TypeVar
+
 import torch
 
 from boostnerf_cli.flops import count_flops
@@ -76,17 +78,26 @@ def _params(module: torch.nn.Module, prefix: str, dropped: dict[str, torch.Tenso
     return total
 
 
+T = TypeVar("T")
+
+
+def gflops_of(work: Callable[[], T]) -> tuple[T, float]:
+    """Run `work` counting its floating-point operations (matrix products and the analytic counts) -> (what it
+    returned, GFLOPs)."""
+    with count_flops() as fc:
+        out = work()
+    return out, fc.total / 1e9
+
+
 @torch.no_grad()
 def gflops_per_image(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None,
                      skips: Skips = ALL_SKIPS) -> float:
     settings, skip = model.render_setup(scene, skips)
     n = n_views(split, views)
-    total = 0
-    for i in range(n):
-        with count_flops() as fc:  # exact packing: the samples the model evaluates, not a budget's pads
-            render_view(model.field, split, i, settings, skip, device, packer=DYNAMIC)
-        total += fc.total
-    return total / max(1, n) / 1e9
+    total = 0.0
+    for i in range(n):  # exact packing: the samples the model evaluates, not a budget's pads
+        total += gflops_of(lambda i=i: render_view(model.field, split, i, settings, skip, device, packer=DYNAMIC))[1]
+    return total / max(1, n)
 
 
 def model_costs(model: LoadedModel, scene: Scene, split: Split, device: str, views: int | None = None,

@@ -215,3 +215,15 @@ def trained_ws(tmp_path_factory, tiny_scene, tiny_recipe) -> Path:
     run_cli("pretrain", "--data", str(tiny_scene), "--recipe", str(tiny_recipe), "--workspace", str(ws),
             "--device", "cpu", check=True)
     return ws
+
+
+@pytest.fixture(scope="session")
+def mixture_ws(tmp_path_factory, trained_ws) -> Path:
+    """`trained_ws` with a mixture: build-moe and a 5-step top2 (through the real CLI)."""
+    import shutil
+
+    ws = tmp_path_factory.mktemp("mixture") / "ws"
+    shutil.copytree(trained_ws, ws)
+    run_cli("build-moe", "--workspace", str(ws), "--device", "cpu", check=True)
+    run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--iters", "5", "--device", "cpu", check=True)
+    return ws

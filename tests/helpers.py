@@ -110,3 +110,18 @@ def routed_mixture(kind: str, device: torch.device | str) -> Mixture:
     mix = mix.to(device)
     mix.occupancy = mix.occupancy.to(device)
     return mix
+
+
+def budgets_hold_every_sample(monkeypatch) -> None:
+    """On a simulated GPU: every static packing budget grows, before it packs, to hold every sample its filter keeps,
+    so a GPU run takes every step a CPU run takes and must give its numbers; it packs through the GPU's static code
+    path, into slots sized as the GPU sizes them (`Budget.fit`: a margin over the count)."""
+    from boostnerf_cli.render import packing
+
+    pack = packing.Budget.pack
+
+    def pack_all(self, mask):
+        self.size = max(self.size or 0, self.fit(int(mask.sum())))
+        return pack(self, mask)
+
+    monkeypatch.setattr(packing.Budget, "pack", pack_all)

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 from conftest import REMOVE, make_recipe
+from helpers import budgets_hold_every_sample
 from simdevice import SimTensor, simulated_gpu
 from typer.testing import CliRunner
 
@@ -32,18 +33,8 @@ def _invoke(*args: str) -> None:
 @pytest.fixture(autouse=True)
 def budgets_that_hold_the_tiny_scenes(monkeypatch):
     """On a GPU every filter packs into a static budget and a step that overflows one is skipped (test_syncs.py
-    tests that). Here a budget grows, before it packs, to hold every sample its filter keeps, so a GPU run takes
-    every step a CPU run takes and must give its numbers; it packs through the GPU's static code path, into slots
-    sized as the GPU sizes them (`Budget.fit`: a margin over the count)."""
-    from boostnerf_cli.render import packing
-
-    pack = packing.Budget.pack
-
-    def pack_all(self, mask):
-        self.size = max(self.size or 0, self.fit(int(mask.sum())))
-        return pack(self, mask)
-
-    monkeypatch.setattr(packing.Budget, "pack", pack_all)
+    tests that). Here every budget holds every sample (`helpers.budgets_hold_every_sample`)."""
+    budgets_hold_every_sample(monkeypatch)
 
 
 def test_the_simulator_catches_a_cpu_tensor_next_to_a_gpu_one():
@@ -206,3 +197,34 @@ def test_bench_on_the_simulated_gpu(tmp_path, tiny_scene):
                 "--only", "dvgo-12,top1", "--views", "1", "--device", "cuda")
     rows = json.loads((tmp_path / "b" / "reports" / "bench.json").read_text())["rows"]
     assert {r["name"] for r in rows} == {"dvgo-12", "top1"}
+
+
+@pytest.mark.slow
+def test_the_viewer_renders_on_the_simulated_gpu_what_it_renders_on_the_cpu(mixture_ws):
+    """`boostnerf view --device cuda`: the maps of a dataset view (routing renders every gate map; depth is colour's
+    render), their GFLOPs and the routed cells, as on the CPU."""
+    import numpy as np
+
+    from boostnerf_cli.stages import view
+    from boostnerf_cli.stages.common import workspace_scene
+    from boostnerf_cli.viewpoint import Look
+
+    MAPS = ("colour", "routing", "share")
+    from boostnerf_cli.workspace import Workspace
+
+    ws = Workspace(mixture_ws)
+    scene = workspace_scene(ws)
+    shots = {}
+    for device in ("cpu", "gpu"):
+        with simulated_gpu() if device == "gpu" else nullcontext() as dev:
+            viewer = view.Viewer(ws, scene, view.Models(ws, dev or "cpu"), model="top2")
+            assert viewer.model.bbox.device.type == (dev or "cpu")
+            for mode in MAPS:
+                viewer.show(Look(mode, 1))
+                shots[device, mode] = viewer.go_to("test", 0)[1]
+            shots[device, "cells"] = viewer.model_parts()[1]
+    for mode in MAPS:
+        cpu, gpu = shots["cpu", mode], shots["gpu", mode]
+        assert np.abs(cpu.image.astype(int) - gpu.image.astype(int)).max() <= 1, mode
+        assert gpu.gflops == pytest.approx(cpu.gflops, rel=1e-6), mode
+    assert np.array_equal(shots["cpu", "cells"][1], shots["gpu", "cells"][1])

@@ -23,7 +23,7 @@ LAYERS = [
     ["lineage"],
     ["train", "models"],
     ["tasks", "costs"],
-    ["stages.common"],
+    ["stages.common", "viewpoint"],  # viewpoint: one camera's picture of a model (view, render --camera)
     ["stages"],
     ["cli"],
     ["__main__"],

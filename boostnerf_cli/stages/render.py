@@ -7,13 +7,15 @@ Files (all under WS/renders/, see docs/stages.md):
   `<...>_depth.mp4`; an MP4 without the ffmpeg backend is refused before anything is rendered;
 - `render --compare`: `compare/<split>/<view>.png`;
 - `render --per-expert` (mixtures): `<model>/<split>/<view>_expert<i>-<name>.png`,
-  `<view>_gate<i>-<name>.png` and the montage `<view>_experts.png`.
+  `<view>_gate<i>-<name>.png` and the montage `<view>_experts.png` (the maps: `viewpoint.py`, which the viewer
+  shares);
+- `render --camera VIEW.json`: `<model>/views/VIEW.png`, a view `boostnerf view` saved, rendered again.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -33,12 +35,20 @@ from boostnerf_cli.images import (
 )
 from boostnerf_cli.lineage import require_current, stale
 from boostnerf_cli.models import LoadedModel, Skips, Viewing, load_model, n_views, render_split
-from boostnerf_cli.moe.mixture import GateView
 from boostnerf_cli.render.packing import Packer, packer_for
 from boostnerf_cli.render.paths import camera_path
-from boostnerf_cli.render.renderer import Camera, render_image, render_view
+from boostnerf_cli.render.renderer import Camera, render_image
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.stages.common import workspace_scene
+from boostnerf_cli.viewpoint import (
+    dataset_camera,
+    expert_share,
+    gate_probability,
+    grey,
+    picture,
+    read_view,
+    routing_colours,
+)
 from boostnerf_cli.workspace import Workspace
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
@@ -73,6 +83,22 @@ def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, p
         mine += extra
         written += mine
     return written
+
+
+# --- a saved view ----------------------------------------------------------------------------------------------------
+def run_camera(ws: Workspace, names: list[str] | None, file: Path, device: str, skips: Skips) -> list[Path]:
+    """Render a view `boostnerf view` saved (its camera, at its full size, and what it shows) with the model it names,
+    or the one `--model` names -> WS/renders/MODEL/views/<file's stem>.png."""
+    camera, saved_model, look = read_view(file)
+    if names and len(names) != 1:
+        raise BoostNerfError(f"--camera renders one model: keep one of {', '.join(names)}")
+    scene = workspace_scene(ws)
+    model = load_model(ws, require_current(ws, names or [saved_model])[0], device)
+    image, _ = picture(model, scene, camera, look.check(model), device, skips=skips)
+    target = ws.renders_dir(model.name) / "views" / f"{file.stem}.png"
+    write_png(target, image)
+    log(f"{model.name}: wrote the {look.mode} view of {file} ({camera.width}x{camera.height} px) to {target}")
+    return [target]
 
 
 # --- videos ---------------------------------------------------------------------------------------
@@ -177,15 +203,8 @@ def run_compare(ws: Workspace, names: list[str] | None, viewing: Viewing, device
 
 
 # --- per-expert pictures of a mixture -----------------------------------------------------------------
-# routing colours for the montage, smallest expert first: blue, cyan, green, orange, red, then grey
-_PALETTE = np.array([[40, 90, 255], [0, 200, 220], [60, 200, 60], [255, 160, 0], [230, 30, 30]], dtype=np.float64) / 255
 # the routing map's label in the montage, wider than its panel (images.panel_grid wraps it)
 ROUTING_LEGEND = "routing (smallest first: blue, cyan, green, orange, red)"
-
-
-def _palette(m: int) -> np.ndarray:
-    extra = np.full((max(0, m - len(_PALETTE)), 3), 0.6)
-    return np.concatenate([_PALETTE[:m], extra])
 
 
 def gate_by_detail(probs: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -225,7 +244,6 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
     names = list(mix.cfg.expert_names)
     m = len(names)
     settings, skip = model.render_setup(scene, skips)
-    black = replace(settings, background=(0.0, 0.0, 0.0))
     packers: dict[str, Packer] = {}
     written = []
     for i in range(n_views(split, views)):
@@ -233,20 +251,18 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
         for old in (*folder.glob(f"{stem}_expert[0-9]*-*.png"), *folder.glob(f"{stem}_gate[0-9]*-*.png")):
             old.unlink()  # an earlier mixture's experts (build-moe --experts changed them): not beside this one's
 
-        def draw(key, field, s, i=i):
-            packer = packers.setdefault(key, packer_for(device))  # one per picture kind, reused from view to view
-            return render_view(field, split, i, s, skip, device, packer)
+        def packer(key):
+            return packers.setdefault(key, packer_for(device))  # one per picture kind, reused from view to view
 
-        full = draw("mixture", mix, settings)
+        camera = dataset_camera(split, i)
+        full = render_image(mix, camera, settings, skip, device, packer("mixture"))
         shares, gates = [], []
         for e, ename in enumerate(names):
-            share = to_uint8(draw(f"expert{e}", mix.expert_only(e), settings)["rgb"])
-            g = draw(f"gate{e}", GateView(mix, e), black)
-            acc = g["acc"].numpy()
-            prob = np.where(acc > 0.1, g["rgb"].numpy()[..., 0] / np.maximum(acc, 1e-6), 0.0).clip(0, 1)
+            share = expert_share(mix, e, camera, settings, skip, device, packer(f"expert{e}"))
+            prob = gate_probability(mix, e, camera, settings, skip, device, packer(f"gate{e}"))
             gates.append(prob)
             shares.append(share)
-            for kind, img in (("expert", share), ("gate", to_uint8(np.repeat(prob[..., None], 3, -1)))):
+            for kind, img in (("expert", share), ("gate", grey(prob))):
                 path = folder / f"{stem}_{kind}{e}-{ename}.png"
                 write_png(path, img)
                 written.append(path)
@@ -258,10 +274,10 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
         else:
             log(f"{model.name} {stem}: mean gate probability per expert ({', '.join(names)}) on detailed pixels "
                 f"{[round(float(v), 2) for v in hi]}, on smooth pixels {[round(float(v), 2) for v in lo]}")
-        routing = to_uint8(probs @ _palette(m))
+        routing = routing_colours(probs)
         top = [("mixture", to_uint8(full["rgb"]))] + [(f"{names[e]} share", shares[e]) for e in range(m)]
         bottom = [(ROUTING_LEGEND, routing)] + [
-            (f"gate p({names[e]})", to_uint8(np.repeat(gates[e][..., None], 3, -1))) for e in range(m)]
+            (f"gate p({names[e]})", grey(gates[e])) for e in range(m)]
         path = folder / f"{stem}_experts.png"
         write_png(path, panel_grid([top, bottom], caption=f"{model.name}, {split.names[i]}: experts smallest first; "
                                     "gate: white = probability 1, black = 0 or empty"))

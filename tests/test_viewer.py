@@ -1,0 +1,328 @@
+"""`boostnerf view` and `render --camera`: the page's scene, what a camera renders, switching model and map, saved
+views rendered again, following training, bad input, and one test in a real (headless) browser."""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import assert_clean_failure, cli_in_process, run_cli
+
+from boostnerf_cli.images import to_uint8
+from boostnerf_cli.models import load_model
+from boostnerf_cli.render.renderer import render_view
+from boostnerf_cli.stages import view
+from boostnerf_cli.stages.common import workspace_scene
+from boostnerf_cli.viewpoint import Look, camera_for_view, dataset_camera, fov_of, opencv_pose, read_view
+from boostnerf_cli.workspace import Workspace
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def viewer(mixture_ws):
+    ws = Workspace(mixture_ws)
+    return view.Viewer(ws, workspace_scene(ws), view.Models(ws, "cpu"))
+
+
+@pytest.fixture
+def served(viewer):
+    """`viewer` served on a free port by its render loop (a thread), stopped afterwards."""
+    server = view.start_server(viewer, "127.0.0.1", 0)
+    stop = threading.Event()
+    loop = threading.Thread(target=view.serve, args=(viewer, stop), daemon=True)
+    loop.start()
+    yield viewer, server
+    stop.set()
+    loop.join(timeout=30)
+    server.stop()
+
+
+def test_the_page_draws_every_camera_the_box_and_the_routed_cells(served):
+    viewer, server = served
+    scene = viewer.scene
+    n = len(scene.split("train")) + len(scene.split("test"))
+    names = [f"/cameras/{s}/{k:04d}" for k, s in enumerate(["train"] * len(scene.split("train")) + ["test"] * 3)]
+    assert len(names) == n and all(server.scene.get_handle_by_name(name) is not None for name in names)
+    assert server.scene.get_handle_by_name("/box") is not None
+    points, colours = viewer.model_parts()[1]
+    assert server.scene.get_handle_by_name("/cells") is not None and len(points) > 0
+    lo, hi = viewer.model.bbox.numpy()
+    assert ((points >= lo - 1e-6) & (points <= hi + 1e-6)).all()
+    assert len({tuple(c) for c in colours}) == 2  # the gate picks both experts somewhere
+    assert viewer.label == "top2" and list(viewer.gui["model"].options) == ["dvgo-12", "dvgo-16", "top2"]
+
+
+def test_a_dataset_camera_renders_what_render_renders_and_its_psnr(viewer):
+    camera, shot, gt, score = viewer.go_to("test", 0)
+    model = load_model(viewer.ws, "top2", "cpu")
+    split = viewer.scene.split("test")
+    expected = render_view(model.field, split, 0, *model.render_setup(viewer.scene, model_skips()), "cpu")["rgb"]
+    assert np.array_equal(shot.image, to_uint8(expected))
+    mse = float(((expected.double() - split.images[0].double()) ** 2).mean())
+    assert score == pytest.approx(-10 * np.log10(mse), abs=1e-4)
+    assert shot.gflops > 0 and shot.seconds > 0
+    # the browser's camera (OpenCV, a vertical field of view) at the same place renders the same picture
+    pose = opencv_pose(camera.pose)
+    browser = camera_for_view(pose[:3, :3], pose[:3, 3], fov_of(camera), camera.width / camera.height, camera.height)
+    assert torch.allclose(browser.pose, camera.pose, atol=1e-6)
+    assert torch.allclose(browser.intrinsics, camera.intrinsics, atol=1e-4)
+
+
+def model_skips():
+    from boostnerf_cli.models import ALL_SKIPS
+
+    return ALL_SKIPS
+
+
+def test_switching_model_and_map_changes_the_picture(viewer, caplog):
+    camera = dataset_camera(viewer.scene.split("test"), 0)
+    pictures = {}
+    for mode in ("colour", "depth", "routing"):
+        viewer.show(Look(mode))
+        pictures[mode] = viewer.draw(camera).image
+    for e in (0, 1):
+        for mode in ("share", "gate"):
+            viewer.show(Look(mode, e))
+            pictures[mode, e] = viewer.draw(camera).image
+    keys = list(pictures)
+    assert all(not np.array_equal(pictures[a], pictures[b]) for i, a in enumerate(keys) for b in keys[i + 1:])
+    viewer.choose("dvgo-12")
+    assert viewer.look == Look("colour")  # an expert has no gate: back to its colour
+    assert not np.array_equal(viewer.draw(camera).image, pictures["colour"])
+    with caplog.at_level(logging.INFO, logger="boostnerf_cli"):
+        viewer.show(Look("routing"))
+    assert viewer.look == Look("colour") and "dvgo-12 is an expert, not a mixture" in caplog.text
+
+
+def test_the_maps_are_those_render_per_expert_writes(viewer, tmp_path):
+    ws = tmp_path / "ws"
+    shutil.copytree(viewer.ws.root, ws)
+    run_cli("render", "-w", str(ws), "--model", "top2", "--per-expert", "--views", "1", "--device", "cpu", check=True)
+    import imageio.v3 as iio
+
+    stem = viewer.scene.split("test").stems[0]
+    folder = ws / "renders" / "top2" / "test"
+    camera = dataset_camera(viewer.scene.split("test"), 0)
+    for e, name in enumerate(("dvgo-12", "dvgo-16")):
+        for mode, kind in (("share", "expert"), ("gate", "gate")):
+            viewer.show(Look(mode, e))
+            assert np.array_equal(viewer.draw(camera).image, iio.imread(folder / f"{stem}_{kind}{e}-{name}.png"))
+
+
+@pytest.mark.parametrize("look", [Look("colour"), Look("gate", 1)])
+def test_a_saved_view_renders_again_identically(mixture_ws, tmp_path, look):
+    shutil.copytree(mixture_ws, tmp_path / "ws")
+    ws = Workspace(tmp_path / "ws")
+    viewer = view.Viewer(ws, workspace_scene(ws), view.Models(ws, "cpu"))
+    viewer.show(look)
+    train = viewer.scene.split("train")
+    pose = opencv_pose(train.poses[3])  # a browser's camera: not a dataset view's size or aspect
+    camera = camera_for_view(pose[:3, :3], pose[:3, 3] * 1.1, 0.7, 1.5, 24)
+    shot = viewer.draw(camera)
+    png = viewer.save(camera, shot)
+    assert png.name == "view-001.png" and read_view(png.with_suffix(".json"))[0].width == 36
+    proc = run_cli("render", "-w", str(ws.root), "--camera", str(png.with_suffix(".json")), "--device", "cpu",
+                   check=True)
+    again = Path(proc.stdout.strip())
+    assert again == ws.root / "renders" / "top2" / "views" / "view-001.png"
+    assert again.read_bytes() == png.read_bytes()
+    assert viewer.save(camera, shot).name == "view-002.png"
+
+
+def test_a_broken_view_file_is_one_line(mixture_ws, tmp_path):
+    bad = tmp_path / "view.json"
+    bad.write_text('{"pose": [[1, 0], [0, 1]], "intrinsics": [1, 1, 1, 1], "height": 4, "width": 4, "model": "top2"}')
+    assert_clean_failure(run_cli("render", "-w", str(mixture_ws), "--camera", str(bad)), "is not a saved view")
+    bad.write_text("{")
+    assert_clean_failure(run_cli("render", "-w", str(mixture_ws), "--camera", str(bad)), str(bad))
+
+
+def test_without_viser_one_line_says_how_to_install_it(mixture_ws, monkeypatch, capsys):
+    monkeypatch.setitem(__import__("sys").modules, "viser", None)
+    code, err = cli_in_process(monkeypatch, capsys, "view", "-w", str(mixture_ws))
+    assert code == 2 and err.strip() == f"error: {view.INSTALL}"
+
+
+def test_a_workspace_without_models_shows_its_cameras(trained_ws, tmp_path, caplog):
+    shutil.copytree(trained_ws, tmp_path / "ws", ignore=shutil.ignore_patterns("*.safetensors", "moe"))
+    ws = Workspace(tmp_path / "ws")
+    with caplog.at_level(logging.INFO, logger="boostnerf_cli"):
+        viewer = view.Viewer(ws, workspace_scene(ws), view.Models(ws, "cpu"))
+    assert viewer.model is None and viewer.draw(dataset_camera(viewer.scene.split("train"), 0)) is None
+    assert "has no models yet: the page shows the scene's cameras" in caplog.text
+    server = view.start_server(viewer, "127.0.0.1", 0)
+    try:
+        assert server.scene.get_handle_by_name("/cameras/train/0000") is not None
+    finally:
+        server.stop()
+
+
+def test_a_port_in_use_is_one_line_and_the_next_one_serves(caplog):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with caplog.at_level(logging.INFO, logger="boostnerf_cli"):
+            free = view.free_port("127.0.0.1", port)
+    assert free > port and f"port {port} is in use (another viewer?): serving on {free} instead" in caplog.text
+
+
+def test_a_model_file_being_written_keeps_the_last_good_model(mixture_ws, tmp_path, caplog):
+    shutil.copytree(mixture_ws, tmp_path / "ws")
+    ws = Workspace(tmp_path / "ws")
+    models = view.Models(ws, "cpu", follow=True)
+    good = models.get("top2")
+    path = ws.model_path("top2")
+    whole = path.read_bytes()
+    path.write_bytes(whole[: len(whole) // 2])  # another process, half way through a plain (not atomic) copy
+    with caplog.at_level(logging.INFO, logger="boostnerf_cli"):
+        assert models.changed("top2") and models.get("top2") is good
+        assert models.get("top2") is good  # said once per version of the file
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and lines[0].startswith(f"cannot read {path}") and "keeping the one read before" in lines[0]
+    path.write_bytes(whole)
+    assert models.changed("top2")
+    again = models.get("top2")
+    assert again is not good and torch.equal(again.field.gate.logit_table, good.field.gate.logit_table)
+
+
+@pytest.mark.slow
+def test_follow_shows_a_model_in_training_from_its_checkpoint(mixture_ws, tmp_path):
+    """A finetune killed after its first checkpoint leaves top1's training state: --follow offers it, reads it, and
+    reads it again when training writes the next one."""
+    shutil.copytree(mixture_ws, tmp_path / "ws")
+    ws = Workspace(tmp_path / "ws")
+    proc = run_cli("finetune", "-w", str(ws.root), "--topk", "1", "--device", "cpu",
+                   env_extra={"BOOSTNERF_TEST_KILL": "checkpoint:1"})
+    assert proc.returncode != 0 and ws.checkpoint_path("top1").exists()
+    models = view.Models(ws, "cpu", follow=True)
+    assert "top1 (training)" in models.labels() and models.newest() == "top1 (training)"
+    assert "top1 (training)" not in view.Models(ws, "cpu").labels()
+    viewer = view.Viewer(ws, workspace_scene(ws), models)
+    assert viewer.label == "top1 (training)" and viewer.model.field.cfg.topk == 1
+    camera = dataset_camera(viewer.scene.split("test"), 0)
+    first = viewer.draw(camera).image
+    proc = run_cli("finetune", "-w", str(ws.root), "--topk", "1", "--device", "cpu",
+                   env_extra={"BOOSTNERF_TEST_KILL": "checkpoint:1"})  # resumed: its next checkpoint
+    assert models.changed("top1 (training)")
+    assert viewer.poll()
+    assert not np.array_equal(viewer.draw(camera).image, first)
+    run_cli("finetune", "-w", str(ws.root), "--topk", "1", "--device", "cpu", check=True)  # finished: the model
+    assert viewer.poll() and viewer.label == "top1" and "top1 (training)" not in models.labels()
+
+
+def test_the_command_serves_the_page_on_the_next_port_and_stops_at_ctrl_c(mixture_ws):
+    import signal
+    import subprocess
+    import sys
+    import urllib.request
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        proc = subprocess.Popen([sys.executable, "-m", "boostnerf_cli", "view", "-w", str(mixture_ws), "--port",
+                                 str(port), "--device", "cpu"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+        try:
+            lines = []
+            while not lines or not lines[-1].startswith("viewer at "):
+                line = proc.stderr.readline()
+                assert line, f"the viewer ended: {''.join(lines)}"
+                lines.append(line)
+            url = lines[-1].split()[2]
+            assert f"port {port} is in use (another viewer?): serving on" in "".join(lines)
+            page = urllib.request.urlopen(url.replace("localhost", "127.0.0.1"), timeout=30).read().decode()
+            assert "<html" in page.lower()
+        finally:
+            proc.send_signal(signal.SIGINT)
+            out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and out == "" and "Traceback" not in err
+    assert err.strip().splitlines()[-1] == "viewer stopped"
+
+
+# --- a real browser -----------------------------------------------------------------------------------------------
+SCREENSHOT_ENV = "BOOSTNERF_VIEWER_SCREENSHOT"  # a path: the test writes its first screenshot there (docs/viewer.md)
+
+
+@pytest.mark.slow
+def test_the_page_in_headless_chromium_shows_a_frame_and_switching_model_changes_it(served, tmp_path):
+    from cdp import INSTALL, Browser, chromium_binary
+
+    binary = chromium_binary()
+    if binary is None:
+        if os.environ.get("CI") == "true":
+            pytest.fail(f"no Chromium on this CI machine: {INSTALL}")
+        pytest.skip(f"no Chromium: {INSTALL}")
+    viewer, server = served
+    browser = Browser(binary)
+    try:
+        browser.open(f"http://127.0.0.1:{server.get_port()}/")
+        first = wait_for(lambda: shown_full(viewer, "top2"), "the first full frame")
+        browser.js("document.querySelectorAll('.mantine-Notification-root button').forEach(b => b.click())")
+        time.sleep(1.0)  # the frame reaches the page; the browser's notice (software WebGL) is closed
+        before = browser.screenshot()
+        if os.environ.get(SCREENSHOT_ENV):
+            Path(os.environ[SCREENSHOT_ENV]).write_bytes(before)
+        pick(browser, "model", "dvgo-12")
+        wait_for(lambda: shown_full(viewer, "dvgo-12"), "a frame of the model picked in the page")
+        time.sleep(1.0)
+        after = browser.screenshot()
+        press(browser, "go to view N")  # train view 0
+        wait_for(lambda: "PSNR" in viewer.gui["truth"].content, "the dataset view's PSNR")
+        time.sleep(2.0)  # the page reports the camera it was snapped to: it stays on the dataset view
+        assert [v.pinned for v in viewer.clients.values()] == [("train", 0)] and viewer.gui["gt"].visible
+    finally:
+        browser.close()
+    import imageio.v3 as iio
+
+    a, b = iio.imread(before)[..., :3].astype(int), iio.imread(after)[..., :3].astype(int)
+    assert a.std() > 10 and first  # not blank
+    assert np.abs(a - b).max() > 50 and (np.abs(a - b).sum(-1) > 30).sum() > 100  # the render changed
+
+
+def shown_full(viewer, label: str) -> bool:
+    return viewer.label == label and any(v.last is not None and v.shown == (v.version, True) and
+                                         viewer.gui["stats"].content.startswith(f"**{label}**")
+                                         for v in viewer.clients.values())
+
+
+def wait_for(condition, what: str, seconds: float = 60.0):
+    deadline = time.monotonic() + seconds
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"no {what} within {seconds:.0f} s")
+        time.sleep(0.1)
+    return True
+
+
+def click(browser, element: str) -> None:
+    """Click the page's `element` (a JavaScript expression) in its centre, as a user does."""
+    wait_for(lambda: browser.js(f"!!({element})"), f"the page's {element}", 20)
+    centre = browser.js(f"(() => {{ const r = ({element}).getBoundingClientRect(); "
+                        "return [r.x + r.width / 2, r.y + r.height / 2] })()")
+    for kind in ("mousePressed", "mouseReleased"):
+        browser.call("Input.dispatchMouseEvent", type=kind, x=centre[0], y=centre[1], button="left", clickCount=1)
+    time.sleep(0.3)
+
+
+def press(browser, text: str) -> None:
+    click(browser, f"Array.from(document.querySelectorAll('button')).find(b => b.textContent.trim() === {text!r})")
+
+
+def pick(browser, label: str, option: str) -> None:
+    """Choose `option` in the page's dropdown `label` by clicking it, as a user does."""
+    field = (f"document.getElementById(Array.from(document.querySelectorAll('label'))"
+             f".find(l => l.textContent === {label!r}).htmlFor)")
+    item = f"Array.from(document.querySelectorAll('[role=option]')).find(e => e.textContent === {option!r})"
+    for element in (field, item):
+        click(browser, element)
