@@ -222,6 +222,10 @@ def finetune_flag(name: str) -> str:
 def _remake(artifact: str, root: Path, name: str, source: str, removed: bool) -> tuple[str, str]:
     """(what changed, the command that makes `name` again) when its input `source` was removed or remade."""
     changed = "removed" if removed else "retrained"
+    if artifact == "expert":  # its one input: the geometry it starts from
+        model, _, res = name.rpartition("-")
+        return (f"the geometry was {changed} after {name} was trained on it",
+                f"`boostnerf pretrain -w {root} --model {model} --res {res} --force`")
     if artifact == "init":
         return (f"expert {source} was {changed} after build-moe",
                 f"`boostnerf build-moe -w {root}`, then finetune the mixtures again with --force")
@@ -235,14 +239,17 @@ def _remake(artifact: str, root: Path, name: str, source: str, removed: bool) ->
 def stale(ws: Workspace, name: str) -> tuple[str, str] | None:
     """Why model `name` must be made again, as (what changed, the command that makes it again), or None when it is
     current: an input recorded in its signature (moe/init's experts, a finetuned model's moe/init or largest expert,
-    a pruned model's source) changed or went since. The first stale link from the experts up is named, since
-    remaking it comes first. A pruned model without its report (a prune stopped before its check) is stale too.
-    An expert, or a model not there, is never stale."""
+    a pruned model's source, an expert's geometry) changed or went since. The first stale link from the geometry up
+    is named, since remaking it comes first. A pruned model without its report (a prune stopped before its check) is
+    stale too. A model not there is never stale."""
     path = ws.model_file(name)
     if not path.exists():
         return None
     signature = read_meta(path).get("signature") or {}
     artifact, inputs = signature.get("artifact"), signature.get("inputs") or {}
+    if artifact == "expert" and signature.get("geometry"):
+        now = read_meta(ws.geometry_path).get("digest") if ws.geometry_path.exists() else None
+        return None if now == signature["geometry"] else _remake(artifact, ws.root, name, "geometry", now is None)
     if artifact == "pruned" and not ws.report_path(name).exists():  # written last, after prune's check
         return (f"its prune did not finish (no moe/{name}.json, the check of its renders)",
                 f"`boostnerf prune -w {ws.root} --model {next(iter(inputs))}`")

@@ -97,6 +97,35 @@ def test_a_finished_expert_is_not_skipped_under_other_training_settings(tmp_path
     assert "already trained" in run_cli(*args, "--recipe", str(quiet), check=True).stderr
 
 
+@pytest.mark.slow
+def test_a_changed_geometry_setting_is_refused_and_its_experts_are_then_stale(trained_ws, tiny_scene, tmp_path):
+    """The geometry is an artifact like the experts: its file keeps its signature, a changed geometry setting is
+    refused in one line naming it (pretrain kept the old geometry, said "already trained" of the experts built on it,
+    and said nothing), --force retrains it, and an expert still built on the old one is stale: pretrain, build-moe
+    and eval say so, with the command that trains it again."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    geometry = ws / "experts" / "geometry.safetensors"
+    before = read_meta(geometry)["digest"]
+    assert read_meta(geometry)["signature"]["settings"]["iters"] == 100
+    shorter = make_recipe(tmp_path / "shorter.yaml", pretrain={"geometry": {"iters": 60}})
+    args = ["pretrain", "--data", str(tiny_scene), "--workspace", str(ws), "--device", "cpu", "--recipe", str(shorter)]
+    assert_clean_failure(run_cli(*args), "geometry was trained with other settings",
+                         "pretrain.geometry.iters: 100, now 60", "--force")
+    assert read_meta(geometry)["digest"] == before
+    proc = run_cli(*args, "--res", "12", "--force", check=True)
+    assert "geometry: training a 12^3 coarse grid for 60 steps" in proc.stderr
+    assert read_meta(geometry)["digest"] != before
+    assert "dvgo-16 is stale" in proc.stderr and "--res 16 --force" in proc.stderr  # said when it goes stale
+    remedy = f"`boostnerf pretrain -w {ws} --model dvgo --res 16 --force`"
+    for again in (run_cli(*args), run_cli("build-moe", "-w", str(ws), "--device", "cpu"),
+                  run_cli("eval", "-w", str(ws), "--device", "cpu", "--no-costs")):
+        assert_clean_failure(again, "dvgo-16 is stale: the geometry was retrained after dvgo-16 was trained on it",
+                             remedy)
+    run_cli(*args, "--res", "16", "--force", check=True)
+    assert "already trained" in run_cli(*args, check=True).stderr  # both experts on the new geometry: current
+
+
 def test_eval_report_schema_and_render_outputs(trained_ws, tmp_path):
     missing = {ALEXNET_ENV: str(tmp_path / "none" / "alexnet-owt-7be5be79.pth"), LPIPS_ENV: str(tmp_path / "alex.pth")}
     run_cli("eval", "--workspace", str(trained_ws), "--split", "test", "--report", "--device", "cpu", check=True,

@@ -12,7 +12,7 @@ import torch
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import FAMILIES, count_params
-from boostnerf_cli.lineage import MixtureInitSpec
+from boostnerf_cli.lineage import Found, MixtureInitSpec, decide, stale
 from boostnerf_cli.models import load_expert, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
@@ -91,6 +91,8 @@ def _experts(ws: Workspace, names: list[str] | None, rec: MoERecipe,
     if extra and extra[0] not in available:
         raise BoostNerfError(f"moe.gate_from = {rec.gate_from!r}: no pretrained expert of that name in {ws.root} "
                              f"(experts: {', '.join(available)})")
+    for n in names + extra:  # an expert trained on a geometry since retrained: made again first
+        decide(Found(n, None, stale(ws, n)), None).check()
     loaded, scenes, inputs = {}, set(), {}
     for n in names + extra:
         inputs[n] = read_meta(ws.expert_path(n)).get("digest")

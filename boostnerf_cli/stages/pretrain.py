@@ -23,7 +23,20 @@ from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
 from boostnerf_cli.fields.registry import build_expert, count_params
-from boostnerf_cli.lineage import SKIP, ExpertSpec, GeometrySpec, SceneSpec, decide, finished, moved, scene_digest
+from boostnerf_cli.lineage import (
+    REFUSE,
+    SKIP,
+    ExpertSpec,
+    Found,
+    GeometrySpec,
+    SceneSpec,
+    decide,
+    describe_change,
+    finished,
+    moved,
+    scene_digest,
+    stale,
+)
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.models import load_expert, save_expert
 from boostnerf_cli.recipe import (
@@ -56,6 +69,7 @@ from boostnerf_cli.train import Schedule, TrainCheckpoint, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
+warn = logging.getLogger(__name__).warning
 
 
 def growth_schedule(iters: int, fractions: list[float]) -> tuple[int, ...]:
@@ -106,8 +120,16 @@ class Geometry:
 
 
 # ----------------------------------------------------------------------------------------------
-def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every: int = 500) -> Geometry:
-    """The shared occupied box, occupancy mask and coarse density (trained once per workspace).
+def geometry_spec(site: Site, rec: GeometryRecipe, seed: int) -> GeometrySpec:
+    """What the geometry is made from (its first round's spec: the settings, the seed, the scene's box and id); the
+    refining round follows from it."""
+    return GeometrySpec.of("geometry", site.tag, rec, seed, site.scene.bbox.flatten().tolist())
+
+
+def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every: int = 500,
+                    retrain: bool = False) -> Geometry:
+    """The shared occupied box, occupancy mask and coarse density (trained once per workspace, and again when
+    `retrain`: its settings changed, and --force was given).
 
     The coarse grid trains over the scene's box; the box is drawn around the visible surface it finds (every
     foreground training ray's, render/coverage.py). With `refine`, when that box holds less than half the
@@ -115,7 +137,7 @@ def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every
     over fewer of them) and draws the box again. The occupancy is over the last coarse grid's box.
     """
     ws = site.ws
-    if ws.geometry_path.exists():
+    if ws.geometry_path.exists() and not retrain:
         model, occ, meta = load_expert(ws.geometry_path, site.device)
         return Geometry(torch.tensor(meta["fine_bbox"], device=site.device), occ, model)
     t0 = time.perf_counter()
@@ -142,7 +164,8 @@ def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every
     seconds = round(time.perf_counter() - t0, 2)
     save_expert(ws.geometry_path, model, occ, {"name": "geometry", "fine_bbox": box.tolist(), "iters": rec.iters,
                                                "seconds": seconds, "occupied_fraction": occ.fraction(),
-                                               "coverage": rounds[-1], "rounds": rounds})
+                                               "coverage": rounds[-1], "rounds": rounds,
+                                               "signature": geometry_spec(site, rec, seed).signature()})
     for name in ("geometry", "geometry-refine"):
         ws.checkpoint_path(name).unlink(missing_ok=True)
     log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {box_text(box)} "
@@ -355,6 +378,8 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str,
     check_recipe(rec, "setting")  # the recipe was checked when read; flags may have changed it since
     m = ws.manifest()  # read once: nothing below writes it before update_manifest
     scene, spec, tag, digest = _scene(ws, m, data, rec, force)
+    site = Site(ws, scene, tag, device)
+    retrain = _geometry_changed(site, rec.pretrain, force)
     decisions = {}  # every finished expert's, before anything is written (a refusal leaves the manifest as it is)
     for res in sorted(rec.pretrain.res):
         name = expert_name(rec.pretrain.model, res)
@@ -366,15 +391,34 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str,
         ws.update_manifest(data=spec.record(), scene_id=tag, scene_digest=digest, scene=scene.describe(),
                            recipe=recipe_dict(rec))
     _describe(scene)
-    site = Site(ws, scene, tag, device)
-    geometry = ensure_geometry(site, rec.pretrain.geometry, rec.pretrain.seed, rec.pretrain.train.checkpoint_every)
+    geometry = ensure_geometry(site, rec.pretrain.geometry, rec.pretrain.seed, rec.pretrain.train.checkpoint_every,
+                               retrain)
     todo = []
     for res in sorted(rec.pretrain.res):
         if decisions.get(res) is not None and decisions[res].action == SKIP:
             log(f"{expert_name(rec.pretrain.model, res)}: already trained, skipping (use --force to retrain)")
         else:
             todo.append(res)  # with --force, a checkpoint of other settings is dropped when training starts
+    if retrain:  # the experts this run does not train again were trained on the old geometry
+        training = {expert_name(rec.pretrain.model, res) for res in todo}
+        for name in ws.expert_names():
+            if name not in training and (why := stale(ws, name)) is not None:
+                warn(f"{name} is stale: {why[0]}; make it again with {why[1]}")
     return site, geometry, todo
+
+
+def _geometry_changed(site: Site, rec: PretrainRecipe, force: bool) -> bool:
+    """Whether the geometry is to be trained again: a finished one of other settings is refused (`decide`), with
+    --force retrained (said). --force alone does not retrain it: the same settings make the same geometry."""
+    path = site.ws.geometry_path
+    found = Found("geometry", read_meta(path).get("signature")) if path.exists() else None
+    wanted = geometry_spec(site, rec.geometry, rec.seed).signature()
+    decision = decide(found, wanted)
+    if decision.action == REFUSE and force:
+        log(f"geometry: trained with other settings ({describe_change(found.signature, wanted)}): retraining it")
+        return True
+    decision.check()
+    return False
 
 
 def _describe(scene: Scene) -> None:
