@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -36,6 +37,8 @@ from boostnerf_cli.recipe import DataRecipe, GeometryRecipe, MoERecipe, Pretrain
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.startup import timed
 from boostnerf_cli.workspace import Workspace, read_meta, recorded_path
+
+_log = logging.getLogger(__name__)
 
 UNSHAPING = ("log_every", "checkpoint_every", "compile")  # training settings that do not change what is trained
 
@@ -324,6 +327,15 @@ def finished(ws: Workspace, name: str) -> Found | None:
 
 
 def decide(found: Found | None, wanted: dict | None, force: bool = False) -> Decision:
+    """The one rule of every stage for what it `found` where it writes (`rule`), said at -v."""
+    decision = rule(found, wanted, force)
+    if found is not None:
+        _log.debug(f"{found.name}{' (its checkpoint)' if found.checkpoint else ''}: {decision.action}"
+                   + (f": {decision.reason}" if decision.reason else ""))
+    return decision
+
+
+def rule(found: Found | None, wanted: dict | None, force: bool = False) -> Decision:
     """The one rule of every stage for what it `found` where it writes, given the signature it would write
     (`wanted`; None: any, as a reader asks) and --force:
 

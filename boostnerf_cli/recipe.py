@@ -194,19 +194,41 @@ class Recipe:
     name: str = "defaults"  # the recipe's name in reports (a recipe file without one: its file name)
 
     def override(self, changes: dict[str, Any]) -> "Recipe":
-        """Set the keys `changes` names by their dotted path (`"pretrain.iters"`) to its values, skipping None
-        (a flag not given), then check the recipe again (`check_recipe`, errors naming the setting). -> self."""
+        """Set the keys `changes` names by their dotted path (`"pretrain.iters"`, `"pretrain.dvgo.hidden"`) to its
+        values, then check the recipe again (`check_recipe`, errors naming the setting). -> self."""
         for path, value in changes.items():
-            if value is None:
-                continue
             *sections, key = path.split(".")
             target = self
             for name in sections:
                 target = getattr(target, name)
-            if not hasattr(target, key):
+            if isinstance(target, dict):  # a family section: its keys are checked with the recipe
+                target[key] = value
+            elif not hasattr(target, key):
                 raise BoostNerfError(f"no recipe key {path}")
-            setattr(target, key, value)
+            else:
+                setattr(target, key, value)
         return check_recipe(self, "setting")
+
+
+def parse_setting(text: str) -> tuple[str, Any]:
+    """`KEY=VALUE` (`--set pretrain.geometry.iters=300`) -> (key, value): the value read as a recipe file's YAML reads
+    it, the key and the value's type checked as a recipe file's are (its range: with the recipe, `check_recipe`)."""
+    key, sep, raw = text.partition("=")
+    key = key.strip()
+    if not sep or not key or "" in key.split("."):
+        raise BoostNerfError(f"--set {text!r}: give KEY=VALUE, a recipe key and its value, e.g. "
+                             "--set pretrain.geometry.iters=300 (docs/recipe-keys.md)")
+    try:
+        value = yaml.load(raw, Loader=_RecipeLoader)  # noqa: S506 (a safe loader)
+    except (yaml.YAMLError, ValueError) as e:
+        raise BoostNerfError(f"--set {key}: {raw!r} is not a YAML value ({str(e).splitlines()[0]})") from None
+    nested: Any = value
+    for name in reversed(key.split(".")):
+        nested = {name: nested}
+    built: Any = _build(Recipe, nested, "")  # unknown keys and wrong types refused as in a recipe file
+    for name in key.split("."):
+        built = built[name] if isinstance(built, dict) else getattr(built, name)
+    return key, built
 
 
 def _key_text(key: Any) -> str:

@@ -524,6 +524,60 @@ def test_log_lines_print_brackets_as_written(capsys):
     assert capsys.readouterr().err.strip() == text
 
 
+def test_warnings_go_through_logging_warning_and_say_so(capsys):
+    """A warning is a `logging.warning` record, said as a line starting `warning:` (they were INFO lines that began
+    with the word, so no level could keep them and drop the rest); -q keeps warnings and drops the other messages."""
+    import logging as logging_module
+
+    from boostnerf_cli.cli import say_messages
+
+    stage = logging_module.getLogger("boostnerf_cli.stages.anything")
+    try:
+        say_messages(logging_module.WARNING)  # -q
+        stage.info("dvgo-8: already trained, skipping")
+        stage.warning("geometry: 3 of 9 foreground training rays miss the scene box")
+        assert capsys.readouterr().err == "warning: geometry: 3 of 9 foreground training rays miss the scene box\n"
+    finally:
+        say_messages()
+
+
+def test_quiet_and_verbose_work_on_any_command(trained_ws, tiny_scene, tmp_path):
+    """-q: nothing on stderr but warnings and errors (results still on stdout); -v: the recipe read and what the stage
+    decides about each artifact it finds; both at once is refused in one line."""
+    scene = tmp_path / "scene"
+    quiet = run_cli("-q", "make-scene", str(scene), "--size", "16", "--train-views", "2", "--test-views", "1",
+                    check=True)
+    assert quiet.stderr == "" and (scene / "transforms_train.json").exists()
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    args = ["pretrain", "-w", str(ws), "--data", str(tiny_scene), "--res", "12", "--device", "cpu"]
+    said = run_cli(*args, check=True)
+    assert "already trained" in said.stderr and "expert" in said.stdout
+    quiet = run_cli("-q", *args, check=True)
+    assert quiet.stderr == "" and quiet.stdout == said.stdout
+    verbose = run_cli("-v", *args, check=True).stderr
+    assert f"recipe tiny (from {ws / 'manifest.json'}); pretrain.res = [12]" in verbose
+    assert "geometry: skip" in verbose and "dvgo-12: skip" in verbose and "already trained" in verbose
+    assert_clean_failure(run_cli("-q", "-v", *args), "--quiet and --verbose")
+
+
+def test_set_sets_any_recipe_key_checked_as_a_recipe_file_is(trained_ws, tiny_scene, tmp_path):
+    """--set KEY=VALUE beside the named options: the key and the value's type are checked as in a recipe file, the
+    range with the recipe; a key it sets is one a recipe sets (here a geometry setting, refused as changed)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    args = ["pretrain", "-w", str(ws), "--data", str(tiny_scene), "--device", "cpu"]
+    assert_clean_failure(run_cli(*args, "--set", "pretrain.geometry.iters=60"), "pretrain.geometry.iters: 100, now 60")
+    assert_clean_failure(run_cli(*args, "--set", "pretrain.geometry.iterz=60"),
+                         "unknown recipe key pretrain.geometry.iterz", "known keys here are")
+    assert_clean_failure(run_cli(*args, "--set", "pretrain.iters=many"), "pretrain.iters must be int, got 'many'")
+    assert_clean_failure(run_cli(*args, "--set", "pretrain.iters=0"), "pretrain.iters = 0: must be >= 1")
+    assert_clean_failure(run_cli(*args, "--set", "pretrain.iters"), "give KEY=VALUE")
+    assert_clean_failure(run_cli(*args, "--set", "pretrain.dvgo.hidden=32"), "pretrain.dvgo.hidden: 16, now 32")
+    # a named option wins over --set for the same key
+    assert "already trained" in run_cli(*args, "--set", "pretrain.iters=31", "--iters", "30", check=True).stderr
+
+
 @pytest.mark.parametrize("args, needle", [
     (["finetune", "-w", "ws", "--topk=x"], "'--topk'"),
     (["eval", "--wokspace", "ws"], "--wokspace"),

@@ -23,7 +23,7 @@ from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, RoutingStats, alph
 from boostnerf_cli.moe.router import aux_loss, penalty_weights, top_k
 from boostnerf_cli.recipe import MoERecipe, load_recipe
 from boostnerf_cli.render.renderer import RenderSettings, render_rays, sample_rays
-from boostnerf_cli.stages.build_moe import gate_source
+from boostnerf_cli.stages.build_moe import Member, gate_source
 from boostnerf_cli.tasks import batch_routing, visible_samples
 from boostnerf_cli.workspace import load_tensors, save_tensors
 
@@ -284,14 +284,15 @@ def test_gate_init_resamples_another_lattice_trilinearly():
 
 def test_gate_init_names_its_requirements():
     rec = MoERecipe(gate_init="expert")
-    tensorf = [(10, "tensorf-8", SimpleNamespace(family="tensorf"), 0.1)]
+    tensorf = [Member("tensorf-8", SimpleNamespace(family="tensorf"), 10, 0.1)]
     with pytest.raises(BoostNerfError, match="needs a dvgo expert"):
         gate_source(rec, "tensorf", tensorf)
-    dvgo = [(10, "dvgo-8", SimpleNamespace(family="dvgo"), 0.1), (20, "dvgo-9", SimpleNamespace(family="dvgo"), 0.1)]
-    assert gate_source(rec, "dense", dvgo)[1] == "dvgo-8"  # the smallest, as the official code's
-    assert gate_source(MoERecipe(gate_init="expert", gate_from="dvgo-9"), "dense", dvgo)[1] == "dvgo-9"
-    outside = (5, "dvgo-6", SimpleNamespace(family="dvgo"), 0.1)
-    assert gate_source(MoERecipe(gate_init="expert", gate_from="dvgo-6"), "dense", dvgo, outside)[1] == "dvgo-6"
+    dvgo = [Member("dvgo-8", SimpleNamespace(family="dvgo"), 10, 0.1),
+            Member("dvgo-9", SimpleNamespace(family="dvgo"), 20, 0.1)]
+    assert gate_source(rec, "dense", dvgo).name == "dvgo-8"  # the smallest, as the official code's
+    assert gate_source(MoERecipe(gate_init="expert", gate_from="dvgo-9"), "dense", dvgo).name == "dvgo-9"
+    outside = Member("dvgo-6", SimpleNamespace(family="dvgo"), 5, 0.1)
+    assert gate_source(MoERecipe(gate_init="expert", gate_from="dvgo-6"), "dense", dvgo, outside).name == "dvgo-6"
     with pytest.raises(BoostNerfError, match="moe.gate_from = 'dvgo-6' needs moe.gate_init = expert"):
         gate_source(MoERecipe(gate_from="dvgo-6"), "dense", dvgo, outside)
     with pytest.raises(BoostNerfError, match="dense feature grid"):

@@ -144,13 +144,13 @@ def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every
     bbox = site.scene.bbox.to(site.device)
     box, occ, model, cover = _coarse_round(site, rec, bbox, "geometry", seed, checkpoint_every)
     if cover is not None and cover["edge_rays"] > EDGE_WARN * cover["foreground_rays"]:  # over the scene's own box
-        log(f"geometry: warning: {cover['edge_rays']} of {cover['foreground_rays']} foreground training rays "
+        warn(f"geometry: {cover['edge_rays']} of {cover['foreground_rays']} foreground training rays "
             f"({100 * cover['edge_rays'] / cover['foreground_rays']:.1f}%) find their surface on the faces of the "
             f"scene box {box_text(bbox)}: the scene reaches past it, and what lies "
             "beyond is drawn on its faces; if that is content, give recipe key data.bbox a box that holds it "
             "(docs/datasets.md, \"The scene box\")")
     if cover is not None and cover["missed_after"] > EDGE_WARN * cover["foreground_rays"]:  # a refined box: those too
-        log(f"geometry: warning: {cover['missed_after']} of {cover['foreground_rays']} foreground training rays "
+        warn(f"geometry: {cover['missed_after']} of {cover['foreground_rays']} foreground training rays "
             f"({100 * cover['missed_after'] / cover['foreground_rays']:.1f}%) miss the scene box {box_text(bbox)} "
             "altogether: what they show lies outside it and cannot be learned; if that is content, give recipe key "
             "data.bbox a box that holds it (docs/datasets.md, \"The scene box\")")
@@ -218,7 +218,7 @@ def _coarse_round(site: Site, rec: GeometryRecipe, bbox: Tensor, name: str, seed
     else:
         box = occ.occupied_bbox(margin_cells=1)
     if not occ.occupied.any():
-        log(f"{name}: warning: the coarse stage found no occupied space (too few geometry.iters?); "
+        warn(f"{name}: the coarse stage found no occupied space (too few geometry.iters?); "
             "experts will train on the whole camera box without skipping")
         occ, box, cover = OccupancyGrid(torch.ones_like(occ.occupied), bbox), bbox.clone(), None
     return box, occ, model, cover
@@ -426,7 +426,7 @@ def _describe(scene: Scene) -> None:
     if "detected" in scene.extra:
         log(f"format: {scene.extra['detected']}")
     for warning in scene.extra.get("warnings", []):
-        log(f"warning: {warning}")
+        warn(warning)
     for note in scene.extra.get("notes", []):
         log(f"note: {note}")
     log(f"scene {scene.name}: {len(scene.splits['train'])} train views "
