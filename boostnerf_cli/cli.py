@@ -187,7 +187,8 @@ FormatOpt = Annotated[Optional[str], typer.Option(
     "--format", help="Dataset format: auto, blender, nsvf, tanks, llff or nerfstudio.")]
 SeedOpt = Annotated[Optional[int], typer.Option("--seed")]
 SkipOpt = Annotated[Optional[bool], typer.Option(
-    "--skip/--no-skip", show_default=False, help="--no-skip: train on the whole box, no occupancy mask (pretrain.skip).")]
+    "--skip/--no-skip", show_default=False,
+    help="--no-skip: train on the whole box, no occupancy mask (pretrain.skip).")]
 GateResOpt = Annotated[Optional[int], typer.Option(
     "--gate-res", min=2, help="Gate grid resolution (gate_res^3 voxels; 128 in the paper).")]
 GateTypeOpt = Annotated[Optional[str], typer.Option("--gate-type", help="grid (paper), linear or switch.")]

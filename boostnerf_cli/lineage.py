@@ -387,6 +387,14 @@ class SceneSpec:
         return SceneSpec(recorded_path(data, root), rec.image_size, rec.holdout_every, rec.format,
                          None if rec.bbox is None else list(rec.bbox))
 
+    @staticmethod
+    def recorded(record: dict) -> "SceneSpec":
+        """The spec a manifest's `data` records; a key it lacks (a manifest written before the key was) takes its
+        recipe default (`DataRecipe`)."""
+        names = {f.name for f in dataclasses.fields(SceneSpec)}
+        defaults = {k: v for k, v in dataclasses.asdict(DataRecipe()).items() if k in names}
+        return SceneSpec(**{**defaults, **{k: v for k, v in record.items() if k in names}})
+
     def record(self) -> dict:
         return dataclasses.asdict(self)
 

@@ -38,7 +38,8 @@ from boostnerf_cli.limits import (
     rule_of,
 )
 from boostnerf_cli.moe.gate import GATE_GRIDS, TRAINABLE_GATES
-from boostnerf_cli.moe.mixture import Routing
+from boostnerf_cli.moe.mixture import DENSITY_THRESHOLD, Routing
+from boostnerf_cli.render.renderer import COLOR_THRESHOLD
 from boostnerf_cli.scenes import FORMATS
 
 # Seeds feed numpy's generator (the procedural scene: no negative seeds) and torch's (64 bits, seed + res).
@@ -82,7 +83,7 @@ class TrainRecipe:
     lr_decay: float = limit(0.1, Range(0, 1, lo_open=True))  # learning rates fall to this fraction at the last step
     # sampling step in voxels of the final grid (pretrain only: finetuning samples at the experts' step, moe.step_from)
     step_ratio: float = limit(0.5, STEP_RATIO)
-    color_threshold: float = limit(1e-4, THRESHOLD)  # samples with a smaller weight skip the colour MLP
+    color_threshold: float = limit(COLOR_THRESHOLD, THRESHOLD)  # samples with a smaller weight skip the colour MLP
     # weight of the per-sample colour loss (each sample's colour
     # against the pixel, by its rendering weight; DVGO's rgbper)
     weight_rgbper: float = limit(0.01, LOSS_WEIGHT)
@@ -174,7 +175,7 @@ class MoERecipe(Routing):
     # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
     vd_res: int | None = limit(None, GRID_RES)
     # T: samples whose V_D opacity over one step is below it are filtered
-    density_threshold: float = limit(1e-3, THRESHOLD)
+    density_threshold: float = limit(DENSITY_THRESHOLD, THRESHOLD)
     # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
     step_from: str = limit("largest", OneOf(("smallest", "largest")))
     # lambda: weight of the resolution-weighted auxiliary loss (L_tot = L_nerf + lambda L_rw-aux; the paper uses 1e-3)

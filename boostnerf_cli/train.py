@@ -26,6 +26,7 @@ from boostnerf_cli.adam import Adam
 from boostnerf_cli.device import from_host
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.lineage import MAKE, Found, decide
+from boostnerf_cli.recipe import TrainRecipe
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
 from boostnerf_cli.startup import CLOCK
@@ -78,16 +79,25 @@ class RayData:
         return self.origins.shape[0]
 
 
+_TRAIN = TrainRecipe()  # the training section's defaults, Schedule's too
+
+
 @dataclass
 class Schedule:
-    """Optimiser settings shared by all stages."""
+    """How long the loop trains, with how many rays a step, how its learning rates fall and when it logs and
+    checkpoints: `Schedule.of` takes them from a recipe's training section (the one place that does)."""
 
     iters: int
-    batch_rays: int = 4096
-    lr_decay: float = 0.1  # learning rates fall exponentially to this fraction at the last step
-    log_every: int = 100
-    checkpoint_every: int = 500
+    batch_rays: int = _TRAIN.batch_rays
+    lr_decay: float = _TRAIN.lr_decay  # learning rates fall exponentially to this fraction at the last step
+    log_every: int = _TRAIN.log_every
+    checkpoint_every: int = _TRAIN.checkpoint_every
     max_bad_steps: int = 20  # consecutive non-finite steps before the run stops
+
+    @staticmethod
+    def of(iters: int, tcfg: TrainRecipe) -> "Schedule":
+        """`iters` steps with the training settings `tcfg` (a recipe's `train` section)."""
+        return Schedule(iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
 
 
 class TrainTask(Protocol):

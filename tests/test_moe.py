@@ -102,7 +102,7 @@ def _per_sample_reference(mix, xyz, dirs):
             g = {i: p[i] for i in chosen}
         out_s.append(sum(g[i] * sig[i][s] for i in chosen))
         out_c.append([sum(g[i] * col[i][s][c] for i in chosen) for c in range(3)])
-        keep.append(1.0 - math.exp(-vd[s] * mix.cfg.step) > mix.cfg.threshold)
+        keep.append(1.0 - math.exp(-vd[s] * mix.cfg.step) > mix.cfg.density_threshold)
     return torch.tensor(out_s, dtype=torch.float64), torch.tensor(out_c, dtype=torch.float64), torch.tensor(keep)
 
 

@@ -379,7 +379,7 @@ def test_vd_source_largest_reads_the_largest_experts_density_as_it_trains():
     with torch.no_grad():
         largest.density_table.add_(-4.0)  # as if the largest expert had trained its density down
     sigma = largest.density(xyz).detach()
-    expected = torch.tensor([1.0 - math.exp(-float(v) * STEP) > mix.cfg.threshold for v in sigma])
+    expected = torch.tensor([1.0 - math.exp(-float(v) * STEP) > mix.cfg.density_threshold for v in sigma])
     now = mix.skip(xyz)
     assert torch.equal(now, expected) and torch.equal(mix.vd_density(xyz), sigma)
     assert not torch.equal(now, frozen) and now.sum() < frozen.sum()
@@ -399,7 +399,7 @@ def _visible_rows_reference(mix, origins, dirs, settings, threshold):
             if not valid[ray, j]:
                 continue
             alpha = 1.0 - math.exp(-float(mix.vd_density(xyz[ray, j][None])[0]) * step)
-            if alpha <= mix.cfg.threshold:
+            if alpha <= mix.cfg.density_threshold:
                 continue
             if tr * alpha > threshold:
                 rows.append(ray * s + j)

@@ -94,14 +94,26 @@ def routing_of(source: Routing) -> dict:
     return {f.name: getattr(source, f.name) for f in dataclasses.fields(Routing)}
 
 
+# T: V_D's opacity over one render step at or below which a sample is filtered (recipe key moe.density_threshold)
+DENSITY_THRESHOLD = 1e-3
+
+
 @dataclass
 class MixtureConfig(Routing):
     """A mixture's config: its routing, and what build-moe fixed for it."""
 
-    threshold: float = 1e-3  # T: alpha of V_D over one render step below which a sample is filtered
+    density_threshold: float = DENSITY_THRESHOLD  # T, as build-moe read it from moe.density_threshold
     vd_res: int = 64  # density volume: vd_res^3 voxels
     step: float = 0.01  # render step (world units)
     expert_names: list[str] = field(default_factory=list)
+
+    @staticmethod
+    def saved(config: dict) -> "MixtureConfig":
+        """The config a mixture file records (its `threshold`, in files written before it was `density_threshold`)."""
+        config = dict(config)
+        if "threshold" in config:
+            config["density_threshold"] = config.pop("threshold")
+        return MixtureConfig(**config)
 
 
 def check_config(cfg: MixtureConfig, m: int) -> None:
@@ -325,7 +337,7 @@ class MixtureSkip:
             keep = packer.keep_where(mix.occupancy, flat, keep)
         inside = packer.pack("vd", keep)
         sigma = mix.vd_density(flat[inside.rows])
-        opaque = inside.keep(-torch.expm1(-sigma * mix.cfg.step) > mix.cfg.threshold)
+        opaque = inside.keep(-torch.expm1(-sigma * mix.cfg.step) > mix.cfg.density_threshold)
         keep = inside.scatter(opaque, fill=False).reshape(valid.shape)
         if mix.cfg.vd_filter != "visible" or threshold <= 0:
             return keep

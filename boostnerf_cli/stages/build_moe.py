@@ -18,7 +18,7 @@ from boostnerf_cli.models import load_expert, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, routing_of
-from boostnerf_cli.recipe import MoERecipe, check_section
+from boostnerf_cli.recipe import MoERecipe
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.workspace import Workspace, read_meta, write_json
 
@@ -38,7 +38,6 @@ class Member:
 
 def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str) -> dict:
     """Build moe/init from the experts `names` (default: every finished one) with the recipe's moe section."""
-    check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
     experts, outside, inputs = _experts(ws, names, rec, device)
     topk = rec.topk
     if topk > len(experts):  # the untrained mixture's k is used by nothing but bench's untrained rows: fit it, say so
@@ -55,7 +54,7 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str) -
     if source is not None:
         gate.init_grid_from(source.model.feature_table, source.model.shape, source.model.bbox)
     gate = gate.to(device)
-    cfg = MixtureConfig(**{**routing_of(rec), "topk": topk}, threshold=rec.density_threshold, vd_res=vd.res,
+    cfg = MixtureConfig(**{**routing_of(rec), "topk": topk}, density_threshold=rec.density_threshold, vd_res=vd.res,
                         step=step, expert_names=[e.name for e in experts])
     mix = Mixture([e.model for e in experts], gate, vd, occ, cfg)
     spec = MixtureInitSpec(inputs, {"mixture": asdict(cfg), "gate": gate.config_dict(), "seed": rec.seed})
@@ -163,7 +162,8 @@ def gate_source(rec: MoERecipe, gate_grid: str, experts: list[Member],
     The smallest expert, or the one `moe.gate_from` names (`outside`: one left out of the mixture). The official
     code (EIDOSLAB/boost-your-nerf, instant-ngp/moe_main.py) copies the gate's k0 feature grid from the
     lowest-resolution, 128^3, model and then leaves that model out of the mixture; its density grid is copied too
-    but never read by the gate's forward, so only the feature grid is copied here. `experts`: smallest first. Needs a grid or linear gate with a dense grid and a dvgo source expert."""
+    but never read by the gate's forward, so only the feature grid is copied here. `experts`: smallest first.
+    Needs a grid or linear gate with a dense grid and a dvgo source expert."""
     if rec.gate_init == "random":
         if rec.gate_from:
             raise BoostNerfError(f"moe.gate_from = {rec.gate_from!r} needs moe.gate_init = expert (the gate is random "

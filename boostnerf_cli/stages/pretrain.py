@@ -22,7 +22,7 @@ from torch import Tensor, nn
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
-from boostnerf_cli.fields.registry import build_expert, count_params
+from boostnerf_cli.fields.registry import build_expert
 from boostnerf_cli.lineage import (
     REFUSE,
     SKIP,
@@ -44,7 +44,6 @@ from boostnerf_cli.recipe import (
     PretrainRecipe,
     Recipe,
     TrainRecipe,
-    check_recipe,
     nearest_listed,
     recipe_dict,
     unused_family_note,
@@ -59,10 +58,10 @@ from boostnerf_cli.render.coverage import (
 )
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.packing import packer_for
-from boostnerf_cli.render.renderer import RenderSettings, render_view
+from boostnerf_cli.render.renderer import COLOR_THRESHOLD, RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.scenes.bounds import box_text
-from boostnerf_cli.stages.common import slow_notice, workspace_scene_path
+from boostnerf_cli.stages.common import slow_notice, train_and_report, workspace_scene_path
 from boostnerf_cli.startup import CLOCK
 from boostnerf_cli.tasks import FieldTask, train_rays
 from boostnerf_cli.train import Schedule, TrainCheckpoint, train
@@ -83,7 +82,7 @@ def _test_psnr(model: nn.Module, split: Split, settings: RenderSettings, skip, d
     """Mean held-out PSNR, rendered as `eval` renders the expert: colour where a sample's weight exceeds the
     renderer's default threshold, not train.color_threshold (a threshold near 1 skips the colour of samples that
     `eval` shades, and the report and `eval` would score the expert differently)."""
-    settings = dataclasses.replace(settings, color_threshold=RenderSettings.color_threshold)
+    settings = dataclasses.replace(settings, color_threshold=COLOR_THRESHOLD)
     psnrs = []
     packer = packer_for(device)  # one for the views: each reuses the budgets the ones before it sized
     for i in range(min(len(split), max_views)):
@@ -186,13 +185,13 @@ def _coarse_round(site: Site, rec: GeometryRecipe, bbox: Tensor, name: str, seed
     model = DVGOExpert(DVGOConfig(res=rec.res, hidden=0, alpha_init=rec.alpha_init), bbox).to(device)
     step = 0.5 * model.voxel_size
     settings = scene.render_settings(step, bbox)
-    tcfg = TrainRecipe(lr_grid=rec.lr, weight_rgbper=0.0, weight_entropy=rec.weight_entropy, occupancy_every=0)
+    tcfg = TrainRecipe(batch_rays=rec.batch_rays, lr_grid=rec.lr, weight_rgbper=0.0, weight_entropy=rec.weight_entropy,
+                       occupancy_every=0, log_every=max(1, rec.iters // 5), checkpoint_every=checkpoint_every)
     task = FieldTask(model, settings, tcfg, skip=None, base_mask=None)
     rays = train_rays(scene, bbox, device, tcfg)
     ckpt = site.ws.checkpoint_path(name)  # removed once the geometry is saved
     spec = GeometrySpec.of(name, site.tag, rec, seed, bbox.flatten().tolist())
-    train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5),
-                               checkpoint_every=checkpoint_every), seed, name, TrainCheckpoint(ckpt, spec.signature()))
+    train(task, rays, Schedule.of(rec.iters, tcfg), seed, name, TrainCheckpoint(ckpt, spec.signature()))
     model.eval()
     occ = OccupancyGrid.from_density(model.density, bbox, model.shape, step, rec.alpha_threshold)
     cover = None
@@ -275,28 +274,21 @@ def pretrain_expert(site: Site, rec: PretrainRecipe, res: int, geometry: Geometr
     settings = scene.render_settings(tcfg.step_ratio * model.unit, box, tcfg.color_threshold)
     task = FieldTask(model, settings, tcfg, skip=geom, base_mask=geom, growth_steps=growth, final_voxels=final_voxels)
     rays = train_rays(scene, box, device, tcfg)
-    sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
     signature = ExpertSpec.of(rec, res, expert_options(rec, res), site.tag,
                               read_meta(ws.geometry_path).get("digest")).signature()
-    result = train(task, rays, sched, rec.seed + res, name, TrainCheckpoint(ckpt, signature, restart_other=force))
-    model.eval()
+    _, trained = train_and_report(task, rays, Schedule.of(rec.iters, tcfg), rec.seed + res, name,
+                                  TrainCheckpoint(ckpt, signature, restart_other=force), model)
     task.refresh_occupancy()
     report = {
         "name": name,
         "model": rec.model,
         "res": res,
         "seed": rec.seed,  # pretrain.seed: this expert's initialisation and batches draw from seed + res
-        "iterations": result.iterations,
-        "seconds": round(result.seconds, 2),
-        "startup_seconds": result.startup_seconds,
-        "skipped_steps": result.skipped_steps,
-        "params": count_params(model),
+        **trained,
         "grid_shape": list(model.shape),
         "occupied_fraction": task.skip.fraction() if task.skip is not None else 1.0,
         "skip": rec.skip,
-        "train_psnr": result.history[-1]["psnr"] if result.history else None,
-        "history": result.history,
     }
     test = scene.held_out()
     if test is not None:
@@ -375,7 +367,6 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str,
     -> (where pretraining works, the geometry, resolutions of the experts left to train).
     Under torchrun rank 0 runs this first and alone writes; the other ranks then find everything made.
     """
-    check_recipe(rec, "setting")  # the recipe was checked when read; flags may have changed it since
     m = ws.manifest()  # read once: nothing below writes it before update_manifest
     scene, spec, tag, digest = _scene(ws, m, data, rec, force)
     site = Site(ws, scene, tag, device)
