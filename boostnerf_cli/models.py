@@ -107,7 +107,7 @@ def invalid_mixture(path: Path, e: BaseException) -> BoostNerfError:
 def mixture_routing_meta(path: Path, meta: dict) -> tuple[MixtureConfig, str]:
     """(the mixture's config, its gate's kind) from a mixture file's metadata `meta` alone, nothing loaded."""
     try:
-        return MixtureConfig.saved(meta["mixture"]), meta["gate"]["config"]["kind"]
+        return MixtureConfig.saved(meta["mixture"]), GateConfig.saved(meta["gate"]["config"]).gate_type
     except MALFORMED as e:
         raise invalid_mixture(path, e) from None
 
@@ -120,7 +120,7 @@ def build_mixture(path: Path, tensors: dict, meta: dict, device) -> tuple[Mixtur
             raise BoostNerfError(f"{path}: expert {i} has unknown family {em['family']!r}")
         experts.append(FAMILIES[em["family"]].from_config(em, tensors[f"experts.{i}.bbox"]))
     gm = meta["gate"]
-    gate = Gate(GateConfig(**gm["config"]), gm["experts"], tensors["gate.bbox"], tuple(gm["shape"]))
+    gate = Gate(GateConfig.saved(gm["config"]), gm["experts"], tensors["gate.bbox"], tuple(gm["shape"]))
     vd = DensityVolume.from_config(meta["vd"], tensors["vd.bbox"])
     occ = None
     if "occupancy" in tensors:

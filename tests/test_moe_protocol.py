@@ -48,7 +48,7 @@ def _experts(m, seed=0, scale=2.0):
 
 def _mixture(m=3, k=2, mix="density", seed=0, scale=2.0, renormalize=True):
     experts = _experts(m, seed, scale)
-    gate = Gate(GateConfig(kind="grid", res=4, channels=4, hidden=8, layers=2), m, BOX)
+    gate = Gate(GateConfig(gate_type="grid", gate_res=4, gate_channels=4, gate_hidden=8, gate_layers=2), m, BOX)
     with torch.no_grad():
         for p in gate.parameters():
             p.normal_(0, 0.5)
@@ -255,7 +255,8 @@ def test_gate_init_copies_the_experts_feature_grid_on_the_same_lattice():
     expert = DVGOExpert(DVGOConfig(res=10, hidden=8, layers=1), box)
     with torch.no_grad():
         expert.feature_table.normal_()
-    gate = Gate(GateConfig(res=10, channels=expert.feature_table.shape[1], hidden=8, layers=1, init="expert"), 3, box)
+    gate = Gate(GateConfig(gate_res=10, gate_channels=expert.feature_table.shape[1], gate_hidden=8, gate_layers=1,
+                           gate_init="expert"), 3, box)
     assert gate.shape == expert.shape
     gate.init_grid_from(expert.feature_table, expert.shape, expert.bbox)
     assert torch.equal(gate.table, expert.feature_table)
@@ -268,7 +269,8 @@ def test_gate_init_resamples_another_lattice_trilinearly():
     expert = DVGOExpert(DVGOConfig(res=9, hidden=8, layers=1), box).double()
     with torch.no_grad():
         expert.feature_table.normal_()
-    gate = Gate(GateConfig(res=6, channels=12, hidden=8, layers=1, init="expert"), 2, box).double()
+    gate = Gate(GateConfig(gate_res=6, gate_channels=12, gate_hidden=8, gate_layers=1, gate_init="expert"), 2,
+                box).double()
     assert gate.shape != expert.shape
     gate.init_grid_from(expert.feature_table, expert.shape, expert.bbox)
     axes = [torch.linspace(float(box[0, a]), float(box[1, a]), gate.shape[a], dtype=torch.float64) for a in range(3)]
@@ -313,12 +315,17 @@ def test_the_options_are_saved_and_old_files_load_with_the_paper_defaults(tmp_pa
     tensors, meta = load_tensors(tmp_path / "m.safetensors")
     for key in ("mix", "aux_norm", "aux_samples"):
         del meta["mixture"][key]
-    del meta["gate"]["config"]["init"]
+    del meta["gate"]["config"]["gate_init"]
+    former = {"gate_type": "kind", "gate_res": "res", "gate_channels": "channels", "gate_hidden": "hidden",
+              "gate_layers": "layers", "gate_grid": "grid"}  # a file written before the gate took the recipe's names
+    meta["gate"]["config"] = {former.get(k, k): v for k, v in meta["gate"]["config"].items()}
+    meta["mixture"]["threshold"] = meta["mixture"].pop("density_threshold")
     meta.pop("digest", None), meta.pop("format_version", None)
     save_tensors(tmp_path / "old.safetensors", tensors, meta)
     old, _ = load_mixture(tmp_path / "old.safetensors")
-    assert (old.cfg.mix, old.cfg.aux_norm, old.cfg.aux_samples, old.gate.cfg.init) == (
+    assert (old.cfg.mix, old.cfg.aux_norm, old.cfg.aux_samples, old.gate.cfg.gate_init) == (
         "density", "batch", "all", "random")
+    assert (old.cfg.density_threshold, old.gate.cfg) == (loaded.cfg.density_threshold, loaded.gate.cfg)
     with torch.no_grad():
         assert not torch.allclose(old.density(xyz), loaded.density(xyz))
 
@@ -473,7 +480,7 @@ def test_build_finetune_and_eval_with_every_official_option(trained_ws, tmp_path
     assert init["gate_init"] == "dvgo-12" and init["experts"] == ["dvgo-12", "dvgo-16"]
     mix, meta = load_mixture(ws / "moe" / "init.safetensors")
     expert, _, _ = load_expert(ws / "experts" / "dvgo-12.safetensors")
-    assert mix.gate.shape == expert.shape and meta["gate"]["config"]["channels"] == expert.feature_table.shape[1]
+    assert mix.gate.shape == expert.shape and meta["gate"]["config"]["gate_channels"] == expert.feature_table.shape[1]
     assert torch.equal(mix.gate.table, expert.feature_table)  # an exact copy of the smallest expert's features
 
     run_cli("finetune", "--workspace", str(ws), "--recipe", str(recipe), "--topk", "2", "--device", "cpu", check=True)

@@ -1,10 +1,11 @@
 """kill -9, rerun the same command: the result equals an uninterrupted run.
 
 The real CLI runs in a process of its own (conftest.run_cli) and SIGKILLs itself at known points
-(boostnerf_cli/faults.py, `BOOSTNERF_TEST_KILL`): right after its N-th training checkpoint, or inside the atomic write of a named
-artifact (temporary file written, not yet renamed). Rerunning the same command resumes from the last checkpoint; the
-final artifacts must match an uninterrupted run with the same seed within RESUME_ATOL (docs/reliability.md),
-and the killed runs must leave no partial file, checkpoint or lock behind once the command has completed.
+(boostnerf_cli/faults.py, `BOOSTNERF_TEST_KILL`): right after its N-th training checkpoint, or inside the atomic write
+of a named artifact (temporary file written, not yet renamed). Rerunning the same command resumes from the last
+checkpoint; the final artifacts must match an uninterrupted run with the same seed within RESUME_ATOL
+(docs/reliability.md), and the killed runs must leave no partial file, checkpoint or lock behind once the command has
+completed.
 """
 
 from __future__ import annotations

@@ -235,7 +235,7 @@ class Mixture(nn.Module):
         the choice is the top-k of the logits; the probabilities are then returned as None.
         """
         flops.add("routing", 4 * self.m * xyz.shape[0])
-        if self.gate.cfg.kind == "uniform":  # the ensemble: every expert, equal weights
+        if self.gate.cfg.gate_type == "uniform":  # the ensemble: every expert, equal weights
             probs = self.gate.probs(xyz)
             idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
             return probs, probs, idx
@@ -300,7 +300,7 @@ class Mixture(nn.Module):
 
     def make_ensemble(self) -> None:
         """Every expert with equal weights (the paper's Ens): a uniform gate and k = M."""
-        self.gate = Gate(GateConfig(kind="uniform"), self.m, self.bbox).to(self.bbox.device)
+        self.gate = Gate(GateConfig(gate_type="uniform"), self.m, self.bbox).to(self.bbox.device)
         self.configure(topk=self.m)
 
     def param_groups(self, lr_grid: float, lr_mlp: float, lr_gate: float, lr_gate_mlp: float) -> list[dict]:

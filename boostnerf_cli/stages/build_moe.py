@@ -6,7 +6,7 @@ Writes `moe/init.safetensors` (+ `moe/init.json`), the starting point of every `
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
 import torch
 
@@ -49,8 +49,8 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str) -
     source = gate_source(rec, gate_grid, experts, outside)
     channels = rec.gate_channels if source is None else source.model.feature_table.shape[1]
     torch.manual_seed(rec.seed)  # the gate's random initialisation: the same for the same recipe
-    gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=channels, hidden=rec.gate_hidden,
-                           layers=rec.gate_layers, grid=gate_grid, init=rec.gate_init), len(experts), vd.bbox)
+    settings = {f.name: getattr(rec, f.name) for f in fields(GateConfig) if hasattr(rec, f.name)}  # moe.gate_*
+    gate = Gate(GateConfig(**{**settings, "gate_grid": gate_grid, "gate_channels": channels}), len(experts), vd.bbox)
     if source is not None:
         gate.init_grid_from(source.model.feature_table, source.model.shape, source.model.bbox)
     gate = gate.to(device)

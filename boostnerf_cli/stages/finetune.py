@@ -131,7 +131,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     source = _source_digest(ws, name, init_meta)
     if name == "ens":
         mix.make_ensemble()
-    cfg, kind = routing(name, topk, rec, mix.cfg, mix.gate.cfg.kind)
+    cfg, kind = routing(name, topk, rec, mix.cfg, mix.gate.cfg.gate_type)
     mix.configure(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)})
     settings = scene.render_settings(mix.cfg.step, mix.bbox, rec.train.color_threshold)
     task = MixtureTask(mix, settings, rec.train, rec)
@@ -146,7 +146,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         **routing_of(mix.cfg),
         "lambda": rec.lam,
         "seed": rec.seed,
-        "gate": mix.gate.cfg.kind,
+        "gate": mix.gate.cfg.gate_type,
         "experts": mix.cfg.expert_names,
         **trained,
         "load": [final.get(f"load{i}", 0.0) for i in range(mix.m)],
