@@ -102,8 +102,6 @@ def _experts(ws: Workspace, names: list[str] | None, rec: MoERecipe,
     if extra and extra[0] not in available:
         raise BoostNerfError(f"moe.gate_from = {rec.gate_from!r}: no pretrained expert of that name in {ws.root} "
                              f"(experts: {', '.join(available)})")
-    for n in names + extra:  # an expert trained on a geometry since retrained: made again first
-        decide(Found(n, None, stale(ws, n)), None).check()
     loaded, scenes, inputs = {}, set(), {}
     for n in names + extra:
         inputs[n] = read_meta(ws.expert_path(n)).get("digest")
@@ -115,6 +113,8 @@ def _experts(ws: Workspace, names: list[str] | None, rec: MoERecipe,
             "the experts were trained on different scenes or image sizes: retrain them in one workspace with "
             "`boostnerf pretrain --force`, or pass --experts with experts of one scene"
         )
+    for n in names + extra:  # an expert trained on a geometry since retrained: made again first
+        decide(Found(n, None, stale(ws, n)), None).check()
     experts = sorted((loaded[n] for n in names), key=lambda e: (e.params, e.name))
     return experts, loaded[extra[0]] if extra else None, inputs
 
