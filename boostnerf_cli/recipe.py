@@ -227,6 +227,7 @@ def parse_setting(text: str) -> tuple[str, Any]:
     for name in reversed(key.split(".")):
         nested = {name: nested}
     built: Any = _build(Recipe, nested, "")  # unknown keys and wrong types refused as in a recipe file
+    _check_unused(built)  # and a key finetuning does not use (moe.train.step_ratio, growth)
     for name in key.split("."):
         built = built[name] if isinstance(built, dict) else getattr(built, name)
     return key, built

@@ -573,6 +573,7 @@ def test_set_sets_any_recipe_key_checked_as_a_recipe_file_is(trained_ws, tiny_sc
     assert_clean_failure(run_cli(*args, "--set", "pretrain.iters=many"), "pretrain.iters must be int, got 'many'")
     assert_clean_failure(run_cli(*args, "--set", "pretrain.iters=0"), "pretrain.iters = 0: must be >= 1")
     assert_clean_failure(run_cli(*args, "--set", "pretrain.iters"), "give KEY=VALUE")
+    assert_clean_failure(run_cli(*args, "--set", "moe.train.growth=[0.5]"), "moe.train.growth", "finetuning does not")
     assert_clean_failure(run_cli(*args, "--set", "pretrain.dvgo.hidden=32"), "pretrain.dvgo.hidden: 16, now 32")
     # a named option wins over --set for the same key
     assert "already trained" in run_cli(*args, "--set", "pretrain.iters=31", "--iters", "30", check=True).stderr
