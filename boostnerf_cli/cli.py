@@ -345,15 +345,15 @@ def finetune(
     from boostnerf_cli.stages.common import resolve_device
 
     name = stage.model_name(topk, ensemble, baseline)
-    options = {"moe.lam": lam, "moe.penalty": penalty, "moe.renormalize": renormalize}  # those a model may not use
-    rec = _recipe(workspace, recipe, sets, {"moe.iters": iters, **options, "moe.seed": seed})
+    rec = _recipe(workspace, recipe, sets, {"moe.iters": iters, "moe.lam": lam, "moe.penalty": penalty,
+                                            "moe.renormalize": renormalize, "moe.seed": seed})
+    moot = {"moe.lam": "lam", "moe.penalty": "penalty", "moe.renormalize": "renormalize"}  # keys some models ignore
     ws, lock = _writer(workspace, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock, dist.others_quiet():
-        given = {key for key, value in options.items() if value is not None}
+        given = {key for key, param in moot.items() if ctx.params[param] is not None}
         unused, why = stage.unused_settings(ws, name, topk, rec.moe, given)
         if unused:  # said also when the model is finished and skipped
-            param = {"moe.lam": "lam", "moe.penalty": "penalty", "moe.renormalize": "renormalize"}
-            log(f"note: {', '.join(_flag(ctx, param[key]) for key in unused)} cannot change "
+            log(f"note: {', '.join(_flag(ctx, moot[key]) for key in unused)} cannot change "
                 f"{'the baseline' if name == 'baseline' else name} ({why}): ignored")
         stage.run(ws, name, topk, rec.moe, dev, force)
 
