@@ -5,17 +5,16 @@ A `BoostNerfError` becomes one line on stderr and exit code 2, with no traceback
 
 from __future__ import annotations
 
-import functools
-import inspect
 import logging
 import sys
 from pathlib import Path
-from typing import Annotated, NamedTuple, Optional
+from typing import Annotated, Any, Optional
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
+from boostnerf_cli import faults
 from boostnerf_cli.errors import BoostNerfError, out_of_memory
 from boostnerf_cli.startup import CLOCK
 
@@ -40,10 +39,20 @@ def _version(value: bool) -> None:
 
 
 @app.callback()
-def _app(version: Annotated[bool, typer.Option("--version", is_eager=True, callback=_version,
-                                               help="Print boostnerf's version and exit.")] = False) -> None:
+def _app(
+    version: Annotated[bool, typer.Option("--version", is_eager=True, callback=_version,
+                                          help="Print boostnerf's version and exit.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help=(
+        "Any command: say only warnings and errors on stderr, no notes or progress (results still print); before "
+        "the command: boostnerf -q pretrain ..."))] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help=(
+        "Any command: say more on stderr, the recipe read and what the stage decides about each artifact it finds "
+        "(boostnerf -v finetune ...)."))] = False,
+) -> None:
     """Boost Your NeRF: train Fast-NeRF experts, mix them with a gate, render and measure."""
-    say_messages()
+    if quiet and verbose:
+        raise BoostNerfError("--quiet and --verbose ask for opposite things: give one")
+    say_messages(logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO)
 out = Console(highlight=False)
 
 
@@ -83,45 +92,29 @@ ViewsOpt = Annotated[Optional[int], typer.Option("--views", min=1, help="Only th
 
 
 class _Stderr(logging.Handler):
-    """The stages' messages (the `boostnerf_cli` log), one line each on stderr, as written: "[0.34, 0.66]" or a path
-    "ws[2]" is no Rich markup tag."""
+    """The stages' messages (the `boostnerf_cli` log), one line each on stderr, as written, a warning's starting
+    `warning: `: "[0.34, 0.66]" or a path "ws[2]" is no Rich markup tag."""
 
     def emit(self, record: logging.LogRecord) -> None:
-        err.print(record.getMessage(), markup=False)
+        text = record.getMessage()
+        err.print(f"warning: {text}" if record.levelno >= logging.WARNING else text, markup=False)
 
 
-def say_messages() -> None:
-    """Send the `boostnerf_cli` log, from INFO up, to stderr (once per process)."""
+def say_messages(level: int = logging.INFO) -> None:
+    """Send the `boostnerf_cli` log, from `level` up, to stderr (-q: warnings; -v: debug)."""
     logger = logging.getLogger("boostnerf_cli")
     if not any(isinstance(h, _Stderr) for h in logger.handlers):
         logger.addHandler(_Stderr())
-        logger.setLevel(logging.INFO)
+    logger.setLevel(level)
 
 
 log = logging.getLogger(__name__).info
 
 
-def _context():
-    try:
-        from typer._click.globals import get_current_context  # Typer vendors Click (0.29: a Click of its own)
-    except ImportError:  # an older Typer: Click itself
-        from click import get_current_context
-    return get_current_context()
-
-
-def _settings() -> dict:
-    """{recipe key: value} of the running command's options that set one (`RECIPE_OPTIONS`), those given."""
-    ctx = _context()
-    table = RECIPE_OPTIONS[ctx.info_name]
-    return {opt.key: ctx.params[name] for name, opt in table.items() if ctx.params.get(name) is not None}
-
-
-def _flag(key: str) -> str:
-    """The running command's option that set recipe key `key`, as given (`--no-renormalize` for False)."""
-    ctx = _context()
-    name = next(n for n, opt in RECIPE_OPTIONS[ctx.info_name].items() if opt.key == key)
-    option = next(p for p in ctx.command.params if p.name == name)
-    return option.secondary_opts[0] if option.secondary_opts and ctx.params[name] is False else option.opts[0]
+def _flag(ctx: typer.Context, param: str) -> str:
+    """The option of the running command's parameter `param` as given (`--no-renormalize` for False)."""
+    option = next(p for p in ctx.command.params if p.name == param)
+    return option.secondary_opts[0] if option.secondary_opts and ctx.params[param] is False else option.opts[0]
 
 
 def _one_process() -> None:
@@ -173,81 +166,43 @@ def _int_list(text: str, what: str) -> list[int]:
     return values  # each value's range: the recipe's check (pretrain.res), as for a YAML recipe
 
 
-class RecipeOption(NamedTuple):
-    """An option that sets a recipe key: the key, and the option's declaration (its type and `typer.Option`)."""
-
-    key: str
-    declaration: object
+def _res_list(text: Optional[str]) -> Optional[list[int]]:
+    return _int_list(text, "--res") if text else None
 
 
-def _sets(key: str, kind: type, *names: str, **option) -> RecipeOption:
-    """The option `names` (`typer.Option` with `option`) of type `kind` that sets recipe key `key`; not given: None."""
-    return RecipeOption(key, Annotated[Optional[kind], typer.Option(*names, **option)])
-
-
-# Every option that sets a recipe key, by command: {parameter: RecipeOption}. The stages read the recipe alone; the
-# option's spelling is its declaration's (`_flag`). `_recipe_options` adds them to their command.
-RECIPE_OPTIONS = {
-    "pretrain": {
-        "model": _sets("pretrain.model", str, "--model",
-                       help="Expert family: dvgo (dense grid), tensorf (VM) or ngp (hash grid)."),
-        "res": _sets("pretrain.res", str, "--res", callback=lambda text: _int_list(text, "--res") if text else text,
-                     help="Comma-separated: one expert each, res^3 voxels (ngp: res levels)."),
-        "iters": _sets("pretrain.iters", int, "--iters", min=1, help="Training steps per expert."),
-        "image_size": _sets("data.image_size", int, "--image-size", min=8,
-                            help="Longer image side in pixels after area downscaling."),
-        "holdout_every": _sets("data.holdout_every", int, "--holdout-every",
-                               help="No test split: hold out every N-th train view, N >= 2 (0: none)."),
-        "data_format": _sets("data.format", str, "--format",
-                             help="Dataset format: auto, blender, nsvf, tanks, llff or nerfstudio."),
-        "seed": _sets("pretrain.seed", int, "--seed"),
-        "skip": _sets("pretrain.skip", bool, "--skip/--no-skip", show_default=False,
-                      help="--no-skip: train on the whole box, no occupancy mask (pretrain.skip)."),
-    },
-    "build-moe": {
-        "gate_res": _sets("moe.gate_res", int, "--gate-res", min=2,
-                          help="Gate grid resolution (gate_res^3 voxels; 128 in the paper)."),
-        "gate_type": _sets("moe.gate_type", str, "--gate-type", help="grid (paper), linear or switch."),
-        "gate_grid": _sets("moe.gate_grid", str, "--gate-grid",
-                           help="Gate's feature grid: dense, tensorf, hash, or auto (the experts')."),
-        "threshold": _sets("moe.density_threshold", float, "--threshold", min=0.0,
-                           help="T: V_D filters samples whose opacity per step is below T."),
-    },
-    "finetune": {
-        "iters": _sets("moe.iters", int, "--iters", min=1),
-        "lam": _sets("moe.lam", float, "--lambda", min=0.0, help="Auxiliary-loss weight (1e-3 in the paper)."),
-        "penalty": _sets("moe.penalty", str, "--penalty",
-                         help="geometric (paper), linear, quadratic, none or '1, 1.5, 2.23'."),
-        "renormalize": _sets("moe.renormalize", bool, "--renormalize/--no-renormalize",
-                             help="Top-k weights sum to 1 (default); off: raw gate probabilities."),
-        "seed": _sets("moe.seed", int, "--seed"),
-    },
-}
-
-
-def _recipe_options(command: str):
-    """Declare `RECIPE_OPTIONS[command]` as options of the decorated command, after its --recipe: Typer reads the
-    signature made here, and the command reads their values with `_settings()`, so its own parameters are the
-    options that set no recipe key."""
-    table = RECIPE_OPTIONS[command]
-
-    def decorate(fn):
-        signature = inspect.signature(fn, eval_str=True)
-        own = list(signature.parameters.values())
-        at = [p.name for p in own].index("recipe") + 1
-        added = [inspect.Parameter(name, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=None,
-                                   annotation=opt.declaration) for name, opt in table.items()]
-        params = own[:at] + added + own[at:]
-
-        @functools.wraps(fn)
-        def command_with_recipe_options(**kwargs):
-            return fn(**{name: value for name, value in kwargs.items() if name not in table})
-
-        command_with_recipe_options.__signature__ = signature.replace(parameters=params)
-        command_with_recipe_options.__annotations__ = {p.name: p.annotation for p in params}
-        return command_with_recipe_options
-
-    return decorate
+# The options that set a recipe key, declared once and named in each command's signature next to the recipe key they
+# set (`_recipe(..., {"pretrain.iters": iters})`); --set sets any other key. Not given: None, the recipe's value.
+SetOpt = Annotated[Optional[list[str]], typer.Option(
+    "--set", metavar="KEY=VALUE", help="Set any recipe key (repeatable), checked as in a recipe file: "
+    "--set pretrain.geometry.iters=300 (docs/recipe-keys.md).")]
+ModelFamilyOpt = Annotated[Optional[str], typer.Option(
+    "--model", help="Expert family: dvgo (dense grid), tensorf (VM) or ngp (hash grid).")]
+ResOpt = Annotated[Optional[str], typer.Option(
+    "--res", callback=_res_list, help="Comma-separated: one expert each, res^3 voxels (ngp: res levels).")]
+ImageSizeOpt = Annotated[Optional[int], typer.Option(
+    "--image-size", min=8, help="Longer image side in pixels after area downscaling.")]
+HoldoutOpt = Annotated[Optional[int], typer.Option(
+    "--holdout-every", help="No test split: hold out every N-th train view, N >= 2 (0: none).")]
+FormatOpt = Annotated[Optional[str], typer.Option(
+    "--format", help="Dataset format: auto, blender, nsvf, tanks, llff or nerfstudio.")]
+SeedOpt = Annotated[Optional[int], typer.Option("--seed")]
+SkipOpt = Annotated[Optional[bool], typer.Option(
+    "--skip/--no-skip", show_default=False,
+    help="--no-skip: train on the whole box, no occupancy mask (pretrain.skip).")]
+GateResOpt = Annotated[Optional[int], typer.Option(
+    "--gate-res", min=2, help="Gate grid resolution (gate_res^3 voxels; 128 in the paper).")]
+GateTypeOpt = Annotated[Optional[str], typer.Option("--gate-type", help="grid (paper), linear or switch.")]
+GateGridOpt = Annotated[Optional[str], typer.Option(
+    "--gate-grid", help="Gate's feature grid: dense, tensorf, hash, or auto (the experts').")]
+ThresholdOpt = Annotated[Optional[float], typer.Option(
+    "--threshold", min=0.0, help="T: V_D filters samples whose opacity per step is below T.")]
+MoEItersOpt = Annotated[Optional[int], typer.Option("--iters", min=1)]
+LambdaOpt = Annotated[Optional[float], typer.Option(
+    "--lambda", min=0.0, help="Auxiliary-loss weight (1e-3 in the paper).")]
+PenaltyOpt = Annotated[Optional[str], typer.Option(
+    "--penalty", help="geometric (paper), linear, quadratic, none or '1, 1.5, 2.23'.")]
+RenormalizeOpt = Annotated[Optional[bool], typer.Option(
+    "--renormalize/--no-renormalize", help="Top-k weights sum to 1 (default); off: raw gate probabilities.")]
 
 
 @app.command("make-scene")
@@ -282,12 +237,20 @@ def make_scene_cmd(
 
 
 @app.command()
-@_recipe_options("pretrain")
 def pretrain(
     workspace: WorkspaceOpt,
     data: Annotated[Optional[Path], typer.Option(
         "--data", help="Scene folder (default: a procedural demo scene made in WS/scene).")] = None,
     recipe: RecipeOpt = None,
+    model: ModelFamilyOpt = None,
+    res: ResOpt = None,
+    iters: Annotated[Optional[int], typer.Option("--iters", min=1, help="Training steps per expert.")] = None,
+    image_size: ImageSizeOpt = None,
+    holdout_every: HoldoutOpt = None,
+    data_format: FormatOpt = None,
+    seed: SeedOpt = None,
+    skip: SkipOpt = None,
+    sets: SetOpt = None,
     device: DeviceOpt = "auto",
     force: Annotated[bool, typer.Option("--force", help="Retrain experts that are already finished.")] = False,
 ) -> None:
@@ -297,7 +260,9 @@ def pretrain(
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.workspace import number
 
-    rec = _recipe(workspace, recipe).override(_settings())  # a rerun (a moved scene, one more expert) keeps the recipe
+    rec = _recipe(workspace, recipe, sets, {  # a rerun (a moved scene, one more expert) keeps the workspace's recipe
+        "pretrain.model": model, "pretrain.res": res, "pretrain.iters": iters, "data.image_size": image_size,
+        "data.holdout_every": holdout_every, "data.format": data_format, "pretrain.seed": seed, "pretrain.skip": skip})
     ws, lock = _writer(workspace, must_exist=False, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock:
         reports = stage.run(ws, data, rec, dev, force)
@@ -310,31 +275,45 @@ def pretrain(
     show(table)
 
 
-def _recipe(workspace: Path, recipe: Optional[Path]):
-    """The recipe given, else the one recorded by pretrain in the workspace, else defaults (every stage's)."""
-    from boostnerf_cli.recipe import Recipe, load_recipe, recorded_recipe
+def _recipe(workspace: Path, recipe: Optional[Path], sets: Optional[list[str]], options: dict[str, Any]):
+    """The recipe given, else the one recorded by pretrain in the workspace, else defaults (every stage's), with the
+    `--set KEY=VALUE` settings, then the command's options `{recipe key: value}` (None: not given) applied, and
+    checked again."""
+    from boostnerf_cli.recipe import Recipe, load_recipe, parse_setting, recorded_recipe
     from boostnerf_cli.workspace import Workspace
 
     if recipe is not None:
-        return load_recipe(recipe)
-    ws = Workspace(workspace)
-    return recorded_recipe(ws.manifest().get("recipe"), ws.manifest_path) or Recipe()
+        rec, source = load_recipe(recipe), str(recipe)
+    else:
+        ws = Workspace(workspace)
+        rec, source = recorded_recipe(ws.manifest().get("recipe"), ws.manifest_path), f"{ws.manifest_path}"
+        rec, source = (rec, source) if rec is not None else (Recipe(), "the defaults")
+    changes = dict(parse_setting(text) for text in sets or [])
+    changes.update((key, value) for key, value in options.items() if value is not None)
+    logging.getLogger(__name__).debug(f"recipe {rec.name} (from {source})"
+                                      + "".join(f"; {key} = {value!r}" for key, value in changes.items()))
+    return rec.override(changes)
 
 
 @app.command("build-moe")
-@_recipe_options("build-moe")
 def build_moe(
     workspace: WorkspaceOpt,
     experts: Annotated[Optional[str], typer.Option(
         "--experts", help="Comma-separated expert names (default: all).")] = None,
     recipe: RecipeOpt = None,
+    gate_res: GateResOpt = None,
+    gate_type: GateTypeOpt = None,
+    gate_grid: GateGridOpt = None,
+    threshold: ThresholdOpt = None,
+    sets: SetOpt = None,
     device: DeviceOpt = "auto",
 ) -> None:
     """Assemble the pretrained experts, the density volume V_D and an untrained gate."""
     from boostnerf_cli.stages import build_moe as stage
     from boostnerf_cli.stages.common import resolve_device
 
-    rec = _recipe(workspace, recipe).override(_settings())
+    rec = _recipe(workspace, recipe, sets, {"moe.gate_res": gate_res, "moe.gate_type": gate_type,
+                                            "moe.gate_grid": gate_grid, "moe.density_threshold": threshold})
     names = [n for n in experts.split(",") if n] if experts else None
     ws, lock = _writer(workspace)
     with lock:
@@ -342,8 +321,8 @@ def build_moe(
 
 
 @app.command()
-@_recipe_options("finetune")
 def finetune(
+    ctx: typer.Context,
     workspace: WorkspaceOpt,
     topk: Annotated[Optional[int], typer.Option(
         "--topk", min=1, help="Route each sample to its top-k experts (model topK).")] = None,
@@ -351,6 +330,12 @@ def finetune(
     baseline: Annotated[bool, typer.Option(
         "--baseline", help="The largest expert alone, as many steps (model baseline).")] = False,
     recipe: RecipeOpt = None,
+    iters: MoEItersOpt = None,
+    lam: LambdaOpt = None,
+    penalty: PenaltyOpt = None,
+    renormalize: RenormalizeOpt = None,
+    seed: SeedOpt = None,
+    sets: SetOpt = None,
     device: DeviceOpt = "auto",
     force: Annotated[bool, typer.Option("--force", help="Redo a model that is already finetuned.")] = False,
 ) -> None:
@@ -360,14 +345,16 @@ def finetune(
     from boostnerf_cli.stages.common import resolve_device
 
     name = stage.model_name(topk, ensemble, baseline)
-    settings = _settings()
-    rec = _recipe(workspace, recipe).override(settings)
+    rec = _recipe(workspace, recipe, sets, {"moe.iters": iters, "moe.lam": lam, "moe.penalty": penalty,
+                                            "moe.renormalize": renormalize, "moe.seed": seed})
+    moot = {"moe.lam": "lam", "moe.penalty": "penalty", "moe.renormalize": "renormalize"}  # keys some models ignore
     ws, lock = _writer(workspace, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock, dist.others_quiet():
-        unused, why = stage.unused_settings(ws, name, topk, rec.moe, set(settings))
+        given = {key for key, param in moot.items() if ctx.params[param] is not None}
+        unused, why = stage.unused_settings(ws, name, topk, rec.moe, given)
         if unused:  # said also when the model is finished and skipped
-            log(f"note: {', '.join(map(_flag, unused))} cannot change {'the baseline' if name == 'baseline' else name} "
-                f"({why}): ignored")
+            log(f"note: {', '.join(_flag(ctx, moot[key]) for key in unused)} cannot change "
+                f"{'the baseline' if name == 'baseline' else name} ({why}): ignored")
         stage.run(ws, name, topk, rec.moe, dev, force)
 
 
@@ -639,6 +626,9 @@ def _during_interrupt(e: BaseException) -> BaseException | None:
     return None
 
 
+# Click's base exception (a mistake on the command line), of whichever Click Typer runs on (0.29 vendors its own),
+# reached through Typer's public BadParameter: no private import.
+CLICK_ERROR = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
 PATH_OPTIONS = ("-w", "--workspace", "--data", "--recipe", "--video", "--camera")  # the options that take a path
 
 
@@ -646,11 +636,6 @@ def main() -> None:
     import signal
 
     CLOCK.begin()  # a stage's start-up counts from here (boostnerf_cli/startup.py)
-
-    try:
-        from typer._click import exceptions as click  # Typer vendors Click (0.29: a Click of its own)
-    except ImportError:  # an older Typer: Click itself
-        from click import exceptions as click
 
     signal.signal(signal.SIGINT, _interrupt_at_start)
     signal.signal(signal.SIGTERM, _interrupt_at_start)
@@ -675,6 +660,7 @@ def main() -> None:
     signal.signal(signal.SIGTERM, _interrupt)
     try:
         try:
+            faults.install()  # a test's kill point, when one is asked for; inert otherwise
             code = app(standalone_mode=False)
         except Exception as e:  # an interrupt that unwound through cleanup which failed in turn (a torch.save's writer)
             if (interrupt := _during_interrupt(e)) is not None:
@@ -683,11 +669,11 @@ def main() -> None:
     except BoostNerfError as e:
         err.print(f"error: {e}", markup=False)
         sys.exit(e.exit_code)
-    except click.NoArgsIsHelpError as e:  # `boostnerf` alone: its help
-        e.show()
-        sys.exit(e.exit_code)
-    except click.ClickException as e:
-        err.print(f"error: {_usage_error(e)}", markup=False)
+    except CLICK_ERROR as e:
+        if type(e).__name__ == "NoArgsIsHelpError":  # `boostnerf` alone: its help
+            e.show()
+        else:
+            err.print(f"error: {_usage_error(e)}", markup=False)
         sys.exit(e.exit_code)
     except (Interrupted, KeyboardInterrupt) as e:  # the stage's cleanup (lock, temporary files) has run
         err.print(INTERRUPTED, markup=False)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -36,6 +37,8 @@ from boostnerf_cli.recipe import DataRecipe, GeometryRecipe, MoERecipe, Pretrain
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.startup import timed
 from boostnerf_cli.workspace import Workspace, read_meta, recorded_path
+
+_log = logging.getLogger(__name__)
 
 UNSHAPING = ("log_every", "checkpoint_every", "compile")  # training settings that do not change what is trained
 
@@ -222,6 +225,10 @@ def finetune_flag(name: str) -> str:
 def _remake(artifact: str, root: Path, name: str, source: str, removed: bool) -> tuple[str, str]:
     """(what changed, the command that makes `name` again) when its input `source` was removed or remade."""
     changed = "removed" if removed else "retrained"
+    if artifact == "expert":  # its one input: the geometry it starts from
+        model, _, res = name.rpartition("-")
+        return (f"the geometry was {changed} after {name} was trained on it",
+                f"`boostnerf pretrain -w {root} --model {model} --res {res} --force`")
     if artifact == "init":
         return (f"expert {source} was {changed} after build-moe",
                 f"`boostnerf build-moe -w {root}`, then finetune the mixtures again with --force")
@@ -235,14 +242,17 @@ def _remake(artifact: str, root: Path, name: str, source: str, removed: bool) ->
 def stale(ws: Workspace, name: str) -> tuple[str, str] | None:
     """Why model `name` must be made again, as (what changed, the command that makes it again), or None when it is
     current: an input recorded in its signature (moe/init's experts, a finetuned model's moe/init or largest expert,
-    a pruned model's source) changed or went since. The first stale link from the experts up is named, since
-    remaking it comes first. A pruned model without its report (a prune stopped before its check) is stale too.
-    An expert, or a model not there, is never stale."""
+    a pruned model's source, an expert's geometry) changed or went since. The first stale link from the geometry up
+    is named, since remaking it comes first. A pruned model without its report (a prune stopped before its check) is
+    stale too. A model not there is never stale."""
     path = ws.model_file(name)
     if not path.exists():
         return None
     signature = read_meta(path).get("signature") or {}
     artifact, inputs = signature.get("artifact"), signature.get("inputs") or {}
+    if artifact == "expert" and signature.get("geometry"):
+        now = read_meta(ws.geometry_path).get("digest") if ws.geometry_path.exists() else None
+        return None if now == signature["geometry"] else _remake(artifact, ws.root, name, "geometry", now is None)
     if artifact == "pruned" and not ws.report_path(name).exists():  # written last, after prune's check
         return (f"its prune did not finish (no moe/{name}.json, the check of its renders)",
                 f"`boostnerf prune -w {ws.root} --model {next(iter(inputs))}`")
@@ -317,6 +327,15 @@ def finished(ws: Workspace, name: str) -> Found | None:
 
 
 def decide(found: Found | None, wanted: dict | None, force: bool = False) -> Decision:
+    """The one rule of every stage for what it `found` where it writes (`rule`), said at -v."""
+    decision = rule(found, wanted, force)
+    if found is not None:
+        _log.debug(f"{found.name}{' (its checkpoint)' if found.checkpoint else ''}: {decision.action}"
+                   + (f": {decision.reason}" if decision.reason else ""))
+    return decision
+
+
+def rule(found: Found | None, wanted: dict | None, force: bool = False) -> Decision:
     """The one rule of every stage for what it `found` where it writes, given the signature it would write
     (`wanted`; None: any, as a reader asks) and --force:
 
@@ -367,6 +386,14 @@ class SceneSpec:
     def of(data: Path, rec: DataRecipe, root: Path) -> "SceneSpec":
         return SceneSpec(recorded_path(data, root), rec.image_size, rec.holdout_every, rec.format,
                          None if rec.bbox is None else list(rec.bbox))
+
+    @staticmethod
+    def recorded(record: dict) -> "SceneSpec":
+        """The spec a manifest's `data` records; a key it lacks (a manifest written before the key was) takes its
+        recipe default (`DataRecipe`)."""
+        names = {f.name for f in dataclasses.fields(SceneSpec)}
+        defaults = {k: v for k, v in dataclasses.asdict(DataRecipe()).items() if k in names}
+        return SceneSpec(**{**defaults, **{k: v for k, v in record.items() if k in names}})
 
     def record(self) -> dict:
         return dataclasses.asdict(self)

@@ -25,7 +25,7 @@ from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.packing import packer_for
-from boostnerf_cli.render.renderer import RenderSettings, render_view
+from boostnerf_cli.render.renderer import COLOR_THRESHOLD, RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.startup import CLOCK, timed
 from boostnerf_cli.workspace import (
@@ -107,7 +107,7 @@ def invalid_mixture(path: Path, e: BaseException) -> BoostNerfError:
 def mixture_routing_meta(path: Path, meta: dict) -> tuple[MixtureConfig, str]:
     """(the mixture's config, its gate's kind) from a mixture file's metadata `meta` alone, nothing loaded."""
     try:
-        return MixtureConfig(**meta["mixture"]), meta["gate"]["config"]["kind"]
+        return MixtureConfig.saved(meta["mixture"]), GateConfig.saved(meta["gate"]["config"]).gate_type
     except MALFORMED as e:
         raise invalid_mixture(path, e) from None
 
@@ -120,12 +120,12 @@ def build_mixture(path: Path, tensors: dict, meta: dict, device) -> tuple[Mixtur
             raise BoostNerfError(f"{path}: expert {i} has unknown family {em['family']!r}")
         experts.append(FAMILIES[em["family"]].from_config(em, tensors[f"experts.{i}.bbox"]))
     gm = meta["gate"]
-    gate = Gate(GateConfig(**gm["config"]), gm["experts"], tensors["gate.bbox"], tuple(gm["shape"]))
+    gate = Gate(GateConfig.saved(gm["config"]), gm["experts"], tensors["gate.bbox"], tuple(gm["shape"]))
     vd = DensityVolume.from_config(meta["vd"], tensors["vd.bbox"])
     occ = None
     if "occupancy" in tensors:
         occ = OccupancyGrid(tensors.pop("occupancy").bool(), tensors.pop("occupancy_bbox"))
-    mix = Mixture(experts, gate, vd, occ, MixtureConfig(**meta["mixture"]))
+    mix = Mixture(experts, gate, vd, occ, MixtureConfig.saved(meta["mixture"]))
     mix.load_state_dict(tensors)
     return mix.to(device).eval(), meta
 
@@ -167,7 +167,7 @@ class Skips:
 
     empty:      samples in empty space are not evaluated (a model's occupancy grid; for a mixture also
                 the density volume V_D below its threshold T)
-    terminated: colour is computed only for samples whose rendering weight exceeds 1e-4 (drops samples
+    terminated: colour is computed only for samples whose rendering weight exceeds COLOR_THRESHOLD (drops samples
                 behind rays that have terminated and in near-empty space)
     All off (`--no-skip`) is dense fixed-step sampling over the model's box, every sample through density
     and colour.
@@ -226,12 +226,12 @@ class LoadedModel:
             self.field.for_rendering(exact_gate)
         return self
 
-    def settings(self, scene: Scene, color_threshold: float = 1e-4) -> RenderSettings:
+    def settings(self, scene: Scene, color_threshold: float = COLOR_THRESHOLD) -> RenderSettings:
         return scene.render_settings(self.step, self.bbox, color_threshold)
 
     def render_setup(self, scene: Scene, skips: Skips) -> tuple[RenderSettings, Callable[[Tensor], Tensor] | None]:
         """The render settings and the empty-space filter for rendering this model with `skips`."""
-        return self.settings(scene, 1e-4 if skips.terminated else 0.0), self.skip if skips.empty else None
+        return self.settings(scene, COLOR_THRESHOLD if skips.terminated else 0.0), self.skip if skips.empty else None
 
 
 def load_model(ws: Workspace, name: str, device: str, exact_gate: bool = False) -> LoadedModel:

@@ -38,7 +38,8 @@ from boostnerf_cli.limits import (
     rule_of,
 )
 from boostnerf_cli.moe.gate import GATE_GRIDS, TRAINABLE_GATES
-from boostnerf_cli.moe.mixture import Routing
+from boostnerf_cli.moe.mixture import DENSITY_THRESHOLD, Routing
+from boostnerf_cli.render.renderer import COLOR_THRESHOLD
 from boostnerf_cli.scenes import FORMATS
 
 # Seeds feed numpy's generator (the procedural scene: no negative seeds) and torch's (64 bits, seed + res).
@@ -82,7 +83,7 @@ class TrainRecipe:
     lr_decay: float = limit(0.1, Range(0, 1, lo_open=True))  # learning rates fall to this fraction at the last step
     # sampling step in voxels of the final grid (pretrain only: finetuning samples at the experts' step, moe.step_from)
     step_ratio: float = limit(0.5, STEP_RATIO)
-    color_threshold: float = limit(1e-4, THRESHOLD)  # samples with a smaller weight skip the colour MLP
+    color_threshold: float = limit(COLOR_THRESHOLD, THRESHOLD)  # samples with a smaller weight skip the colour MLP
     # weight of the per-sample colour loss (each sample's colour
     # against the pixel, by its rendering weight; DVGO's rgbper)
     weight_rgbper: float = limit(0.01, LOSS_WEIGHT)
@@ -174,7 +175,7 @@ class MoERecipe(Routing):
     # density volume V_D (vd_res^3 voxels); default: the smallest expert's res
     vd_res: int | None = limit(None, GRID_RES)
     # T: samples whose V_D opacity over one step is below it are filtered
-    density_threshold: float = limit(1e-3, THRESHOLD)
+    density_threshold: float = limit(DENSITY_THRESHOLD, THRESHOLD)
     # render step of the mixture: the largest expert's (the paper: same step as the baseline) or the smallest's
     step_from: str = limit("largest", OneOf(("smallest", "largest")))
     # lambda: weight of the resolution-weighted auxiliary loss (L_tot = L_nerf + lambda L_rw-aux; the paper uses 1e-3)
@@ -194,19 +195,42 @@ class Recipe:
     name: str = "defaults"  # the recipe's name in reports (a recipe file without one: its file name)
 
     def override(self, changes: dict[str, Any]) -> "Recipe":
-        """Set the keys `changes` names by their dotted path (`"pretrain.iters"`) to its values, skipping None
-        (a flag not given), then check the recipe again (`check_recipe`, errors naming the setting). -> self."""
+        """Set the keys `changes` names by their dotted path (`"pretrain.iters"`, `"pretrain.dvgo.hidden"`) to its
+        values, then check the recipe again (`check_recipe`, errors naming the setting). -> self."""
         for path, value in changes.items():
-            if value is None:
-                continue
             *sections, key = path.split(".")
             target = self
             for name in sections:
                 target = getattr(target, name)
-            if not hasattr(target, key):
+            if isinstance(target, dict):  # a family section: its keys are checked with the recipe
+                target[key] = value
+            elif not hasattr(target, key):
                 raise BoostNerfError(f"no recipe key {path}")
-            setattr(target, key, value)
+            else:
+                setattr(target, key, value)
         return check_recipe(self, "setting")
+
+
+def parse_setting(text: str) -> tuple[str, Any]:
+    """`KEY=VALUE` (`--set pretrain.geometry.iters=300`) -> (key, value): the value read as a recipe file's YAML reads
+    it, the key and the value's type checked as a recipe file's are (its range: with the recipe, `check_recipe`)."""
+    key, sep, raw = text.partition("=")
+    key = key.strip()
+    if not sep or not key or "" in key.split("."):
+        raise BoostNerfError(f"--set {text!r}: give KEY=VALUE, a recipe key and its value, e.g. "
+                             "--set pretrain.geometry.iters=300 (docs/recipe-keys.md)")
+    try:
+        value = yaml.load(raw, Loader=_RecipeLoader)  # noqa: S506 (a safe loader)
+    except (yaml.YAMLError, ValueError) as e:
+        raise BoostNerfError(f"--set {key}: {raw!r} is not a YAML value ({str(e).splitlines()[0]})") from None
+    nested: Any = value
+    for name in reversed(key.split(".")):
+        nested = {name: nested}
+    built: Any = _build(Recipe, nested, "")  # unknown keys and wrong types refused as in a recipe file
+    _check_unused(built)  # and a key finetuning does not use (moe.train.step_ratio, growth)
+    for name in key.split("."):
+        built = built[name] if isinstance(built, dict) else getattr(built, name)
+    return key, built
 
 
 def _key_text(key: Any) -> str:

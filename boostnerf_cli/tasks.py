@@ -201,7 +201,7 @@ class MixtureTask:
         if self.mix.cfg.aux_samples == "visible" and not routed_visible:  # with the visible V_D filter the gate saw
             keep = visible_samples(self.mix, bundle, origins, dirs, self.settings.color_threshold)  # only those
         aux, aux_value, load = batch_routing(stats, self.mix.penalty, self.mix.m, self.mix.cfg.aux_norm, keep)
-        if self.rec.lam > 0 and self.mix.gate.cfg.kind != "uniform":
+        if self.rec.lam > 0 and self.mix.gate.cfg.gate_type != "uniform":
             loss = loss + self.rec.lam * aux
             logs["aux"] = aux_value
         for i in range(self.mix.m):

@@ -7,6 +7,7 @@ resumable checkpoints. What is trained, how rays are rendered and what the loss 
 
 from __future__ import annotations
 
+import logging
 import math
 import sys
 import time
@@ -25,10 +26,13 @@ from boostnerf_cli.adam import Adam
 from boostnerf_cli.device import from_host
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.lineage import MAKE, Found, decide
+from boostnerf_cli.recipe import TrainRecipe
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
 from boostnerf_cli.startup import CLOCK
-from boostnerf_cli.workspace import FORMAT_VERSION, MALFORMED, kill_point_for_tests, malformed, save_torch
+from boostnerf_cli.workspace import FORMAT_VERSION, MALFORMED, malformed, save_torch
+
+_log = logging.getLogger(__name__)  # a run's messages and warnings (cli.py says them on stderr)
 
 
 @dataclass
@@ -75,16 +79,25 @@ class RayData:
         return self.origins.shape[0]
 
 
+_TRAIN = TrainRecipe()  # the training section's defaults, Schedule's too
+
+
 @dataclass
 class Schedule:
-    """Optimiser settings shared by all stages."""
+    """How long the loop trains, with how many rays a step, how its learning rates fall and when it logs and
+    checkpoints: `Schedule.of` takes them from a recipe's training section (the one place that does)."""
 
     iters: int
-    batch_rays: int = 4096
-    lr_decay: float = 0.1  # learning rates fall exponentially to this fraction at the last step
-    log_every: int = 100
-    checkpoint_every: int = 500
+    batch_rays: int = _TRAIN.batch_rays
+    lr_decay: float = _TRAIN.lr_decay  # learning rates fall exponentially to this fraction at the last step
+    log_every: int = _TRAIN.log_every
+    checkpoint_every: int = _TRAIN.checkpoint_every
     max_bad_steps: int = 20  # consecutive non-finite steps before the run stops
+
+    @staticmethod
+    def of(iters: int, tcfg: TrainRecipe) -> "Schedule":
+        """`iters` steps with the training settings `tcfg` (a recipe's `train` section)."""
+        return Schedule(iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
 
 
 class TrainTask(Protocol):
@@ -152,7 +165,7 @@ class PsnrTrend:
             return None
         if all(b < a for a, b in zip(last, last[1:])) and last[0] - last[-1] >= self.min_drop:
             self.warned = True
-            return (f"warning: the train PSNR fell for {self.intervals} logging intervals in a row "
+            return (f"the train PSNR fell for {self.intervals} logging intervals in a row "
                     f"({last[0]:.2f} -> {last[-1]:.2f} dB by step {step}). Likely causes: skipping cut away structure "
                     "the training views show (compare with `pretrain --no-skip`), or learning rates too high for "
                     "this scene (lower train.lr_grid / lr_mlp)")
@@ -165,7 +178,8 @@ class Progress:
     def __init__(self, title: str, total: int, start: int, log_every: int, quiet: bool = False):
         self.title, self.total, self.log_every, self.quiet = title, total, log_every, quiet
         self.bar = None
-        if sys.stderr.isatty() and not quiet:
+        chatty = not quiet and _log.isEnabledFor(logging.INFO)  # -q: no progress
+        if sys.stderr.isatty() and chatty:
             from rich.console import Console
             from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
             from rich.progress import Progress as RichProgress
@@ -186,14 +200,17 @@ class Progress:
         """The step count; with `logs` (a logging step's values), also them."""
         if self.bar is not None:
             self.bar.update(self.task, completed=step, **({} if logs is None else {"info": _info(logs)}))
-        elif not self.quiet and logs is not None and (step % self.log_every == 0 or step == self.total):
+        elif not self.quiet and logs is not None and (step % self.log_every == 0 or step == self.total) \
+                and _log.isEnabledFor(logging.INFO):
             print(f"[{self.title}] step {step}/{self.total} {_info(logs)}", file=sys.stderr, flush=True)
 
+    def say(self, msg: str, level: int = logging.INFO) -> None:
+        """A message of this run, `[title] msg`, through the log (above the bar, which redirects stderr)."""
+        if not self.quiet:
+            _log.log(level, f"[{self.title}] {msg}")
+
     def warn(self, msg: str) -> None:
-        if self.bar is not None:
-            self.bar.console.print(f"[{self.title}] {msg}", markup=False, highlight=False)
-        elif not self.quiet:
-            print(f"[{self.title}] {msg}", file=sys.stderr, flush=True)
+        self.say(msg, logging.WARNING)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -526,7 +543,6 @@ class TrainCheckpoint:
             "cuda_rng": cuda_rng_state(device), "signature": self.signature, "trend": run.trend.state(),
             "format_version": FORMAT_VERSION,
         })
-        kill_point_for_tests("checkpoint")  # inert unless a resume test asks for it (workspace.TEST_KILL_ENV)
 
 
 def _check_rays(rays: RayData, sched: Schedule, title: str, parallel: bool) -> None:
@@ -555,7 +571,7 @@ def train(task: TrainTask, rays: RayData, sched: Schedule, seed: int, title: str
     opt, run = checkpoint.resume(task, gen, device) if checkpoint is not None else (None, RunState())
     progress = Progress(title, sched.iters, run.step, sched.log_every, quiet=parallel and not dist.is_main())
     if run.step > 0:
-        progress.warn(f"resuming from {checkpoint.path} at step {run.step}/{sched.iters}")
+        progress.say(f"resuming from {checkpoint.path} at step {run.step}/{sched.iters}")
     startup = CLOCK.ready(title)
     t0 = time.perf_counter() - run.seconds
     outcomes = Outcomes(device, getattr(task, "packer", None))
@@ -565,10 +581,10 @@ def train(task: TrainTask, rays: RayData, sched: Schedule, seed: int, title: str
             opt, result = optimizer_step(task, rays, sched, opt, gen, step, parallel)
             run.step = step + 1
             saving = checkpoint is not None and (run.step % sched.checkpoint_every == 0 or run.step == sched.iters)
-            logging = run.step % sched.log_every == 0 or run.step == sched.iters
+            logging_step = run.step % sched.log_every == 0 or run.step == sched.iters
             # --- the steps' outcomes as they arrive (every one on a logging or checkpoint step), log, checkpoint ---
             outcomes.push(run.step, result)
-            for done, flags in outcomes.ready(wait=logging or saving):
+            for done, flags in outcomes.ready(wait=logging_step or saving):
                 run.guard(done, flags, sched, checkpoint and checkpoint.path, progress, result.params, outcomes.packer)
             logs = run.log(run.step, result.logs, time.perf_counter() - t0, sched)
             if logs is not None and (warning := run.trend.falling_warning(run.step)):

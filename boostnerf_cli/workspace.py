@@ -42,32 +42,6 @@ from boostnerf_cli.errors import BoostNerfError
 FORMAT_VERSION = "2"
 
 
-# Test hook for tests/test_resume.py, inert unless the variable is set (one environment lookup per file write):
-# "checkpoint:N" makes this process SIGKILL itself right after writing its N-th training checkpoint, "write:NAME"
-# inside its atomic write of the file NAME (the temporary file complete and flushed, before the rename), so the
-# resume tests kill the CLI at known points instead of at timed ones.
-TEST_KILL_ENV = "BOOSTNERF_TEST_KILL"
-_test_kill_count = {"checkpoint": 0}
-
-
-def kill_point_for_tests(kind: str, name: str = "") -> None:
-    spec = os.environ.get(TEST_KILL_ENV)
-    if not spec:
-        return
-    want, _, arg = spec.partition(":")
-    if want != kind:
-        return
-    if kind == "checkpoint":
-        _test_kill_count[kind] += 1
-        hit = _test_kill_count[kind] == int(arg)
-    else:
-        hit = name == arg
-    if hit:
-        import signal
-
-        os.kill(os.getpid(), signal.SIGKILL)
-
-
 def is_temporary(path: Path) -> bool:
     """A temporary file of `atomic_path` (`.NAME.XXXX.tmp`, or `.NAME.XXXX.tmp.mp4` for a writer that needs the
     suffix: ffmpeg) or folder of `make_scene` (`.NAME.tmp`)."""
@@ -131,7 +105,6 @@ def atomic_path(target: Path, keep_suffix: bool = False) -> Iterator[Path]:
         tmp_path = Path(tmp)
         yield tmp_path
         _fsync(tmp_path)
-        kill_point_for_tests("write", target.name)
         os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, target)
         _fsync_dir(target.parent)

@@ -24,7 +24,7 @@ def bake(gate: Gate, threads: int) -> tuple[float, float]:
 
 
 def main() -> None:
-    gate = Gate(GateConfig(kind="grid", res=24), 3, torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    gate = Gate(GateConfig(gate_type="grid", gate_res=24), 3, torch.tensor([[-1.0] * 3, [1.0] * 3]))
     for n_busy in (0, 1, 3):
         procs = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(n_busy)]
         time.sleep(3)

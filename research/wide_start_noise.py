@@ -69,7 +69,7 @@ class SwitchedTask(MixtureTask):
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
-        sparse = self.mix.gate.cfg.kind != "uniform" and self.mix.cfg.topk < self.mix.m
+        sparse = self.mix.gate.cfg.gate_type != "uniform" and self.mix.cfg.topk < self.mix.m
         self.final = {"topk": self.mix.cfg.topk, "renormalize": self.mix.cfg.renormalize}
         self.wide_steps = int(self.switches.wide_start * self.rec.iters) if sparse else 0
         self.gate_noise = self.switches.gate_noise if sparse else 0.0

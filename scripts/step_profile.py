@@ -127,7 +127,7 @@ def training_setup(kind: str, ws: Path, device: str, compile: str = "off"):
         if kind == "ens":
             mix.make_ensemble()
         topk = None if kind == "ens" else int(kind[3:])
-        cfg, _ = ft.routing(name, topk, rec.moe, mix.cfg, mix.gate.cfg.kind)
+        cfg, _ = ft.routing(name, topk, rec.moe, mix.cfg, mix.gate.cfg.gate_type)
         mix.configure(**{f: getattr(cfg, f) for f in cfg.__dataclass_fields__})
         tcfg = replace(rec.moe.train, compile=compile)
         settings = scene.render_settings(mix.cfg.step, mix.bbox, tcfg.color_threshold)

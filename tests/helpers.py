@@ -36,7 +36,7 @@ def toy_mixture(m: int = 3, k: int = 2, kind: str = "grid", renormalize: bool = 
     """A top-`k` mixture of `toy_experts(m, seed)` with a random `kind` gate; its density volume is fitted
     to the first expert. Deterministic for a given seed."""
     experts = toy_experts(m, seed)
-    gate = Gate(GateConfig(kind=kind, res=4, channels=4, hidden=8, layers=2), m, TOY_BOX)
+    gate = Gate(GateConfig(gate_type=kind, gate_res=4, gate_channels=4, gate_hidden=8, gate_layers=2), m, TOY_BOX)
     with torch.no_grad():
         for p in gate.parameters():
             p.normal_(0, 0.5)
@@ -98,7 +98,7 @@ def routed_mixture(kind: str, device: torch.device | str) -> Mixture:
     """A mixture of three `family_expert` DVGO experts (res 6, 8, 10) as `kind` (top1, top2, ens), with a full
     occupancy grid and a dense density volume, on `device`."""
     experts = [family_expert("dvgo", r) for r in (6, 8, 10)]
-    gate = Gate(GateConfig(kind="grid", res=4, channels=4, hidden=8, layers=1), 3, TOY_BOX)
+    gate = Gate(GateConfig(gate_type="grid", gate_res=4, gate_channels=4, gate_hidden=8, gate_layers=1), 3, TOY_BOX)
     vd = DensityVolume(TOY_BOX, 6)
     with torch.no_grad():
         vd.table.fill_(2.0)

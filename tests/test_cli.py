@@ -97,6 +97,35 @@ def test_a_finished_expert_is_not_skipped_under_other_training_settings(tmp_path
     assert "already trained" in run_cli(*args, "--recipe", str(quiet), check=True).stderr
 
 
+@pytest.mark.slow
+def test_a_changed_geometry_setting_is_refused_and_its_experts_are_then_stale(trained_ws, tiny_scene, tmp_path):
+    """The geometry is an artifact like the experts: its file keeps its signature, a changed geometry setting is
+    refused in one line naming it (pretrain kept the old geometry, said "already trained" of the experts built on it,
+    and said nothing), --force retrains it, and an expert still built on the old one is stale: pretrain, build-moe
+    and eval say so, with the command that trains it again."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    geometry = ws / "experts" / "geometry.safetensors"
+    before = read_meta(geometry)["digest"]
+    assert read_meta(geometry)["signature"]["settings"]["iters"] == 100
+    shorter = make_recipe(tmp_path / "shorter.yaml", pretrain={"geometry": {"iters": 60}})
+    args = ["pretrain", "--data", str(tiny_scene), "--workspace", str(ws), "--device", "cpu", "--recipe", str(shorter)]
+    assert_clean_failure(run_cli(*args), "geometry was trained with other settings",
+                         "pretrain.geometry.iters: 100, now 60", "--force")
+    assert read_meta(geometry)["digest"] == before
+    proc = run_cli(*args, "--res", "12", "--force", check=True)
+    assert "geometry: training a 12^3 coarse grid for 60 steps" in proc.stderr
+    assert read_meta(geometry)["digest"] != before
+    assert "dvgo-16 is stale" in proc.stderr and "--res 16 --force" in proc.stderr  # said when it goes stale
+    remedy = f"`boostnerf pretrain -w {ws} --model dvgo --res 16 --force`"
+    for again in (run_cli(*args), run_cli("build-moe", "-w", str(ws), "--device", "cpu"),
+                  run_cli("eval", "-w", str(ws), "--device", "cpu", "--no-costs")):
+        assert_clean_failure(again, "dvgo-16 is stale: the geometry was retrained after dvgo-16 was trained on it",
+                             remedy)
+    run_cli(*args, "--res", "16", "--force", check=True)
+    assert "already trained" in run_cli(*args, check=True).stderr  # both experts on the new geometry: current
+
+
 def test_eval_report_schema_and_render_outputs(trained_ws, tmp_path):
     missing = {ALEXNET_ENV: str(tmp_path / "none" / "alexnet-owt-7be5be79.pth"), LPIPS_ENV: str(tmp_path / "alex.pth")}
     run_cli("eval", "--workspace", str(trained_ws), "--split", "test", "--report", "--device", "cpu", check=True,
@@ -493,6 +522,61 @@ def test_log_lines_print_brackets_as_written(capsys):
     text = "on detailed pixels [0.34, 0.66], [nan, nan], [dvgo-8] and ws[x]/scene [bold]"
     log(text)
     assert capsys.readouterr().err.strip() == text
+
+
+def test_warnings_go_through_logging_warning_and_say_so(capsys):
+    """A warning is a `logging.warning` record, said as a line starting `warning:` (they were INFO lines that began
+    with the word, so no level could keep them and drop the rest); -q keeps warnings and drops the other messages."""
+    import logging as logging_module
+
+    from boostnerf_cli.cli import say_messages
+
+    stage = logging_module.getLogger("boostnerf_cli.stages.anything")
+    try:
+        say_messages(logging_module.WARNING)  # -q
+        stage.info("dvgo-8: already trained, skipping")
+        stage.warning("geometry: 3 of 9 foreground training rays miss the scene box")
+        assert capsys.readouterr().err == "warning: geometry: 3 of 9 foreground training rays miss the scene box\n"
+    finally:
+        say_messages()
+
+
+def test_quiet_and_verbose_work_on_any_command(trained_ws, tiny_scene, tmp_path):
+    """-q: nothing on stderr but warnings and errors (results still on stdout); -v: the recipe read and what the stage
+    decides about each artifact it finds; both at once is refused in one line."""
+    scene = tmp_path / "scene"
+    quiet = run_cli("-q", "make-scene", str(scene), "--size", "16", "--train-views", "2", "--test-views", "1",
+                    check=True)
+    assert quiet.stderr == "" and (scene / "transforms_train.json").exists()
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    args = ["pretrain", "-w", str(ws), "--data", str(tiny_scene), "--res", "12", "--device", "cpu"]
+    said = run_cli(*args, check=True)
+    assert "already trained" in said.stderr and "expert" in said.stdout
+    quiet = run_cli("-q", *args, check=True)
+    assert quiet.stderr == "" and quiet.stdout == said.stdout
+    verbose = run_cli("-v", *args, check=True).stderr
+    assert f"recipe tiny (from {ws / 'manifest.json'}); pretrain.res = [12]" in verbose
+    assert "geometry: skip" in verbose and "dvgo-12: skip" in verbose and "already trained" in verbose
+    assert_clean_failure(run_cli("-q", "-v", *args), "--quiet and --verbose")
+
+
+def test_set_sets_any_recipe_key_checked_as_a_recipe_file_is(trained_ws, tiny_scene, tmp_path):
+    """--set KEY=VALUE beside the named options: the key and the value's type are checked as in a recipe file, the
+    range with the recipe; a key it sets is one a recipe sets (here a geometry setting, refused as changed)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    args = ["pretrain", "-w", str(ws), "--data", str(tiny_scene), "--device", "cpu"]
+    assert_clean_failure(run_cli(*args, "--set", "pretrain.geometry.iters=60"), "pretrain.geometry.iters: 100, now 60")
+    assert_clean_failure(run_cli(*args, "--set", "pretrain.geometry.iterz=60"),
+                         "unknown recipe key pretrain.geometry.iterz", "known keys here are")
+    assert_clean_failure(run_cli(*args, "--set", "pretrain.iters=many"), "pretrain.iters must be int, got 'many'")
+    assert_clean_failure(run_cli(*args, "--set", "pretrain.iters=0"), "pretrain.iters = 0: must be >= 1")
+    assert_clean_failure(run_cli(*args, "--set", "pretrain.iters"), "give KEY=VALUE")
+    assert_clean_failure(run_cli(*args, "--set", "moe.train.growth=[0.5]"), "moe.train.growth", "finetuning does not")
+    assert_clean_failure(run_cli(*args, "--set", "pretrain.dvgo.hidden=32"), "pretrain.dvgo.hidden: 16, now 32")
+    # a named option wins over --set for the same key
+    assert "already trained" in run_cli(*args, "--set", "pretrain.iters=31", "--iters", "30", check=True).stderr
 
 
 @pytest.mark.parametrize("args, needle", [

@@ -67,7 +67,7 @@ def test_build_moe_and_finetune_per_family_and_mixed(family_ws, tmp_path, expert
     shutil.copytree(family_ws, ws)
     run_cli("build-moe", "--workspace", str(ws), "--experts", experts, "--device", "cpu", check=True)
     init = json.loads((ws / "moe" / "init.json").read_text())
-    assert init["gate"]["config"]["grid"] == gate_grid  # auto: the gate follows the family
+    assert init["gate"]["config"]["gate_grid"] == gate_grid  # auto: the gate follows the family
     assert sorted(init["experts"]) == sorted(experts.split(","))
     run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--device", "cpu", check=True)
     top2 = json.loads((ws / "moe" / "top2.json").read_text())
@@ -85,7 +85,7 @@ def test_gate_grid_flag_overrides_and_rejects_unknown(family_ws, tmp_path):
     shutil.copytree(family_ws, ws)
     run_cli("build-moe", "--workspace", str(ws), "--experts", "ngp-2,ngp-3", "--gate-grid", "tensorf",
             "--device", "cpu", check=True)
-    assert json.loads((ws / "moe" / "init.json").read_text())["gate"]["config"]["grid"] == "tensorf"
+    assert json.loads((ws / "moe" / "init.json").read_text())["gate"]["config"]["gate_grid"] == "tensorf"
     proc = run_cli("build-moe", "--workspace", str(ws), "--gate-grid", "octree", "--device", "cpu")
     assert_clean_failure(proc, "moe.gate_grid = 'octree'", "one of auto, dense")
 

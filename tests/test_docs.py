@@ -141,8 +141,9 @@ def test_cli_reference_is_the_help_as_printed_now():
     from conftest import run_cli
 
     text = (DOCS / "cli.md").read_text()
-    for name in _commands():
-        section = text.split(f"## `boostnerf {name}`", 1)[1].split("```", 2)[1].strip("\n")
-        proc = run_cli(name, "--help", env_extra={"COLUMNS": "100"}, check=True)
+    for name in ["", *_commands()]:  # "": `boostnerf --help`, the options of every command (-q, -v)
+        heading = f"## `boostnerf {name}`" if name else "## `boostnerf`: options of every command"
+        section = text.split(heading, 1)[1].split("```", 2)[1].strip("\n")
+        proc = run_cli(*([name] if name else []), "--help", env_extra={"COLUMNS": "100"}, check=True)
         printed = "\n".join(line.rstrip() for line in (proc.stdout + proc.stderr).splitlines()).strip("\n")
         assert printed == section, f"boostnerf {name} --help differs from docs/cli.md: run scripts/cli-reference.sh"

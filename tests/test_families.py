@@ -277,7 +277,7 @@ def test_vm_grid_matches_grid_sample_in_float64():
 @pytest.mark.parametrize("grid", ["dense", "tensorf", "hash"])
 def test_gate_feature_grids(grid):
     torch.manual_seed(0)
-    gate = Gate(GateConfig(kind="grid", res=8, grid=grid, levels=3, log2_table=8), 3, BOX)
+    gate = Gate(GateConfig(gate_type="grid", gate_res=8, gate_grid=grid, levels=3, log2_table=8), 3, BOX)
     xyz, _ = _points(300)
     p = gate.probs(xyz)
     assert p.shape == (300, 3) and torch.allclose(p.sum(-1), torch.ones(300))
@@ -291,7 +291,7 @@ def test_a_mixture_of_experts_of_three_families_round_trips(tmp_path):
     experts = [_expert(f, seed=i) for i, f in enumerate(FAMILIES)]
     vd = DensityVolume(BOX, 8)
     vd.init_from(experts[0].density)
-    gate = Gate(GateConfig(kind="grid", res=8, grid="hash", levels=3, log2_table=8), 3, BOX)
+    gate = Gate(GateConfig(gate_type="grid", gate_res=8, gate_grid="hash", levels=3, log2_table=8), 3, BOX)
     mix = Mixture(experts, gate, vd, None, MixtureConfig(topk=2, vd_res=8, step=0.05, expert_names=FAMILIES))
     mix.eval()
     xyz, d = _points(100)
@@ -301,7 +301,7 @@ def test_a_mixture_of_experts_of_three_families_round_trips(tmp_path):
     assert {id(p) for g in groups for p in g["params"]} == {id(p) for p in mix.parameters()}
     save_mixture(tmp_path / "m.safetensors", mix, {"name": "m"})
     mix2, _ = load_mixture(tmp_path / "m.safetensors")
-    assert [type(e).family for e in mix2.experts] == FAMILIES and mix2.gate.cfg.grid == "hash"
+    assert [type(e).family for e in mix2.experts] == FAMILIES and mix2.gate.cfg.gate_grid == "hash"
     s2, c2 = mix2.query(xyz, d)
     assert torch.equal(s2, sigma) and torch.equal(c2, rgb)
 

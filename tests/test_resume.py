@@ -1,10 +1,11 @@
 """kill -9, rerun the same command: the result equals an uninterrupted run.
 
 The real CLI runs in a process of its own (conftest.run_cli) and SIGKILLs itself at known points
-(workspace.TEST_KILL_ENV): right after its N-th training checkpoint, or inside the atomic write of a named
-artifact (temporary file written, not yet renamed). Rerunning the same command resumes from the last checkpoint; the
-final artifacts must match an uninterrupted run with the same seed within RESUME_ATOL (docs/reliability.md),
-and the killed runs must leave no partial file, checkpoint or lock behind once the command has completed.
+(boostnerf_cli/faults.py, `BOOSTNERF_TEST_KILL`): right after its N-th training checkpoint, or inside the atomic write
+of a named artifact (temporary file written, not yet renamed). Rerunning the same command resumes from the last
+checkpoint; the final artifacts must match an uninterrupted run with the same seed within RESUME_ATOL
+(docs/reliability.md), and the killed runs must leave no partial file, checkpoint or lock behind once the command has
+completed.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ import pytest
 import torch
 from conftest import assert_clean_failure, make_recipe, merge, run_cli
 
-from boostnerf_cli.workspace import FORMAT_VERSION, TEST_KILL_ENV, is_temporary, load_tensors
+from boostnerf_cli.faults import ENV as TEST_KILL_ENV
+from boostnerf_cli.workspace import FORMAT_VERSION, is_temporary, load_tensors
 
 RESUME_ATOL = 1e-5  # documented in docs/reliability.md; observed difference: exactly 0
 
@@ -37,7 +39,7 @@ RECIPE_CHANGES = {
 }
 
 def run_killed(args: list[str], point: str) -> None:
-    """Run the CLI until it SIGKILLs itself at `point` (workspace.TEST_KILL_ENV: "checkpoint:N", "write:NAME")."""
+    """Run the CLI until it SIGKILLs itself at `point` (faults.ENV: "checkpoint:N", "write:NAME")."""
     proc = run_cli(*args, env_extra={TEST_KILL_ENV: point})
     assert proc.returncode == -signal.SIGKILL, f"{point}: not killed ({proc.returncode}):\n{proc.stderr[-2000:]}"
 

@@ -224,7 +224,7 @@ def test_softmax_topk_and_aux_loss_with_extreme_logits(case):
 def test_gate_under_autocast_with_logits_up_to_1e4(seed, kind, dtype, log_scale):
     """The gate's MLP may run in bfloat16/float16; its probabilities are a float32 softmax."""
     torch.manual_seed(seed)
-    gate = Gate(GateConfig(kind=kind, res=4, hidden=16, layers=1), 3, BOX)
+    gate = Gate(GateConfig(gate_type=kind, gate_res=4, gate_hidden=16, gate_layers=1), 3, BOX)
     with torch.no_grad():  # scale the logits up to +-1e4
         gate.mlp[-1].weight.mul_(10.0**log_scale)
         gate.mlp[-1].bias.mul_(10.0**log_scale)

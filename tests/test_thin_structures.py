@@ -280,7 +280,7 @@ def test_foreground_rays_that_miss_the_scene_box_are_warned_not_said_to_be_held(
     meta = read_meta(tmp_path / "ws" / "experts" / "geometry.safetensors")
     missed, total = meta["rounds"][0]["missed_after"], meta["rounds"][0]["foreground_rays"]
     assert missed > 0.05 * total, meta["rounds"]
-    assert (f"warning: {missed} of {total} foreground training rays" in proc.stderr
+    assert (f"warning: geometry: {missed} of {total} foreground training rays" in proc.stderr
             and "miss the scene box" in proc.stderr)
     assert "the box holds every ray's surface" not in proc.stderr
 
@@ -311,7 +311,8 @@ def test_content_past_the_scene_box_is_named_and_data_bbox_holds_it(tmp_path):
     text, meta = runs["large"]
     first = meta["rounds"][0]
     assert first["edge_rays"] > 0.05 * first["foreground_rays"], first
-    assert "warning:" in text and "find their surface on the faces of the scene box" in text and "data.bbox" in text
+    assert "warning: geometry: " in text and "find their surface on the faces of the scene box" in text
+    assert "data.bbox" in text
     text, meta = runs["large-box"]
     assert "faces of the scene box" not in text, text
     box = torch.tensor(meta["fine_bbox"])

@@ -429,7 +429,7 @@ def test_mixture_file_with_the_wrong_structure_is_one_line(tmp_path):
     path = tmp_path / "m.safetensors"
     save_mixture(path, toy_mixture(m=2, k=1))
     tensors, meta = load_tensors(path)
-    meta["gate"]["config"]["kind"] = "octree"  # Gate raised ValueError outside any handler before
+    meta["gate"]["config"]["gate_type"] = "octree"  # Gate raised ValueError outside any handler before
     meta.pop("digest"), meta.pop("format_version")
     save_tensors(path, tensors, meta)
     with pytest.raises(BoostNerfError,

@@ -36,18 +36,33 @@ TRAINABLE_GATES = ("grid", "linear", "switch")  # what build-moe makes (uniform:
 GATE_GRIDS = ("dense", "tensorf", "hash")
 
 
+# A gate's settings as a gate file records them before they took the recipe's names (`GateConfig.saved`).
+_FORMER_NAMES = {"kind": "gate_type", "res": "gate_res", "channels": "gate_channels", "hidden": "gate_hidden",
+                 "layers": "gate_layers", "grid": "gate_grid", "init": "gate_init"}
+
+
 @dataclass
 class GateConfig:
-    kind: str = "grid"
-    res: int = 32  # the gate grid has res^3 voxels over the box
-    channels: int = 8
-    hidden: int = 64
-    layers: int = 2
+    """What a gate is. The fields named `gate_*` are the recipe's `moe.gate_*` keys, as build-moe resolved them (the
+    recipe declares them, with their ranges and choices: `recipe.MoERecipe`); a gate may also be of a kind no recipe
+    chooses (uniform: the ensemble's; baked: logits sampled on a lattice)."""
+
+    gate_type: str = "grid"
+    gate_res: int = 32  # the gate grid has gate_res^3 voxels over the box
+    gate_channels: int = 8
+    gate_hidden: int = 64
+    gate_layers: int = 2
     pe: int = 6  # positional-encoding frequencies of the switch gate
-    grid: str = "dense"  # the feature grid of grid / linear gates: dense | tensorf | hash
+    gate_grid: str = "dense"  # the feature grid of grid / linear gates: dense | tensorf | hash
     levels: int = 6  # hash grid levels
     log2_table: int = 15  # hash grid: at most 2^log2_table rows per level
-    init: str = "random"  # the dense feature grid's start: random | expert (copied from an expert, `init_grid_from`)
+    # the dense feature grid's start: random | expert (copied from an expert, `init_grid_from`)
+    gate_init: str = "random"
+
+    @staticmethod
+    def saved(config: dict) -> "GateConfig":
+        """The config a gate file records (under the former names `kind`, `res`, ... in files written before)."""
+        return GateConfig(**{_FORMER_NAMES.get(key, key): value for key, value in config.items()})
 
 
 def softmax(logits: Tensor) -> Tensor:
@@ -84,33 +99,33 @@ class Gate(nn.Module):
 
     def __init__(self, cfg: GateConfig, n_experts: int, bbox: Tensor, shape: tuple[int, int, int] | None = None):
         super().__init__()
-        if cfg.kind not in GATE_TYPES:
-            raise ValueError(f"unknown gate type {cfg.kind!r}")
-        if cfg.grid not in GATE_GRIDS:
-            raise ValueError(f"unknown gate grid {cfg.grid!r}")
+        if cfg.gate_type not in GATE_TYPES:
+            raise ValueError(f"unknown gate type {cfg.gate_type!r}")
+        if cfg.gate_grid not in GATE_GRIDS:
+            raise ValueError(f"unknown gate grid {cfg.gate_grid!r}")
         self.cfg, self.m = cfg, n_experts
         self.register_buffer("bbox", bbox.detach().float().cpu().clone())
-        self.shape = tuple(shape) if shape is not None else G.lattice_shape(self.bbox, cfg.res ** 3)
+        self.shape = tuple(shape) if shape is not None else G.lattice_shape(self.bbox, cfg.gate_res ** 3)
         self.table = None
         self.vm = None
         self.hash = None
         self.mlp = None
-        if cfg.kind in ("grid", "linear"):
+        if cfg.gate_type in ("grid", "linear"):
             # unit-scale random features: the initial routing varies over space (see _center_logits)
-            if cfg.grid == "dense":
-                self.table = nn.Parameter(torch.randn(math.prod(self.shape), cfg.channels))
-                d_feat = cfg.channels
-            elif cfg.grid == "tensorf":
-                self.vm = VMGrid(self.shape, cfg.channels, init_std=1.0)
+            if cfg.gate_grid == "dense":
+                self.table = nn.Parameter(torch.randn(math.prod(self.shape), cfg.gate_channels))
+                d_feat = cfg.gate_channels
+            elif cfg.gate_grid == "tensorf":
+                self.vm = VMGrid(self.shape, cfg.gate_channels, init_std=1.0)
                 d_feat = self.vm.out_dim
             else:
-                self.hash = HashEncoding(self.bbox, cfg.levels, cfg.log2_table, 2, max(2, cfg.res // 8), cfg.res,
-                                         init_std=1.0)
+                self.hash = HashEncoding(self.bbox, cfg.levels, cfg.log2_table, 2, max(2, cfg.gate_res // 8),
+                                         cfg.gate_res, init_std=1.0)
                 d_feat = self.hash.out_dim
-            self.mlp = _mlp(d_feat, cfg.hidden, cfg.layers if cfg.kind == "grid" else 0, n_experts)
-        elif cfg.kind == "switch":
+            self.mlp = _mlp(d_feat, cfg.gate_hidden, cfg.gate_layers if cfg.gate_type == "grid" else 0, n_experts)
+        elif cfg.gate_type == "switch":
             self.mlp = _mlp(3 + 6 * cfg.pe, 128, 4, n_experts)
-        elif cfg.kind == "baked":
+        elif cfg.gate_type == "baked":
             self.register_buffer("logit_table", torch.zeros(math.prod(self.shape), n_experts))
         if self.mlp is not None:
             self._center_logits()
@@ -124,9 +139,9 @@ class Gate(nn.Module):
         self.mlp[-1].bias -= self.logits(xyz).mean(0)
 
     def logits(self, xyz: Tensor) -> Tensor:
-        if self.cfg.kind == "uniform":
+        if self.cfg.gate_type == "uniform":
             return xyz.new_zeros(xyz.shape[0], self.m)
-        if self.cfg.kind == "switch":
+        if self.cfg.gate_type == "switch":
             rel = (xyz - self.bbox[0]) / (self.bbox[1] - self.bbox[0]) * 2 - 1
             return self.mlp(positional_encoding(rel, self.cfg.pe))
         if self.vm is not None:
@@ -134,7 +149,7 @@ class Gate(nn.Module):
         if self.hash is not None:
             return self.mlp(self.hash(xyz))
         idx, w = G.corners(xyz, self.bbox, self.shape)
-        if self.cfg.kind == "baked":
+        if self.cfg.gate_type == "baked":
             return G.lookup(self.logit_table, idx, w)
         return self.mlp(G.lookup(self.table, idx, w))
 
@@ -170,9 +185,10 @@ class Gate(nn.Module):
     def baked(self, res: int) -> "Gate":
         """A frozen copy whose logits are this gate's, sampled at the vertices of a res^3 lattice and
         interpolated trilinearly: one M-channel lookup per sample instead of the grid + MLP."""
-        if self.cfg.kind in ("uniform", "baked"):
+        if self.cfg.gate_type in ("uniform", "baked"):
             return self
-        out = Gate(GateConfig(kind="baked", res=res, channels=self.m, hidden=0, layers=0), self.m, self.bbox)
+        out = Gate(GateConfig(gate_type="baked", gate_res=res, gate_channels=self.m, gate_hidden=0, gate_layers=0),
+                   self.m, self.bbox)
         out = out.to(self.bbox.device)  # sampled where this gate lives
         pts = G.lattice_points(out.bbox, out.shape)
         out.logit_table.copy_(torch.cat([self.logits(pts[i : i + (1 << 16)]) for i in range(0, pts.shape[0], 1 << 16)]))

@@ -94,14 +94,26 @@ def routing_of(source: Routing) -> dict:
     return {f.name: getattr(source, f.name) for f in dataclasses.fields(Routing)}
 
 
+# T: V_D's opacity over one render step at or below which a sample is filtered (recipe key moe.density_threshold)
+DENSITY_THRESHOLD = 1e-3
+
+
 @dataclass
 class MixtureConfig(Routing):
     """A mixture's config: its routing, and what build-moe fixed for it."""
 
-    threshold: float = 1e-3  # T: alpha of V_D over one render step below which a sample is filtered
+    density_threshold: float = DENSITY_THRESHOLD  # T, as build-moe read it from moe.density_threshold
     vd_res: int = 64  # density volume: vd_res^3 voxels
     step: float = 0.01  # render step (world units)
     expert_names: list[str] = field(default_factory=list)
+
+    @staticmethod
+    def saved(config: dict) -> "MixtureConfig":
+        """The config a mixture file records (its `threshold`, in files written before it was `density_threshold`)."""
+        config = dict(config)
+        if "threshold" in config:
+            config["density_threshold"] = config.pop("threshold")
+        return MixtureConfig(**config)
 
 
 def check_config(cfg: MixtureConfig, m: int) -> None:
@@ -223,7 +235,7 @@ class Mixture(nn.Module):
         the choice is the top-k of the logits; the probabilities are then returned as None.
         """
         flops.add("routing", 4 * self.m * xyz.shape[0])
-        if self.gate.cfg.kind == "uniform":  # the ensemble: every expert, equal weights
+        if self.gate.cfg.gate_type == "uniform":  # the ensemble: every expert, equal weights
             probs = self.gate.probs(xyz)
             idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
             return probs, probs, idx
@@ -288,7 +300,7 @@ class Mixture(nn.Module):
 
     def make_ensemble(self) -> None:
         """Every expert with equal weights (the paper's Ens): a uniform gate and k = M."""
-        self.gate = Gate(GateConfig(kind="uniform"), self.m, self.bbox).to(self.bbox.device)
+        self.gate = Gate(GateConfig(gate_type="uniform"), self.m, self.bbox).to(self.bbox.device)
         self.configure(topk=self.m)
 
     def param_groups(self, lr_grid: float, lr_mlp: float, lr_gate: float, lr_gate_mlp: float) -> list[dict]:
@@ -325,7 +337,7 @@ class MixtureSkip:
             keep = packer.keep_where(mix.occupancy, flat, keep)
         inside = packer.pack("vd", keep)
         sigma = mix.vd_density(flat[inside.rows])
-        opaque = inside.keep(-torch.expm1(-sigma * mix.cfg.step) > mix.cfg.threshold)
+        opaque = inside.keep(-torch.expm1(-sigma * mix.cfg.step) > mix.cfg.density_threshold)
         keep = inside.scatter(opaque, fill=False).reshape(valid.shape)
         if mix.cfg.vd_filter != "visible" or threshold <= 0:
             return keep

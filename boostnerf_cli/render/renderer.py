@@ -26,6 +26,10 @@ from boostnerf_cli.render.packing import DYNAMIC, Packer, packer_for
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.render.volrend import composite, render_weights
 
+# A sample whose rendering weight is at most this skips its colour (the two-pass renderer's second pass; DVGO's
+# fast_color_thres): the renderer's default, train.color_threshold's and every rendered view's with the skip on.
+COLOR_THRESHOLD = 1e-4
+
 
 @dataclass(frozen=True)
 class RenderSettings:
@@ -36,7 +40,7 @@ class RenderSettings:
     far: float
     bbox: Tensor  # (2, 3)
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    color_threshold: float = 1e-4  # weight below which a sample's colour is not computed
+    color_threshold: float = COLOR_THRESHOLD  # weight below which a sample's colour is not computed
     # per ray; the step grows if the box's diagonal needs more (never with Scene.render_settings)
     max_samples: int = 1024
     chunk: int = 8192  # rays per chunk when rendering whole images

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC
-from boostnerf_cli.render.renderer import RenderSettings
+from boostnerf_cli.render.renderer import COLOR_THRESHOLD, RenderSettings
 
 
 @dataclass(frozen=True)
@@ -132,7 +132,7 @@ class Scene:
             "those with --split"
         )
 
-    def render_settings(self, step: float, bbox: Tensor, color_threshold: float = 1e-4) -> RenderSettings:
+    def render_settings(self, step: float, bbox: Tensor, color_threshold: float = COLOR_THRESHOLD) -> RenderSettings:
         """How to render this scene with samples `step` apart inside `bbox` (a model's box): the scene's near,
         far, background and NDC warp; colour only where a sample's weight exceeds `color_threshold`. A ray takes as
         many samples as the box's diagonal holds at `step` (DVGO's N_samples), so no ray lengthens the step of the

@@ -44,7 +44,7 @@ from boostnerf_cli.fields.registry import CONFIGS
 from boostnerf_cli.lineage import moved, scene_digest
 from boostnerf_cli.models import Viewing
 from boostnerf_cli.moe.router import PENALTIES
-from boostnerf_cli.recipe import Recipe, recipe_dict, recorded_recipe
+from boostnerf_cli.recipe import Recipe, check_recipe, recipe_dict, recorded_recipe
 from boostnerf_cli.workspace import Workspace, atomic_path, read_json, recorded_path, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
@@ -97,7 +97,7 @@ def _variant(rec: Recipe, res: list[int], **train) -> Recipe:
     r.pretrain.res = list(res)
     for k, v in train.items():
         setattr(r.pretrain.train, k, v)
-    return r
+    return check_recipe(r, "bench variant's setting")  # checked once, as a recipe read is
 
 
 def ladder(lo: int, hi: int, m: int) -> list[int]:

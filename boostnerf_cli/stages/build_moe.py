@@ -6,27 +6,38 @@ Writes `moe/init.safetensors` (+ `moe/init.json`), the starting point of every `
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, fields
 
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields.base import Expert
 from boostnerf_cli.fields.registry import FAMILIES, count_params
-from boostnerf_cli.lineage import MixtureInitSpec
+from boostnerf_cli.lineage import Found, MixtureInitSpec, decide, stale
 from boostnerf_cli.models import load_expert, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, routing_of
-from boostnerf_cli.recipe import MoERecipe, check_section
+from boostnerf_cli.recipe import MoERecipe
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.workspace import Workspace, read_meta, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 
+@dataclass(frozen=True)
+class Member:
+    """A pretrained expert, loaded for the mixture (or as the gate's source): its name, model, parameter count and
+    render step."""
+
+    name: str
+    model: Expert
+    params: int
+    step: float
+
+
 def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str) -> dict:
     """Build moe/init from the experts `names` (default: every finished one) with the recipe's moe section."""
-    check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
     experts, outside, inputs = _experts(ws, names, rec, device)
     topk = rec.topk
     if topk > len(experts):  # the untrained mixture's k is used by nothing but bench's untrained rows: fit it, say so
@@ -34,27 +45,27 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str) -
         log(f"note: moe.topk = {rec.topk} but the mixture has {len(experts)} expert{'s' if len(experts) > 1 else ''}: "
             f"moe/init routes to {topk} (finetune --topk K sets each finetuned model's k)")
     vd, occ, step = _density_volume(rec, experts, device)
-    gate_grid = resolve_gate_grid(rec.gate_grid, [e[2].family for e in experts])
+    gate_grid = resolve_gate_grid(rec.gate_grid, [e.model.family for e in experts])
     source = gate_source(rec, gate_grid, experts, outside)
-    channels = rec.gate_channels if source is None else source[2].feature_table.shape[1]
+    channels = rec.gate_channels if source is None else source.model.feature_table.shape[1]
     torch.manual_seed(rec.seed)  # the gate's random initialisation: the same for the same recipe
-    gate = Gate(GateConfig(kind=rec.gate_type, res=rec.gate_res, channels=channels, hidden=rec.gate_hidden,
-                           layers=rec.gate_layers, grid=gate_grid, init=rec.gate_init), len(experts), vd.bbox)
+    settings = {f.name: getattr(rec, f.name) for f in fields(GateConfig) if hasattr(rec, f.name)}  # moe.gate_*
+    gate = Gate(GateConfig(**{**settings, "gate_grid": gate_grid, "gate_channels": channels}), len(experts), vd.bbox)
     if source is not None:
-        gate.init_grid_from(source[2].feature_table, source[2].shape, source[2].bbox)
+        gate.init_grid_from(source.model.feature_table, source.model.shape, source.model.bbox)
     gate = gate.to(device)
-    cfg = MixtureConfig(**{**routing_of(rec), "topk": topk}, threshold=rec.density_threshold, vd_res=vd.res,
-                        step=step, expert_names=[e[1] for e in experts])
-    mix = Mixture([e[2] for e in experts], gate, vd, occ, cfg)
+    cfg = MixtureConfig(**{**routing_of(rec), "topk": topk}, density_threshold=rec.density_threshold, vd_res=vd.res,
+                        step=step, expert_names=[e.name for e in experts])
+    mix = Mixture([e.model for e in experts], gate, vd, occ, cfg)
     spec = MixtureInitSpec(inputs, {"mixture": asdict(cfg), "gate": gate.config_dict(), "seed": rec.seed})
     save_mixture(ws.model_path("init"), mix, {"name": "init", "signature": spec.signature()})
     report = {
         "name": "init",
         "experts": cfg.expert_names,
-        "expert_params": [e[0] for e in experts],
+        "expert_params": [e.params for e in experts],
         "gate": gate.config_dict(),
         "gate_params": count_params(gate),
-        "gate_init": "random" if source is None else source[1],
+        "gate_init": "random" if source is None else source.name,
         "density_volume": {"res": cfg.vd_res, "threshold": rec.density_threshold, "from": cfg.expert_names[0],
                            "occupied_fraction": occ.fraction(), "source": rec.vd_source, "filter": rec.vd_filter},
         "step": step,
@@ -67,8 +78,8 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str) -
 
 
 def _experts(ws: Workspace, names: list[str] | None, rec: MoERecipe,
-             device: str) -> tuple[list[tuple], tuple | None, dict[str, str]]:
-    """The mixture's experts, loaded: (params, name, model, render step) smallest first; the gate's source when
+             device: str) -> tuple[list[Member], Member | None, dict[str, str]]:
+    """The mixture's experts, loaded, smallest first (by parameters, then name); the gate's source when
     moe.gate_from names one left out of the mixture; {name: digest} of both (retraining either makes moe/init stale).
     Refused: no expert, an unknown or repeated name, experts of different scenes."""
     manifest = ws.require_manifest()
@@ -95,31 +106,33 @@ def _experts(ws: Workspace, names: list[str] | None, rec: MoERecipe,
     for n in names + extra:
         inputs[n] = read_meta(ws.expert_path(n)).get("digest")
         model, occ, meta = load_expert(ws.expert_path(n), device)
-        loaded[n] = (count_params(model), n, model, meta["step"])
+        loaded[n] = Member(n, model, count_params(model), meta["step"])
         scenes.add(meta.get("scene"))
     if len(scenes) > 1 or (manifest.get("scene_id") and scenes != {manifest["scene_id"]}):
         raise BoostNerfError(
             "the experts were trained on different scenes or image sizes: retrain them in one workspace with "
             "`boostnerf pretrain --force`, or pass --experts with experts of one scene"
         )
-    experts = sorted((loaded[n] for n in names), key=lambda e: (e[0], e[1]))
+    for n in names + extra:  # an expert trained on a geometry since retrained: made again first
+        decide(Found(n, None, stale(ws, n)), None).check()
+    experts = sorted((loaded[n] for n in names), key=lambda e: (e.params, e.name))
     return experts, loaded[extra[0]] if extra else None, inputs
 
 
-def _density_volume(rec: MoERecipe, experts: list[tuple],
+def _density_volume(rec: MoERecipe, experts: list[Member],
                     device: str) -> tuple[DensityVolume, OccupancyGrid, float]:
     """V_D fitted to the smallest expert's density, its occupancy at the mixture's render step (refused when it
     keeps no cell), and that step. -> (V_D, occupancy, step)."""
-    smallest = experts[0][2]
+    smallest = experts[0].model
     bbox = smallest.bbox
-    step = experts[0][3] if rec.step_from == "smallest" else experts[-1][3]
+    step = experts[0].step if rec.step_from == "smallest" else experts[-1].step
     vd = DensityVolume(bbox, rec.vd_res or smallest.spatial_res).to(device)
     vd.init_from(smallest.density)
     occ = OccupancyGrid.from_density(vd.density, bbox, vd.shape, step, rec.density_threshold)
     if occ.fraction() == 0:
         coarse = rec.vd_res and 2 * rec.vd_res <= smallest.spatial_res
         raise BoostNerfError(
-            f"V_D from {experts[0][1]} keeps no cell: its opacity over one render step is at most "
+            f"V_D from {experts[0].name} keeps no cell: its opacity over one render step is at most "
             f"moe.density_threshold = {rec.density_threshold:g} everywhere, so every sample would be filtered and "
             "the mixture could not train; lower it (--threshold)"
             + (f" or raise moe.vd_res (= {rec.vd_res}: a volume this coarse reads the expert's density at few points; "
@@ -129,36 +142,37 @@ def _density_volume(rec: MoERecipe, experts: list[tuple],
     return vd, occ, step
 
 
-def _say_built(rec: MoERecipe, cfg: MixtureConfig, gate: Gate, gate_grid: str, source: tuple | None,
+def _say_built(rec: MoERecipe, cfg: MixtureConfig, gate: Gate, gate_grid: str, source: Member | None,
                occ: OccupancyGrid) -> None:
     has_grid = rec.gate_type in ("grid", "linear")  # a switch gate encodes positions: it has no grid to size
     grid_text = f" ({gate_grid} features) {'x'.join(map(str, gate.shape))}" if has_grid else ""
     if source is not None:
-        same = tuple(source[2].shape) == tuple(gate.shape)
-        grid_text += f" started from {source[1]}'s feature grid ({'copied' if same else 'resampled trilinearly'})"
+        same = tuple(source.model.shape) == tuple(gate.shape)
+        grid_text += f" started from {source.name}'s feature grid ({'copied' if same else 'resampled trilinearly'})"
     log(f"built a mixture of {len(cfg.expert_names)} experts ({', '.join(cfg.expert_names)}), gate {rec.gate_type}"
         f"{grid_text}, V_D from {cfg.expert_names[0]} keeps {100 * occ.fraction():.1f}% of cells"
         + (f" (its filter then reads {cfg.expert_names[-1]}'s density as it trains)" if rec.vd_source == "largest"
            else ""))
 
 
-def gate_source(rec: MoERecipe, gate_grid: str, experts: list[tuple], outside: tuple | None = None) -> tuple | None:
+def gate_source(rec: MoERecipe, gate_grid: str, experts: list[Member],
+                outside: Member | None = None) -> Member | None:
     """The expert whose feature grid starts the gate's (moe.gate_init: expert), or None (random).
 
     The smallest expert, or the one `moe.gate_from` names (`outside`: one left out of the mixture). The official
     code (EIDOSLAB/boost-your-nerf, instant-ngp/moe_main.py) copies the gate's k0 feature grid from the
     lowest-resolution, 128^3, model and then leaves that model out of the mixture; its density grid is copied too
-    but never read by the gate's forward, so only the feature grid is copied here. `experts` are (params, name,
-    model, step) tuples, smallest first. Needs a grid or linear gate with a dense grid and a dvgo source expert."""
+    but never read by the gate's forward, so only the feature grid is copied here. `experts`: smallest first.
+    Needs a grid or linear gate with a dense grid and a dvgo source expert."""
     if rec.gate_init == "random":
         if rec.gate_from:
             raise BoostNerfError(f"moe.gate_from = {rec.gate_from!r} needs moe.gate_init = expert (the gate is random "
                                  f"now): set moe.gate_init to expert, or moe.gate_from to ''")
         return None
-    source = outside or next((e for e in experts if e[1] == rec.gate_from), experts[0])
-    if source[2].family != "dvgo":
+    source = outside or next((e for e in experts if e.name == rec.gate_from), experts[0])
+    if source.model.family != "dvgo":
         raise BoostNerfError(f"moe.gate_init = expert needs a dvgo expert (the gate copies a dense feature grid); "
-                             f"{source[1]} is {source[2].family}: set moe.gate_init to random")
+                             f"{source.name} is {source.model.family}: set moe.gate_init to random")
     if rec.gate_type not in ("grid", "linear") or gate_grid != "dense":
         raise BoostNerfError(f"moe.gate_init = expert needs a grid or linear gate with a dense feature grid "
                              f"(moe.gate_type = {rec.gate_type}, gate grid {gate_grid}): set moe.gate_init to random "

@@ -1,4 +1,5 @@
-"""What several stages share: the device to run on, and the workspace's scene reloaded and checked."""
+"""What several stages share: the device to run on, the workspace's scene reloaded and checked, and training a model
+with its report (pretrain's experts, finetune's mixtures and baseline)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,10 @@ from typing import Iterator
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.lineage import scene_digest
+from boostnerf_cli.fields.registry import count_params
+from boostnerf_cli.lineage import SceneSpec, scene_digest
 from boostnerf_cli.scenes import Scene, load_scene
+from boostnerf_cli.train import RayData, Schedule, TrainCheckpoint, TrainResult, TrainTask, train
 from boostnerf_cli.workspace import Workspace
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
@@ -48,8 +51,9 @@ def workspace_scene(ws: Workspace) -> Scene:
     if not data:
         raise BoostNerfError(f"{ws.manifest_path} records no scene: rerun `boostnerf pretrain --workspace {ws.root}`")
     path = workspace_scene_path(ws, m)
-    scene = load_scene(path, image_size=data.get("image_size"), holdout_every=data.get("holdout_every", 8),
-                       format=data.get("format", "auto"), bbox=data.get("bbox"), cache=ws.scene_cache)
+    spec = SceneSpec.recorded(data)
+    scene = load_scene(path, image_size=spec.image_size, holdout_every=spec.holdout_every, format=spec.format,
+                       bbox=spec.bbox, cache=ws.scene_cache)
     if m.get("scene_digest") and scene_digest(scene) != m["scene_digest"]:
         raise BoostNerfError(
             f"the workspace's scene {path} changed since pretrain (its images or cameras differ): restore it, "
@@ -69,3 +73,16 @@ def slow_notice(message: str, after: float = 5.0) -> Iterator[None]:
         yield
     finally:
         timer.cancel()
+
+
+def train_and_report(task: TrainTask, rays: RayData, sched: Schedule, seed: int, name: str,
+                     checkpoint: TrainCheckpoint, model: torch.nn.Module,
+                     data_parallel: bool = False) -> tuple[TrainResult, dict]:
+    """Train `task` (`train.train`), put `model` in eval mode, and the report every trained model's begins with:
+    its steps, seconds, start-up, skipped steps, parameters, last train PSNR and history. -> (result, report)."""
+    result = train(task, rays, sched, seed, name, checkpoint, data_parallel=data_parallel)
+    model.eval()
+    final = result.history[-1] if result.history else {}
+    return result, {"iterations": result.iterations, "seconds": round(result.seconds, 2),
+                    "startup_seconds": result.startup_seconds, "skipped_steps": result.skipped_steps,
+                    "params": count_params(model), "train_psnr": final.get("psnr"), "history": result.history}

@@ -15,16 +15,15 @@ import logging
 
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields.registry import count_params
 from boostnerf_cli.lineage import BaselineSpec, FinetuneSpec, decide, finished, stale
 from boostnerf_cli.models import load_expert, load_mixture, mixture_routing_meta, save_expert, save_mixture
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, Routing, check_config, routing_of
 from boostnerf_cli.moe.router import check_topk
-from boostnerf_cli.recipe import MoERecipe, check_section
+from boostnerf_cli.recipe import MoERecipe
 from boostnerf_cli.scenes import Scene
-from boostnerf_cli.stages.common import workspace_scene
+from boostnerf_cli.stages.common import train_and_report, workspace_scene
 from boostnerf_cli.tasks import FieldTask, MixtureTask, train_rays
-from boostnerf_cli.train import Schedule, TrainCheckpoint, train
+from boostnerf_cli.train import Schedule, TrainCheckpoint
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
@@ -118,7 +117,6 @@ def unused_settings(ws: Workspace, name: str, topk: int | None, rec: MoERecipe,
 
 def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str, force: bool) -> dict:
     """Finetune model `name` (skipped when finished with the same settings)."""
-    check_section(rec, "moe", "setting")  # the recipe was checked when read; flags may have changed it since
     init_meta = _init_meta(ws)
     init = ws.model_path("init")
     if (found := finished(ws, name)) is not None and not force:  # refused when made from another moe/init or
@@ -130,18 +128,17 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
     mix.train()
     if name == "baseline":
         return _baseline(ws, scene, mix, rec, device, force)
-    sched = _schedule(rec)
     source = _source_digest(ws, name, init_meta)
     if name == "ens":
         mix.make_ensemble()
-    cfg, kind = routing(name, topk, rec, mix.cfg, mix.gate.cfg.kind)
+    cfg, kind = routing(name, topk, rec, mix.cfg, mix.gate.cfg.gate_type)
     mix.configure(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)})
     settings = scene.render_settings(mix.cfg.step, mix.bbox, rec.train.color_threshold)
     task = MixtureTask(mix, settings, rec.train, rec)
     sig = spec(name, rec, source, mix.cfg).signature()
-    result = train(task, train_rays(scene, mix.bbox, device, rec.train), sched, rec.seed, name,
-                   TrainCheckpoint(ws.checkpoint_path(name), sig, restart_other=force), data_parallel=True)
-    mix.eval()
+    result, trained = train_and_report(task, train_rays(scene, mix.bbox, device, rec.train), _schedule(rec), rec.seed,
+                                       name, TrainCheckpoint(ws.checkpoint_path(name), sig, restart_other=force), mix,
+                                       data_parallel=True)
     final = result.history[-1] if result.history else {}
     report = {
         "name": name,
@@ -149,16 +146,10 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
         **routing_of(mix.cfg),
         "lambda": rec.lam,
         "seed": rec.seed,
-        "gate": mix.gate.cfg.kind,
+        "gate": mix.gate.cfg.gate_type,
         "experts": mix.cfg.expert_names,
-        "iterations": result.iterations,
-        "seconds": round(result.seconds, 2),
-        "startup_seconds": result.startup_seconds,
-        "skipped_steps": result.skipped_steps,
-        "params": count_params(mix),
+        **trained,
         "load": [final.get(f"load{i}", 0.0) for i in range(mix.m)],
-        "train_psnr": final.get("psnr"),
-        "history": result.history,
     }
 
     def write() -> None:
@@ -175,8 +166,7 @@ def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str,
 
 def _schedule(rec: MoERecipe) -> Schedule:
     """The joint training's schedule, the same for every finetuned model."""
-    return Schedule(rec.iters, rec.train.batch_rays, rec.train.lr_decay, rec.train.log_every,
-                    rec.train.checkpoint_every)
+    return Schedule.of(rec.iters, rec.train)
 
 
 def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, device: str, force: bool = False) -> dict:
@@ -187,23 +177,11 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, device:
     settings = scene.render_settings(meta["step"], model.bbox, rec.train.color_threshold)
     task = FieldTask(model, settings, rec.train, skip=occ, base_mask=occ)
     sig = spec("baseline", rec, meta["digest"], largest=largest).signature()
-    result = train(task, train_rays(scene, model.bbox, device, rec.train), _schedule(rec), rec.seed, "baseline",
-                   TrainCheckpoint(ws.checkpoint_path("baseline"), sig, restart_other=force), data_parallel=True)
-    model.eval()
-    final = result.history[-1] if result.history else {}
-    report = {
-        "name": "baseline",
-        "kind": "expert",
-        "from": largest,
-        "seed": rec.seed,
-        "iterations": result.iterations,
-        "seconds": round(result.seconds, 2),
-        "startup_seconds": result.startup_seconds,
-        "skipped_steps": result.skipped_steps,
-        "params": count_params(model),
-        "train_psnr": final.get("psnr"),
-        "history": result.history,
-    }
+    result, trained = train_and_report(task, train_rays(scene, model.bbox, device, rec.train), _schedule(rec),
+                                       rec.seed, "baseline",
+                                       TrainCheckpoint(ws.checkpoint_path("baseline"), sig, restart_other=force), model,
+                                       data_parallel=True)
+    report = {"name": "baseline", "kind": "expert", "from": largest, "seed": rec.seed, **trained}
 
     def write() -> None:
         save_expert(ws.model_path("baseline"), model, task.skip,

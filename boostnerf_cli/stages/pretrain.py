@@ -22,8 +22,21 @@ from torch import Tensor, nn
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.dvgo import DVGOConfig, DVGOExpert
-from boostnerf_cli.fields.registry import build_expert, count_params
-from boostnerf_cli.lineage import SKIP, ExpertSpec, GeometrySpec, SceneSpec, decide, finished, moved, scene_digest
+from boostnerf_cli.fields.registry import build_expert
+from boostnerf_cli.lineage import (
+    REFUSE,
+    SKIP,
+    ExpertSpec,
+    Found,
+    GeometrySpec,
+    SceneSpec,
+    decide,
+    describe_change,
+    finished,
+    moved,
+    scene_digest,
+    stale,
+)
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.models import load_expert, save_expert
 from boostnerf_cli.recipe import (
@@ -31,7 +44,6 @@ from boostnerf_cli.recipe import (
     PretrainRecipe,
     Recipe,
     TrainRecipe,
-    check_recipe,
     nearest_listed,
     recipe_dict,
     unused_family_note,
@@ -46,16 +58,17 @@ from boostnerf_cli.render.coverage import (
 )
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.packing import packer_for
-from boostnerf_cli.render.renderer import RenderSettings, render_view
+from boostnerf_cli.render.renderer import COLOR_THRESHOLD, RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.scenes.bounds import box_text
-from boostnerf_cli.stages.common import slow_notice, workspace_scene_path
+from boostnerf_cli.stages.common import slow_notice, train_and_report, workspace_scene_path
 from boostnerf_cli.startup import CLOCK
 from boostnerf_cli.tasks import FieldTask, train_rays
 from boostnerf_cli.train import Schedule, TrainCheckpoint, train
 from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
+warn = logging.getLogger(__name__).warning
 
 
 def growth_schedule(iters: int, fractions: list[float]) -> tuple[int, ...]:
@@ -69,7 +82,7 @@ def _test_psnr(model: nn.Module, split: Split, settings: RenderSettings, skip, d
     """Mean held-out PSNR, rendered as `eval` renders the expert: colour where a sample's weight exceeds the
     renderer's default threshold, not train.color_threshold (a threshold near 1 skips the colour of samples that
     `eval` shades, and the report and `eval` would score the expert differently)."""
-    settings = dataclasses.replace(settings, color_threshold=RenderSettings.color_threshold)
+    settings = dataclasses.replace(settings, color_threshold=COLOR_THRESHOLD)
     psnrs = []
     packer = packer_for(device)  # one for the views: each reuses the budgets the ones before it sized
     for i in range(min(len(split), max_views)):
@@ -106,8 +119,16 @@ class Geometry:
 
 
 # ----------------------------------------------------------------------------------------------
-def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every: int = 500) -> Geometry:
-    """The shared occupied box, occupancy mask and coarse density (trained once per workspace).
+def geometry_spec(site: Site, rec: GeometryRecipe, seed: int) -> GeometrySpec:
+    """What the geometry is made from (its first round's spec: the settings, the seed, the scene's box and id); the
+    refining round follows from it."""
+    return GeometrySpec.of("geometry", site.tag, rec, seed, site.scene.bbox.flatten().tolist())
+
+
+def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every: int = 500,
+                    retrain: bool = False) -> Geometry:
+    """The shared occupied box, occupancy mask and coarse density (trained once per workspace, and again when
+    `retrain`: its settings changed, and --force was given).
 
     The coarse grid trains over the scene's box; the box is drawn around the visible surface it finds (every
     foreground training ray's, render/coverage.py). With `refine`, when that box holds less than half the
@@ -115,20 +136,20 @@ def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every
     over fewer of them) and draws the box again. The occupancy is over the last coarse grid's box.
     """
     ws = site.ws
-    if ws.geometry_path.exists():
+    if ws.geometry_path.exists() and not retrain:
         model, occ, meta = load_expert(ws.geometry_path, site.device)
         return Geometry(torch.tensor(meta["fine_bbox"], device=site.device), occ, model)
     t0 = time.perf_counter()
     bbox = site.scene.bbox.to(site.device)
     box, occ, model, cover = _coarse_round(site, rec, bbox, "geometry", seed, checkpoint_every)
     if cover is not None and cover["edge_rays"] > EDGE_WARN * cover["foreground_rays"]:  # over the scene's own box
-        log(f"geometry: warning: {cover['edge_rays']} of {cover['foreground_rays']} foreground training rays "
+        warn(f"geometry: {cover['edge_rays']} of {cover['foreground_rays']} foreground training rays "
             f"({100 * cover['edge_rays'] / cover['foreground_rays']:.1f}%) find their surface on the faces of the "
             f"scene box {box_text(bbox)}: the scene reaches past it, and what lies "
             "beyond is drawn on its faces; if that is content, give recipe key data.bbox a box that holds it "
             "(docs/datasets.md, \"The scene box\")")
     if cover is not None and cover["missed_after"] > EDGE_WARN * cover["foreground_rays"]:  # a refined box: those too
-        log(f"geometry: warning: {cover['missed_after']} of {cover['foreground_rays']} foreground training rays "
+        warn(f"geometry: {cover['missed_after']} of {cover['foreground_rays']} foreground training rays "
             f"({100 * cover['missed_after'] / cover['foreground_rays']:.1f}%) miss the scene box {box_text(bbox)} "
             "altogether: what they show lies outside it and cannot be learned; if that is content, give recipe key "
             "data.bbox a box that holds it (docs/datasets.md, \"The scene box\")")
@@ -142,7 +163,8 @@ def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every
     seconds = round(time.perf_counter() - t0, 2)
     save_expert(ws.geometry_path, model, occ, {"name": "geometry", "fine_bbox": box.tolist(), "iters": rec.iters,
                                                "seconds": seconds, "occupied_fraction": occ.fraction(),
-                                               "coverage": rounds[-1], "rounds": rounds})
+                                               "coverage": rounds[-1], "rounds": rounds,
+                                               "signature": geometry_spec(site, rec, seed).signature()})
     for name in ("geometry", "geometry-refine"):
         ws.checkpoint_path(name).unlink(missing_ok=True)
     log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {box_text(box)} "
@@ -163,13 +185,13 @@ def _coarse_round(site: Site, rec: GeometryRecipe, bbox: Tensor, name: str, seed
     model = DVGOExpert(DVGOConfig(res=rec.res, hidden=0, alpha_init=rec.alpha_init), bbox).to(device)
     step = 0.5 * model.voxel_size
     settings = scene.render_settings(step, bbox)
-    tcfg = TrainRecipe(lr_grid=rec.lr, weight_rgbper=0.0, weight_entropy=rec.weight_entropy, occupancy_every=0)
+    tcfg = TrainRecipe(batch_rays=rec.batch_rays, lr_grid=rec.lr, weight_rgbper=0.0, weight_entropy=rec.weight_entropy,
+                       occupancy_every=0, log_every=max(1, rec.iters // 5), checkpoint_every=checkpoint_every)
     task = FieldTask(model, settings, tcfg, skip=None, base_mask=None)
     rays = train_rays(scene, bbox, device, tcfg)
     ckpt = site.ws.checkpoint_path(name)  # removed once the geometry is saved
     spec = GeometrySpec.of(name, site.tag, rec, seed, bbox.flatten().tolist())
-    train(task, rays, Schedule(rec.iters, rec.batch_rays, log_every=max(1, rec.iters // 5),
-                               checkpoint_every=checkpoint_every), seed, name, TrainCheckpoint(ckpt, spec.signature()))
+    train(task, rays, Schedule.of(rec.iters, tcfg), seed, name, TrainCheckpoint(ckpt, spec.signature()))
     model.eval()
     occ = OccupancyGrid.from_density(model.density, bbox, model.shape, step, rec.alpha_threshold)
     cover = None
@@ -195,7 +217,7 @@ def _coarse_round(site: Site, rec: GeometryRecipe, bbox: Tensor, name: str, seed
     else:
         box = occ.occupied_bbox(margin_cells=1)
     if not occ.occupied.any():
-        log(f"{name}: warning: the coarse stage found no occupied space (too few geometry.iters?); "
+        warn(f"{name}: the coarse stage found no occupied space (too few geometry.iters?); "
             "experts will train on the whole camera box without skipping")
         occ, box, cover = OccupancyGrid(torch.ones_like(occ.occupied), bbox), bbox.clone(), None
     return box, occ, model, cover
@@ -252,28 +274,21 @@ def pretrain_expert(site: Site, rec: PretrainRecipe, res: int, geometry: Geometr
     settings = scene.render_settings(tcfg.step_ratio * model.unit, box, tcfg.color_threshold)
     task = FieldTask(model, settings, tcfg, skip=geom, base_mask=geom, growth_steps=growth, final_voxels=final_voxels)
     rays = train_rays(scene, box, device, tcfg)
-    sched = Schedule(rec.iters, tcfg.batch_rays, tcfg.lr_decay, tcfg.log_every, tcfg.checkpoint_every)
     ckpt = ws.checkpoint_path(name)
     signature = ExpertSpec.of(rec, res, expert_options(rec, res), site.tag,
                               read_meta(ws.geometry_path).get("digest")).signature()
-    result = train(task, rays, sched, rec.seed + res, name, TrainCheckpoint(ckpt, signature, restart_other=force))
-    model.eval()
+    _, trained = train_and_report(task, rays, Schedule.of(rec.iters, tcfg), rec.seed + res, name,
+                                  TrainCheckpoint(ckpt, signature, restart_other=force), model)
     task.refresh_occupancy()
     report = {
         "name": name,
         "model": rec.model,
         "res": res,
         "seed": rec.seed,  # pretrain.seed: this expert's initialisation and batches draw from seed + res
-        "iterations": result.iterations,
-        "seconds": round(result.seconds, 2),
-        "startup_seconds": result.startup_seconds,
-        "skipped_steps": result.skipped_steps,
-        "params": count_params(model),
+        **trained,
         "grid_shape": list(model.shape),
         "occupied_fraction": task.skip.fraction() if task.skip is not None else 1.0,
         "skip": rec.skip,
-        "train_psnr": result.history[-1]["psnr"] if result.history else None,
-        "history": result.history,
     }
     test = scene.held_out()
     if test is not None:
@@ -352,9 +367,10 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str,
     -> (where pretraining works, the geometry, resolutions of the experts left to train).
     Under torchrun rank 0 runs this first and alone writes; the other ranks then find everything made.
     """
-    check_recipe(rec, "setting")  # the recipe was checked when read; flags may have changed it since
     m = ws.manifest()  # read once: nothing below writes it before update_manifest
     scene, spec, tag, digest = _scene(ws, m, data, rec, force)
+    site = Site(ws, scene, tag, device)
+    retrain = _geometry_changed(site, rec.pretrain, force)
     decisions = {}  # every finished expert's, before anything is written (a refusal leaves the manifest as it is)
     for res in sorted(rec.pretrain.res):
         name = expert_name(rec.pretrain.model, res)
@@ -366,15 +382,34 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str,
         ws.update_manifest(data=spec.record(), scene_id=tag, scene_digest=digest, scene=scene.describe(),
                            recipe=recipe_dict(rec))
     _describe(scene)
-    site = Site(ws, scene, tag, device)
-    geometry = ensure_geometry(site, rec.pretrain.geometry, rec.pretrain.seed, rec.pretrain.train.checkpoint_every)
+    geometry = ensure_geometry(site, rec.pretrain.geometry, rec.pretrain.seed, rec.pretrain.train.checkpoint_every,
+                               retrain)
     todo = []
     for res in sorted(rec.pretrain.res):
         if decisions.get(res) is not None and decisions[res].action == SKIP:
             log(f"{expert_name(rec.pretrain.model, res)}: already trained, skipping (use --force to retrain)")
         else:
             todo.append(res)  # with --force, a checkpoint of other settings is dropped when training starts
+    if retrain:  # the experts this run does not train again were trained on the old geometry
+        training = {expert_name(rec.pretrain.model, res) for res in todo}
+        for name in ws.expert_names():
+            if name not in training and (why := stale(ws, name)) is not None:
+                warn(f"{name} is stale: {why[0]}; make it again with {why[1]}")
     return site, geometry, todo
+
+
+def _geometry_changed(site: Site, rec: PretrainRecipe, force: bool) -> bool:
+    """Whether the geometry is to be trained again: a finished one of other settings is refused (`decide`), with
+    --force retrained (said). --force alone does not retrain it: the same settings make the same geometry."""
+    path = site.ws.geometry_path
+    found = Found("geometry", read_meta(path).get("signature")) if path.exists() else None
+    wanted = geometry_spec(site, rec.geometry, rec.seed).signature()
+    decision = decide(found, wanted)
+    if decision.action == REFUSE and force:
+        log(f"geometry: trained with other settings ({describe_change(found.signature, wanted)}): retraining it")
+        return True
+    decision.check()
+    return False
 
 
 def _describe(scene: Scene) -> None:
@@ -382,7 +417,7 @@ def _describe(scene: Scene) -> None:
     if "detected" in scene.extra:
         log(f"format: {scene.extra['detected']}")
     for warning in scene.extra.get("warnings", []):
-        log(f"warning: {warning}")
+        warn(warning)
     for note in scene.extra.get("notes", []):
         log(f"note: {note}")
     log(f"scene {scene.name}: {len(scene.splits['train'])} train views "

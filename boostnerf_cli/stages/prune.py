@@ -65,7 +65,7 @@ def usage_masks(ws: Workspace, name: str, scene: Scene, split: Split, device: st
         return masks
     render = render or load_model(ws, name, device)  # what render and eval run: the gate baked
     baked = render.field.gate
-    if baked.cfg.kind != "baked":
+    if baked.cfg.gate_type != "baked":
         return masks
     logit_table = baked.logit_table
     grads = photometric_grads(render.field, render.skip, render.settings(scene), split, device, views,
