@@ -312,7 +312,7 @@ class Viewer:
             if mixture is None and label in self.models.labels():
                 mixture = self.models.get(label)
         box = self.model.bbox if self.model is not None else self.scene.bbox
-        routed = mixture is not None and mixture.field.gate.cfg.kind != "uniform"  # the ensemble routes nowhere
+        routed = mixture is not None and mixture.field.gate.cfg.gate_type != "uniform"  # the ensemble routes nowhere
         cells = routed_cells(mixture.field) if routed else None
         return box_edges(box.cpu()), cells
 
