@@ -258,12 +258,15 @@ def make_scene_cmd(
     n_test: Annotated[int, typer.Option("--test-views", min=0)] = 8,
     seed: Annotated[int, typer.Option()] = 0,
     layout: Annotated[str, typer.Option(
-        "--format", help="Layout: blender, nsvf, tanks, llff or nerfstudio.")] = "blender",
+        "--format", help="Layout: blender, nsvf, tanks, llff, nerfstudio or colmap.")] = "blender",
     rig: Annotated[str | None, typer.Option(
         "--rig", help="Cameras: sphere or forward (default: forward for llff, else sphere).")] = None,
     content: Annotated[str, typer.Option("--content", help=(
         "objects, thin (rods and a cable 1-2 px wide), large (a floor past the box), empty, or detail (fine "
         "patterns on one half, smooth content on the other: the quickstart's scene); docs/datasets.md."))] = "objects",
+    lens: Annotated[str, typer.Option("--lens", help=(
+        "pinhole, opencv (radial and tangential distortion) or fisheye: the views are ray-cast through it and the "
+        "files record it (nerfstudio and colmap layouts)."))] = "pinhole",
 ) -> None:
     """Write a small procedural scene (exact ray casting) in any dataset layout boostnerf reads."""
     from boostnerf_cli.scenes import make_scene
@@ -271,7 +274,7 @@ def make_scene_cmd(
 
     _one_process()
     path = make_scene(out_dir, size=size, n_train=n_train, n_test=n_test, seed=seed, layout=layout, rig=rig,
-                      content=content)
+                      content=content, lens=lens)
     written = written_test_views(layout, n_train, n_test)
     note = (f" ({layout} holds out every 8th view: with {n_train} train views that is {written} test views, not the "
             f"{n_test} asked for)") if written != n_test else ""
