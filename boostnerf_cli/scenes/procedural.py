@@ -50,7 +50,7 @@ def _place(rng: np.random.Generator) -> np.ndarray:
     return quadrants * 0.45 + rng.uniform(-0.1, 0.1, (4, 2))
 
 
-CONTENTS = ("objects", "thin", "large", "empty", "detail")
+CONTENTS = ("objects", "thin", "large", "empty", "detail", "textured")
 LARGE_FLOOR_RADIUS = 3.0  # the "large" content's floor: past the camera-derived box (about +-1.7) and out of every view
 THIN_RADIUS = 0.018  # rods and cable of the "thin" content: about 1.2 px wide at 100 px (2 px at 160 px)
 
@@ -111,6 +111,19 @@ def detail_objects(seed: int = 0) -> list[dict]:
     ]
 
 
+def textured_objects(seed: int = 0) -> list[dict]:
+    """The "objects" content with every surface speckled with round dots of three sizes ("dots"): blobs that SIFT
+    finds and matches from view to view, for structure-from-motion (`boostnerf capture`) tests."""
+    rng = np.random.default_rng(seed + 3000)
+
+    def contrast() -> list[list[float]]:  # a light colour and a dark one
+        light = rng.uniform(0.6, 0.95, 3)
+        return [[round(float(v), 4) for v in light], [round(float(v), 4) for v in light * rng.uniform(0.1, 0.25)]]
+
+    return [{**obj, "texture": "dots", "scales": [round(float(v), 3) for v in rng.uniform([2.5, 5, 10], [3.5, 7, 14])],
+             "colours": contrast()} for obj in scene_objects(seed)]
+
+
 def scene_objects(seed: int = 0, content: str = "objects") -> list[dict]:
     """The seeded object list (JSON-able): kind, geometry, colours and texture of each object.
 
@@ -128,6 +141,8 @@ def scene_objects(seed: int = 0, content: str = "objects") -> list[dict]:
         return []
     if content == "detail":
         return detail_objects(seed)
+    if content == "textured":
+        return textured_objects(seed)
     rng = np.random.default_rng(seed)
     colour = lambda: [round(float(v), 4) for v in rng.uniform(0.15, 0.95, 3)]  # noqa: E731
     xy = _place(rng)
@@ -229,6 +244,17 @@ def shade(obj: dict, normal: Tensor, p: Tensor) -> Tensor:
     elif obj["texture"] == "half-checker":  # checker (2-D) where x > 0, the smooth gradient where x < 0
         checker = torch.floor(p[:, :2] / obj["cell"]).sum(-1).remainder(2)
         w = torch.where(p[:, 0] > 0, checker, 0.5 + 0.5 * torch.sin(2.0 * p[:, 0] + 1.5 * p[:, 1]))
+    elif obj["texture"] == "dots":  # a dot (a ball cut by the surface) at a random place in each cell of 3 lattices
+        w = torch.zeros_like(p[:, 0])
+        for scale in obj["scales"]:
+            q = p * scale
+            cell = torch.floor(q)
+            h = [torch.frac(torch.sin(cell @ torch.tensor(v, dtype=torch.float64)) * 43758.5453).abs()
+                 for v in ((12.9898, 78.233, 37.719), (39.346, 11.135, 83.155), (73.156, 52.235, 9.151),
+                           (27.17, 61.93, 44.71))]
+            centre = cell + 0.25 + 0.5 * torch.stack(h[:3], -1)
+            w = w + ((q - centre).norm(dim=-1) < 0.2 + 0.2 * h[3]).double()
+        w = w.remainder(2)
     elif obj["texture"] == "stripes":
         w = torch.floor(p[:, 2] / (obj["period"] / 2)).remainder(2)
     else:  # checker: 2-D on the disc (its z is constant), 3-D on boxes
@@ -319,6 +345,16 @@ def camera_poses(n_train: int, n_test: int, radius: float = RADIUS) -> tuple[np.
     return _split_test(np.stack([look_at(p) for p in pos]), n_test)
 
 
+def orbit_poses(n_train: int, n_test: int, radius: float = RADIUS) -> tuple[np.ndarray, np.ndarray]:
+    """A walk around the scene, as a phone capture: n_train + n_test cameras evenly spaced on a circle, at elevations
+    alternating between 25 and 40 deg, each looking at the origin. -> train (n_train, 4, 4), test (n_test, 4, 4)."""
+    n = n_train + n_test
+    az = 2 * math.pi * np.arange(n) / n
+    el = np.radians(np.where(np.arange(n) % 2 == 0, 25.0, 40.0))
+    pos = radius * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    return _split_test(np.stack([look_at(p) for p in pos]), n_test)
+
+
 # ----------------------------------------------------------------------------- writing
 
 LAYOUTS = ("blender", "nsvf", "tanks", "llff", "nerfstudio", "colmap")
@@ -327,7 +363,7 @@ LAYOUTS = ("blender", "nsvf", "tanks", "llff", "nerfstudio", "colmap")
 LENSES = {"pinhole": ({}, False), "opencv": ({"k1": -0.3, "k2": 0.1, "p1": 0.003, "p2": -0.002}, False),
           "fisheye": ({"k1": 0.08, "k2": -0.03, "k3": 0.01, "k4": -0.002}, True)}
 LENS_LAYOUTS = ("nerfstudio", "colmap")
-RIGS = ("sphere", "forward")
+RIGS = ("sphere", "forward", "orbit")
 CONTENT_BOX = [[-1.1, -1.1, -0.6], [1.1, 1.1, 0.4]]  # holds every object of every seed (within 0.002 in x, y)
 # bbox.txt's room around CONTENT_BOX: more than a coarse cell of the demo recipe's 16^3 geometry grid (0.17), as
 # docs/datasets.md asks of a given box. With none, the floor lay 0.1 above the bottom face, within a cell, and 4-5%
@@ -408,12 +444,18 @@ content where x < 0. A floor disc with a checkerboard (cell {DETAIL_CELL}) on it
 gradient on the other; on the detailed half a rotated box with a 3-D checkerboard (cell {DETAIL_CELL}) and a sphere
 with stripes (period {2 * DETAIL_CELL:g}), on the smooth half a sphere and a box with smooth gradients; Lambertian
 shading under a fixed directional light, no shadows.""",
+    "textured": """Content (content 'textured', inside about [-1, 1]^2 x [-0.5, 0.3]): the floor disc, two spheres and two
+boxes of the default content, every surface speckled with round dots of three sizes in a light and a dark colour:
+texture that SIFT finds and matches, for structure from motion; Lambertian shading under a fixed directional light,
+no shadows.""",
 }
 
 RIG_TEXT = {
     "sphere": "radius {radius} on the upper hemisphere (elevation 10-70 deg, Fibonacci spiral) looking at the origin.",
     "forward": "forward-facing, spread over a disc of radius 0.6 at distance {radius} and elevation 30 deg, each "
                "looking at the origin.",
+    "orbit": "radius {radius} on a circle around the scene (a walk around it), elevations alternating 25 and 40 deg, "
+             "each looking at the origin.",
 }
 
 
@@ -664,7 +706,7 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         raise BoostNerfError(f"{out_dir} already holds files: make-scene writes into a new or empty folder (another "
                              "scene's files would mix with this one's); choose a new folder or delete this one")
     n_test = written_test_views(layout, n_train, n_test)  # the views of a Blender scene with that many test views
-    train, test = (forward_poses if rig == "forward" else camera_poses)(n_train, n_test)
+    train, test = {"forward": forward_poses, "orbit": orbit_poses, "sphere": camera_poses}[rig](n_train, n_test)
     focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
     k = torch.tensor(lens_row(focal, focal, size / 2, size / 2, *LENSES[lens]))
     views = {}
