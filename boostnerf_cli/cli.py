@@ -199,7 +199,7 @@ RECIPE_OPTIONS = {
         "holdout_every": _sets("data.holdout_every", int, "--holdout-every",
                                help="No test split: hold out every N-th train view, N >= 2 (0: none)."),
         "data_format": _sets("data.format", str, "--format",
-                             help="Dataset format: auto, blender, nsvf, tanks, llff or nerfstudio."),
+                             help="Dataset format: auto, blender, nsvf, tanks, llff, colmap or nerfstudio."),
         "seed": _sets("pretrain.seed", int, "--seed"),
         "skip": _sets("pretrain.skip", bool, "--skip/--no-skip", show_default=False,
                       help="--no-skip: train on the whole box, no occupancy mask (pretrain.skip)."),
@@ -564,22 +564,16 @@ def capture(
     per_image_cameras: Annotated[bool, typer.Option(
         "--per-image-cameras", help="One camera per image (photos from several cameras or zoom levels); default: "
         "one shared camera.")] = False,
-    feature_size: Annotated[int, typer.Option("--feature-size", min=200, help=(
-        "Longer image side, in pixels, that SIFT features are found at."))] = 1024,
-    matching: Annotated[str, typer.Option("--matching", help=(
-        "auto (video: sequential with loop closure; photos: exhaustive up to 60, else retrieval), exhaustive, "
-        "sequential or retrieval."))] = "auto",
     force: Annotated[bool, typer.Option("--force", help="Redo every phase, even those a previous run finished.")] = False,
 ) -> None:
-    """Photos or a video in, a COLMAP scene folder out that pretrain --data reads (structure from motion by pycolmap)."""
+    """Photos or a video in, a COLMAP scene folder out that pretrain --data reads (structure from motion by pycolmap:
+    SIFT at 1024 px, matching that fits the input, incremental mapping; docs/capture.md)."""
     from boostnerf_cli.stages import capture as stage
 
     _one_process()
     if camera_model.upper() not in stage.CAMERA_MODELS:
         raise BoostNerfError(f"--camera-model {camera_model}: use one of {', '.join(stage.CAMERA_MODELS)}")
-    if matching not in ("auto", "exhaustive", "sequential", "retrieval"):
-        raise BoostNerfError(f"--matching {matching}: use auto, exhaustive, sequential or retrieval")
-    options = stage.CaptureOptions(camera_model.upper(), per_image_cameras, feature_size, frames, matching)
+    options = stage.CaptureOptions(camera_model.upper(), per_image_cameras, frames=frames)
     r = stage.run(images, video, out, options, force)
     table = Table("phase", "seconds", "result")
     results = {"images": f"{r['given']} images", "features": f"{r['keypoints']:,} keypoints",

@@ -6,7 +6,7 @@ cd "$(dirname "$0")/.."
   echo "# Command reference"; echo
   echo "Generated from \`boostnerf COMMAND --help\` by scripts/cli-reference.sh (a test checks that each section is the command's \`--help\` as printed now)."; echo
   echo "\`boostnerf --version\` prints the version. A mistake on the command line (an unknown option, a value of the wrong type, a missing option) is one line starting \`error:\` that names the command's \`--help\`, exit code 2, as every other refusal is."; echo
-  for c in make-scene pretrain build-moe finetune render eval count-params prune bench; do
+  for c in make-scene pretrain build-moe finetune render eval count-params prune bench capture; do
     echo "## \`boostnerf $c\`"; echo; echo '```'
     COLUMNS=100 boostnerf "$c" --help 2>&1 | sed 's/[[:space:]]*$//'
     echo '```'; echo

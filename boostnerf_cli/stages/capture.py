@@ -320,16 +320,9 @@ def _map(pycolmap, work: Path, given: int, seed: int) -> dict:
     models = pycolmap.incremental_mapping(work / "database.db", work / "images", out, options,
                                           next_image_callback=next_image)
     bar.close()
-    if not models:
-        raise BoostNerfError(f"no camera could be placed: the {given} images share too few features; take photos "
-                             "with more overlap (each spot of the subject in 3 or more, neighbours sharing about "
-                             "two thirds of the view) and more texture, or fewer unrelated ones")
-    best = max(models.values(), key=lambda r: r.num_reg_images())
-    n = best.num_reg_images()
-    if n < given / 2:
-        raise BoostNerfError(f"only {n} of the {given} images could be placed in one model ({len(models)} separate "
-                             "models): the photos overlap too little; take more photos between the views (neighbours "
-                             "sharing about two thirds of the view) or remove the unrelated ones, then run again")
+    best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+    n = 0 if best is None else best.num_reg_images()
+    check_registered(n, given, len(models))
     final = pycolmap.BundleAdjustmentOptions()
     final.refine_extra_params = True
     final.print_summary = False
@@ -341,6 +334,20 @@ def _map(pycolmap, work: Path, given: int, seed: int) -> dict:
     return {"registered": n, "given": given, "models": len(models), "points": best.num_points3D(),
             "mean_reprojection_error": best.compute_mean_reprojection_error(),
             "camera_models": sorted({c.model.name for c in best.cameras.values()})}
+
+
+def check_registered(registered: int, given: int, models: int) -> None:
+    """Refuse a reconstruction whose largest model holds fewer than half of the images, in one line that says how
+    many and what to do."""
+    if registered == 0:
+        raise BoostNerfError(f"no camera could be placed: the {given} images share too few features; take photos "
+                             "with more overlap (each spot of the subject in 3 or more, neighbours sharing about "
+                             "two thirds of the view) and more texture, or remove unrelated ones")
+    if registered < given / 2:
+        raise BoostNerfError(f"only {registered} of the {given} images could be placed in one model ({models} "
+                             "separate models): the photos overlap too little; take more photos between the views "
+                             "(neighbours sharing about two thirds of the view) or remove the unrelated ones, then "
+                             "run again")
 
 
 def _downscale(work: Path, names: list[str]) -> list[str]:
