@@ -304,3 +304,17 @@ def test_a_distorted_capture_trains_to_its_pinhole_twin(tmp_path):
                                             twin.images[i]) for i in range(len(twin))])
     assert scores["lens"] >= scores["pin"] - 0.1, scores
     assert scores["flat"] <= scores["pin"] - 0.3, scores
+
+
+def test_the_scene_cache_keeps_the_points_and_the_lens(colmap_scene, tmp_path, monkeypatch):
+    from boostnerf_cli import scenes
+
+    first = load_scene(colmap_scene, cache=tmp_path / "scene.safetensors")
+    detect, _, what = scenes.FORMATS["colmap"]
+    monkeypatch.setitem(scenes.FORMATS, "colmap", (detect, lambda *a, **k: pytest.fail("decoded again"), what))
+    again = load_scene(colmap_scene, cache=tmp_path / "scene.safetensors")
+    assert (tmp_path / "scene.safetensors").is_file()
+    assert torch.equal(again.points.xyz, first.points.xyz) and torch.equal(again.points.rgb, first.points.rgb)
+    assert all(torch.equal(again.points.visible[k], first.points.visible[k]) for k in first.points.visible)
+    assert torch.equal(again.splits["train"].intrinsics, first.splits["train"].intrinsics)
+    assert again.splits["train"].intrinsics.shape[1] == 11

@@ -20,8 +20,8 @@ from tests.conftest import cli_in_process, run_cli
 
 SIZE, N_TRAIN, N_TEST = 16, 14, 3  # 14 train views leave room for 3 test views at every 8th place
 # layouts that store 8-bit RGBA (compared exactly) vs RGB composited on white before quantising
-COMPOSITED = {"tanks", "llff"}
-SEQUENCE = {"llff", "nerfstudio"}  # one sequence of views, test views at every 8th place (sequence_order)
+COMPOSITED = {"tanks", "llff", "colmap"}
+SEQUENCE = {"llff", "nerfstudio", "colmap"}  # one sequence of views, test views at every 8th place (sequence_order)
 
 
 @pytest.fixture(scope="module")
