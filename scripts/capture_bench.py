@@ -9,6 +9,8 @@ mixture trained on capture's poses against the same recipe on known poses.
         (median rotation error, centre error as a fraction of the cameras' spread)
     python scripts/capture_bench.py mixture --scene DIR --captured OUT/capture --recipe RECIPE --out OUT
         pretrain, build-moe, finetune (baseline, Top-2), eval on the shipped poses and on capture's: held-out PSNR
+    python scripts/capture_bench.py matching --captured OUT/capture-50 --out OUT
+        exhaustive against retrieval matching on one capture's features (seconds, verified pairs)
 
 Each writes OUT/<what>.json with the figures, the machine's load averages (os.getloadavg) before and after, and the
 commit; timings taken on a busy machine are marked for a rerun on a quiet one.
@@ -108,6 +110,33 @@ def mixture(args) -> None:
     record(args.out, "mixture", {"recipe": str(args.recipe), "held_out_psnr": results}, load)
 
 
+def matching(args) -> None:
+    """Seconds of each matching kind on one finished capture's features (its database copied): where exhaustive
+    matching stops being the faster (`capture.EXHAUSTIVE_MAX`)."""
+    import shutil
+    import tempfile
+
+    sys.path.insert(0, str(ROOT))
+    import pycolmap
+
+    from boostnerf_cli.stages import capture
+
+    pycolmap.logging.minloglevel = 2
+    load = os.getloadavg()
+    names = [p.name for p in capture.photo_files(args.captured / "images")]
+    rows = []
+    for kind in ("exhaustive", "retrieval"):
+        with tempfile.TemporaryDirectory() as tmp:
+            work = Path(tmp)
+            shutil.copy(args.captured / "database.db", work / "database.db")
+            t = time.perf_counter()
+            verified = capture._match(pycolmap, work, names, kind, 0)
+            rows.append({"kind": kind, "images": len(names), "seconds": round(time.perf_counter() - t, 1),
+                         "pairs": len(capture.pairs(len(names), "exhaustive", None)) if kind == "exhaustive" else None,
+                         "verified_pairs": verified})
+    record(args.out, f"matching-{len(names)}", {"rows": rows}, load)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -124,8 +153,11 @@ def main() -> None:
     m.add_argument("--captured", type=Path, required=True)
     m.add_argument("--recipe", type=Path, required=True)
     m.add_argument("--out", type=Path, required=True)
+    k = sub.add_parser("matching")
+    k.add_argument("--captured", type=Path, required=True)
+    k.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
-    {"timing": timing, "poses": poses, "mixture": mixture}[args.what](args)
+    {"timing": timing, "poses": poses, "mixture": mixture, "matching": matching}[args.what](args)
 
 
 if __name__ == "__main__":
