@@ -184,7 +184,7 @@ ImageSizeOpt = Annotated[Optional[int], typer.Option(
 HoldoutOpt = Annotated[Optional[int], typer.Option(
     "--holdout-every", help="No test split: hold out every N-th train view, N >= 2 (0: none).")]
 FormatOpt = Annotated[Optional[str], typer.Option(
-    "--format", help="Dataset format: auto, blender, nsvf, tanks, llff or nerfstudio.")]
+    "--format", help="Dataset format: auto, blender, nsvf, tanks, llff, colmap or nerfstudio.")]
 SeedOpt = Annotated[Optional[int], typer.Option("--seed")]
 SkipOpt = Annotated[Optional[bool], typer.Option(
     "--skip/--no-skip", show_default=False,
@@ -213,12 +213,17 @@ def make_scene_cmd(
     n_test: Annotated[int, typer.Option("--test-views", min=0)] = 8,
     seed: Annotated[int, typer.Option()] = 0,
     layout: Annotated[str, typer.Option(
-        "--format", help="Layout: blender, nsvf, tanks, llff or nerfstudio.")] = "blender",
+        "--format", help="Layout: blender, nsvf, tanks, llff, nerfstudio or colmap.")] = "blender",
     rig: Annotated[str | None, typer.Option(
-        "--rig", help="Cameras: sphere or forward (default: forward for llff, else sphere).")] = None,
+        "--rig", help="Cameras: sphere, forward or orbit (a walk around the scene) (default: forward for llff, "
+        "else sphere).")] = None,
     content: Annotated[str, typer.Option("--content", help=(
         "objects, thin (rods and a cable 1-2 px wide), large (a floor past the box), empty, or detail (fine "
-        "patterns on one half, smooth content on the other: the quickstart's scene); docs/datasets.md."))] = "objects",
+        "patterns on one half, smooth content on the other: the quickstart's scene), or textured (dots SIFT "
+        "matches: photos for boostnerf capture); docs/datasets.md."))] = "objects",
+    lens: Annotated[str, typer.Option("--lens", help=(
+        "pinhole, opencv (radial and tangential distortion) or fisheye: the views are ray-cast through it and the "
+        "files record it (nerfstudio and colmap layouts)."))] = "pinhole",
 ) -> None:
     """Write a small procedural scene (exact ray casting) in any dataset layout boostnerf reads."""
     from boostnerf_cli.scenes import make_scene
@@ -226,7 +231,7 @@ def make_scene_cmd(
 
     _one_process()
     path = make_scene(out_dir, size=size, n_train=n_train, n_test=n_test, seed=seed, layout=layout, rig=rig,
-                      content=content)
+                      content=content, lens=lens)
     written = written_test_views(layout, n_train, n_test)
     note = (f" ({layout} holds out every 8th view: with {n_train} train views that is {written} test views, not the "
             f"{n_test} asked for)") if written != n_test else ""
@@ -563,6 +568,41 @@ def view(
         stage.run(Workspace(workspace), resolve_device(device), host, port, model, follow, size)
     except Interrupted:
         log("viewer stopped")
+
+
+@app.command()
+def capture(
+    out: Annotated[Path, typer.Option("--out", help="Scene folder to write (a COLMAP model and its images).")],
+    images: Annotated[Optional[Path], typer.Option("--images", help="Folder of photos (.jpg, .png) of one size.")] = None,
+    video: Annotated[Optional[Path], typer.Option("--video", help="A video file (read with ffmpeg).")] = None,
+    frames: Annotated[int, typer.Option("--frames", min=3, help="A video's frames to keep: evenly spaced, each the "
+                                        "sharpest of its stretch.")] = 100,
+    camera_model: Annotated[str, typer.Option("--camera-model", help=(
+        "COLMAP camera model: OPENCV, SIMPLE_RADIAL, RADIAL, PINHOLE, SIMPLE_PINHOLE or OPENCV_FISHEYE."))] = "OPENCV",
+    per_image_cameras: Annotated[bool, typer.Option(
+        "--per-image-cameras", help="One camera per image (photos from several cameras or zoom levels); default: "
+        "one shared camera.")] = False,
+    force: Annotated[bool, typer.Option("--force", help="Redo every phase, even those a previous run finished.")] = False,
+) -> None:
+    """Photos or a video in, a COLMAP scene folder out that pretrain --data reads (structure from motion by pycolmap:
+    SIFT at 1024 px, matching that fits the input, incremental mapping; docs/capture.md)."""
+    from boostnerf_cli.stages import capture as stage
+
+    _one_process()
+    if camera_model.upper() not in stage.CAMERA_MODELS:
+        raise BoostNerfError(f"--camera-model {camera_model}: use one of {', '.join(stage.CAMERA_MODELS)}")
+    options = stage.CaptureOptions(camera_model.upper(), per_image_cameras, frames=frames)
+    r = stage.run(images, video, out, options, force)
+    table = Table("phase", "seconds", "result")
+    results = {"images": f"{r['given']} images", "features": f"{r['keypoints']:,} keypoints",
+               "matching": f"{r['verified_pairs']:,} verified pairs ({r['matching']})",
+               "mapping": f"{r['registered']} of {r['given']} registered, {r['points']:,} points, mean reprojection "
+                          f"error {r['mean_reprojection_error']:.2f} px",
+               "downscale": ", ".join(r["folders"])}
+    for phase, seconds in r["seconds"].items():
+        table.add_row(phase, f"{seconds:.1f}", results[phase])
+    show(table)
+    log(f"wrote {out} (report: {out / 'capture.json'}); train on it with: boostnerf pretrain --data {out}")
 
 
 class Interrupted(BaseException):

@@ -20,8 +20,8 @@ from tests.conftest import cli_in_process, run_cli
 
 SIZE, N_TRAIN, N_TEST = 16, 14, 3  # 14 train views leave room for 3 test views at every 8th place
 # layouts that store 8-bit RGBA (compared exactly) vs RGB composited on white before quantising
-COMPOSITED = {"tanks", "llff"}
-SEQUENCE = {"llff", "nerfstudio"}  # one sequence of views, test views at every 8th place (sequence_order)
+COMPOSITED = {"tanks", "llff", "colmap"}
+SEQUENCE = {"llff", "nerfstudio", "colmap"}  # one sequence of views, test views at every 8th place (sequence_order)
 
 
 @pytest.fixture(scope="module")
@@ -238,9 +238,9 @@ def _break_ns_intrinsics(f):
     (f / "transforms.json").write_text(json.dumps(meta))
 
 
-def _break_ns_distortion(f):
+def _break_ns_camera_model(f):
     meta = json.loads((f / "transforms.json").read_text())
-    meta["frames"][2]["k1"] = 0.05
+    meta["frames"][2]["camera_model"] = "EQUIRECTANGULAR"
     (f / "transforms.json").write_text(json.dumps(meta))
 
 
@@ -274,7 +274,7 @@ MALFORMED = [
     ("nsvf", _break_nsvf_nan, "contains NaN or infinite values"),
     ("tanks", _break_tanks_count, "has 14 images but 15 poses"),
     ("nerfstudio", _break_ns_intrinsics, "no fl_x"),
-    ("nerfstudio", _break_ns_distortion, "distortion k1=0.05 is not zero"),
+    ("nerfstudio", _break_ns_camera_model, "camera_model EQUIRECTANGULAR is not supported"),
     ("nerfstudio", _break_ns_sizes, "all views must have the same size"),
     ("nerfstudio", _break_ns_zero_size, "w = 0 must be a positive number"),
     ("nerfstudio", _break_ns_size_text, "w = '32px' is not a number"),
@@ -504,25 +504,30 @@ def test_a_frames_own_field_of_view_wins_over_the_files_focal_length(forward, tm
     assert float(k[0, 1]) == pytest.approx(float(k[1, 1]))  # fl_y: no frame value, the file's
 
 
-def test_a_blender_transforms_file_with_lens_distortion_is_refused(tmp_path):
+def test_a_blender_transforms_file_with_lens_distortion_is_read_as_it_is(tmp_path):
     """instant-ngp writes k1 k2 p1 p2 and camera_model into Blender-layout transforms, and applies them: such a camera
-    is not a pinhole. The Blender loader rendered it as one, silently; nerfstudio's refused the same keys."""
+    is read with its lens (a frame's own value wins), a fisheye too; a camera model with no lens boostnerf renders
+    (equirectangular) and tangential terms on a fisheye are refused in one line."""
     import shutil
 
     scene = make_scene(tmp_path / "b", size=16, n_train=3, n_test=1)
-    for name, change in (("k1", {"k1": -0.2, "k2": 0.05, "camera_model": "OPENCV"}),
-                         ("fisheye", {"camera_model": "OPENCV_FISHEYE"})):
-        folder = shutil.copytree(scene, tmp_path / name)
-        meta = json.loads((folder / "transforms_train.json").read_text())
+    folder = shutil.copytree(scene, tmp_path / "k1")
+    meta = json.loads((folder / "transforms_train.json").read_text())
+    meta.update(k1=-0.2, k2=0.05, camera_model="OPENCV")
+    meta["frames"][1]["p1"] = 0.001
+    (folder / "transforms_train.json").write_text(json.dumps(meta))
+    k = load_scene(folder).splits["train"].intrinsics
+    assert k.shape == (3, 11)
+    assert k[0, 4:].tolist() == pytest.approx([-0.2, 0.05, 0, 0, 0, 0, 0])
+    assert k[1, 4:].tolist() == pytest.approx([-0.2, 0.05, 0, 0, 0.001, 0, 0])
+    assert load_scene(folder).splits["test"].intrinsics.shape == (1, 4)  # its own file: a pinhole camera
+    for change, message in (({"camera_model": "EQUIRECTANGULAR"}, "camera_model EQUIRECTANGULAR is not supported"),
+                            ({"camera_model": "OPENCV_FISHEYE", "p1": 0.01}, "has no tangential distortion")):
+        meta = json.loads((scene / "transforms_train.json").read_text())
         meta.update(change)
-        (folder / "transforms_train.json").write_text(json.dumps(meta))
-        with pytest.raises(BoostNerfError, match="pinhole cameras only"):
-            load_scene(folder)
-    meta = json.loads((scene / "transforms_test.json").read_text())
-    meta["frames"][0]["p1"] = 0.001  # one frame's own
-    (scene / "transforms_test.json").write_text(json.dumps(meta))
-    with pytest.raises(BoostNerfError, match=r"transforms_test.json frame 0.*distortion p1=0.001 is not zero"):
-        load_scene(scene)
+        (scene / "transforms_train.json").write_text(json.dumps(meta))
+        with pytest.raises(BoostNerfError, match=message):
+            load_scene(scene)
 
 
 def test_w_and_h_are_checked_to_a_pixel_of_rounding_not_to_2_percent():

@@ -18,11 +18,12 @@ from boostnerf_cli.errors import BoostNerfError, BoxWarning, DataWarning
 from boostnerf_cli.scenes.blender import is_blender, load_blender
 from boostnerf_cli.scenes.bounds import box_gaps, box_near_far
 from boostnerf_cli.scenes.cache import cached
+from boostnerf_cli.scenes.colmap import is_colmap, load_colmap
 from boostnerf_cli.scenes.llff import is_llff, load_llff
 from boostnerf_cli.scenes.nerfstudio import is_nerfstudio, load_nerfstudio
 from boostnerf_cli.scenes.nsvf import is_nsvf, is_tanks, load_nsvf, load_tanks
 from boostnerf_cli.scenes.procedural import LAYOUTS, make_scene
-from boostnerf_cli.scenes.scene import Scene, Split
+from boostnerf_cli.scenes.scene import Scene, SparsePoints, Split
 from boostnerf_cli.startup import timed
 
 # name -> (detector, loader, what the detector looks for)
@@ -31,6 +32,7 @@ FORMATS: dict[str, tuple[Callable[[Path], str], Callable[..., Scene], str]] = {
     "nsvf": (is_nsvf, load_nsvf, "rgb/ with RGBA 0_*.png and pose/ (plus intrinsics.txt)"),
     "tanks": (is_tanks, load_tanks, "rgb/ with RGB 0_*.png and pose/ (plus intrinsics.txt)"),
     "llff": (is_llff, load_llff, "poses_bounds.npy (plus images/ or images_N/)"),
+    "colmap": (is_colmap, load_colmap, "sparse/0/{cameras,images,points3D}.{bin,txt} (plus images/ or images_N/)"),
     "nerfstudio": (is_nerfstudio, load_nerfstudio, "transforms.json"),
 }
 
@@ -131,7 +133,7 @@ def _decode(folder: Path, image_size: int | None, holdout_every: int, format: st
                                  "must be six numbers, xmin, ymin, zmin, xmax, ymax, zmax") from None
         # `Scene` refuses any other shape, and a max not above its min, in one line
         scene = dataclasses.replace(scene, bbox=box.view(2, 3) if box.numel() == 6 else box,
-                                    extra={**scene.extra, "bbox": "data.bbox"})
+                                    extra={**scene.extra, "bbox": "data.bbox", "box_from": "recipe key data.bbox"})
     return _reach_box(scene) if scene.ndc is None else scene
 
 
@@ -155,5 +157,6 @@ def _reach_box(scene: Scene) -> Scene:
                                extra={**scene.extra, "notes": [*scene.extra.get("notes", []), note]})
 
 
-__all__ = ["FORMATS", "LAYOUTS", "Scene", "Split", "detect_format", "load_blender", "load_llff", "load_nerfstudio",
+__all__ = ["FORMATS", "LAYOUTS", "Scene", "SparsePoints", "Split", "detect_format", "load_blender", "load_colmap",
+           "load_llff", "load_nerfstudio",
            "load_nsvf", "load_scene", "load_tanks", "make_scene"]

@@ -26,9 +26,10 @@ from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
     Frame,
     SceneSpace,
-    check_pinhole,
+    check_lens,
     frame_camera,
     frame_intrinsics,
+    intrinsics_tensor,
     hold_out,
     load_frames,
     lossy_extra,
@@ -55,13 +56,13 @@ def _parse_split(folder: Path, split: str) -> tuple[list[Frame], dict]:
     """Frames of `transforms_<split>.json` and the file's top-level metadata."""
     path = folder / f"transforms_{split}.json"
     meta = read_transforms(path, may_be_empty=split != "train")
-    check_pinhole(meta, str(path))
+    check_lens(meta, str(path))
     frames = []
     for i, frame in enumerate(meta["frames"]):
         source = f"{path.name} frame {i}"
         if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
             raise BoostNerfError(f"{source} in {folder}: needs 'file_path' and 'transform_matrix'")
-        check_pinhole(frame, f"{source} in {folder}")
+        check_lens(frame, f"{source} in {folder}")
         image = resolve_image(folder, str(frame["file_path"]), f"{source} in {folder}")
         camera = frame_camera(frame, meta)
         name = str(image.relative_to(folder).with_suffix("")) if image.is_relative_to(folder) else image.stem
@@ -121,7 +122,8 @@ def load_blender(
     splits, start = {}, 0
     for s in found:
         fs = parsed[s][0]
-        k = torch.tensor([frame_intrinsics(f.camera, native, size, f"{f.source} in {folder}", f.image) for f in fs])
+        k = intrinsics_tensor([frame_intrinsics(f.camera, native, size, f"{f.source} in {folder}", f.image)
+                               for f in fs])
         poses = torch.tensor(np.stack([f.pose for f in fs]), dtype=torch.float32)
         splits[s] = Split(images[start : start + len(fs)], poses, k.float(), tuple(f.name for f in fs),
                           None if alpha is None else alpha[start : start + len(fs)])

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoxWarning
+from boostnerf_cli.render.rays import PINHOLE
 from boostnerf_cli.render.renderer import Views
 
 
@@ -26,7 +27,7 @@ def frustum_corners(poses: Tensor, intrinsics: Tensor, height: int, width: int, 
 
     poses (N, 4, 4) camera-to-world, intrinsics (N, 4) fx, fy, cx, cy -> (N, 8, 3).
     """
-    fx, fy, cx, cy = intrinsics.float().unbind(-1)  # each (N,)
+    fx, fy, cx, cy = intrinsics[:, :PINHOLE].float().unbind(-1)  # each (N,); a lens's bend is left out
     u = torch.tensor([0.0, width, 0.0, width])
     v = torch.tensor([0.0, 0.0, height, height])
     x = (u[None] - cx[:, None]) / fx[:, None]  # (N, 4), camera space at z = -1
@@ -45,7 +46,7 @@ def frustum_planes(poses: Tensor, intrinsics: Tensor, height: int, width: int, n
     when it projects (as in `render.rays.project_points`) into [0, W] x [0, H] with depth along -z
     in [near, far]; the image bounds are tested as u * depth in [0, W * depth] (no division).
     """
-    fx, fy, cx, cy = intrinsics.float().unbind(-1)  # each (N,)
+    fx, fy, cx, cy = intrinsics[:, :PINHOLE].float().unbind(-1)  # each (N,); a lens's bend is left out
     zero, one = torch.zeros_like(fx), torch.ones_like(fx)
     # camera-space normals a (N, 6, 3) and offsets b (N, 6): a . q + b >= 0, depth = -q_z
     a = torch.stack([
@@ -180,3 +181,49 @@ def box_gaps(poses: Tensor, bbox: Tensor) -> Tensor:
     """Each camera centre's distance to the box (N,), float64: 0 for a camera inside it."""
     o = poses[:, :3, 3].double()
     return (o - torch.maximum(torch.minimum(o, bbox[1].double()), bbox[0].double())).norm(dim=-1)
+
+
+MIN_POINTS = 8  # a view that sees fewer sparse points gets no near / far of its own; a scene needs this many in all
+
+
+def view_depths(xyz: Tensor, pose: Tensor) -> Tensor:
+    """Depths along the camera's -z axis (its viewing direction) of world points (P, 3) -> (P,) float64."""
+    p = pose.double()
+    return -((xyz.double() - p[:3, 3]) @ p[:3, 2])
+
+
+def point_near_far(xyz: Tensor, poses: Tensor, seen: list[Tensor], percentiles: tuple[float, float]) -> Tensor:
+    """Each view's near and far from the depths of the sparse points it sees (the `percentiles` of them, robust to
+    a stray point) -> (N, 2) float64; NaN for a view that sees fewer than `MIN_POINTS` points in front of it. This is
+    how LLFF's own tool (imgs2poses) wrote poses_bounds.npy (0.1 and 99.9)."""
+    out = torch.full((len(poses), 2), math.nan, dtype=torch.float64)
+    q = torch.tensor(percentiles, dtype=torch.float64) / 100
+    for i, (pose, index) in enumerate(zip(poses, seen)):
+        depth = view_depths(xyz[index], pose)
+        depth = depth[depth > 0]
+        if len(depth) >= MIN_POINTS:
+            out[i] = torch.quantile(depth, q)
+    return out
+
+
+POINT_PERCENTILES = (1.0, 99.0)  # the sparse points inside these percentiles (per axis, per view) bound the scene
+
+
+def point_bounds(xyz: Tensor, poses: Tensor, seen: list[Tensor]) -> tuple[float, float, Tensor, str] | None:
+    """near, far, box (2, 3) and a line saying where they came from, for a scene with sparse points: the box holds the
+    `POINT_PERCENTILES` (per axis) of the points the cameras (`poses`, N) see, `seen[i]` the indices view i sees, grown
+    by `BOX_MARGIN` of its size on every side; near / far from each view's depths of its points (`point_near_far`),
+    near 0.9x the smallest, far 1.1x the largest. None when the views see fewer than `MIN_POINTS` points."""
+    used = torch.unique(torch.cat(seen)) if seen else torch.zeros(0, dtype=torch.long)
+    per_view = point_near_far(xyz, poses, seen, POINT_PERCENTILES)
+    ok = ~per_view.isnan().any(-1)
+    if len(used) < MIN_POINTS or not bool(ok.any()):
+        return None
+    q = torch.tensor(POINT_PERCENTILES, dtype=torch.float64) / 100
+    lo, hi = torch.quantile(xyz[used].double(), q, dim=0)
+    pad = BOX_MARGIN * (hi - lo).clamp_min(1e-6)
+    box = torch.stack([lo - pad, hi + pad]).float()
+    near, far = 0.9 * float(per_view[ok, 0].min()), 1.1 * float(per_view[ok, 1].max())
+    text = (f"the sparse points: percentiles {POINT_PERCENTILES[0]:g} to {POINT_PERCENTILES[1]:g} of the "
+            f"{len(used)} points the {len(poses)} training views see, widened by {100 * BOX_MARGIN:.0f}%")
+    return near, far, box, text

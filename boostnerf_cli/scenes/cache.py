@@ -19,7 +19,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from boostnerf_cli.render.rays import NDC
-from boostnerf_cli.scenes.scene import Scene, Split
+from boostnerf_cli.scenes.scene import Scene, SparsePoints, Split
 from boostnerf_cli.workspace import atomic_path
 
 KEY = "boostnerf-scene"
@@ -51,9 +51,14 @@ def read(path: Path, key: str) -> Scene | None:
         splits = {name: Split(tensors[f"{name}.images"], tensors[f"{name}.poses"], tensors[f"{name}.intrinsics"],
                               tuple(names), tensors.get(f"{name}.alpha"))
                   for name, names in meta["splits"].items()}
+        points = None
+        if "points.xyz" in tensors:
+            points = SparsePoints(tensors["points.xyz"], tensors["points.rgb"], tensors["points.error"],
+                                  {name: tensors[f"points.{name}.visible"] for name in meta["splits"]
+                                   if f"points.{name}.visible" in tensors})
         return Scene(meta["name"], splits, meta["near"], meta["far"], tensors["bbox"], tuple(meta["background"]),
                      meta["source"], meta["format"], meta["holdout"], meta["extra"],
-                     NDC(**meta["ndc"]) if meta["ndc"] is not None else None)
+                     NDC(**meta["ndc"]) if meta["ndc"] is not None else None, points)
     except (SafetensorError, OSError, ValueError, KeyError, TypeError):  # damaged or foreign: decode again
         return None
 
@@ -73,6 +78,10 @@ def write(path: Path, key: str, scene: Scene) -> None:
         tensors.update({f"{name}.images": s.images, f"{name}.poses": s.poses, f"{name}.intrinsics": s.intrinsics})
         if s.alpha is not None:
             tensors[f"{name}.alpha"] = s.alpha
+    if scene.points is not None:
+        tensors.update({"points.xyz": scene.points.xyz, "points.rgb": scene.points.rgb,
+                        "points.error": scene.points.error})
+        tensors.update({f"points.{name}.visible": rows for name, rows in scene.points.visible.items()})
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, str(tmp), metadata={KEY: meta})

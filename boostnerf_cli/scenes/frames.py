@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError, DataWarning
-from boostnerf_cli.render.rays import NDC
+from boostnerf_cli.render.rays import NDC, PINHOLE, lens_row
 from boostnerf_cli.scenes.scene import Scene, Split
 
 
@@ -255,39 +255,57 @@ def read_transforms(path: Path, may_be_empty: bool = False) -> dict:
 
 
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
+# camera_model values of a transforms file (nerfstudio's and COLMAP's names) that boostnerf renders as they are,
+# -> whether the model is a fisheye; the coefficients are the file's k1..k4, p1, p2 (render/rays.py `distort`)
+LENS_MODELS = {"PINHOLE": False, "SIMPLE_PINHOLE": False, "SIMPLE_RADIAL": False, "RADIAL": False, "OPENCV": False,
+               "OPENCV_FISHEYE": True}
+LENS_KEYS = ("camera_model", *DISTORTION_KEYS)
 
 
-def check_pinhole(entry: dict, source: str) -> None:
-    """Refuse a transforms entry (the file's top level or a frame) that describes no pinhole camera: a camera_model
-    other than `PINHOLE_MODELS` or a non-zero distortion coefficient (instant-ngp and nerfstudio write, and apply,
-    both)."""
+def check_lens(entry: dict, source: str) -> None:
+    """Refuse a transforms entry (the file's top level or a frame) whose camera boostnerf cannot render: a
+    camera_model outside `LENS_MODELS` (an equirectangular or omnidirectional camera), a coefficient that is no
+    number, or tangential p1 / p2 on a fisheye (which has none)."""
     model = entry.get("camera_model")
-    if model is not None and str(model).upper() not in PINHOLE_MODELS:
+    if model is not None and str(model).upper() not in LENS_MODELS:
         raise BoostNerfError(
-            f"{source}: camera_model {model} is not a pinhole camera; boostnerf renders pinhole cameras only: "
-            f"undistort the images and write camera_model OPENCV with zero distortion"
+            f"{source}: camera_model {model} is not supported; boostnerf renders {', '.join(LENS_MODELS)} cameras: "
+            "undistort the images to a pinhole camera first (e.g. COLMAP image_undistorter) and write camera_model "
+            "PINHOLE"
         )
     for key in DISTORTION_KEYS:
         value = entry.get(key)
         try:
-            nonzero = value is not None and float(value) != 0.0
+            if value is not None and (isinstance(value, bool) or not math.isfinite(float(value))):
+                raise ValueError
         except (TypeError, ValueError):
-            raise BoostNerfError(f"{source}: distortion {key} must be a number, got {value!r}") from None
-        if nonzero:
-            raise BoostNerfError(
-                f"{source}: distortion {key}={value} is not zero; boostnerf renders pinhole cameras only: "
-                f"undistort the images first (e.g. ns-process-data, or COLMAP image_undistorter) and set it to 0"
-            )
+            raise BoostNerfError(f"{source}: distortion {key} must be a finite number, got {value!r}") from None
+
+
+def frame_lens(camera: dict, source: str) -> list[float]:
+    """The lens part of an intrinsics row (render/rays.py `LENS`) for a frame's merged `camera` (`frame_camera`):
+    [] for a pinhole camera (no coefficient set, not a fisheye)."""
+    fisheye = LENS_MODELS[str(camera.get("camera_model") or "OPENCV").upper()]
+    coefficients = {k: float(camera[k]) for k in DISTORTION_KEYS if camera.get(k) is not None}
+    if fisheye and (coefficients.get("p1") or coefficients.get("p2")):
+        raise BoostNerfError(f"{source}: camera_model OPENCV_FISHEYE has no tangential distortion, but p1 / p2 are "
+                             "set: remove them, or give the camera model that estimated them")
+    return lens_row(0.0, 0.0, 0.0, 0.0, coefficients, fisheye)[PINHOLE:]
+
+
+def intrinsics_tensor(rows: list[list[float]]) -> Tensor:
+    """(N, 4) float32 for pinhole rows, or (N, 11) when any row has a lens (the others padded with zeros)."""
+    width = max(len(r) for r in rows)
+    return torch.tensor([r + [0.0] * (width - len(r)) for r in rows], dtype=torch.float32)
 
 
 FOCAL_KEYS = (("fl_x", "camera_angle_x"), ("fl_y", "camera_angle_y"))  # two ways to give each axis's focal length
 
 
 def frame_camera(frame: dict, meta: dict) -> dict:
-    """A frame's camera values (`CAMERA_KEYS`): its own where it sets them (not null), else the file's. A frame that
+    """A frame's camera values (`CAMERA_KEYS`, and the lens's `LENS_KEYS`): its own where it sets them (not null), else the file's. A frame that
     gives an axis's focal length either way (`FOCAL_KEYS`) takes none of the file's for that axis."""
-    camera = {k: frame[k] if frame.get(k) is not None else meta.get(k) for k in CAMERA_KEYS}
+    camera = {k: frame[k] if frame.get(k) is not None else meta.get(k) for k in (*CAMERA_KEYS, *LENS_KEYS)}
     for keys in FOCAL_KEYS:
         if any(frame.get(k) is not None for k in keys):
             camera.update({k: frame.get(k) for k in keys})
@@ -295,6 +313,13 @@ def frame_camera(frame: dict, meta: dict) -> dict:
 
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # the image files the loaders read (in either case)
+
+
+def find_image(folder: Path, file_path: str) -> Path | None:
+    """The image a frame's `file_path` names (as `resolve_image`), or None when no such file is there."""
+    base = folder / file_path
+    suffixes = (*IMAGE_SUFFIXES, *(s.upper() for s in IMAGE_SUFFIXES))
+    return next((c for c in (base, *(base.with_name(base.name + s) for s in suffixes)) if c.is_file()), None)
 
 
 def resolve_image(folder: Path, file_path: str, source: str) -> Path:
@@ -355,7 +380,7 @@ def camera_number(camera: dict, key: str, source: str) -> float | None:
 
 def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int], source: str,
                      image: Path | None = None) -> list[float]:
-    """fx, fy, cx, cy in pixels of the stored (downscaled) image.
+    """fx, fy, cx, cy in pixels of the stored (downscaled) image, then the lens (`frame_lens`) when it has one.
 
     The JSON values refer to an image of `w` x `h` pixels (default, both unset: the native image size); every
     value is scaled per axis by stored / JSON size. `w` and `h` must come together and have the native image's
@@ -402,7 +427,7 @@ def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int
     cx = number("cx") if camera["cx"] is not None else w_json / 2
     cy = number("cy") if camera["cy"] is not None else h_json / 2
     sx, sy = size[1] / w_json, size[0] / h_json
-    return [fx * sx, fy * sy, cx * sx, cy * sy]
+    return [fx * sx, fy * sy, cx * sx, cy * sy, *frame_lens(camera, source)]
 
 
 # ----------------------------------------------------------------------------- splits

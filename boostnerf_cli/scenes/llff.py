@@ -33,7 +33,7 @@ import torch
 from PIL import Image
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.render.rays import NDC
+from boostnerf_cli.render.rays import NDC, has_lens, pixel_rays
 from boostnerf_cli.scenes.frames import (
     IMAGE_SUFFIXES,
     Frame,
@@ -142,23 +142,53 @@ def average_pose(poses: np.ndarray) -> np.ndarray:
     return avg
 
 
+def frame_border(height: int, width: int, per_side: int = 1) -> torch.Tensor:
+    """Pixel positions (u, v) along an image's border, (4 * per_side, 2) float64: the 4 corners for `per_side` 1,
+    more points along each side for a lens (whose border is no straight line in the pinhole picture)."""
+    s = torch.linspace(0, 1, per_side + 1, dtype=torch.float64)[:-1]
+    top = torch.stack([s * width, torch.zeros_like(s)], -1)
+    right = torch.stack([torch.full_like(s, width), s * height], -1)
+    bottom = torch.stack([(1 - s) * width, torch.full_like(s, height)], -1)
+    left = torch.stack([torch.zeros_like(s), (1 - s) * height], -1)
+    return torch.cat([top, right, bottom, left])
+
+
 def ndc_bbox(ndc: NDC, poses: torch.Tensor, intrinsics: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """The NDC box of every camera's frustum from the near plane to infinity -> (2, 3).
 
     The frustum part beyond the near plane is convex with its corners on the 4 image-corner rays,
     and the NDC map is projective there, so the box of the corner rays' NDC end points (on the
-    near plane z = -1 and at infinity z = 1) holds every NDC ray of every pixel.
+    near plane z = -1 and at infinity z = 1) holds every NDC ray of every pixel. A camera with a lens takes 16
+    rays along each side of its border (render/rays.py `pixel_rays`) instead of the corners.
     """
     pts = []
-    for pose, (fx, fy, cx, cy) in zip(poses.double(), intrinsics.double()):
-        u = torch.tensor([0.0, width, 0.0, width], dtype=torch.float64)
-        v = torch.tensor([0.0, 0.0, height, height], dtype=torch.float64)
-        d = torch.stack([(u - cx) / fx, -(v - cy) / fy, -torch.ones(4, dtype=torch.float64)], -1) @ pose[:3, :3].T
-        o, dn = ndc.rays(pose[:3, 3].expand(4, 3), d)
+    for pose, k in zip(poses.double(), intrinsics.double()):
+        uv = frame_border(height, width, 16 if has_lens(k) else 1)
+        d = pixel_rays(uv, k) @ pose[:3, :3].T
+        o, dn = ndc.rays(pose[:3, 3].expand(len(d), 3), d)
         end = o + ((1.0 - o[:, 2]) / dn[:, 2].clamp_min(1e-12))[:, None] * dn
         pts += [o, end]
     pts = torch.cat(pts)
     return torch.stack([pts.amin(0), pts.amax(0)]).float()
+
+
+def forward_facing_world(poses: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Steps 2 and 3 of the module docstring for OpenGL camera-to-world `poses` (N, 4, 4) with depth `bounds`
+    (N, 2): -> (the scene's poses, the 4x4 similarity world_from_data, the scale)."""
+    poses = poses.copy()
+    scale = 1.0 / (bounds.min() * BOUND_FACTOR)
+    poses[:, :3, 3] *= scale
+    to_scene = np.linalg.inv(average_pose(poses))
+    return to_scene @ poses, to_scene @ np.diag([scale, scale, scale, 1.0]), scale
+
+
+def ndc_space(train: Split, background: tuple[float, float, float]) -> SceneSpace:
+    """Step 4: where a forward-facing scene's rays are sampled, in the NDC of the average camera (the identity after
+    `forward_facing_world`) with the first training view's focal lengths."""
+    fx, fy = float(train.intrinsics[0, 0]), float(train.intrinsics[0, 1])
+    ndc = NDC(sx=2 * fx / train.width, sy=2 * fy / train.height, near=NDC_NEAR)
+    bbox = ndc_bbox(ndc, train.poses, train.intrinsics, train.height, train.width)
+    return SceneSpace(0.0, float((bbox[1] - bbox[0]).norm()), bbox, background, ndc)
 
 
 def load_llff(
@@ -181,13 +211,7 @@ def load_llff(
             f"{pb.name} has {len(raw)} poses but {sub.name}/ holds {len(files)} images: "
             "each image needs exactly one pose row"
         )
-    poses = llff_to_opengl(raw)
-    scale = 1.0 / (bounds.min() * BOUND_FACTOR)
-    poses[:, :3, 3] *= scale
-    avg = average_pose(poses)
-    to_scene = np.linalg.inv(avg)
-    poses = to_scene @ poses
-    world_from_data = to_scene @ np.diag([scale, scale, scale, 1.0])
+    poses, world_from_data, scale = forward_facing_world(llff_to_opengl(raw), bounds)
     frames = [Frame(f, f.stem, p, {}, f"{sub.name}/{f.name}") for f, p in zip(files, poses)]
     bg = torch.tensor(background, dtype=torch.float32)
     images, alpha, native = load_frames(frames, image_size, bg)
@@ -206,11 +230,6 @@ def load_llff(
     holdout = ""
     if holdout_every:
         splits["train"], splits["test"], holdout = hold_out(splits["train"], holdout_every)
-    train = splits["train"]
-    fx, fy = float(train.intrinsics[0, 0]), float(train.intrinsics[0, 1])
-    ndc = NDC(sx=2 * fx / train.width, sy=2 * fy / train.height, near=NDC_NEAR)
-    bbox = ndc_bbox(ndc, train.poses, train.intrinsics, train.height, train.width)
-    far = float((bbox[1] - bbox[0]).norm())
-    return scene_from_splits(folder, splits, SceneSpace(0.0, far, bbox, background, ndc), "llff", holdout, native,
+    return scene_from_splits(folder, splits, ndc_space(splits["train"], background), "llff", holdout, native,
                              extra={"images_folder": sub.name, "world_from_data": world_from_data.tolist(),
                                     "bounds": (bounds * scale).tolist()})

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.render.rays import image_rays, intersect_box
+from boostnerf_cli.render.rays import PINHOLE, image_rays, intersect_box, lens_row, project_points
 
 CAMERA_ANGLE_X = 0.6911
 RADIUS = 4.0
@@ -50,7 +50,7 @@ def _place(rng: np.random.Generator) -> np.ndarray:
     return quadrants * 0.45 + rng.uniform(-0.1, 0.1, (4, 2))
 
 
-CONTENTS = ("objects", "thin", "large", "empty", "detail")
+CONTENTS = ("objects", "thin", "large", "empty", "detail", "textured")
 LARGE_FLOOR_RADIUS = 3.0  # the "large" content's floor: past the camera-derived box (about +-1.7) and out of every view
 THIN_RADIUS = 0.018  # rods and cable of the "thin" content: about 1.2 px wide at 100 px (2 px at 160 px)
 
@@ -111,6 +111,19 @@ def detail_objects(seed: int = 0) -> list[dict]:
     ]
 
 
+def textured_objects(seed: int = 0) -> list[dict]:
+    """The "objects" content with every surface speckled with round dots of three sizes ("dots"): blobs that SIFT
+    finds and matches from view to view, for structure-from-motion (`boostnerf capture`) tests."""
+    rng = np.random.default_rng(seed + 3000)
+
+    def contrast() -> list[list[float]]:  # a light colour and a dark one
+        light = rng.uniform(0.6, 0.95, 3)
+        return [[round(float(v), 4) for v in light], [round(float(v), 4) for v in light * rng.uniform(0.1, 0.25)]]
+
+    return [{**obj, "texture": "dots", "scales": [round(float(v), 3) for v in rng.uniform([2.5, 5, 10], [3.5, 7, 14])],
+             "colours": contrast()} for obj in scene_objects(seed)]
+
+
 def scene_objects(seed: int = 0, content: str = "objects") -> list[dict]:
     """The seeded object list (JSON-able): kind, geometry, colours and texture of each object.
 
@@ -128,6 +141,8 @@ def scene_objects(seed: int = 0, content: str = "objects") -> list[dict]:
         return []
     if content == "detail":
         return detail_objects(seed)
+    if content == "textured":
+        return textured_objects(seed)
     rng = np.random.default_rng(seed)
     colour = lambda: [round(float(v), 4) for v in rng.uniform(0.15, 0.95, 3)]  # noqa: E731
     xy = _place(rng)
@@ -229,6 +244,17 @@ def shade(obj: dict, normal: Tensor, p: Tensor) -> Tensor:
     elif obj["texture"] == "half-checker":  # checker (2-D) where x > 0, the smooth gradient where x < 0
         checker = torch.floor(p[:, :2] / obj["cell"]).sum(-1).remainder(2)
         w = torch.where(p[:, 0] > 0, checker, 0.5 + 0.5 * torch.sin(2.0 * p[:, 0] + 1.5 * p[:, 1]))
+    elif obj["texture"] == "dots":  # a dot (a ball cut by the surface) at a random place in each cell of 3 lattices
+        w = torch.zeros_like(p[:, 0])
+        for scale in obj["scales"]:
+            q = p * scale
+            cell = torch.floor(q)
+            h = [torch.frac(torch.sin(cell @ torch.tensor(v, dtype=torch.float64)) * 43758.5453).abs()
+                 for v in ((12.9898, 78.233, 37.719), (39.346, 11.135, 83.155), (73.156, 52.235, 9.151),
+                           (27.17, 61.93, 44.71))]
+            centre = cell + 0.25 + 0.5 * torch.stack(h[:3], -1)
+            w = w + ((q - centre).norm(dim=-1) < 0.2 + 0.2 * h[3]).double()
+        w = w.remainder(2)
     elif obj["texture"] == "stripes":
         w = torch.floor(p[:, 2] / (obj["period"] / 2)).remainder(2)
     else:  # checker: 2-D on the disc (its z is constant), 3-D on boxes
@@ -249,7 +275,9 @@ def render_view(objects: list[dict], pose: Tensor, intrinsics: Tensor, size: int
     the pixel centres of a `supersample`-times larger image; their premultiplied colours are averaged.
     """
     s = supersample
-    o, d = image_rays(pose, intrinsics * s, size * s, size * s)
+    scale = torch.ones_like(intrinsics)
+    scale[:PINHOLE] = s  # a lens's coefficients act on normalized coordinates: the same at any size
+    o, d = image_rays(pose, intrinsics * scale, size * s, size * s)
     o, d = o.double(), d.double()
     hits = [intersect(obj, o, d) for obj in objects]
     if not hits:  # no object: every ray misses
@@ -317,10 +345,25 @@ def camera_poses(n_train: int, n_test: int, radius: float = RADIUS) -> tuple[np.
     return _split_test(np.stack([look_at(p) for p in pos]), n_test)
 
 
+def orbit_poses(n_train: int, n_test: int, radius: float = RADIUS) -> tuple[np.ndarray, np.ndarray]:
+    """A walk around the scene, as a phone capture: n_train + n_test cameras evenly spaced on a circle, at elevations
+    alternating between 25 and 40 deg, each looking at the origin. -> train (n_train, 4, 4), test (n_test, 4, 4)."""
+    n = n_train + n_test
+    az = 2 * math.pi * np.arange(n) / n
+    el = np.radians(np.where(np.arange(n) % 2 == 0, 25.0, 40.0))
+    pos = radius * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    return _split_test(np.stack([look_at(p) for p in pos]), n_test)
+
+
 # ----------------------------------------------------------------------------- writing
 
-LAYOUTS = ("blender", "nsvf", "tanks", "llff", "nerfstudio")
-RIGS = ("sphere", "forward")
+LAYOUTS = ("blender", "nsvf", "tanks", "llff", "nerfstudio", "colmap")
+# lenses make-scene can render through (exactly: every sub-pixel ray goes through the inverse distortion), in the
+# layouts that record one; coefficients as COLMAP's OPENCV and OPENCV_FISHEYE models take them (render/rays.py)
+LENSES = {"pinhole": ({}, False), "opencv": ({"k1": -0.3, "k2": 0.1, "p1": 0.003, "p2": -0.002}, False),
+          "fisheye": ({"k1": 0.08, "k2": -0.03, "k3": 0.01, "k4": -0.002}, True)}
+LENS_LAYOUTS = ("nerfstudio", "colmap")
+RIGS = ("sphere", "forward", "orbit")
 CONTENT_BOX = [[-1.1, -1.1, -0.6], [1.1, 1.1, 0.4]]  # holds every object of every seed (within 0.002 in x, y)
 # bbox.txt's room around CONTENT_BOX: more than a coarse cell of the demo recipe's 16^3 geometry grid (0.17), as
 # docs/datasets.md asks of a given box. With none, the floor lay 0.1 above the bottom face, within a cell, and 4-5%
@@ -366,6 +409,10 @@ LAYOUT_TEXT = {
     "nerfstudio": "nerfstudio layout: transforms.json (camera_model OPENCV, fl_x fl_y cx cy w h, zero distortion, "
                   "OpenGL camera-to-world matrices), images/frame_*.png RGBA 8-bit, the test views at every 8th "
                   "position (0, 8, ...), so the loader's every-8th hold-out gives the test split.",
+    "colmap": "COLMAP layout: sparse/0/cameras.bin, images.bin, points3D.bin (COLMAP's binary model: one shared "
+              "camera, PINHOLE or the lens's OPENCV / OPENCV_FISHEYE; world-to-camera poses in OpenCV axes; surface "
+              "points ray-cast from a grid of pixels of every view, with the views that see each), images/ and "
+              "images_2/ RGB 8-bit PNGs on a white background, the test views at every 8th position (0, 8, ...).",
 }
 
 README = """Procedurally generated test scene (boostnerf make-scene), seed {seed}.
@@ -397,12 +444,18 @@ content where x < 0. A floor disc with a checkerboard (cell {DETAIL_CELL}) on it
 gradient on the other; on the detailed half a rotated box with a 3-D checkerboard (cell {DETAIL_CELL}) and a sphere
 with stripes (period {2 * DETAIL_CELL:g}), on the smooth half a sphere and a box with smooth gradients; Lambertian
 shading under a fixed directional light, no shadows.""",
+    "textured": """Content (content 'textured', inside about [-1, 1]^2 x [-0.5, 0.3]): the floor disc, two spheres and two
+boxes of the default content, every surface speckled with round dots of three sizes in a light and a dark colour:
+texture that SIFT finds and matches, for structure from motion; Lambertian shading under a fixed directional light,
+no shadows.""",
 }
 
 RIG_TEXT = {
     "sphere": "radius {radius} on the upper hemisphere (elevation 10-70 deg, Fibonacci spiral) looking at the origin.",
     "forward": "forward-facing, spread over a disc of radius 0.6 at distance {radius} and elevation 30 deg, each "
                "looking at the origin.",
+    "orbit": "radius {radius} on a circle around the scene (a walk around it), elevations alternating 25 and 40 deg, "
+             "each looking at the origin.",
 }
 
 
@@ -461,7 +514,7 @@ def _write_nsvf(out: Path, views: dict, focal: float, size: int, masked: bool) -
 HOLDOUT_EVERY = 8  # the loaders' default hold-out for layouts without a test split
 
 
-SEQUENCE_LAYOUTS = ("llff", "nerfstudio")  # one sequence of views, no split files: the loader holds views out
+SEQUENCE_LAYOUTS = ("llff", "nerfstudio", "colmap")  # one sequence of views, no split files: the loader holds views out
 
 
 def written_test_views(layout: str, n_train: int, n_test: int) -> int:
@@ -523,20 +576,98 @@ def _premultiplied_mean(rgba: np.ndarray, factor: int) -> np.ndarray:
     return np.concatenate([pre[..., :3] / np.maximum(pre[..., 3:], 1e-12), pre[..., 3:]], axis=-1)
 
 
-def _write_nerfstudio(out: Path, views: dict, focal: float, size: int) -> None:
+def _write_nerfstudio(out: Path, views: dict, focal: float, size: int, lens: str = "pinhole") -> None:
     poses, rgbas = _all_views(views)
     (out / "images").mkdir(parents=True, exist_ok=True)
     frames = []
     for i, (pose, rgba) in enumerate(zip(poses, rgbas)):
         iio.imwrite(out / "images" / f"frame_{i + 1:05d}.png", _to8(rgba))
         frames.append({"file_path": f"images/frame_{i + 1:05d}.png", "transform_matrix": pose.tolist()})
-    meta = {"camera_model": "OPENCV", "fl_x": focal, "fl_y": focal, "cx": size / 2, "cy": size / 2, "w": size,
-            "h": size, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames}
+    coefficients, fisheye = LENSES[lens]
+    meta = {"camera_model": "OPENCV_FISHEYE" if fisheye else "OPENCV", "fl_x": focal, "fl_y": focal, "cx": size / 2,
+            "cy": size / 2, "w": size, "h": size, "k1": 0.0, "k2": 0.0, **({} if fisheye else {"p1": 0.0, "p2": 0.0}),
+            **coefficients, "frames": frames}
     (out / "transforms.json").write_text(json.dumps(meta, indent=2))
 
 
+def _colmap_points(objects: list[dict], poses: np.ndarray, k: Tensor, size: int,
+                   per_side: int = 12) -> tuple[np.ndarray, np.ndarray, list[list[tuple[int, float, float]]]]:
+    """Surface points for a COLMAP model: the first hits of a `per_side`^2 grid of pixel rays of every view, and for
+    each the views that see it (in the image, nothing nearer on the way) with where: -> xyz (P, 3), rgb (P, 3) uint8,
+    observations[p] = [(view, u, v), ...]."""
+    rows = torch.div(torch.arange(per_side) * size, per_side, rounding_mode="floor") + size // (2 * per_side)
+    index = (rows[:, None] * size + rows[None, :]).reshape(-1)
+    xyz, rgb = [], []
+    for pose in poses:
+        o, d = image_rays(torch.from_numpy(pose).float(), k, size, size)
+        o, d = o[index].double(), d[index].double()
+        hits = [intersect(obj, o, d) for obj in objects]
+        if not hits:
+            continue
+        t_all = torch.stack([h[0] for h in hits])
+        nearest, t = t_all.argmin(0), t_all.min(0).values
+        for kk, (obj, (tk, n, pk)) in enumerate(zip(objects, hits)):
+            m = (nearest == kk) & torch.isfinite(t)
+            xyz.append((o + t[:, None] * d)[m])
+            rgb.append(shade(obj, n[m], pk[m]))
+    xyz_t = torch.cat(xyz) if xyz else torch.zeros(0, 3, dtype=torch.float64)
+    seen: list[list[tuple[int, float, float]]] = [[] for _ in range(len(xyz_t))]
+    for j, pose in enumerate(poses):
+        p = torch.from_numpy(pose)
+        uv, depth = project_points(xyz_t.float(), p.float(), k)
+        inside = (depth > 0) & (uv >= 0).all(-1) & (uv < size).all(-1)
+        way = xyz_t - p[:3, 3]
+        dist = way.norm(dim=-1)
+        d = way / dist[:, None]
+        t_first = torch.stack([intersect(obj, p[:3, 3].expand_as(d), d)[0] for obj in objects]).min(0).values
+        for i in torch.nonzero(inside & ((t_first - dist).abs() < 1e-6 * dist + 1e-9)).flatten().tolist():
+            seen[i].append((j, float(uv[i, 0]), float(uv[i, 1])))
+    return xyz_t.numpy(), _to8(torch.cat(rgb).numpy()) if rgb else np.zeros((0, 3), np.uint8), seen
+
+
+def _write_colmap(out: Path, views: dict, k: Tensor, size: int, lens: str, objects: list[dict]) -> None:
+    from boostnerf_cli.scenes.colmap_model import Model, ModelCamera, ModelImage, quaternion, write_model
+
+    poses, rgbas = _all_views(views)
+    for folder, factor in (("images", 1), ("images_2", 2)):
+        (out / folder).mkdir(parents=True, exist_ok=True)
+        for i, rgba in enumerate(rgbas):
+            iio.imwrite(out / folder / f"image{i:03d}.png",
+                        _on_white(rgba if factor == 1 else _premultiplied_mean(rgba, factor)))
+    coefficients, fisheye = LENSES[lens]
+    fx, fy, cx, cy = (float(v) for v in k[:PINHOLE])
+    if fisheye:
+        camera = ModelCamera("OPENCV_FISHEYE", size, size, [fx, fy, cx, cy] + [coefficients.get(n, 0.0)
+                                                                             for n in ("k1", "k2", "k3", "k4")])
+    elif coefficients:
+        camera = ModelCamera("OPENCV", size, size, [fx, fy, cx, cy] + [coefficients.get(n, 0.0)
+                                                                     for n in ("k1", "k2", "p1", "p2")])
+    else:
+        camera = ModelCamera("PINHOLE", size, size, [fx, fy, cx, cy])
+    xyz, rgb, seen = _colmap_points(objects, poses, k, size)
+    keep = [i for i, s in enumerate(seen) if len(s) >= 2]  # a point of a model is seen twice at least
+    observations: list[list] = [[] for _ in poses]
+    tracks = []
+    for pid, i in enumerate(keep):
+        track = []
+        for j, u, v in seen[i]:
+            track.append((j + 1, len(observations[j])))
+            observations[j].append((u, v, pid + 1))
+        tracks.append(np.array(track, dtype=np.int64))
+    images = {}
+    for j, pose in enumerate(poses):
+        w2c = np.linalg.inv(pose @ np.diag([1.0, -1.0, -1.0, 1.0]))
+        obs = np.array(observations[j], dtype=np.float64).reshape(-1, 3)
+        images[j + 1] = ModelImage(quaternion(w2c[:3, :3]), w2c[:3, 3], 1, f"image{j:03d}.png", obs[:, :2],
+                                   obs[:, 2].astype(np.int64))
+    model = Model({1: camera}, images, xyz[keep].reshape(-1, 3), rgb[keep].reshape(-1, 3), np.full(len(keep), 0.1),
+                  np.arange(1, len(keep) + 1, dtype=np.int64), tracks)
+    write_model(model, out / "sparse" / "0", "bin")
+
+
 def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8, seed: int = 0,
-               layout: str = "blender", rig: str | None = None, content: str = "objects") -> Path:
+               layout: str = "blender", rig: str | None = None, content: str = "objects",
+               lens: str = "pinhole") -> Path:
     """Render the seeded procedural scene into `out_dir` in `layout` (one of `LAYOUTS`) and return `out_dir`.
 
     rig: "sphere" (cameras on the upper hemisphere) or "forward" (forward-facing); default forward
@@ -548,6 +679,8 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     content: "objects" (default), "thin" (plus rods and a cable one to two pixels wide at 100 px,
     reaching the content box's edge: the scene that checks that skipping never cuts thin structure),
     "large" (a floor reaching past the camera-derived box) or "empty" (`scene_objects`).
+    lens: "pinhole", or a distorting lens of `LENSES` ("opencv", "fisheye") for the layouts that record one
+    (`LENS_LAYOUTS`): every view is ray-cast through it exactly, and the files name its model and coefficients.
     Deterministic: the same arguments give byte-identical files. Refuses a folder that already holds files.
     """
     if size < 4 or n_train < 1 or n_test < 0 or seed < 0:
@@ -560,6 +693,11 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     rig = rig or ("forward" if layout == "llff" else "sphere")
     if rig not in RIGS:
         raise BoostNerfError(f"unknown camera rig {rig!r}: use one of {', '.join(RIGS)}")
+    if lens not in LENSES:
+        raise BoostNerfError(f"unknown lens {lens!r}: use one of {', '.join(LENSES)}")
+    if lens != "pinhole" and layout not in LENS_LAYOUTS:
+        raise BoostNerfError(f"the {layout} layout records no lens distortion: use --lens with "
+                             f"{' or '.join(LENS_LAYOUTS)}")
     objects = scene_objects(seed, content)  # checks `content`, before anything is written
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
@@ -568,9 +706,9 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         raise BoostNerfError(f"{out_dir} already holds files: make-scene writes into a new or empty folder (another "
                              "scene's files would mix with this one's); choose a new folder or delete this one")
     n_test = written_test_views(layout, n_train, n_test)  # the views of a Blender scene with that many test views
-    train, test = (forward_poses if rig == "forward" else camera_poses)(n_train, n_test)
+    train, test = {"forward": forward_poses, "orbit": orbit_poses, "sphere": camera_poses}[rig](n_train, n_test)
     focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
-    k = torch.tensor([focal, focal, size / 2, size / 2])
+    k = torch.tensor(lens_row(focal, focal, size / 2, size / 2, *LENSES[lens]))
     views = {}
     with _single_thread():
         for split, poses in (("train", train), ("test", test)):
@@ -590,12 +728,16 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
             _write_nsvf(tmp, views, focal, size, masked=layout == "tanks")
         elif layout == "llff":
             _write_llff(tmp, views, focal, size, content_radius(objects))
+        elif layout == "colmap":
+            _write_colmap(tmp, views, k, size, lens, objects)
         else:
-            _write_nerfstudio(tmp, views, focal, size)
+            _write_nerfstudio(tmp, views, focal, size, lens)
         (tmp / "objects.json").write_text(json.dumps({"seed": seed, "content": content, "objects": objects}, indent=2))
         text = README.format(seed=seed, ss=SUPERSAMPLE, n_train=n_train, n_test=n_test, size=size,
                              angle=CAMERA_ANGLE_X, rig_text=RIG_TEXT[rig].format(radius=RADIUS),
-                             layout_text=LAYOUT_TEXT[layout], content_text=CONTENT_TEXT[content])
+                             layout_text=LAYOUT_TEXT[layout] + (f" Lens: {lens}, {LENSES[lens][0]}."
+                                                                if lens != "pinhole" else ""),
+                             content_text=CONTENT_TEXT[content])
         (tmp / "README.txt").write_text(text)
         if out_dir.is_dir():
             out_dir.rmdir()  # empty (checked above)

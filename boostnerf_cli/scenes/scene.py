@@ -4,7 +4,8 @@ Conventions (the same for every dataset format):
 - poses are camera-to-world 4x4 matrices in the OpenGL / Blender convention: the camera looks
   down its -z axis, +y is up in the image, +x is right;
 - intrinsics are per view, `(fx, fy, cx, cy)` in pixels of the stored (possibly downscaled)
-  images, with pixel centres at integer + 0.5;
+  images, with pixel centres at integer + 0.5; a camera with lens distortion adds its coefficients
+  (`render.rays.LENS`: k1..k4, p1, p2, fisheye), and its rays go through the inverse distortion;
 - images are float32 RGB in [0, 1], already composited on `background` when they had alpha; a split keeps
   that alpha (`Split.alpha`) so that training can composite a pixel on another colour (`train.random_background`);
 - `bbox`, `near` and `far` are where the renderer samples. For forward-facing scenes (`ndc` set,
@@ -21,7 +22,7 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.render.rays import NDC
+from boostnerf_cli.render.rays import LENS, NDC, PINHOLE, WITH_LENS
 from boostnerf_cli.render.renderer import COLOR_THRESHOLD, RenderSettings
 
 
@@ -31,7 +32,7 @@ class Split:
 
     images: Tensor  # (N, H, W, 3) float32 in [0, 1]
     poses: Tensor  # (N, 4, 4) float32 camera-to-world
-    intrinsics: Tensor  # (N, 4) float32: fx, fy, cx, cy in pixels
+    intrinsics: Tensor  # (N, 4) float32: fx, fy, cx, cy in pixels; (N, 11) with a lens (render/rays.py LENS)
     names: tuple[str, ...]
     alpha: Tensor | None = None  # (N, H, W) float32 in [0, 1], the images' coverage; None: every pixel opaque
 
@@ -41,8 +42,9 @@ class Split:
             raise BoostNerfError(f"split images must be (N, H, W, 3), got {tuple(self.images.shape)}")
         if self.poses.shape != (n, 4, 4):
             raise BoostNerfError(f"expected {n} poses of shape 4x4, got {tuple(self.poses.shape)}")
-        if self.intrinsics.shape != (n, 4):
-            raise BoostNerfError(f"expected {n} intrinsics (fx, fy, cx, cy), got {tuple(self.intrinsics.shape)}")
+        if self.intrinsics.shape not in ((n, PINHOLE), (n, WITH_LENS)):
+            raise BoostNerfError(f"expected {n} intrinsics (fx, fy, cx, cy, then optionally the lens "
+                                 f"{' '.join(LENS)}), got {tuple(self.intrinsics.shape)}")
         if self.alpha is not None and self.alpha.shape != self.images.shape[:3]:
             raise BoostNerfError(f"split alpha must be (N, H, W) = {tuple(self.images.shape[:3])}, "
                                  f"got {tuple(self.alpha.shape)}")
@@ -93,6 +95,22 @@ class Split:
 
 
 @dataclass(frozen=True)
+class SparsePoints:
+    """The 3-D points a structure-from-motion model found (COLMAP's points3D), in the scene's world (the cameras'
+    frame, never NDC), and which views see each: `visible[split]` rows (view index in that split, point index)."""
+
+    xyz: Tensor  # (P, 3) float32
+    rgb: Tensor  # (P, 3) uint8
+    error: Tensor  # (P,) float32: mean reprojection error in pixels of the model's images
+    visible: dict[str, Tensor]  # split name -> (M, 2) int64
+
+    def seen_by(self, split: str, view: int) -> Tensor:
+        """Indices of the points view `view` of `split` sees."""
+        rows = self.visible.get(split)
+        return torch.zeros(0, dtype=torch.long) if rows is None else rows[rows[:, 0] == view, 1]
+
+
+@dataclass(frozen=True)
 class Scene:
     """A posed image collection with the bounds a renderer needs."""
 
@@ -107,6 +125,7 @@ class Scene:
     holdout: str = ""  # how the held-out split was made, e.g. "every 8th train view"
     extra: dict = field(default_factory=dict)
     ndc: NDC | None = None  # forward-facing scenes: rays are sampled in these NDC (bbox/near/far too)
+    points: SparsePoints | None = None  # a structure-from-motion model's points (COLMAP scenes), else None
 
     def __post_init__(self) -> None:
         if "train" not in self.splits or len(self.splits["train"]) == 0:
@@ -143,6 +162,7 @@ class Scene:
 
     def describe(self) -> dict:
         """A JSON-able summary, recorded in the workspace manifest."""
+        points = {} if self.points is None else {"points": len(self.points.xyz)}
         return {
             "name": self.name,
             "source": self.source,
@@ -154,4 +174,5 @@ class Scene:
             "background": list(self.background),
             "ndc": self.ndc.to_dict() if self.ndc is not None else None,
             "splits": {k: {"views": len(v), "height": v.height, "width": v.width} for k, v in self.splits.items()},
+            **points,
         }

@@ -420,6 +420,8 @@ def _describe(scene: Scene) -> None:
         warn(warning)
     for note in scene.extra.get("notes", []):
         log(f"note: {note}")
+    if "box_from" in scene.extra:
+        log(f"scene box {box_text(scene.bbox)} from {scene.extra['box_from']}")
     log(f"scene {scene.name}: {len(scene.splits['train'])} train views "
         f"{scene.splits['train'].width}x{scene.splits['train'].height}"
         + (f", {scene.holdout}" if scene.holdout else ""))

@@ -1,0 +1,320 @@
+"""Cameras as they are: lenses (distortion read and rays bent through it), COLMAP models as a format, bounds from
+their sparse points, and `boostnerf capture` from photos or a video to a scene folder."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.render.rays import distort, image_rays, project_points, undistort
+from boostnerf_cli.scenes import load_scene, make_scene
+from boostnerf_cli.scenes.colmap_model import ModelCamera, read_model, write_model
+from boostnerf_cli.scenes.procedural import LENSES
+from tests.conftest import REMOVE, cli_in_process, make_recipe, run_cli
+
+LENS_ROWS = {  # k1 k2 k3 k4 p1 p2 fisheye
+    "opencv": [-0.3, 0.1, 0.0, 0.0, 0.003, -0.002, 0.0],
+    "opencv-k3": [-0.25, 0.08, -0.02, 0.0, 0.001, 0.002, 0.0],
+    "pincushion": [0.2, 0.05, 0.0, 0.0, 0.0, 0.0, 0.0],
+    "fisheye": [0.08, -0.03, 0.01, -0.002, 0.0, 0.0, 1.0],
+}
+
+
+@pytest.mark.parametrize("lens", LENS_ROWS, ids=list(LENS_ROWS))
+def test_undistort_inverts_distort(lens):
+    lens = torch.tensor(LENS_ROWS[lens], dtype=torch.float64)
+    xy = torch.rand(2000, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 1.4 - 0.7
+    assert (undistort(distort(xy, lens), lens) - xy).abs().max() < 1e-10
+    assert (distort(xy, lens) - xy).abs().max() > 1e-3  # the lens does bend
+
+
+def test_distortion_is_colmaps():
+    """The same pixel as COLMAP's own OPENCV and OPENCV_FISHEYE models give for a camera-space point."""
+    pycolmap = pytest.importorskip("pycolmap")
+    xy = np.random.default_rng(0).uniform(-0.5, 0.5, (50, 2))
+    for model, params, lens in (("OPENCV", [100, 110, 32, 24, -0.2, 0.05, 0.002, -0.001], LENS_ROWS["opencv"]),
+                                ("OPENCV_FISHEYE", [100, 110, 32, 24, 0.08, -0.03, 0.01, -0.002],
+                                 LENS_ROWS["fisheye"])):
+        cam = pycolmap.Camera.create_from_model_name(1, model, 100.0, 64, 48)
+        cam.params = params
+        row = [0.08, -0.03, 0.01, -0.002, 0, 0, 1] if model == "OPENCV_FISHEYE" else [-0.2, 0.05, 0, 0, 0.002,
+                                                                                        -0.001, 0]
+        ours = distort(torch.tensor(xy), torch.tensor(row, dtype=torch.float64)).numpy() * [100, 110] + [32, 24]
+        assert np.abs(cam.img_from_cam(np.c_[xy, np.ones(len(xy))]) - ours).max() < 1e-9, (model, lens)
+
+
+def test_rays_through_a_lens_project_back_to_their_pixels():
+    pose = torch.eye(4)
+    pose[:3, 3] = torch.tensor([0.3, -0.2, 4.0])
+    k = torch.tensor([50.0, 55.0, 16.0, 12.0, *LENS_ROWS["opencv"]])
+    o, d = image_rays(pose, k, 24, 32)
+    uv, depth = project_points(o + 3.0 * d, pose, k)
+    v, u = torch.meshgrid(torch.arange(24) + 0.5, torch.arange(32) + 0.5, indexing="ij")
+    assert torch.allclose(uv, torch.stack([u.reshape(-1), v.reshape(-1)], -1), atol=1e-3)
+    pinhole = image_rays(pose, k[:4], 24, 32)[1]
+    assert (pinhole - d).norm(dim=-1).max() > 0.01  # the corners' rays differ from a pinhole camera's
+
+
+@pytest.fixture(scope="module")
+def colmap_scene(tmp_path_factory) -> Path:
+    return make_scene(tmp_path_factory.mktemp("colmap") / "s", size=32, n_train=10, n_test=2, layout="colmap",
+                      lens="opencv")
+
+
+def test_a_colmap_model_loads_as_the_scene_it_was_written_from(colmap_scene, tmp_path):
+    """make-scene's COLMAP layout (binary, an OPENCV lens) against its nerfstudio layout of the same views: the same
+    cameras, lens and images; the text form of the model loads the same; each recorded keypoint is where its point
+    projects through the lens."""
+    scene = load_scene(colmap_scene)
+    twin = load_scene(make_scene(tmp_path / "ns", size=32, n_train=10, n_test=2, layout="nerfstudio", lens="opencv"))
+    assert scene.format == "colmap" and scene.extra["detected"].startswith("colmap")
+    for name in ("train", "test"):
+        a, b = scene.splits[name], twin.splits[name]
+        assert torch.allclose(a.poses, b.poses, atol=1e-5) and torch.allclose(a.intrinsics, b.intrinsics, atol=1e-4)
+        assert (a.images - b.images).abs().max() <= 2 / 255 + 1e-6  # on white before 8-bit rounding
+    assert scene.splits["train"].intrinsics[0, 4:].tolist() == pytest.approx(
+        [LENSES["opencv"][0].get(k, 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2")] + [0.0])
+    text = shutil.copytree(colmap_scene, tmp_path / "txt")
+    model = read_model(text / "sparse" / "0")
+    for f in (text / "sparse" / "0").iterdir():
+        f.unlink()
+    write_model(model, text / "sparse" / "0", "txt")
+    again = load_scene(text)
+    assert torch.equal(again.points.xyz, scene.points.xyz)
+    assert torch.allclose(again.splits["train"].poses, scene.splits["train"].poses)
+    image = model.images[3]  # image002: train view 1 (view 0 is held out)
+    pose = scene.splits["train"].poses[1]
+    seen = image.point_ids >= 0
+    index = {int(p): i for i, p in enumerate(model.point_ids)}
+    pts = torch.tensor(model.xyz[[index[int(p)] for p in image.point_ids[seen]]], dtype=torch.float32)
+    uv, _ = project_points(pts, pose, scene.splits["train"].intrinsics[1])
+    assert np.abs(uv.numpy() - image.xys[seen]).max() < 1e-3
+    rows = scene.points.visible["train"]
+    assert set(rows[rows[:, 0] == 1, 1].tolist()) == {index[int(p)] for p in image.point_ids[seen]}
+
+
+def test_bounds_come_from_the_sparse_points(colmap_scene):
+    """Around an object the box holds the points the views see (the floor disc of radius 1 and the solids): tighter
+    than the box the cameras alone give, and the scene says where it came from."""
+    scene = load_scene(colmap_scene)
+    assert scene.ndc is None and scene.extra["box_from"].startswith("the sparse points")
+    lo, hi = scene.bbox
+    assert (lo < torch.tensor([-0.95, -0.95, -0.5])).all() and (hi > torch.tensor([0.95, 0.95, 0.1])).all()
+    assert (lo > torch.tensor([-1.3, -1.3, -0.8])).all() and (hi < torch.tensor([1.3, 1.3, 0.6])).all()
+    depth_far = max(float((p[:3, 3]).norm()) for p in scene.splits["train"].poses) + 1.25
+    assert scene.near > 1.5 and scene.far <= 1.2 * depth_far
+
+
+def test_a_forward_facing_colmap_capture_is_sampled_in_ndc(tmp_path):
+    scene = load_scene(make_scene(tmp_path / "f", size=32, n_train=10, n_test=2, layout="colmap", rig="forward"))
+    assert scene.ndc is not None and scene.extra["forward_facing"]
+    bounds = np.array(scene.extra["bounds"])
+    assert (bounds[:, 0] >= 1 / 0.75 - 1e-6).all() and (bounds[:, 1] > bounds[:, 0]).all()
+
+
+def test_an_unsupported_colmap_camera_model_is_one_line(colmap_scene, tmp_path, monkeypatch, capsys):
+    folder = shutil.copytree(colmap_scene, tmp_path / "fov")
+    model = read_model(folder / "sparse" / "0")
+    model.cameras[1] = ModelCamera("FOV", 32, 32, [44.0, 44.0, 16.0, 16.0, 0.9])
+    write_model(model, folder / "sparse" / "0")
+    code, err = cli_in_process(monkeypatch, capsys, "pretrain", "--data", str(folder), "--workspace",
+                               str(tmp_path / "ws"), "--device", "cpu")
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1 and "camera model FOV is not supported" in lines[0], err
+
+
+def test_frames_whose_photos_are_gone_are_left_out_with_a_count(tmp_path):
+    folder = make_scene(tmp_path / "ns", size=16, n_train=12, n_test=2, layout="nerfstudio")
+    for name in ("frame_00003.png", "frame_00007.png"):
+        (folder / "images" / name).unlink()
+    scene = load_scene(folder)
+    assert len(scene.splits["train"]) + len(scene.splits["test"]) == 12
+    assert any("2 of 14 frames of transforms.json name images that are not there" in w and "training on the other 12"
+               in w for w in scene.extra["warnings"])
+    for f in (folder / "images").iterdir():
+        f.unlink()
+    with pytest.raises(BoostNerfError, match="not found"):
+        load_scene(folder)
+
+
+# ----------------------------------------------------------------------------- capture: bad input, no SfM needed
+
+
+def _photos(folder: Path, n: int, size=(40, 30)) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        iio.imwrite(folder / f"p{i:02d}.png", rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8))
+    return folder
+
+
+def _refused(monkeypatch, capsys, tmp_path, *args, needle: str) -> None:
+    out = tmp_path / "out"
+    code, err = cli_in_process(monkeypatch, capsys, "capture", *args, "--out", str(out))
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], err
+    assert not out.exists()  # nothing a later stage would take for a scene
+
+
+def test_capture_refuses_bad_photos_in_one_line(tmp_path, monkeypatch, capsys):
+    pytest.importorskip("pycolmap")
+    (tmp_path / "empty").mkdir()
+    _refused(monkeypatch, capsys, tmp_path, "--images", str(tmp_path / "empty"), needle="holds no photos")
+    _refused(monkeypatch, capsys, tmp_path, "--images", str(_photos(tmp_path / "two", 2)), needle="at least 3")
+    mixed = _photos(tmp_path / "mixed", 3)
+    iio.imwrite(mixed / "p09.png", np.zeros((20, 20, 3), np.uint8))
+    _refused(monkeypatch, capsys, tmp_path, "--images", str(mixed), needle="one capture needs photos of one size")
+    broken = _photos(tmp_path / "broken", 3)
+    (broken / "p01.png").write_bytes(b"not a png")
+    _refused(monkeypatch, capsys, tmp_path, "--images", str(broken), needle="cannot read photo")
+    (tmp_path / "clip.mp4").write_bytes(b"\x00" * 64)
+    _refused(monkeypatch, capsys, tmp_path, "--video", str(tmp_path / "clip.mp4"), needle="cannot read the video")
+    _refused(monkeypatch, capsys, tmp_path, needle="give either --images DIR (photos) or --video FILE")
+
+
+def test_capture_without_pycolmap_says_how_to_install(tmp_path, monkeypatch, capsys):
+    import builtins
+
+    real = builtins.__import__
+    monkeypatch.setattr(builtins, "__import__", lambda name, *a, **k: (_ for _ in ()).throw(ImportError(name))
+                        if name == "pycolmap" else real(name, *a, **k))
+    _refused(monkeypatch, capsys, tmp_path, "--images", str(_photos(tmp_path / "p", 3)), needle='.[capture]"')
+
+
+def test_too_few_registered_photos_say_how_many_and_what_to_do():
+    from boostnerf_cli.stages.capture import check_registered
+
+    check_registered(12, 24, 1)
+    with pytest.raises(BoostNerfError, match=r"only 5 of the 12 images could be placed .* overlap too little"):
+        check_registered(5, 12, 3)
+    with pytest.raises(BoostNerfError, match="no camera could be placed"):
+        check_registered(0, 12, 0)
+
+
+def test_a_video_gives_evenly_spaced_sharp_frames(tmp_path):
+    """Frames in windows of equal length, the sharpest of each: a blurred copy next to every sharp frame is never
+    chosen; a video with no frames is refused in one line."""
+    import imageio_ffmpeg
+
+    from boostnerf_cli.stages.capture import video_frames
+
+    rng = np.random.default_rng(0)
+    sharp = [np.kron(rng.integers(0, 255, (12, 16, 3), dtype=np.uint8), np.ones((4, 4, 1), np.uint8))
+             for _ in range(6)]
+    blurred = [((f[:-2].astype(int) + f[1:-1] + f[2:]) // 3).astype(np.uint8) for f in sharp]
+    blurred = [np.concatenate([b, f[-2:]]) for b, f in zip(blurred, sharp)]
+    writer = imageio_ffmpeg.write_frames(str(tmp_path / "v.mp4"), (64, 48), fps=10, quality=10, macro_block_size=16)
+    writer.send(None)
+    for b, f in zip(blurred, sharp):
+        writer.send(np.ascontiguousarray(b))
+        writer.send(np.ascontiguousarray(f))
+    writer.close()
+    assert video_frames(tmp_path / "v.mp4", 6, tmp_path / "frames") == 6
+    got = [iio.imread(p).astype(float) for p in sorted((tmp_path / "frames").iterdir())]
+    for g, s, b in zip(got, sharp, blurred):
+        assert np.abs(g - s).mean() < np.abs(g - b).mean()
+
+
+# ----------------------------------------------------------------------------- capture: the real thing
+
+
+@pytest.mark.slow
+def test_capture_recovers_the_cameras_of_rendered_photos(tmp_path, monkeypatch, capsys):
+    """Photos ray-cast from a textured procedural scene (a walk around it) with known cameras: capture places every
+    one, and after a similarity its cameras are the known ones (median rotation error under 0.5 degrees, centre
+    error under 1% of the cameras' spread). A second run reuses every phase; a run stopped in the middle leaves no
+    scene folder, and the next run goes on from the phases it finished. pretrain reads the folder directly."""
+    pytest.importorskip("pycolmap")
+    from boostnerf_cli.scenes.alignment import compare_scenes
+    from boostnerf_cli.stages import capture
+
+    src = make_scene(tmp_path / "src", size=256, n_train=24, n_test=0, layout="colmap", content="textured",
+                     rig="orbit")
+    out = tmp_path / "cap"
+
+    def stop(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(capture, "_map", stop)
+    with pytest.raises(KeyboardInterrupt):
+        capture.run(src / "images", None, out, capture.CaptureOptions(), force=False)
+    monkeypatch.undo()
+    assert not out.exists() and (tmp_path / ".cap.capture" / "database.db").is_file()
+    code, err = cli_in_process(monkeypatch, capsys, "capture", "--images", str(src / "images"), "--out", str(out))
+    assert code == 0, err
+    assert "features: done before, reused" in err and "matching: done before, reused" in err
+    report = json.loads((out / "capture.json").read_text())
+    assert report["registered"] == report["given"] == 24 and report["mean_reprojection_error"] < 1.0
+    errors = compare_scenes(load_scene(out, holdout_every=0), load_scene(src, holdout_every=0))
+    assert errors["cameras"] == 24
+    assert errors["median_rotation_deg"] < 0.5 and errors["median_centre_error"] < 0.01, errors
+    code, err = cli_in_process(monkeypatch, capsys, "capture", "--images", str(src / "images"), "--out", str(out))
+    assert code == 0 and "already captured" in err
+    proc = run_cli("pretrain", "--data", str(out), "--workspace", str(tmp_path / "ws"), "--recipe",
+                   str(make_recipe(tmp_path / "r.yaml", pretrain={"res": [12], "iters": 10,
+                                                                   "geometry": {"iters": 20}})), "--device", "cpu")
+    assert proc.returncode == 0, proc.stderr
+    assert "format: colmap" in proc.stderr and "from the sparse points" in proc.stderr
+
+
+LENS_RECIPE = {"data": {"holdout_every": 8, "image_size": REMOVE},  # the photos' own 48 px
+               "pretrain": {"res": [24], "iters": 300,
+                            "geometry": {"res": 16, "iters": 150, "batch_rays": 512},
+                            "train": {"batch_rays": 512, "log_every": 100, "checkpoint_every": 1000,
+                                      "occupancy_every": 100}}}
+
+
+@pytest.mark.slow
+def test_a_distorted_capture_trains_to_its_pinhole_twin(tmp_path):
+    """The same cameras and scene, photographed through a pinhole and through an OPENCV lens (k1 -0.3, up to 2.4 px
+    at the corners of 48 px views): DVGO-24 trained on the distorted photos with the lens read, rendered at the
+    twin's held-out pinhole views, reaches the pinhole-trained expert's PSNR (measured: 24.87 against 24.68 dB: it
+    sees a little more of the scene through the wider lens), while the same photos read as pinhole photos (the lens
+    dropped from transforms.json) fall short (24.12 dB: the geometry it learns is bent)."""
+    from boostnerf_cli.metrics.image import psnr
+    from boostnerf_cli.models import load_model
+    from boostnerf_cli.render.renderer import render_view
+    from boostnerf_cli.workspace import Workspace
+
+    kw = {"size": 48, "n_train": 14, "n_test": 2, "layout": "nerfstudio"}
+    pin = make_scene(tmp_path / "pin", **kw)
+    lens = make_scene(tmp_path / "lens", **kw, lens="opencv")
+    flat = shutil.copytree(lens, tmp_path / "flat")
+    meta = json.loads((flat / "transforms.json").read_text())
+    for key in ("k1", "k2", "p1", "p2"):
+        meta.pop(key)
+    (flat / "transforms.json").write_text(json.dumps(meta))
+    recipe = make_recipe(tmp_path / "lens.yaml", **LENS_RECIPE)
+    twin = load_scene(pin).split("test")
+    scores = {}
+    for folder in (pin, lens, flat):
+        ws = tmp_path / f"ws-{folder.name}"
+        run_cli("pretrain", "--data", str(folder), "--workspace", str(ws), "--recipe", str(recipe), "--device",
+                "cpu", check=True, timeout=1800)  # about 30 s each alone; minutes on a busy machine
+        model = load_model(Workspace(ws), "dvgo-24", "cpu")
+        settings = model.settings(load_scene(pin))
+        scores[folder.name] = np.mean([psnr(render_view(model.field, twin, i, settings, model.skip)["rgb"],
+                                            twin.images[i]) for i in range(len(twin))])
+    assert scores["lens"] >= scores["pin"] - 0.1, scores
+    assert scores["flat"] <= scores["pin"] - 0.3, scores
+
+
+def test_the_scene_cache_keeps_the_points_and_the_lens(colmap_scene, tmp_path, monkeypatch):
+    from boostnerf_cli import scenes
+
+    first = load_scene(colmap_scene, cache=tmp_path / "scene.safetensors")
+    detect, _, what = scenes.FORMATS["colmap"]
+    monkeypatch.setitem(scenes.FORMATS, "colmap", (detect, lambda *a, **k: pytest.fail("decoded again"), what))
+    again = load_scene(colmap_scene, cache=tmp_path / "scene.safetensors")
+    assert (tmp_path / "scene.safetensors").is_file()
+    assert torch.equal(again.points.xyz, first.points.xyz) and torch.equal(again.points.rgb, first.points.rgb)
+    assert all(torch.equal(again.points.visible[k], first.points.visible[k]) for k in first.points.visible)
+    assert torch.equal(again.splits["train"].intrinsics, first.splits["train"].intrinsics)
+    assert again.splits["train"].intrinsics.shape[1] == 11
