@@ -260,7 +260,8 @@ def make_scene_cmd(
     layout: Annotated[str, typer.Option(
         "--format", help="Layout: blender, nsvf, tanks, llff or nerfstudio.")] = "blender",
     rig: Annotated[str | None, typer.Option(
-        "--rig", help="Cameras: sphere or forward (default: forward for llff, else sphere).")] = None,
+        "--rig", help="Cameras: sphere, forward, or unbounded (a ring inside a world of ground and sky; --format "
+                      "nerfstudio) (default: forward for llff, else sphere).")] = None,
     content: Annotated[str, typer.Option("--content", help=(
         "objects, thin (rods and a cable 1-2 px wide), large (a floor past the box), empty, or detail (fine "
         "patterns on one half, smooth content on the other: the quickstart's scene); docs/datasets.md."))] = "objects",

@@ -49,7 +49,8 @@ def workspace_scene(ws: Workspace) -> Scene:
         raise BoostNerfError(f"{ws.manifest_path} records no scene: rerun `boostnerf pretrain --workspace {ws.root}`")
     path = workspace_scene_path(ws, m)
     scene = load_scene(path, image_size=data.get("image_size"), holdout_every=data.get("holdout_every", 8),
-                       format=data.get("format", "auto"), bbox=data.get("bbox"), cache=ws.scene_cache)
+                       format=data.get("format", "auto"), bbox=data.get("bbox"), cache=ws.scene_cache,
+                       kind=data.get("scene", "auto"))
     if m.get("scene_digest") and scene_digest(scene) != m["scene_digest"]:
         raise BoostNerfError(
             f"the workspace's scene {path} changed since pretrain (its images or cameras differ): restore it, "

@@ -1,0 +1,132 @@
+"""Unbounded scenes: the contraction (render/contraction.py), the scene kinds (scenes/kind.py), the procedural
+unbounded capture (make-scene --rig unbounded), the distortion loss, and training on it against a bounded box."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import pytest
+import torch
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.render.contraction import Contraction, contraction_around
+from boostnerf_cli.render.rays import image_rays
+from boostnerf_cli.render.renderer import RenderSettings, sample_rays
+from boostnerf_cli.render.volrend import distortion
+from boostnerf_cli.scenes import load_scene, make_scene
+from boostnerf_cli.scenes.kind import auto_kind
+
+
+def test_contraction_keeps_the_sphere_squashes_the_rest_and_inverts():
+    c = Contraction((0.5, -1.0, 2.0), 2.0, 2000.0)
+    centre = torch.tensor(c.centre)
+    inside = centre + 1.9 * torch.nn.functional.normalize(torch.randn(50, 3), dim=-1) * torch.rand(50, 1)
+    assert torch.allclose(c.contract(inside), inside, atol=1e-6)
+    far = centre + 1e6 * torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
+    r = (c.contract(far) - centre).norm(dim=-1)
+    assert bool((r < 4.0).all()) and bool((r > 3.99).all())  # infinity lands on the ball of radius 2 r
+    pts = centre + torch.randn(200, 3).double() * 10
+    assert torch.allclose(c.uncontract(c.contract(pts)), pts, atol=1e-6)
+    box = c.box()
+    assert torch.allclose(box, torch.stack([centre - 4, centre + 4]))
+    with pytest.raises(ValueError):
+        Contraction((0, 0, 0), 0.0, 1.0)
+
+
+def test_samples_run_linear_inside_then_in_disparity_to_the_far_bound_and_stay_in_the_box():
+    c = contraction_around(torch.zeros(3), 1.0)
+    settings = RenderSettings(step=0.05, near=0.01, far=c.far, bbox=c.box(), contraction=c)
+    origins = torch.zeros(4, 3)
+    dirs = torch.nn.functional.normalize(torch.randn(4, 3), dim=-1)
+    t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter=False)
+    n_in, n_out = c.slots(step)
+    assert t.shape == (4, n_in + n_out) == (4, settings.sampling[0])
+    inner = t[:, :n_in][valid[:, :n_in]].reshape(4, -1)
+    assert torch.allclose(inner.diff(dim=1), torch.full_like(inner[:, 1:], 0.05), atol=1e-5)  # linear inside
+    disparity = 1 / t[:, n_in:]
+    assert torch.allclose(disparity.diff(dim=1), disparity.diff(dim=1)[:, :1].expand(-1, n_out - 1), atol=1e-5)
+    assert float(t[:, -1].min()) > 20 and float(t.max()) <= c.far  # the last samples lie far out, short of far
+    assert bool(((xyz - 0).norm(dim=-1) <= 2.0 + 1e-5).all())
+    deltas = Contraction.deltas(xyz)
+    assert float(deltas[:, n_in + 1 :].max()) < 2.5 * step  # about the step through the shell too
+
+
+def test_distortion_loss_matches_its_pairwise_definition():
+    torch.manual_seed(0)
+    w = torch.rand(3, 7) / 7
+    d = torch.rand(3, 7) + 0.1
+    ends = d.cumsum(-1)
+    mids = ends - d / 2
+    brute = (w[:, :, None] * w[:, None, :] * (mids[:, :, None] - mids[:, None, :]).abs()).sum((1, 2))
+    brute = brute + (w**2 * d).sum(-1) / 3
+    assert torch.allclose(distortion(w, d), brute, atol=1e-6)
+    # one sharp peak costs less than the same weight spread along the ray
+    peak = torch.zeros(1, 7)
+    peak[0, 3] = 1.0
+    assert float(distortion(peak, torch.ones(1, 7))) < float(distortion(torch.full((1, 7), 1 / 7), torch.ones(1, 7)))
+
+
+@pytest.fixture(scope="module")
+def unbounded_scene(tmp_path_factory):
+    return make_scene(tmp_path_factory.mktemp("unb") / "scene", size=24, n_train=14, n_test=2, seed=0,
+                      layout="nerfstudio", rig="unbounded")
+
+
+def test_auto_tells_unbounded_captures_and_never_moves_bounded_or_forward_ones(unbounded_scene, tmp_path):
+    scene = load_scene(unbounded_scene)
+    assert scene.extra["kind"]["kind"] == "unbounded" and scene.contraction is not None
+    assert "cameras all around" in scene.extra["kind"]["why"]
+    poses = scene.splits["train"].poses[:, :3, 3]
+    centre = torch.tensor(scene.contraction.centre, dtype=torch.float32)
+    assert float((poses - centre).norm(dim=-1).max()) <= scene.contraction.radius + 1e-4  # cameras inside the sphere
+    assert torch.allclose(scene.bbox, scene.contraction.box())
+    # the same views made bounded on request: the camera box, as before kinds existed
+    bounded = load_scene(unbounded_scene, kind="bounded")
+    assert bounded.contraction is None and float((bounded.bbox[1] - bounded.bbox[0]).max()) < 5
+    for layout, want in (("blender", "bounded"), ("nerfstudio", "bounded"), ("tanks", "bounded"), ("llff", "forward")):
+        s = load_scene(make_scene(tmp_path / layout, size=16, n_train=8, n_test=2, layout=layout))
+        assert s.extra["kind"]["kind"] == want and s.contraction is None, (layout, s.extra["kind"])
+    # an opaque nerfstudio capture of an object on white (no alpha) stays bounded: its edges show the background
+    s = load_scene(tmp_path / "nerfstudio")
+    opaque = dataclasses.replace(s, splits={k: dataclasses.replace(v, alpha=None) for k, v in s.splits.items()})
+    assert auto_kind(opaque, False)[0] == "bounded"
+
+
+def test_kinds_are_refused_where_they_cannot_work(unbounded_scene, tmp_path):
+    llff = make_scene(tmp_path / "llff", size=16, n_train=8, n_test=2, layout="llff")
+    for kind in ("bounded", "unbounded"):
+        with pytest.raises(BoostNerfError, match="forward-facing"):
+            load_scene(llff, kind=kind)
+    with pytest.raises(BoostNerfError, match="needs a forward-facing LLFF capture"):
+        load_scene(unbounded_scene, kind="forward")
+    with pytest.raises(BoostNerfError, match="takes no data.bbox"):
+        load_scene(unbounded_scene, kind="unbounded", bbox=[-1, -1, -1, 1, 1, 1])
+    with pytest.raises(BoostNerfError, match="unbounded writes an opaque capture"):
+        make_scene(tmp_path / "x", size=8, layout="blender", rig="unbounded")
+
+
+def outside_share(folder, box: torch.Tensor) -> float:
+    """The share of a procedural scene's test pixels whose first surface (exact ray casting) lies outside `box`."""
+    from boostnerf_cli.scenes.procedural import intersect
+
+    objects = json.loads((folder / "objects.json").read_text())["objects"]
+    scene = load_scene(folder, kind="bounded")
+    test = scene.splits["test"]
+    outside = total = 0
+    for pose, k in zip(test.poses, test.intrinsics):
+        o, d = (v.double() for v in image_rays(pose, k, test.height, test.width))
+        t = torch.stack([intersect(obj, o, d)[0] for obj in objects]).min(0).values
+        p = o + t.clamp_max(1e9)[:, None] * d
+        outside += int(((p < box[0].double()) | (p > box[1].double())).any(-1).sum())
+        total += p.shape[0]
+    return outside / total
+
+
+def test_the_unbounded_capture_shows_mostly_content_outside_the_bounded_box(unbounded_scene):
+    bounded = load_scene(unbounded_scene, kind="bounded")
+    share = outside_share(unbounded_scene, bounded.bbox)
+    print(f"share of test pixels whose content lies outside the bounded box: {100 * share:.1f}%")
+    assert 0.3 < share < 0.95
+    assert not math.isnan(share)
