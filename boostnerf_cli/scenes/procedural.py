@@ -657,3 +657,19 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_dir
+
+
+def content_outside(folder: Path, poses: Tensor, intrinsics: Tensor, height: int, width: int, box: Tensor) -> float:
+    """The share of the pixels of views (poses (N, 4, 4), intrinsics (N, 4), height x width) of the procedural scene
+    in `folder` (its objects.json) whose first surface, by exact ray casting through the pixel centres, lies outside
+    `box` (2, 3): what a bounded scene cannot place where it is (the unbounded rig's far ground and sky)."""
+    objects = json.loads((Path(folder) / "objects.json").read_text())["objects"]
+    outside = total = 0
+    lo, hi = box[0].double(), box[1].double()
+    for pose, k in zip(poses, intrinsics):
+        o, d = (v.double() for v in image_rays(pose, k, height, width))
+        t = torch.stack([intersect(obj, o, d)[0] for obj in objects]).min(0).values
+        p = o + t.clamp_max(1e9)[:, None] * d
+        outside += int(((p < lo) | (p > hi)).any(-1).sum())
+        total += p.shape[0]
+    return outside / max(1, total)
