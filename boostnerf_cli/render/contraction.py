@@ -35,6 +35,9 @@ class Contraction:
     centre: tuple[float, float, float]
     radius: float
     far: float
+    # the longest stretch a ray samples linearly, from near to where it leaves the sphere (cameras outside the sphere
+    # cross it from farther off than its diameter); 0: the diameter
+    reach: float = 0.0
 
     def __post_init__(self) -> None:
         if not (self.radius > 0 and math.isfinite(self.radius)):
@@ -67,9 +70,9 @@ class Contraction:
         return c + self.radius * out
 
     def slots(self, step: float) -> tuple[int, int]:
-        """(samples inside, samples outside) per ray at `step`: the sphere's diameter, and its shell's depth r (a
-        ray leaving the sphere crosses about r of contracted space), each at `step`."""
-        return math.ceil(2 * self.radius / step) + 1, math.ceil(self.radius / step) + 1
+        """(samples inside, samples outside) per ray at `step`: the linear stretch (`reach`, at least the sphere's
+        diameter), and the shell's depth r (a ray leaving the sphere crosses about r of contracted space)."""
+        return math.ceil(max(2 * self.radius, self.reach) / step) + 1, math.ceil(self.radius / step) + 1
 
     def sample(self, origins: Tensor, dirs: Tensor, near: float, step: float,
                jitter: bool) -> tuple[Tensor, Tensor, Tensor]:
@@ -106,25 +109,34 @@ class Contraction:
         return torch.cat([gaps, gaps[:, -1:]], dim=1)
 
     def to_dict(self) -> dict:
-        return {"centre": list(self.centre), "radius": self.radius, "far": self.far}
+        return {"centre": list(self.centre), "radius": self.radius, "far": self.far, "reach": self.reach}
 
     @staticmethod
     def from_dict(d: dict) -> "Contraction":
-        return Contraction(tuple(float(v) for v in d["centre"]), float(d["radius"]), float(d["far"]))
+        return Contraction(tuple(float(v) for v in d["centre"]), float(d["radius"]), float(d["far"]),
+                           float(d.get("reach", 0.0)))
 
 
 FAR_RADII = 1000.0  # the far bound, in sphere radii: its contracted radius is 2 - 1/1000 of the shell's 2
 
 
-def contraction_around(centre: Tensor, radius: float) -> Contraction:
-    """The contraction of a sphere (centre (3,), radius): far bound `FAR_RADII` radii away."""
-    return Contraction(tuple(float(v) for v in centre), float(radius), FAR_RADII * float(radius))
+def contraction_around(centre: Tensor, radius: float, origins: Tensor | None = None) -> Contraction:
+    """The contraction of a sphere (centre (3,), radius): far bound `FAR_RADII` radii away; its linear stretch
+    reaches through the sphere from the farthest of the camera centres `origins` (N, 3)."""
+    c = centre.double()
+    reach = 0.0 if origins is None else float((origins.double() - c).norm(dim=-1).max()) + float(radius)
+    return Contraction(tuple(float(v) for v in c), float(radius), FAR_RADII * float(radius), reach)
+
+
+SPHERE_SHARE = 0.5  # the sphere kept linear reaches this share of the cameras' median distance to their subject
 
 
 def sphere_from_cameras(origins: Tensor, focus: Tensor) -> tuple[Tensor, float]:
-    """The sphere kept linear for cameras around a subject (mip-NeRF 360's normalisation): centred on `focus` (the
-    point nearest their optical axes), holding every camera centre (N, 3). -> (centre (3,), radius)."""
-    radius = float((origins.double() - focus.double()).norm(dim=-1).max())
+    """The sphere kept linear for cameras around a subject: centred on `focus` (the point nearest their optical
+    axes), of `SPHERE_SHARE` times the cameras' (N, 3) median distance to it. mip-NeRF 360 holds every camera in it
+    (an MLP has no cells to spare); a grid gives the sphere half its side, so a sphere twice as large would give the
+    subject half the voxels. -> (centre (3,), radius)."""
+    radius = SPHERE_SHARE * float((origins.double() - focus.double()).norm(dim=-1).median())
     return focus.double(), radius
 
 

@@ -54,8 +54,9 @@ class RenderSettings:
         """Works out `sampling` when the settings are made, outside any step (the box is read from its device once),
         so that a compiled step finds it ready: worked out lazily inside a step, it stops the compiler there (Python
         3.11's cached_property takes a lock), which then runs that function eagerly for good."""
-        if self.contraction is not None:  # the sphere's diameter inside, its shell's depth outside
-            step = max(self.step, 3 * self.contraction.radius / self.max_samples)
+        if self.contraction is not None:  # the linear stretch, then the shell's depth
+            c = self.contraction
+            step = max(self.step, (max(2 * c.radius, c.reach) + c.radius) / self.max_samples)
             object.__setattr__(self, "sampling", (sum(self.contraction.slots(step)), step))
             return
         diagonal = float((self.bbox[1] - self.bbox[0]).norm())

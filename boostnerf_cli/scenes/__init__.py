@@ -113,9 +113,16 @@ def _decode(folder: Path, image_size: int | None, holdout_every: int, format: st
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", DataWarning)
         scene = FORMATS[format][1](folder, image_size=image_size, holdout_every=holdout_every)
+    box_doubts = []  # moot once the scene is unbounded (its space is all of it)
     for w in caught:
+        if issubclass(w.category, BoxWarning) and bbox is not None:
+            continue  # a doubt about the derived box or near / far: data.bbox gives both (below)
         if issubclass(w.category, DataWarning):
             scene.extra.setdefault("warnings", []).append(str(w.message))
+            if issubclass(w.category, BoxWarning):
+                box_doubts.append(str(w.message))
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     for doubt in (_off_centre(scene), _far_from_origin(scene)):
         if doubt:
             scene.extra.setdefault("warnings", []).append(doubt)
@@ -134,10 +141,11 @@ def _decode(folder: Path, image_size: int | None, holdout_every: int, format: st
         scene = dataclasses.replace(scene, bbox=box.view(2, 3) if box.numel() == 6 else box,
                                     extra={**scene.extra, "bbox": "data.bbox"})
     scene = with_kind(scene, kind, folder, bbox is not None)
-    for w in caught:  # a doubt about the derived box or near / far: moot with data.bbox, which gives both, or unbounded
-        if not issubclass(w.category, DataWarning) and not (
-                issubclass(w.category, BoxWarning) and (bbox is not None or scene.contraction is not None)):
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    if scene.contraction is not None and box_doubts:
+        kept = [w for w in scene.extra["warnings"] if w not in box_doubts]
+        scene.extra.pop("warnings")
+        if kept:
+            scene.extra["warnings"] = kept
     return _reach_box(scene) if scene.ndc is None and scene.contraction is None else scene
 
 

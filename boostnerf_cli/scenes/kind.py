@@ -107,8 +107,9 @@ def refusal(kind: str, scene: Scene, folder, bbox_given: bool) -> str:
 
 def contracted(scene: Scene) -> Scene:
     """`scene` with its space contracted (render/contraction.py): the sphere kept linear from its sparse points
-    (a capture that has them: `points`, (N, 3)) or else its training cameras (centred on the point their axes pass
-    nearest, holding every camera); the box that of the contracted world, far the contraction's far bound."""
+    (a capture that has them: `points`, (N, 3)) or else its training cameras (`sphere_from_cameras`); the box that of
+    the contracted world, far the contraction's far bound; the linear stretch reaches through the sphere from every
+    camera, test views too."""
     poses = scene.splits["train"].poses
     points = getattr(scene, "points", None)
     if points is not None and len(points) >= 8:
@@ -122,7 +123,7 @@ def contracted(scene: Scene) -> Scene:
     if not radius > 0 or not math.isfinite(radius):
         raise BoostNerfError(f"scene {scene.name!r}: its training cameras share one spot, so no sphere around them "
                              "can be chosen for data.scene: unbounded; use bounded")
-    c = contraction_around(centre, radius)
+    c = contraction_around(centre, radius, torch.cat([split.poses[:, :3, 3] for split in scene.splits.values()]))
     return dataclasses.replace(scene, bbox=c.box(), near=min(scene.near, 0.1 * radius), far=c.far, contraction=c)
 
 
