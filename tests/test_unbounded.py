@@ -152,3 +152,11 @@ def test_on_the_unbounded_capture_contraction_beats_the_box_and_top2_beats_its_b
             ["models"]}
     print(f"held-out PSNR on the contracted scene: baseline {rows['baseline']:.2f}, top2 {rows['top2']:.2f}")
     assert rows["top2"] > rows["baseline"], rows
+
+
+def test_the_scene_cache_keeps_the_contraction_and_the_kind_is_part_of_its_key(unbounded_scene, tmp_path):
+    cache = tmp_path / "scene.safetensors"
+    first = load_scene(unbounded_scene, cache=cache)
+    again = load_scene(unbounded_scene, cache=cache)
+    assert again.contraction == first.contraction and again.extra["kind"] == first.extra["kind"]
+    assert load_scene(unbounded_scene, cache=cache, kind="bounded").contraction is None
