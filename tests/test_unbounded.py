@@ -160,3 +160,21 @@ def test_the_scene_cache_keeps_the_contraction_and_the_kind_is_part_of_its_key(u
     again = load_scene(unbounded_scene, cache=cache)
     assert again.contraction == first.contraction and again.extra["kind"] == first.extra["kind"]
     assert load_scene(unbounded_scene, cache=cache, kind="bounded").contraction is None
+
+
+def test_the_distortion_key_adds_the_loss_and_is_in_no_signature_while_off():
+    from types import SimpleNamespace
+
+    from boostnerf_cli.lineage import shaping
+    from boostnerf_cli.recipe import TrainRecipe
+    from boostnerf_cli.tasks import photometric_loss
+
+    w = torch.tensor([[0.2, 0.0, 0.5, 0.1]])
+    bundle = SimpleNamespace(color=torch.zeros(1, 3), acc=w.sum(-1), extras={"weights": w, "step": 0.5})
+    rgb = torch.zeros(1, 3)
+    off = TrainRecipe(weight_rgbper=0.0, weight_entropy=0.0)
+    on = dataclasses.replace(off, weight_distortion=0.1)
+    base, _ = photometric_loss(bundle, rgb, None, off, (1.0, 1.0, 1.0), 0)
+    with_it, _ = photometric_loss(bundle, rgb, None, on, (1.0, 1.0, 1.0), 0)
+    assert torch.allclose(with_it - base, 0.1 * distortion(w, torch.full_like(w, 0.5)))
+    assert "weight_distortion" not in shaping(off) and shaping(on)["weight_distortion"] == 0.1
