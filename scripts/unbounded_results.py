@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Does the mixture help on unbounded scenes? The procedural unbounded capture, each family's M = 3 chain.
 
-    python scripts/unbounded_results.py OUT [FAMILY ...] [--record]     (families: dvgo tensorf ngp; default all)
+    python scripts/unbounded_results.py OUT [FAMILY ...] [--record] [--reuse]   (families: dvgo tensorf ngp; default all)
 
 1. `boostnerf make-scene OUT/scene --format nerfstudio --rig unbounded --size 48 --train-views 28`: the procedural
    objects on a ground that runs far past any box, under a banded sky dome, seen by a ring of cameras inside it
@@ -73,7 +73,9 @@ def recipe_for(out: Path, family: str, scene: str) -> Path:
     return path
 
 
-def chain(recipe: Path, scene: Path, ws: Path, models: str = "baseline top1 top2 ens") -> dict:
+def chain(recipe: Path, scene: Path, ws: Path, models: str = "baseline top1 top2 ens", reuse: bool = False) -> dict:
+    if reuse and (ws / "reports" / "eval.json").exists():  # a finished chain: its report as it is
+        return json.loads((ws / "reports" / "eval.json").read_text())
     env = {**os.environ, "MODELS": models, "PYTHONPATH": str(ROOT)}
     subprocess.run(["bash", str(ROOT / "recipes" / "chain.sh"), str(recipe), str(scene), str(ws)], check=True, env=env)
     return json.loads((ws / "reports" / "eval.json").read_text())
@@ -95,6 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("out", type=Path)
     ap.add_argument("families", nargs="*", default=list(FAMILIES))
     ap.add_argument("--record", action="store_true", help="write the reports and the picture under docs/")
+    ap.add_argument("--reuse", action="store_true", help="take a finished workspace's report without rerunning its chain")
     args = ap.parse_args(argv)
     out: Path = args.out
     scene = out / "scene"
@@ -103,9 +106,9 @@ def main(argv: list[str] | None = None) -> int:
                         "--rig", "unbounded", "--size", "48", "--train-views", "28", "--test-views", "4"],
                        check=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
     reports = {}
-    bounded = chain(recipe_for(out, "dvgo", "bounded"), scene, out / "ws-dvgo-bounded", "baseline top2")
+    bounded = chain(recipe_for(out, "dvgo", "bounded"), scene, out / "ws-dvgo-bounded", "baseline top2", args.reuse)
     for family in args.families:
-        reports[family] = chain(recipe_for(out, family, "unbounded"), scene, out / f"ws-{family}")
+        reports[family] = chain(recipe_for(out, family, "unbounded"), scene, out / f"ws-{family}", reuse=args.reuse)
     box_scene = load_scene(scene, kind="bounded")
     test = box_scene.splits["test"]
     share = content_outside(scene, test.poses, test.intrinsics, test.height, test.width, box_scene.bbox)
