@@ -4,13 +4,14 @@ unbounded capture (make-scene --rig unbounded), the distortion loss, and trainin
 from __future__ import annotations
 
 import dataclasses
-import math
-
 import json
+import math
+from pathlib import Path
 
 import pytest
 import torch
-from conftest import make_recipe, run_cli
+import yaml
+from conftest import run_cli
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.contraction import Contraction, contraction_around
@@ -21,7 +22,7 @@ from boostnerf_cli.scenes import load_scene, make_scene
 from boostnerf_cli.scenes.kind import auto_kind
 from boostnerf_cli.scenes.procedural import content_outside
 
-UNBOUNDED_MARGIN = 0.5  # dB the contracted expert must gain over the boxed one on the held-out views
+UNBOUNDED_MARGIN = 1.0  # dB the contracted expert must gain over the boxed one on the held-out views
 
 
 def test_contraction_keeps_the_sphere_squashes_the_rest_and_inverts():
@@ -121,23 +122,31 @@ def test_the_unbounded_capture_shows_mostly_content_outside_the_bounded_box(unbo
     assert not math.isnan(share)
 
 
-def _chain_recipe(path, scene_kind: str):
-    return make_recipe(path, data={"image_size": 32, "scene": scene_kind, "format": "nerfstudio"},
-                       pretrain={"res": [12, 16], "iters": 150, "geometry": {"iters": 150},
-                                 "train": {"log_every": 50, "checkpoint_every": 50}},
-                       moe={"iters": 60, "train": {"log_every": 30, "checkpoint_every": 30}})
+RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "unbounded-dvgo-cpu.yaml"
+
+
+def _chain_recipe(path, scene_kind: str, res: list[int]):
+    """recipes/unbounded-dvgo-cpu.yaml at 32 px, 150 steps a stage, as `scene_kind`, experts `res`."""
+    rec = yaml.safe_load(RECIPE.read_text())
+    rec["data"].update(image_size=32, scene=scene_kind)
+    rec["pretrain"].update(res=res, iters=150)
+    rec["pretrain"]["geometry"]["iters"] = 150
+    rec["moe"]["iters"] = 150
+    path.write_text(yaml.safe_dump(rec, sort_keys=False))
+    return path
 
 
 @pytest.mark.slow
 def test_on_the_unbounded_capture_contraction_beats_the_box_and_top2_beats_its_baseline(tmp_path):
-    """The procedural unbounded capture (most of its pixels show ground and sky past the cameras' box): the same
-    experts trained on the contracted scene beat those trained in the box on the held-out views, and the mixture's
-    Top-2 beats its same-steps baseline there."""
+    """The procedural unbounded capture (half its pixels show ground and sky past the cameras' box), with the unbounded
+    CPU recipe cut to 32 px and 150 steps a stage: the same expert trained on the contracted scene beats the one
+    trained in the cameras' box on the held-out views (18.84 against 16.58 dB when written), and Top-2 beats its
+    same-steps baseline there (23.78 against 23.37 dB)."""
     scene = make_scene(tmp_path / "scene", size=32, n_train=16, n_test=2, seed=0, layout="nerfstudio",
                        rig="unbounded")
     psnr = {}
-    for kind in ("bounded", "unbounded"):
-        ws, recipe = str(tmp_path / kind), str(_chain_recipe(tmp_path / f"{kind}.yaml", kind))
+    for kind, res in (("bounded", [16]), ("unbounded", [16, 24, 32])):
+        ws, recipe = str(tmp_path / kind), str(_chain_recipe(tmp_path / f"{kind}.yaml", kind, res))
         run_cli("pretrain", "--workspace", ws, "--data", str(scene), "--recipe", recipe, "--device", "cpu", check=True)
         psnr[kind] = json.loads((tmp_path / kind / "experts" / "dvgo-16.json").read_text())["test_psnr"]
     print(f"held-out PSNR of dvgo-16: bounded {psnr['bounded']:.2f}, unbounded {psnr['unbounded']:.2f}")
