@@ -48,12 +48,12 @@ FAMILIES = {
                              "tensorf": {"density_rank": 8, "app_rank": 16, "app_dim": 27, "hidden": 64, "layers": 2,
                                          "view_pe": 2, "feat_pe": 0, "alpha_init": 0.0001, "l1_weight": 0.00008,
                                          "fit_steps": 100}},
-                "moe": {"lam": 0.0, "train": {"lr_grid": 0.01}}},
+                "moe": {"gate_init": "random", "lam": 0.0, "train": {"lr_grid": 0.01}}},
     "ngp": {"pretrain": {"model": "ngp", "res": [4, 6, 8], "train": {"lr_grid": 0.04, "lr_mlp": 0.005, "growth": []},
                          "ngp": {"log2_table": 15, "features": 2, "base_res": 8, "max_res": 96, "grid_res": 64,
                                  "hidden": 32, "geo_feat": 15, "color_hidden": 32, "color_layers": 2, "view_pe": 4,
                                  "alpha_init": 0.0001, "fit_steps": 100}},
-            "moe": {"lam": 0.00003, "train": {"lr_grid": 0.005}}},
+            "moe": {"gate_init": "random", "lam": 0.00003, "train": {"lr_grid": 0.005}}},
 }
 
 

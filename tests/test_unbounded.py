@@ -142,21 +142,23 @@ def test_on_the_unbounded_capture_contraction_beats_the_box_and_top2_beats_its_b
     CPU recipe cut to 32 px and 150 steps a stage: the same expert trained on the contracted scene beats the one
     trained in the cameras' box on the held-out views (18.84 against 16.58 dB when written), and Top-2 beats its
     same-steps baseline there (23.78 against 23.37 dB)."""
+    def cli(*args):  # an hour a stage: on a loaded machine one takes over the default 10 minutes
+        return run_cli(*args, "--device", "cpu", check=True, timeout=3600)
+
     scene = make_scene(tmp_path / "scene", size=32, n_train=16, n_test=2, seed=0, layout="nerfstudio",
                        rig="unbounded")
     psnr = {}
     for kind, res in (("bounded", [16]), ("unbounded", [16, 24, 32])):
         ws, recipe = str(tmp_path / kind), str(_chain_recipe(tmp_path / f"{kind}.yaml", kind, res))
-        run_cli("pretrain", "--workspace", ws, "--data", str(scene), "--recipe", recipe, "--device", "cpu", check=True)
+        cli("pretrain", "--workspace", ws, "--data", str(scene), "--recipe", recipe)
         psnr[kind] = json.loads((tmp_path / kind / "experts" / "dvgo-16.json").read_text())["test_psnr"]
     print(f"held-out PSNR of dvgo-16: bounded {psnr['bounded']:.2f}, unbounded {psnr['unbounded']:.2f}")
     assert psnr["unbounded"] > psnr["bounded"] + UNBOUNDED_MARGIN, psnr
     ws, recipe = str(tmp_path / "unbounded"), str(tmp_path / "unbounded.yaml")
-    run_cli("build-moe", "--workspace", ws, "--recipe", recipe, "--device", "cpu", check=True)
+    cli("build-moe", "--workspace", ws, "--recipe", recipe)
     for flag in (["--baseline"], ["--topk", "2"]):
-        run_cli("finetune", "--workspace", ws, "--recipe", recipe, "--device", "cpu", *flag, check=True)
-    run_cli("eval", "--workspace", ws, "--split", "test", "--report", "--model", "baseline", "--model", "top2",
-            "--device", "cpu", check=True)
+        cli("finetune", "--workspace", ws, "--recipe", recipe, *flag)
+    cli("eval", "--workspace", ws, "--split", "test", "--report", "--model", "baseline", "--model", "top2")
     rows = {r["name"]: r["psnr"] for r in json.loads((tmp_path / "unbounded" / "reports" / "eval.json").read_text())
             ["models"]}
     print(f"held-out PSNR on the contracted scene: baseline {rows['baseline']:.2f}, top2 {rows['top2']:.2f}")
@@ -187,3 +189,20 @@ def test_the_distortion_key_adds_the_loss_and_is_in_no_signature_while_off():
     with_it, _ = photometric_loss(bundle, rgb, None, on, (1.0, 1.0, 1.0), 0)
     assert torch.allclose(with_it - base, 0.1 * distortion(w, torch.full_like(w, 0.5)))
     assert "weight_distortion" not in shaping(off) and shaping(on)["weight_distortion"] == 0.1
+
+
+def test_sparse_points_choose_the_sphere_when_a_scene_has_them(unbounded_scene):
+    """A capture with a structure-from-motion model (`Scene.points`, whose `xyz` holds them, as COLMAP's) gets the
+    sphere around its points, not around its cameras."""
+    from types import SimpleNamespace
+
+    from boostnerf_cli.scenes.kind import contracted
+
+    scene = load_scene(unbounded_scene, kind="bounded")
+    by_cameras = contracted(scene).contraction
+    gen = torch.Generator().manual_seed(0)
+    xyz = torch.randn(200, 3, generator=gen) * 0.3 + torch.tensor([0.2, 0.0, -0.1])
+    object.__setattr__(scene, "points", SimpleNamespace(xyz=xyz))  # a stand-in for the capture loader's points
+    by_points = contracted(scene).contraction
+    assert by_points.radius < 0.6 * by_cameras.radius and abs(by_points.centre[0] - 0.2) < 0.1
+    assert by_points.reach > 2 * by_points.radius  # the cameras, outside it, still reach through it
