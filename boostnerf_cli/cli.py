@@ -215,8 +215,8 @@ def make_scene_cmd(
     layout: Annotated[str, typer.Option(
         "--format", help="Layout: blender, nsvf, tanks, llff, nerfstudio or colmap.")] = "blender",
     rig: Annotated[str | None, typer.Option(
-        "--rig", help="Cameras: sphere, forward or orbit (a walk around the scene) (default: forward for llff, "
-        "else sphere).")] = None,
+        "--rig", help="Cameras: sphere, forward, orbit (a walk around the scene) or unbounded (a ring inside a world "
+        "of ground and sky; --format nerfstudio) (default: forward for llff, else sphere).")] = None,
     content: Annotated[str, typer.Option("--content", help=(
         "objects, thin (rods and a cable 1-2 px wide), large (a floor past the box), empty, or detail (fine "
         "patterns on one half, smooth content on the other: the quickstart's scene), or textured (dots SIFT "

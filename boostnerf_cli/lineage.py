@@ -41,12 +41,17 @@ from boostnerf_cli.workspace import Workspace, read_meta, recorded_path
 _log = logging.getLogger(__name__)
 
 UNSHAPING = ("log_every", "checkpoint_every", "compile")  # training settings that do not change what is trained
+# training settings added after artifacts were made without them: in a signature only when set away from this value
+# (which trains what was trained before they existed), so those artifacts stay current
+LATER = {"weight_distortion": 0.0}
 
 
 def shaping(tcfg: TrainRecipe) -> dict:
-    """The training settings that shape what is trained: all of `tcfg` but `UNSHAPING` and the learning rates."""
+    """The training settings that shape what is trained: all of `tcfg` but `UNSHAPING`, the learning rates and the
+    `LATER` keys at their old value."""
     return {f.name: getattr(tcfg, f.name) for f in dataclasses.fields(tcfg)
-            if f.name not in UNSHAPING and not f.name.startswith("lr_")}
+            if f.name not in UNSHAPING and not f.name.startswith("lr_")
+            and not (f.name in LATER and getattr(tcfg, f.name) == LATER[f.name])}
 
 
 # --- specs ------------------------------------------------------------------------------------------
@@ -381,11 +386,12 @@ class SceneSpec:
     holdout_every: int
     format: str
     bbox: list[float] | None = field(default=None)
+    scene: str = "auto"  # data.scene; recorded only when not auto (a workspace made before it records none)
 
     @staticmethod
     def of(data: Path, rec: DataRecipe, root: Path) -> "SceneSpec":
         return SceneSpec(recorded_path(data, root), rec.image_size, rec.holdout_every, rec.format,
-                         None if rec.bbox is None else list(rec.bbox))
+                         None if rec.bbox is None else list(rec.bbox), rec.scene)
 
     @staticmethod
     def recorded(record: dict) -> "SceneSpec":
@@ -396,7 +402,10 @@ class SceneSpec:
         return SceneSpec(**{**defaults, **{k: v for k, v in record.items() if k in names}})
 
     def record(self) -> dict:
-        return dataclasses.asdict(self)
+        d = dataclasses.asdict(self)
+        if d["scene"] == "auto":
+            del d["scene"]
+        return d
 
     def id(self) -> str:
         """A short fingerprint of the scene's inputs, stored in every expert so that mixtures can check them."""

@@ -56,6 +56,9 @@ class DataRecipe:
     # the scene box [xmin, ymin, zmin, xmax, ymax, zmax] in world units, instead of the one the loader gives (bbox.txt,
     # or the region most cameras see): for content that reaches past it (docs/datasets.md, "The scene box")
     bbox: list[float] | None = limit(None, BBOX_COORD)
+    # what the scene's space is (docs/datasets.md, "Scene kinds"): bounded (one box), unbounded (a 360-degree capture
+    # with its background: space contracted into one ball), forward (LLFF, in NDC); auto: told by the layout and cameras
+    scene: str = limit("auto", OneOf(("auto", "bounded", "unbounded", "forward")))
 
 
 @dataclass
@@ -89,6 +92,9 @@ class TrainRecipe:
     weight_rgbper: float = limit(0.01, LOSS_WEIGHT)
     # weight of the ray-opacity entropy loss, which pushes each ray to fully opaque or empty
     weight_entropy: float = limit(1e-3, LOSS_WEIGHT)
+    # weight of mip-NeRF 360's distortion loss (render/volrend.py: distortion), which gathers each ray's weight into
+    # one short stretch (fewer floaters; DVGOv2 and nerfacto use it on unbounded scenes); 0: off
+    weight_distortion: float = limit(0.0, LOSS_WEIGHT)
     # progressive growth (pretrain only; DVGO and TensoRF grids, not Instant-NGP hash grids, which keep their
     # size): the grid starts at 1/2^n of its voxels and doubles them at each of these n fractions of iters
     growth: list[float] = limit(rule=OPEN_UNIT, factory=lambda: [0.1, 0.2, 0.3])

@@ -23,7 +23,7 @@ from boostnerf_cli.recipe import MoERecipe, TrainRecipe
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.packing import Packed, Packer, packer_for
 from boostnerf_cli.render.renderer import RayBundle, RenderSettings, render_rays
-from boostnerf_cli.render.volrend import render_weights
+from boostnerf_cli.render.volrend import distortion, render_weights
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.startup import timed
 from boostnerf_cli.train import RayData, compiled, compiles
@@ -72,6 +72,11 @@ def photometric_loss(bundle, rgb: Tensor, alpha: Tensor | None, tcfg: TrainRecip
     if tcfg.weight_entropy > 0:
         acc = bundle.acc.clamp(1e-6, 1 - 1e-6)
         loss = loss + tcfg.weight_entropy * -(acc * torch.log(acc) + (1 - acc) * torch.log(1 - acc)).mean()
+    if tcfg.weight_distortion > 0:
+        w = bundle.extras["weights"]
+        deltas = bundle.extras.get("deltas")  # an unbounded scene's contracted intervals; else the fixed step
+        deltas = torch.full_like(w, bundle.extras["step"]) if deltas is None else deltas
+        loss = loss + tcfg.weight_distortion * distortion(w, deltas).mean()
     # device values: the loop reads them on its logging steps only, so the step never waits for the device
     return loss, {"loss": loss.detach(), "psnr": psnr_of(mse.detach())}
 

@@ -49,6 +49,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from boostnerf_cli.render.contraction import Contraction
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.rays import NDC, image_rays, project_points
 from boostnerf_cli.render.volrend import render_weights
@@ -92,14 +93,16 @@ def foreground_masks(images: Tensor, background: tuple[float, float, float] | No
 
 
 def ray_cells(origins: Tensor, dirs: Tensor, occ: OccupancyGrid, near: float,
-              far: float) -> tuple[Tensor, Tensor, float]:
-    """Points along each ray, a quarter cell apart, inside the occupancy grid's box.
+              far: float, contraction: Contraction | None = None) -> tuple[Tensor, Tensor, float]:
+    """Points along each ray, a quarter cell apart, inside the occupancy grid's box (with `contraction`, an unbounded
+    scene's: its samples, contracted; the grid is over the contracted box).
 
     -> xyz (R, S, 3), valid (R, S) bool, the step between them."""
     from boostnerf_cli.render.renderer import RenderSettings, sample_rays
 
     cell = float(((occ.bbox[1] - occ.bbox[0]) / torch.tensor(occ.shape, device=occ.bbox.device)).min())
-    settings = RenderSettings(step=cell / 4, near=near, far=far, bbox=occ.bbox, max_samples=4096)
+    settings = RenderSettings(step=cell / 4, near=near, far=far, bbox=occ.bbox, max_samples=4096,
+                              contraction=contraction)
     _, valid, xyz, step = sample_rays(origins, dirs, settings, jitter=False)
     return xyz, valid, step
 
@@ -144,11 +147,11 @@ def visual_hull(occ: OccupancyGrid, poses: Tensor, intrinsics: Tensor, masks: Te
     return (keep & (seen_by >= min_views)).reshape(occ.shape)
 
 
-def known_background(background: tuple[float, float, float] | None,
-                     ndc: NDC | None) -> tuple[float, float, float] | None:
-    """The colour foreground pixels are told from: a scene's background, but none in a forward-facing capture (NDC),
-    whose white walls and sky are content."""
-    return background if ndc is None else None
+def known_background(background: tuple[float, float, float] | None, ndc: NDC | None,
+                     contraction: Contraction | None = None) -> tuple[float, float, float] | None:
+    """The colour foreground pixels are told from: a scene's background, but none in a forward-facing capture (NDC)
+    or an unbounded one (`contraction`), whose white walls and sky are content."""
+    return background if ndc is None and contraction is None else None
 
 
 @torch.no_grad()
@@ -175,12 +178,14 @@ class Photos(Protocol):
 
 
 class Capture(Protocol):
-    """What a scene says of its rays: near and far, its background colour (None: unknown) and its NDC warp."""
+    """What a scene says of its rays: near and far, its background colour (None: unknown), its NDC warp and its
+    contraction (an unbounded scene's)."""
 
     near: float
     far: float
     background: tuple[float, float, float] | None
     ndc: NDC | None
+    contraction: Contraction | None
 
 
 @torch.no_grad()
@@ -211,7 +216,8 @@ def cover_foreground(
     near, far, ndc = capture.near, capture.far, capture.ndc
     n, h, w = images.shape[:3]
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
-    background = known_background(capture.background, ndc)
+    contraction = getattr(capture, "contraction", None)  # an unbounded scene's
+    background = known_background(capture.background, ndc, contraction)
     known = background is not None
     masks = foreground_masks(images, background, tol, photos.alpha).to(device)
     # the (tight, footprint) visual hulls, made when a first ray needs them (on most scenes none does)
@@ -224,7 +230,7 @@ def cover_foreground(
         o, d = _fg_rays(poses[i], intrinsics[i], h, w, ndc, masks[i])
         cover.total += o.shape[0]
         for j in range(0, o.shape[0], chunk):
-            s = _sample_chunk(o[j : j + chunk], d[j : j + chunk], occ, near, far)
+            s = _sample_chunk(o[j : j + chunk], d[j : j + chunk], occ, near, far, contraction)
             cover.missed_after += int((~s.inside).sum())  # a foreground ray that misses the box: nothing can hold it
             if known:
                 choice = _surface_starts(s, density)
@@ -253,8 +259,9 @@ class _Samples:
     step: float
 
 
-def _sample_chunk(origins: Tensor, dirs: Tensor, occ: OccupancyGrid, near: float, far: float) -> _Samples:
-    xyz, valid, step = ray_cells(origins, dirs, occ, near, far)
+def _sample_chunk(origins: Tensor, dirs: Tensor, occ: OccupancyGrid, near: float, far: float,
+                  contraction: Contraction | None = None) -> _Samples:
+    xyz, valid, step = ray_cells(origins, dirs, occ, near, far, contraction)
     idx = occ.cell_index(xyz)
     ok = valid & (idx >= 0)
     on = ok.clone()

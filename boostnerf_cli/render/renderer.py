@@ -22,6 +22,7 @@ from torch import Tensor
 
 from boostnerf_cli import flops
 from boostnerf_cli.fields.base import Field
+from boostnerf_cli.render.contraction import Contraction
 from boostnerf_cli.render.packing import DYNAMIC, Packer, packer_for
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.render.volrend import composite, render_weights
@@ -45,6 +46,8 @@ class RenderSettings:
     max_samples: int = 1024
     chunk: int = 8192  # rays per chunk when rendering whole images
     ndc: NDC | None = None  # forward-facing scenes: camera rays are warped to NDC (step, near, far, bbox in NDC)
+    # unbounded scenes: samples are placed and contracted by it (render/contraction.py; bbox: its box, far: its bound)
+    contraction: Contraction | None = None
 
     # (samples per ray, step): as many samples as the box's diagonal holds at `step`, at most `max_samples` (the step
     # grows to fit). No ray crosses the box over a longer chord, so every ray of every batch has the same number of
@@ -55,6 +58,11 @@ class RenderSettings:
         """Works out `sampling` when the settings are made, outside any step (the box is read from its device once),
         so that a compiled step finds it ready: worked out lazily inside a step, it stops the compiler there (Python
         3.11's cached_property takes a lock), which then runs that function eagerly for good."""
+        if self.contraction is not None:  # the linear stretch, then the shell's depth
+            c = self.contraction
+            step = max(self.step, (max(2 * c.radius, c.reach) + c.radius) / self.max_samples)
+            object.__setattr__(self, "sampling", (sum(self.contraction.slots(step)), step))
+            return
         diagonal = float((self.bbox[1] - self.bbox[0]).norm())
         step = max(self.step, diagonal / self.max_samples)
         object.__setattr__(self, "sampling", (max(1, min(self.max_samples, math.ceil(diagonal / step) + 1)), step))
@@ -79,8 +87,13 @@ def sample_rays(
     Samples sit at t_enter + (j + u) * step with u = 0.5 (or one uniform draw per ray when jitter). S is the slots
     the box's diagonal needs, or with `fit` the slots this batch's longest ray needs (fewer samples, for one wait
     for the device: the CPU's way); the samples of a ray are the same either way.
+    With `settings.contraction` (an unbounded scene) the samples are the contraction's (`Contraction.sample`: linear
+    inside its sphere, even in disparity outside, to its far bound), xyz contracted points, and S always all slots.
     """
     n, step = settings.sampling
+    if settings.contraction is not None:
+        t, valid, xyz = settings.contraction.sample(origins, dirs, settings.near, step, jitter)
+        return t, valid, xyz, step
     bbox = settings.bbox.to(origins.device)
     t0, t1, hit = intersect_box(origins, dirs, bbox, settings.near, settings.far)
     if fit and t0.numel():
@@ -128,7 +141,9 @@ def render_rays(
     if len(dens):  # none kept (dynamic packing): the rays see only the background, cut off from the field
         sigma = view.density(pts, dens.live) if view is not None else field.density(pts)
         sigma = dens.scatter(sigma.to(origins.dtype)).reshape(r, s)  # float32 under autocast too
-    weights, _, _ = render_weights(sigma, torch.full_like(sigma, step))
+    contracted = settings.contraction is not None
+    deltas = Contraction.deltas(xyz) if contracted else torch.full_like(sigma, step)
+    weights, _, _ = render_weights(sigma, deltas)
 
     wk = weights.reshape(-1)[dens.rows]
     sel = dens.keep(wk.detach() > thr if thr > 0 else torch.ones_like(wk, dtype=torch.bool))
@@ -146,8 +161,11 @@ def render_rays(
     flops.add("composite", flops.COMPOSITE_FLOPS * r * s)
     # rows: the density pass's samples (indices into the flattened (R, S) samples, in the order `field.density`
     # saw them; with a static packer, `live` says which slots hold one); step: the sampling step used
-    return RayBundle(color, depth, acc, dens.count(), cflat.count(),
-                     {"weights": weights, "t": t, "rgb": rgb, "rows": dens.rows, "live": dens.live, "step": step})
+    # deltas (unbounded scenes): each sample's contracted interval (`Contraction.deltas`), else `step` for all
+    extras = {"weights": weights, "t": t, "rgb": rgb, "rows": dens.rows, "live": dens.live, "step": step}
+    if contracted:
+        extras["deltas"] = deltas
+    return RayBundle(color, depth, acc, dens.count(), cflat.count(), extras)
 
 
 class Camera(NamedTuple):

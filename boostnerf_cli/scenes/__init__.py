@@ -19,6 +19,7 @@ from boostnerf_cli.scenes.blender import is_blender, load_blender
 from boostnerf_cli.scenes.bounds import box_gaps, box_near_far
 from boostnerf_cli.scenes.cache import cached
 from boostnerf_cli.scenes.colmap import is_colmap, load_colmap
+from boostnerf_cli.scenes.kind import with_kind
 from boostnerf_cli.scenes.llff import is_llff, load_llff
 from boostnerf_cli.scenes.nerfstudio import is_nerfstudio, load_nerfstudio
 from boostnerf_cli.scenes.nsvf import is_nsvf, is_tanks, load_nsvf, load_tanks
@@ -84,23 +85,27 @@ def _far_from_origin(scene: Scene) -> str:
 
 @timed("scene")
 def load_scene(path, image_size: int | None = None, holdout_every: int = 8, format: str = "auto",
-               bbox: list[float] | None = None, cache: Path | None = None) -> Scene:
+               bbox: list[float] | None = None, cache: Path | None = None, kind: str = "auto") -> Scene:
     """Load the scene at `path`; `format` is "auto" or a key of `FORMATS`.
 
     With "auto", `scene.extra["detected"]` says which format was recognised from which files; `scene.extra["warnings"]`
     holds what the loader found doubtful (`DataWarning`, one line each). `bbox`
     ([xmin, ymin, zmin, xmax, ymax, zmax], world units) replaces the box the loader gives, for content that
     reaches past it; a forward-facing scene's box is NDC's and cannot be replaced. `cache`: a file that keeps the
-    decoded scene for the next load of the same files with the same settings (scenes/cache.py).
+    decoded scene for the next load of the same files with the same settings (scenes/cache.py). `kind` (recipe key
+    data.scene): auto, bounded, unbounded or forward (scenes/kind.py); the one chosen, and why, in
+    `scene.extra["kind"]`.
     """
     folder = Path(path)
     if not folder.is_dir():
         raise BoostNerfError(f"scene folder {folder} does not exist: check the path")
-    settings = {"image_size": image_size, "holdout_every": holdout_every, "format": format, "bbox": bbox}
-    return cached(lambda: _decode(folder, image_size, holdout_every, format, bbox), folder, settings, cache)
+    settings = {"image_size": image_size, "holdout_every": holdout_every, "format": format, "bbox": bbox,
+                "scene": kind}
+    return cached(lambda: _decode(folder, image_size, holdout_every, format, bbox, kind), folder, settings, cache)
 
 
-def _decode(folder: Path, image_size: int | None, holdout_every: int, format: str, bbox: list[float] | None) -> Scene:
+def _decode(folder: Path, image_size: int | None, holdout_every: int, format: str, bbox: list[float] | None,
+            kind: str = "auto") -> Scene:
     detected = ""
     if format == "auto":
         format, found = detect_format(folder)
@@ -110,11 +115,14 @@ def _decode(folder: Path, image_size: int | None, holdout_every: int, format: st
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", DataWarning)
         scene = FORMATS[format][1](folder, image_size=image_size, holdout_every=holdout_every)
+    box_doubts = []  # moot once the scene is unbounded (its space is all of it)
     for w in caught:
         if issubclass(w.category, BoxWarning) and bbox is not None:
             continue  # a doubt about the derived box or near / far: data.bbox gives both (below)
         if issubclass(w.category, DataWarning):
             scene.extra.setdefault("warnings", []).append(str(w.message))
+            if issubclass(w.category, BoxWarning):
+                box_doubts.append(str(w.message))
         else:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     for doubt in (_off_centre(scene), _far_from_origin(scene)):
@@ -122,7 +130,7 @@ def _decode(folder: Path, image_size: int | None, holdout_every: int, format: st
             scene.extra.setdefault("warnings", []).append(doubt)
     if detected:
         scene.extra["detected"] = detected
-    if bbox is not None:
+    if bbox is not None and kind != "unbounded":  # unbounded with a box: refused by with_kind, in one line
         if scene.ndc is not None:
             raise BoostNerfError(f"data.bbox does not apply to {folder}: a forward-facing scene is sampled in "
                                  "normalized device coordinates, whose box is fixed; remove the key")
@@ -134,7 +142,13 @@ def _decode(folder: Path, image_size: int | None, holdout_every: int, format: st
         # `Scene` refuses any other shape, and a max not above its min, in one line
         scene = dataclasses.replace(scene, bbox=box.view(2, 3) if box.numel() == 6 else box,
                                     extra={**scene.extra, "bbox": "data.bbox", "box_from": "recipe key data.bbox"})
-    return _reach_box(scene) if scene.ndc is None else scene
+    scene = with_kind(scene, kind, folder, bbox is not None)
+    if scene.contraction is not None and box_doubts:
+        kept = [w for w in scene.extra["warnings"] if w not in box_doubts]
+        scene.extra.pop("warnings")
+        if kept:
+            scene.extra["warnings"] = kept
+    return _reach_box(scene) if scene.ndc is None and scene.contraction is None else scene
 
 
 def _reach_box(scene: Scene) -> Scene:

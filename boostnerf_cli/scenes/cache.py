@@ -18,6 +18,7 @@ from pathlib import Path
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from boostnerf_cli.render.contraction import Contraction
 from boostnerf_cli.render.rays import NDC
 from boostnerf_cli.scenes.scene import Scene, SparsePoints, Split
 from boostnerf_cli.workspace import atomic_path
@@ -58,7 +59,8 @@ def read(path: Path, key: str) -> Scene | None:
                                    if f"points.{name}.visible" in tensors})
         return Scene(meta["name"], splits, meta["near"], meta["far"], tensors["bbox"], tuple(meta["background"]),
                      meta["source"], meta["format"], meta["holdout"], meta["extra"],
-                     NDC(**meta["ndc"]) if meta["ndc"] is not None else None, points)
+                     NDC(**meta["ndc"]) if meta["ndc"] is not None else None, points,
+                     Contraction.from_dict(meta["contraction"]) if meta.get("contraction") else None)
     except (SafetensorError, OSError, ValueError, KeyError, TypeError):  # damaged or foreign: decode again
         return None
 
@@ -70,6 +72,7 @@ def write(path: Path, key: str, scene: Scene) -> None:
                            "background": list(scene.background), "source": scene.source, "format": scene.format,
                            "holdout": scene.holdout, "extra": scene.extra,
                            "ndc": scene.ndc.to_dict() if scene.ndc is not None else None,
+                           "contraction": scene.contraction.to_dict() if scene.contraction is not None else None,
                            "splits": {name: list(s.names) for name, s in scene.splits.items()}})
     except (TypeError, ValueError):
         return

@@ -164,6 +164,23 @@ def scene_objects(seed: int = 0, content: str = "objects") -> list[dict]:
     ]
 
 
+# The unbounded rig's world: the content on a ground that reaches far past every box, under a sky dome
+WORLD_RADIUS = 8.0  # the ground disc's and the sky dome's radius: 3x the cameras' ring, past any box the cameras give
+RING_RADIUS = 2.6  # the unbounded rig's cameras circle at this distance from the up axis
+RING_ANGLE_X = 1.0  # its cameras' horizontal field of view (radians): wider, so the views show sky and far ground
+
+
+def environment() -> list[dict]:
+    """The unbounded rig's background: a ground disc just below the content's floor, checkered in large cells, and
+    a glowing sky dome with horizontal bands, both `WORLD_RADIUS` from the origin."""
+    return [
+        {"kind": "disc", "centre": [0.0, 0.0, FLOOR_Z - 0.01], "radius": WORLD_RADIUS, "texture": "checker",
+         "cell": 0.7, "colours": [[0.35, 0.5, 0.25], [0.55, 0.45, 0.3]]},
+        {"kind": "dome", "centre": [0.0, 0.0, FLOOR_Z], "radius": WORLD_RADIUS, "texture": "stripes", "period": 1.6,
+         "colours": [[0.45, 0.65, 0.9], [0.85, 0.8, 0.6]], "emissive": True},
+    ]
+
+
 # ----------------------------------------------------------------------------- geometry
 
 
@@ -187,6 +204,14 @@ def intersect(obj: dict, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         t = torch.where((disc >= 0) & (t > 0), t, inf)
         p = o + t.clamp_max(1e9)[:, None] * d
         return t, (p - c) / obj["radius"], p
+    if obj["kind"] == "dome":  # the inside of a sphere (the sky of the unbounded rig): the far hit
+        oc = o - c
+        b = (d * oc).sum(-1)
+        disc = b * b - (oc * oc).sum(-1) + obj["radius"] ** 2
+        t = -b + disc.clamp_min(0).sqrt()
+        t = torch.where((disc >= 0) & (t > 0), t, inf)
+        p = o + t.clamp_max(1e9)[:, None] * d
+        return t, (c - p) / obj["radius"], p
     if obj["kind"] == "disc":
         dz = torch.where(d[:, 2] == 0, torch.full_like(d[:, 2], 1e-30), d[:, 2])
         t = (c[2] - o[:, 2]) / dz
@@ -260,6 +285,8 @@ def shade(obj: dict, normal: Tensor, p: Tensor) -> Tensor:
     else:  # checker: 2-D on the disc (its z is constant), 3-D on boxes
         w = torch.floor(p / obj["cell"]).sum(-1).remainder(2)
     albedo = a + w[:, None] * (b - a)
+    if obj.get("emissive"):  # the sky glows: no shading
+        return albedo.clamp(0, 1)
     light = AMBIENT + (1 - AMBIENT) * (normal @ LIGHT).clamp_min(0)
     return (albedo * light[:, None]).clamp(0, 1)
 
@@ -355,6 +382,22 @@ def orbit_poses(n_train: int, n_test: int, radius: float = RADIUS) -> tuple[np.n
     return _split_test(np.stack([look_at(p) for p in pos]), n_test)
 
 
+def ring_poses(n_train: int, n_test: int, radius: float = RING_RADIUS) -> tuple[np.ndarray, np.ndarray]:
+    """Cameras circling the content inside its world (the unbounded rig): n_train + n_test evenly around the up
+    axis at distance `radius`, elevations alternating 8 and 20 deg, each looking at the content's middle
+    (0, 0, FLOOR_Z + 0.2). -> train (n_train, 4, 4), test (n_test, 4, 4)."""
+    n = n_train + n_test
+    target = np.array([0.0, 0.0, FLOOR_Z + 0.2])
+    poses = []
+    for i in range(n):
+        az, el = 2 * math.pi * i / n, math.radians(8 if i % 2 else 20)
+        pos = target + radius * np.array([math.cos(az), math.sin(az), math.tan(el)])
+        pose = look_at(pos - target)
+        pose[:3, 3] = pos
+        poses.append(pose)
+    return _split_test(np.stack(poses), n_test)
+
+
 # ----------------------------------------------------------------------------- writing
 
 LAYOUTS = ("blender", "nsvf", "tanks", "llff", "nerfstudio", "colmap")
@@ -363,7 +406,7 @@ LAYOUTS = ("blender", "nsvf", "tanks", "llff", "nerfstudio", "colmap")
 LENSES = {"pinhole": ({}, False), "opencv": ({"k1": -0.3, "k2": 0.1, "p1": 0.003, "p2": -0.002}, False),
           "fisheye": ({"k1": 0.08, "k2": -0.03, "k3": 0.01, "k4": -0.002}, True)}
 LENS_LAYOUTS = ("nerfstudio", "colmap")
-RIGS = ("sphere", "forward", "orbit")
+RIGS = ("sphere", "forward", "orbit", "unbounded")
 CONTENT_BOX = [[-1.1, -1.1, -0.6], [1.1, 1.1, 0.4]]  # holds every object of every seed (within 0.002 in x, y)
 # bbox.txt's room around CONTENT_BOX: more than a coarse cell of the demo recipe's 16^3 geometry grid (0.17), as
 # docs/datasets.md asks of a given box. With none, the floor lay 0.1 above the bottom face, within a cell, and 4-5%
@@ -456,6 +499,9 @@ RIG_TEXT = {
                "looking at the origin.",
     "orbit": "radius {radius} on a circle around the scene (a walk around it), elevations alternating 25 and 40 deg, "
              "each looking at the origin.",
+    "unbounded": f"a ring at distance {RING_RADIUS} around the content (elevations 8 and 20 deg), inside its world: a "
+                 f"checkered ground and a banded, glowing sky dome, both of radius {WORLD_RADIUS}; every pixel "
+                 "is opaque (an unbounded capture: its background is content).",
 }
 
 
@@ -576,12 +622,14 @@ def _premultiplied_mean(rgba: np.ndarray, factor: int) -> np.ndarray:
     return np.concatenate([pre[..., :3] / np.maximum(pre[..., 3:], 1e-12), pre[..., 3:]], axis=-1)
 
 
-def _write_nerfstudio(out: Path, views: dict, focal: float, size: int, lens: str = "pinhole") -> None:
+def _write_nerfstudio(out: Path, views: dict, focal: float, size: int, lens: str = "pinhole",
+                      opaque: bool = False) -> None:
+    """`opaque`: RGB images (every pixel hits the unbounded rig's world), else RGBA."""
     poses, rgbas = _all_views(views)
     (out / "images").mkdir(parents=True, exist_ok=True)
     frames = []
     for i, (pose, rgba) in enumerate(zip(poses, rgbas)):
-        iio.imwrite(out / "images" / f"frame_{i + 1:05d}.png", _to8(rgba))
+        iio.imwrite(out / "images" / f"frame_{i + 1:05d}.png", _to8(rgba[..., :3] if opaque else rgba))
         frames.append({"file_path": f"images/frame_{i + 1:05d}.png", "transform_matrix": pose.tolist()})
     coefficients, fisheye = LENSES[lens]
     meta = {"camera_model": "OPENCV_FISHEYE" if fisheye else "OPENCV", "fl_x": focal, "fl_y": focal, "cx": size / 2,
@@ -670,8 +718,9 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
                lens: str = "pinhole") -> Path:
     """Render the seeded procedural scene into `out_dir` in `layout` (one of `LAYOUTS`) and return `out_dir`.
 
-    rig: "sphere" (cameras on the upper hemisphere) or "forward" (forward-facing); default forward
-    for llff, sphere otherwise. Every layout gets the same views for the same arguments and the same number of
+    rig: "sphere" (cameras on the upper hemisphere), "forward" (forward-facing) or "unbounded" (nerfstudio layout
+    only: `ring_poses` inside the content's `environment`, opaque images); default forward for llff, sphere
+    otherwise. Every layout gets the same views for the same arguments and the same number of
     test views written (`written_test_views`: LLFF and nerfstudio may write another number than asked, and
     then every camera moves along the spiral, which spans train and test views). Blender:
     transforms_train.json, transforms_test.json (omitted when n_test = 0), train/r_*.png, test/r_*.png;
@@ -698,7 +747,12 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     if lens != "pinhole" and layout not in LENS_LAYOUTS:
         raise BoostNerfError(f"the {layout} layout records no lens distortion: use --lens with "
                              f"{' or '.join(LENS_LAYOUTS)}")
+    if rig == "unbounded" and layout != "nerfstudio":
+        raise BoostNerfError(f"--rig unbounded writes an opaque capture in the nerfstudio layout, not {layout}: "
+                             "add --format nerfstudio")
     objects = scene_objects(seed, content)  # checks `content`, before anything is written
+    if rig == "unbounded":
+        objects = objects + environment()
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise BoostNerfError(f"{out_dir} is a file: make-scene writes a scene folder; choose a new folder")
@@ -706,8 +760,9 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         raise BoostNerfError(f"{out_dir} already holds files: make-scene writes into a new or empty folder (another "
                              "scene's files would mix with this one's); choose a new folder or delete this one")
     n_test = written_test_views(layout, n_train, n_test)  # the views of a Blender scene with that many test views
-    train, test = {"forward": forward_poses, "orbit": orbit_poses, "sphere": camera_poses}[rig](n_train, n_test)
-    focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
+    train, test = {"forward": forward_poses, "orbit": orbit_poses, "sphere": camera_poses,
+                   "unbounded": ring_poses}[rig](n_train, n_test)
+    focal = 0.5 * size / math.tan(0.5 * (RING_ANGLE_X if rig == "unbounded" else CAMERA_ANGLE_X))
     k = torch.tensor(lens_row(focal, focal, size / 2, size / 2, *LENSES[lens]))
     views = {}
     with _single_thread():
@@ -731,10 +786,11 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         elif layout == "colmap":
             _write_colmap(tmp, views, k, size, lens, objects)
         else:
-            _write_nerfstudio(tmp, views, focal, size, lens)
+            _write_nerfstudio(tmp, views, focal, size, lens, opaque=rig == "unbounded")
         (tmp / "objects.json").write_text(json.dumps({"seed": seed, "content": content, "objects": objects}, indent=2))
         text = README.format(seed=seed, ss=SUPERSAMPLE, n_train=n_train, n_test=n_test, size=size,
-                             angle=CAMERA_ANGLE_X, rig_text=RIG_TEXT[rig].format(radius=RADIUS),
+                             angle=RING_ANGLE_X if rig == "unbounded" else CAMERA_ANGLE_X,
+                             rig_text=RIG_TEXT[rig].format(radius=RADIUS),
                              layout_text=LAYOUT_TEXT[layout] + (f" Lens: {lens}, {LENSES[lens][0]}."
                                                                 if lens != "pinhole" else ""),
                              content_text=CONTENT_TEXT[content])
@@ -745,3 +801,19 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_dir
+
+
+def content_outside(folder: Path, poses: Tensor, intrinsics: Tensor, height: int, width: int, box: Tensor) -> float:
+    """The share of the pixels of views (poses (N, 4, 4), intrinsics (N, 4), height x width) of the procedural scene
+    in `folder` (its objects.json) whose first surface, by exact ray casting through the pixel centres, lies outside
+    `box` (2, 3): what a bounded scene cannot place where it is (the unbounded rig's far ground and sky)."""
+    objects = json.loads((Path(folder) / "objects.json").read_text())["objects"]
+    outside = total = 0
+    lo, hi = box[0].double(), box[1].double()
+    for pose, k in zip(poses, intrinsics):
+        o, d = (v.double() for v in image_rays(pose, k, height, width))
+        t = torch.stack([intersect(obj, o, d)[0] for obj in objects]).min(0).values
+        p = o + t.clamp_max(1e9)[:, None] * d
+        outside += int(((p < lo) | (p > hi)).any(-1).sum())
+        total += p.shape[0]
+    return outside / max(1, total)

@@ -10,7 +10,8 @@ Conventions (the same for every dataset format):
   that alpha (`Split.alpha`) so that training can composite a pixel on another colour (`train.random_background`);
 - `bbox`, `near` and `far` are where the renderer samples. For forward-facing scenes (`ndc` set,
   LLFF) they are in normalized device coordinates: every camera ray is warped by `ndc` first
-  (render/rays.py `NDC`), while `poses` stay world cameras.
+  (render/rays.py `NDC`), while `poses` stay world cameras. For unbounded scenes (`contraction` set) `bbox` is the
+  box of the contracted world and `far` the contraction's far bound (render/contraction.py).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.render.contraction import Contraction
 from boostnerf_cli.render.rays import LENS, NDC, PINHOLE, WITH_LENS
 from boostnerf_cli.render.renderer import COLOR_THRESHOLD, RenderSettings
 
@@ -126,6 +128,8 @@ class Scene:
     extra: dict = field(default_factory=dict)
     ndc: NDC | None = None  # forward-facing scenes: rays are sampled in these NDC (bbox/near/far too)
     points: SparsePoints | None = None  # a structure-from-motion model's points (COLMAP scenes), else None
+    # unbounded scenes: samples are contracted into one ball (render/contraction.py); bbox is its box, far its bound
+    contraction: Contraction | None = None
 
     def __post_init__(self) -> None:
         if "train" not in self.splits or len(self.splits["train"]) == 0:
@@ -158,7 +162,8 @@ class Scene:
         rays it is rendered with (a 384^3 expert at half-voxel steps needs ~1,330)."""
         samples = math.ceil(float((bbox[1] - bbox[0]).norm()) / step) + 1
         return RenderSettings(step=step, near=self.near, far=self.far, bbox=bbox, background=self.background,
-                              color_threshold=color_threshold, max_samples=samples, ndc=self.ndc)
+                              color_threshold=color_threshold, max_samples=samples, ndc=self.ndc,
+                              contraction=self.contraction)
 
     def describe(self) -> dict:
         """A JSON-able summary, recorded in the workspace manifest."""
@@ -173,6 +178,7 @@ class Scene:
             "bbox": self.bbox.tolist(),
             "background": list(self.background),
             "ndc": self.ndc.to_dict() if self.ndc is not None else None,
+            **({"contraction": self.contraction.to_dict()} if self.contraction is not None else {}),
             "splits": {k: {"views": len(v), "height": v.height, "width": v.width} for k, v in self.splits.items()},
             **points,
         }

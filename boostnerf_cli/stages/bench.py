@@ -361,7 +361,7 @@ def _check_moved_scene(root: Path, data: Path, rec: Recipe, was: Path) -> None:
     from boostnerf_cli.scenes import load_scene
 
     scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
-                       format=rec.data.format, bbox=rec.data.bbox)
+                       format=rec.data.format, bbox=rec.data.bbox, kind=rec.data.scene)
     if scene_digest(scene) not in digests:
         raise BoostNerfError(f"the scene at {data} is not the one the bench in {root} was made with, at {was} (its "
                              "images or cameras differ): use a new --workspace, or delete it to start over")

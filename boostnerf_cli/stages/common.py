@@ -53,7 +53,8 @@ def workspace_scene(ws: Workspace) -> Scene:
     path = workspace_scene_path(ws, m)
     spec = SceneSpec.recorded(data)
     scene = load_scene(path, image_size=spec.image_size, holdout_every=spec.holdout_every, format=spec.format,
-                       bbox=spec.bbox, cache=ws.scene_cache)
+                       bbox=spec.bbox, cache=ws.scene_cache,
+                       kind=spec.scene)
     if m.get("scene_digest") and scene_digest(scene) != m["scene_digest"]:
         raise BoostNerfError(
             f"the workspace's scene {path} changed since pretrain (its images or cameras differ): restore it, "

@@ -200,7 +200,8 @@ def _coarse_round(site: Site, rec: GeometryRecipe, bbox: Tensor, name: str, seed
         framed = occ
         if rec.hull_box:
             framed = hull_cells(occ, train_split.images, train_split.poses, train_split.intrinsics,
-                                known_background(scene.background, scene.ndc), foreground_tol(scene.extra),
+                                known_background(scene.background, scene.ndc, scene.contraction),
+                                foreground_tol(scene.extra),
                                 train_split.alpha)
         outside = int((occ.occupied & ~framed.occupied).sum())
         if outside:
@@ -214,6 +215,8 @@ def _coarse_round(site: Site, rec: GeometryRecipe, bbox: Tensor, name: str, seed
             f"in occupied cells; {cover['cells_added']} cells added along them ({cover['missed_after']} missed)"
             + ("; the box holds every ray's surface" if not cover["missed_after"] else ""))
         occ = OccupancyGrid(occ.occupied | framed.occupied, bbox)  # the mask only grows
+        if scene.contraction is not None:  # unbounded: the background fills the contracted box out to its edge
+            box = bbox.clone()
     else:
         box = occ.occupied_bbox(margin_cells=1)
     if not occ.occupied.any():
@@ -343,7 +346,7 @@ def check_foreground(scene: Scene, data: Path) -> None:
     find no surface. One view with any foreground is enough (a small object is fine). A forward-facing scene (NDC)
     has no background to tell from: its white wall or sky is content, as in the geometry stage's covering."""
     train_split = scene.splits["train"]
-    if scene.background is None or scene.ndc is not None:
+    if scene.background is None or scene.ndc is not None or scene.contraction is not None:
         return
     tol = foreground_tol(scene.extra)
     alphas = train_split.alpha if train_split.alpha is not None else [None] * len(train_split)
@@ -422,13 +425,18 @@ def _describe(scene: Scene) -> None:
         log(f"note: {note}")
     if "box_from" in scene.extra:
         log(f"scene box {box_text(scene.bbox)} from {scene.extra['box_from']}")
+    if "kind" in scene.extra:
+        log(f"scene kind: {scene.extra['kind']['kind']} ({scene.extra['kind']['why']})"
+            + (f"; space contracted around {[round(v, 4) for v in scene.contraction.centre]}, "
+               f"sphere radius {scene.contraction.radius:.4g} kept linear, far {scene.contraction.far:.4g}"
+               if scene.contraction is not None else ""))
     log(f"scene {scene.name}: {len(scene.splits['train'])} train views "
         f"{scene.splits['train'].width}x{scene.splits['train'].height}"
         + (f", {scene.holdout}" if scene.holdout else ""))
 
 
 SCENE_KEYS = {"image_size": "image size", "holdout_every": "held-out views (holdout_every)", "format": "format",
-              "bbox": "box (data.bbox)"}
+              "bbox": "box (data.bbox)", "scene": "scene kind (data.scene)"}
 
 
 def _scene(ws: Workspace, m: dict, data: Path | None, rec: Recipe, force: bool) -> tuple[Scene, SceneSpec, str, str]:
@@ -455,7 +463,7 @@ def _scene(ws: Workspace, m: dict, data: Path | None, rec: Recipe, force: bool) 
         make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)  # atomic: never half a scene
     with slow_notice(f"reading the scene at {data} (its images are read and scaled once per stage)"):
         scene = load_scene(data, image_size=rec.data.image_size, holdout_every=rec.data.holdout_every,
-                           format=rec.data.format, bbox=rec.data.bbox, cache=ws.scene_cache)
+                           format=rec.data.format, bbox=rec.data.bbox, cache=ws.scene_cache, kind=rec.data.scene)
     for res in rec.pretrain.res:  # per-expert options are checked (and chosen, said once) before anything trains
         expert_options(rec.pretrain, res, say=True)
     if note := unused_family_note(rec.pretrain):

@@ -1,0 +1,145 @@
+"""The scene's kind, chosen once when it is loaded (recipe key `data.scene`): how its space is sampled.
+
+- forward: a forward-facing capture (LLFF), sampled in normalized device coordinates (`Scene.ndc`);
+- bounded: the subject inside one box (`Scene.bbox`): images with alpha, a layout that gives the box (Blender, NSVF,
+  Tanks and Temples), a box given with data.bbox, or views that show a plain background around the subject;
+- unbounded: an opaque capture whose cameras surround its subject, with its background (walls, trees, sky) all
+  around: space is contracted into one ball (render/contraction.py, `Scene.contraction`), whose box the grids
+  cover, so every family, the coarse geometry, the occupancy grid, V_D, the gate and the dispatch see contracted
+  points through the renderer and nothing else.
+
+`auto` decides in that order; it never moves a scene that loaded as forward or bounded before kinds existed: an
+LLFF capture stays forward, and a scene is unbounded only when it has no alpha, no layout box, no data.bbox, no
+plain background at its views' edges, and cameras all around the point they face.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+from torch import Tensor
+
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.render.contraction import contraction_around, sphere_from_cameras, sphere_from_points
+from boostnerf_cli.render.paths import focus_point, scene_up
+from boostnerf_cli.scenes.scene import Scene
+
+KINDS = ("auto", "bounded", "unbounded", "forward")
+LAYOUT_BOX = ("blender", "nsvf", "tanks")  # layouts that give the box (bbox.txt) or mark the background (alpha)
+PLAIN_EDGE = 0.2  # views whose edge pixels show the background colour this often: a subject on a plain background
+AROUND = 0.5  # cameras surround their subject when their mean horizontal direction from it is shorter than this
+FACING = 0.5  # ... and most of them face it (the median cosine between axis and way to it at least this)
+
+
+def edge_background_share(scene: Scene, tol: float = 0.03) -> float:
+    """The share of the training views' edge pixels (one pixel wide) that show the scene's background colour."""
+    images = scene.splits["train"].images
+    edges = torch.cat([images[:, 0], images[:, -1], images[:, :, 0], images[:, :, -1]], dim=1)  # (N, 2W + 2H, 3)
+    bg = torch.tensor(scene.background, dtype=images.dtype)
+    return float(((edges - bg).abs().amax(-1) <= tol).double().mean())
+
+
+def surround(poses: Tensor) -> tuple[bool, str]:
+    """Whether cameras (N, 4, 4) stand all around one point that they face, -> (yes, why)."""
+    if len(poses) < 3:
+        return False, f"{len(poses)} training camera(s) cannot surround a subject"
+    try:
+        focus = focus_point(poses).double()
+        up = scene_up(poses).double()
+    except BoostNerfError:
+        return False, "the cameras' viewing axes meet nowhere"
+    p = poses.double()
+    way = p[:, :3, 3] - focus
+    flat = way - (way @ up)[:, None] * up
+    flat = flat / flat.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    spread = float(flat.mean(0).norm())
+    facing = float(((-way / way.norm(dim=-1, keepdim=True).clamp_min(1e-12)) * -p[:, :3, 2]).sum(-1).median())
+    if facing < FACING:
+        return False, "the cameras do not face a common point"
+    if spread >= AROUND:
+        return False, f"the cameras stand on one side of the point they face (mean direction {spread:.2f})"
+    return True, f"cameras all around the point they face (mean direction {spread:.2f})"
+
+
+def marks_background(scene: Scene) -> bool:
+    """Some training image has alpha that marks background pixels."""
+    alpha = scene.splits["train"].alpha
+    return alpha is not None and bool((alpha < 0.5).any())
+
+
+def auto_kind(scene: Scene, bbox_given: bool) -> tuple[str, str]:
+    """(kind, why) for `data.scene: auto` (module docstring)."""
+    if scene.ndc is not None:
+        return "forward", "an LLFF capture: forward-facing, sampled in normalized device coordinates"
+    if scene.format in LAYOUT_BOX:
+        return "bounded", f"the {scene.format} layout gives the box or marks the background"
+    if bbox_given:
+        return "bounded", "data.bbox gives the box"
+    if marks_background(scene):
+        return "bounded", "the images' alpha marks their background"
+    share = edge_background_share(scene)
+    if share >= PLAIN_EDGE:
+        return "bounded", f"{100 * share:.0f}% of the views' edge pixels show the plain background colour"
+    around, why = surround(scene.splits["train"].poses)
+    if around:
+        return "unbounded", f"opaque views with no plain background at their edges, {why}"
+    return "bounded", f"opaque views, but {why}"
+
+
+def refusal(kind: str, scene: Scene, folder, bbox_given: bool) -> str:
+    """"" or why `kind`, asked for, cannot work on `scene` (one line)."""
+    if kind == "forward" and scene.ndc is None:
+        return (f"data.scene: forward needs a forward-facing LLFF capture (poses_bounds.npy); {folder} is "
+                f"{scene.format}: use auto, bounded or unbounded")
+    if kind in ("bounded", "unbounded") and scene.ndc is not None:
+        return (f"data.scene: {kind} does not apply to {folder}: an LLFF capture's poses_bounds.npy describes a "
+                "forward-facing view, sampled in normalized device coordinates; use auto or forward")
+    if kind == "unbounded" and bbox_given:
+        return ("data.scene: unbounded takes no data.bbox (its space is the whole world, contracted around the "
+                "cameras): remove data.bbox, or use data.scene: bounded")
+    if kind == "unbounded" and len(scene.splits["train"]) < 2:
+        return (f"data.scene: unbounded needs cameras at two places at least, to choose the sphere kept linear; "
+                f"{folder} has {len(scene.splits['train'])} training view: use bounded")
+    return ""
+
+
+def contracted(scene: Scene) -> Scene:
+    """`scene` with its space contracted (render/contraction.py): the sphere kept linear from its sparse points
+    (a capture that has them: `scene.points`, (N, 3) or with an `xyz` of that shape, as COLMAP's) or else its training cameras (`sphere_from_cameras`); the box that of
+    the contracted world, far the contraction's far bound; the linear stretch reaches through the sphere from every
+    camera, test views too."""
+    poses = scene.splits["train"].poses
+    points = getattr(scene, "points", None)  # a structure-from-motion model's points: (N, 3), or an object's `xyz`
+    points = getattr(points, "xyz", points)
+    if points is not None and len(points) >= 8:
+        centre, radius = sphere_from_points(torch.as_tensor(points))
+    else:
+        try:
+            focus = focus_point(poses)
+        except BoostNerfError:
+            focus = poses[:, :3, 3].mean(0)
+        centre, radius = sphere_from_cameras(poses[:, :3, 3], focus)
+    if not radius > 0 or not math.isfinite(radius):
+        raise BoostNerfError(f"scene {scene.name!r}: its training cameras share one spot, so no sphere around them "
+                             "can be chosen for data.scene: unbounded; use bounded")
+    c = contraction_around(centre, radius, torch.cat([split.poses[:, :3, 3] for split in scene.splits.values()]))
+    return dataclasses.replace(scene, bbox=c.box(), near=min(scene.near, 0.1 * radius), far=c.far, contraction=c)
+
+
+def with_kind(scene: Scene, asked: str, folder, bbox_given: bool) -> Scene:
+    """`scene` as the kind `asked` (auto: `auto_kind`), refused in one line where that kind cannot work; the kind and
+    why it was chosen in `scene.extra["kind"]`."""
+    if asked not in KINDS:
+        raise BoostNerfError(f"data.scene: {asked!r} is not a scene kind: use one of {', '.join(KINDS)}")
+    if asked == "auto":
+        kind, why = auto_kind(scene, bbox_given)
+        why = f"auto: {why}"
+    else:
+        kind, why = asked, "data.scene"
+        if problem := refusal(kind, scene, folder, bbox_given):
+            raise BoostNerfError(problem)
+    if kind == "unbounded":
+        scene = contracted(scene)
+    return dataclasses.replace(scene, extra={**scene.extra, "kind": {"kind": kind, "why": why}})
