@@ -713,6 +713,30 @@ def _write_colmap(out: Path, views: dict, k: Tensor, size: int, lens: str, objec
     write_model(model, out / "sparse" / "0", "bin")
 
 
+def _checked_arguments(size: int, n_train: int, n_test: int, seed: int, layout: str, rig: str | None,
+                       lens: str) -> str:
+    """make-scene's arguments checked, one line for the first wrong one (before anything is written). -> the rig."""
+    if size < 4 or n_train < 1 or n_test < 0 or seed < 0:
+        raise BoostNerfError(
+            f"make-scene needs size >= 4, n_train >= 1, n_test >= 0, seed >= 0 "
+            f"(got size={size}, n_train={n_train}, n_test={n_test}, seed={seed})"
+        )
+    if layout not in LAYOUTS:
+        raise BoostNerfError(f"unknown scene layout {layout!r}: use one of {', '.join(LAYOUTS)}")
+    rig = rig or ("forward" if layout == "llff" else "sphere")
+    if rig not in RIGS:
+        raise BoostNerfError(f"unknown camera rig {rig!r}: use one of {', '.join(RIGS)}")
+    if lens not in LENSES:
+        raise BoostNerfError(f"unknown lens {lens!r}: use one of {', '.join(LENSES)}")
+    if lens != "pinhole" and layout not in LENS_LAYOUTS:
+        raise BoostNerfError(f"the {layout} layout records no lens distortion: use --lens with "
+                             f"{' or '.join(LENS_LAYOUTS)}")
+    if rig == "unbounded" and layout != "nerfstudio":
+        raise BoostNerfError(f"--rig unbounded writes an opaque capture in the nerfstudio layout, not {layout}: "
+                             "add --format nerfstudio")
+    return rig
+
+
 def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8, seed: int = 0,
                layout: str = "blender", rig: str | None = None, content: str = "objects",
                lens: str = "pinhole") -> Path:
@@ -732,24 +756,7 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     (`LENS_LAYOUTS`): every view is ray-cast through it exactly, and the files name its model and coefficients.
     Deterministic: the same arguments give byte-identical files. Refuses a folder that already holds files.
     """
-    if size < 4 or n_train < 1 or n_test < 0 or seed < 0:
-        raise BoostNerfError(
-            f"make-scene needs size >= 4, n_train >= 1, n_test >= 0, seed >= 0 "
-            f"(got size={size}, n_train={n_train}, n_test={n_test}, seed={seed})"
-        )
-    if layout not in LAYOUTS:
-        raise BoostNerfError(f"unknown scene layout {layout!r}: use one of {', '.join(LAYOUTS)}")
-    rig = rig or ("forward" if layout == "llff" else "sphere")
-    if rig not in RIGS:
-        raise BoostNerfError(f"unknown camera rig {rig!r}: use one of {', '.join(RIGS)}")
-    if lens not in LENSES:
-        raise BoostNerfError(f"unknown lens {lens!r}: use one of {', '.join(LENSES)}")
-    if lens != "pinhole" and layout not in LENS_LAYOUTS:
-        raise BoostNerfError(f"the {layout} layout records no lens distortion: use --lens with "
-                             f"{' or '.join(LENS_LAYOUTS)}")
-    if rig == "unbounded" and layout != "nerfstudio":
-        raise BoostNerfError(f"--rig unbounded writes an opaque capture in the nerfstudio layout, not {layout}: "
-                             "add --format nerfstudio")
+    rig = _checked_arguments(size, n_train, n_test, seed, layout, rig, lens)
     objects = scene_objects(seed, content)  # checks `content`, before anything is written
     if rig == "unbounded":
         objects = objects + environment()
