@@ -215,7 +215,7 @@ def test_a_box_file_gives_the_same_box_as_the_cameras(thin):
 def test_an_unknown_content_is_one_line_and_writes_nothing(tmp_path):
     proc = run_cli("make-scene", str(tmp_path / "s"), "--content", "wires")
     assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
-        "error: unknown scene content 'wires': use one of objects, thin, large, empty, detail"]
+        "error: unknown scene content 'wires': use one of objects, thin, large, empty, detail, textured"]
     assert not (tmp_path / "s").exists()
 
 
