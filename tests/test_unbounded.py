@@ -194,15 +194,15 @@ def test_the_distortion_key_adds_the_loss_and_is_in_no_signature_while_off():
 def test_sparse_points_choose_the_sphere_when_a_scene_has_them(unbounded_scene):
     """A capture with a structure-from-motion model (`Scene.points`, whose `xyz` holds them, as COLMAP's) gets the
     sphere around its points, not around its cameras."""
-    from types import SimpleNamespace
-
     from boostnerf_cli.scenes.kind import contracted
+    from boostnerf_cli.scenes.scene import SparsePoints
 
     scene = load_scene(unbounded_scene, kind="bounded")
     by_cameras = contracted(scene).contraction
     gen = torch.Generator().manual_seed(0)
     xyz = torch.randn(200, 3, generator=gen) * 0.3 + torch.tensor([0.2, 0.0, -0.1])
-    object.__setattr__(scene, "points", SimpleNamespace(xyz=xyz))  # a stand-in for the capture loader's points
+    points = SparsePoints(xyz, torch.zeros(200, 3, dtype=torch.uint8), torch.zeros(200), {})  # as COLMAP's loader keeps
+    object.__setattr__(scene, "points", points)
     by_points = contracted(scene).contraction
     assert by_points.radius < 0.6 * by_cameras.radius and abs(by_points.centre[0] - 0.2) < 0.1
     assert by_points.reach > 2 * by_points.radius  # the cameras, outside it, still reach through it

@@ -216,7 +216,7 @@ def cover_foreground(
     near, far, ndc = capture.near, capture.far, capture.ndc
     n, h, w = images.shape[:3]
     device = occ.occupied.device  # the scene's tensors stay on the CPU; the grid may be on the GPU
-    contraction = getattr(capture, "contraction", None)  # an unbounded scene's
+    contraction = capture.contraction  # an unbounded scene's
     background = known_background(capture.background, ndc, contraction)
     known = background is not None
     masks = foreground_masks(images, background, tol, photos.alpha).to(device)

@@ -107,14 +107,12 @@ def refusal(kind: str, scene: Scene, folder, bbox_given: bool) -> str:
 
 def contracted(scene: Scene) -> Scene:
     """`scene` with its space contracted (render/contraction.py): the sphere kept linear from its sparse points
-    (a capture that has them: `scene.points`, (N, 3) or with an `xyz` of that shape, as COLMAP's) or else its training cameras (`sphere_from_cameras`); the box that of
-    the contracted world, far the contraction's far bound; the linear stretch reaches through the sphere from every
+    (a capture that has them: `scene.points`, as a COLMAP model gives them) or else its training cameras
+    (`sphere_from_cameras`); the box that of the contracted world, far the contraction's far bound; the linear stretch reaches through the sphere from every
     camera, test views too."""
     poses = scene.splits["train"].poses
-    points = getattr(scene, "points", None)  # a structure-from-motion model's points: (N, 3), or an object's `xyz`
-    points = getattr(points, "xyz", points)
-    if points is not None and len(points) >= 8:
-        centre, radius = sphere_from_points(torch.as_tensor(points))
+    if scene.points is not None and len(scene.points.xyz) >= 8:
+        centre, radius = sphere_from_points(scene.points.xyz)
     else:
         try:
             focus = focus_point(poses)
