@@ -9,6 +9,13 @@ mixture trained on capture's poses against the same recipe on known poses.
         (median rotation error, centre error as a fraction of the cameras' spread)
     python scripts/capture_bench.py mixture --scene DIR --captured OUT/capture --recipe RECIPE --out OUT
         pretrain, build-moe, finetune (baseline, Top-2), eval on the shipped poses and on capture's: held-out PSNR
+    python scripts/capture_bench.py phone --count 50 --out OUT
+        phone-sized photos (1080 x 1920 JPEG, portrait, the textured procedural scene on a walk around it) captured
+        with the defaults: the seconds from photos to a scene folder, and the poses against the rendered ones
+    python scripts/capture_bench.py video --out OUT
+        a video of a walk around the textured procedural scene (300 frames, 30 per second, 360 x 640, two frames of
+        every three blurred as a hand-held phone blurs them) captured with the defaults: seconds per phase, how many
+        of the frames kept are sharp ones, and their poses against the rendered ones
     python scripts/capture_bench.py matching --captured OUT/capture-50 --out OUT
         exhaustive against retrieval matching on one capture's features (seconds, verified pairs)
 
@@ -20,11 +27,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -92,6 +102,120 @@ def poses(args) -> None:
                                "capture": report, **errors}, load)
 
 
+def _phone_photos(out: Path, count: int, width: int, height: int) -> dict[str, np.ndarray]:
+    """`count` JPEG photos of `width` x `height` of the textured procedural scene on an orbit (one ray per pixel),
+    written once to out/images; -> the camera-to-world pose each was rendered with, by file stem."""
+    import imageio.v3 as iio
+    import torch
+
+    from boostnerf_cli.scenes import procedural as proc
+
+    objects = proc.scene_objects(0, "textured")
+    train, _ = proc.orbit_poses(count, 0)
+    focal = 0.5 * width / math.tan(0.5 * proc.CAMERA_ANGLE_X)
+    k = torch.tensor([focal, focal, width / 2, height / 2])
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    poses = {}
+    for i, pose in enumerate(train):
+        name = f"IMG_{i:04d}.jpg"
+        poses[Path(name).stem] = pose
+        if not (out / "images" / name).exists():
+            iio.imwrite(out / "images" / f".{name}", _render(objects, pose, k, width, height), extension=".jpg",
+                        quality=92)
+            (out / "images" / f".{name}").rename(out / "images" / name)
+    return poses
+
+
+def phone(args) -> None:
+    """Phone-sized photos to a scene folder with the defaults: the target is 50 such photos in 3 minutes."""
+    sys.path.insert(0, str(ROOT))
+    from boostnerf_cli.scenes import load_scene
+    from boostnerf_cli.scenes.alignment import pose_errors, scene_poses
+
+    src = args.out / f"phone-{args.count}"
+    reference = _phone_photos(src, args.count, args.width, args.height)
+    load = os.getloadavg()
+    cap = args.out / f"phone-capture-{args.count}"
+    t = time.perf_counter()
+    cli("capture", "--images", str(src / "images"), "--out", str(cap), "--force")
+    wall = time.perf_counter() - t
+    report = json.loads((cap / "capture.json").read_text())
+    errors = pose_errors(scene_poses(load_scene(cap, holdout_every=0)), reference)
+    record(args.out, f"phone-{args.count}", {"images": args.count, "width": args.width, "height": args.height,
+                                             "wall_seconds": round(wall, 1), "capture": report, **errors}, load)
+
+
+def _walk_poses(count: int) -> np.ndarray:
+    """A smooth walk once around the scene, as a phone video: the azimuth sweeps a full turn while the height rises
+    and falls twice (elevation 25-40 degrees), each camera looking at the origin -> (count, 4, 4)."""
+    from boostnerf_cli.scenes import procedural as proc
+
+    az = 2 * math.pi * np.arange(count) / count
+    el = np.radians(32.5 + 7.5 * np.sin(2 * az))
+    pos = proc.RADIUS * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    return np.stack([proc.look_at(p) for p in pos])
+
+
+def _render(objects: list, pose: np.ndarray, k, width: int, height: int) -> np.ndarray:
+    """One view of `objects` (one ray per pixel, white where none is hit) -> (height, width, 3) uint8."""
+    import torch
+
+    from boostnerf_cli.render.rays import image_rays
+    from boostnerf_cli.scenes import procedural as proc
+
+    o, d = (v.double() for v in image_rays(torch.from_numpy(pose).float(), k, height, width))
+    rgb = torch.ones_like(o)
+    hits = [proc.intersect(obj, o, d) for obj in objects]
+    nearest = torch.stack([h[0] for h in hits]).argmin(dim=0)
+    for j, (obj, (t, n, p)) in enumerate(zip(objects, hits)):
+        m = (nearest == j) & torch.isfinite(t)
+        rgb[m] = proc.shade(obj, n[m], p[m])
+    return (rgb.reshape(height, width, 3).numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def video(args) -> None:
+    """A hand-held video around the scene to a scene folder: the frames capture keeps, and their poses."""
+    import imageio_ffmpeg
+    import torch
+
+    sys.path.insert(0, str(ROOT))
+    from boostnerf_cli.scenes import load_scene
+    from boostnerf_cli.scenes import procedural as proc
+    from boostnerf_cli.scenes.alignment import pose_errors, scene_poses
+
+    poses = _walk_poses(args.count)
+    clip = args.out / "walk.mp4"
+    if not clip.exists():
+        objects = proc.scene_objects(0, "textured")
+        focal = 0.5 * args.width / math.tan(0.5 * proc.CAMERA_ANGLE_X)
+        k = torch.tensor([focal, focal, args.width / 2, args.height / 2])
+        args.out.mkdir(parents=True, exist_ok=True)
+        tmp = args.out / ".walk.mp4"
+        writer = imageio_ffmpeg.write_frames(str(tmp), (args.width, args.height), fps=args.fps, quality=8,
+                                             macro_block_size=8)
+        writer.send(None)
+        for i, pose in enumerate(poses):
+            image = _render(objects, pose, k, args.width, args.height)
+            if i % 3:  # two frames of three moved while the shutter was open: a smear of 9 px along the walk
+                image = np.mean([np.roll(image, s, axis=1) for s in range(-4, 5)], axis=0).astype(np.uint8)
+            writer.send(np.ascontiguousarray(image))
+        writer.close()
+        tmp.rename(clip)
+    load = os.getloadavg()
+    cap = args.out / "video-capture"
+    t = time.perf_counter()
+    cli("capture", "--video", str(clip), "--out", str(cap), "--force")
+    wall = time.perf_counter() - t
+    report = json.loads((cap / "capture.json").read_text())
+    frame = {Path(name).stem: round(sec * args.fps) for name, sec in report["video_seconds"].items()}
+    reference = {name: poses[i] for name, i in frame.items()}
+    errors = pose_errors(scene_poses(load_scene(cap, holdout_every=0)), reference)
+    sharp = sum(i % 3 == 0 for i in frame.values())
+    record(args.out, "video", {"frames_in_video": args.count, "fps": args.fps, "width": args.width,
+                               "height": args.height, "frames_kept": len(frame), "sharp_frames_kept": sharp,
+                               "wall_seconds": round(wall, 1), "capture": report, **errors}, load)
+
+
 def _chain(scene: Path, recipe: Path, ws: Path) -> dict:
     for step in (("pretrain", "--data", str(scene)), ("build-moe",), ("finetune", "--baseline"),
                  ("finetune", "--topk", "2")):
@@ -153,11 +277,23 @@ def main() -> None:
     m.add_argument("--captured", type=Path, required=True)
     m.add_argument("--recipe", type=Path, required=True)
     m.add_argument("--out", type=Path, required=True)
+    f = sub.add_parser("phone")
+    f.add_argument("--count", type=int, default=50)
+    f.add_argument("--width", type=int, default=1080)
+    f.add_argument("--height", type=int, default=1920)
+    f.add_argument("--out", type=Path, required=True)
+    v = sub.add_parser("video")
+    v.add_argument("--count", type=int, default=300)
+    v.add_argument("--fps", type=int, default=30)
+    v.add_argument("--width", type=int, default=360)
+    v.add_argument("--height", type=int, default=640)
+    v.add_argument("--out", type=Path, required=True)
     k = sub.add_parser("matching")
     k.add_argument("--captured", type=Path, required=True)
     k.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
-    {"timing": timing, "poses": poses, "mixture": mixture, "matching": matching}[args.what](args)
+    {"timing": timing, "poses": poses, "mixture": mixture, "matching": matching,
+     "phone": phone, "video": video}[args.what](args)
 
 
 if __name__ == "__main__":

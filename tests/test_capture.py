@@ -200,7 +200,8 @@ def test_too_few_registered_photos_say_how_many_and_what_to_do():
 
 def test_a_video_gives_evenly_spaced_sharp_frames(tmp_path):
     """Frames in windows of equal length, the sharpest of each: a blurred copy next to every sharp frame is never
-    chosen; a video with no frames is refused in one line."""
+    chosen, and where in the video each one kept is (its second) is said; a video with no frames is refused in one
+    line."""
     import imageio_ffmpeg
 
     from boostnerf_cli.stages.capture import video_frames
@@ -216,7 +217,9 @@ def test_a_video_gives_evenly_spaced_sharp_frames(tmp_path):
         writer.send(np.ascontiguousarray(b))
         writer.send(np.ascontiguousarray(f))
     writer.close()
-    assert video_frames(tmp_path / "v.mp4", 6, tmp_path / "frames") == 6
+    kept = video_frames(tmp_path / "v.mp4", 6, tmp_path / "frames")
+    # each window's sharp frame: the 2nd, 4th, ... of the video, at 10 frames per second
+    assert kept == {f"frame_{i + 1:04d}.jpg": round((2 * i + 1) / 10, 4) for i in range(6)}, kept
     got = [iio.imread(p).astype(float) for p in sorted((tmp_path / "frames").iterdir())]
     for g, s, b in zip(got, sharp, blurred):
         assert np.abs(g - s).mean() < np.abs(g - b).mean()

@@ -23,9 +23,7 @@ every phase is done: a capture stopped half way leaves nothing that `pretrain` w
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 import shutil
 import time
 from dataclasses import asdict, dataclass
@@ -40,7 +38,7 @@ from boostnerf_cli.workspace import read_json, write_json
 
 log = logging.getLogger(__name__).info
 
-EXHAUSTIVE_MAX = 60  # photos matched exhaustively up to this many (docs/capture.md: where retrieval gets faster)
+EXHAUSTIVE_MAX = 30  # photos matched exhaustively up to this many (docs/capture.md: retrieval is faster past it)
 RETRIEVAL_NEIGHBOURS = 20  # past it, each photo is matched with this many most similar ones
 SEQUENTIAL_OVERLAP = 10  # a video frame is matched with this many next frames
 LOOP_NEIGHBOURS = 5  # and with this many most similar frames farther away (loop closure)
@@ -134,10 +132,11 @@ def _copy_photos(files: list[Path], out: Path) -> None:
         shutil.copy2(f, out / f.name)
 
 
-def video_frames(path: Path, count: int, out: Path) -> int:
+def video_frames(path: Path, count: int, out: Path) -> dict[str, float]:
     """Write `count` frames of the video at `path` into `out` (frame_0001.jpg, ...): the video's frames cut into
     `count` windows of equal length, and of each the sharpest (least `skimage.measure.blur_effect`, on a small grey
-    copy); -> how many were written."""
+    copy); -> the second of the video each file written is (its frame's number over the frames per second), by
+    name."""
     import imageio.v3 as iio
     import imageio_ffmpeg
     from skimage.measure import blur_effect
@@ -171,13 +170,14 @@ def video_frames(path: Path, count: int, out: Path) -> int:
     keep = {int(a + np.argmin(blur[a:b])) for a, b in zip(edges[:-1], edges[1:]) if b > a}
     meta, gen = frames()
     width, height = meta["size"]
+    fps = float(meta.get("fps") or 0) or 1.0  # a stream that states none: frame numbers as they are
     out.mkdir(parents=True, exist_ok=True)
-    written = 0
+    written = {}
     for i, raw in enumerate(gen):
         if i in keep:
-            written += 1
-            iio.imwrite(out / f"frame_{written:04d}.jpg", np.frombuffer(raw, np.uint8).reshape(height, width, 3),
-                        quality=95)
+            name = f"frame_{len(written) + 1:04d}.jpg"
+            iio.imwrite(out / name, np.frombuffer(raw, np.uint8).reshape(height, width, 3), quality=95)
+            written[name] = round(i / fps, 4)
     return written
 
 
@@ -425,14 +425,15 @@ def _phases(pycolmap, state: _Work, inputs: dict, images: Path | None, video: Pa
         state.forget_from("images")
         t = time.perf_counter()
         shutil.rmtree(work / "images", ignore_errors=True)
+        kept = {}
         if images is not None:
             files = photo_files(images)
             check_photos(files)
             _copy_photos(files, work / "images")
         else:
-            video_frames(video, options.frames, work / "images")
+            kept = {"video_seconds": video_frames(video, options.frames, work / "images")}
             check_photos(photo_files(work / "images"))
-        state.finish("images", sig, time.perf_counter() - t)
+        state.finish("images", sig, time.perf_counter() - t, **kept)
     names = [p.name for p in photo_files(work / "images")]
     log(f"images: {len(names)} {'frames of ' + str(video) if video else 'photos'}")
     steps = (
@@ -445,7 +446,8 @@ def _phases(pycolmap, state: _Work, inputs: dict, images: Path | None, video: Pa
         ("mapping", {"seed": options.seed}, lambda: _map(pycolmap, work, len(names), options.seed)),
         ("downscale", {}, lambda: {"folders": _downscale(work, names)}),
     )
-    facts: dict = {"matching": steps[1][1]["kind"]}
+    facts: dict = {"matching": steps[1][1]["kind"],  # and for a video, where in it each frame kept is
+                   **{k: v for k, v in state.state["images"].items() if k not in ("signature", "seconds")}}
     for phase, signature, do in steps:
         if state.done(phase, signature):
             log(f"{phase}: done before, reused (--force redoes it)")
