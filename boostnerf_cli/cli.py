@@ -142,6 +142,14 @@ def _writer(workspace: Path, must_exist: bool = True, distributed: bool = False)
     return ws, dist.writer_lock(ws)
 
 
+def _survey(ws):
+    """What workspace `ws` holds, read once and handed to the stage (`lineage.Survey`; it reads when first asked,
+    so inside the command's lock)."""
+    from boostnerf_cli.lineage import Survey
+
+    return Survey(ws)
+
+
 def _reader(workspace: Path):
     """The workspace, checked to be one, with a reader's lock (`Workspace.reading`): shared with other readers."""
     from boostnerf_cli.workspace import Workspace
@@ -270,7 +278,7 @@ def pretrain(
         "data.holdout_every": holdout_every, "data.format": data_format, "pretrain.seed": seed, "pretrain.skip": skip})
     ws, lock = _writer(workspace, must_exist=False, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock:
-        reports = stage.run(ws, data, rec, dev, force)
+        reports = stage.run(_survey(ws), data, rec, dev, force)
         if not dist.is_main():
             return
     table = Table("expert", "params", "steps", "seconds", "train PSNR", "held-out PSNR")
@@ -322,7 +330,7 @@ def build_moe(
     names = [n for n in experts.split(",") if n] if experts else None
     ws, lock = _writer(workspace)
     with lock:
-        stage.build(ws, names, rec.moe, resolve_device(device))
+        stage.build(_survey(ws), names, rec.moe, resolve_device(device))
 
 
 @app.command()
@@ -356,11 +364,12 @@ def finetune(
     ws, lock = _writer(workspace, distributed=True)
     with dist.session(resolve_device(device)) as dev, lock, dist.others_quiet():
         given = {key for key, param in moot.items() if ctx.params[param] is not None}
-        unused, why = stage.unused_settings(ws, name, topk, rec.moe, given)
+        survey = _survey(ws)  # what the workspace holds, read once for both questions below
+        unused, why = stage.unused_settings(survey, name, topk, rec.moe, given)
         if unused:  # said also when the model is finished and skipped
             log(f"note: {', '.join(_flag(ctx, moot[key]) for key in unused)} cannot change "
                 f"{'the baseline' if name == 'baseline' else name} ({why}): ignored")
-        stage.run(ws, name, topk, rec.moe, dev, force)
+        stage.run(survey, name, topk, rec.moe, dev, force)
 
 
 @app.command()
@@ -400,13 +409,13 @@ def render(
     with lock:
         if path is not None:
             video_path = stage.VideoPath(path, frames, fps, video)
-            written = stage.run_video(ws, model, video_path, resolve_device(device), viewing.skips)
+            written = stage.run_video(_survey(ws), model, video_path, resolve_device(device), viewing.skips)
         elif camera is not None:
-            written = stage.run_camera(ws, model, camera, resolve_device(device), viewing.skips)
+            written = stage.run_camera(_survey(ws), model, camera, resolve_device(device), viewing.skips)
         elif compare:
-            written = stage.run_compare(ws, model, viewing, resolve_device(device))
+            written = stage.run_compare(_survey(ws), model, viewing, resolve_device(device))
         else:
-            written = stage.run(ws, model, viewing, resolve_device(device), per_expert=per_expert)
+            written = stage.run(_survey(ws), model, viewing, resolve_device(device), per_expert=per_expert)
     for p in written:  # stdout: the files written, one per line, for a script (the prose above is on stderr)
         print(p)
 
@@ -435,7 +444,7 @@ def eval_cmd(
     viewing = Viewing(split, views, Skips.from_flags(no_skip, skip_off), exact_gate)
     ws, lock = _writer(workspace) if report else _reader(workspace)
     with lock:
-        result = stage.run(ws, model, viewing, resolve_device(device), report, costs=not no_costs)
+        result = stage.run(_survey(ws), model, viewing, resolve_device(device), report, costs=not no_costs)
     if report:
         log(f"wrote {ws.reports_dir / 'eval.json'} and eval.md")
     table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")
@@ -460,7 +469,7 @@ def count_params_cmd(
 
     ws, lock = _writer(workspace)
     with lock:
-        result = stage.run(ws, model, split, resolve_device(device), views)
+        result = stage.run(_survey(ws), model, split, resolve_device(device), views)
     log(f"wrote {ws.reports_dir / 'count-params.json'}")
     table = Table("model", "params", "||w||_0", "GFLOPs/image")
     for r in result["models"]:
@@ -484,7 +493,7 @@ def prune(
 
     ws, lock = _writer(workspace)
     with lock:
-        r = stage.run(ws, model, split, resolve_device(device), views, force)
+        r = stage.run(_survey(ws), model, split, resolve_device(device), views, force)
     table = Table("model", "params", "file MB", "test PSNR", "train views max |diff|")
     table.add_row(r["from"], f"{r['params_before']:,}", f"{r['file_bytes_before'] / 1e6:.2f}",
                   number(r["test_psnr_before"], ".3f"), "")
@@ -565,7 +574,7 @@ def view(
     _one_process()
     stage.import_viser()  # before the scene is read: without viser, the one line saying how to install it
     try:
-        stage.run(Workspace(workspace), resolve_device(device), host, port, model, follow, size)
+        stage.run(_survey(Workspace(workspace)), resolve_device(device), host, port, model, follow, size)
     except Interrupted:
         log("viewer stopped")
 

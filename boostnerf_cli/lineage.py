@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import CONFIGS
 from boostnerf_cli.recipe import DataRecipe, GeometryRecipe, MoERecipe, PretrainRecipe, TrainRecipe
-from boostnerf_cli.scenes import Scene
+from boostnerf_cli.scenes import Scene, load_scene
 from boostnerf_cli.startup import timed
 from boostnerf_cli.workspace import Workspace, read_meta, recorded_path
 
@@ -165,6 +165,7 @@ class PrunedSpec(Spec):
     inputs: dict  # {the model it is pruned from: its digest}
 
 
+MOE_KEYS = {f.name for f in dataclasses.fields(MoERecipe)}  # the moe section's keys, by which moe/init's are named
 SPECS = {cls.artifact: cls for cls in (GeometrySpec, ExpertSpec, MixtureInitSpec, BaselineSpec, FinetuneSpec,
                                        PrunedSpec)}
 DOING = {"geometry": ("trained", "retrain it"), "expert": ("trained", "retrain it"), "init": ("built", "rebuild it"),
@@ -209,6 +210,9 @@ def describe_change(saved: dict, wanted: dict) -> str | None:
         return f"{what} was made again since{_digests(was, now)}"
     head, _, rest = key.partition(".")
     name = spec.names.get(head) or (f"{spec.section}.{head}" if spec.section else head)
+    leaf = key.rpartition(".")[2]
+    if spec is MixtureInitSpec:  # its settings nest the mixture's and the gate's configs: named by the recipe key
+        name, rest = (f"moe.{leaf}", "") if leaf in MOE_KEYS else (f"moe/init's {key.partition('.')[2]}", "")
     return f"{name}{'.' + rest if rest else ''}: {'the default' if was is None else repr(was)}, now {now!r}"
 
 
@@ -244,52 +248,182 @@ def _remake(artifact: str, root: Path, name: str, source: str, removed: bool) ->
     return f"{what} after {name} was finetuned from it", f"`boostnerf finetune -w {root} {finetune_flag(name)} --force`"
 
 
-def stale(ws: Workspace, name: str) -> tuple[str, str] | None:
-    """Why model `name` must be made again, as (what changed, the command that makes it again), or None when it is
-    current: an input recorded in its signature (moe/init's experts, a finetuned model's moe/init or largest expert,
-    a pruned model's source, an expert's geometry) changed or went since. The first stale link from the geometry up
-    is named, since remaking it comes first. A pruned model without its report (a prune stopped before its check) is
-    stale too. A model not there is never stale."""
-    path = ws.model_file(name)
-    if not path.exists():
+SCENE_KEYS = {"image_size": "image size", "holdout_every": "held-out views (holdout_every)", "format": "format",
+              "bbox": "box (data.bbox)", "scene": "scene kind (data.scene)"}
+
+
+class Survey:
+    """What one command finds in its workspace, each thing read once: every artifact's header (signature, digest),
+    its staleness, the manifest, and the scene it records (loaded and checked when first asked for). A command makes
+    one survey at its start and hands it to its stage, which asks it rather than the files; a stage that writes an
+    artifact says so (`wrote`), and what depends on it is worked out again when next asked."""
+
+    def __init__(self, ws: Workspace):
+        self.ws = ws
+        self._meta: dict[str, dict | None] = {}
+        self._stale: dict[str, tuple[str, str] | None] = {}
+        self._manifest: dict | None = None
+        self._models: list[str] | None = None
+        self._scene: Scene | None = None
+
+    # --- artifacts
+    def _path(self, name: str) -> Path:
+        return self.ws.geometry_path if name == "geometry" else self.ws.model_file(name)
+
+    def meta(self, name: str) -> dict | None:
+        """Model, expert or geometry `name`'s header (`read_meta`); None when its file is not there."""
+        if name not in self._meta:
+            path = self._path(name)
+            self._meta[name] = read_meta(path) if path.exists() else None
+        return self._meta[name]
+
+    def digest(self, name: str) -> str | None:
+        return (self.meta(name) or {}).get("digest")
+
+    def signature(self, name: str) -> dict | None:
+        return (self.meta(name) or {}).get("signature")
+
+    @property
+    def models(self) -> list[str]:
+        """Every model's name: experts smallest first, then mixtures (`Workspace.all_model_names`)."""
+        if self._models is None:
+            self._models = self.ws.all_model_names()
+        return self._models
+
+    def wrote(self, name: str | None = None) -> None:
+        """Artifact `name` (None: any) was written or removed by this command: read it again when asked, and every
+        staleness."""
+        if name is None:
+            self._meta.clear()
+        self._meta.pop(name, None)
+        self._stale.clear()
+        self._models = None
+
+    def stale(self, name: str) -> tuple[str, str] | None:
+        """Why model `name` must be made again, as (what changed, the command that makes it again), or None when it
+        is current: an input recorded in its signature (moe/init's experts, a finetuned model's moe/init or largest
+        expert, a pruned model's source, an expert's geometry) changed or went since. The first stale link from the
+        geometry up is named, since remaking it comes first. A pruned model without its report (a prune stopped
+        before its check) is stale too. A model not there is never stale."""
+        if name not in self._stale:
+            self._stale[name] = self._why_stale(name)
+        return self._stale[name]
+
+    def _why_stale(self, name: str) -> tuple[str, str] | None:
+        if name == "geometry" or self.meta(name) is None:
+            return None
+        signature = self.signature(name) or {}
+        artifact, inputs, root = signature.get("artifact"), signature.get("inputs") or {}, self.ws.root
+        if artifact == "expert" and signature.get("geometry"):
+            now = self.digest("geometry")
+            return None if now == signature["geometry"] else _remake(artifact, root, name, "geometry", now is None)
+        if artifact == "pruned" and not self.ws.report_path(name).exists():  # written last, after prune's check
+            return (f"its prune did not finish (no moe/{name}.json, the check of its renders)",
+                    f"`boostnerf prune -w {root} --model {next(iter(inputs))}`")
+        for source, digest in inputs.items():
+            if (earlier := self.stale(source)) is not None:  # the source's own staleness is remade first
+                return earlier
+            now = self.digest(source)
+            if now != digest:
+                return _remake(artifact, root, name, source, now is None)
         return None
-    signature = read_meta(path).get("signature") or {}
-    artifact, inputs = signature.get("artifact"), signature.get("inputs") or {}
-    if artifact == "expert" and signature.get("geometry"):
-        now = read_meta(ws.geometry_path).get("digest") if ws.geometry_path.exists() else None
-        return None if now == signature["geometry"] else _remake(artifact, ws.root, name, "geometry", now is None)
-    if artifact == "pruned" and not ws.report_path(name).exists():  # written last, after prune's check
-        return (f"its prune did not finish (no moe/{name}.json, the check of its renders)",
-                f"`boostnerf prune -w {ws.root} --model {next(iter(inputs))}`")
-    for source, digest in inputs.items():
-        if (earlier := stale(ws, source)) is not None:  # the source's own staleness is remade first
-            return earlier
-        src = ws.model_file(source)
-        now = read_meta(src).get("digest") if src.exists() else None
-        if now != digest:
-            return _remake(artifact, ws.root, name, source, now is None)
-    return None
 
+    def finished(self, name: str) -> Found | None:
+        """Model or expert `name` when it is finished (its file and its report), with its signature and staleness."""
+        if not self.ws.report_path(name).exists() or self.meta(name) is None:  # no report: not finished, unread
+            return None
+        return Found(name, self.signature(name), self.stale(name))
 
-def require_current(ws: Workspace, names: list[str] | None = None) -> list[str]:
-    """`names` (default: every model of the workspace), refused in one line when one is stale (`stale`): a table or
-    picture of a model made from an expert since retrained would compare it with what it no longer is."""
-    have = ws.all_model_names()
-    names = names or have
-    reasons = {n: stale(ws, n) for n in dict.fromkeys([*names, *have])}
-    stale_ones = {n: reasons[n] for n in names if reasons[n] is not None}
-    if not stale_ones:
-        return names
-    what = next(iter(stale_ones.values()))[0]
-    by_remedy: dict[str, list[str]] = {}  # each way of making stale models again, and the models it makes
-    for n, (_, remedy) in stale_ones.items():
-        by_remedy.setdefault(remedy, []).append(n)
-    others = [n for n in have if reasons[n] is None]
-    raise BoostNerfError(
-        f"{', '.join(stale_ones)} {'is' if len(stale_ones) == 1 else 'are'} stale: {what}; make "
-        + "; ".join(f"{', '.join(made)} again with {remedy}" if i == 0 else f"{', '.join(made)} with {remedy}"
-                    for i, (remedy, made) in enumerate(by_remedy.items()))
-        + (f" (or name current models: {' '.join('--model ' + n for n in others)})" if others else ""))
+    def usable(self) -> list[str]:
+        """The models that are current (not stale), in `models`' order."""
+        return [n for n in self.models if self.stale(n) is None]
+
+    def current(self, names: list[str] | None = None) -> list[str]:
+        """`names` (default: every model of the workspace), refused in one line when one is stale (`stale`): a table
+        or picture of a model made from an expert since retrained would compare it with what it no longer is."""
+        have = self.models
+        names = names or have
+        stale_ones = {n: self.stale(n) for n in names if self.stale(n) is not None}
+        if not stale_ones:
+            return names
+        what = next(iter(stale_ones.values()))[0]
+        by_remedy: dict[str, list[str]] = {}  # each way of making stale models again, and the models it makes
+        for n, (_, remedy) in stale_ones.items():
+            by_remedy.setdefault(remedy, []).append(n)
+        others = self.usable()
+        raise BoostNerfError(
+            f"{', '.join(stale_ones)} {'is' if len(stale_ones) == 1 else 'are'} stale: {what}; make "
+            + "; ".join(f"{', '.join(made)} again with {remedy}" if i == 0 else f"{', '.join(made)} with {remedy}"
+                        for i, (remedy, made) in enumerate(by_remedy.items()))
+            + (f" (or name current models: {' '.join('--model ' + n for n in others)})" if others else ""))
+
+    # --- the manifest and the scene
+    def manifest(self, required: bool = True) -> dict:
+        """The workspace's manifest, refused in one line when there is none (`required`; else {}: a new workspace)."""
+        if self._manifest is None:
+            found = self.ws.require_manifest() if required else self.ws.manifest()
+            if not found:
+                return {}
+            self._manifest = found
+        return self._manifest
+
+    def scene_moved(self, data: Path, spec: SceneSpec) -> tuple[bool, str | None]:
+        """Whether `spec` (a scene pretrain is given, at `data`) is the workspace's scene at another path, and the one
+        line that refuses another scene, image size or box than the one it records (None when it is not another)."""
+        previous, now = self.manifest(required=False).get("data"), spec.record()
+        is_moved = moved(previous, now) and data.exists()  # not a default scene to generate: another scene
+        if not previous or previous == now or is_moved:
+            return is_moved, None
+        changed = [k for k in now if k != "path" and previous.get(k) != now[k]]
+        what = ", ".join(f"{SCENE_KEYS.get(k, k)} {previous.get(k)!r}, now {now[k]!r}" for k in changed)
+        return False, (f"workspace {self.ws.root} was made for another scene, image size or box "
+                       f"({self.ws.root / previous['path']}" + (f"; {what}" if what else "") + "): use a new "
+                       "--workspace, or --force to retrain everything")
+
+    def scene_id(self, data: Path, spec: SceneSpec, digest: str, is_moved: bool) -> tuple[str, str | None]:
+        """The id the workspace's artifacts record for the scene at `data` (`SceneSpec.id`; kept when the same images
+        and cameras moved), and the one line that refuses other content (`digest` against the manifest's; None
+        when it is the same)."""
+        m = self.manifest(required=False)
+        previous, recorded = m.get("data"), m.get("scene_digest")
+        if recorded and recorded != digest:
+            was = self.ws.root / previous["path"]
+            return spec.id(), ((f"the scene at {data} is not the one this workspace was trained on, at {was} (its "
+                                "images or cameras differ)" if is_moved else f"the scene at {data} changed since this "
+                                "workspace was trained on it (its images or cameras differ)")
+                               + ": restore it, use a new --workspace, or --force to retrain everything")
+        same = previous and m.get("scene_id") and (previous == spec.record() or is_moved)
+        return (m["scene_id"] if same else spec.id()), None
+
+    def scene_path(self) -> Path:
+        """The path of the scene the manifest records, its content unchecked; one line saying how to point to where
+        it went when it is gone."""
+        ws, data = self.ws, self.manifest().get("data")
+        if not data:
+            raise BoostNerfError(f"{ws.manifest_path} records no scene: rerun `boostnerf pretrain --workspace "
+                                 f"{ws.root}`")
+        recorded = ws.root / data["path"]
+        if not recorded.exists():
+            raise BoostNerfError(
+                f"the workspace's scene {recorded} is gone: restore it, or if it moved, say where to once with "
+                f"`boostnerf pretrain --workspace {ws.root} --data NEW_PLACE` (the same images and cameras: nothing "
+                "is retrained)")
+        return recorded
+
+    def scene(self) -> Scene:
+        """The scene the workspace was trained on, loaded exactly as `pretrain` loaded it, once; refused when its
+        images or cameras changed since (`scene_digest` against the manifest's)."""
+        if self._scene is None:
+            path, m = self.scene_path(), self.manifest()
+            spec = SceneSpec.recorded(m["data"])
+            scene = load_scene(path, image_size=spec.image_size, holdout_every=spec.holdout_every, format=spec.format,
+                               bbox=spec.bbox, cache=self.ws.scene_cache, kind=spec.scene)
+            if m.get("scene_digest") and scene_digest(scene) != m["scene_digest"]:
+                raise BoostNerfError(
+                    f"the workspace's scene {path} changed since pretrain (its images or cameras differ): restore it, "
+                    f"or retrain with `boostnerf pretrain --workspace {self.ws.root} --data {path} --force`")
+            self._scene = scene
+        return self._scene
 
 
 # --- the one decision -----------------------------------------------------------------------------------
@@ -321,14 +455,6 @@ class Decision:
         if self.action in (REFUSE, REMAKE):
             raise BoostNerfError(self.reason)
         return self
-
-
-def finished(ws: Workspace, name: str) -> Found | None:
-    """Model or expert `name` when it is finished (its file and its report), with its signature and staleness."""
-    path = ws.model_file(name)
-    if not path.exists() or not ws.report_path(name).exists():
-        return None
-    return Found(name, read_meta(path).get("signature"), stale(ws, name))
 
 
 def decide(found: Found | None, wanted: dict | None, force: bool = False) -> Decision:

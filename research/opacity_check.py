@@ -20,9 +20,9 @@ import sys
 import torch
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.lineage import Survey
 from boostnerf_cli.metrics import psnr
 from boostnerf_cli.models import ALL_SKIPS, load_model, render_split
-from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace
 
 TRANSPARENT, OPAQUE, HALF = 0.01, 0.99, 0.5
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         ws = Workspace(args.workspace)
-        scene = workspace_scene(ws)
+        scene = Survey(ws).scene()
         split = scene.split("test")
         model = load_model(ws, args.model, args.device)
         rows = []

@@ -36,11 +36,12 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.lineage import Survey
 from boostnerf_cli.metrics.image import psnr, ssim
 from boostnerf_cli.models import LoadedModel, load_model
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.render.renderer import RenderSettings, render_rays, sample_rays
-from boostnerf_cli.stages.common import resolve_device, workspace_scene
+from boostnerf_cli.stages.common import resolve_device
 from boostnerf_cli.workspace import Workspace, read_meta
 
 
@@ -196,7 +197,7 @@ def main() -> None:
     scene = None
     for name, root in args.model:
         ws = Workspace(Path(root))
-        scene = scene or workspace_scene(ws)
+        scene = scene or Survey(ws).scene()
         models.append(load_model(ws, name, device))
         # a workspace's baseline is its largest expert trained on: named by that expert (dvgo-80)
         label = read_meta(ws.model_file(name)).get("from", name) if name == "baseline" else name

@@ -34,13 +34,13 @@ from pathlib import Path
 import torch
 
 from boostnerf_cli.fields.base import BareField
+from boostnerf_cli.lineage import Survey
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.models import Skips, load_expert, load_mixture, load_model
 from boostnerf_cli.moe.mixture import RoutedMixture
 from boostnerf_cli.moe.router import Routes, aux_loss, dispatch, top_k
 from boostnerf_cli.recipe import Recipe, recipe_from_dict
 from boostnerf_cli.render.renderer import render_view
-from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.tasks import FieldTask, MixtureTask, train_rays
 from boostnerf_cli.train import batch_gradients, grads_finite, make_optimizer
 from boostnerf_cli.workspace import Workspace, write_json
@@ -270,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     ws = Workspace(args.workspace)
     manifest = ws.require_manifest()
     rec = recipe_from_dict(manifest["recipe"]) if manifest.get("recipe") else Recipe()
-    scene = workspace_scene(ws)
+    scene = Survey(ws).scene()
     largest = ws.expert_names()[-1]
     only = set(args.only.split(","))
     result = {"workspace": str(ws.root), "threads": args.threads, "torch": torch.__version__}

@@ -99,16 +99,16 @@ def training_setup(kind: str, ws: Path, device: str, compile: str = "off"):
     """The task, its rays and its schedule, built as the stage that trains `kind` builds them, with train.compile
     set to `compile`."""
     from boostnerf_cli import models
+    from boostnerf_cli.lineage import Survey
     from boostnerf_cli.recipe import recipe_from_dict
     from boostnerf_cli.stages import finetune as ft
-    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.tasks import FieldTask, MixtureTask, train_rays
     from boostnerf_cli.train import Schedule
     from boostnerf_cli.workspace import Workspace
 
     w = Workspace(ws)
     rec = recipe_from_dict(w.manifest()["recipe"])
-    scene = workspace_scene(w)
+    scene = Survey(w).scene()
     if kind in FAMILY_RES or kind == "baseline":
         names = sorted((p.stem for p in w.experts_dir.glob(f"{'dvgo' if kind == 'baseline' else kind}-*.safetensors")),
                        key=lambda n: int(n.rsplit("-", 1)[1]))
@@ -157,15 +157,15 @@ class Stepper:
 
 def render_setup(kind: str, ws: Path, device: str):
     """The model of `kind` as eval loads it, and one chunk of a held-out view's rays. -> a function rendering it."""
+    from boostnerf_cli.lineage import Survey
     from boostnerf_cli.models import ALL_SKIPS, load_model
     from boostnerf_cli.render.packing import packer_for
     from boostnerf_cli.render.rays import image_rays
     from boostnerf_cli.render.renderer import render_rays
-    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.workspace import Workspace
 
     w = Workspace(ws)
-    scene = workspace_scene(w)
+    scene = Survey(w).scene()
     if kind in FAMILY_RES:
         names = sorted((p.stem for p in w.experts_dir.glob(f"{kind}-*.safetensors")),
                        key=lambda n: int(n.rsplit("-", 1)[1]))

@@ -22,9 +22,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
+from boostnerf_cli.lineage import Survey  # noqa: E402
 from boostnerf_cli.render.paths import camera_path  # noqa: E402
 from boostnerf_cli.stages import view  # noqa: E402
-from boostnerf_cli.stages.common import resolve_device, workspace_scene  # noqa: E402
+from boostnerf_cli.stages.common import resolve_device  # noqa: E402
 from boostnerf_cli.viewpoint import dataset_camera, scaled  # noqa: E402
 from boostnerf_cli.workspace import Workspace  # noqa: E402
 
@@ -63,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     device = resolve_device(args.device)
     models = view.Models(ws, device)
     labels = args.model or [n for n in (ws.expert_names()[-1:] + ["top2"]) if n in models.labels()]
-    viewer = view.Viewer(ws, workspace_scene(ws), models, model=labels[0])
+    viewer = view.Viewer(ws, Survey(ws).scene(), models, model=labels[0])
     load = os.getloadavg()
     rows = [measure(viewer, label, int(h), args.frames) for label in labels for h in args.sizes.split(",")]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,

@@ -10,6 +10,7 @@ from conftest import PSNR_MARGIN, TINY_PSNR, assert_clean_failure, cli_in_proces
 from helpers import write_lpips_weights
 from safetensors import safe_open
 
+from boostnerf_cli.lineage import Survey
 from boostnerf_cli.metrics import ALEXNET_ENV, LPIPS_ENV
 from boostnerf_cli.scenes import make_scene
 from boostnerf_cli.workspace import FORMAT_VERSION, read_meta
@@ -40,13 +41,13 @@ def test_the_psnr_references_fail_broken_models(trained_ws):
 
     import torch
 
+    from boostnerf_cli.lineage import Survey
     from boostnerf_cli.models import load_model
-    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.stages.evaluate import evaluate_model
     from boostnerf_cli.workspace import Workspace
 
     ws = Workspace(trained_ws)
-    scene = workspace_scene(ws)
+    scene = Survey(ws).scene()
     test = scene.split("test")
     floor = TINY_PSNR["dvgo-16"] - PSNR_MARGIN
     model = load_model(ws, "dvgo-16", "cpu")
@@ -162,9 +163,9 @@ def test_eval_reports_lpips_when_its_weights_are_on_disk(trained_ws, tmp_path):
     """The LPIPS branch of eval, with a random LPIPS model's weights in the reference file layouts: the report holds
     the mean distance over the views, computed with the model the files hold (the same figure as the in-memory
     model gives, and not the distance of a model with other weights)."""
+    from boostnerf_cli.lineage import Survey
     from boostnerf_cli.metrics import LPIPSModel, lpips
     from boostnerf_cli.models import load_model, render_split
-    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.workspace import Workspace
 
     env = write_lpips_weights(tmp_path, seed=3)
@@ -176,7 +177,7 @@ def test_eval_reports_lpips_when_its_weights_are_on_disk(trained_ws, tmp_path):
     assert report["lpips_note"] is None
     (row,) = report["models"]
     assert isinstance(row["lpips"], float) and row["lpips"] > 0
-    scene = workspace_scene(Workspace(ws))
+    scene = Survey(Workspace(ws)).scene()
     test = scene.split("test")
     model = load_model(Workspace(ws), "dvgo-16", "cpu")
     renders = [r["rgb"] for r in render_split(model.for_rendering(), scene, test, "cpu", views=2)]
@@ -489,7 +490,7 @@ def test_render_writes_each_view_as_it_comes(trained_ws, tmp_path, monkeypatch):
 
     monkeypatch.setattr(models, "render_view", failing_second)
     with pytest.raises(RuntimeError, match="second view"):
-        stage.run(Workspace(ws), ["dvgo-12"], Viewing("test"), "cpu")
+        stage.run(Survey(Workspace(ws)), ["dvgo-12"], Viewing("test"), "cpu")
     written = sorted(p.name for p in (ws / "renders" / "dvgo-12" / "test").glob("*.png"))
     assert len(written) == 2 and sum(n.endswith("_depth.png") for n in written) == 1, written  # view 1: colour, depth
 

@@ -8,6 +8,8 @@ import shutil
 import pytest
 from conftest import PSNR_MARGIN, REMOVE, assert_clean_failure, make_recipe, run_cli
 
+from boostnerf_cli.lineage import Survey
+
 # the tiny recipe's changes: TensoRF and NGP sections instead of DVGO's, fewer steps
 FAMILY_CHANGES = {
     "pretrain": {
@@ -173,7 +175,7 @@ def test_prune_drops_unused_rows_of_every_family_and_refuses_a_model_with_nothin
         assert report["params_after"] <= report["params_before"]  # these tiny tables: nearly every row is read
     monkeypatch.setattr(prune, "grid_tables", lambda field: {})  # a model with no such table (a future family)
     with pytest.raises(BoostNerfError, match="tensorf-14 has no grid, hash table or VM factor to prune"):
-        prune.run(Workspace(ws), "tensorf-14", "train", "cpu", None, False)
+        prune.run(Survey(Workspace(ws)), "tensorf-14", "train", "cpu", None, False)
     assert not list(ws.glob("moe/tensorf-14-pruned*"))
 
 

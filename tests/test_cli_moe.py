@@ -319,12 +319,12 @@ def test_render_mp4_without_the_ffmpeg_backend_fails_in_one_line_and_writes_noth
 def test_each_render_skip_only_drops_work_and_changes_pixels_by_at_most_its_threshold(moe_ws, name):
     """Skips on, each one off, all off: the same image (up to the colour threshold's dropped weights) from
     more and more evaluated samples."""
+    from boostnerf_cli.lineage import Survey
     from boostnerf_cli.models import Skips, load_model, render_split
-    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.workspace import Workspace
 
     ws = Workspace(moe_ws)
-    scene = workspace_scene(ws)
+    scene = Survey(ws).scene()
     model = load_model(ws, name, "cpu")
     split = scene.split("test")
     out = {s: next(render_split(model, scene, split, "cpu", s, views=1))
@@ -505,3 +505,22 @@ def test_a_damaged_moe_init_is_one_line_when_a_finished_model_is_checked(moe_ws,
     save_tensors(path, tensors, meta)  # the same tensors: the same digest, so the models made from it are current
     proc = run_cli("finetune", "--workspace", str(ws), "--topk", "2", "--device", "cpu")
     assert_clean_failure(proc, "does not hold a valid mixture", "build-moe")
+
+
+def test_build_moe_keeps_a_mixture_of_the_same_settings_and_says_what_a_rebuild_leaves_stale(mixture_ws, tmp_path):
+    """build-moe decides through `decide`: the same experts and settings keep moe/init as it is (its file untouched,
+    the mixtures finetuned from it current); other settings build it again, saying what changed and which finetuned
+    models that leaves stale."""
+    ws = tmp_path / "ws"
+    shutil.copytree(mixture_ws, ws)
+    init = ws / "moe" / "init.safetensors"
+    before = init.stat().st_mtime_ns
+    w = ["--workspace", str(ws), "--device", "cpu"]
+    proc = run_cli("build-moe", *w, check=True)
+    assert "moe/init: already built from these experts with these settings, kept as it is" in proc.stderr
+    assert init.stat().st_mtime_ns == before
+    run_cli("eval", "--model", "top2", "--views", "1", "--no-costs", *w, check=True)  # still current
+    proc = run_cli("build-moe", "--gate-res", "6", *w, check=True)
+    assert "moe/init: building it again (moe.gate_res: 8, now 6)" in proc.stderr, proc.stderr
+    assert "top2, finetuned from the old one, will be stale: finetune it again with --force" in proc.stderr
+    assert_clean_failure(run_cli("eval", "--model", "top2", *w), "top2 is stale", "--topk 2 --force")

@@ -127,17 +127,17 @@ def _task(ws: Path, name: str):
     """The task `finetune` trains for `name` (top2 of 3 experts, or the baseline) and its rays."""
     import dataclasses
 
+    from boostnerf_cli.lineage import Survey
     from boostnerf_cli.models import load_expert, load_mixture
     from boostnerf_cli.moe.router import penalty_weights
     from boostnerf_cli.recipe import recipe_from_dict
     from boostnerf_cli.render.renderer import RenderSettings
-    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.tasks import FieldTask, MixtureTask, train_rays
     from boostnerf_cli.workspace import Workspace
 
     w = Workspace(ws)
     rec = recipe_from_dict(w.manifest()["recipe"]).moe
-    scene = workspace_scene(w)
+    scene = Survey(w).scene()
     if name == "baseline":
         model, occ, meta = load_expert(w.expert_path("dvgo-14"))
         settings = RenderSettings(step=meta["step"], near=scene.near, far=scene.far, bbox=model.bbox,

@@ -21,10 +21,10 @@ from conftest import REMOVE, assert_clean_failure, cli_in_process, make_recipe, 
 
 from boostnerf_cli import workspace as wsmod
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.lineage import Survey
 from boostnerf_cli.models import load_expert, save_expert
 from boostnerf_cli.recipe import load_recipe
 from boostnerf_cli.stages import build_moe, pretrain
-from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, is_temporary
 
 
@@ -37,7 +37,7 @@ def moe_copy(trained_ws, tmp_path):
     """A private copy of the tiny workspace with a built (untrained) mixture."""
     ws = tmp_path / "ws"
     shutil.copytree(trained_ws, ws)
-    build_moe.build(Workspace(ws), None, load_recipe(None).moe.__class__(gate_res=8), "cpu")
+    build_moe.build(Survey(Workspace(ws)), None, load_recipe(None).moe.__class__(gate_res=8), "cpu")
     return ws
 
 
@@ -209,7 +209,7 @@ def test_disk_full_while_writing_an_artifact_keeps_the_previous_one(moe_copy, mo
     monkeypatch.setattr(wsmod, "save_file", half_then_full)
     rec = load_recipe(None).moe.__class__(gate_res=6)
     with pytest.raises(BoostNerfError, match=r"could not write .*init\.safetensors \(No space left on device\)"):
-        build_moe.build(ws, None, rec, "cpu")
+        build_moe.build(Survey(ws), None, rec, "cpu")
     assert ws.model_path("init").read_bytes() == before
     assert (ws.moe_dir / "init.json").read_text() == report_before
     assert not _tmp_files(moe_copy)
@@ -257,7 +257,7 @@ def test_generating_a_scene_is_atomic(tmp_path, monkeypatch, who):
     ws = Workspace(tmp_path / "ws")
     scene = {"make-scene": tmp_path / "scene", "pretrain": ws.root / "scene", "bench": ws.root / "scene"}[who]
     run = {"make-scene": lambda: make_scene(scene, size=16, n_train=3, n_test=1),
-           "pretrain": lambda: pretrain.run(ws, None, rec, "cpu", False),
+           "pretrain": lambda: pretrain.run(Survey(ws), None, rec, "cpu", False),
            "bench": lambda: bench.run(ws.root, None, rec, "quick", None, "cpu", 1)}[who]
     monkeypatch.setattr(procedural, "_write_blender", dies_half_way)
     with pytest.raises(KeyboardInterrupt):
@@ -313,16 +313,16 @@ def test_a_model_finetuned_from_an_older_init_is_not_silently_kept(moe_copy, cap
     ws = Workspace(moe_copy)
     rec = load_recipe(None).moe.__class__(gate_res=8, iters=2)
     rec.train.batch_rays = 64
-    finetune.run(ws, "top1", 1, rec, "cpu", False)
+    finetune.run(Survey(ws), "top1", 1, rec, "cpu", False)
     assert json.loads(ws.manifest_path.read_text())["moe"]["init"]["inputs"].keys() == {"dvgo-12", "dvgo-16"}
     caplog.set_level(logging.INFO, logger="boostnerf_cli")
-    finetune.run(ws, "top1", 1, rec, "cpu", False)
+    finetune.run(Survey(ws), "top1", 1, rec, "cpu", False)
     assert "already finetuned" in caplog.messages[-1]
-    build_moe.build(ws, None, load_recipe(None).moe.__class__(gate_res=6), "cpu")  # a new init
+    build_moe.build(Survey(ws), None, load_recipe(None).moe.__class__(gate_res=6), "cpu")  # a new init
     with pytest.raises(BoostNerfError, match="top1 is stale: moe/init was rebuilt after top1 was finetuned from it; "
                                              "make it again with `boostnerf finetune -w .* --topk 1 --force`"):
-        finetune.run(ws, "top1", 1, rec, "cpu", False)
-    finetune.run(ws, "top1", 1, rec, "cpu", True)  # --force redoes it from the new init
+        finetune.run(Survey(ws), "top1", 1, rec, "cpu", False)
+    finetune.run(Survey(ws), "top1", 1, rec, "cpu", True)  # --force redoes it from the new init
 
 
 def test_a_different_or_changed_scene_is_refused(trained_ws, tiny_scene, tiny_recipe, tmp_path):
@@ -338,7 +338,7 @@ def test_a_different_or_changed_scene_is_refused(trained_ws, tiny_scene, tiny_re
     manifest = json.loads((ws / "manifest.json").read_text())
     manifest["data"]["path"] = str(other)
     (ws / "manifest.json").write_text(json.dumps(manifest))
-    workspace_scene(Workspace(ws))  # an identical copy passes
+    Survey(Workspace(ws)).scene()  # an identical copy passes
     img = iio.imread(other / "train" / "r_0.png")
     img[5, 5] = [255, 0, 0, 255]  # one pixel now opaque red
     iio.imwrite(other / "train" / "r_0.png", img)

@@ -205,15 +205,15 @@ def test_the_viewer_renders_on_the_simulated_gpu_what_it_renders_on_the_cpu(mixt
     render), their GFLOPs and the routed cells, as on the CPU."""
     import numpy as np
 
+    from boostnerf_cli.lineage import Survey
     from boostnerf_cli.stages import view
-    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.viewpoint import Look
 
     MAPS = ("colour", "routing", "share")
     from boostnerf_cli.workspace import Workspace
 
     ws = Workspace(mixture_ws)
-    scene = workspace_scene(ws)
+    scene = Survey(ws).scene()
     shots = {}
     for device in ("cpu", "gpu"):
         with simulated_gpu() if device == "gpu" else nullcontext() as dev:

@@ -64,3 +64,67 @@ def test_a_geometry_setting_is_named_by_its_recipe_key():
                                                                                          new).reason
     moved = GeometrySpec.of("geometry", "scene", GeometryRecipe(iters=100), 5, box).signature()
     assert "(pretrain.seed: 0, now 5)" in decide(Found("geometry", old), moved).reason
+
+
+# --- the survey: a command reads its workspace once ----------------------------------------------------------------
+def _counting_reads(monkeypatch) -> dict:
+    """Count every header `lineage` reads, by file name."""
+    import boostnerf_cli.lineage as lineage
+
+    reads: dict = {}
+    real = lineage.read_meta
+
+    def counted(path):
+        reads[path.name] = reads.get(path.name, 0) + 1
+        return real(path)
+
+    monkeypatch.setattr(lineage, "read_meta", counted)
+    return reads
+
+
+def test_finetune_reads_each_header_once(mixture_ws, tmp_path, monkeypatch):
+    """A finished top2 asked for again: moe/init's staleness, the routing, the source digest and the finished model's
+    signature come from one survey, each file's header read once (a finetune once read moe/init's up to three
+    times, through three separate staleness checks)."""
+    import shutil
+
+    from boostnerf_cli.lineage import Survey
+    from boostnerf_cli.recipe import recorded_recipe
+    from boostnerf_cli.stages import finetune
+    from boostnerf_cli.workspace import Workspace
+
+    ws = Workspace(shutil.copytree(mixture_ws, tmp_path / "ws"))
+    rec = recorded_recipe(ws.manifest()["recipe"], ws.manifest_path)
+    rec.moe.iters = 5  # as mixture_ws finetuned it
+    reads = _counting_reads(monkeypatch)
+    survey = Survey(ws)
+    unused, _ = finetune.unused_settings(survey, "top2", 2, rec.moe, {"moe.lam"})
+    report = finetune.run(survey, "top2", 2, rec.moe, "cpu", False)  # finished: skipped
+    assert report["name"] == "top2" and unused == []
+    assert reads and max(reads.values()) == 1, reads
+    assert {"init.safetensors", "top2.safetensors"} <= set(reads), reads
+
+
+def test_a_survey_is_told_what_its_command_wrote(mixture_ws, tmp_path):
+    """Staleness follows what the command itself writes: after `wrote`, the new header is read and what was made
+    from the old one is stale."""
+    import shutil
+
+    import safetensors.torch as st
+
+    from boostnerf_cli.lineage import Survey
+    from boostnerf_cli.workspace import Workspace, read_meta, save_tensors
+
+    ws = Workspace(shutil.copytree(mixture_ws, tmp_path / "ws"))
+    survey = Survey(ws)
+    assert survey.stale("top2") is None and survey.usable() == survey.models
+    tensors = st.load_file(ws.model_path("init"))
+    meta = read_meta(ws.model_path("init"))
+    save_tensors(ws.model_path("init"), {k: v + 1 if v.is_floating_point() else v for k, v in tensors.items()},
+                 {k: v for k, v in meta.items() if k != "digest"})
+    assert survey.stale("top2") is None  # what it read at the start
+    survey.wrote("init")
+    what, command = survey.stale("top2")
+    assert "moe/init was rebuilt" in what and "--topk 2 --force" in command
+    with pytest.raises(BoostNerfError, match="top2 is stale"):
+        survey.current(["top2"])

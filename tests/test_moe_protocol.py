@@ -501,13 +501,13 @@ def test_build_finetune_and_eval_with_every_official_option(trained_ws, tmp_path
     assert row["name"] == "top2" and 5 < row["psnr"] < 60, proc.stdout
 
     # eval rendered with alpha mixing: the same model rendered in-process matches, with density mixing it does not
+    from boostnerf_cli.lineage import Survey
     from boostnerf_cli.models import load_model
-    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.stages.evaluate import evaluate_model
     from boostnerf_cli.workspace import Workspace
 
     w = Workspace(ws)
-    scene = workspace_scene(w)
+    scene = Survey(w).scene()
     model = load_model(w, "top2", "cpu")
     assert evaluate_model(model, scene, scene.split("test"), "cpu", None, views=1)["psnr"] == row["psnr"]
     model.field.cfg.mix = "density"

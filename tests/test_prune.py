@@ -75,9 +75,9 @@ def test_prune_writes_a_smaller_model_and_its_report(pruned_ws):
 
 
 def test_pruned_model_matches_the_original_on_kept_rows_and_renders_the_train_views_alike(pruned_ws):
+    from boostnerf_cli.lineage import Survey
     from boostnerf_cli.models import load_model
     from boostnerf_cli.render.renderer import render_view
-    from boostnerf_cli.stages.common import workspace_scene
     from boostnerf_cli.workspace import Workspace
 
     ws = Workspace(pruned_ws)
@@ -94,7 +94,7 @@ def test_pruned_model_matches_the_original_on_kept_rows_and_renders_the_train_vi
     for k in dense:  # everything else (MLPs, occupancy, V_D) is stored as is
         if k not in meta["packed"]:
             assert torch.equal(dense[k], pruned[k]), k
-    scene = workspace_scene(ws)
+    scene = Survey(ws).scene()
     train = scene.split("train")
     for exact in (False, True):  # baked gate (what render/eval use) and the exact gate
         b, a = load_model(ws, "top1", "cpu", exact), load_model(ws, "top1-pruned", "cpu", exact)

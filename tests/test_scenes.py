@@ -131,7 +131,7 @@ def test_data_bbox_replaces_the_box_the_loader_gives_and_workspaces_reload_it(ge
     """`data.bbox` (a floor past the camera-derived box: make-scene --content large) replaces the loader's box, in
     pretrain and in every later stage, which reloads the scene from the manifest; a forward-facing scene's NDC box
     cannot be replaced."""
-    from boostnerf_cli.stages.common import workspace_scene
+    from boostnerf_cli.lineage import Survey
     from boostnerf_cli.workspace import Workspace
 
     wide = [-3.0, -3.0, -0.7, 3.0, 3.0, 0.5]
@@ -141,7 +141,7 @@ def test_data_bbox_replaces_the_box_the_loader_gives_and_workspaces_reload_it(ge
     ws = Workspace(tmp_path / "ws")
     ws.update_manifest(data={"path": str(generated), "image_size": None, "holdout_every": 8, "format": "auto",
                              "bbox": wide})
-    assert torch.equal(workspace_scene(ws).bbox, scene.bbox)
+    assert torch.equal(Survey(ws).scene().bbox, scene.bbox)
     llff = make_scene(tmp_path / "llff", size=16, n_train=3, n_test=0, layout="llff")
     raises_one_line("data.bbox does not apply .* forward-facing", load_scene, llff, bbox=wide)
     # a box edited by hand in a manifest: one line, not a traceback

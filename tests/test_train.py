@@ -109,6 +109,7 @@ def test_each_model_says_when_it_is_ready_and_its_report_keeps_the_seconds(tmp_p
     import re
     import time
 
+    from boostnerf_cli.lineage import Survey
     from boostnerf_cli.recipe import load_recipe
     from boostnerf_cli.stages import pretrain as stage
     from boostnerf_cli.startup import CLOCK
@@ -128,7 +129,7 @@ def test_each_model_says_when_it_is_ready_and_its_report_keeps_the_seconds(tmp_p
     ws = Workspace(tmp_path / "ws")
     CLOCK.begin()  # as the CLI does for each command (an earlier test in this process has used the clock)
     with caplog.at_level(logging.INFO, logger="boostnerf_cli"):
-        stage.run(ws, tiny_scene, rec, "cpu", False)
+        stage.run(Survey(ws), tiny_scene, rec, "cpu", False)
     said = {m.group(1): float(m.group(2)) for m in
             (re.match(r"([\w-]+): ready in ([\d.]+) s \((?:scene|rays|models|digests) ", r.getMessage())
              for r in caplog.records) if m}
@@ -143,6 +144,7 @@ def test_skipped_steps_are_counted_warned_and_in_the_stage_report(tmp_path, tiny
                                                                    capsys):
     import json
 
+    from boostnerf_cli.lineage import Survey
     from boostnerf_cli.recipe import load_recipe
     from boostnerf_cli.stages import pretrain as stage
     from boostnerf_cli.workspace import Workspace
@@ -157,7 +159,7 @@ def test_skipped_steps_are_counted_warned_and_in_the_stage_report(tmp_path, tiny
 
     monkeypatch.setattr(FieldTask, "loss", loss)
     ws = Workspace(tmp_path / "ws")
-    stage.run(ws, tiny_scene, rec, "cpu", False)
+    stage.run(Survey(ws), tiny_scene, rec, "cpu", False)
     report = json.loads(ws.expert_report_path("dvgo-12").read_text())
     assert report["skipped_steps"] == 2 and report["iterations"] == 12
     err = capsys.readouterr().err

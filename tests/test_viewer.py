@@ -17,10 +17,10 @@ import torch
 from conftest import assert_clean_failure, cli_in_process, run_cli
 
 from boostnerf_cli.images import to_uint8
+from boostnerf_cli.lineage import Survey
 from boostnerf_cli.models import load_model
 from boostnerf_cli.render.renderer import render_view
 from boostnerf_cli.stages import view
-from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.viewpoint import Look, camera_for_view, dataset_camera, fov_of, opencv_pose, read_view
 from boostnerf_cli.workspace import Workspace
 
@@ -30,7 +30,7 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.fixture
 def viewer(mixture_ws):
     ws = Workspace(mixture_ws)
-    return view.Viewer(ws, workspace_scene(ws), view.Models(ws, "cpu"))
+    return view.Viewer(ws, Survey(ws).scene(), view.Models(ws, "cpu"))
 
 
 @pytest.fixture
@@ -122,7 +122,7 @@ def test_the_maps_are_those_render_per_expert_writes(viewer, tmp_path):
 def test_a_saved_view_renders_again_identically(mixture_ws, tmp_path, look):
     shutil.copytree(mixture_ws, tmp_path / "ws")
     ws = Workspace(tmp_path / "ws")
-    viewer = view.Viewer(ws, workspace_scene(ws), view.Models(ws, "cpu"))
+    viewer = view.Viewer(ws, Survey(ws).scene(), view.Models(ws, "cpu"))
     viewer.show(look)
     train = viewer.scene.split("train")
     pose = opencv_pose(train.poses[3])  # a browser's camera: not a dataset view's size or aspect
@@ -156,7 +156,7 @@ def test_a_workspace_without_models_shows_its_cameras(trained_ws, tmp_path, capl
     shutil.copytree(trained_ws, tmp_path / "ws", ignore=shutil.ignore_patterns("*.safetensors", "moe"))
     ws = Workspace(tmp_path / "ws")
     with caplog.at_level(logging.INFO, logger="boostnerf_cli"):
-        viewer = view.Viewer(ws, workspace_scene(ws), view.Models(ws, "cpu"))
+        viewer = view.Viewer(ws, Survey(ws).scene(), view.Models(ws, "cpu"))
     assert viewer.model is None and viewer.draw(dataset_camera(viewer.scene.split("train"), 0)) is None
     assert "has no models yet: the page shows the scene's cameras" in caplog.text
     server = view.start_server(viewer, "127.0.0.1", 0)
@@ -207,7 +207,7 @@ def test_follow_shows_a_model_in_training_from_its_checkpoint(mixture_ws, tmp_pa
     models = view.Models(ws, "cpu", follow=True)
     assert "top1 (training)" in models.labels() and models.newest() == "top1 (training)"
     assert "top1 (training)" not in view.Models(ws, "cpu").labels()
-    viewer = view.Viewer(ws, workspace_scene(ws), models)
+    viewer = view.Viewer(ws, Survey(ws).scene(), models)
     assert viewer.label == "top1 (training)" and viewer.model.field.cfg.topk == 1
     camera = dataset_camera(viewer.scene.split("test"), 0)
     first = viewer.draw(camera).image

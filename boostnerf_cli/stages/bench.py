@@ -41,7 +41,7 @@ from pathlib import Path
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import CONFIGS
-from boostnerf_cli.lineage import moved, scene_digest
+from boostnerf_cli.lineage import Survey, moved, scene_digest
 from boostnerf_cli.models import Viewing
 from boostnerf_cli.moe.router import PENALTIES
 from boostnerf_cli.recipe import Recipe, check_recipe, recipe_dict, recorded_recipe
@@ -241,7 +241,7 @@ class Bench:
             return ws
         main = self.ws("main")
         if setup.kind == "main":
-            pretrain.run(ws, self.data, setup.recipe, self.device, False)
+            pretrain.run(Survey(ws), self.data, setup.recipe, self.device, False)
         else:
             self.prepare(self.setups["main"])
             _link(main.geometry_path, ws.geometry_path)
@@ -254,7 +254,7 @@ class Bench:
                 if not ws.manifest_path.exists():
                     write_json(ws.manifest_path, {**main.manifest(), "recipe": recipe_dict(setup.recipe)})
             else:
-                pretrain.run(ws, self.data, setup.recipe, self.device, False)
+                pretrain.run(Survey(ws), self.data, setup.recipe, self.device, False)
             if setup.link_init:
                 self.build(main, self.setups["main"])
                 _link(main.model_path("init"), ws.model_path("init"))
@@ -269,7 +269,7 @@ class Bench:
             # Each row finetunes with its own top-k; the untrained mixture's only has to fit its experts.
             moe = setup.recipe.moe
             moe = dataclasses.replace(moe, topk=min(moe.topk, len(setup.recipe.pretrain.res)))
-            build_moe.build(ws, None, moe, self.device)
+            build_moe.build(Survey(ws), None, moe, self.device)
 
     def run_row(self, row: Row) -> dict:
         from boostnerf_cli.stages import evaluate, finetune
@@ -279,8 +279,8 @@ class Bench:
         if row.train is not None:
             self.build(ws, setup)
             topk = int(row.train[3:]) if row.train.startswith("top") else None
-            finetune.run(ws, row.train, topk, setup.recipe.moe, self.device, False)
-        result = evaluate.run(ws, [row.model], Viewing("test", self.views), self.device)
+            finetune.run(Survey(ws), row.train, topk, setup.recipe.moe, self.device, False)
+        result = evaluate.run(Survey(ws), [row.model], Viewing("test", self.views), self.device)
         ev = result["models"][0]
         out = {
             "name": row.name,

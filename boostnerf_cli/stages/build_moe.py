@@ -13,14 +13,14 @@ import torch
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.base import Expert
 from boostnerf_cli.fields.registry import FAMILIES, count_params
-from boostnerf_cli.lineage import Found, MixtureInitSpec, decide, stale
+from boostnerf_cli.lineage import SKIP, Found, MixtureInitSpec, Survey, decide, describe_change
 from boostnerf_cli.models import load_expert, save_mixture
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, routing_of
 from boostnerf_cli.recipe import MoERecipe
 from boostnerf_cli.render.occupancy import OccupancyGrid
-from boostnerf_cli.workspace import Workspace, read_meta, write_json
+from boostnerf_cli.workspace import read_json, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
@@ -36,9 +36,13 @@ class Member:
     step: float
 
 
-def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str) -> dict:
-    """Build moe/init from the experts `names` (default: every finished one) with the recipe's moe section."""
-    experts, outside, inputs = _experts(ws, names, rec, device)
+def build(survey: Survey, names: list[str] | None, rec: MoERecipe, device: str) -> dict:
+    """Build moe/init from the experts `names` (default: every finished one) with the recipe's moe section: survey,
+    load, assemble, decide, write. A moe/init built from the same experts with the same settings is kept as it is
+    (`decide`: SKIP); one of other settings, or made from experts retrained since, is built again (said: the models
+    finetuned from it are then stale)."""
+    ws = survey.ws
+    experts, outside, inputs = _experts(survey, names, rec, device)
     topk = rec.topk
     if topk > len(experts):  # the untrained mixture's k is used by nothing but bench's untrained rows: fit it, say so
         topk = len(experts)
@@ -58,7 +62,14 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str) -
                         step=step, expert_names=[e.name for e in experts])
     mix = Mixture([e.model for e in experts], gate, vd, occ, cfg)
     spec = MixtureInitSpec(inputs, {"mixture": asdict(cfg), "gate": gate.config_dict(), "seed": rec.seed})
+    found, wanted = survey.finished("init"), spec.signature()
+    if found is not None and found.signature is not None and decide(found, wanted).action == SKIP:
+        log("moe/init: already built from these experts with these settings, kept as it is")
+        return read_json(ws.moe_dir / "init.json", "build-moe report")
+    if found is not None:
+        _say_rebuilt(survey, found, wanted)
     save_mixture(ws.model_path("init"), mix, {"name": "init", "signature": spec.signature()})
+    survey.wrote("init")
     report = {
         "name": "init",
         "experts": cfg.expert_names,
@@ -72,17 +83,17 @@ def build(ws: Workspace, names: list[str] | None, rec: MoERecipe, device: str) -
     }
     write_json(ws.moe_dir / "init.json", report)
     ws.update_manifest(moe={"init": {"experts": cfg.expert_names, "gate": rec.gate_type, "gate_grid": gate_grid,
-                                     "inputs": inputs, "digest": read_meta(ws.model_path("init")).get("digest")}})
+                                     "inputs": inputs, "digest": survey.digest("init")}})
     _say_built(rec, cfg, gate, gate_grid, source, occ)
     return report
 
 
-def _experts(ws: Workspace, names: list[str] | None, rec: MoERecipe,
+def _experts(survey: Survey, names: list[str] | None, rec: MoERecipe,
              device: str) -> tuple[list[Member], Member | None, dict[str, str]]:
     """The mixture's experts, loaded, smallest first (by parameters, then name); the gate's source when
     moe.gate_from names one left out of the mixture; {name: digest} of both (retraining either makes moe/init stale).
     Refused: no expert, an unknown or repeated name, experts of different scenes."""
-    manifest = ws.require_manifest()
+    ws, manifest = survey.ws, survey.manifest()
     available = ws.expert_names()
     if not available:
         raise BoostNerfError(f"{ws.root} has no pretrained experts: "
@@ -104,7 +115,7 @@ def _experts(ws: Workspace, names: list[str] | None, rec: MoERecipe,
                              f"(experts: {', '.join(available)})")
     loaded, scenes, inputs = {}, set(), {}
     for n in names + extra:
-        inputs[n] = read_meta(ws.expert_path(n)).get("digest")
+        inputs[n] = survey.digest(n)
         model, occ, meta = load_expert(ws.expert_path(n), device)
         loaded[n] = Member(n, model, count_params(model), meta["step"])
         scenes.add(meta.get("scene"))
@@ -114,7 +125,7 @@ def _experts(ws: Workspace, names: list[str] | None, rec: MoERecipe,
             "`boostnerf pretrain --force`, or pass --experts with experts of one scene"
         )
     for n in names + extra:  # an expert trained on a geometry since retrained: made again first
-        decide(Found(n, None, stale(ws, n)), None).check()
+        decide(Found(n, None, survey.stale(n)), None).check()
     experts = sorted((loaded[n] for n in names), key=lambda e: (e.params, e.name))
     return experts, loaded[extra[0]] if extra else None, inputs
 
@@ -140,6 +151,15 @@ def _density_volume(rec: MoERecipe, experts: list[Member],
             + " or train the experts longer (pretrain --iters N --force), unless the scene shows nothing but "
             "empty space")
     return vd, occ, step
+
+
+def _say_rebuilt(survey: Survey, found: Found, wanted: dict) -> None:
+    """Say why moe/init is built again, and which finetuned models that leaves stale."""
+    why = found.stale[0] if found.stale else describe_change(found.signature, wanted) if found.signature else None
+    made = [n for n in survey.models if "init" in ((survey.signature(n) or {}).get("inputs") or {})]
+    log(f"moe/init: building it again ({why or 'it records no settings'})"
+        + (f"; {', '.join(made)}, finetuned from the old one, will be stale: finetune "
+           f"{'it' if len(made) == 1 else 'them'} again with --force" if made else ""))
 
 
 def _say_built(rec: MoERecipe, cfg: MixtureConfig, gate: Gate, gate_grid: str, source: Member | None,

@@ -7,18 +7,17 @@ import logging
 
 from boostnerf_cli.costs import model_costs
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.lineage import require_current
+from boostnerf_cli.lineage import Survey
 from boostnerf_cli.models import load_model, n_views
-from boostnerf_cli.stages.common import workspace_scene
-from boostnerf_cli.workspace import Workspace, write_json
+from boostnerf_cli.workspace import write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 
-def run(ws: Workspace, names: list[str] | None, split_name: str, device: str, views: int | None) -> dict:
-    scene = workspace_scene(ws)
+def run(survey: Survey, names: list[str] | None, split_name: str, device: str, views: int | None) -> dict:
+    ws, scene = survey.ws, survey.scene()
     split = scene.split(split_name)
-    names = require_current(ws, names)
+    names = survey.current(names)
     if not names:
         raise BoostNerfError(f"{ws.root} has no trained models yet: "
                              f"run `boostnerf pretrain --workspace {ws.root}` first")

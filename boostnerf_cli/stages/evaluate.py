@@ -13,13 +13,12 @@ import logging
 
 from boostnerf_cli.costs import model_costs
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.lineage import require_current
+from boostnerf_cli.lineage import Survey
 from boostnerf_cli.metrics import image_metrics, load_lpips
 from boostnerf_cli.metrics.image import LPIPS_MIN_SIZE, SSIM_WINDOW
 from boostnerf_cli.models import ALL_SKIPS, LoadedModel, Skips, Viewing, load_model, n_views, render_split
 from boostnerf_cli.scenes import Scene, Split
-from boostnerf_cli.stages.common import workspace_scene
-from boostnerf_cli.workspace import Workspace, atomic_path, number, write_json
+from boostnerf_cli.workspace import atomic_path, number, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
@@ -49,14 +48,14 @@ def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, 
     }
 
 
-def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, report: bool = False,
+def run(survey: Survey, names: list[str] | None, viewing: Viewing, device: str, report: bool = False,
         costs: bool = True) -> dict:
     """Score every model of `names` (default: all) on `viewing`'s views; `report`: write reports/eval.json and .md;
     `costs`: also ||w||_0 and GFLOPs per image."""
     split_name, views, skips, exact_gate = viewing.split, viewing.views, viewing.skips, viewing.exact_gate
-    scene = workspace_scene(ws)
+    ws, scene = survey.ws, survey.scene()
     split = scene.split(split_name)
-    names = require_current(ws, names)
+    names = survey.current(names)
     if not names:
         raise BoostNerfError(
             f"{ws.root} has no trained models yet: run `boostnerf pretrain --workspace {ws.root}` first")
@@ -90,7 +89,8 @@ def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, r
     result = {"split": split_name, "views": n_views(split, views), "skip": skips.empty and skips.terminated,
               "skips": {"empty": skips.empty, "terminated": skips.terminated},
               "lpips_note": lpips_note or None, "ssim_note": ssim_note, "models": rows,
-              "finetuned": {k: v for k, v in ws.manifest().get("moe", {}).items() if k in names and "iterations" in v}}
+              "finetuned": {k: v for k, v in survey.manifest().get("moe", {}).items()
+                            if k in names and "iterations" in v}}
     if report:
         write_json(ws.reports_dir / "eval.json", result)
         with atomic_path(ws.reports_dir / "eval.md") as tmp:

@@ -15,16 +15,16 @@ import logging
 
 from boostnerf_cli import distributed as dist
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.lineage import BaselineSpec, FinetuneSpec, decide, finished, stale
+from boostnerf_cli.lineage import BaselineSpec, FinetuneSpec, Survey, decide
 from boostnerf_cli.models import load_expert, load_mixture, mixture_routing_meta, save_expert, save_mixture
 from boostnerf_cli.moe.mixture import Mixture, MixtureConfig, Routing, check_config, routing_of
 from boostnerf_cli.moe.router import check_topk
 from boostnerf_cli.recipe import MoERecipe
 from boostnerf_cli.scenes import Scene
-from boostnerf_cli.stages.common import train_and_report, workspace_scene
+from boostnerf_cli.stages.common import train_and_report
 from boostnerf_cli.tasks import FieldTask, MixtureTask, train_rays
 from boostnerf_cli.train import Schedule, TrainCheckpoint
-from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
+from boostnerf_cli.workspace import Workspace, read_json, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
@@ -36,18 +36,10 @@ def model_name(topk: int | None, ensemble: bool, baseline: bool) -> str:
     return "ens" if ensemble else "baseline" if baseline else f"top{topk}"
 
 
-def check_inputs(ws: Workspace) -> None:
-    """Refuse a moe/init built from experts that have been retrained or removed since build-moe."""
-    if (why := stale(ws, "init")) is not None:
-        what, remedy = why
-        raise BoostNerfError(f"{what}, so moe/init is stale: rerun {remedy}")
-
-
-def _source_digest(ws: Workspace, name: str, init_meta: dict) -> str | None:
+def _source_digest(survey: Survey, name: str, init_meta: dict) -> str | None:
     """Digest of what model `name` is finetuned from: moe/init, or the largest expert for the baseline."""
     if name == "baseline":
-        largest = init_meta["mixture"]["expert_names"][-1]
-        return read_meta(ws.expert_path(largest)).get("digest")
+        return survey.digest(init_meta["mixture"]["expert_names"][-1])
     return init_meta.get("digest")
 
 
@@ -76,30 +68,31 @@ def spec(name: str, rec: MoERecipe, source: str | None, cfg: MixtureConfig | Non
     return FinetuneSpec.of(name, rec, source, routing_of(cfg))
 
 
-def _planned_signature(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, init_meta: dict) -> dict:
+def _planned_signature(survey: Survey, name: str, topk: int | None, rec: MoERecipe, init_meta: dict) -> dict:
     """The signature this run would give `name`, from moe/init's metadata alone (nothing loaded)."""
-    source = _source_digest(ws, name, init_meta)
+    source = _source_digest(survey, name, init_meta)
     if name == "baseline":
         return spec(name, rec, source, largest=init_meta["mixture"]["expert_names"][-1]).signature()
-    cfg, _ = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), init_meta))
+    cfg, _ = routing(name, topk, rec, *mixture_routing_meta(survey.ws.model_path("init"), init_meta))
     return spec(name, rec, source, cfg).signature()
 
 
 MOOT = ("moe.lam", "moe.penalty", "moe.renormalize")  # the recipe keys that some models cannot use
 
 
-def _init_meta(ws: Workspace) -> dict:
-    """moe/init's metadata, refused when it is missing or built from experts that changed since."""
-    init = ws.model_path("init")
-    if not init.exists():
+def mixture_init(survey: Survey) -> dict:
+    """moe/init's metadata, refused when it is missing or built from experts that were retrained or removed since."""
+    ws, meta = survey.ws, survey.meta("init")
+    if meta is None:
         raise BoostNerfError(f"no mixture to finetune in {ws.root}: "
                              f"run `boostnerf build-moe --workspace {ws.root}` first")
-    meta = read_meta(init)
-    check_inputs(ws)
+    if (why := survey.stale("init")) is not None:
+        what, remedy = why
+        raise BoostNerfError(f"{what}, so moe/init is stale: rerun {remedy}")
     return meta
 
 
-def unused_settings(ws: Workspace, name: str, topk: int | None, rec: MoERecipe,
+def unused_settings(survey: Survey, name: str, topk: int | None, rec: MoERecipe,
                     given: set[str]) -> tuple[list[str], str]:
     """Which of the recipe keys `given` (on the command line) cannot change model `name`, and why: the baseline has
     no gate; the ensemble's is uniform, with no auxiliary loss to weigh; at k = M every expert is used and the
@@ -107,7 +100,7 @@ def unused_settings(ws: Workspace, name: str, topk: int | None, rec: MoERecipe,
     asked = [key for key in MOOT if key in given]
     if name == "baseline":
         return asked, "the largest expert alone, no gate"
-    cfg, kind = routing(name, topk, rec, *mixture_routing_meta(ws.model_path("init"), _init_meta(ws)))
+    cfg, kind = routing(name, topk, rec, *mixture_routing_meta(survey.ws.model_path("init"), mixture_init(survey)))
     unused = [key for key in asked if name == "ens" and key != "moe.renormalize"]
     if (kind == "uniform" or cfg.topk >= len(cfg.expert_names)) and "moe.renormalize" in asked:
         unused.append("moe.renormalize")
@@ -115,20 +108,19 @@ def unused_settings(ws: Workspace, name: str, topk: int | None, rec: MoERecipe,
     return unused, why if unused else ""
 
 
-def run(ws: Workspace, name: str, topk: int | None, rec: MoERecipe, device: str, force: bool) -> dict:
-    """Finetune model `name` (skipped when finished with the same settings)."""
-    init_meta = _init_meta(ws)
-    init = ws.model_path("init")
-    if (found := finished(ws, name)) is not None and not force:  # refused when made from another moe/init or
-        decide(found, _planned_signature(ws, name, topk, rec, init_meta)).check()  # expert, or other settings
+def run(survey: Survey, name: str, topk: int | None, rec: MoERecipe, device: str, force: bool) -> dict:
+    """Finetune model `name` (skipped when finished with the same settings): survey, decide, load, train, report."""
+    ws, init = survey.ws, mixture_init(survey)
+    if (found := survey.finished(name)) is not None and not force:  # refused when made from another moe/init or
+        decide(found, _planned_signature(survey, name, topk, rec, init)).check()  # expert, or other settings
         log(f"{name}: already finetuned, skipping (use --force to redo it)")
         return read_json(ws.moe_dir / f"{name}.json", "finetune report")
-    scene = workspace_scene(ws)
-    mix, meta = load_mixture(init, device)
+    scene = survey.scene()
+    mix, _ = load_mixture(ws.model_path("init"), device)
     mix.train()
     if name == "baseline":
         return _baseline(ws, scene, mix, rec, device, force)
-    source = _source_digest(ws, name, init_meta)
+    source = _source_digest(survey, name, init)
     if name == "ens":
         mix.make_ensemble()
     cfg, kind = routing(name, topk, rec, mix.cfg, mix.gate.cfg.gate_type)

@@ -30,12 +30,10 @@ from boostnerf_cli.lineage import (
     Found,
     GeometrySpec,
     SceneSpec,
+    Survey,
     decide,
     describe_change,
-    finished,
-    moved,
     scene_digest,
-    stale,
 )
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.models import load_expert, save_expert
@@ -61,11 +59,11 @@ from boostnerf_cli.render.packing import packer_for
 from boostnerf_cli.render.renderer import COLOR_THRESHOLD, RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.scenes.bounds import box_text
-from boostnerf_cli.stages.common import slow_notice, train_and_report, workspace_scene_path
+from boostnerf_cli.stages.common import slow_notice, train_and_report
 from boostnerf_cli.startup import CLOCK
 from boostnerf_cli.tasks import FieldTask, train_rays
 from boostnerf_cli.train import Schedule, TrainCheckpoint, train
-from boostnerf_cli.workspace import Workspace, read_json, read_meta, write_json
+from boostnerf_cli.workspace import Workspace, read_json, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 warn = logging.getLogger(__name__).warning
@@ -100,12 +98,17 @@ EDGE_WARN = 0.01
 
 @dataclass(frozen=True)
 class Site:
-    """Where pretraining works: the workspace, the scene, its id (`lineage.SceneSpec.id`), the device."""
+    """Where pretraining works: what the workspace holds (its survey), the scene, its id (`lineage.SceneSpec.id`),
+    the device."""
 
-    ws: Workspace
+    survey: Survey
     scene: Scene
     tag: str
     device: str
+
+    @property
+    def ws(self) -> Workspace:
+        return self.survey.ws
 
 
 @dataclass(frozen=True)
@@ -165,6 +168,7 @@ def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every
                                                "seconds": seconds, "occupied_fraction": occ.fraction(),
                                                "coverage": rounds[-1], "rounds": rounds,
                                                "signature": geometry_spec(site, rec, seed).signature()})
+    site.survey.wrote("geometry")  # the experts on the old one are now stale
     for name in ("geometry", "geometry-refine"):
         ws.checkpoint_path(name).unlink(missing_ok=True)
     log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {box_text(box)} "
@@ -278,8 +282,7 @@ def pretrain_expert(site: Site, rec: PretrainRecipe, res: int, geometry: Geometr
     task = FieldTask(model, settings, tcfg, skip=geom, base_mask=geom, growth_steps=growth, final_voxels=final_voxels)
     rays = train_rays(scene, box, device, tcfg)
     ckpt = ws.checkpoint_path(name)
-    signature = ExpertSpec.of(rec, res, expert_options(rec, res), site.tag,
-                              read_meta(ws.geometry_path).get("digest")).signature()
+    signature = ExpertSpec.of(rec, res, expert_options(rec, res), site.tag, site.survey.digest("geometry")).signature()
     _, trained = train_and_report(task, rays, Schedule.of(rec.iters, tcfg), rec.seed + res, name,
                                   TrainCheckpoint(ckpt, signature, restart_other=force), model)
     task.refresh_occupancy()
@@ -300,6 +303,7 @@ def pretrain_expert(site: Site, rec: PretrainRecipe, res: int, geometry: Geometr
     save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step, "scene": site.tag,
                                                          "signature": signature})
     write_json(ws.expert_report_path(name), report)
+    site.survey.wrote(name)
     ckpt.unlink(missing_ok=True)
     CLOCK.begin()  # the next expert's start-up starts when this one is written
     return report
@@ -314,7 +318,7 @@ def assign(res: list[int], world: int) -> list[list[int]]:
     return [sorted(s) for s in shares]
 
 
-def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool) -> list[dict]:
+def run(survey: Survey, data: Path | None, rec: Recipe, device: str, force: bool) -> list[dict]:
     """Train every expert of the recipe that is not finished yet; -> the reports of all of them.
 
     Under torchrun, rank 0 first prepares the workspace (scene, manifest, the shared geometry) while the
@@ -323,7 +327,8 @@ def run(ws: Workspace, data: Path | None, rec: Recipe, device: str, force: bool)
     records them in the manifest. A rank's failure stops every rank with its message (docs/distributed.md).
     """
     with dist.others_quiet():  # what every rank would repeat is said once
-        site, geometry, todo = dist.main_first(lambda: _prepare(ws, data, rec, device, force))
+        site, geometry, todo = dist.main_first(lambda: _prepare(survey, data, rec, device, force))
+        ws = survey.ws
         if not rec.pretrain.skip:
             log("pretrain.skip is off (--no-skip): experts train on the whole scene box without an occupancy mask "
                 "(colour is still computed only where a sample's rendering weight exceeds train.color_threshold)")
@@ -363,21 +368,21 @@ def check_foreground(scene: Scene, data: Path) -> None:
     )
 
 
-def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str,
+def _prepare(survey: Survey, data: Path | None, rec: Recipe, device: str,
              force: bool) -> tuple[Site, Geometry, list[int]]:
     """Check the inputs, record them, load the scene and the shared geometry (trained if missing).
 
     -> (where pretraining works, the geometry, resolutions of the experts left to train).
     Under torchrun rank 0 runs this first and alone writes; the other ranks then find everything made.
     """
-    m = ws.manifest()  # read once: nothing below writes it before update_manifest
-    scene, spec, tag, digest = _scene(ws, m, data, rec, force)
-    site = Site(ws, scene, tag, device)
+    ws = survey.ws
+    scene, spec, tag, digest = _scene(survey, data, rec, force)
+    site = Site(survey, scene, tag, device)
     retrain = _geometry_changed(site, rec.pretrain, force)
     decisions = {}  # every finished expert's, before anything is written (a refusal leaves the manifest as it is)
     for res in sorted(rec.pretrain.res):
         name = expert_name(rec.pretrain.model, res)
-        if (found := finished(ws, name)) is not None:
+        if (found := survey.finished(name)) is not None:
             geometry = (found.signature or {}).get("geometry")  # the geometry stage checks its own settings
             wanted = ExpertSpec.of(rec.pretrain, res, expert_options(rec.pretrain, res), tag, geometry).signature()
             decisions[res] = decide(found, wanted, force).check()
@@ -396,7 +401,7 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str,
     if retrain:  # the experts this run does not train again were trained on the old geometry
         training = {expert_name(rec.pretrain.model, res) for res in todo}
         for name in ws.expert_names():
-            if name not in training and (why := stale(ws, name)) is not None:
+            if name not in training and (why := survey.stale(name)) is not None:
                 warn(f"{name} is stale: {why[0]}; make it again with {why[1]}")
     return site, geometry, todo
 
@@ -404,8 +409,8 @@ def _prepare(ws: Workspace, data: Path | None, rec: Recipe, device: str,
 def _geometry_changed(site: Site, rec: PretrainRecipe, force: bool) -> bool:
     """Whether the geometry is to be trained again: a finished one of other settings is refused (`decide`), with
     --force retrained (said). --force alone does not retrain it: the same settings make the same geometry."""
-    path = site.ws.geometry_path
-    found = Found("geometry", read_meta(path).get("signature")) if path.exists() else None
+    survey = site.survey
+    found = Found("geometry", survey.signature("geometry")) if survey.meta("geometry") is not None else None
     wanted = geometry_spec(site, rec.geometry, rec.seed).signature()
     decision = decide(found, wanted)
     if decision.action == REFUSE and force:
@@ -435,29 +440,20 @@ def _describe(scene: Scene) -> None:
         + (f", {scene.holdout}" if scene.holdout else ""))
 
 
-SCENE_KEYS = {"image_size": "image size", "holdout_every": "held-out views (holdout_every)", "format": "format",
-              "bbox": "box (data.bbox)", "scene": "scene kind (data.scene)"}
-
-
-def _scene(ws: Workspace, m: dict, data: Path | None, rec: Recipe, force: bool) -> tuple[Scene, SceneSpec, str, str]:
+def _scene(survey: Survey, data: Path | None, rec: Recipe, force: bool) -> tuple[Scene, SceneSpec, str, str]:
     """The scene to train on: `data`, or the workspace's own (recorded, or generated when there is none). Another
     scene than the workspace's is refused (with --force: what was trained on it is forgotten); the same images and
-    cameras at another path are the workspace's scene, moved. -> (scene, its spec, its id, its digest)."""
-    previous = m.get("data")
+    cameras at another path are the workspace's scene, moved (`Survey.scene_moved`, `Survey.scene_id`).
+    -> (scene, its spec, its id, its digest)."""
+    ws, previous = survey.ws, survey.manifest(required=False).get("data")
     if data is None and previous:  # a rerun without --data: the workspace's own scene, wherever it is
-        data = workspace_scene_path(ws, m)
+        data = survey.scene_path()
     generate = data is None and not (ws.root / "scene" / "transforms_train.json").exists()
     data = Path(ws.root / "scene" if data is None else data)
     spec = SceneSpec.of(data, rec.data, ws.root)
-    inputs = spec.record()
-    is_moved = moved(previous, inputs) and data.exists()  # not a default scene to generate: another scene
-    was = str(ws.root / previous["path"]) if previous else ""  # as given: absolute, or relative to the workspace
-    if previous and previous != inputs and not is_moved:  # before a default scene is generated: nothing written
-        changed = [k for k in inputs if k != "path" and previous.get(k) != inputs[k]]
-        what = ", ".join(f"{SCENE_KEYS.get(k, k)} {previous.get(k)!r}, now {inputs[k]!r}" for k in changed)
-        _forget_or_refuse(ws, force, f"workspace {ws.root} was made for another scene, image size or box ({was}"
-                                     + (f"; {what}" if what else "") + "): use a new --workspace, or --force to "
-                                     "retrain everything")
+    is_moved, other = survey.scene_moved(data, spec)
+    if other:  # before a default scene is generated: nothing written
+        _forget_or_refuse(survey, force, other)
     if generate:
         log(f"no --data given: generating the default procedural scene in {data}")
         make_scene(data, size=rec.data.image_size or 64, seed=rec.pretrain.seed)  # atomic: never half a scene
@@ -469,25 +465,23 @@ def _scene(ws: Workspace, m: dict, data: Path | None, rec: Recipe, force: bool) 
     if note := unused_family_note(rec.pretrain):
         log(note)
     check_foreground(scene, data)
-    digest, recorded = scene_digest(scene), m.get("scene_digest")
-    if recorded and recorded != digest:
-        _forget_or_refuse(ws, force, (f"the scene at {data} is not the one this workspace was trained on, at {was} "
-                                      "(its images or cameras differ)" if is_moved else f"the scene at {data} changed "
-                                      "since this workspace was trained on it (its images or cameras differ)")
-                          + ": restore it, use a new --workspace, or --force to retrain everything")
-    same = previous and m.get("scene_id") and (previous == inputs or is_moved) and (not recorded or recorded == digest)
-    tag = m["scene_id"] if same else spec.id()  # kept when the scene moved (same content), new with new content
-    if is_moved and same and Path(was).resolve() != data.resolve():  # not just re-recorded
+    digest = scene_digest(scene)
+    tag, changed = survey.scene_id(data, spec, digest, is_moved)
+    if changed:
+        _forget_or_refuse(survey, force, changed)
+    was = ws.root / previous["path"] if previous else None
+    if is_moved and not changed and was.resolve() != data.resolve():  # not just re-recorded
         log(f"note: the workspace's scene is now {data} (it was {was}; the same images and cameras): nothing is "
             "retrained for the move")
     return scene, spec, tag, digest
 
 
-def _forget_or_refuse(ws: Workspace, force: bool, message: str) -> None:
+def _forget_or_refuse(survey: Survey, force: bool, message: str) -> None:
     """Another scene than the workspace's: refused in one line, or with --force its experts, geometry and training
     checkpoints go."""
     if not force:
         raise BoostNerfError(message)
-    for folder in (ws.experts_dir, ws.checkpoints_dir):
+    for folder in (survey.ws.experts_dir, survey.ws.checkpoints_dir):
         for p in list(folder.glob("*")) if folder.exists() else []:
             p.unlink()
+    survey.wrote()

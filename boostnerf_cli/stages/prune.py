@@ -23,11 +23,10 @@ from torch import Tensor
 from boostnerf_cli.costs import photometric_grads
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import grid as G
-from boostnerf_cli.lineage import decide, finished, require_current
+from boostnerf_cli.lineage import Survey, decide
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.models import LoadedModel, load_model, n_views, render_split, save_pruned
 from boostnerf_cli.scenes import Scene, Split
-from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.workspace import Workspace, read_json, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
@@ -107,15 +106,18 @@ def _psnr(images: list[Tensor], split: Split) -> float:
     return sum(mse_to_psnr(float(torch.mean((im - split.images[i]) ** 2))) for i, im in enumerate(images)) / len(images)
 
 
-def run(ws: Workspace, name: str, split_name: str, device: str, views: int | None, force: bool) -> dict:
-    ws.require_manifest()
+def run(survey: Survey, name: str, split_name: str, device: str, views: int | None, force: bool) -> dict:
+    """Prune model `name` -> NAME-pruned (skipped when finished from the same model): survey, decide, load, prune,
+    check, report."""
+    ws = survey.ws
+    survey.manifest()
     if name.endswith(SUFFIX):
         raise BoostNerfError(f"{name!r} is already pruned: prune the model it came from")
-    require_current(ws, [name])  # a model made from what changed since is made again first
+    survey.current([name])  # a model made from what changed since is made again first
     out_name = name + SUFFIX
     out_path, report_path = ws.model_path(out_name), ws.moe_dir / f"{out_name}.json"
     src = ws.model_file(name)
-    if (found := finished(ws, out_name)) is not None and not force:
+    if (found := survey.finished(out_name)) is not None and not force:
         decide(found, None).check()  # its source is current (above): stale when it changed after the prune
         log(f"{out_name}: already pruned, skipping (use --force to redo it)")
         return read_json(report_path, "prune report")
@@ -123,7 +125,7 @@ def run(ws: Workspace, name: str, split_name: str, device: str, views: int | Non
     if not grid_tables(before.field):
         raise BoostNerfError(f"{name} has no grid, hash table or VM factor to prune (prune drops the rows of those "
                              "that no training view reads): nothing written")
-    scene = workspace_scene(ws)
+    scene = survey.scene()
     split = scene.split(split_name)
     t0 = time.perf_counter()
     masks = usage_masks(ws, name, scene, split, device, views, render=before)

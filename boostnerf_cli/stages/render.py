@@ -33,13 +33,12 @@ from boostnerf_cli.images import (
     write_png,
     write_video,
 )
-from boostnerf_cli.lineage import require_current, stale
+from boostnerf_cli.lineage import Survey
 from boostnerf_cli.models import LoadedModel, Skips, Viewing, load_model, n_views, render_split
 from boostnerf_cli.render.packing import Packer, packer_for
 from boostnerf_cli.render.paths import camera_path
 from boostnerf_cli.render.renderer import Camera, render_image
 from boostnerf_cli.scenes import Scene, Split
-from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.viewpoint import (
     dataset_camera,
     expert_share,
@@ -49,21 +48,22 @@ from boostnerf_cli.viewpoint import (
     read_view,
     routing_colours,
 )
-from boostnerf_cli.workspace import Workspace
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 COMPARED = ("baseline", "top1", "top2", "ens")  # the paper's comparison models, in its order
 
 
-def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, per_expert: bool = False) -> list[Path]:
+def run(survey: Survey, names: list[str] | None, viewing: Viewing, device: str,
+        per_expert: bool = False) -> list[Path]:
     """Render `viewing`'s views with every model of `names` (default: all): PNG colour and 16-bit depth; with
     `per_expert` a mixture's expert shares and gate maps too. -> the files written."""
     split_name, views, skips, exact_gate = viewing.split, viewing.views, viewing.skips, viewing.exact_gate
-    scene = workspace_scene(ws)
+    ws, scene = survey.ws, survey.scene()
     split = scene.split(split_name)
+    names = survey.current(names)
     written = []
-    for name in require_current(ws, names):
+    for name in names:
         model = load_model(ws, name, device, exact_gate)
         folder = ws.renders_dir(name, split_name)
         mine = []
@@ -86,14 +86,15 @@ def run(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str, p
 
 
 # --- a saved view ----------------------------------------------------------------------------------------------------
-def run_camera(ws: Workspace, names: list[str] | None, file: Path, device: str, skips: Skips) -> list[Path]:
+def run_camera(survey: Survey, names: list[str] | None, file: Path, device: str, skips: Skips) -> list[Path]:
     """Render a view `boostnerf view` saved (its camera, at its full size, and what it shows) with the model it names,
     or the one `--model` names -> WS/renders/MODEL/views/<file's stem>.png."""
     camera, saved_model, look = read_view(file)
     if names and len(names) != 1:
         raise BoostNerfError(f"--camera renders one model: keep one of {', '.join(names)}")
-    scene = workspace_scene(ws)
-    model = load_model(ws, require_current(ws, names or [saved_model])[0], device)
+    ws, scene = survey.ws, survey.scene()
+    name = survey.current(names or [saved_model])[0]
+    model = load_model(ws, name, device)
     image, _ = picture(model, scene, camera, look.check(model), device, skips=skips)
     target = ws.renders_dir(model.name) / "views" / f"{file.stem}.png"
     write_png(target, image)
@@ -113,15 +114,15 @@ class VideoPath:
     file: Path | None = None
 
 
-def run_video(ws: Workspace, names: list[str] | None, path: VideoPath, device: str, skips: Skips) -> list[Path]:
+def run_video(survey: Survey, names: list[str] | None, path: VideoPath, device: str, skips: Skips) -> list[Path]:
     """Render one model along a camera path derived from the training cameras -> colour and depth videos."""
     kind, n_frames, video, fps = path.kind, path.frames, path.file, path.fps
     if not names or len(names) != 1:
         fix = f"keep one of {', '.join(names)}" if names else "add --model NAME"
-        current = [n for n in ws.all_model_names() if stale(ws, n) is None]  # what it can render
-        raise BoostNerfError(f"--path renders one model: {fix} (models: {', '.join(current) or 'none yet'})")
-    scene = workspace_scene(ws)
-    model = load_model(ws, require_current(ws, names)[0], device)
+        raise BoostNerfError(f"--path renders one model: {fix} (models: {', '.join(survey.usable()) or 'none yet'})")
+    ws, scene = survey.ws, survey.scene()
+    name = survey.current(names)[0]
+    model = load_model(ws, name, device)
     target, fmt = video_target(video or ws.renders_dir(model.name) / f"{kind}.mp4")  # refused before rendering
     train = scene.split("train")
     facing = float(torch.linalg.norm(train.poses[:, :3, 2].mean(0)))  # 1: all cameras look the same way
@@ -154,16 +155,16 @@ def run_video(ws: Workspace, names: list[str] | None, path: VideoPath, device: s
 
 
 # --- side-by-side comparison ------------------------------------------------------------------------
-def compared_models(ws: Workspace, names: list[str] | None) -> list[str]:
+def compared_models(survey: Survey, names: list[str] | None) -> list[str]:
     """`names`, else the paper's comparison models the workspace has, else every model it has."""
     if names:
-        return require_current(ws, names)
-    have = ws.all_model_names()
+        return survey.current(names)
+    have = survey.models
     chosen = [n for n in COMPARED if n in have] or have
     if not chosen:
-        raise BoostNerfError(f"{ws.root} has no trained models yet: "
-                             f"run `boostnerf pretrain --workspace {ws.root}` first")
-    return require_current(ws, chosen)
+        raise BoostNerfError(f"{survey.ws.root} has no trained models yet: "
+                             f"run `boostnerf pretrain --workspace {survey.ws.root}` first")
+    return survey.current(chosen)
 
 
 def pixel_error(rgb: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -171,12 +172,12 @@ def pixel_error(rgb: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean((rgb.astype(np.float64) - gt.astype(np.float64)) ** 2, axis=-1))
 
 
-def run_compare(ws: Workspace, names: list[str] | None, viewing: Viewing, device: str) -> list[Path]:
+def run_compare(survey: Survey, names: list[str] | None, viewing: Viewing, device: str) -> list[Path]:
     """One image per view: ground truth and each model side by side, each model's error heat map below it."""
     split_name, views, skips = viewing.split, viewing.views, viewing.skips
-    scene = workspace_scene(ws)
+    ws, scene = survey.ws, survey.scene()
     split = scene.split(split_name)
-    names = compared_models(ws, names)
+    names = compared_models(survey, names)
     n = n_views(split, views)
     renders = {}
     for name in names:

@@ -28,12 +28,12 @@ import torch
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import FAMILIES, count_params
+from boostnerf_cli.lineage import Survey
 from boostnerf_cli.models import LoadedModel, load_mixture, load_model
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.paths import scene_up
 from boostnerf_cli.render.renderer import Camera
 from boostnerf_cli.scenes import Scene
-from boostnerf_cli.stages.common import workspace_scene
 from boostnerf_cli.viewpoint import (
     MIXTURE_MODES,
     MODES,
@@ -565,14 +565,14 @@ def serve(viewer: Viewer, stop: threading.Event) -> None:
             stop.wait(POLL)
 
 
-def run(ws: Workspace, device: str, host: str = "127.0.0.1", port: int = 8080, model: str | None = None,
+def run(survey: Survey, device: str, host: str = "127.0.0.1", port: int = 8080, model: str | None = None,
         follow: bool = False, size: int | None = None) -> None:
     """Serve the page until interrupted (Ctrl-C). Following training, it renders on one thread: the training keeps
     the other cores."""
     import_viser()
     if follow:
         torch.set_num_threads(1)
-    scene = workspace_scene(ws)
+    ws, scene = survey.ws, survey.scene()
     viewer = Viewer(ws, scene, Models(ws, device, follow), size, model)
     server = start_server(viewer, host, port)
     shown = "localhost" if host in ("127.0.0.1", "::1") else host
