@@ -9,9 +9,10 @@ mixture trained on capture's poses against the same recipe on known poses.
         (median rotation error, centre error as a fraction of the cameras' spread)
     python scripts/capture_bench.py mixture --scene DIR --captured OUT/capture --recipe RECIPE --out OUT
         pretrain, build-moe, finetune (baseline, Top-2), eval on the shipped poses and on capture's: held-out PSNR
-    python scripts/capture_bench.py phone --count 50 --out OUT
-        phone-sized photos (1080 x 1920 JPEG, portrait, the textured procedural scene on a walk around it) captured
-        with the defaults: the seconds from photos to a scene folder, and the poses against the rendered ones
+    python scripts/capture_bench.py phone --count 50 [--density 3] --out OUT
+        phone-sized photos (1080 x 1920 JPEG, portrait, the textured procedural scene on a walk around it; --density:
+        its dots that many times as dense, for as many keypoints as a real photo gives) captured with the defaults:
+        the seconds from photos to a scene folder, and the poses against the rendered ones
     python scripts/capture_bench.py video --out OUT
         a video of a walk around the textured procedural scene (300 frames, 30 per second, 360 x 640, two frames of
         every three blurred as a hand-held phone blurs them) captured with the defaults: seconds per phase, how many
@@ -102,15 +103,16 @@ def poses(args) -> None:
                                "capture": report, **errors}, load)
 
 
-def _phone_photos(out: Path, count: int, width: int, height: int) -> dict[str, np.ndarray]:
-    """`count` JPEG photos of `width` x `height` of the textured procedural scene on an orbit (one ray per pixel),
-    written once to out/images; -> the camera-to-world pose each was rendered with, by file stem."""
+def _phone_photos(out: Path, count: int, width: int, height: int, density: float = 1.0) -> dict[str, np.ndarray]:
+    """`count` JPEG photos of `width` x `height` of the textured procedural scene on an orbit (one ray per pixel; its
+    dots `density` times as many along each axis: more keypoints per photo, as a real scene gives), written once to
+    out/images; -> the camera-to-world pose each was rendered with, by file stem."""
     import imageio.v3 as iio
     import torch
 
     from boostnerf_cli.scenes import procedural as proc
 
-    objects = proc.scene_objects(0, "textured")
+    objects = [{**o, "scales": [v * density for v in o["scales"]]} for o in proc.scene_objects(0, "textured")]
     train, _ = proc.orbit_poses(count, 0)
     focal = 0.5 * width / math.tan(0.5 * proc.CAMERA_ANGLE_X)
     k = torch.tensor([focal, focal, width / 2, height / 2])
@@ -132,17 +134,19 @@ def phone(args) -> None:
     from boostnerf_cli.scenes import load_scene
     from boostnerf_cli.scenes.alignment import pose_errors, scene_poses
 
-    src = args.out / f"phone-{args.count}"
-    reference = _phone_photos(src, args.count, args.width, args.height)
+    tag = f"{args.count}" + (f"-dots{args.density:g}" if args.density != 1 else "")
+    src = args.out / f"phone-{tag}"
+    reference = _phone_photos(src, args.count, args.width, args.height, args.density)
     load = os.getloadavg()
-    cap = args.out / f"phone-capture-{args.count}"
+    cap = args.out / f"phone-capture-{tag}"
     t = time.perf_counter()
     cli("capture", "--images", str(src / "images"), "--out", str(cap), "--force")
     wall = time.perf_counter() - t
     report = json.loads((cap / "capture.json").read_text())
     errors = pose_errors(scene_poses(load_scene(cap, holdout_every=0)), reference)
-    record(args.out, f"phone-{args.count}", {"images": args.count, "width": args.width, "height": args.height,
-                                             "wall_seconds": round(wall, 1), "capture": report, **errors}, load)
+    record(args.out, f"phone-{tag}", {"images": args.count, "width": args.width, "height": args.height,
+                                      "density": args.density, "keypoints_per_photo": report["keypoints"] // args.count,
+                                      "wall_seconds": round(wall, 1), "capture": report, **errors}, load)
 
 
 def _walk_poses(count: int) -> np.ndarray:
@@ -281,6 +285,7 @@ def main() -> None:
     f.add_argument("--count", type=int, default=50)
     f.add_argument("--width", type=int, default=1080)
     f.add_argument("--height", type=int, default=1920)
+    f.add_argument("--density", type=float, default=1.0, help="the dots this many times as dense along each axis")
     f.add_argument("--out", type=Path, required=True)
     v = sub.add_parser("video")
     v.add_argument("--count", type=int, default=300)
