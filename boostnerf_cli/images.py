@@ -22,9 +22,16 @@ def to_uint8(img: torch.Tensor | np.ndarray) -> np.ndarray:
     return (np.clip(a, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
-def depth_to_uint16(depth: torch.Tensor, far: float) -> np.ndarray:
-    """Depth in world units -> 16-bit PNG values, 65535 = `far` (documented in docs/stages.md)."""
-    return (depth.clamp(0, far) / far * 65535.0 + 0.5).numpy().astype(np.uint16)
+def depth_to_uint16(depth: torch.Tensor, far: float, radius: float | None = None) -> np.ndarray:
+    """Depth in world units -> 16-bit PNG values (docs/reports.md): 65535 = `far`. With `radius` (an unbounded scene:
+    its far bound is a thousand radii of the sphere it keeps linear, which would leave the subject black and coarse)
+    the depth contracted as the scene is: u = t / (2 radius) up to the radius, 1 - radius / (2 t) past it, so 32768 is
+    one radius away and 65535 infinitely far; t = 2 radius u, or radius / (2 (1 - u)) past one half."""
+    if radius is None:
+        return (depth.clamp(0, far) / far * 65535.0 + 0.5).numpy().astype(np.uint16)
+    t = depth.double().clamp_min(0)
+    u = torch.where(t <= radius, t / (2 * radius), 1 - radius / (2 * t.clamp_min(radius)))
+    return (u * 65535.0 + 0.5).numpy().astype(np.uint16)
 
 
 def write_png(path: Path, array: np.ndarray) -> None:

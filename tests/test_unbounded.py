@@ -8,6 +8,8 @@ import json
 import math
 from pathlib import Path
 
+import imageio.v3 as iio
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -15,7 +17,6 @@ from conftest import run_cli
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.contraction import Contraction, contraction_around
-from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.render.renderer import RenderSettings, sample_rays
 from boostnerf_cli.render.volrend import distortion
 from boostnerf_cli.scenes import load_scene, make_scene
@@ -39,6 +40,20 @@ def test_contraction_keeps_the_sphere_squashes_the_rest_and_inverts():
     assert torch.allclose(box, torch.stack([centre - 4, centre + 4]))
     with pytest.raises(ValueError):
         Contraction((0, 0, 0), 0.0, 1.0)
+
+
+def test_depth_pngs_of_unbounded_scenes_are_contracted_and_read_back():
+    """An unbounded scene's depth PNG holds the depth contracted as the scene is (32768 one radius off, 65535 infinitely
+    far), which reads back to world units; a bounded scene's stays depth / far."""
+    from boostnerf_cli.images import depth_to_uint16
+
+    r = 1.5
+    t = torch.tensor([0.0, 0.3, r, 2 * r, 10 * r, 100 * r])
+    u = depth_to_uint16(t, 1000 * r, r).astype(np.float64) / 65535
+    assert list(np.round(u[[0, 2, 3]] * 65535)) == [0, 32768, 49151] and u[-1] > 0.99
+    back = np.where(u <= 0.5, 2 * r * u, r / (2 * (1 - u)))
+    assert np.allclose(back[1:5], t[1:5].numpy(), rtol=2e-3), back
+    assert list(depth_to_uint16(torch.tensor([0.0, 2.0, 9.0]), 4.0)) == [0, 32768, 65535]
 
 
 def test_samples_run_linear_inside_then_in_disparity_to_the_far_bound_and_stay_in_the_box():
@@ -163,6 +178,14 @@ def test_on_the_unbounded_capture_contraction_beats_the_box_and_top2_beats_its_b
             ["models"]}
     print(f"held-out PSNR on the contracted scene: baseline {rows['baseline']:.2f}, top2 {rows['top2']:.2f}")
     assert rows["top2"] > rows["baseline"], rows
+    # the depth PNG, contracted: the subject in the middle of the view reads back as its distance from the ring of
+    # cameras (2.6 from the up axis), not as black (65535 = the far bound, a thousand radii off)
+    cli("render", "--workspace", ws, "--model", "top2", "--views", "1")
+    depth = iio.imread(next((tmp_path / "unbounded" / "renders" / "top2" / "test").glob("*_depth.png"))) / 65535.0
+    radius = json.loads((tmp_path / "unbounded" / "manifest.json").read_text())["scene"]["contraction"]["radius"]
+    u = float(depth[depth.shape[0] // 2, depth.shape[1] // 2])
+    t = 2 * radius * u if u <= 0.5 else radius / (2 * (1 - u))
+    assert 0.25 < u < 0.9 and 1.0 < t < 4.0, (u, t, radius)
 
 
 def test_the_scene_cache_keeps_the_contraction_and_the_kind_is_part_of_its_key(unbounded_scene, tmp_path):

@@ -62,6 +62,7 @@ def run(survey: Survey, names: list[str] | None, viewing: Viewing, device: str,
     ws, scene = survey.ws, survey.scene()
     split = scene.split(split_name)
     names = survey.current(names)
+    radius = scene.contraction.radius if scene.contraction is not None else None  # depth PNGs: contracted (unbounded)
     written = []
     for name in names:
         model = load_model(ws, name, device, exact_gate)
@@ -70,7 +71,7 @@ def run(survey: Survey, names: list[str] | None, viewing: Viewing, device: str,
         for i, r in enumerate(render_split(model, scene, split, device, skips, views)):
             stem = split.stems[i]
             write_png(folder / f"{stem}.png", to_uint8(r["rgb"]))
-            write_png(folder / f"{stem}_depth.png", depth_to_uint16(r["depth"], scene.far))
+            write_png(folder / f"{stem}_depth.png", depth_to_uint16(r["depth"], scene.far, radius))
             mine.append(folder / f"{stem}.png")
         n_drawn = len(mine)
         extra = []
