@@ -17,6 +17,11 @@ mixture trained on capture's poses against the same recipe on known poses.
         a video of a walk around the textured procedural scene (300 frames, 30 per second, 360 x 640, two frames of
         every three blurred as a hand-held phone blurs them) captured with the defaults: seconds per phase, how many
         of the frames kept are sharp ones, and their poses against the rendered ones
+    python scripts/capture_bench.py unbounded --out OUT
+        photos from inside a world (make-scene --rig unbounded --content textured: the objects speckled with dots on a
+        checkered ground under a banded sky, cameras on a ring) captured, then the unbounded CPU recipe with
+        data.format and data.scene left to auto on capture's scene and on the rendered cameras: the kind chosen,
+        the poses, held-out PSNR of the baseline and Top-2
     python scripts/capture_bench.py matching --captured OUT/capture-50 --out OUT
         exhaustive against retrieval matching on one capture's features (seconds, verified pairs)
 
@@ -228,6 +233,41 @@ def _chain(scene: Path, recipe: Path, ws: Path) -> dict:
     return json.loads((ws / "reports" / "eval.json").read_text())
 
 
+def unbounded(args) -> None:
+    """A capture of an unbounded world, photos to a mixture, with the scene's kind left to `auto`."""
+    import yaml
+
+    sys.path.insert(0, str(ROOT))
+    from boostnerf_cli.scenes import load_scene
+    from boostnerf_cli.scenes.alignment import pose_errors, scene_poses
+
+    load = os.getloadavg()
+    src, cap = args.out / "unbounded-scene", args.out / "unbounded-capture"
+    if not src.exists():
+        cli("make-scene", str(src), "--format", "nerfstudio", "--rig", "unbounded", "--content", "textured", "--size",
+            str(args.size), "--train-views", str(args.count), "--test-views", "0")
+    t = time.perf_counter()
+    if not cap.exists():
+        cli("capture", "--images", str(src / "images"), "--out", str(cap))
+    wall = time.perf_counter() - t
+    estimated, rendered = (scene_poses(load_scene(f, holdout_every=0)) for f in (cap, src))
+    errors = pose_errors(estimated, {Path(name).name: pose for name, pose in rendered.items()})  # images/frame_00001
+    rec = yaml.safe_load((ROOT / "recipes" / "unbounded-dvgo-cpu.yaml").read_text())
+    rec["data"] = {k: v for k, v in rec["data"].items() if k not in ("format", "scene")}  # both left to auto
+    recipe = args.out / "unbounded-auto.yaml"
+    recipe.write_text(yaml.safe_dump(rec))
+    results = {}
+    for name, scene in (("rendered", src), ("captured", cap)):
+        ws = args.out / f"ws-unbounded-{name}"
+        report = _chain(scene, recipe, ws)
+        described = json.loads((ws / "manifest.json").read_text())["scene"]
+        kind = "unbounded" if described.get("contraction") else "forward" if described.get("ndc") else "bounded"
+        results[name] = {"kind": kind, "psnr": {m["name"]: m.get("psnr") for m in report.get("models", [])}}
+    record(args.out, "unbounded", {"photos": args.count, "size": args.size, "capture_seconds": round(wall, 1),
+                                   "capture": json.loads((cap / "capture.json").read_text()), **errors,
+                                   "chains": results}, load)
+
+
 def mixture(args) -> None:
     load = os.getloadavg()
     results = {}
@@ -293,12 +333,16 @@ def main() -> None:
     v.add_argument("--width", type=int, default=360)
     v.add_argument("--height", type=int, default=640)
     v.add_argument("--out", type=Path, required=True)
+    u = sub.add_parser("unbounded")
+    u.add_argument("--count", type=int, default=48)
+    u.add_argument("--size", type=int, default=384)
+    u.add_argument("--out", type=Path, required=True)
     k = sub.add_parser("matching")
     k.add_argument("--captured", type=Path, required=True)
     k.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     {"timing": timing, "poses": poses, "mixture": mixture, "matching": matching,
-     "phone": phone, "video": video}[args.what](args)
+     "phone": phone, "video": video, "unbounded": unbounded}[args.what](args)
 
 
 if __name__ == "__main__":
