@@ -582,7 +582,8 @@ def view(
 @app.command()
 def capture(
     out: Annotated[Path, typer.Option("--out", help="Scene folder to write (a COLMAP model and its images).")],
-    images: Annotated[Optional[Path], typer.Option("--images", help="Folder of photos (.jpg, .png) of one size.")] = None,
+    images: Annotated[Optional[Path], typer.Option(
+        "--images", help="Folder of photos (.jpg, .png) of one size.")] = None,
     video: Annotated[Optional[Path], typer.Option("--video", help="A video file (read with ffmpeg).")] = None,
     frames: Annotated[int, typer.Option("--frames", min=3, help="A video's frames to keep: evenly spaced, each the "
                                         "sharpest of its stretch.")] = 100,
@@ -591,7 +592,8 @@ def capture(
     per_image_cameras: Annotated[bool, typer.Option(
         "--per-image-cameras", help="One camera per image (photos from several cameras or zoom levels); default: "
         "one shared camera.")] = False,
-    force: Annotated[bool, typer.Option("--force", help="Redo every phase, even those a previous run finished.")] = False,
+    force: Annotated[bool, typer.Option(
+        "--force", help="Redo every phase, even those a previous run finished.")] = False,
 ) -> None:
     """Photos or a video in, a COLMAP scene folder out that pretrain --data reads (structure from motion by pycolmap:
     SIFT at 1024 px, matching that fits the input, incremental mapping; docs/capture.md)."""

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Does the mixture help on unbounded scenes? The procedural unbounded capture, each family's M = 3 chain.
 
-    python scripts/unbounded_results.py OUT [FAMILY ...] [--record] [--reuse]   (families: dvgo tensorf ngp; default all)
+    python scripts/unbounded_results.py OUT [FAMILY ...] [--record] [--reuse]  (families: dvgo tensorf ngp; default all)
 
 1. `boostnerf make-scene OUT/scene --format nerfstudio --rig unbounded --size 48 --train-views 28`: the procedural
    objects on a ground that runs far past any box, under a banded sky dome, seen by a ring of cameras inside it
@@ -97,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("out", type=Path)
     ap.add_argument("families", nargs="*", default=list(FAMILIES))
     ap.add_argument("--record", action="store_true", help="write the reports and the picture under docs/")
-    ap.add_argument("--reuse", action="store_true", help="take a finished workspace's report without rerunning its chain")
+    ap.add_argument("--reuse", action="store_true",
+                    help="take a finished workspace's report without rerunning its chain")
     args = ap.parse_args(argv)
     out: Path = args.out
     scene = out / "scene"

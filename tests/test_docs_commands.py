@@ -194,8 +194,8 @@ def test_chain_skips_finished_models_redoes_the_reports_and_stops_at_the_first_f
     finetunes = [line for line in ran.splitlines() if line.startswith("boostnerf finetune")]
     assert [("--no-renormalize" in line) for line in finetunes] == [False, True, False, False], finetunes
     # a report of one model over one view, then a rerun: nothing is trained again (build-moe keeps moe/init, made
-    # with the same settings, so every mixture is current), and the reports cover every model and view again (the chain kept any
-    # report newer than the models, this one too)
+    # with the same settings, so every mixture is current), and the reports cover every model and view again (the chain
+    # kept any report newer than the models, this one too)
     ws = cwd / "ws"
     init, first = (ws / "moe" / "init.safetensors").read_bytes(), json.loads((ws / "reports" / "eval.json").read_text())
     subprocess.run(["boostnerf", "eval", "-w", str(ws), "--model", "top2", "--views", "1", "--report", "--no-costs",

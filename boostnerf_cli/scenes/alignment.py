@@ -41,8 +41,9 @@ def pose_errors(estimated: dict[str, np.ndarray], reference: dict[str, np.ndarra
     centre_err = np.linalg.norm(centres - ref[:, :3, 3], axis=1) / spread
     rel = np.einsum("nji,njk->nik", rot @ est[:, :3, :3], ref[:, :3, :3])  # (R est)^T ref per camera
     angle = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
-    return {"cameras": len(names), "median_rotation_deg": float(np.median(angle)), "max_rotation_deg": float(angle.max()),
-            "median_centre_error": float(np.median(centre_err)), "max_centre_error": float(centre_err.max())}
+    return {"cameras": len(names), "median_rotation_deg": float(np.median(angle)),
+            "max_rotation_deg": float(angle.max()), "median_centre_error": float(np.median(centre_err)),
+            "max_centre_error": float(centre_err.max())}
 
 
 def compare_scenes(estimated: Scene, reference: Scene) -> dict:

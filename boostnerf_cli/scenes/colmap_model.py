@@ -229,7 +229,7 @@ def read_model(folder: Path) -> Model:
             ids, xyz, rgb, error, tracks = _points_txt(folder / "points3D.txt")
     except (ValueError, IndexError, struct.error) as err:
         raise BoostNerfError(f"cannot parse the COLMAP model in {folder} ({err}): export it again") from None
-    for iid, image in images.items():
+    for image in images.values():
         if image.camera_id not in cameras:
             raise BoostNerfError(f"{folder}: image {image.name} names camera {image.camera_id}, which is not in "
                                  f"cameras.{ext}: export the model again")
@@ -278,8 +278,8 @@ def _write_txt(model: Model, folder: Path) -> None:
     lines += [f"{cid} {c.model} {c.width} {c.height} " + " ".join(repr(float(v)) for v in c.params)
               for cid, c in model.cameras.items()]
     (folder / "cameras.txt").write_text("\n".join(lines) + "\n")
-    lines = ["# Image list with two lines of data per image:", "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
-             "#   POINTS2D[] as (X, Y, POINT3D_ID)"]
+    lines = ["# Image list with two lines of data per image:",
+             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "#   POINTS2D[] as (X, Y, POINT3D_ID)"]
     for iid, im in model.images.items():
         lines.append(f"{iid} " + " ".join(repr(float(v)) for v in (*im.qvec, *im.tvec)) + f" {im.camera_id} {im.name}")
         lines.append(" ".join(f"{x!r} {y!r} {int(i)}" for (x, y), i in zip(im.xys.tolist(), im.point_ids)))

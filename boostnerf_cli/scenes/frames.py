@@ -303,8 +303,9 @@ FOCAL_KEYS = (("fl_x", "camera_angle_x"), ("fl_y", "camera_angle_y"))  # two way
 
 
 def frame_camera(frame: dict, meta: dict) -> dict:
-    """A frame's camera values (`CAMERA_KEYS`, and the lens's `LENS_KEYS`): its own where it sets them (not null), else the file's. A frame that
-    gives an axis's focal length either way (`FOCAL_KEYS`) takes none of the file's for that axis."""
+    """A frame's camera values (`CAMERA_KEYS`, and the lens's `LENS_KEYS`): its own where it sets them (not null),
+    else the file's. A frame that gives an axis's focal length either way (`FOCAL_KEYS`) takes none of the file's for
+    that axis."""
     camera = {k: frame[k] if frame.get(k) is not None else meta.get(k) for k in (*CAMERA_KEYS, *LENS_KEYS)}
     for keys in FOCAL_KEYS:
         if any(frame.get(k) is not None for k in keys):

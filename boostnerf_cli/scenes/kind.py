@@ -108,8 +108,8 @@ def refusal(kind: str, scene: Scene, folder, bbox_given: bool) -> str:
 def contracted(scene: Scene) -> Scene:
     """`scene` with its space contracted (render/contraction.py): the sphere kept linear from its sparse points
     (a capture that has them: `scene.points`, as a COLMAP model gives them) or else its training cameras
-    (`sphere_from_cameras`); the box that of the contracted world, far the contraction's far bound; the linear stretch reaches through the sphere from every
-    camera, test views too."""
+    (`sphere_from_cameras`); the box that of the contracted world, far the contraction's far bound; the linear
+    stretch reaches through the sphere from every camera, test views too."""
     poses = scene.splits["train"].poses
     if scene.points is not None and len(scene.points.xyz) >= 8:
         centre, radius = sphere_from_points(scene.points.xyz)

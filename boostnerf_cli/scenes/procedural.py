@@ -487,8 +487,8 @@ content where x < 0. A floor disc with a checkerboard (cell {DETAIL_CELL}) on it
 gradient on the other; on the detailed half a rotated box with a 3-D checkerboard (cell {DETAIL_CELL}) and a sphere
 with stripes (period {2 * DETAIL_CELL:g}), on the smooth half a sphere and a box with smooth gradients; Lambertian
 shading under a fixed directional light, no shadows.""",
-    "textured": """Content (content 'textured', inside about [-1, 1]^2 x [-0.5, 0.3]): the floor disc, two spheres and two
-boxes of the default content, every surface speckled with round dots of three sizes in a light and a dark colour:
+    "textured": """Content (content 'textured', inside about [-1, 1]^2 x [-0.5, 0.3]): the floor disc, two spheres and
+two boxes of the default content, every surface speckled with round dots of three sizes in a light and a dark colour:
 texture that SIFT finds and matches, for structure from motion; Lambertian shading under a fixed directional light,
 no shadows.""",
 }
@@ -654,7 +654,7 @@ def _colmap_points(objects: list[dict], poses: np.ndarray, k: Tensor, size: int,
             continue
         t_all = torch.stack([h[0] for h in hits])
         nearest, t = t_all.argmin(0), t_all.min(0).values
-        for kk, (obj, (tk, n, pk)) in enumerate(zip(objects, hits)):
+        for kk, (obj, (_, n, pk)) in enumerate(zip(objects, hits)):
             m = (nearest == kk) & torch.isfinite(t)
             xyz.append((o + t[:, None] * d)[m])
             rgb.append(shade(obj, n[m], pk[m]))
