@@ -260,6 +260,10 @@ def _extract(pycolmap, work: Path, names: list[str], options: CaptureOptions) ->
     db.unlink(missing_ok=True)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = options.feature_size
+    # one image at a time: the database numbers images as their features are written, and with two threads that
+    # order (so the mapper's first pair, so every pose) changed from run to run; fern's photos captured twice were
+    # 0.16 deg apart
+    extraction.num_threads = 1
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = options.camera_model
     mode = pycolmap.CameraMode.PER_IMAGE if options.per_image_cameras else pycolmap.CameraMode.SINGLE
@@ -290,15 +294,33 @@ def _match(pycolmap, work: Path, names: list[str], kind: str, seed: int) -> int:
     bar = _bar(f"matching ({kind})", len(todo))
     chunk = 200
     pairing = pycolmap.ImportedPairingOptions()
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = seed  # unseeded (-1), each pair's RANSAC drew other samples at every run
     for start in range(0, len(todo), chunk):
         listing = work / "pairs.txt"
         listing.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in todo[start:start + chunk]))
         pairing.match_list_path = str(listing)
-        pycolmap.match_image_pairs(db, pairing_options=pairing)
+        pycolmap.match_image_pairs(db, pairing_options=pairing, verification_options=verification)
         bar.update(min(start + chunk, len(todo)), {"pairs": min(start + chunk, len(todo))})
     bar.close()
     with pycolmap.Database.open(db) as d:
         return int(d.num_verified_image_pairs())
+
+
+def _adjust_all(pycolmap, model) -> None:
+    """One bundle adjustment of every camera, point and lens coefficient of `model`, as pycolmap.bundle_adjustment
+    does it (the same numbers, to the last bit, on fern) but without its controller, which turns COLMAP's log back on
+    (minloglevel 0) and prints its heading and timer among the bars."""
+    pycolmap.ObservationManager(model).filter_observations_with_negative_depth()
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in model.reg_image_ids():
+        config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_extra_params = True
+    options.print_summary = False
+    pycolmap.create_default_bundle_adjuster(options, config, model).solve()
+    model.update_point_3d_errors()
 
 
 def _map(pycolmap, work: Path, given: int, seed: int) -> dict:
@@ -325,10 +347,7 @@ def _map(pycolmap, work: Path, given: int, seed: int) -> dict:
     best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
     n = 0 if best is None else best.num_reg_images()
     check_registered(n, given, len(models))
-    final = pycolmap.BundleAdjustmentOptions()
-    final.refine_extra_params = True
-    final.print_summary = False
-    pycolmap.bundle_adjustment(best, final)
+    _adjust_all(pycolmap, best)
     target = work / "sparse" / "0"
     shutil.rmtree(work / "sparse", ignore_errors=True)
     target.mkdir(parents=True)
