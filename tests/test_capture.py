@@ -198,17 +198,6 @@ def test_too_few_registered_photos_say_how_many_and_what_to_do():
         check_registered(0, 12, 0)
 
 
-def test_a_lens_whose_focal_lengths_differ_is_said_with_the_remedy():
-    """fx and fy found more than 1% apart (OPENCV on fern's small copies: 416.1 and 422.7) are said, with the camera
-    model that fitted better; square pixels are not."""
-    from boostnerf_cli.stages.capture import lens_note
-
-    note = lens_note({"focal_aspect": 0.0158, "camera_models": ["OPENCV"]})
-    assert note is not None and "1.6% apart" in note and "--camera-model SIMPLE_RADIAL --force" in note
-    assert lens_note({"focal_aspect": 0.002, "camera_models": ["OPENCV"]}) is None
-    assert lens_note({"camera_models": ["SIMPLE_RADIAL"]}) is None  # a report written before it was measured
-
-
 def test_a_video_gives_evenly_spaced_sharp_frames(tmp_path):
     """Frames in windows of equal length, the sharpest of each: a blurred copy next to every sharp frame is never
     chosen, and where in the video each one kept is (its second) is said; a video with no frames is refused in one

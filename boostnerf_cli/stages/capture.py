@@ -37,14 +37,12 @@ from boostnerf_cli.train import Progress
 from boostnerf_cli.workspace import read_json, write_json
 
 log = logging.getLogger(__name__).info
-warn = logging.getLogger(__name__).warning
 
 EXHAUSTIVE_MAX = 30  # photos matched exhaustively up to this many (docs/capture.md: retrieval is faster past it)
 RETRIEVAL_NEIGHBOURS = 20  # past it, each photo is matched with this many most similar ones
 SEQUENTIAL_OVERLAP = 10  # a video frame is matched with this many next frames
 LOOP_NEIGHBOURS = 5  # and with this many most similar frames farther away (loop closure)
 VOCABULARY_WORDS = 256
-FOCAL_ASPECT_WARN = 0.01  # fx and fy found this far apart (a phone's pixels are square): said, with the remedy
 VIDEO_FRAMES = 100  # a 30-60 s phone video: one frame every 0.3-0.6 s
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE")
 PHASES = ("images", "features", "matching", "mapping", "downscale")
@@ -403,17 +401,6 @@ def _inputs(images: Path | None, video: Path | None) -> dict:
             "modified": source.stat().st_mtime_ns if source.exists() else None}
 
 
-def lens_note(report: dict) -> str | None:
-    """What to say of a lens found with focal lengths `FOCAL_ASPECT_WARN` or more apart in x and y (a capture's
-    report), or None."""
-    if report.get("focal_aspect", 0) <= FOCAL_ASPECT_WARN:
-        return None
-    return (f"the lens found has focal lengths {100 * report['focal_aspect']:.1f}% apart in x and y "
-            f"({', '.join(report['camera_models'])}); a phone's pixels are square, so its extra coefficients may have "
-            "fitted noise (on fern's 504 x 378 photos OPENCV did, and trained 0.4 dB below SIMPLE_RADIAL): if the "
-            "scene trains poorly, capture again with --camera-model SIMPLE_RADIAL --force")
-
-
 def _work_folder(out: Path) -> Path:
     return out.parent / f".{out.name}.capture"
 
@@ -442,8 +429,6 @@ def run(images: Path | None, video: Path | None, out: Path, options: CaptureOpti
     facts = _phases(pycolmap, state, inputs, images, video, options)
     report = {"inputs": inputs, "options": asdict(options), **facts,
               "seconds": {p: round(state.state[p]["seconds"], 2) for p in PHASES}}
-    if (note := lens_note(report)) is not None:
-        warn(note)
     write_json(work / "capture.json", report)
     if out.exists():  # --force over a finished capture: the new one replaces it whole
         shutil.rmtree(out)
