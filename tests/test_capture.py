@@ -119,6 +119,37 @@ def test_a_forward_facing_colmap_capture_is_sampled_in_ndc(tmp_path):
     assert (bounds[:, 0] >= 1 / 0.75 - 1e-6).all() and (bounds[:, 1] > bounds[:, 0]).all()
 
 
+def test_a_point_only_two_photos_see_does_not_set_a_forward_views_near_bound(tmp_path):
+    """A two-view point far in front of the content (as a capture of fern's 504 x 378 photos held: it put the
+    nearest view's near bound at 0.66 of the median, LLFF's own at 0.93) leaves the depth bounds, and so the scale,
+    the poses and the NDC box, as they were: bounds come from the points three or more photos see."""
+    folder = make_scene(tmp_path / "f", size=32, n_train=10, n_test=2, layout="colmap", rig="forward")
+    clean = load_scene(folder)
+    model = read_model(folder / "sparse" / "0")
+    assert min(len(t) for t in model.tracks) >= 3
+    (a, first), (b, second) = list(model.images.items())[:2]
+    centre = first.world_from_camera()[:3, 3]
+    nearest = min(float(np.linalg.norm(x - centre)) for x in model.xyz)
+    outlier = centre + 0.2 * nearest * first.world_from_camera()[:3, 2]  # on the first camera's axis, 5x nearer
+    pid = int(model.point_ids.max()) + 1
+    track = []
+    for iid, image in ((a, first), (b, second)):
+        track.append((iid, len(image.xys)))
+        image.xys = np.concatenate([image.xys, [[16.0, 16.0]]])
+        image.point_ids = np.concatenate([image.point_ids, [pid]])
+    model.xyz = np.concatenate([model.xyz, [outlier]])
+    model.rgb = np.concatenate([model.rgb, [[0, 0, 0]]]).astype(np.uint8)
+    model.error = np.concatenate([model.error, [0.5]])
+    model.point_ids = np.concatenate([model.point_ids, [pid]])
+    model.tracks = [*model.tracks, np.array(track, dtype=np.int64)]
+    write_model(model, folder / "sparse" / "0", "bin")
+    again = load_scene(folder)
+    assert len(again.points.xyz) == len(clean.points.xyz) + 1
+    assert np.allclose(again.extra["bounds"], clean.extra["bounds"])
+    assert torch.allclose(again.splits["train"].poses, clean.splits["train"].poses)
+    assert torch.equal(again.bbox, clean.bbox)
+
+
 def test_an_unsupported_colmap_camera_model_is_one_line(colmap_scene, tmp_path, monkeypatch, capsys):
     folder = shutil.copytree(colmap_scene, tmp_path / "fov")
     model = read_model(folder / "sparse" / "0")
