@@ -317,6 +317,7 @@ def _adjust_all(pycolmap, model) -> None:
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_extra_params = True
     options.print_summary = False
+    options.ceres.solver_options.num_threads = 1  # with two, sums in another order: 1e-15 apart from run to run
     pycolmap.create_default_bundle_adjuster(options, config, model).solve()
     model.update_point_3d_errors()
 
@@ -325,6 +326,8 @@ def _map(pycolmap, work: Path, given: int, seed: int) -> dict:
     """Incremental mapping; the largest model written to work/sparse/0; -> its facts."""
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
+    options.num_threads = 1  # with two, the mapper's draws came from worker threads whose random state the matching
+    # left behind: the same database mapped after matching placed fern's cameras differently from run to run
     # the lens's coefficients are held (at 0) while the cameras are placed, and refined in one bundle adjustment at
     # the end: refined from the first pair on, OPENCV's four overfit two views (k1 = 2.7 on a procedural capture of
     # 24 photos) and no third photo registered; held, all 24 did
