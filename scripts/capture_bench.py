@@ -7,8 +7,9 @@ mixture trained on capture's poses against the same recipe on known poses.
     python scripts/capture_bench.py poses --scene DIR --out OUT
         capture DIR's photos (an LLFF scene: images_N/ and poses_bounds.npy) and compare with its shipped poses
         (median rotation error, centre error as a fraction of the cameras' spread)
-    python scripts/capture_bench.py mixture --scene DIR --captured OUT/capture --recipe RECIPE --out OUT
-        pretrain, build-moe, finetune (baseline, Top-2), eval on the shipped poses and on capture's: held-out PSNR
+    python scripts/capture_bench.py mixture --scene DIR --captured CAPTURE [CAPTURE ...] --recipe RECIPE --out OUT
+        pretrain, build-moe, finetune (baseline, Top-2), eval on the shipped poses and on each capture's (e.g. one
+        per --camera-model): held-out PSNR and GFLOPs, and each capture's poses against the shipped ones
     python scripts/capture_bench.py phone --count 50 [--density 3] --out OUT
         phone-sized photos (1080 x 1920 JPEG, portrait, the textured procedural scene on a walk around it; --density:
         its dots that many times as dense, for as many keypoints as a real photo gives) captured with the defaults:
@@ -45,9 +46,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def cli(*args: str) -> str:
-    """Run the boostnerf CLI of this checkout; -> its stdout (raises with its stderr on failure)."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+def cli(*args: str, threads: int | None = None) -> str:
+    """Run the boostnerf CLI of this checkout (with `threads`: that many torch threads); -> its stdout (raises with
+    its stderr on failure)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), **({} if threads is None else {"OMP_NUM_THREADS": str(threads)})}
     proc = subprocess.run([sys.executable, "-m", "boostnerf_cli", *args], capture_output=True, text=True, env=env)
     if proc.returncode:
         raise SystemExit(f"boostnerf {' '.join(args)} failed:\n{proc.stderr[-2000:]}")
@@ -225,11 +227,12 @@ def video(args) -> None:
                                "wall_seconds": round(wall, 1), "capture": report, **errors}, load)
 
 
-def _chain(scene: Path, recipe: Path, ws: Path) -> dict:
+def _chain(scene: Path, recipe: Path, ws: Path, threads: int | None = None) -> dict:
+    """pretrain, build-moe, baseline, Top-2 and eval on the test split (finished stages are skipped) -> eval.json."""
     for step in (("pretrain", "--data", str(scene)), ("build-moe",), ("finetune", "--baseline"),
                  ("finetune", "--topk", "2")):
-        cli(*step, "--workspace", str(ws), "--recipe", str(recipe), "--device", "cpu")
-    cli("eval", "--workspace", str(ws), "--split", "test", "--report", "--device", "cpu")
+        cli(*step, "--workspace", str(ws), "--recipe", str(recipe), "--device", "cpu", threads=threads)
+    cli("eval", "--workspace", str(ws), "--split", "test", "--report", "--device", "cpu", threads=threads)
     return json.loads((ws / "reports" / "eval.json").read_text())
 
 
@@ -269,13 +272,35 @@ def unbounded(args) -> None:
 
 
 def mixture(args) -> None:
+    """The chain on the shipped poses and on each capture's, two chains at a time with one thread each (the
+    machine's two cores); the captures' poses against the shipped ones beside their scores."""
+    sys.path.insert(0, str(ROOT))
+    from concurrent.futures import ThreadPoolExecutor
+
+    from boostnerf_cli.scenes import load_scene
+    from boostnerf_cli.scenes.alignment import compare_scenes
+
     load = os.getloadavg()
+    scenes = {"shipped": args.scene, **{f"captured:{c.name}": c for c in args.captured}}
+    threads = 1 if args.parallel > 1 else None
+
+    def chain(name: str) -> dict:
+        return _chain(scenes[name], args.recipe, args.out / f"ws-{name.replace(':', '-')}", threads=threads)
+
+    with ThreadPoolExecutor(max_workers=args.parallel) as pool:
+        reports = dict(zip(scenes, pool.map(chain, scenes)))
+    shipped = load_scene(args.scene, holdout_every=0)
     results = {}
-    for name, scene in (("shipped", args.scene), ("captured", args.captured)):
-        ws = args.out / f"ws-{name}"
-        report = _chain(scene, args.recipe, ws)
-        results[name] = {m["name"]: m.get("psnr") for m in report.get("models", [])}
-    record(args.out, "mixture", {"recipe": str(args.recipe), "held_out_psnr": results}, load)
+    for name, report in reports.items():
+        models = {m["name"]: {k: m.get(k) for k in ("psnr", "ssim", "w0", "gflops_per_image")} for m in
+                  report.get("models", [])}
+        results[name] = {"models": models}
+        if name != "shipped":
+            results[name]["poses"] = compare_scenes(load_scene(scenes[name], holdout_every=0), shipped)
+            report = json.loads((scenes[name] / "capture.json").read_text())
+            results[name]["capture"] = {k: report.get(k) for k in ("camera_models", "focal_aspect", "registered",
+                                                                   "mean_reprojection_error")}
+    record(args.out, "mixture", {"recipe": str(args.recipe), "scene": args.scene.name, "results": results}, load)
 
 
 def matching(args) -> None:
@@ -318,7 +343,8 @@ def main() -> None:
     p.add_argument("--force", action="store_true")
     m = sub.add_parser("mixture")
     m.add_argument("--scene", type=Path, required=True)
-    m.add_argument("--captured", type=Path, required=True)
+    m.add_argument("--captured", type=Path, nargs="+", required=True, help="one or more capture folders")
+    m.add_argument("--parallel", type=int, default=2, help="chains run at once, one thread each (1: one at a time)")
     m.add_argument("--recipe", type=Path, required=True)
     m.add_argument("--out", type=Path, required=True)
     f = sub.add_parser("phone")
