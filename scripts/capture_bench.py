@@ -297,8 +297,8 @@ def mixture(args) -> None:
         results[name] = {"models": models}
         if name != "shipped":
             results[name]["poses"] = compare_scenes(load_scene(scenes[name], holdout_every=0), shipped)
-            report = json.loads((scenes[name] / "capture.json").read_text())
-            results[name]["capture"] = {k: report.get(k) for k in ("camera_models", "focal_aspect", "registered",
+            facts = json.loads((scenes[name] / "capture.json").read_text())
+            results[name]["capture"] = {k: facts.get(k) for k in ("camera_models", "focal_aspect", "registered",
                                                                    "mean_reprojection_error")}
     record(args.out, "mixture", {"recipe": str(args.recipe), "scene": args.scene.name, "results": results}, load)
 

@@ -198,10 +198,10 @@ def load_colmap(
     poses = np.stack([f.pose for f in frames])
     seen = _seen(model, ids)
     xyz = torch.tensor(model.xyz, dtype=torch.float64)
-    tracked = torch.tensor([len(t) for t in model.tracks], dtype=torch.long) >= BOUND_TRACK
     forward = forward_facing(poses) and len(model.xyz) > 0
     extra: dict = {"images_folder": sub.name, "model": sub_model.relative_to(folder).as_posix()}
     if forward:
+        tracked = torch.tensor([len(t) for t in model.tracks], dtype=torch.long) >= BOUND_TRACK
         sure = [s[tracked[s]] if bool(tracked[s].any()) else s for s in seen]
         bounds = point_near_far(xyz, torch.tensor(poses), sure, (0.1, 99.9)).numpy()
         if np.isnan(bounds).any():

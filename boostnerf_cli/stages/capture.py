@@ -306,9 +306,10 @@ def _match(pycolmap, work: Path, names: list[str], kind: str, seed: int) -> int:
 
 
 def _adjust_all(pycolmap, model) -> None:
-    """One bundle adjustment of every camera, point and lens coefficient of `model`, as pycolmap.bundle_adjustment
-    does it (the same numbers, to the last bit, on fern) but without its controller, which turns COLMAP's log back on
-    (minloglevel 0) and prints its heading and timer among the bars."""
+    """One bundle adjustment of every camera, point and lens coefficient of `model`, in the steps
+    pycolmap.bundle_adjustment takes (on fern, with the same threads, the same numbers to the last bit) but without
+    its controller, which turns COLMAP's log back on (minloglevel 0) and prints its heading and timer among the
+    bars."""
     pycolmap.ObservationManager(model).filter_observations_with_negative_depth()
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in model.reg_image_ids():
