@@ -223,8 +223,9 @@ def make_scene_cmd(
     layout: Annotated[str, typer.Option(
         "--format", help="Layout: blender, nsvf, tanks, llff, nerfstudio or colmap.")] = "blender",
     rig: Annotated[str | None, typer.Option(
-        "--rig", help="Cameras: sphere, forward, orbit (a walk around the scene) or unbounded (a ring inside a world "
-        "of ground and sky; --format nerfstudio) (default: forward for llff, else sphere).")] = None,
+        "--rig", help="Cameras: sphere, forward, orbit (a walk around the scene), unbounded (a ring inside a world "
+        "of ground and sky), half-orbit or quarter-orbit (a phone walk part way round an object on a table in a "
+        "room); the last three --format nerfstudio only (default: forward for llff, else sphere).")] = None,
     content: Annotated[str, typer.Option("--content", help=(
         "objects, thin (rods and a cable 1-2 px wide), large (a floor past the box), empty, or detail (fine "
         "patterns on one half, smooth content on the other: the quickstart's scene), or textured (dots SIFT "

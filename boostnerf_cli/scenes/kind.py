@@ -3,14 +3,15 @@
 - forward: a forward-facing capture (LLFF), sampled in normalized device coordinates (`Scene.ndc`);
 - bounded: the subject inside one box (`Scene.bbox`): images with alpha, a layout that gives the box (Blender, NSVF,
   Tanks and Temples), a box given with data.bbox, or views that show a plain background around the subject;
-- unbounded: an opaque capture whose cameras surround its subject, with its background (walls, trees, sky) all
-  around: space is contracted into one ball (render/contraction.py, `Scene.contraction`), whose box the grids
-  cover, so every family, the coarse geometry, the occupancy grid, V_D, the gate and the dispatch see contracted
-  points through the renderer and nothing else.
+- unbounded: an opaque capture whose views show scenery at their edges (walls, a table, trees, sky): space is
+  contracted into one ball (render/contraction.py, `Scene.contraction`), whose box the grids cover, so every family,
+  the coarse geometry, the occupancy grid, V_D, the gate and the dispatch see contracted points through the renderer
+  and nothing else.
 
-`auto` decides in that order; it never moves a scene that loaded as forward or bounded before kinds existed: an
-LLFF capture stays forward, and a scene is unbounded only when it has no alpha, no layout box, no data.bbox, no
-plain background at its views' edges, and cameras all around the point they face.
+`auto`, in one sentence: an LLFF capture is forward; a scene whose end is marked (a layout's box or alpha, data.bbox,
+alpha in its images, or a plain background at its views' edges) is bounded; any other scene of two cameras or more is
+unbounded, whether its cameras stand all around their subject or on one side of it (a phone's half or quarter orbit),
+since something opaque lies past every box its cameras give, and a box draws it on its faces.
 """
 
 from __future__ import annotations
@@ -82,10 +83,27 @@ def auto_kind(scene: Scene, bbox_given: bool) -> tuple[str, str]:
     share = edge_background_share(scene)
     if share >= PLAIN_EDGE:
         return "bounded", f"{100 * share:.0f}% of the views' edge pixels show the plain background colour"
-    around, why = surround(scene.splits["train"].poses)
-    if around:
-        return "unbounded", f"opaque views with no plain background at their edges, {why}"
-    return "bounded", f"opaque views, but {why}"
+    poses = scene.splits["train"].poses
+    if len(poses) < 2:
+        return "bounded", "one training camera: no sphere around the cameras can be chosen"
+    return "unbounded", f"opaque views with scenery at their edges, {surround(poses)[1]}"
+
+
+def opaque_all_round(scene: Scene) -> bool:
+    """The views are opaque and show scenery at their edges (no alpha, no plain background there): what lies past a
+    bounded scene's box is more scenery, not a cut subject."""
+    return scene.ndc is None and not marks_background(scene) and edge_background_share(scene) < PLAIN_EDGE
+
+
+def past_the_box_remedy(scene: Scene) -> str:
+    """What to do when many foreground rays of a bounded scene end on its box's faces or miss it (one clause, the
+    likelier remedy first): contract the world for views with scenery all round, else a box that holds the subject."""
+    unbounded = ("set recipe key data.scene: unbounded, which contracts the world around the cameras "
+                 "(docs/datasets.md, \"Scene kinds\")")
+    bbox = "give recipe key data.bbox a box that holds the subject (docs/datasets.md, \"The scene box\")"
+    if opaque_all_round(scene) and not scene.extra.get("bbox"):
+        return f"the views show scenery past the box: {unbounded}; if only the subject is cut, {bbox}"
+    return f"if that is the subject, {bbox}; if it is scenery (a room, a landscape), {unbounded}"
 
 
 def refusal(kind: str, scene: Scene, folder, bbox_given: bool) -> str:

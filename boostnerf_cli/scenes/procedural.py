@@ -184,6 +184,25 @@ def environment() -> list[dict]:
 # ----------------------------------------------------------------------------- geometry
 
 
+# The half-orbit rig's world (a phone walk around an object on a table): the content on a table in a closed room
+ROOM_HALF = [4.5, 4.5, 1.75]  # the room's half extents: walls 4.5 from the table's middle, floor a table's height down
+ROOM_CENTRE = [0.0, 0.0, FLOOR_Z - 1.0 + ROOM_HALF[2]]  # its floor 1.0 below the table top, its ceiling 2.5 above it
+TABLE_HALF = [1.3, 0.9, 0.5]  # a table under the content's floor disc, its top just below the disc, down to the floor
+ARC_RADIUS = 2.8  # the half-orbit rig's cameras stand this far from the object's middle (0, 0, FLOOR_Z + 0.25)
+ARCS = {"half-orbit": 180.0, "quarter-orbit": 90.0}  # the rigs on an arc and the degrees their cameras span
+
+
+def room() -> list[dict]:
+    """The half-orbit rigs' background: a table under the content and a closed room around it (floor, four walls,
+    ceiling), every surface speckled with dots of three sizes that SIFT can match, and lit as the content is."""
+    return [
+        {"kind": "box", "centre": [0.0, 0.0, FLOOR_Z - 0.005 - TABLE_HALF[2]], "half": TABLE_HALF, "angle": 0.0,
+         "texture": "dots", "scales": [3.0, 6.0, 12.0], "colours": [[0.72, 0.55, 0.38], [0.25, 0.16, 0.1]]},
+        {"kind": "room", "centre": ROOM_CENTRE, "half": ROOM_HALF, "texture": "dots", "scales": [0.9, 1.8, 3.6],
+         "colours": [[0.85, 0.82, 0.74], [0.2, 0.24, 0.3]]},
+    ]
+
+
 def _rot_z(angle: float) -> Tensor:
     c, s = math.cos(angle), math.sin(angle)
     return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -212,6 +231,14 @@ def intersect(obj: dict, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         t = torch.where((disc >= 0) & (t > 0), t, inf)
         p = o + t.clamp_max(1e9)[:, None] * d
         return t, (c - p) / obj["radius"], p
+    if obj["kind"] == "room":  # the inside of an axis-aligned box (the half-orbit rigs' room): where rays leave it
+        half = torch.tensor(obj["half"], dtype=torch.float64)
+        dd = torch.where(d == 0, torch.full_like(d, 1e-30), d)
+        t_axes = (torch.where(dd > 0, half, -half) - (o - c)) / dd
+        t, axis = t_axes.min(dim=-1)
+        t = torch.where(((o - c).abs() < half).all(-1) & (t > 0), t, inf)
+        normal = -torch.nn.functional.one_hot(axis, 3).double() * torch.sign(dd).gather(1, axis[:, None])
+        return t, normal, o + t.clamp_max(1e9)[:, None] * d
     if obj["kind"] == "disc":
         dz = torch.where(d[:, 2] == 0, torch.full_like(d[:, 2], 1e-30), d[:, 2])
         t = (c[2] - o[:, 2]) / dz
@@ -398,6 +425,24 @@ def ring_poses(n_train: int, n_test: int, radius: float = RING_RADIUS) -> tuple[
     return _split_test(np.stack(poses), n_test)
 
 
+def arc_poses(n_train: int, n_test: int, degrees: float, radius: float = ARC_RADIUS) -> tuple[np.ndarray, np.ndarray]:
+    """A phone walk part way around an object on a table (the half- and quarter-orbit rigs): n_train + n_test cameras
+    evenly over `degrees` of azimuth centred on -y, `radius` from the object's middle (0, 0, FLOOR_Z + 0.25), at
+    elevations alternating 10 and 25 deg (table height and a little above), each looking at that middle.
+    -> train (n_train, 4, 4), test (n_test, 4, 4)."""
+    n = n_train + n_test
+    target = np.array([0.0, 0.0, FLOOR_Z + 0.25])
+    azimuths = -0.5 * math.pi + math.radians(degrees) * (np.arange(n) / max(1, n - 1) - 0.5)
+    poses = []
+    for i, az in enumerate(azimuths):
+        el = math.radians(25 if i % 2 else 10)
+        way = radius * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        pose = look_at(way)
+        pose[:3, 3] = target + way
+        poses.append(pose)
+    return _split_test(np.stack(poses), n_test)
+
+
 # ----------------------------------------------------------------------------- writing
 
 LAYOUTS = ("blender", "nsvf", "tanks", "llff", "nerfstudio", "colmap")
@@ -406,7 +451,8 @@ LAYOUTS = ("blender", "nsvf", "tanks", "llff", "nerfstudio", "colmap")
 LENSES = {"pinhole": ({}, False), "opencv": ({"k1": -0.3, "k2": 0.1, "p1": 0.003, "p2": -0.002}, False),
           "fisheye": ({"k1": 0.08, "k2": -0.03, "k3": 0.01, "k4": -0.002}, True)}
 LENS_LAYOUTS = ("nerfstudio", "colmap")
-RIGS = ("sphere", "forward", "orbit", "unbounded")
+RIGS = ("sphere", "forward", "orbit", "unbounded", *ARCS)
+OPAQUE_RIGS = ("unbounded", *ARCS)  # rigs inside a world of their own: every pixel shows a surface
 CONTENT_BOX = [[-1.1, -1.1, -0.6], [1.1, 1.1, 0.4]]  # holds every object of every seed (within 0.002 in x, y)
 # bbox.txt's room around CONTENT_BOX: more than a coarse cell of the demo recipe's 16^3 geometry grid (0.17), as
 # docs/datasets.md asks of a given box. With none, the floor lay 0.1 above the bottom face, within a cell, and 4-5%
@@ -502,6 +548,9 @@ RIG_TEXT = {
     "unbounded": f"a ring at distance {RING_RADIUS} around the content (elevations 8 and 20 deg), inside its world: a "
                  f"checkered ground and a banded, glowing sky dome, both of radius {WORLD_RADIUS}; every pixel "
                  "is opaque (an unbounded capture: its background is content).",
+    **{rig: f"{degrees:g} deg of a walk around the content at distance {ARC_RADIUS} (elevations 10 and 25 deg), "
+            f"as a phone capture of an object on a table: the content stands on a table in a closed room whose "
+            f"floor, walls and ceiling are speckled with dots; every pixel is opaque." for rig, degrees in ARCS.items()},
 }
 
 
@@ -731,8 +780,8 @@ def _checked_arguments(size: int, n_train: int, n_test: int, seed: int, layout: 
     if lens != "pinhole" and layout not in LENS_LAYOUTS:
         raise BoostNerfError(f"the {layout} layout records no lens distortion: use --lens with "
                              f"{' or '.join(LENS_LAYOUTS)}")
-    if rig == "unbounded" and layout != "nerfstudio":
-        raise BoostNerfError(f"--rig unbounded writes an opaque capture in the nerfstudio layout, not {layout}: "
+    if rig in OPAQUE_RIGS and layout != "nerfstudio":
+        raise BoostNerfError(f"--rig {rig} writes an opaque capture in the nerfstudio layout, not {layout}: "
                              "add --format nerfstudio")
     return rig
 
@@ -742,8 +791,9 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
                lens: str = "pinhole") -> Path:
     """Render the seeded procedural scene into `out_dir` in `layout` (one of `LAYOUTS`) and return `out_dir`.
 
-    rig: "sphere" (cameras on the upper hemisphere), "forward" (forward-facing) or "unbounded" (nerfstudio layout
-    only: `ring_poses` inside the content's `environment`, opaque images); default forward for llff, sphere
+    rig: "sphere" (cameras on the upper hemisphere), "forward" (forward-facing), "unbounded" (nerfstudio layout
+    only: `ring_poses` inside the content's `environment`, opaque images), or "half-orbit" / "quarter-orbit"
+    (nerfstudio layout only: `arc_poses` around the content on a table in a `room`, opaque images); default forward for llff, sphere
     otherwise. Every layout gets the same views for the same arguments and the same number of
     test views written (`written_test_views`: LLFF and nerfstudio may write another number than asked, and
     then every camera moves along the spiral, which spans train and test views). Blender:
@@ -760,6 +810,8 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
     objects = scene_objects(seed, content)  # checks `content`, before anything is written
     if rig == "unbounded":
         objects = objects + environment()
+    elif rig in ARCS:
+        objects = objects + room()
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise BoostNerfError(f"{out_dir} is a file: make-scene writes a scene folder; choose a new folder")
@@ -767,9 +819,13 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         raise BoostNerfError(f"{out_dir} already holds files: make-scene writes into a new or empty folder (another "
                              "scene's files would mix with this one's); choose a new folder or delete this one")
     n_test = written_test_views(layout, n_train, n_test)  # the views of a Blender scene with that many test views
-    train, test = {"forward": forward_poses, "orbit": orbit_poses, "sphere": camera_poses,
-                   "unbounded": ring_poses}[rig](n_train, n_test)
-    focal = 0.5 * size / math.tan(0.5 * (RING_ANGLE_X if rig == "unbounded" else CAMERA_ANGLE_X))
+    if rig in ARCS:
+        train, test = arc_poses(n_train, n_test, ARCS[rig])
+    else:
+        train, test = {"forward": forward_poses, "orbit": orbit_poses, "sphere": camera_poses,
+                       "unbounded": ring_poses}[rig](n_train, n_test)
+    angle = RING_ANGLE_X if rig in OPAQUE_RIGS else CAMERA_ANGLE_X
+    focal = 0.5 * size / math.tan(0.5 * angle)
     k = torch.tensor(lens_row(focal, focal, size / 2, size / 2, *LENSES[lens]))
     views = {}
     with _single_thread():
@@ -793,10 +849,10 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         elif layout == "colmap":
             _write_colmap(tmp, views, k, size, lens, objects)
         else:
-            _write_nerfstudio(tmp, views, focal, size, lens, opaque=rig == "unbounded")
+            _write_nerfstudio(tmp, views, focal, size, lens, opaque=rig in OPAQUE_RIGS)
         (tmp / "objects.json").write_text(json.dumps({"seed": seed, "content": content, "objects": objects}, indent=2))
         text = README.format(seed=seed, ss=SUPERSAMPLE, n_train=n_train, n_test=n_test, size=size,
-                             angle=RING_ANGLE_X if rig == "unbounded" else CAMERA_ANGLE_X,
+                             angle=angle,
                              rig_text=RIG_TEXT[rig].format(radius=RADIUS),
                              layout_text=LAYOUT_TEXT[layout] + (f" Lens: {lens}, {LENSES[lens][0]}."
                                                                 if lens != "pinhole" else ""),

@@ -59,6 +59,7 @@ from boostnerf_cli.render.packing import packer_for
 from boostnerf_cli.render.renderer import COLOR_THRESHOLD, RenderSettings, render_view
 from boostnerf_cli.scenes import Scene, Split, load_scene, make_scene
 from boostnerf_cli.scenes.bounds import box_text
+from boostnerf_cli.scenes.kind import past_the_box_remedy
 from boostnerf_cli.stages.common import slow_notice, train_and_report
 from boostnerf_cli.startup import CLOCK
 from boostnerf_cli.tasks import FieldTask, train_rays
@@ -149,13 +150,11 @@ def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every
         warn(f"geometry: {cover['edge_rays']} of {cover['foreground_rays']} foreground training rays "
             f"({100 * cover['edge_rays'] / cover['foreground_rays']:.1f}%) find their surface on the faces of the "
             f"scene box {box_text(bbox)}: the scene reaches past it, and what lies "
-            "beyond is drawn on its faces; if that is content, give recipe key data.bbox a box that holds it "
-            "(docs/datasets.md, \"The scene box\")")
+            f"beyond is drawn on its faces; {past_the_box_remedy(site.scene)}")
     if cover is not None and cover["missed_after"] > EDGE_WARN * cover["foreground_rays"]:  # a refined box: those too
         warn(f"geometry: {cover['missed_after']} of {cover['foreground_rays']} foreground training rays "
             f"({100 * cover['missed_after'] / cover['foreground_rays']:.1f}%) miss the scene box {box_text(bbox)} "
-            "altogether: what they show lies outside it and cannot be learned; if that is content, give recipe key "
-            "data.bbox a box that holds it (docs/datasets.md, \"The scene box\")")
+            f"altogether: what they show lies outside it and cannot be learned; {past_the_box_remedy(site.scene)}")
     rounds = [cover]
     shrink = float((box[1] - box[0]).prod() / (bbox[1] - bbox[0]).prod())
     if rec.refine and cover is not None and shrink < 0.5:  # cells at least 1.26x finer: worth a second round
