@@ -259,16 +259,30 @@ def n_views(split: Split, views: int | None) -> int:
 
 
 def render_split(model: LoadedModel, scene: Scene, split: Split, device: str, skips: Skips = ALL_SKIPS,
-                 views: int | None = None) -> Iterator[dict]:
-    """Render the first `views` views of a split (all by default), one at a time -> outputs with timings.
+                 views: int | None = None, warm: bool = False) -> Iterator[dict]:
+    """Render the first `views` views of a split (all by default), one at a time -> outputs with timings
+    (`seconds`; with `warm`, after a first, untimed render of view 0, whose time is each output's `warmup_seconds`).
     A generator: a caller that writes or scores each view as it comes holds one view in memory, not the split
     (200 Blender test views at 800 px held 2.6 GB per model)."""
     settings, skip = model.render_setup(scene, skips)
     packer = packer_for(device)  # one for the split: each image reuses the budgets the ones before it sized
     CLOCK.ready(model.name)
+    warmup = None
+    if warm and n_views(split, views):  # the first image pays once: budgets sized, kernels compiled, caches filled
+        t0 = time.perf_counter()
+        render_view(model.field, split, 0, settings, skip, device, packer)
+        warmup = _synced(device) - t0
     for i in range(n_views(split, views)):
         t0 = time.perf_counter()
         r = render_view(model.field, split, i, settings, skip, device, packer)
-        r["seconds"] = time.perf_counter() - t0
+        r["seconds"] = _synced(device) - t0
+        r["warmup_seconds"] = warmup
         yield r
+
+
+def _synced(device: str) -> float:
+    """The time once the device has finished what was queued (a GPU's images are timed to their last kernel)."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+    return time.perf_counter()
 

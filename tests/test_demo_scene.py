@@ -45,7 +45,7 @@ def test_the_eval_table_gives_each_models_gflops_over_the_baselines_and_says_wha
 
     def row(name, kind, psnr, gflops):
         return {"name": name, "kind": kind, "psnr": psnr, "ssim": 0.9, "lpips": None, "params": 10, "w0": 5,
-                "gflops_per_image": gflops, "seconds_per_image": 0.1}
+                "gflops_per_image": gflops, "seconds_per_image": gflops / 4}
 
     result = {"split": "test", "views": 8, "skips": {"empty": True, "terminated": True}, "lpips_note": None,
               "ssim_note": None,
@@ -55,15 +55,15 @@ def test_the_eval_table_gives_each_models_gflops_over_the_baselines_and_says_wha
                             "top1": {"from": "init", "iterations": 200},
                             "top2": {"from": "init", "iterations": 200}}}
     table = markdown_table(result)
-    assert "| GFLOPs/image | GFLOPs vs baseline |" in table
-    assert "| baseline | 28.000 |" in table and "| 0.200 | 1.00x |" in table
-    assert "| 0.100 | 0.50x |" in table and "| 0.300 | 1.50x |" in table
+    assert "| GFLOPs/image | GFLOPs vs baseline | s/image | s vs baseline |" in table
+    assert "| baseline | 28.000 |" in table and "| 0.200 | 1.00x | 0.050 | 1.00x |" in table
+    assert "| 0.100 | 0.50x | 0.025 | 0.50x |" in table and "| 0.300 | 1.50x | 0.075 | 1.50x |" in table
     assert ("`baseline` is the largest expert, dvgo-32, trained alone for the same 200 finetuning steps as top1, "
             "top2") in table
     result["finetuned"]["top2"]["iterations"] = 100
     assert "for 200 finetuning steps (top1: 200, top2: 100)" in markdown_table(result)
     no_baseline = {**result, "models": result["models"][:1], "finetuned": {}}
-    assert "How to read it" not in markdown_table(no_baseline) and "| 0.250 | - |" in markdown_table(no_baseline)
+    assert "How to read it" not in markdown_table(no_baseline) and "| 0.250 | - | 0.062 | - |" in markdown_table(no_baseline)
 
 
 def test_the_eval_table_says_why_a_top1_below_its_baseline_is_below_it():

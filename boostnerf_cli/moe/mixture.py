@@ -48,6 +48,7 @@ from boostnerf_cli.moe.router import (
 )
 from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.packing import DYNAMIC, Packer
+from boostnerf_cli.render.timing import part
 from boostnerf_cli.render.volrend import render_weights
 
 MIX_MODES = ("density", "alpha")
@@ -234,6 +235,10 @@ class Mixture(nn.Module):
         the renormalised top-k weights are the softmax of the k chosen logits alone (1 for k = 1), and
         the choice is the top-k of the logits; the probabilities are then returned as None.
         """
+        with part("routing"):
+            return self._route(xyz, need_probs)
+
+    def _route(self, xyz: Tensor, need_probs: bool) -> tuple[Tensor | None, Tensor, Tensor]:
         flops.add("routing", 4 * self.m * xyz.shape[0])
         if self.gate.cfg.gate_type == "uniform":  # the ensemble: every expert, equal weights
             probs = self.gate.probs(xyz)
@@ -336,7 +341,8 @@ class MixtureSkip:
         if mix.occupancy is not None:
             keep = packer.keep_where(mix.occupancy, flat, keep)
         inside = packer.pack("vd", keep)
-        sigma = mix.vd_density(flat[inside.rows])
+        with part("V_D"):
+            sigma = mix.vd_density(flat[inside.rows])
         opaque = inside.keep(-torch.expm1(-sigma * mix.cfg.step) > mix.cfg.density_threshold)
         keep = inside.scatter(opaque, fill=False).reshape(valid.shape)
         if mix.cfg.vd_filter != "visible" or threshold <= 0:

@@ -14,6 +14,7 @@ from torch import Tensor
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.limits import MAX_LOSS_WEIGHT, OneOfOrNumbers, Range, comma_numbers
 from boostnerf_cli.render.packing import DYNAMIC, Packer
+from boostnerf_cli.render.timing import part
 
 PENALTIES = ("geometric", "linear", "quadratic", "none")
 # moe.penalty: a named scheme, or explicit weights "w_0, w_1, ..." (`penalty_weights`)
@@ -159,14 +160,16 @@ def dispatch(
     """
     vals, idx, m = routes
     n = idx.shape[0]
-    out = like.new_zeros(n, out_dim)
-    for e in range(m):
-        hit = idx == e
-        chosen = hit.any(-1) if live is None else hit.any(-1) & live
-        rows = packer.pack(f"{name}{e}", chosen)
-        if not packer.static and len(rows) == 0:
-            continue
-        w = torch.where(hit, vals, vals.new_zeros(())).sum(-1)[rows.rows]
-        y = run(e, rows.rows).reshape(len(rows), out_dim)
-        out = rows.add(out, y * w[:, None])
+    with part("dispatch"):
+        out = like.new_zeros(n, out_dim)
+        for e in range(m):
+            hit = idx == e
+            chosen = hit.any(-1) if live is None else hit.any(-1) & live
+            rows = packer.pack(f"{name}{e}", chosen)
+            if not packer.static and len(rows) == 0:
+                continue
+            w = torch.where(hit, vals, vals.new_zeros(())).sum(-1)[rows.rows]
+            with part(f"expert {e}"):
+                y = run(e, rows.rows).reshape(len(rows), out_dim)
+            out = rows.add(out, y * w[:, None])
     return out

@@ -25,6 +25,7 @@ from boostnerf_cli.fields.base import Field
 from boostnerf_cli.render.contraction import Contraction
 from boostnerf_cli.render.packing import DYNAMIC, Packer, packer_for
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
+from boostnerf_cli.render.timing import part
 from boostnerf_cli.render.volrend import composite, render_weights
 
 # A sample whose rendering weight is at most this skips its colour (the two-pass renderer's second pass; DVGO's
@@ -129,35 +130,42 @@ def render_rays(
     """Render a batch of rays (R, 3), (R, 3) through `field`; differentiable w.r.t. the field. `packer`: how the
     kept samples are listed (render/packing.py); with a static one nothing here waits for the device, and
     `packer.overflowed()` says afterwards whether the result misses samples."""
-    t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter, fit=not packer.static)
+    with part("sampling"):
+        t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter, fit=not packer.static)
     r, s = t.shape
     # a per-batch view shares the density pass's work with the colour pass, and is told which slots are pads
     view = field.batch_view(packer) if hasattr(field, "batch_view") else None
     thr = settings.color_threshold
-    keep = kept_samples(skip, xyz, valid, step, thr, packer)
-    dens = packer.pack("density", keep.reshape(-1))
-    pts = xyz.reshape(-1, 3)[dens.rows]
+    with part("skipping"):
+        keep = kept_samples(skip, xyz, valid, step, thr, packer)
+        dens = packer.pack("density", keep.reshape(-1))
+        pts = xyz.reshape(-1, 3)[dens.rows]
     sigma = torch.zeros(r, s, device=origins.device, dtype=origins.dtype)
     if len(dens):  # none kept (dynamic packing): the rays see only the background, cut off from the field
-        sigma = view.density(pts, dens.live) if view is not None else field.density(pts)
-        sigma = dens.scatter(sigma.to(origins.dtype)).reshape(r, s)  # float32 under autocast too
-    contracted = settings.contraction is not None
-    deltas = Contraction.deltas(xyz) if contracted else torch.full_like(sigma, step)
-    weights, _, _ = render_weights(sigma, deltas)
-
-    wk = weights.reshape(-1)[dens.rows]
-    sel = dens.keep(wk.detach() > thr if thr > 0 else torch.ones_like(wk, dtype=torch.bool))
-    col = packer.pack("color", sel)  # slots of the density pass
-    cflat = dens.sub(col)  # the same samples, as rows of the (R, S) samples
-    ray_of = torch.div(cflat.rows, s, rounding_mode="floor")
+        with part("field density"):
+            sigma = view.density(pts, dens.live) if view is not None else field.density(pts)
+        with part("compositing"):
+            sigma = dens.scatter(sigma.to(origins.dtype)).reshape(r, s)  # float32 under autocast too
+    with part("compositing"):
+        contracted = settings.contraction is not None
+        deltas = Contraction.deltas(xyz) if contracted else torch.full_like(sigma, step)
+        weights, _, _ = render_weights(sigma, deltas)
+        wk = weights.reshape(-1)[dens.rows]
+        sel = dens.keep(wk.detach() > thr if thr > 0 else torch.ones_like(wk, dtype=torch.bool))
+        col = packer.pack("color", sel)  # slots of the density pass
+        cflat = dens.sub(col)  # the same samples, as rows of the (R, S) samples
+        ray_of = torch.div(cflat.rows, s, rounding_mode="floor")
     rgb = torch.zeros(r, s, 3, device=origins.device, dtype=origins.dtype)
     if len(col):
-        if view is not None:
-            colors = view.color_rows(col.rows, dirs[ray_of], col.live)
-        else:
-            colors = field.color(pts[col.rows], dirs[ray_of])
-        rgb = cflat.scatter(colors.to(origins.dtype)).reshape(r, s, 3)
-    color, depth, acc = composite(weights, rgb, t, settings.background)
+        with part("field color"):
+            if view is not None:
+                colors = view.color_rows(col.rows, dirs[ray_of], col.live)
+            else:
+                colors = field.color(pts[col.rows], dirs[ray_of])
+        with part("compositing"):
+            rgb = cflat.scatter(colors.to(origins.dtype)).reshape(r, s, 3)
+    with part("compositing"):
+        color, depth, acc = composite(weights, rgb, t, settings.background)
     flops.add("composite", flops.COMPOSITE_FLOPS * r * s)
     # rows: the density pass's samples (indices into the flattened (R, S) samples, in the order `field.density`
     # saw them; with a static packer, `live` says which slots hold one); step: the sampling step used
@@ -195,7 +203,8 @@ def render_image(
     -> {"rgb": (H, W, 3), "depth": (H, W), "acc": (H, W), "n_samples": int, "n_color": int}
     """
     pose, intrinsics, height, width = camera
-    origins, dirs = image_rays(pose.to(device), intrinsics, height, width, settings.ndc)
+    with part("rays"):
+        origins, dirs = image_rays(pose.to(device), intrinsics, height, width, settings.ndc)
     packer = packer_for(device) if packer is None else packer
     while True:
         parts = []

@@ -550,7 +550,8 @@ RIG_TEXT = {
                  "is opaque (an unbounded capture: its background is content).",
     **{rig: f"{degrees:g} deg of a walk around the content at distance {ARC_RADIUS} (elevations 10 and 25 deg), "
             f"as a phone capture of an object on a table: the content stands on a table in a closed room whose "
-            f"floor, walls and ceiling are speckled with dots; every pixel is opaque." for rig, degrees in ARCS.items()},
+            "floor, walls and ceiling are speckled with dots; every pixel is opaque."
+       for rig, degrees in ARCS.items()},
 }
 
 
@@ -793,8 +794,8 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
 
     rig: "sphere" (cameras on the upper hemisphere), "forward" (forward-facing), "unbounded" (nerfstudio layout
     only: `ring_poses` inside the content's `environment`, opaque images), or "half-orbit" / "quarter-orbit"
-    (nerfstudio layout only: `arc_poses` around the content on a table in a `room`, opaque images); default forward for llff, sphere
-    otherwise. Every layout gets the same views for the same arguments and the same number of
+    (nerfstudio layout only: `arc_poses` around the content on a table in a `room`, opaque images); default
+    forward for llff, sphere otherwise. Every layout gets the same views for the same arguments and the same number of
     test views written (`written_test_views`: LLFF and nerfstudio may write another number than asked, and
     then every camera moves along the spiral, which spans train and test views). Blender:
     transforms_train.json, transforms_test.json (omitted when n_test = 0), train/r_*.png, test/r_*.png;

@@ -3,13 +3,15 @@
 reports/eval.json schema (documented in docs/reports.md):
 {"split": str, "views": int, "lpips_note": str | null, "ssim_note": str | null,
  "models": [{"name", "kind", "psnr", "ssim" (null under 11 px), "lpips" (null when unavailable), "seconds_per_image",
-             "samples_per_image", "colored_per_image", "params", "w0", "gflops_per_image"}, ...],
+             "warmup_seconds", "load_seconds", "samples_per_image", "colored_per_image", "params", "w0",
+             "gflops_per_image"}, ...],
  "finetuned": {name: {"from", "iterations"}} (the finetuned models among them, from the manifest)}
 """
 
 from __future__ import annotations
 
 import logging
+import time
 
 from boostnerf_cli.costs import model_costs
 from boostnerf_cli.errors import BoostNerfError
@@ -27,9 +29,10 @@ def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, 
                    views: int | None = None) -> dict:
     """Mean per-image PSNR / SSIM / LPIPS of one model over a split."""
     rows = []
-    for i, r in enumerate(render_split(model, scene, split, device, skips, views)):
+    for i, r in enumerate(render_split(model, scene, split, device, skips, views, warm=True)):
         m = image_metrics(r["rgb"], split.images[i], lpips_model)
-        rows.append({**m, "seconds": r["seconds"], "samples": r["n_samples"], "colored": r["n_color"]})
+        rows.append({**m, "seconds": r["seconds"], "samples": r["n_samples"], "colored": r["n_color"],
+                     "warmup": r["warmup_seconds"]})
     n = len(rows)
     mean = lambda k: sum(row[k] for row in rows) / n  # noqa: E731
     return {
@@ -39,6 +42,7 @@ def evaluate_model(model: LoadedModel, scene: Scene, split: Split, device: str, 
         "ssim": round(mean("ssim"), 5) if rows[0]["ssim"] is not None else None,
         "lpips": round(mean("lpips"), 5) if lpips_model is not None else None,
         "seconds_per_image": round(mean("seconds"), 4),
+        "warmup_seconds": round(rows[0]["warmup"], 4),
         "samples_per_image": round(mean("samples")),
         "colored_per_image": round(mean("colored")),
         "params": model.params,
@@ -74,15 +78,20 @@ def run(survey: Survey, names: list[str] | None, viewing: Viewing, device: str, 
         log(ssim_note)
     rows = []
     for name in names:
+        t0 = time.perf_counter()
         model = load_model(ws, name, device, exact_gate=True)  # ||w||_0 needs the trainable gate
+        loading = time.perf_counter() - t0
         log(f"{name}: rendering {n_views(split, views)} {split_name} view{'s' if n_views(split, views) != 1 else ''}"
             + (" (and again for its costs)" if costs else ""))  # minutes on a large split: say what runs
         cost = {}
         if costs:
             c = model_costs(model, scene, split, device, views, exact_gate, skips)  # leaves it ready to render
             cost = {"w0": c["w0"], "gflops_per_image": c["gflops_per_image"]}
-        scores = evaluate_model(model.for_rendering(exact_gate), scene, split, device, lpips_model, skips, views)
-        row = {**scores, **cost}
+        t0 = time.perf_counter()
+        model = model.for_rendering(exact_gate)  # the gate baked (rendering's lookup table)
+        loading += time.perf_counter() - t0
+        scores = evaluate_model(model, scene, split, device, lpips_model, skips, views)
+        row = {**scores, "load_seconds": round(loading, 4), **cost}
         log(f"{name}: PSNR {number(row['psnr'], '.3f')}  SSIM {number(row['ssim'], '.4f')}  "
             f"{row['seconds_per_image']:.3f}s/image")
         rows.append(row)
@@ -100,20 +109,22 @@ def run(survey: Survey, names: list[str] | None, viewing: Viewing, device: str, 
 
 def markdown_table(result: dict) -> str:
     """The eval report as a Markdown table, in the paper's Table 1 columns."""
-    base = next((r.get("gflops_per_image") for r in result["models"] if r["name"] == "baseline"), None)
-    ratio = lambda g: f"{g / base:.2f}x" if g is not None and base else "-"  # noqa: E731
+    baseline = next((r for r in result["models"] if r["name"] == "baseline"), {})
+    ratio = lambda r, key: (f"{r[key] / baseline[key]:.2f}x" if r.get(key) is not None  # noqa: E731
+                            and baseline.get(key) else "-")
     lines = [
         f"Split `{result['split']}`, {result['views']} views, skips {Skips(**result['skips']).describe()}.",
         "",
-        "| model | PSNR | SSIM | LPIPS | params | ‖w‖₀ | GFLOPs/image | GFLOPs vs baseline | s/image |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| model | PSNR | SSIM | LPIPS | params | ‖w‖₀ | GFLOPs/image | GFLOPs vs baseline | s/image | "
+        "s vs baseline |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["models"]:
         lines.append(
             f"| {r['name']} | {number(r['psnr'], '.3f')} | {number(r['ssim'], '.4f')} | "
             f"{number(r['lpips'], '.4f')} | {r['params']:,} | "
             f"{number(r.get('w0'), ',')} | {number(r.get('gflops_per_image'), '.3f')} | "
-            f"{ratio(r.get('gflops_per_image'))} | {r['seconds_per_image']:.3f} |"
+            f"{ratio(r, 'gflops_per_image')} | {r['seconds_per_image']:.3f} | {ratio(r, 'seconds_per_image')} |"
         )
     reading = [how_to_read(result.get("finetuned") or {}), top1_note(result["models"])]
     notes = [n for n in reading if n] + [result[k] for k in ("ssim_note", "lpips_note") if result.get(k)]
