@@ -32,6 +32,11 @@ one of:
   and its GFLOPs per image as a ratio of the baseline's; then the notes rows printed as written (figures no report
   of this layout holds: transcribed, each with its provenance);
 
+- a cost table {"costs": {"model": name, "rows": [{"label": str, "report": FILE or [FILEs]}, ...]},
+  "first_column": header, "notes": [[cell, ...], ...]}: one row per report, the model's PSNR against the baseline's,
+  then its GFLOPs per image, training minutes (the reports' "train s" extra; "-" where a report has none) and render
+  seconds per image, each as "baseline -> model (ratio)"; then the notes rows printed as written;
+
 - a generic table {"columns": [header, ...], "rows": [[cell, ...], ...]} for a table that is neither a
   model nor a bench table (a transcribed comparison, a list of targets): every cell is a string printed
   exactly as written (bold `**...**`, units and all), and each row has as many cells as there are columns.
@@ -103,7 +108,8 @@ def _files(group: dict) -> list[str]:
 
 def reports_of(spec: dict) -> list[str]:
     """Every docs/data file that a table spec reads."""
-    parts = spec.get("groups", []) + spec.get("sizes", []) + spec.get("summary", {}).get("rows", [])
+    parts = (spec.get("groups", []) + spec.get("sizes", []) + spec.get("summary", {}).get("rows", [])
+             + spec.get("costs", {}).get("rows", []))
     return [f for g in parts for f in _files(g)]
 
 
@@ -203,6 +209,42 @@ def summary_table(spec: dict) -> str:
     return _table(columns, rows)
 
 
+COST_COLUMNS = ["vs baseline", "GFLOPs / image: baseline -> {m}", "training, minutes: baseline -> {m}",
+                "render, s / image: baseline -> {m}"]
+
+
+def _pair(base, model, decimals: int) -> str:
+    """`base -> model (ratio)`, or "-" when either is missing."""
+    if base is None or model is None:
+        return "-"
+    return f"{base:.{decimals}f} -> {model:.{decimals}f} ({model / base:.2f}x)"
+
+
+def cost_table(spec: dict) -> str:
+    """One row per report: what the model gains over the baseline and what it costs, in GFLOPs and in seconds."""
+    name = spec["costs"]["model"]
+    header = spec["costs"].get("header", name)
+    columns = [spec.get("first_column", ""), *(c.format(m=header) for c in COST_COLUMNS)]
+    rows = []
+    for line in spec["costs"]["rows"]:
+        by_name = _read(_files(line))
+        base, m = by_name[line.get("baseline", "baseline")], by_name[name]
+
+        def minutes(model):
+            s = model.get("extra", {}).get("train s")
+            return None if s is None else float(s) / 60
+
+        rows.append([line["label"], f"{m['psnr'] - base['psnr']:+.2f} dB",
+                     _pair(base["gflops_per_image"], m["gflops_per_image"], 2 if base["gflops_per_image"] < 20 else 1),
+                     _pair(minutes(base), minutes(m), 1),
+                     _pair(base.get("seconds_per_image"), m.get("seconds_per_image"), 3)])
+    for note in spec.get("notes", []):
+        if len(note) != len(columns) or not all(isinstance(c, str) for c in note):
+            raise ValueError(f"cost note {note!r}: want {len(columns)} string cells")
+        rows.append(note)
+    return _table(columns, rows)
+
+
 def bench_table(spec: dict) -> str:
     rows = [[r["name"], r["group"], _num(r["psnr"], 3), _num(r["ssim"], 4), f"{r['train_seconds']:.0f}",
              _num(r["seconds_per_image"], 3), _num(r["gflops_per_image"], 3), _count(r["params"], False),
@@ -228,6 +270,8 @@ def render(name: str) -> str:
         return size_table(spec)
     if "summary" in spec:
         return summary_table(spec)
+    if "costs" in spec:
+        return cost_table(spec)
     return model_table(spec)
 
 
