@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Rebuild the result tables of README.md and docs/*.md from the JSON reports under docs/data/.
+"""Rebuild the result tables of README.md, docs/*.md and research/README.md from the JSON reports under docs/data/.
 
 A table in a markdown file sits between two HTML comments and is generated from docs/data/NAME.json:
 
@@ -7,7 +7,7 @@ A table in a markdown file sits between two HTML comments and is generated from 
     | model | PSNR | ... |
     <!-- /table -->
 
-`python scripts/tables.py` rewrites every such table in README.md and docs/*.md; `--check` rewrites nothing and exits
+`python scripts/tables.py` rewrites every such table in README.md, docs/*.md and research/README.md; `--check` rewrites nothing and exits
 1 naming the tables that differ from their data (tests/test_tables.py runs it). docs/data/NAME.json is
 one of:
 
@@ -289,8 +289,8 @@ def rebuild(text: str) -> tuple[str, list[str]]:
 
 
 def documents() -> list[Path]:
-    """The markdown files whose tables this script makes: README.md and docs/*.md."""
-    return [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
+    """The markdown files whose tables this script makes: README.md, docs/*.md and research/README.md."""
+    return [ROOT / "README.md", *sorted(DOCS.glob("*.md")), ROOT / "research" / "README.md"]
 
 
 def main(argv: list[str] | None = None) -> int:
