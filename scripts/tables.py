@@ -7,9 +7,9 @@ A table in a markdown file sits between two HTML comments and is generated from 
     | model | PSNR | ... |
     <!-- /table -->
 
-`python scripts/tables.py` rewrites every such table in README.md, docs/*.md and research/README.md; `--check` rewrites nothing and exits
-1 naming the tables that differ from their data (tests/test_tables.py runs it). docs/data/NAME.json is
-one of:
+`python scripts/tables.py` rewrites every such table in README.md, docs/*.md and research/README.md; `--check`
+rewrites nothing and exits 1 naming the tables that differ from their data (tests/test_tables.py runs it).
+docs/data/NAME.json is one of:
 
 - a raw `boostnerf eval --report` file (`WS/reports/eval.json`, copied as is): one row per model;
 - a raw `boostnerf bench` table (`WS/reports/bench.json`): the bench's columns;
