@@ -158,7 +158,7 @@ HISTORY_WORDS = ["before:", "earlier figures", "older code", "old code", "today'
                  "newcomer", "on code before", "has changed since", "changed since this run", "since that run",
                  "fixes got", "before them", "earlier recipe", "earlier chains", "a loaded machine", "used to be",
                  "not made yet", "not measured yet", "not run yet", "not run on a gpu yet",
-                 "| old ", "new / old", "replace them", "now recipe keys"]
+                 "| old ", "new / old", "before then", "replace them", "now recipe keys"]
 
 
 def test_the_manual_speaks_in_the_present_tense():
@@ -192,7 +192,7 @@ def _code(text: str) -> list[str]:
     blocks = re.findall(r"^```[a-z]*\n(.*?)^```", text, flags=re.S | re.M)
     lines = [ln for b in blocks for ln in re.sub(r"\s*\\\n\s*", " ", b).splitlines()]
     prose = re.sub(r"^```[a-z]*\n.*?^```", "", text, flags=re.S | re.M)
-    return lines + re.findall(r"`([^`\n]+)`", prose)
+    return lines + [" ".join(span.split()) for span in re.findall(r"`([^`]+)`", prose)]
 
 
 def _named_files(text: str) -> set[str]:
@@ -282,3 +282,25 @@ def test_every_number_in_the_readme_tables_is_in_docs_data():
                            for v in values):  # as written, rounded, or seconds as minutes
                     missing.append(f"{number} in {line[:60]}")
     assert not missing, "README tables with figures docs/data does not hold:\n" + "\n".join(missing)
+
+
+def _choice_lists(text: str) -> list[tuple[str, set[str]]]:
+    """Every `--option a|b|c` of the manual's synopses (code lines and spans that start with `boostnerf`): the option
+    and the values it lists."""
+    return [(opt, set(values.split("|"))) for line in _code(text) if line.lstrip().startswith("boostnerf ")
+            for opt, values in re.findall(r"(--[a-z][\w-]*)[ =]\[?([\w-]+(?:\|[\w-]+)+)", line)]
+
+
+def test_every_synopsis_lists_every_value_of_its_option():
+    """A synopsis that lists an option's values lists them all (`--format ...|colmap`, `--rig ...|unbounded`)."""
+    from boostnerf_cli.scenes import FORMATS
+    from boostnerf_cli.scenes.procedural import CONTENTS, LENSES, RIGS
+
+    complete = {"--format": set(FORMATS), "--rig": set(RIGS), "--content": set(CONTENTS), "--lens": set(LENSES)}
+    short = []
+    for md in MANUAL:
+        for opt, values in _choice_lists(md.read_text()):
+            if opt in complete and complete[opt] - values - {"auto"}:
+                short.append(f"{md.name}: {opt} leaves out {sorted(complete[opt] - values)}")
+    assert not short, "\n".join(short)
+    assert ("--rig", {"sphere", "forward"}) in _choice_lists("`boostnerf make-scene X --rig sphere|forward`")
