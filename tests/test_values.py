@@ -220,7 +220,7 @@ def test_any_value_loads_or_is_one_line(tmp_path, key, value):
         assert "\n" not in msg and key.split(".")[0] in msg, msg
 
 
-def test_known_values_from_the_issue(tmp_path):
+def test_known_bad_values_are_one_line_each(tmp_path):
     cases = {
         "pretrain:\n  dvgo: {alpha_init: 0}\n": "recipe key pretrain.dvgo.alpha_init = 0.0: must be in (0, 1)",
         "pretrain:\n  dvgo: {alpha_init: 1}\n": "recipe key pretrain.dvgo.alpha_init = 1.0: must be in (0, 1)",
