@@ -154,7 +154,7 @@ MANUAL = [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
 
 # words of a lab notebook: the docs say how things are and how they were measured; what changed and when is in
 # CHANGELOG.md
-HISTORY_WORDS = ["before:", "earlier figures", "older code", "old code", "today's code", "that day", "(fixed)",
+HISTORY_WORDS = ["before:", "earlier figures", "older code", "old code", "today's", "that day", "(fixed)",
                  "newcomer", "on code before", "has changed since", "changed since this run", "since that run",
                  "fixes got", "before them", "earlier recipe", "earlier chains", "a loaded machine", "used to be",
                  "not made yet", "not measured yet", "not run yet", "not run on a gpu yet",
