@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Rebuild the result tables of README.md and docs/*.md from the JSON reports under docs/data/.
+"""Rebuild the result tables of README.md, docs/*.md and research/README.md from the JSON reports under docs/data/.
 
 A table in a markdown file sits between two HTML comments and is generated from docs/data/NAME.json:
 
@@ -7,9 +7,9 @@ A table in a markdown file sits between two HTML comments and is generated from 
     | model | PSNR | ... |
     <!-- /table -->
 
-`python scripts/tables.py` rewrites every such table in README.md and docs/*.md; `--check` rewrites nothing and exits
-1 naming the tables that differ from their data (tests/test_tables.py runs it). docs/data/NAME.json is
-one of:
+`python scripts/tables.py` rewrites every such table in README.md, docs/*.md and research/README.md; `--check`
+rewrites nothing and exits 1 naming the tables that differ from their data (tests/test_tables.py runs it).
+docs/data/NAME.json is one of:
 
 - a raw `boostnerf eval --report` file (`WS/reports/eval.json`, copied as is): one row per model;
 - a raw `boostnerf bench` table (`WS/reports/bench.json`): the bench's columns;
@@ -31,6 +31,11 @@ one of:
   experts' PSNRs (with "experts"), one column per model: the baseline's PSNR, every other model's PSNR against it
   and its GFLOPs per image as a ratio of the baseline's; then the notes rows printed as written (figures no report
   of this layout holds: transcribed, each with its provenance);
+
+- a cost table {"costs": {"model": name, "rows": [{"label": str, "report": FILE or [FILEs]}, ...]},
+  "first_column": header, "notes": [[cell, ...], ...]}: one row per report, the model's PSNR against the baseline's,
+  then its GFLOPs per image, training minutes (the reports' "train s" extra; "-" where a report has none) and render
+  seconds per image, each as "baseline -> model (ratio)"; then the notes rows printed as written;
 
 - a generic table {"columns": [header, ...], "rows": [[cell, ...], ...]} for a table that is neither a
   model nor a bench table (a transcribed comparison, a list of targets): every cell is a string printed
@@ -103,7 +108,8 @@ def _files(group: dict) -> list[str]:
 
 def reports_of(spec: dict) -> list[str]:
     """Every docs/data file that a table spec reads."""
-    parts = spec.get("groups", []) + spec.get("sizes", []) + spec.get("summary", {}).get("rows", [])
+    parts = (spec.get("groups", []) + spec.get("sizes", []) + spec.get("summary", {}).get("rows", [])
+             + spec.get("costs", {}).get("rows", []))
     return [f for g in parts for f in _files(g)]
 
 
@@ -203,6 +209,42 @@ def summary_table(spec: dict) -> str:
     return _table(columns, rows)
 
 
+COST_COLUMNS = ["vs baseline", "GFLOPs / image: baseline -> {m}", "training, minutes: baseline -> {m}",
+                "render, s / image: baseline -> {m}"]
+
+
+def _pair(base, model, decimals: int) -> str:
+    """`base -> model (ratio)`, or "-" when either is missing."""
+    if base is None or model is None:
+        return "-"
+    return f"{base:.{decimals}f} -> {model:.{decimals}f} ({model / base:.2f}x)"
+
+
+def cost_table(spec: dict) -> str:
+    """One row per report: what the model gains over the baseline and what it costs, in GFLOPs and in seconds."""
+    name = spec["costs"]["model"]
+    header = spec["costs"].get("header", name)
+    columns = [spec.get("first_column", ""), *(c.format(m=header) for c in COST_COLUMNS)]
+    rows = []
+    for line in spec["costs"]["rows"]:
+        by_name = _read(_files(line))
+        base, m = by_name[line.get("baseline", "baseline")], by_name[name]
+
+        def minutes(model):
+            s = model.get("extra", {}).get("train s")
+            return None if s is None else float(s) / 60
+
+        rows.append([line["label"], f"{m['psnr'] - base['psnr']:+.2f} dB",
+                     _pair(base["gflops_per_image"], m["gflops_per_image"], 2 if base["gflops_per_image"] < 20 else 1),
+                     _pair(minutes(base), minutes(m), 1),
+                     _pair(base.get("seconds_per_image"), m.get("seconds_per_image"), 3)])
+    for note in spec.get("notes", []):
+        if len(note) != len(columns) or not all(isinstance(c, str) for c in note):
+            raise ValueError(f"cost note {note!r}: want {len(columns)} string cells")
+        rows.append(note)
+    return _table(columns, rows)
+
+
 def bench_table(spec: dict) -> str:
     rows = [[r["name"], r["group"], _num(r["psnr"], 3), _num(r["ssim"], 4), f"{r['train_seconds']:.0f}",
              _num(r["seconds_per_image"], 3), _num(r["gflops_per_image"], 3), _count(r["params"], False),
@@ -228,6 +270,8 @@ def render(name: str) -> str:
         return size_table(spec)
     if "summary" in spec:
         return summary_table(spec)
+    if "costs" in spec:
+        return cost_table(spec)
     return model_table(spec)
 
 
@@ -245,8 +289,8 @@ def rebuild(text: str) -> tuple[str, list[str]]:
 
 
 def documents() -> list[Path]:
-    """The markdown files whose tables this script makes: README.md and docs/*.md."""
-    return [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
+    """The markdown files whose tables this script makes: README.md, docs/*.md and research/README.md."""
+    return [ROOT / "README.md", *sorted(DOCS.glob("*.md")), ROOT / "research" / "README.md"]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -147,3 +147,160 @@ def test_cli_reference_is_the_help_as_printed_now():
         proc = run_cli(*([name] if name else []), "--help", env_extra={"COLUMNS": "100"}, check=True)
         printed = "\n".join(line.rstrip() for line in (proc.stdout + proc.stderr).splitlines()).strip("\n")
         assert printed == section, f"boostnerf {name} --help differs from docs/cli.md: run scripts/cli-reference.sh"
+
+
+ROOT = DOCS.parent
+MANUAL = [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
+
+# words of a lab notebook: the docs say how things are and how they were measured; what changed and when is in
+# CHANGELOG.md
+HISTORY_WORDS = ["before:", "earlier figures", "older code", "old code", "today's", "that day", "(fixed)",
+                 "newcomer", "on code before", "has changed since", "changed since this run", "since that run",
+                 "fixes got", "before them", "earlier recipe", "earlier chains", "a loaded machine", "used to be",
+                 "not made yet", "not measured yet", "not run yet", "not run on a gpu yet",
+                 "| old ", "new / old", "before then", "replace them", "now recipe keys"]
+
+
+def test_the_manual_speaks_in_the_present_tense():
+    found = [f"{md.name}:{n}: {word!r}" for md in MANUAL for n, line in enumerate(md.read_text().splitlines(), 1)
+             for word in HISTORY_WORDS if word in line.lower()]
+    assert not found, "history belongs in CHANGELOG.md:\n" + "\n".join(found)
+    changelog = (ROOT / "CHANGELOG.md").read_text()
+    versions = re.findall(r"^## \[([^\]]+)\]", changelog, flags=re.M)
+    assert versions and versions[0] == "Unreleased", "Keep a Changelog: newest first, [Unreleased] on top"
+
+
+def test_the_history_check_catches_a_lab_notebook_line():
+    line = "The figures below replace earlier figures taken on older code."
+    assert [w for w in HISTORY_WORDS if w in line.lower()] == ["earlier figures", "older code"]
+
+
+_PATH = re.compile(r"(?<![\w/.-])((?:research/recipes|recipes|research|scripts|tests)/[\w.{},/-]+?\.(?:yaml|sh|py))\b")
+_RECIPE_NAME = re.compile(r"`([\w.{},-]+\.yaml)`")
+
+
+def _expand(name: str) -> list[str]:
+    """`blender-{dvgo,tensorf}-cpu.yaml` -> both names (one brace group at a time)."""
+    m = re.search(r"\{([^{}]*)\}", name)
+    if not m:
+        return [name]
+    return [n for part in m[1].split(",") for n in _expand(name[:m.start()] + part + name[m.end():])]
+
+
+def _code(text: str) -> list[str]:
+    """Every code span and code block line of a markdown text, continuation lines joined."""
+    blocks = re.findall(r"^```[a-z]*\n(.*?)^```", text, flags=re.S | re.M)
+    lines = [ln for b in blocks for ln in re.sub(r"\s*\\\n\s*", " ", b).splitlines()]
+    prose = re.sub(r"^```[a-z]*\n.*?^```", "", text, flags=re.S | re.M)
+    return lines + [" ".join(span.split()) for span in re.findall(r"`([^`]+)`", prose)]
+
+
+def _named_files(text: str) -> set[str]:
+    names = {n for m in _PATH.findall(text) for n in _expand(m)}
+    for m in _RECIPE_NAME.findall(text):
+        for n in _expand(m):
+            if "/" not in n:
+                names.add(n)
+    return names
+
+
+def _exists(name: str) -> bool:
+    if "/" in name:
+        return (ROOT / name).exists()
+    return any((ROOT / d / name).exists() for d in ("recipes", "research/recipes"))
+
+
+def _options(line: str) -> list[tuple[str, str]]:
+    """(command, option) for each `boostnerf COMMAND ... --option` of a line, up to a comment or the next command."""
+    found = []
+    for m in re.finditer(r"boostnerf(?:\s+-[qv])?\s+([a-z][\w-]*)((?:\s+[^\s#|;&,()]+)*)", line):
+        found += [(m[1], o.split("=")[0]) for o in re.findall(r"(?<!\S)(--?[a-z][\w-]*)", m[2])]
+    return found
+
+
+def test_every_file_command_and_option_the_manual_names_exists():
+    commands = _commands()
+    missing = []
+    for md in MANUAL:
+        text = md.read_text()
+        missing += [f"{md.name}: {n}" for n in sorted(_named_files(text)) if not _exists(n)]
+        for line in _code(text):
+            for cmd, opt in _options(line):
+                if cmd not in commands:
+                    if re.match(rf"\s*boostnerf\s+{cmd}\b", line):
+                        missing.append(f"{md.name}: boostnerf {cmd}")
+                    continue
+                opts = {o for p in commands[cmd].params for o in p.opts + p.secondary_opts} | {"--help"}
+                if opt not in opts and opt not in {"-q", "-v", "--version"}:
+                    missing.append(f"{md.name}: boostnerf {cmd} {opt}")
+            for script, args in re.findall(r"python3? (scripts/[\w-]+\.py|research/[\w-]+\.py)([^#]*)", line):
+                source = (ROOT / script).read_text() if (ROOT / script).exists() else ""
+                missing += [f"{md.name}: {script} {o}" for o in re.findall(r"(?<!\S)(--[a-z][\w-]*)", args)
+                            if o not in source]
+    assert not missing, "the manual names what does not exist:\n" + "\n".join(sorted(set(missing)))
+
+
+def test_the_name_check_catches_what_does_not_exist():
+    text = "`recipes/blender-F-cpu.yaml`, `tiny.yaml` and `blender-{dvgo,ngp}-cpu.yaml`; `boostnerf eval --no-such`"
+    assert sorted(n for n in _named_files(text) if not _exists(n)) == ["recipes/blender-F-cpu.yaml", "tiny.yaml"]
+    assert ("eval", "--no-such") in _options(_code(text)[-1])
+
+
+def _numbers(cell: str) -> list[str]:
+    cell = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", cell)  # a link's target is no figure
+    cell = re.sub(r"`[^`]*`", "", cell)
+    cell = re.sub(r"(?:M|L) = \d+|\d+(?:\^3| px|-expert|-step)|dvgo-\d+|ngp-\d+|tensorf-\d+|NeRF 360", "", cell)
+    return re.findall(r"(?<![\w.])\d[\d,]*(?:\.\d+)?", cell)
+
+
+def _data_values() -> tuple[str, list[float]]:
+    text = "\n".join(p.read_text() for p in sorted((DOCS / "data").glob("*.json")))
+    return text, [float(v.replace(",", "")) for v in re.findall(r"\d[\d,]*(?:\.\d+)?", text)]
+
+
+def test_every_number_in_the_readme_tables_is_in_docs_data():
+    """A README table is generated by scripts/tables.py (tests/test_tables.py checks it is current) and each of its
+    figures is a value of docs/data, as written or rounded; its ratios and differences are computed from them."""
+    readme = (ROOT / "README.md").read_text()
+    text, values = _data_values()
+    marked = " ".join(m.group(0) for m in re.finditer(r"<!-- table: [\w.-]+ -->\n.*?<!-- /table -->", readme, re.S))
+    missing = []
+    for line in readme.splitlines():
+        if not line.startswith("|") or set(line) <= set("|-: "):
+            continue
+        for cell in line.strip("|").split("|"):
+            for number in _numbers(cell):
+                if line not in marked:
+                    missing.append(f"not generated: {line[:60]}")
+                    break
+                digits = len(number.split(".")[1]) if "." in number else 0
+                value = float(number.replace(",", ""))
+                derived = re.search(rf"[+-]{re.escape(number)}|{re.escape(number)}x|\({re.escape(number)}x\)", cell)
+                if derived or number in text:
+                    continue
+                if not any(abs(round(v, digits) - value) < 1e-9 or abs(round(v / 60, digits) - value) < 1e-9
+                           for v in values):  # as written, rounded, or seconds as minutes
+                    missing.append(f"{number} in {line[:60]}")
+    assert not missing, "README tables with figures docs/data does not hold:\n" + "\n".join(missing)
+
+
+def _choice_lists(text: str) -> list[tuple[str, set[str]]]:
+    """Every `--option a|b|c` of the manual's synopses (code lines and spans that start with `boostnerf`): the option
+    and the values it lists."""
+    return [(opt, set(values.split("|"))) for line in _code(text) if line.lstrip().startswith("boostnerf ")
+            for opt, values in re.findall(r"(--[a-z][\w-]*)[ =]\[?([\w-]+(?:\|[\w-]+)+)", line)]
+
+
+def test_every_synopsis_lists_every_value_of_its_option():
+    """A synopsis that lists an option's values lists them all (`--format ...|colmap`, `--rig ...|unbounded`)."""
+    from boostnerf_cli.scenes import FORMATS
+    from boostnerf_cli.scenes.procedural import CONTENTS, LENSES, RIGS
+
+    complete = {"--format": set(FORMATS), "--rig": set(RIGS), "--content": set(CONTENTS), "--lens": set(LENSES)}
+    short = []
+    for md in MANUAL:
+        for opt, values in _choice_lists(md.read_text()):
+            if opt in complete and complete[opt] - values - {"auto"}:
+                short.append(f"{md.name}: {opt} leaves out {sorted(complete[opt] - values)}")
+    assert not short, "\n".join(short)
+    assert ("--rig", {"sphere", "forward"}) in _choice_lists("`boostnerf make-scene X --rig sphere|forward`")

@@ -19,7 +19,7 @@ def _marked() -> list[tuple[Path, str]]:
 def test_every_marked_table_matches_its_data():
     marked = _marked()
     names = {n for _, n in marked}
-    assert {"official-paper-layout", "results-cpu-recipes", "benchmarks-quick-demo"} <= names
+    assert {"official-paper-layout", "results-cpu-recipes", "benchmarks-lego", "readme-costs"} <= names
     for md, _ in {(md, None) for md, _ in marked}:
         text = md.read_text()
         new, changed = tables.rebuild(text)
@@ -158,3 +158,28 @@ def test_the_paper_layout_puts_each_size_and_model_in_a_column(tmp_path, monkeyp
     (data / "paper.json").write_text(json.dumps(spec))
     with pytest.raises(ValueError, match="want 4 string cells"):
         tables.render("paper")
+
+
+def test_a_cost_table_gives_gflops_minutes_and_render_seconds_against_the_baseline(tmp_path, monkeypatch):
+    """README's "Is it worth it?": one row per report, each cost as "baseline -> model (ratio)", "-" where a report
+    has no training seconds."""
+    def report(train: bool):
+        extra = (lambda s: {"extra": {"train s": s}}) if train else (lambda s: {})
+        return {"models": [
+            {"name": "baseline", "psnr": 34.6709, "gflops_per_image": 2.8338, "seconds_per_image": 0.1396,
+             **extra("363")},
+            {"name": "top2", "psnr": 35.0249, "gflops_per_image": 2.7778, "seconds_per_image": 0.1901, **extra("803")}]}
+
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "timed.json").write_text(json.dumps(report(True)))
+    (data / "untimed.json").write_text(json.dumps(report(False)))
+    (data / "costs.json").write_text(json.dumps({"first_column": "scene", "costs": {"model": "top2", "header": "Top-2",
+        "rows": [{"label": "a", "report": "timed.json"}, {"label": "b", "report": "untimed.json"}]},
+        "notes": [["c", "+0.30 dB", "55.56 -> 102.63 (1.85x)", "-", "-"]]}))
+    monkeypatch.setattr(tables, "DATA", data)
+    assert tables.render("costs").splitlines()[2:] == [
+        "| a | +0.35 dB | 2.83 -> 2.78 (0.98x) | 6.0 -> 13.4 (2.21x) | 0.140 -> 0.190 (1.36x) |",
+        "| b | +0.35 dB | 2.83 -> 2.78 (0.98x) | - | 0.140 -> 0.190 (1.36x) |",
+        "| c | +0.30 dB | 55.56 -> 102.63 (1.85x) | - | - |"]
+    assert tables.reports_of(json.loads((data / "costs.json").read_text())) == ["timed.json", "untimed.json"]

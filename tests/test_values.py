@@ -220,7 +220,7 @@ def test_any_value_loads_or_is_one_line(tmp_path, key, value):
         assert "\n" not in msg and key.split(".")[0] in msg, msg
 
 
-def test_known_values_from_the_issue(tmp_path):
+def test_known_bad_values_are_one_line_each(tmp_path):
     cases = {
         "pretrain:\n  dvgo: {alpha_init: 0}\n": "recipe key pretrain.dvgo.alpha_init = 0.0: must be in (0, 1)",
         "pretrain:\n  dvgo: {alpha_init: 1}\n": "recipe key pretrain.dvgo.alpha_init = 1.0: must be in (0, 1)",
@@ -248,7 +248,7 @@ def test_known_values_from_the_issue(tmp_path):
     _assert_refused(tmp_path, cases)
 
 
-def test_probe_s_values_accepted_before_that_crashed_or_trained_garbage(tmp_path, tiny_scene):
+def test_values_that_would_crash_or_train_garbage_are_refused(tmp_path, tiny_scene):
     """Values the recipe accepted that crashed mid-run with a traceback (alpha_init 1e-300, a
     per-resolution ngp mapping checked at the listed resolution only, a box no camera sees), trained a blank or noisy
     model with exit 0 (step_ratio 1e6, lr 1e30) or failed after minutes (view_pe 200, a million layers); and YAML's
