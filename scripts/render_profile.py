@@ -52,6 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--split", default="test")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--blend", action="store_true",
+                    help="also each mixture as NAME/blend: every sample blended, no decision per cell (moe/cells.py)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--table", type=Path)
     args = ap.parse_args(argv)
@@ -63,15 +65,21 @@ def main(argv: list[str] | None = None) -> int:
     load = os.getloadavg()
     t0 = time.perf_counter()
     models = {}
-    for name in names:
+    variants = [(n, False) for n in names] + ([(n, True) for n in names] if args.blend else [])
+    for name, blend in variants:
         t = time.perf_counter()
         model = load_model(ws, name, device)
+        if blend and model.kind != "mixture":
+            continue
+        if blend:
+            model.field.cells = lambda: None  # this instance blends every sample
+            name = f"{name}/blend"
         settings, skip = model.render_setup(scene, ALL_SKIPS)
         packer = packer_for(device)
         render_view(model.field, split, 0, settings, skip, device, packer)  # the warm-up
         models[name] = (model, settings, skip, packer, time.perf_counter() - t)
     views = min(args.views, len(split))
-    seconds: dict[str, list[float]] = {name: [] for name in names}
+    seconds: dict[str, list[float]] = {name: [] for name in models}
     for _ in range(args.repeats):
         for name, (model, settings, skip, packer, _) in models.items():
             for i in range(views):

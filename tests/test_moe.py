@@ -7,6 +7,7 @@ import torch
 from helpers import TOY_BOX, toy_mixture
 from reference import dispatch_dense_reference
 
+from boostnerf_cli.fields import grid as G
 from boostnerf_cli.fields.base import BareField
 from boostnerf_cli.models import load_mixture, save_mixture
 from boostnerf_cli.moe.mixture import RoutingStats
@@ -384,3 +385,70 @@ def test_lambda_moves_the_load_to_the_cheap_experts_in_inverse_proportion_to_the
     target = (1 / penalty_weights(3, "geometric")) / (1 / penalty_weights(3, "geometric")).sum()
     assert torch.allclose(end, target, atol=0.03), (end, target)
     assert end[0] > end[1] > end[2]
+
+
+# ----------------------------------------------------------------------------- decisions per cell (moe/cells.py)
+
+
+def _rendered(mix, image_camera, settings, use_cells: bool, monkeypatch):
+    from boostnerf_cli.render.renderer import render_image
+
+    with monkeypatch.context() as m:
+        if not use_cells:
+            m.setattr(type(mix), "cells", lambda self: None)
+        return render_image(mix, image_camera, settings, mix.skip)
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
+    """V_D's test and Top-1's choice looked up per lattice cell (where all 8 vertices agree) give the image that
+    blending every sample gives, to the last bit; most samples are decided by their cell."""
+    from boostnerf_cli.moe import cells as C
+    from boostnerf_cli.render.renderer import Camera, RenderSettings
+
+    mix = toy_mixture(k=k, seed=3)
+    mix.cfg.bake_res = 16
+    with torch.no_grad():  # V_D with a surface: dense inside a ball, empty outside
+        pts = G.lattice_points(mix.vd.bbox, mix.vd.shape)
+        mix.vd.table.copy_(torch.where(pts.norm(dim=-1, keepdim=True) < 0.6, 3.0, -8.0))
+    mix.for_rendering()
+    with torch.no_grad():
+        cells = mix.cells()
+    assert cells is not None and cells.vd is not None and cells.top1 is not None
+    states = torch.bincount(cells.vd.long(), minlength=3)
+    assert states[C.PASS] > 0 and states[C.FAIL] > 0 and states[C.MIXED] > 0, states
+    assert (cells.top1 >= 0).float().mean() > 0.5  # most cells of the baked gate have one clear expert
+    pose = torch.eye(4)
+    pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
+    camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
+    settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
+    fast = _rendered(mix, camera, settings, True, monkeypatch)
+    slow = _rendered(mix, camera, settings, False, monkeypatch)
+    assert fast["n_samples"] == slow["n_samples"] > 0 and fast["n_color"] == slow["n_color"]
+    for key in ("rgb", "depth", "acc"):
+        assert torch.equal(fast[key], slow[key]), key
+    # the shortcut is for rendering: a mixture that trains (gradients on) blends every sample
+    with torch.enable_grad():
+        assert mix.cells() is None
+
+
+def test_a_cell_is_decided_only_where_all_its_vertices_agree_with_a_margin():
+    from boostnerf_cli.moe import cells as C
+
+    shape = (3, 2, 2)  # two cells along x
+    raw = torch.tensor([5.0, 5, 5, 5, 5, 5, 5, 5, -5, -5, -5, -5])[:, None]  # cell 0: all above; cell 1: mixed
+    assert C.vd_states(raw, shape, 0.0).tolist() == [C.PASS, C.MIXED]
+    assert C.vd_states(raw - 10, shape, 0.0).tolist() == [C.FAIL, C.FAIL]
+    assert C.vd_states(torch.zeros(12, 1), shape, 0.0).tolist() == [C.MIXED, C.MIXED]  # on the threshold: blend
+    logits = torch.zeros(12, 2)
+    logits[:, 1] = 1.0  # expert 1 everywhere ...
+    logits[8:, 0] = 2.0  # ... but expert 0 at the last four vertices
+    assert C.top1_cells(logits, shape).tolist() == [1, -1]
+    logits[:, 0] = logits[:, 1]  # a tie at every vertex: blended, never decided by the cell
+    assert C.top1_cells(logits, shape).tolist() == [-1, -1]
+    xyz = torch.tensor([[-1.0, -1.0, -1.0], [0.2, 0.5, 0.5], [1.0, 1.0, 1.0], [3.0, 0.0, 0.0]])
+    assert C.cell_index(xyz, TOY_BOX, shape).tolist() == [0, 1, 1, 1]
+    # the raw value where V_D's opacity over one step is T
+    r = C.threshold_raw(1e-3, 0.05, 0.1, -4.0)
+    sigma = torch.nn.functional.softplus(torch.tensor(r, dtype=torch.float64) - 4.0) / 0.1
+    assert float(-torch.expm1(-sigma * 0.05)) == pytest.approx(1e-3, rel=1e-9)

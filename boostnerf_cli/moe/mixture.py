@@ -31,6 +31,7 @@ from torch import Tensor, nn
 from boostnerf_cli import flops
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.limits import MAX_GRID_RES, OneOf, Range, at_least, limit
+from boostnerf_cli.moe import cells as C
 from boostnerf_cli.moe.density_volume import DensityVolume
 from boostnerf_cli.moe.gate import Gate, GateConfig, softmax
 from boostnerf_cli.moe.router import (
@@ -188,6 +189,18 @@ class RoutingStats:
         return expert_counts(idx, m, routed) / (max(1, n) if isinstance(n, int) else n)
 
 
+@dataclass
+class RenderCells:
+    """What a mixture ready to render decides per lattice cell (moe/cells.py): V_D's test per cell of V_D's lattice
+    (None when V_D is the largest expert's own density), Top-1's expert per cell of the baked gate's lattice (None
+    unless it routes by a baked gate with weight 1); made for `gate` and V_D's table at `vd_version`."""
+
+    gate: Gate
+    vd_version: int
+    vd: Tensor | None
+    top1: Tensor | None
+
+
 class Mixture(nn.Module):
     """Sparse mixture of experts; satisfies the Field protocol."""
 
@@ -204,6 +217,7 @@ class Mixture(nn.Module):
         self.cfg = cfg
         self.register_buffer("penalty", penalty_weights(len(experts), cfg.penalty))
         self._skip = MixtureSkip(self)
+        self._cells: RenderCells | None = None
 
     @property
     def m(self) -> int:
@@ -245,11 +259,35 @@ class Mixture(nn.Module):
             idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
             return probs, probs, idx
         if not need_probs and self.cfg.renormalize and not torch.is_grad_enabled():
+            cells = self.cells()
+            if self.cfg.topk == 1 and cells is not None and cells.top1 is not None:
+                return None, xyz.new_ones(xyz.shape[0], 1), self._top1_by_cell(xyz, cells.top1)[:, None]
             chosen, idx = top_k(self.gate.logits(xyz).float(), self.cfg.topk, renormalize=False)
             return None, (torch.ones_like(chosen) if self.cfg.topk == 1 else softmax(chosen)), idx
         probs = self.gate.probs(xyz)
         vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
         return probs, vals, idx
+
+    def _top1_by_cell(self, xyz: Tensor, top1: Tensor) -> Tensor:
+        """(N,) each sample's expert: its cell's (moe/cells.py), the baked gate's blend where the cell's vertices
+        disagree (on a GPU blended for every sample and chosen per sample, so that nothing waits for the device)."""
+        gate = self.gate
+        expert = top1[C.cell_index(xyz, gate.bbox, gate.shape)].long()
+        mixed = expert < 0
+        if xyz.device.type != "cpu":
+            return torch.where(mixed, gate.logits(xyz).float().argmax(-1), expert)
+        rows = mixed.nonzero().squeeze(-1)
+        if len(rows):
+            expert[rows] = top_k(gate.logits(xyz[rows]).float(), 1, renormalize=False)[1][:, 0]
+        return expert
+
+    def cells(self) -> RenderCells | None:
+        """The per-cell decisions `for_rendering` made, while they still hold (the same baked gate and V_D's table
+        unchanged) and nothing trains (no gradient)."""
+        c = self._cells
+        if c is None or torch.is_grad_enabled() or c.gate is not self.gate or c.vd_version != self.vd.table._version:
+            return None
+        return c
 
     def _mix(self, xyz: Tensor, dirs: Tensor | None, vals: Tensor, idx: Tensor, packer: Packer = DYNAMIC,
              live: Tensor | None = None) -> Tensor:
@@ -282,7 +320,19 @@ class Mixture(nn.Module):
         """Ready to render a trained mixture: the gate baked when `cfg.bake_res` > 0 (unless exact_gate)."""
         if self.cfg.bake_res > 0 and not exact_gate:
             self.gate = self.gate.baked(self.cfg.bake_res)
+        if self._cells is None or self._cells.gate is not self.gate or self._cells.vd_version != self.vd.table._version:
+            self._cells = self._render_cells()
         return self
+
+    @torch.no_grad()
+    def _render_cells(self) -> RenderCells:
+        cfg, vd, gate = self.cfg, self.vd, self.gate
+        vd_cells = None
+        if cfg.vd_source == "smallest":
+            vd_cells = C.vd_states(vd.table, vd.shape, C.threshold_raw(cfg.density_threshold, cfg.step, vd.unit,
+                                                                         vd.shift))
+        top1 = C.top1_cells(gate.logit_table, gate.shape) if gate.cfg.gate_type == "baked" else None
+        return RenderCells(gate, vd.table._version, vd_cells, top1)
 
     def batch_view(self, packer: Packer = DYNAMIC) -> "RoutedMixture":
         """A per-batch view for the renderer: the gate runs once per sample (see RoutedMixture)."""
@@ -340,12 +390,25 @@ class MixtureSkip:
         keep = valid.reshape(-1)
         if mix.occupancy is not None:
             keep = packer.keep_where(mix.occupancy, flat, keep)
+        visible = mix.cfg.vd_filter == "visible" and threshold > 0
+        cells = None if visible else mix.cells()
+        certain = None
+        if cells is not None and cells.vd is not None:  # V_D decided per cell: blended only where its surface crosses
+            vd = mix.vd
+            with part("V_D"):
+                state = packer.where_kept(lambda p: torch.where(
+                    ((p >= vd.bbox[0]) & (p <= vd.bbox[1])).all(-1), cells.vd[C.cell_index(p, vd.bbox, vd.shape)],
+                    C.FAIL), flat, keep, C.FAIL)
+            certain, keep = state == C.PASS, state == C.MIXED
         inside = packer.pack("vd", keep)
         with part("V_D"):
             sigma = mix.vd_density(flat[inside.rows])
         opaque = inside.keep(-torch.expm1(-sigma * mix.cfg.step) > mix.cfg.density_threshold)
-        keep = inside.scatter(opaque, fill=False).reshape(valid.shape)
-        if mix.cfg.vd_filter != "visible" or threshold <= 0:
+        keep = inside.scatter(opaque, fill=False)
+        if certain is not None:
+            keep = keep | certain
+        keep = keep.reshape(valid.shape)
+        if not visible:
             return keep
         density = inside.scatter(torch.where(opaque, sigma, sigma.new_zeros(())).to(xyz.dtype)).reshape(valid.shape)
         weights, _, _ = render_weights(density, torch.full_like(density, step))

@@ -93,8 +93,14 @@ class Packer:
     def keep_where(self, test: Callable[[Tensor], Tensor], points: Tensor, keep: Tensor) -> Tensor:
         """keep & test(points), points (N, 3), keep (N,) bool: only the kept points are tested (fewer; listing them
         costs nothing on the CPU). A static packer tests every point instead, so nothing waits for the device."""
+        return self.where_kept(test, points, keep, False)
+
+    def where_kept(self, fn: Callable[[Tensor], Tensor], points: Tensor, keep: Tensor, fill) -> Tensor:
+        """(N,) fn(points) where `keep`, `fill` elsewhere: fn runs on the kept points only (a static packer runs it
+        on every point instead, so nothing waits for the device)."""
         rows = keep.nonzero().squeeze(-1)  # listed once, for the lookup and the write back
-        return keep.index_put((rows,), test(points[rows]))
+        values = fn(points[rows])
+        return torch.full(keep.shape, fill, dtype=values.dtype, device=keep.device).index_put((rows,), values)
 
     def overflowed(self) -> Tensor | None:
         """Whether a filter since `begin` kept more than its budget (a device bool), or None (nothing can)."""
@@ -175,6 +181,10 @@ class Budgets(Packer):
 
     def keep_where(self, test: Callable[[Tensor], Tensor], points: Tensor, keep: Tensor) -> Tensor:
         return keep & test(points)
+
+    def where_kept(self, fn: Callable[[Tensor], Tensor], points: Tensor, keep: Tensor, fill) -> Tensor:
+        values = fn(points)
+        return torch.where(keep, values, torch.full((), fill, dtype=values.dtype, device=values.device))
 
     def overflowed(self) -> Tensor | None:
         return self._over
