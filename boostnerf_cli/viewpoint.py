@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from boostnerf_cli.cameras import ROW_WIDTHS, Intrinsics, flip_axes
 from boostnerf_cli.costs import gflops_of
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields import grid as G
@@ -37,7 +38,6 @@ MIXTURE_MODES = ("routing", "share", "gate")  # only a mixture has them
 
 # routing colours, smallest expert first: blue, cyan, green, orange, red, then grey
 PALETTE = np.array([[40, 90, 255], [0, 200, 220], [60, 200, 60], [255, 160, 0], [230, 30, 30]], dtype=np.float64) / 255
-GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))  # flips a camera's y and z axes (either way)
 
 
 def palette(m: int) -> np.ndarray:
@@ -165,12 +165,12 @@ def psnr(rgb: np.ndarray, gt: np.ndarray) -> float:
 # --- cameras ----------------------------------------------------------------------------------------------------------
 def dataset_camera(split: Split, i: int) -> Camera:
     """View `i` of `split` as a camera."""
-    return Camera(split.poses[i], split.intrinsics[i], split.height, split.width)
+    return Camera(split.poses[i], split.intrinsics[i], split.height, split.width)  # the split's row (float32)
 
 
 def opencv_pose(pose: torch.Tensor) -> np.ndarray:
     """A camera-to-world pose (4, 4), OpenGL (looks down -z) -> OpenCV (looks down +z, y down), float64."""
-    return (pose.double() @ GL_TO_CV.double()).numpy()
+    return flip_axes(pose.double()).numpy()
 
 
 def camera_for_view(rotation: np.ndarray, position: np.ndarray, fov: float, aspect: float, height: int) -> Camera:
@@ -180,26 +180,28 @@ def camera_for_view(rotation: np.ndarray, position: np.ndarray, fov: float, aspe
     width = max(1, int(round(height * aspect)))
     pose = np.eye(4)
     pose[:3, :3], pose[:3, 3] = rotation, position
-    focal = 0.5 * height / math.tan(0.5 * fov)
-    gl = torch.from_numpy(pose).float() @ GL_TO_CV
-    return Camera(gl, torch.tensor([focal, focal, width / 2.0, height / 2.0]), height, width)
+    intrinsics = torch.tensor(Intrinsics.from_fov(fov, height, width).row(), dtype=torch.float32)
+    return Camera(flip_axes(torch.from_numpy(pose).float()), intrinsics, height, width)
 
 
 def fov_of(camera: Camera) -> float:
     """A camera's vertical field of view in radians."""
-    return 2.0 * math.atan(0.5 * camera.height / float(camera.intrinsics[1]))
+    return Intrinsics.of(camera.intrinsics).fov_y(camera.height)
 
 
 def scaled(camera: Camera, height: int) -> Camera:
-    """The same camera rendering `height` pixels high (the width and intrinsics scaled alike)."""
+    """The same camera rendering `height` pixels high (the width and the intrinsics scaled alike; a lens is the same
+    at any size)."""
     s = height / camera.height
     width = max(1, int(round(camera.width * s)))
-    return Camera(camera.pose, camera.intrinsics * torch.tensor([s, s, width / camera.width, s]), height, width)
+    intrinsics = Intrinsics.of(camera.intrinsics).resized(camera.height, camera.width, height, width)
+    return Camera(camera.pose, torch.tensor(intrinsics.row(), dtype=torch.float32), height, width)
 
 
 # --- saved views ---------------------------------------------------------------------------------------------------
 def view_dict(camera: Camera, model: str, look: Look) -> dict:
-    """A saved view as JSON: the camera (pose, intrinsics fx, fy, cx, cy, size), the model and what it shows."""
+    """A saved view as JSON: the camera (pose, intrinsics: fx, fy, cx, cy and a lens's numbers,
+    `cameras.Intrinsics.row`; size), the model and what it shows."""
     return {"pose": camera.pose.float().tolist(), "intrinsics": camera.intrinsics.float().tolist(),
             "height": camera.height, "width": camera.width, "model": model, "mode": look.mode, "expert": look.expert}
 
@@ -223,14 +225,16 @@ def read_view(path: Path) -> tuple[Camera, str, Look]:
         height, width = int(data["height"]), int(data["width"])
         look = Look(str(data.get("mode", "colour")), int(data.get("expert", 0)))
         model = str(data["model"])
-        ok = pose.shape == (4, 4) and intrinsics.shape == (4,) and height > 0 and width > 0
-        ok = ok and bool(torch.isfinite(pose).all() and torch.isfinite(intrinsics).all() and (intrinsics[:2] > 0).all())
+        ok = pose.shape == (4, 4) and intrinsics.ndim == 1 and len(intrinsics) in ROW_WIDTHS and height > 0
+        ok = ok and width > 0 and bool(torch.isfinite(pose).all() and torch.isfinite(intrinsics).all()
+                                       and (intrinsics[:2] > 0).all())
     except (*MALFORMED, TypeError) as e:
         raise BoostNerfError(f"{path} is not a saved view ({type(e).__name__}: {e}): save one with `boostnerf view`'s "
                              "save button") from None
     if not ok:
-        raise BoostNerfError(f"{path} is not a saved view: it needs a finite 4x4 pose, intrinsics fx, fy, cx, cy with "
-                             "positive focal lengths, and a positive height and width")
+        raise BoostNerfError(f"{path} is not a saved view: it needs a finite 4x4 pose, intrinsics fx, fy, cx, cy "
+                             f"(and a lens: {ROW_WIDTHS[1]} numbers) with positive focal lengths, and a positive "
+                             "height and width")
     return Camera(pose, intrinsics, height, width), model, look
 
 

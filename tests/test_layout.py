@@ -15,7 +15,7 @@ PACKAGE = ROOT / "boostnerf_cli"
 # each other), never a higher layer nor another package of its own layer.
 LAYERS = [
     ["errors"],
-    ["limits", "flops", "metrics", "workspace", "device", "startup", "adam"],
+    ["limits", "flops", "metrics", "workspace", "device", "startup", "adam", "cameras"],
     ["fields"],
     ["render"],
     ["moe", "scenes"],

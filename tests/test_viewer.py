@@ -16,6 +16,7 @@ import pytest
 import torch
 from conftest import assert_clean_failure, cli_in_process, run_cli
 
+from boostnerf_cli.cameras import Intrinsics
 from boostnerf_cli.images import to_uint8
 from boostnerf_cli.lineage import Survey
 from boostnerf_cli.models import load_model
@@ -326,3 +327,22 @@ def pick(browser, label: str, option: str) -> None:
     item = f"Array.from(document.querySelectorAll('[role=option]')).find(e => e.textContent === {option!r})"
     for element in (field, item):
         click(browser, element)
+
+
+def test_a_camera_with_a_lens_scales_to_a_smaller_frame(tmp_path):
+    """`scaled` (the viewer's low-resolution frames, scripts/view_bench.py) on a dataset camera with a lens: it
+    multiplied the whole intrinsics row (11 numbers then) by 4 factors and failed; now the focal lengths and principal
+    point scale, the lens stays, and the half-size frame's rays are the full frame's at its pixel corners' mean."""
+    from boostnerf_cli.render.rays import image_rays
+    from boostnerf_cli.scenes import load_scene, make_scene
+    from boostnerf_cli.viewpoint import scaled
+
+    split = load_scene(make_scene(tmp_path / "s", size=16, n_train=2, n_test=1, layout="nerfstudio",
+                                  lens="opencv")).splits["train"]
+    camera = dataset_camera(split, 0)
+    small = scaled(camera, 8)
+    assert (small.height, small.width) == (8, 8)
+    k, k2 = split.camera(0), Intrinsics.of(small.intrinsics)
+    assert k2.lens == k.lens and k2.fx == pytest.approx(k.fx / 2) and k2.cx == pytest.approx(k.cx / 2)
+    _, d = image_rays(small.pose, small.intrinsics, 8, 8)
+    assert torch.isfinite(d).all() and d.shape == (64, 3)

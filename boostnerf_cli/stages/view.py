@@ -42,6 +42,7 @@ from boostnerf_cli.viewpoint import (
     box_edges,
     camera_for_view,
     dataset_camera,
+    fov_of,
     frame,
     frustums,
     opencv_pose,
@@ -493,7 +494,7 @@ def go_to(viewer: Viewer, client) -> None:
         client.camera.position = tuple(pose[:3, 3])
         client.camera.look_at = tuple(pose[:3, 3] + pose[:3, 2] * float(viewer.scene.near + viewer.scene.far) / 4)
         client.camera.up_direction = tuple(-pose[:3, 1])
-        client.camera.fov = 2.0 * float(np.arctan(0.5 * camera.height / float(camera.intrinsics[1])))
+        client.camera.fov = fov_of(camera)
     g["gt"].image = (gt * 255 + 0.5).clip(0, 255).astype(np.uint8)
     g["gt"].visible = True
     g["truth"].content = f"**{split} view {i}**: " + (f"PSNR {score:.2f} dB" if score is not None else
