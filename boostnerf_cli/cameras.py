@@ -11,8 +11,8 @@ between the OpenGL and OpenCV conventions, the field of view, scaling, and the l
   image coordinates to the recorded ones, `undistort` back (Newton's method with the analytic Jacobian).
 - `Intrinsics`: fx, fy, cx, cy in pixels and the lens (None: a pinhole camera). A scene split keeps its views'
   intrinsics as one tensor of rows (`Intrinsics.row`, `rows`; the scene cache and the lineage digests store it):
-  4 numbers for a pinhole camera, `WITH_LENS` with a lens; `Intrinsics.of` reads a row back, and only this module
-  knows the row's layout.
+  4 numbers for a pinhole camera, `WITH_LENS` with a lens, `WITH_RATIONAL` with FULL_OPENCV's rational terms;
+  `Intrinsics.of` reads a row back, and only this module knows the row's layout past fx, fy, cx, cy.
 - `GL_TO_CV`: poses are OpenGL camera-to-world matrices (the camera looks down -z, +y up; scenes/scene.py); COLMAP,
   OpenCV and a browser viewer's cameras look down +z with +y down. `flip_axes` turns one into the other (either way).
 
@@ -151,14 +151,19 @@ class Lens:
         return 1 + t2 * (3 * self.k1 + t2 * (5 * self.k2 + t2 * (7 * self.k3 + t2 * 9 * self.k4)))
 
 
-COEFFICIENTS = ("k1", "k2", "k3", "k4", "p1", "p2", "d1", "d2", "d3")  # a `Lens`'s numbers, in its row's order
+COEFFICIENTS = ("k1", "k2", "k3", "k4", "p1", "p2", "d1", "d2", "d3")  # a `Lens`'s numbers
+RATIONAL = ("d1", "d2", "d3")  # FULL_OPENCV's denominator: a row holds them only when a camera of its split has one
 CHECK_EVERY = 8  # Newton steps of `Lens.undistort` between two reads of its residual
 
 
 # ----------------------------------------------------------------------------- intrinsics
 
-PINHOLE = 4  # a pinhole camera's row: fx, fy, cx, cy
-WITH_LENS = PINHOLE + len(COEFFICIENTS) + 1  # then the lens's coefficients and 1 for a fisheye
+# A split's row of intrinsics: fx, fy, cx, cy (`PINHOLE`); with a lens then k1 k2 k3 k4 p1 p2 and 1 for a fisheye, else
+# 0 (`WITH_LENS`, the layout of the scene caches and workspace digests made before FULL_OPENCV was read); with a
+# rational lens then d1 d2 d3 (`WITH_RATIONAL`)
+PINHOLE = 4
+WITH_LENS = PINHOLE + len(COEFFICIENTS) - len(RATIONAL) + 1
+WITH_RATIONAL = WITH_LENS + len(RATIONAL)
 
 
 @dataclass(frozen=True)
@@ -179,26 +184,35 @@ class Intrinsics:
 
     @classmethod
     def of(cls, value: "Intrinsics | Tensor | Sequence[float]") -> "Intrinsics":
-        """Intrinsics from a row (`row`: 4 numbers, or `WITH_LENS`), or the intrinsics themselves."""
+        """Intrinsics from a row (`row`: `PINHOLE`, `WITH_LENS` or `WITH_RATIONAL` numbers), or the intrinsics
+        themselves."""
         if isinstance(value, Intrinsics):
             return value
         values = [float(v) for v in (value.tolist() if isinstance(value, Tensor) else value)]
         if len(values) == PINHOLE:
             return cls(*values)
-        if len(values) != WITH_LENS:
-            raise BoostNerfError(f"an intrinsics row has {PINHOLE} numbers (fx, fy, cx, cy) or {WITH_LENS} (then "
-                                 f"{', '.join(COEFFICIENTS)}, fisheye), not {len(values)}")
-        lens = Lens(*values[PINHOLE:-1], fisheye=values[-1] != 0)
+        if len(values) not in (WITH_LENS, WITH_RATIONAL):
+            raise BoostNerfError(f"an intrinsics row has {PINHOLE} numbers (fx, fy, cx, cy), {WITH_LENS} (then k1 k2 "
+                                 f"k3 k4 p1 p2 fisheye) or {WITH_RATIONAL} (then d1 d2 d3), not {len(values)}")
+        polynomial = values[PINHOLE : WITH_LENS - 1]
+        lens = Lens(*polynomial, *values[WITH_LENS:], fisheye=values[WITH_LENS - 1] != 0)
         return cls(*values[:PINHOLE], lens)
 
-    def row(self, with_lens: bool | None = None) -> list[float]:
-        """The row a split keeps: fx, fy, cx, cy, then (with a lens, or `with_lens`) the lens's `COEFFICIENTS` and 1
-        for a fisheye, else 0."""
-        head = [self.fx, self.fy, self.cx, self.cy]
-        if not (self.lens is not None if with_lens is None else with_lens):
-            return head
+    def row(self, width: int | None = None) -> list[float]:
+        """The row a split keeps (`PINHOLE`, `WITH_LENS` or `WITH_RATIONAL` numbers, see there): the shortest that
+        holds this camera, or `width` (a split's: its pinhole cameras' lens part zero)."""
         lens = self.lens or Lens()
-        return head + [getattr(lens, f) for f in COEFFICIENTS] + [1.0 if lens.fisheye else 0.0]
+        width = width or (PINHOLE if self.lens is None else WITH_RATIONAL if self.rational else WITH_LENS)
+        row = [self.fx, self.fy, self.cx, self.cy]
+        row += [*(getattr(lens, f) for f in COEFFICIENTS if f not in RATIONAL), 1.0 if lens.fisheye else 0.0]
+        row += [getattr(lens, f) for f in RATIONAL]
+        if any(row[width:]):
+            raise BoostNerfError(f"a row of {width} numbers cannot hold this camera's lens")
+        return row[:width]
+
+    @property
+    def rational(self) -> bool:
+        return self.lens is not None and any(getattr(self.lens, f) for f in RATIONAL)
 
     def scaled(self, sx: float, sy: float | None = None) -> "Intrinsics":
         """The same camera for an image scaled by sx across and sy down (default sx): the focal lengths and principal
@@ -276,13 +290,13 @@ def focal_for_fov(fov: float, size: float) -> float:
 
 
 def rows(cameras: Sequence[Intrinsics]) -> Tensor:
-    """The split's intrinsics tensor: (N, 4) float32 when no camera has a lens, else (N, `WITH_LENS`) (a pinhole
-    camera's lens part zero)."""
-    with_lens = any(c.lens is not None for c in cameras)
-    return torch.tensor([c.row(with_lens) for c in cameras], dtype=torch.float32)
+    """The split's intrinsics tensor, float32: (N, `PINHOLE`) when no camera has a lens, else (N, `WITH_LENS`), or
+    (N, `WITH_RATIONAL`) when one has FULL_OPENCV's rational terms (the numbers a camera has not: zero)."""
+    width = max(len(c.row()) for c in cameras)
+    return torch.tensor([c.row(width) for c in cameras], dtype=torch.float32)
 
 
-ROW_WIDTHS = (PINHOLE, WITH_LENS)
+ROW_WIDTHS = (PINHOLE, WITH_LENS, WITH_RATIONAL)
 
 
 # ----------------------------------------------------------------------------- camera models

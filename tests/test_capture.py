@@ -12,7 +12,18 @@ import numpy as np
 import pytest
 import torch
 
-from boostnerf_cli.cameras import CHECK_EVERY, GRIDS, MODELS, WITH_LENS, Intrinsics, Lens, rendered_models
+from boostnerf_cli.cameras import (
+    CHECK_EVERY,
+    GRIDS,
+    MODELS,
+    PINHOLE,
+    WITH_LENS,
+    WITH_RATIONAL,
+    Intrinsics,
+    Lens,
+    rendered_models,
+    rows,
+)
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import image_rays, pixel_directions, project_points
 from boostnerf_cli.scenes import load_scene, make_scene
@@ -444,3 +455,20 @@ def test_the_scene_cache_keeps_the_points_and_the_lens(colmap_scene, tmp_path, m
     assert all(torch.equal(again.points.visible[k], first.points.visible[k]) for k in first.points.visible)
     assert torch.equal(again.splits["train"].intrinsics, first.splits["train"].intrinsics)
     assert again.splits["train"].intrinsics.shape[1] == WITH_LENS
+
+
+def test_a_splits_rows_are_as_wide_as_its_cameras_need_and_read_back():
+    """A split's intrinsics rows: 4 numbers for pinhole cameras, 11 with a lens (the layout scene caches and workspace
+    digests made before FULL_OPENCV was read: those stay valid), 14 with a rational one; each reads back the same."""
+    pinhole = Intrinsics(50.0, 55.0, 16.0, 12.0)
+    opencv = Intrinsics(50.0, 55.0, 16.0, 12.0, LENSES_TRIED["opencv"])
+    full = Intrinsics(50.0, 55.0, 16.0, 12.0, LENSES_TRIED["full-opencv"])
+    fisheye = Intrinsics(50.0, 55.0, 16.0, 12.0, Lens(fisheye=True))
+    for cams, width in (([pinhole], PINHOLE), ([pinhole, opencv, fisheye], WITH_LENS), ([opencv, full], WITH_RATIONAL)):
+        table = rows(cams)
+        assert table.shape == (len(cams), width)
+        for cam, row in zip(cams, table):
+            assert Intrinsics.of(row) == Intrinsics.of(rows([cam])[0])
+    assert Intrinsics.of(rows([fisheye])[0]).lens == Lens(fisheye=True)
+    with pytest.raises(BoostNerfError, match="cannot hold"):
+        full.row(WITH_LENS)

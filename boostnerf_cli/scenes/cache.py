@@ -62,8 +62,8 @@ def read(path: Path, key: str) -> Scene | None:
                      meta["source"], meta["format"], meta["holdout"], meta["extra"],
                      NDC(**meta["ndc"]) if meta["ndc"] is not None else None, points,
                      Contraction.from_dict(meta["contraction"]) if meta.get("contraction") else None)
-    except (SafetensorError, OSError, ValueError, KeyError, TypeError, BoostNerfError):  # damaged, foreign or of an
-        # older layout (a lens's intrinsics row of 11 numbers): decode again
+    except (SafetensorError, OSError, ValueError, KeyError, TypeError, BoostNerfError):  # damaged, foreign or of
+        # another layout: decode again
         return None
 
 

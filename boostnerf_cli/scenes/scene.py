@@ -35,7 +35,8 @@ class Split:
 
     images: Tensor  # (N, H, W, 3) float32 in [0, 1]
     poses: Tensor  # (N, 4, 4) float32 camera-to-world
-    intrinsics: Tensor  # (N, 4) float32: fx, fy, cx, cy in pixels; (N, 14) with a lens (cameras.Intrinsics.row)
+    # (N, 4) float32: fx, fy, cx, cy in pixels; (N, 11) with a lens, (N, 14) a rational one (cameras.Intrinsics.row)
+    intrinsics: Tensor
     names: tuple[str, ...]
     alpha: Tensor | None = None  # (N, H, W) float32 in [0, 1], the images' coverage; None: every pixel opaque
 
