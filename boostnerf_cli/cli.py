@@ -589,7 +589,8 @@ def capture(
     frames: Annotated[int, typer.Option("--frames", min=3, help="A video's frames to keep: evenly spaced, each the "
                                         "sharpest of its stretch.")] = 100,
     camera_model: Annotated[str, typer.Option("--camera-model", help=(
-        "COLMAP camera model: OPENCV, SIMPLE_RADIAL, RADIAL, PINHOLE, SIMPLE_PINHOLE or OPENCV_FISHEYE."))] = "OPENCV",
+        "COLMAP camera model: OPENCV, SIMPLE_RADIAL, RADIAL, PINHOLE, SIMPLE_PINHOLE, FULL_OPENCV, OPENCV_FISHEYE, "
+        "SIMPLE_RADIAL_FISHEYE or RADIAL_FISHEYE."))] = "OPENCV",
     per_image_cameras: Annotated[bool, typer.Option(
         "--per-image-cameras", help="One camera per image (photos from several cameras or zoom levels); default: "
         "one shared camera.")] = False,

@@ -49,18 +49,25 @@ def save_expert(path: Path, model: nn.Module, occupancy: OccupancyGrid | None, e
     save_tensors(path, tensors, {**model.config_dict(), **(extra_meta or {})})
 
 
+def new_expert(meta: dict, bbox: Tensor, source: str) -> nn.Module:
+    """An untrained expert of the family and configuration `meta` records (a model file's, a checkpoint's), over
+    `bbox`; one line naming `source` for a family this boostnerf does not know."""
+    family = meta.get("family")
+    if not isinstance(family, str) or family not in FAMILIES:
+        raise BoostNerfError(f"{source} holds an unknown model family {family!r}; was it written by a newer boostnerf?")
+    return FAMILIES[family].from_config(meta, bbox)
+
+
 @timed("models")
 def load_expert(path: Path, device: str | torch.device = "cpu") -> tuple[nn.Module, OccupancyGrid | None, dict]:
     """-> (expert in eval mode, its occupancy grid or None, metadata)."""
     tensors, meta = load_tensors(path, device)
     family = meta.get("family")
-    if not isinstance(family, str) or family not in FAMILIES:
-        raise BoostNerfError(f"{path} holds an unknown model family {family!r}; was it written by a newer boostnerf?")
     try:
         occ = None
         if "occupancy" in tensors:
             occ = OccupancyGrid(tensors.pop("occupancy").bool(), tensors.pop("occupancy_bbox"))
-        model = FAMILIES[family].from_config(meta, tensors["bbox"])
+        model = new_expert(meta, tensors["bbox"], str(path))
         model.load_state_dict(tensors)
     except MALFORMED as e:
         raise BoostNerfError(f"{path} does not hold a valid {family} expert ({malformed(e)}; written by another "

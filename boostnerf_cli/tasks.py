@@ -158,11 +158,19 @@ class FieldTask:
         }
 
     def load_state(self, state: dict) -> None:
-        self.model.resize_to(tuple(state["meta"]["shape"]))
-        self.model.load_state_dict(state["model"])
-        if state["skip"] is not None:
-            # until its first refresh the mask is the geometry stage's grid, over the geometry's own box
-            self.skip = OccupancyGrid(state["skip"], state["skip_bbox"].to(self.model.bbox.device))
+        skip = load_field_state(self.model, state)
+        if skip is not None:
+            self.skip = skip
+
+
+def load_field_state(model: nn.Module, state: dict) -> OccupancyGrid | None:
+    """Put a `FieldTask.state` into `model` (its grid resized to the state's first) -> the state's empty-space grid,
+    None when it has none. Until its first refresh the grid is the geometry stage's, over the geometry's own box."""
+    model.resize_to(tuple(state["meta"]["shape"]))
+    model.load_state_dict(state["model"])
+    if state["skip"] is None:
+        return None
+    return OccupancyGrid(state["skip"], state["skip_bbox"].to(model.bbox.device))
 
 
 def occupancy_shape(model: nn.Module) -> tuple[int, int, int]:

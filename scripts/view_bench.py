@@ -1,5 +1,6 @@
-"""Frames per second of `boostnerf view`: the page's own render path (`stages/view.py: Viewer.draw`, a colour frame of
-the chosen model), along an orbit of the scene (a spiral for a forward-facing one), at each frame height asked for.
+"""Frames per second of `boostnerf view`: the page's own render path (`viewpoint/viewer.py: Viewer.draw`, a colour
+frame of the chosen model), along an orbit of the scene (a spiral for a forward-facing one), at each frame height
+asked for.
 
 Usage: python scripts/view_bench.py -w WS [--model NAME ...] [--sizes 64,128] [--frames 24] [--device cpu]
                                     [--json FILE]
@@ -26,7 +27,7 @@ from boostnerf_cli.lineage import Survey  # noqa: E402
 from boostnerf_cli.render.paths import camera_path  # noqa: E402
 from boostnerf_cli.stages import view  # noqa: E402
 from boostnerf_cli.stages.common import resolve_device  # noqa: E402
-from boostnerf_cli.viewpoint import dataset_camera, scaled  # noqa: E402
+from boostnerf_cli.viewpoint.camera import dataset_camera, scaled  # noqa: E402
 from boostnerf_cli.workspace import Workspace  # noqa: E402
 
 

@@ -12,54 +12,151 @@ import numpy as np
 import pytest
 import torch
 
+from boostnerf_cli.cameras import (
+    CHECK_EVERY,
+    GRIDS,
+    MODELS,
+    PINHOLE,
+    WITH_LENS,
+    WITH_RATIONAL,
+    Intrinsics,
+    Lens,
+    rendered_models,
+    rows,
+)
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.render.rays import distort, image_rays, project_points, undistort
+from boostnerf_cli.render.rays import image_rays, pixel_directions, project_points
 from boostnerf_cli.scenes import load_scene, make_scene
 from boostnerf_cli.scenes.colmap_model import ModelCamera, read_model, write_model
 from boostnerf_cli.scenes.procedural import LENSES
 from tests.conftest import REMOVE, cli_in_process, make_recipe, run_cli
 
-LENS_ROWS = {  # k1 k2 k3 k4 p1 p2 fisheye
-    "opencv": [-0.3, 0.1, 0.0, 0.0, 0.003, -0.002, 0.0],
-    "opencv-k3": [-0.25, 0.08, -0.02, 0.0, 0.001, 0.002, 0.0],
-    "pincushion": [0.2, 0.05, 0.0, 0.0, 0.0, 0.0, 0.0],
-    "fisheye": [0.08, -0.03, 0.01, -0.002, 0.0, 0.0, 1.0],
+LENSES_TRIED = {
+    "opencv": Lens(k1=-0.3, k2=0.1, p1=0.003, p2=-0.002),
+    "opencv-k3": Lens(k1=-0.25, k2=0.08, k3=-0.02, p1=0.001, p2=0.002),
+    "pincushion": Lens(k1=0.2, k2=0.05),
+    "full-opencv": Lens(k1=-0.2, k2=0.05, k3=0.01, p1=0.002, p2=-0.001, d1=0.1, d2=-0.02, d3=0.005),
+    "fisheye": Lens(k1=0.08, k2=-0.03, k3=0.01, k4=-0.002, fisheye=True),
 }
 
 
-@pytest.mark.parametrize("lens", LENS_ROWS, ids=list(LENS_ROWS))
+@pytest.mark.parametrize("lens", LENSES_TRIED, ids=list(LENSES_TRIED))
 def test_undistort_inverts_distort(lens):
-    lens = torch.tensor(LENS_ROWS[lens], dtype=torch.float64)
+    lens = LENSES_TRIED[lens]
     xy = torch.rand(2000, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 1.4 - 0.7
-    assert (undistort(distort(xy, lens), lens) - xy).abs().max() < 1e-10
-    assert (distort(xy, lens) - xy).abs().max() > 1e-3  # the lens does bend
+    assert (lens.undistort(lens.distort(xy)) - xy).abs().max() < 1e-10
+    assert (lens.distort(xy) - xy).abs().max() > 1e-3  # the lens does bend
 
 
-def test_distortion_is_colmaps():
-    """The same pixel as COLMAP's own OPENCV and OPENCV_FISHEYE models give for a camera-space point."""
+@pytest.mark.parametrize("lens", [k for k, v in LENSES_TRIED.items() if not v.fisheye])
+def test_the_analytic_jacobian_is_the_distortions_derivative(lens):
+    lens = LENSES_TRIED[lens]
+    xy = torch.rand(500, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(1)) * 1.4 - 0.7
+    (a, b), (c, d) = lens.jacobian(xy)
+    eps = 1e-6
+    for axis, (dx, dy) in ((0, (a, c)), (1, (b, d))):
+        step = torch.zeros(2, dtype=torch.float64)
+        step[axis] = eps
+        numeric = (lens.distort(xy + step) - lens.distort(xy - step)) / (2 * eps)
+        assert torch.allclose(numeric, torch.stack([dx, dy], -1), atol=1e-7)
+
+
+def test_the_camera_models_are_colmaps():
+    """Every model of `cameras.MODELS`: COLMAP's id and parameter names in its order (pycolmap's `params_info`)."""
     pycolmap = pytest.importorskip("pycolmap")
+    for m in MODELS.values():
+        cam = pycolmap.Camera.create_from_model_name(1, m.name, 100.0, 64, 48)
+        assert int(cam.model.value) == m.colmap_id, m.name
+        assert tuple(cam.params_info.split(", ")) == m.params, m.name
+    assert rendered_models() == ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE",
+                                 "FULL_OPENCV", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE")
+
+
+# a camera of each model boostnerf renders, with COLMAP's parameters (in its order) of a strong phone-like lens
+COLMAP_CAMERAS = {
+    "SIMPLE_PINHOLE": [100, 32, 24], "PINHOLE": [100, 110, 32, 24], "SIMPLE_RADIAL": [100, 32, 24, -0.15],
+    "RADIAL": [100, 32, 24, -0.2, 0.05], "OPENCV": [100, 110, 32, 24, -0.2, 0.05, 0.002, -0.001],
+    "OPENCV_FISHEYE": [100, 110, 32, 24, 0.08, -0.03, 0.01, -0.002],
+    "FULL_OPENCV": [100, 110, 32, 24, -0.2, 0.05, 0.002, -0.001, 0.01, 0.1, -0.02, 0.005],
+    "SIMPLE_RADIAL_FISHEYE": [100, 32, 24, 0.05], "RADIAL_FISHEYE": [100, 32, 24, 0.05, -0.01],
+}
+
+
+@pytest.mark.parametrize("model", COLMAP_CAMERAS)
+def test_distortion_and_undistortion_are_colmaps(model):
+    """Each model boostnerf renders: the pixel COLMAP's own camera gives for a camera-space point (`img_from_cam`),
+    and the normalized point it gives for a pixel (`cam_from_img`, its undistortion)."""
+    pycolmap = pytest.importorskip("pycolmap")
+    cam = pycolmap.Camera.create_from_model_name(1, model, 100.0, 64, 48)
+    cam.params = COLMAP_CAMERAS[model]
+    ours = Intrinsics.from_colmap(model, COLMAP_CAMERAS[model], "test")
+    assert ours.colmap(model) == pytest.approx(COLMAP_CAMERAS[model])
     xy = np.random.default_rng(0).uniform(-0.5, 0.5, (50, 2))
-    for model, params, lens in (("OPENCV", [100, 110, 32, 24, -0.2, 0.05, 0.002, -0.001], LENS_ROWS["opencv"]),
-                                ("OPENCV_FISHEYE", [100, 110, 32, 24, 0.08, -0.03, 0.01, -0.002],
-                                 LENS_ROWS["fisheye"])):
-        cam = pycolmap.Camera.create_from_model_name(1, model, 100.0, 64, 48)
-        cam.params = params
-        row = [0.08, -0.03, 0.01, -0.002, 0, 0, 1] if model == "OPENCV_FISHEYE" else [-0.2, 0.05, 0, 0, 0.002,
-                                                                                        -0.001, 0]
-        ours = distort(torch.tensor(xy), torch.tensor(row, dtype=torch.float64)).numpy() * [100, 110] + [32, 24]
-        assert np.abs(cam.img_from_cam(np.c_[xy, np.ones(len(xy))]) - ours).max() < 1e-9, (model, lens)
+    assert np.abs(cam.img_from_cam(np.c_[xy, np.ones(len(xy))]) - ours.pixels(torch.tensor(xy)).numpy()).max() < 1e-9
+    uv = np.random.default_rng(1).uniform([0, 0], [64, 48], (200, 2))
+    theirs = cam.cam_from_img(uv)
+    theirs = theirs[:, :2] / theirs[:, 2:] if theirs.shape[1] == 3 else theirs
+    assert np.abs(ours.normalized(torch.tensor(uv)).numpy() - theirs).max() < 1e-9, model
+
+
+def test_full_opencv_reads_and_renders_through_its_rational_terms(tmp_path):
+    """FULL_OPENCV (refused before whenever k4, k5, k6 were set): a COLMAP model with one loads, its rays go through
+    the rational distortion and project back to their pixels."""
+    params = COLMAP_CAMERAS["FULL_OPENCV"]
+    k = Intrinsics.from_colmap("FULL_OPENCV", params, "test")
+    assert k.lens == Lens(k1=-0.2, k2=0.05, k3=0.01, p1=0.002, p2=-0.001, d1=0.1, d2=-0.02, d3=0.005)
+    pose = torch.eye(4)
+    pose[:3, 3] = torch.tensor([0.3, -0.2, 4.0])
+    o, d = image_rays(pose, k, 48, 64)
+    uv, _ = project_points(o + 3.0 * d, pose, k)
+    v, u = torch.meshgrid(torch.arange(48) + 0.5, torch.arange(64) + 0.5, indexing="ij")
+    assert torch.allclose(uv, torch.stack([u.reshape(-1), v.reshape(-1)], -1), atol=1e-3)
+    folder = make_scene(tmp_path / "s", size=32, n_train=6, n_test=1, layout="colmap", lens="opencv")
+    model = read_model(folder / "sparse" / "0")
+    cam = model.cameras[1]
+    model.cameras[1] = ModelCamera("FULL_OPENCV", cam.width, cam.height, cam.params + [0.0, 0.05, 0.0, 0.0])
+    write_model(model, folder / "sparse" / "0", "bin")
+    row = load_scene(folder).splits["train"].intrinsics[0]
+    assert Intrinsics.of(row).lens.d1 == pytest.approx(0.05)
+
+
+def test_per_image_cameras_keep_their_undistorted_grids():
+    """The undistorted pixel grids are kept per camera within a byte budget: a split of 40 cameras, each its own, is
+    undistorted once, not once a pass (an LRU of 16 grids recomputed every one of them on every pass)."""
+    GRIDS.grids.clear()
+    cams = [Intrinsics(50.0 + i, 50.0 + i, 16.0, 12.0, Lens(k1=-0.1 - 0.001 * i)) for i in range(40)]
+    calls = []
+    real = Intrinsics.normalized
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Intrinsics, "normalized", lambda self, uv: calls.append(1) or real(self, uv))
+        for _ in range(3):
+            for c in cams:
+                pixel_directions(24, 32, c)
+    assert len(calls) == 40
+
+
+def test_undistortion_reads_its_residual_every_few_steps_only(monkeypatch):
+    """Newton's steps run without waiting for the device: the residual is read once every `CHECK_EVERY` steps."""
+    reads = []
+    real = torch.Tensor.__float__
+    monkeypatch.setattr(torch.Tensor, "__float__", lambda t: reads.append(1) or real(t))
+    lens = LENSES_TRIED["opencv"]
+    lens.undistort(torch.rand(100, 2, dtype=torch.float64) - 0.5, iterations=40)
+    assert len(reads) <= 40 // CHECK_EVERY
 
 
 def test_rays_through_a_lens_project_back_to_their_pixels():
     pose = torch.eye(4)
     pose[:3, 3] = torch.tensor([0.3, -0.2, 4.0])
-    k = torch.tensor([50.0, 55.0, 16.0, 12.0, *LENS_ROWS["opencv"]])
+    k = Intrinsics(50.0, 55.0, 16.0, 12.0, LENSES_TRIED["opencv"])
     o, d = image_rays(pose, k, 24, 32)
     uv, depth = project_points(o + 3.0 * d, pose, k)
     v, u = torch.meshgrid(torch.arange(24) + 0.5, torch.arange(32) + 0.5, indexing="ij")
     assert torch.allclose(uv, torch.stack([u.reshape(-1), v.reshape(-1)], -1), atol=1e-3)
-    pinhole = image_rays(pose, k[:4], 24, 32)[1]
+    pinhole = image_rays(pose, Intrinsics(50.0, 55.0, 16.0, 12.0), 24, 32)[1]
     assert (pinhole - d).norm(dim=-1).max() > 0.01  # the corners' rays differ from a pinhole camera's
+    row = torch.tensor(k.row(), dtype=torch.float64)
+    assert torch.equal(image_rays(pose, row, 24, 32)[1], d)  # a split's row is the same camera
 
 
 @pytest.fixture(scope="module")
@@ -79,8 +176,8 @@ def test_a_colmap_model_loads_as_the_scene_it_was_written_from(colmap_scene, tmp
         a, b = scene.splits[name], twin.splits[name]
         assert torch.allclose(a.poses, b.poses, atol=1e-5) and torch.allclose(a.intrinsics, b.intrinsics, atol=1e-4)
         assert (a.images - b.images).abs().max() <= 2 / 255 + 1e-6  # on white before 8-bit rounding
-    assert scene.splits["train"].intrinsics[0, 4:].tolist() == pytest.approx(
-        [LENSES["opencv"][0].get(k, 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2")] + [0.0])
+    assert scene.splits["train"].camera(0).lens == Lens(**{k: float(torch.tensor(v, dtype=torch.float32))
+                                                          for k, v in LENSES["opencv"][0].items()})
     text = shutil.copytree(colmap_scene, tmp_path / "txt")
     model = read_model(text / "sparse" / "0")
     for f in (text / "sparse" / "0").iterdir():
@@ -357,4 +454,21 @@ def test_the_scene_cache_keeps_the_points_and_the_lens(colmap_scene, tmp_path, m
     assert torch.equal(again.points.xyz, first.points.xyz) and torch.equal(again.points.rgb, first.points.rgb)
     assert all(torch.equal(again.points.visible[k], first.points.visible[k]) for k in first.points.visible)
     assert torch.equal(again.splits["train"].intrinsics, first.splits["train"].intrinsics)
-    assert again.splits["train"].intrinsics.shape[1] == 11
+    assert again.splits["train"].intrinsics.shape[1] == WITH_LENS
+
+
+def test_a_splits_rows_are_as_wide_as_its_cameras_need_and_read_back():
+    """A split's intrinsics rows: 4 numbers for pinhole cameras, 11 with a lens (the layout scene caches and workspace
+    digests made before FULL_OPENCV was read: those stay valid), 14 with a rational one; each reads back the same."""
+    pinhole = Intrinsics(50.0, 55.0, 16.0, 12.0)
+    opencv = Intrinsics(50.0, 55.0, 16.0, 12.0, LENSES_TRIED["opencv"])
+    full = Intrinsics(50.0, 55.0, 16.0, 12.0, LENSES_TRIED["full-opencv"])
+    fisheye = Intrinsics(50.0, 55.0, 16.0, 12.0, Lens(fisheye=True))
+    for cams, width in (([pinhole], PINHOLE), ([pinhole, opencv, fisheye], WITH_LENS), ([opencv, full], WITH_RATIONAL)):
+        table = rows(cams)
+        assert table.shape == (len(cams), width)
+        for cam, row in zip(cams, table):
+            assert Intrinsics.of(row) == Intrinsics.of(rows([cam])[0])
+    assert Intrinsics.of(rows([fisheye])[0]).lens == Lens(fisheye=True)
+    with pytest.raises(BoostNerfError, match="cannot hold"):
+        full.row(WITH_LENS)

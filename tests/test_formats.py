@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from boostnerf_cli.cameras import WITH_LENS
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC, image_rays, project_points
 from boostnerf_cli.scenes import LAYOUTS, detect_format, load_scene, make_scene
@@ -516,10 +517,11 @@ def test_a_blender_transforms_file_with_lens_distortion_is_read_as_it_is(tmp_pat
     meta.update(k1=-0.2, k2=0.05, camera_model="OPENCV")
     meta["frames"][1]["p1"] = 0.001
     (folder / "transforms_train.json").write_text(json.dumps(meta))
-    k = load_scene(folder).splits["train"].intrinsics
-    assert k.shape == (3, 11)
-    assert k[0, 4:].tolist() == pytest.approx([-0.2, 0.05, 0, 0, 0, 0, 0])
-    assert k[1, 4:].tolist() == pytest.approx([-0.2, 0.05, 0, 0, 0.001, 0, 0])
+    train = load_scene(folder).splits["train"]
+    assert train.intrinsics.shape == (3, WITH_LENS)
+    assert train.camera(0).lens.coefficients() == pytest.approx({"k1": -0.2, "k2": 0.05})
+    assert not train.camera(0).lens.fisheye
+    assert train.camera(1).lens.coefficients() == pytest.approx({"k1": -0.2, "k2": 0.05, "p1": 0.001})
     assert load_scene(folder).splits["test"].intrinsics.shape == (1, 4)  # its own file: a pinhole camera
     for change, message in (({"camera_model": "EQUIRECTANGULAR"}, "camera_model EQUIRECTANGULAR is not supported"),
                             ({"camera_model": "OPENCV_FISHEYE", "p1": 0.01}, "has no tangential distortion")):
@@ -538,7 +540,7 @@ def test_w_and_h_are_checked_to_a_pixel_of_rounding_not_to_2_percent():
 
     camera = {k: None for k in ("camera_angle_x", "camera_angle_y", "fl_y", "cx", "cy")}
     k = frame_intrinsics({**camera, "fl_x": 1000.0, "w": 1297, "h": 731}, (22, 40), (22, 40), "f")
-    assert k[0] == pytest.approx(1000 * 40 / 1297) and k[1] == pytest.approx(1000 * 22 / 731)
+    assert k.fx == pytest.approx(1000 * 40 / 1297) and k.fy == pytest.approx(1000 * 22 / 731)
     with pytest.raises(BoostNerfError, match="w x h = 960 x 550 does not match the image's 960 x 540 aspect"):
         frame_intrinsics({**camera, "fl_x": 1000.0, "w": 960, "h": 550}, (540, 960), (540, 960), "f")
 
@@ -568,8 +570,8 @@ def test_a_focal_length_given_for_y_alone_serves_both_axes():
 
     camera = {k: None for k in ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")}
     k = frame_intrinsics({**camera, "camera_angle_y": 2 * math.atan(0.5)}, (40, 20), (40, 20), "f")
-    assert k == pytest.approx([40.0, 40.0, 10.0, 20.0])
-    assert frame_intrinsics({**camera, "fl_y": 33.0}, (40, 20), (40, 20), "f") == pytest.approx([33, 33, 10, 20])
+    assert k.row() == pytest.approx([40.0, 40.0, 10.0, 20.0])
+    assert frame_intrinsics({**camera, "fl_y": 33.0}, (40, 20), (40, 20), "f").row() == pytest.approx([33, 33, 10, 20])
     with pytest.raises(BoostNerfError, match="no focal length"):
         frame_intrinsics(camera, (40, 20), (40, 20), "f")
 

@@ -207,7 +207,7 @@ def test_the_viewer_renders_on_the_simulated_gpu_what_it_renders_on_the_cpu(mixt
 
     from boostnerf_cli.lineage import Survey
     from boostnerf_cli.stages import view
-    from boostnerf_cli.viewpoint import Look
+    from boostnerf_cli.viewpoint.frame import Look
 
     MAPS = ("colour", "routing", "share")
     from boostnerf_cli.workspace import Workspace
@@ -221,7 +221,7 @@ def test_the_viewer_renders_on_the_simulated_gpu_what_it_renders_on_the_cpu(mixt
             assert viewer.model.bbox.device.type == (dev or "cpu")
             for mode in MAPS:
                 viewer.show(Look(mode, 1))
-                shots[device, mode] = viewer.go_to("test", 0)[1]
+                shots[device, mode] = viewer.go_to("test", 0).shot
             shots[device, "cells"] = viewer.model_parts()[1]
     for mode in MAPS:
         cpu, gpu = shots["cpu", mode], shots["gpu", mode]

@@ -15,7 +15,7 @@ PACKAGE = ROOT / "boostnerf_cli"
 # each other), never a higher layer nor another package of its own layer.
 LAYERS = [
     ["errors"],
-    ["limits", "flops", "metrics", "workspace", "device", "startup", "adam"],
+    ["limits", "flops", "metrics", "workspace", "device", "startup", "adam", "cameras"],
     ["fields"],
     ["render"],
     ["moe", "scenes"],
@@ -271,3 +271,44 @@ def test_at_most_five_functions_take_eight_or_more_parameters():
 
     many = [f"{path} {f.name} ({count(f)})" for path, f in _functions() if count(f) >= 8 and not _is_command(f)]
     assert len(many) <= 5, many
+
+
+def test_the_viewpoint_package_docstrings_name_what_exists_and_no_module_has_a_second_psnr():
+    """viewpoint.py's docstring named a `scene_geometry` that did not exist, and it had its own `psnr` beside
+    metrics/image.py's: each backquoted name of the viewpoint package's docstrings is a module or a name of the package
+    (or of `boostnerf_cli.cameras`), and `psnr` is defined once, in metrics/image.py."""
+    import importlib
+    import re
+
+    package = importlib.import_module("boostnerf_cli.viewpoint")
+    parts = {p.stem: importlib.import_module(f"boostnerf_cli.viewpoint.{p.stem}")
+             for p in (PACKAGE / "viewpoint").glob("*.py") if p.stem != "__init__"}
+    cameras = importlib.import_module("boostnerf_cli.cameras")
+    def exists(name: str) -> bool:
+        """A module of the package, a module of boostnerf_cli and a name in it, or a name of the package's modules (or
+        of cameras.py), each dotted part an attribute of the one before."""
+        if name.removesuffix(".py") in parts:
+            return True
+        bits = name.removeprefix("boostnerf_cli.").split(".")
+        for k in range(len(bits), 0, -1):
+            try:
+                obj, rest = importlib.import_module("boostnerf_cli." + ".".join(bits[:k])), bits[k:]
+                break
+            except ImportError:
+                continue
+        else:
+            owner = next((m for m in (*parts.values(), cameras) if hasattr(m, bits[0])), None)
+            if owner is None:
+                return False
+            obj, rest = getattr(owner, bits[0]), bits[1:]
+        for attr in rest:
+            if not hasattr(obj, attr):
+                return False
+            obj = getattr(obj, attr)
+        return True
+
+    for mod in (package, *parts.values()):
+        for name in re.findall(r"`([A-Za-z_][\w.]*)`", mod.__doc__ or ""):
+            assert exists(name), f"{mod.__name__}'s docstring names {name!r}, which does not exist"
+    defined = [m for m, p in modules().items() if re.search(r"^def psnr\(", p.read_text(), re.M)]
+    assert defined == ["boostnerf_cli.metrics.image"], defined

@@ -16,12 +16,17 @@ import pytest
 import torch
 from conftest import assert_clean_failure, cli_in_process, run_cli
 
+from boostnerf_cli.cameras import Intrinsics
+from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.images import to_uint8
 from boostnerf_cli.lineage import Survey
 from boostnerf_cli.models import load_model
 from boostnerf_cli.render.renderer import render_view
 from boostnerf_cli.stages import view
-from boostnerf_cli.viewpoint import Look, camera_for_view, dataset_camera, fov_of, opencv_pose, read_view
+from boostnerf_cli.viewpoint.camera import camera_for_view, dataset_camera, fov_of, opencv_pose
+from boostnerf_cli.viewpoint.frame import Look
+from boostnerf_cli.viewpoint.saved import read_view
+from boostnerf_cli.viewpoint.viewer import PREVIEW, SNAP, STILL, Phase
 from boostnerf_cli.workspace import Workspace
 
 REPO = Path(__file__).resolve().parents[1]
@@ -36,19 +41,19 @@ def viewer(mixture_ws):
 @pytest.fixture
 def served(viewer):
     """`viewer` served on a free port by its render loop (a thread), stopped afterwards."""
-    server = view.start_server(viewer, "127.0.0.1", 0)
+    page = view.start_server(viewer, "127.0.0.1", 0)
     stop = threading.Event()
-    loop = threading.Thread(target=view.serve, args=(viewer, stop), daemon=True)
+    loop = threading.Thread(target=view.serve, args=(page, stop), daemon=True)
     loop.start()
-    yield viewer, server
+    yield viewer, page
     stop.set()
     loop.join(timeout=30)
-    server.stop()
+    page.server.stop()
 
 
 def test_the_page_draws_every_camera_the_box_and_the_routed_cells(served):
-    viewer, server = served
-    scene = viewer.scene
+    viewer, page = served
+    server, scene = page.server, viewer.scene
     n = len(scene.split("train")) + len(scene.split("test"))
     names = [f"/cameras/{s}/{k:04d}" for k, s in enumerate(["train"] * len(scene.split("train")) + ["test"] * 3)]
     assert len(names) == n and all(server.scene.get_handle_by_name(name) is not None for name in names)
@@ -58,11 +63,12 @@ def test_the_page_draws_every_camera_the_box_and_the_routed_cells(served):
     lo, hi = viewer.model.bbox.numpy()
     assert ((points >= lo - 1e-6) & (points <= hi + 1e-6)).all()
     assert len({tuple(c) for c in colours}) == 2  # the gate picks both experts somewhere
-    assert viewer.label == "top2" and list(viewer.gui["model"].options) == ["dvgo-12", "dvgo-16", "top2"]
+    assert viewer.label == "top2" and list(page.controls.model.options) == ["dvgo-12", "dvgo-16", "top2"]
 
 
 def test_a_dataset_camera_renders_what_render_renders_and_its_psnr(viewer):
-    camera, shot, gt, score = viewer.go_to("test", 0)
+    snap = viewer.go_to("test", 0)
+    camera, shot, score = snap.camera, snap.shot, snap.psnr
     model = load_model(viewer.ws, "top2", "cpu")
     split = viewer.scene.split("test")
     expected = render_view(model.field, split, 0, *model.render_setup(viewer.scene, model_skips()), "cpu")["rgb"]
@@ -159,7 +165,7 @@ def test_a_workspace_without_models_shows_its_cameras(trained_ws, tmp_path, capl
         viewer = view.Viewer(ws, Survey(ws).scene(), view.Models(ws, "cpu"))
     assert viewer.model is None and viewer.draw(dataset_camera(viewer.scene.split("train"), 0)) is None
     assert "has no models yet: the page shows the scene's cameras" in caplog.text
-    server = view.start_server(viewer, "127.0.0.1", 0)
+    server = view.start_server(viewer, "127.0.0.1", 0).server
     try:
         assert server.scene.get_handle_by_name("/cameras/train/0000") is not None
     finally:
@@ -263,24 +269,24 @@ def test_the_page_in_headless_chromium_shows_a_frame_and_switching_model_changes
         if os.environ.get("CI") == "true":
             pytest.fail(f"no Chromium on this CI machine: {INSTALL}")
         pytest.skip(f"no Chromium: {INSTALL}")
-    viewer, server = served
+    viewer, page = served
     browser = Browser(binary)
     try:
-        browser.open(f"http://127.0.0.1:{server.get_port()}/")
-        first = wait_for(lambda: shown_full(viewer, "top2"), "the first full frame")
+        browser.open(f"http://127.0.0.1:{page.server.get_port()}/")
+        first = wait_for(lambda: shown_full(page, "top2"), "the first full frame")
         browser.js("document.querySelectorAll('.mantine-Notification-root button').forEach(b => b.click())")
         time.sleep(1.0)  # the frame reaches the page; the browser's notice (software WebGL) is closed
         before = browser.screenshot()
         if os.environ.get(SCREENSHOT_ENV):
             Path(os.environ[SCREENSHOT_ENV]).write_bytes(before)
         pick(browser, "model", "dvgo-12")
-        wait_for(lambda: shown_full(viewer, "dvgo-12"), "a frame of the model picked in the page")
+        wait_for(lambda: shown_full(page, "dvgo-12"), "a frame of the model picked in the page")
         time.sleep(1.0)
         after = browser.screenshot()
         press(browser, "go to view N")  # train view 0
-        wait_for(lambda: "PSNR" in viewer.gui["truth"].content, "the dataset view's PSNR")
+        wait_for(lambda: "PSNR" in page.controls.truth.content, "the dataset view's PSNR")
         time.sleep(2.0)  # the page reports the camera it was snapped to: it stays on the dataset view
-        assert [v.pinned for v in viewer.clients.values()] == [("train", 0)] and viewer.gui["gt"].visible
+        assert [v.pinned for v in viewer.clients.values()] == [("train", 0)] and page.controls.truth_image.visible
     finally:
         browser.close()
     import imageio.v3 as iio
@@ -290,9 +296,10 @@ def test_the_page_in_headless_chromium_shows_a_frame_and_switching_model_changes
     assert np.abs(a - b).max() > 50 and (np.abs(a - b).sum(-1) > 30).sum() > 100  # the render changed
 
 
-def shown_full(viewer, label: str) -> bool:
-    return viewer.label == label and any(v.last is not None and v.shown == (v.version, True) and
-                                         viewer.gui["stats"].content.startswith(f"**{label}**")
+def shown_full(page, label: str) -> bool:
+    viewer = page.viewer
+    return viewer.label == label and any(v.last is not None and v.phase is Phase.SHOWN and
+                                         page.controls.stats.content.startswith(f"**{label}**")
                                          for v in viewer.clients.values())
 
 
@@ -326,3 +333,121 @@ def pick(browser, label: str, option: str) -> None:
     item = f"Array.from(document.querySelectorAll('[role=option]')).find(e => e.textContent === {option!r})"
     for element in (field, item):
         click(browser, element)
+
+
+def test_a_camera_with_a_lens_scales_to_a_smaller_frame(tmp_path):
+    """`scaled` (the viewer's low-resolution frames, scripts/view_bench.py) on a dataset camera with a lens: it
+    multiplied the whole intrinsics row (11 numbers then) by 4 factors and failed; now the focal lengths and principal
+    point scale, the lens stays, and the half-size frame's rays are the full frame's at its pixel corners' mean."""
+    from boostnerf_cli.render.rays import image_rays
+    from boostnerf_cli.scenes import load_scene, make_scene
+    from boostnerf_cli.viewpoint.camera import scaled
+
+    split = load_scene(make_scene(tmp_path / "s", size=16, n_train=2, n_test=1, layout="nerfstudio",
+                                  lens="opencv")).splits["train"]
+    camera = dataset_camera(split, 0)
+    small = scaled(camera, 8)
+    assert (small.height, small.width) == (8, 8)
+    k, k2 = split.camera(0), Intrinsics.of(small.intrinsics)
+    assert k2.lens == k.lens and k2.fx == pytest.approx(k.fx / 2) and k2.cx == pytest.approx(k.cx / 2)
+    _, d = image_rays(small.pose, small.intrinsics, 8, 8)
+    assert torch.isfinite(d).all() and d.shape == (64, 3)
+
+
+# --- the viewer's states, without a browser -------------------------------------------------------------------------
+def _camera(viewer, shift: float = 0.0):
+    pose = opencv_pose(viewer.scene.split("train").poses[2])
+    return camera_for_view(pose[:3, :3], pose[:3, 3] + shift, 0.8, 1.0, viewer.size)
+
+
+def test_a_page_goes_from_preview_to_full_frame_and_back_on_any_change(viewer):
+    """One page: no camera, nothing due; a move: a low-resolution frame (a quarter a side); shown, nothing until the
+    camera is still; then the full frame; then nothing; a new map: due again. A frame rendered for a camera the page
+    has since left is shown but leaves it due."""
+    viewer.connect(1)
+    t = 100.0
+    assert viewer.clients[1].phase is Phase.WAITING and viewer.next_job(now=t) is None
+    assert viewer.moved(1, _camera(viewer), now=t)
+    job = viewer.next_job(now=t)
+    assert viewer.clients[1].phase is Phase.MOVED and not job.full
+    assert job.camera.height == max(16, viewer.size // PREVIEW)
+    viewer.drawn(job, viewer.draw(job.camera))
+    assert viewer.clients[1].phase is Phase.PREVIEWED and viewer.next_job(now=t + 0.01) is None
+    job = viewer.next_job(now=t + STILL)
+    assert job.full and job.camera.height == viewer.size
+    viewer.drawn(job, viewer.draw(job.camera))
+    assert viewer.clients[1].phase is Phase.SHOWN and viewer.clients[1].last[0] is job.camera
+    assert viewer.next_job(now=t + 10) is None
+    assert viewer.show(Look("routing"))
+    assert viewer.clients[1].phase is Phase.MOVED and viewer.next_job(now=t + 10).full
+    stale = viewer.next_job(now=t + 10)
+    viewer.moved(1, _camera(viewer, 0.1), now=t + 10)
+    viewer.drawn(stale, viewer.draw(stale.camera))
+    assert viewer.clients[1].phase is Phase.MOVED
+
+
+def test_a_page_that_keeps_moving_does_not_starve_the_others(viewer):
+    """Two pages: page 1 moves again after each of its frames, page 2 moved once: page 2's frame comes second, not
+    after page 1 stops (the old loop served the first page of the list whenever it had a frame due)."""
+    for cid in (1, 2):
+        viewer.connect(cid)
+    viewer.moved(1, _camera(viewer), now=10.0)
+    viewer.moved(2, _camera(viewer, 0.2), now=10.1)
+    served = []
+    for k in range(4):
+        job = viewer.next_job(now=10.2 + k * 0.01)
+        served.append(job.client)
+        viewer.drawn(job, viewer.draw(job.camera))
+        viewer.moved(1, _camera(viewer, 0.01 * (k + 1)), now=10.2 + k * 0.01)  # page 1 never stops
+    assert served[:2] == [1, 2], served
+    assert viewer.next_job(connected={1}, now=20.0).client == 1  # a page gone is not drawn for
+
+
+def test_a_page_snapped_to_a_dataset_view_stays_there_while_it_reports_moving_there(viewer):
+    """go to view N pins the page: its full frame is shown at once; the cameras it reports on its way there are not
+    moves (within SNAP seconds, or close to the view's); a camera elsewhere after that is."""
+    viewer.connect(3)
+    snap = viewer.go_to("train", 1, client=3)
+    view = viewer.clients[3]
+    assert view.pinned == ("train", 1) and view.phase is Phase.SHOWN and view.last == (snap.camera, snap.shot)
+    assert not viewer.moved(3, _camera(viewer), now=view.changed_at + SNAP / 2)
+    assert view.pinned == ("train", 1) and viewer.next_job(now=view.changed_at + 1) is None
+    assert viewer.moved(3, _camera(viewer), now=view.changed_at + SNAP + 1)
+    assert view.pinned is None and view.phase is Phase.MOVED
+
+
+def test_layers_and_their_nodes_are_held_once_by_the_page(served):
+    """A layer hidden stays hidden when its node is drawn again (a new model's box and cells): each scene node is
+    held once (`Nodes`), drawn as the viewer's `layers` say; the old node is removed, not left beside the new one."""
+    viewer, page = served
+    cells = page.nodes.cells
+    assert cells is not None and cells.visible
+    page.set_layer("cells", False)
+    assert viewer.layers["cells"] is False and not cells.visible and page.nodes.box.visible
+    page.set_layer("box", False)
+    page.draw_model_parts()  # what a new model does
+    assert page.nodes.cells is not cells and not page.nodes.cells.visible and not page.nodes.box.visible
+    assert page.server.scene.get_handle_by_name("/cells") is page.nodes.cells
+    page.set_layer("cells", True)
+    assert page.nodes.cells.visible
+    with pytest.raises(BoostNerfError, match="unknown layer"):
+        viewer.set_layer("grid", True)
+
+
+def test_a_checkpoint_is_read_through_the_task_code(mixture_ws, tmp_path):
+    """An expert in training is read from its checkpoint with `models.new_expert` and `tasks.load_field_state`, its
+    step the recipe's step_ratio: the same field and skip as the finished expert's file."""
+    from boostnerf_cli.tasks import load_field_state
+    from boostnerf_cli.viewpoint.viewer import checkpoint_model
+
+    ws = Workspace(mixture_ws)
+    finished = load_model(ws, "dvgo-12", "cpu")
+    state = {"meta": finished.field.config_dict(), "model": finished.field.state_dict(),
+             "skip": None, "skip_bbox": None}
+    ws.checkpoints_dir.mkdir(parents=True, exist_ok=True)
+    torch.save({"task": state, "signature": {}}, ws.checkpoint_path("dvgo-12"))
+    read = checkpoint_model(ws, "dvgo-12", "cpu")
+    assert read.name == "dvgo-12 (training)" and read.step == pytest.approx(finished.step)
+    for k, v in finished.field.state_dict().items():
+        assert torch.equal(read.field.state_dict()[k], v)
+    assert load_field_state(read.field, state) is None

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from boostnerf_cli.cameras import rows
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
@@ -30,7 +31,6 @@ from boostnerf_cli.scenes.frames import (
     frame_camera,
     frame_intrinsics,
     hold_out,
-    intrinsics_tensor,
     load_frames,
     lossy_extra,
     parse_pose,
@@ -122,7 +122,7 @@ def load_blender(
     splits, start = {}, 0
     for s in found:
         fs = parsed[s][0]
-        k = intrinsics_tensor([frame_intrinsics(f.camera, native, size, f"{f.source} in {folder}", f.image)
+        k = rows([frame_intrinsics(f.camera, native, size, f"{f.source} in {folder}", f.image)
                                for f in fs])
         poses = torch.tensor(np.stack([f.pose for f in fs]), dtype=torch.float32)
         splits[s] = Split(images[start : start + len(fs)], poses, k.float(), tuple(f.name for f in fs),

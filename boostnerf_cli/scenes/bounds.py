@@ -8,8 +8,8 @@ import warnings
 import torch
 from torch import Tensor
 
+from boostnerf_cli.cameras import PINHOLE
 from boostnerf_cli.errors import BoxWarning
-from boostnerf_cli.render.rays import PINHOLE
 from boostnerf_cli.render.renderer import Views
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.contraction import Contraction
 from boostnerf_cli.render.rays import NDC
 from boostnerf_cli.scenes.scene import Scene, SparsePoints, Split
@@ -61,7 +62,8 @@ def read(path: Path, key: str) -> Scene | None:
                      meta["source"], meta["format"], meta["holdout"], meta["extra"],
                      NDC(**meta["ndc"]) if meta["ndc"] is not None else None, points,
                      Contraction.from_dict(meta["contraction"]) if meta.get("contraction") else None)
-    except (SafetensorError, OSError, ValueError, KeyError, TypeError):  # damaged or foreign: decode again
+    except (SafetensorError, OSError, ValueError, KeyError, TypeError, BoostNerfError):  # damaged, foreign or of
+        # another layout: decode again
         return None
 
 

@@ -3,10 +3,10 @@
 
 The model is read by `colmap_model.py` (no COLMAP or pycolmap needed). Images are taken in file-name order; the image
 folder is chosen as for LLFF (`llff.choose_folder`) and the intrinsics are scaled from the camera's size to the images
-read. Camera models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE,
-RADIAL_FISHEYE and FULL_OPENCV without its rational terms (k4 = k5 = k6 = 0) are rendered as they are (rays through the
-inverse distortion, render/rays.py); any other is refused in one line. Images the model names that are not in the
-folder are left out, with a warning saying how many.
+read. Camera models: those of `cameras.MODELS` that boostnerf renders (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL,
+OPENCV, OPENCV_FISHEYE, FULL_OPENCV, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE) are rendered as they are (rays through the
+inverse distortion, cameras.py); any other (FOV, the thin-prism fisheyes) is refused in one line. Images the model
+names that are not in the folder are left out, with a warning saying how many.
 
 Two kinds of capture, told apart by the cameras' viewing directions:
 - **forward-facing** (every camera within `FORWARD_DEGREES` of the mean viewing direction, as LLFF's fern): each view's
@@ -29,15 +29,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from boostnerf_cli.cameras import Intrinsics, flip_axes, rows
 from boostnerf_cli.errors import BoostNerfError, DataWarning
-from boostnerf_cli.render.rays import lens_row
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox, point_bounds, point_near_far
-from boostnerf_cli.scenes.colmap_model import Model, ModelCamera, ModelImage, model_files, read_model
+from boostnerf_cli.scenes.colmap_model import Model, ModelImage, model_files, read_model
 from boostnerf_cli.scenes.frames import (
     Frame,
     SceneSpace,
     hold_out,
-    intrinsics_tensor,
     load_frames,
     lossy_extra,
     orientation_note,
@@ -53,22 +52,6 @@ FORWARD_DEGREES = 30.0  # every camera's axis within this of the mean axis: a fo
 # near bound; LLFF's own (from the 4032 x 3024 photos) put it at 0.93, and the points seen three or more times at
 # 0.93. Too near a bound scales the world up: the cameras spread 1.38x wider in the NDC, its box 10% wider.
 BOUND_TRACK = 3
-OPENCV_FROM_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes x right, y down, z forward <-> y up, z backward
-
-# model -> (names of its parameters, fisheye): f is fx = fy; the coefficients map onto render/rays.py LENS
-PARAMETERS = {
-    "SIMPLE_PINHOLE": (("f", "cx", "cy"), False),
-    "PINHOLE": (("fx", "fy", "cx", "cy"), False),
-    "SIMPLE_RADIAL": (("f", "cx", "cy", "k1"), False),
-    "RADIAL": (("f", "cx", "cy", "k1", "k2"), False),
-    "OPENCV": (("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"), False),
-    "FULL_OPENCV": (("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4r", "k5r", "k6r"), False),
-    "OPENCV_FISHEYE": (("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"), True),
-    "SIMPLE_RADIAL_FISHEYE": (("f", "cx", "cy", "k1"), True),
-    "RADIAL_FISHEYE": (("f", "cx", "cy", "k1", "k2"), True),
-}
-
-
 def model_folder(folder: Path) -> Path | None:
     """The COLMAP model of a scene folder: `sparse/0`, else the first other `sparse/<n>`, else `sparse` itself."""
     sparse = Path(folder) / "sparse"
@@ -89,22 +72,6 @@ def is_colmap(path: Path) -> str:
             + (f" and {', '.join(found)}" if found else ""))
 
 
-def camera_row(camera: ModelCamera, source: str) -> list[float]:
-    """The intrinsics row (render/rays.py) of a COLMAP camera, in pixels of its own width x height."""
-    if camera.model not in PARAMETERS:
-        raise BoostNerfError(f"{source}: camera model {camera.model} is not supported; boostnerf reads "
-                             f"{', '.join(PARAMETERS)}: undistort the images (colmap image_undistorter) and load the "
-                             "undistorted model")
-    names, fisheye = PARAMETERS[camera.model]
-    p = dict(zip(names, camera.params))
-    if any(p.get(k, 0.0) for k in ("k4r", "k5r", "k6r")):
-        raise BoostNerfError(f"{source}: FULL_OPENCV with rational distortion (k4, k5, k6 not zero) is not supported: "
-                             "undistort the images (colmap image_undistorter) or calibrate with the OPENCV model")
-    fx, fy = p.get("fx", p.get("f")), p.get("fy", p.get("f"))
-    coefficients = {k: p[k] for k in ("k1", "k2", "k3", "k4", "p1", "p2") if k in p}
-    return lens_row(fx, fy, p["cx"], p["cy"], coefficients, fisheye)
-
-
 def _frames(folder: Path, model: Model, image_size: int | None) -> tuple[list[Frame], list[int], Path]:
     """The frames of the model's images found in the chosen image folder (in name order), their image ids, the
     folder; a warning for those not found."""
@@ -117,7 +84,7 @@ def _frames(folder: Path, model: Model, image_size: int | None) -> tuple[list[Fr
         if path is None:
             missing.append(image.name)
             continue
-        pose = image.world_from_camera() @ OPENCV_FROM_OPENGL
+        pose = flip_axes(image.world_from_camera())
         frames.append(Frame(path, Path(image.name).with_suffix("").as_posix(), pose, {}, f"{sub.name}/{image.name}"))
         ids.append(iid)
     if not frames:
@@ -133,8 +100,8 @@ def _frames(folder: Path, model: Model, image_size: int | None) -> tuple[list[Fr
 
 def _intrinsics(model: Model, images: list[ModelImage], size: tuple[int, int], native: tuple[int, int],
                 files: list[Path], folder: Path) -> torch.Tensor:
-    """Each view's row scaled from its camera's size to the images read (`size`, h w); the aspect checked."""
-    rows = []
+    """Each view's intrinsics scaled from its camera's size to the images read (`size`, h w); the aspect checked."""
+    cameras = []
     for image, file in zip(images, files):
         cam = model.cameras[image.camera_id]
         source = f"{folder}: camera {image.camera_id} of image {image.name}"
@@ -142,10 +109,9 @@ def _intrinsics(model: Model, images: list[ModelImage], size: tuple[int, int], n
                             rel_tol=max(0.005, 1 / native[0] + 1 / native[1])):
             raise BoostNerfError(f"{source} is {cam.width} x {cam.height} but the image is {native[1]} x {native[0]}: "
                                  f"not the images the model was made from?{orientation_note(file)}")
-        row = camera_row(cam, source)
-        sx, sy = size[1] / cam.width, size[0] / cam.height
-        rows.append([row[0] * sx, row[1] * sy, row[2] * sx, row[3] * sy, *row[4:]])
-    return intrinsics_tensor(rows)
+        cameras.append(Intrinsics.from_colmap(cam.model, cam.params, source).scaled(size[1] / cam.width,
+                                                                                   size[0] / cam.height))
+    return rows(cameras)
 
 
 def forward_facing(poses: np.ndarray) -> bool:
@@ -193,7 +159,7 @@ def load_colmap(
         raise BoostNerfError(f"the COLMAP model in {sub_model} has no registered images: run the reconstruction "
                              "again (boostnerf capture)")
     for cid, cam in model.cameras.items():  # before any image is read
-        camera_row(cam, f"{sub_model}: camera {cid}")
+        Intrinsics.from_colmap(cam.model, cam.params, f"{sub_model}: camera {cid}")
     frames, ids, sub = _frames(folder, model, image_size)
     poses = np.stack([f.pose for f in frames])
     seen = _seen(model, ids)

@@ -1,7 +1,8 @@
 """COLMAP sparse models on disk: `cameras`, `images` and `points3D` in COLMAP's binary (`.bin`) or text (`.txt`)
 form, read and written without COLMAP or pycolmap (the formats of colmap/src/colmap/scene/reconstruction_io.cc).
 
-A model is kept as plain data: `Model` holds `ModelCamera`s (id -> model name, width, height, parameters),
+A model is kept as plain data: `Model` holds `ModelCamera`s (id -> model name, width, height, parameters; the models,
+their ids and parameters are `cameras.MODELS`),
 `ModelImage`s (id -> world-to-camera rotation as a quaternion w x y z and translation, OpenCV axes: x right,
 y down, z forward; camera id; file name; 2-D keypoints with the id of their 3-D point, -1 for none) and the points
 (id -> xyz, rgb, reprojection error, track of (image id, keypoint index)).
@@ -15,15 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from boostnerf_cli.cameras import MODEL_IDS, MODELS
 from boostnerf_cli.errors import BoostNerfError
-
-# COLMAP's camera models: id -> (name, number of parameters)
-CAMERA_MODELS = {
-    0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5), 4: ("OPENCV", 8),
-    5: ("OPENCV_FISHEYE", 8), 6: ("FULL_OPENCV", 12), 7: ("FOV", 5), 8: ("SIMPLE_RADIAL_FISHEYE", 4),
-    9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12), 11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16),
-}
-MODEL_IDS = {name: (i, n) for i, (name, n) in CAMERA_MODELS.items()}
 
 
 @dataclass
@@ -131,11 +125,11 @@ def _cameras_bin(path: Path) -> dict[int, ModelCamera]:
     f, cameras = _Bytes(path), {}
     for _ in range(f.take("<Q")[0]):
         cid, model_id, width, height = f.take("<iiQQ")
-        if model_id not in CAMERA_MODELS:
+        if model_id not in MODEL_IDS:
             raise BoostNerfError(f"{path}: camera {cid} has an unknown camera model id {model_id}: not a COLMAP model "
                                  "this reader knows; export it as text (colmap model_converter --output_type TXT)")
-        name, n = CAMERA_MODELS[model_id]
-        cameras[cid] = ModelCamera(name, int(width), int(height), list(f.take(f"<{n}d")))
+        m = MODEL_IDS[model_id]
+        cameras[cid] = ModelCamera(m.name, int(width), int(height), list(f.take(f"<{len(m.params)}d")))
     return cameras
 
 
@@ -234,7 +228,7 @@ def read_model(folder: Path) -> Model:
             raise BoostNerfError(f"{folder}: image {image.name} names camera {image.camera_id}, which is not in "
                                  f"cameras.{ext}: export the model again")
     for cid, cam in cameras.items():
-        expected = MODEL_IDS.get(cam.model, (None, len(cam.params)))[1]
+        expected = len(MODELS[cam.model].params) if cam.model in MODELS else len(cam.params)
         if len(cam.params) != expected:
             raise BoostNerfError(f"{folder}: camera {cid} ({cam.model}) has {len(cam.params)} parameters, expected "
                                  f"{expected}: export the model again")
@@ -254,7 +248,7 @@ def write_model(model: Model, folder: Path, ext: str = "bin") -> None:
         return
     cams = [struct.pack("<Q", len(model.cameras))]
     for cid, cam in model.cameras.items():
-        cams.append(struct.pack(f"<iiQQ{len(cam.params)}d", cid, MODEL_IDS[cam.model][0], cam.width, cam.height,
+        cams.append(struct.pack(f"<iiQQ{len(cam.params)}d", cid, MODELS[cam.model].colmap_id, cam.width, cam.height,
                                 *cam.params))
     (folder / "cameras.bin").write_bytes(b"".join(cams))
     imgs = [struct.pack("<Q", len(model.images))]

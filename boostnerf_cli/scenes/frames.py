@@ -22,8 +22,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from boostnerf_cli.cameras import MODELS, Intrinsics, Lens, focal_for_fov
 from boostnerf_cli.errors import BoostNerfError, DataWarning
-from boostnerf_cli.render.rays import NDC, PINHOLE, lens_row
+from boostnerf_cli.render.rays import NDC
 from boostnerf_cli.scenes.scene import Scene, Split
 
 
@@ -254,22 +255,26 @@ def read_transforms(path: Path, may_be_empty: bool = False) -> dict:
     return meta
 
 
+# a transforms file's lens coefficients (nerfstudio's keys): the `cameras.Lens` fields of the same names
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-# camera_model values of a transforms file (nerfstudio's and COLMAP's names) that boostnerf renders as they are,
-# -> whether the model is a fisheye; the coefficients are the file's k1..k4, p1, p2 (render/rays.py `distort`)
-LENS_MODELS = {"PINHOLE": False, "SIMPLE_PINHOLE": False, "SIMPLE_RADIAL": False, "RADIAL": False, "OPENCV": False,
-               "OPENCV_FISHEYE": True}
 LENS_KEYS = ("camera_model", *DISTORTION_KEYS)
+
+
+def lens_models() -> tuple[str, ...]:
+    """The camera_model values of a transforms file boostnerf renders as they are: COLMAP's models (`cameras.MODELS`)
+    whose lens the file's keys hold (FULL_OPENCV's rational terms have no nerfstudio key)."""
+    return tuple(m.name for m in MODELS.values() if m.renders and set(m.fields) <= {"f", "fx", "fy", "cx", "cy",
+                                                                                     *DISTORTION_KEYS})
 
 
 def check_lens(entry: dict, source: str) -> None:
     """Refuse a transforms entry (the file's top level or a frame) whose camera boostnerf cannot render: a
-    camera_model outside `LENS_MODELS` (an equirectangular or omnidirectional camera), a coefficient that is no
+    camera_model outside `lens_models()` (an equirectangular or omnidirectional camera), a coefficient that is no
     number, or tangential p1 / p2 on a fisheye (which has none)."""
     model = entry.get("camera_model")
-    if model is not None and str(model).upper() not in LENS_MODELS:
+    if model is not None and str(model).upper() not in lens_models():
         raise BoostNerfError(
-            f"{source}: camera_model {model} is not supported; boostnerf renders {', '.join(LENS_MODELS)} cameras: "
+            f"{source}: camera_model {model} is not supported; boostnerf renders {', '.join(lens_models())} cameras: "
             "undistort the images to a pinhole camera first (e.g. COLMAP image_undistorter) and write camera_model "
             "PINHOLE"
         )
@@ -282,21 +287,16 @@ def check_lens(entry: dict, source: str) -> None:
             raise BoostNerfError(f"{source}: distortion {key} must be a finite number, got {value!r}") from None
 
 
-def frame_lens(camera: dict, source: str) -> list[float]:
-    """The lens part of an intrinsics row (render/rays.py `LENS`) for a frame's merged `camera` (`frame_camera`):
-    [] for a pinhole camera (no coefficient set, not a fisheye)."""
-    fisheye = LENS_MODELS[str(camera.get("camera_model") or "OPENCV").upper()]
+def frame_lens(camera: dict, source: str) -> Lens | None:
+    """The lens of a frame's merged `camera` (`frame_camera`): None for a pinhole camera (no coefficient set, not a
+    fisheye)."""
+    fisheye = MODELS[str(camera.get("camera_model") or "OPENCV").upper()].fisheye
     coefficients = {k: float(camera[k]) for k in DISTORTION_KEYS if camera.get(k) is not None}
     if fisheye and (coefficients.get("p1") or coefficients.get("p2")):
         raise BoostNerfError(f"{source}: camera_model OPENCV_FISHEYE has no tangential distortion, but p1 / p2 are "
                              "set: remove them, or give the camera model that estimated them")
-    return lens_row(0.0, 0.0, 0.0, 0.0, coefficients, fisheye)[PINHOLE:]
-
-
-def intrinsics_tensor(rows: list[list[float]]) -> Tensor:
-    """(N, 4) float32 for pinhole rows, or (N, 11) when any row has a lens (the others padded with zeros)."""
-    width = max(len(r) for r in rows)
-    return torch.tensor([r + [0.0] * (width - len(r)) for r in rows], dtype=torch.float32)
+    lens = Lens(**coefficients, fisheye=fisheye)
+    return lens if lens.bends else None
 
 
 FOCAL_KEYS = (("fl_x", "camera_angle_x"), ("fl_y", "camera_angle_y"))  # two ways to give each axis's focal length
@@ -380,8 +380,8 @@ def camera_number(camera: dict, key: str, source: str) -> float | None:
 
 
 def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int], source: str,
-                     image: Path | None = None) -> list[float]:
-    """fx, fy, cx, cy in pixels of the stored (downscaled) image, then the lens (`frame_lens`) when it has one.
+                     image: Path | None = None) -> Intrinsics:
+    """fx, fy, cx, cy in pixels of the stored (downscaled) image, and the lens (`frame_lens`).
 
     The JSON values refer to an image of `w` x `h` pixels (default, both unset: the native image size); every
     value is scaled per axis by stored / JSON size. `w` and `h` must come together and have the native image's
@@ -407,7 +407,7 @@ def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int
         angle = number(angle_key)
         if not 0 < angle < math.pi:
             raise BoostNerfError(f"{source}: {angle_key} = {angle!r}: a field of view must be in (0, pi) radians")
-        return 0.5 * size / math.tan(0.5 * angle)
+        return focal_for_fov(angle, size)
 
     h_json = h or float(native[0])
     w_json = w or float(native[1])
@@ -428,7 +428,7 @@ def frame_intrinsics(camera: dict, native: tuple[int, int], size: tuple[int, int
     cx = number("cx") if camera["cx"] is not None else w_json / 2
     cy = number("cy") if camera["cy"] is not None else h_json / 2
     sx, sy = size[1] / w_json, size[0] / h_json
-    return [fx * sx, fy * sy, cx * sx, cy * sy, *frame_lens(camera, source)]
+    return Intrinsics(fx, fy, cx, cy, frame_lens(camera, source)).scaled(sx, sy)
 
 
 # ----------------------------------------------------------------------------- splits

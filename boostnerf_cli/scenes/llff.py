@@ -32,8 +32,9 @@ import numpy as np
 import torch
 from PIL import Image
 
+from boostnerf_cli.cameras import Intrinsics
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.render.rays import NDC, has_lens, pixel_rays
+from boostnerf_cli.render.rays import NDC, pixel_rays
 from boostnerf_cli.scenes.frames import (
     IMAGE_SUFFIXES,
     Frame,
@@ -162,8 +163,9 @@ def ndc_bbox(ndc: NDC, poses: torch.Tensor, intrinsics: torch.Tensor, height: in
     rays along each side of its border (render/rays.py `pixel_rays`) instead of the corners.
     """
     pts = []
-    for pose, k in zip(poses.double(), intrinsics.double()):
-        uv = frame_border(height, width, 16 if has_lens(k) else 1)
+    for pose, row in zip(poses.double(), intrinsics.double()):
+        k = Intrinsics.of(row)
+        uv = frame_border(height, width, 16 if k.lens is not None else 1)
         d = pixel_rays(uv, k) @ pose[:3, :3].T
         o, dn = ndc.rays(pose[:3, 3].expand(len(d), 3), d)
         end = o + ((1.0 - o[:, 2]) / dn[:, 2].clamp_min(1e-12))[:, None] * dn

@@ -4,8 +4,10 @@ Layout: `transforms.json` with `frames`, each with a `file_path` (relative to th
 4x4 camera-to-world `transform_matrix` in the OpenGL convention (as Blender). Intrinsics
 `fl_x`, `fl_y`, `cx`, `cy`, `w`, `h` are global (top level) or per frame (a frame's value wins);
 `fl_y` defaults to `fl_x`, `cx`/`cy` to the image centre, `w`/`h` to the image size. Lens distortion is read as
-it is: `camera_model` PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV (radial `k1 k2 k3 k4` and
-tangential `p1 p2`) or OPENCV_FISHEYE (`k1..k4`); rays go through the inverse distortion (render/rays.py).
+it is: `camera_model` one of COLMAP's models whose lens nerfstudio's keys hold (`frames.lens_models`: PINHOLE,
+SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV with radial `k1 k2 k3 k4` and tangential `p1 p2`, and the fisheyes
+OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE with `k1..k4`; cameras.py); rays go through the inverse
+distortion.
 Frames whose image is missing are left out, with a warning that says how many (a deleted blurry photo).
 
 There are no splits: every `holdout_every`-th view (in file order) is held out as `test`. nerfstudio
@@ -21,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from boostnerf_cli.cameras import rows
 from boostnerf_cli.errors import BoostNerfError, DataWarning
 from boostnerf_cli.scenes.bounds import camera_near_far, frustum_overlap_bbox
 from boostnerf_cli.scenes.frames import (
@@ -32,7 +35,6 @@ from boostnerf_cli.scenes.frames import (
     frame_camera,
     frame_intrinsics,
     hold_out,
-    intrinsics_tensor,
     load_frames,
     lossy_extra,
     parse_pose,
@@ -88,7 +90,7 @@ def load_nerfstudio(
     bg = torch.tensor(background, dtype=torch.float32)
     images, alpha, native = load_frames(frames, image_size, bg)
     size = tuple(images.shape[1:3])
-    k = intrinsics_tensor([frame_intrinsics(f.camera, native, size, f.source, f.image) for f in frames])
+    k = rows([frame_intrinsics(f.camera, native, size, f.source, f.image) for f in frames])
     poses = torch.tensor(np.stack([f.pose for f in frames]), dtype=torch.float32)
     splits = {"train": Split(images, poses, k, tuple(f.name for f in frames), alpha)}
     holdout = ""

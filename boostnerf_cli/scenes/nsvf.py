@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from boostnerf_cli.cameras import Intrinsics, flip_axes
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.bounds import (
     box_near_far,
@@ -45,7 +46,6 @@ from boostnerf_cli.scenes.frames import (
 from boostnerf_cli.scenes.scene import Scene, Split
 
 PREFIXES = {"0": "train", "1": "val", "2": "test"}
-OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def _images(folder: Path) -> list[Path]:
@@ -139,7 +139,7 @@ def read_pose(path: Path) -> np.ndarray:
     pose[: len(flat) // 4] = np.array(flat).reshape(-1, 4)
     if not np.isfinite(pose).all():
         raise BoostNerfError(f"pose file {path} contains NaN or infinite values; fix the pose")
-    return pose @ OPENCV_TO_OPENGL
+    return flip_axes(pose)
 
 
 def read_bbox(folder: Path) -> torch.Tensor | None:
@@ -206,7 +206,7 @@ def load_nsvf(
     images, alpha, native = load_frames(ordered, image_size, bg)
     size = tuple(images.shape[1:3])
     sx, sy = size[1] / native[1], size[0] / native[0]
-    k = torch.tensor([fx * sx, fy * sy, cx * sx, cy * sy], dtype=torch.float32)
+    k = torch.tensor(Intrinsics(fx, fy, cx, cy).scaled(sx, sy).row(), dtype=torch.float32)
     splits, start = {}, 0
     for s in order:
         fs = frames[s]

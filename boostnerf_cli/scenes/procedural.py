@@ -31,8 +31,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from boostnerf_cli.cameras import PINHOLE, Intrinsics, Lens, flip_axes, rows
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.render.rays import PINHOLE, image_rays, intersect_box, lens_row, project_points
+from boostnerf_cli.render.rays import image_rays, intersect_box, project_points
 
 CAMERA_ANGLE_X = 0.6911
 RADIUS = 4.0
@@ -329,9 +330,7 @@ def render_view(objects: list[dict], pose: Tensor, intrinsics: Tensor, size: int
     the pixel centres of a `supersample`-times larger image; their premultiplied colours are averaged.
     """
     s = supersample
-    scale = torch.ones_like(intrinsics)
-    scale[:PINHOLE] = s  # a lens's coefficients act on normalized coordinates: the same at any size
-    o, d = image_rays(pose, intrinsics * scale, size * s, size * s)
+    o, d = image_rays(pose, Intrinsics.of(intrinsics).scaled(s), size * s, size * s)
     o, d = o.double(), d.double()
     hits = [intersect(obj, o, d) for obj in objects]
     if not hits:  # no object: every ray misses
@@ -591,12 +590,11 @@ def _write_nsvf(out: Path, views: dict, focal: float, size: int, masked: bool) -
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "pose").mkdir(parents=True, exist_ok=True)
     prefix = {"train": "0", "test": "1" if masked else "2"}
-    opencv = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenGL <-> OpenCV camera axes (an involution)
     for split, (poses, rgbas) in views.items():
         for i, (pose, rgba) in enumerate(zip(poses, rgbas)):
             stem = f"{prefix[split]}_{split}_{i:04d}"
             iio.imwrite(out / "rgb" / f"{stem}.png", _on_white(rgba) if masked else _to8(rgba))
-            np.savetxt(out / "pose" / f"{stem}.txt", pose @ opencv, fmt="%.17g")
+            np.savetxt(out / "pose" / f"{stem}.txt", flip_axes(pose), fmt="%.17g")
     c = size / 2
     if masked:
         k = np.array([[focal, 0, c, 0], [0, focal, c, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
@@ -754,7 +752,7 @@ def _write_colmap(out: Path, views: dict, k: Tensor, size: int, lens: str, objec
         tracks.append(np.array(track, dtype=np.int64))
     images = {}
     for j, pose in enumerate(poses):
-        w2c = np.linalg.inv(pose @ np.diag([1.0, -1.0, -1.0, 1.0]))
+        w2c = np.linalg.inv(flip_axes(pose))
         obs = np.array(observations[j], dtype=np.float64).reshape(-1, 3)
         images[j + 1] = ModelImage(quaternion(w2c[:3, :3]), w2c[:3, 3], 1, f"image{j:03d}.png", obs[:, :2],
                                    obs[:, 2].astype(np.int64))
@@ -827,7 +825,7 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
                        "unbounded": ring_poses}[rig](n_train, n_test)
     angle = RING_ANGLE_X if rig in OPAQUE_RIGS else CAMERA_ANGLE_X
     focal = 0.5 * size / math.tan(0.5 * angle)
-    k = torch.tensor(lens_row(focal, focal, size / 2, size / 2, *LENSES[lens]))
+    k = rows([Intrinsics(focal, focal, size / 2, size / 2, Lens(**LENSES[lens][0], fisheye=LENSES[lens][1]))])[0]
     views = {}
     with _single_thread():
         for split, poses in (("train", train), ("test", test)):

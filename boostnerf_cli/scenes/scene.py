@@ -4,8 +4,8 @@ Conventions (the same for every dataset format):
 - poses are camera-to-world 4x4 matrices in the OpenGL / Blender convention: the camera looks
   down its -z axis, +y is up in the image, +x is right;
 - intrinsics are per view, `(fx, fy, cx, cy)` in pixels of the stored (possibly downscaled)
-  images, with pixel centres at integer + 0.5; a camera with lens distortion adds its coefficients
-  (`render.rays.LENS`: k1..k4, p1, p2, fisheye), and its rays go through the inverse distortion;
+  images, with pixel centres at integer + 0.5; a camera with lens distortion adds its lens (the row of
+  `cameras.Intrinsics.row`; read one with `Split.camera`), and its rays go through the inverse distortion;
 - images are float32 RGB in [0, 1], already composited on `background` when they had alpha; a split keeps
   that alpha (`Split.alpha`) so that training can composite a pixel on another colour (`train.random_background`);
 - `bbox`, `near` and `far` are where the renderer samples. For forward-facing scenes (`ndc` set,
@@ -22,9 +22,10 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from boostnerf_cli.cameras import ROW_WIDTHS, Intrinsics
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.contraction import Contraction
-from boostnerf_cli.render.rays import LENS, NDC, PINHOLE, WITH_LENS
+from boostnerf_cli.render.rays import NDC
 from boostnerf_cli.render.renderer import COLOR_THRESHOLD, RenderSettings
 
 
@@ -34,7 +35,8 @@ class Split:
 
     images: Tensor  # (N, H, W, 3) float32 in [0, 1]
     poses: Tensor  # (N, 4, 4) float32 camera-to-world
-    intrinsics: Tensor  # (N, 4) float32: fx, fy, cx, cy in pixels; (N, 11) with a lens (render/rays.py LENS)
+    # (N, 4) float32: fx, fy, cx, cy in pixels; (N, 11) with a lens, (N, 14) a rational one (cameras.Intrinsics.row)
+    intrinsics: Tensor
     names: tuple[str, ...]
     alpha: Tensor | None = None  # (N, H, W) float32 in [0, 1], the images' coverage; None: every pixel opaque
 
@@ -44,9 +46,9 @@ class Split:
             raise BoostNerfError(f"split images must be (N, H, W, 3), got {tuple(self.images.shape)}")
         if self.poses.shape != (n, 4, 4):
             raise BoostNerfError(f"expected {n} poses of shape 4x4, got {tuple(self.poses.shape)}")
-        if self.intrinsics.shape not in ((n, PINHOLE), (n, WITH_LENS)):
-            raise BoostNerfError(f"expected {n} intrinsics (fx, fy, cx, cy, then optionally the lens "
-                                 f"{' '.join(LENS)}), got {tuple(self.intrinsics.shape)}")
+        if self.intrinsics.ndim != 2 or self.intrinsics.shape[0] != n or self.intrinsics.shape[1] not in ROW_WIDTHS:
+            raise BoostNerfError(f"expected {n} intrinsics rows (cameras.Intrinsics.row: fx, fy, cx, cy, then "
+                                 f"optionally the lens), got {tuple(self.intrinsics.shape)}")
         if self.alpha is not None and self.alpha.shape != self.images.shape[:3]:
             raise BoostNerfError(f"split alpha must be (N, H, W) = {tuple(self.images.shape[:3])}, "
                                  f"got {tuple(self.alpha.shape)}")
@@ -63,6 +65,10 @@ class Split:
 
     def __len__(self) -> int:
         return self.images.shape[0]
+
+    def camera(self, i: int) -> Intrinsics:
+        """View `i`'s intrinsics and lens."""
+        return Intrinsics.of(self.intrinsics[i])
 
     @property
     def height(self) -> int:

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from boostnerf_cli.cameras import rendered_models
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes.frames import IMAGE_SUFFIXES, one_line
 from boostnerf_cli.train import Progress
@@ -44,7 +45,7 @@ SEQUENTIAL_OVERLAP = 10  # a video frame is matched with this many next frames
 LOOP_NEIGHBOURS = 5  # and with this many most similar frames farther away (loop closure)
 VOCABULARY_WORDS = 256
 VIDEO_FRAMES = 100  # a 30-60 s phone video: one frame every 0.3-0.6 s
-CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE")
+CAMERA_MODELS = rendered_models()  # the models capture estimates: those boostnerf renders (cameras.MODELS)
 PHASES = ("images", "features", "matching", "mapping", "downscale")
 INSTALL = 'pip install -e ".[capture]"  (or: pip install pycolmap)'
 

@@ -7,7 +7,7 @@ Files (all under WS/renders/, see docs/stages.md):
   `<...>_depth.mp4`; an MP4 without the ffmpeg backend is refused before anything is rendered;
 - `render --compare`: `compare/<split>/<view>.png`;
 - `render --per-expert` (mixtures): `<model>/<split>/<view>_expert<i>-<name>.png`,
-  `<view>_gate<i>-<name>.png` and the montage `<view>_experts.png` (the maps: `viewpoint.py`, which the viewer
+  `<view>_gate<i>-<name>.png` and the montage `<view>_experts.png` (the maps: `viewpoint/maps.py`, which the viewer
   shares);
 - `render --camera VIEW.json`: `<model>/views/VIEW.png`, a view `boostnerf view` saved, rendered again.
 """
@@ -39,15 +39,10 @@ from boostnerf_cli.render.packing import Packer, packer_for
 from boostnerf_cli.render.paths import camera_path
 from boostnerf_cli.render.renderer import Camera, render_image
 from boostnerf_cli.scenes import Scene, Split
-from boostnerf_cli.viewpoint import (
-    dataset_camera,
-    expert_share,
-    gate_probability,
-    grey,
-    picture,
-    read_view,
-    routing_colours,
-)
+from boostnerf_cli.viewpoint.camera import dataset_camera
+from boostnerf_cli.viewpoint.frame import picture
+from boostnerf_cli.viewpoint.maps import expert_share, gate_probability, grey, routing_colours
+from boostnerf_cli.viewpoint.saved import read_view
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
