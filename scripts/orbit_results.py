@@ -3,6 +3,8 @@
 
     python scripts/orbit_results.py OUT [RIG ...] [--record] [--size 252]  (rigs: half-orbit quarter-orbit)
 
+--size sets the photos' side and the recipe's data.image_size (the capture recipe's 252 by default).
+
 1. `boostnerf make-scene OUT/RIG/scene --format nerfstudio --rig RIG --content textured --size 252 --train-views 28
    --test-views 4`: the procedural objects on a table in a closed, dotted room, photographed from an arc of 180 or 90
    degrees at table height and a little above (every 8th view held out: 4 test views);
@@ -42,9 +44,9 @@ def cli(*args: str) -> None:
                    env={**os.environ, "PYTHONPATH": str(ROOT)})
 
 
-def chain(out: Path, scene: Path, kind: str) -> dict:
+def chain(out: Path, scene: Path, kind: str, size: int) -> dict:
     rec = yaml.safe_load(RECIPE.read_text())
-    rec["data"]["scene"] = kind
+    rec["data"].update(scene=kind, image_size=size)
     recipe = out / f"recipe-{kind}.yaml"
     recipe.write_text(yaml.safe_dump(rec, sort_keys=False))
     ws = out / f"ws-{kind}"
@@ -61,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", type=Path)
     ap.add_argument("rigs", nargs="*", default=list(RIGS))
-    ap.add_argument("--size", type=int, default=252)
+    ap.add_argument("--size", type=int, default=252, help="the photos' side and the recipe's data.image_size")
     ap.add_argument("--record", action="store_true", help="write the reports under docs/data")
     args = ap.parse_args(argv)
     rows = []
@@ -73,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
                 "--size", str(args.size), "--train-views", "28", "--test-views", "4")
         auto = load_scene(scene).extra["kind"]
         print(f"{rig}: auto picks {auto['kind']} ({auto['why']})")
-        reports = {kind: chain(out, scene, kind) for kind in KINDS}
+        reports = {kind: chain(out, scene, kind, args.size) for kind in KINDS}
         for kind, report in reports.items():
             print(f"{rig} {kind}: " + ", ".join(f"{m['name']} {m['psnr']:.2f}" for m in report["models"]))
             if args.record:
