@@ -219,6 +219,41 @@ def test_capture_without_pycolmap_says_how_to_install(tmp_path, monkeypatch, cap
     _refused(monkeypatch, capsys, tmp_path, "--images", str(_photos(tmp_path / "p", 3)), needle='.[capture]"')
 
 
+def test_a_photo_replaced_in_place_is_another_input(tmp_path, monkeypatch):
+    """A photo overwritten under the same name, with the same size in bytes and its old modification time (the
+    folder's own time unchanged), is another input: the images phase a stopped capture finished is done again from
+    the new photo."""
+    pytest.importorskip("pycolmap")
+    import os
+
+    from PIL import Image
+
+    from boostnerf_cli.stages import capture
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(3):  # uncompressed: the same size in bytes for any content
+        Image.fromarray(rng.integers(0, 255, (30, 40, 3), dtype=np.uint8)).save(photos / f"p{i}.png", compress_level=0)
+
+    def stop(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(capture, "_extract", stop)  # the images phase finishes, the features are never made
+    work = tmp_path / ".cap.capture" / "images"
+    with pytest.raises(KeyboardInterrupt):
+        capture.run(photos, None, tmp_path / "cap", capture.CaptureOptions(), force=False)
+    assert (work / "p1.png").read_bytes() == (photos / "p1.png").read_bytes()
+    before, folder = (photos / "p1.png").stat(), photos.stat()
+    Image.fromarray(rng.integers(0, 255, (30, 40, 3), dtype=np.uint8)).save(photos / "p1.png", compress_level=0)
+    os.utime(photos / "p1.png", ns=(before.st_atime_ns, before.st_mtime_ns))
+    os.utime(photos, ns=(folder.st_atime_ns, folder.st_mtime_ns))
+    assert (photos / "p1.png").stat().st_size == before.st_size
+    with pytest.raises(KeyboardInterrupt):
+        capture.run(photos, None, tmp_path / "cap", capture.CaptureOptions(), force=False)
+    assert (work / "p1.png").read_bytes() == (photos / "p1.png").read_bytes()
+
+
 def test_too_few_registered_photos_say_how_many_and_what_to_do():
     from boostnerf_cli.stages.capture import check_registered
 

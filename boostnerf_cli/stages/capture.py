@@ -17,12 +17,16 @@ Retrieval needs no downloaded vocabulary: a visual vocabulary of `VOCABULARY_WOR
 capture's own SIFT descriptors (k-means), each image becomes a tf-idf histogram of its words, and the most similar
 histograms give the pairs. COLMAP's vocabulary-tree matching would need a vocabulary file to be downloaded.
 
+The inputs are known by their content (`fingerprint`: each file's name and size, and a digest of their bytes): a
+finished capture of the same inputs and settings is kept, and a photo replaced under the same name is another input.
+
 Everything is written into a hidden work folder beside the output (`.NAME.capture`) and renamed to the output only when
 every phase is done: a capture stopped half way leaves nothing that `pretrain` would take for a scene.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import shutil
 import time
@@ -140,9 +144,6 @@ def video_frames(path: Path, count: int, out: Path) -> dict[str, float]:
     import imageio.v3 as iio
     import imageio_ffmpeg
     from skimage.measure import blur_effect
-
-    if not path.is_file():
-        raise BoostNerfError(f"--video {path} is not a file: give the video's path")
 
     def frames(params=None):
         try:
@@ -397,12 +398,28 @@ def _downscale(work: Path, names: list[str]) -> list[str]:
 # ----------------------------------------------------------------------------- the command
 
 
+def fingerprint(files: list[Path]) -> dict:
+    """What a capture is made from, by content: each file's name and size, and one digest of their bytes in that
+    order. A photo replaced under the same name, even of the same size and with its old modification time, gives
+    another digest."""
+    digest = hashlib.blake2b(digest_size=16)
+    for f in files:
+        digest.update(f"{f.name}|{f.stat().st_size}|".encode())
+        with open(f, "rb") as stream:
+            while block := stream.read(1 << 20):
+                digest.update(block)
+    return {"files": [[f.name, f.stat().st_size] for f in files], "digest": digest.hexdigest()}
+
+
 def _inputs(images: Path | None, video: Path | None) -> dict:
+    """The command's inputs as its report records them: where they are and their content (`fingerprint`)."""
     if (images is None) == (video is None):
         raise BoostNerfError("give either --images DIR (photos) or --video FILE, one of the two")
-    source = images if images is not None else video
+    if video is not None and not video.is_file():
+        raise BoostNerfError(f"--video {video} is not a file: give the video's path")
+    files = photo_files(images) if images is not None else [video]
     return {"images": str(images.resolve()) if images else None, "video": str(video.resolve()) if video else None,
-            "modified": source.stat().st_mtime_ns if source.exists() else None}
+            **fingerprint(files)}
 
 
 def _work_folder(out: Path) -> Path:
