@@ -120,9 +120,8 @@ def test_a_forward_facing_colmap_capture_is_sampled_in_ndc(tmp_path):
 
 
 def test_a_point_only_two_photos_see_does_not_set_a_forward_views_near_bound(tmp_path):
-    """A two-view point far in front of the content (as a capture of fern's 504 x 378 photos held: it put the
-    nearest view's near bound at 0.66 of the median, LLFF's own at 0.93) leaves the depth bounds, and so the scale,
-    the poses and the NDC box, as they were: bounds come from the points three or more photos see."""
+    """A two-view point far in front of the content leaves the depth bounds, and so the scale, the poses and the
+    NDC box, as they were: bounds come from the points three or more photos see."""
     folder = make_scene(tmp_path / "f", size=32, n_train=10, n_test=2, layout="colmap", rig="forward")
     clean = load_scene(folder)
     model = read_model(folder / "sparse" / "0")
@@ -350,9 +349,9 @@ LENS_RECIPE = {"data": {"holdout_every": 8, "image_size": REMOVE},  # the photos
 def test_a_distorted_capture_trains_to_its_pinhole_twin(tmp_path):
     """The same cameras and scene, photographed through a pinhole and through an OPENCV lens (k1 -0.3, up to 2.4 px
     at the corners of 48 px views): DVGO-24 trained on the distorted photos with the lens read, rendered at the
-    twin's held-out pinhole views, reaches the pinhole-trained expert's PSNR (measured: 24.87 against 24.68 dB: it
-    sees a little more of the scene through the wider lens), while the same photos read as pinhole photos (the lens
-    dropped from transforms.json) fall short (24.12 dB: the geometry it learns is bent)."""
+    twin's held-out pinhole views, reaches the pinhole-trained expert's PSNR, while the same photos read as pinhole
+    photos (the lens dropped from transforms.json) fall short: the geometry it learns is bent (docs/datasets.md,
+    "Lenses", gives the figures)."""
     from boostnerf_cli.metrics.image import psnr
     from boostnerf_cli.models import load_model
     from boostnerf_cli.render.renderer import render_view

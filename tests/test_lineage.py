@@ -84,8 +84,7 @@ def _counting_reads(monkeypatch) -> dict:
 
 def test_finetune_reads_each_header_once(mixture_ws, tmp_path, monkeypatch):
     """A finished top2 asked for again: moe/init's staleness, the routing, the source digest and the finished model's
-    signature come from one survey, each file's header read once (a finetune once read moe/init's up to three
-    times, through three separate staleness checks)."""
+    signature come from one survey, each file's header read once, not once per staleness check."""
     import shutil
 
     from boostnerf_cli.lineage import Survey
