@@ -35,19 +35,45 @@ def test_undistort_inverts_distort(lens):
     assert (distort(xy, lens) - xy).abs().max() > 1e-3  # the lens does bend
 
 
-def test_distortion_is_colmaps():
-    """The same pixel as COLMAP's own OPENCV and OPENCV_FISHEYE models give for a camera-space point."""
+# every camera model boostnerf reads, with its lens coefficients set (FULL_OPENCV's rational k4-k6 stay 0: refused)
+MODEL_PARAMS = {
+    "SIMPLE_PINHOLE": [100.0, 33.0, 23.0],
+    "PINHOLE": [100.0, 108.0, 33.0, 23.0],
+    "SIMPLE_RADIAL": [100.0, 33.0, 23.0, -0.12],
+    "RADIAL": [100.0, 33.0, 23.0, -0.12, 0.04],
+    "OPENCV": [100.0, 108.0, 33.0, 23.0, -0.2, 0.05, 0.002, -0.001],
+    "FULL_OPENCV": [100.0, 108.0, 33.0, 23.0, -0.2, 0.05, 0.002, -0.001, 0.01, 0.0, 0.0, 0.0],
+    "OPENCV_FISHEYE": [100.0, 108.0, 33.0, 23.0, 0.08, -0.03, 0.01, -0.002],
+    "SIMPLE_RADIAL_FISHEYE": [100.0, 33.0, 23.0, 0.06],
+    "RADIAL_FISHEYE": [100.0, 33.0, 23.0, 0.06, -0.02],
+}
+
+
+@pytest.mark.parametrize("model", MODEL_PARAMS)
+def test_every_camera_model_projects_as_colmap_does(model, tmp_path):
+    """A camera of each model COLMAP writes (pycolmap's own writer), read by the model reader and turned into an
+    intrinsics row by the loader's table (`camera_row`): points project to the pixels pycolmap's `img_from_cam`
+    gives, and the rays through pixels go where its `cam_from_img` says."""
     pycolmap = pytest.importorskip("pycolmap")
-    xy = np.random.default_rng(0).uniform(-0.5, 0.5, (50, 2))
-    for model, params, lens in (("OPENCV", [100, 110, 32, 24, -0.2, 0.05, 0.002, -0.001], LENS_ROWS["opencv"]),
-                                ("OPENCV_FISHEYE", [100, 110, 32, 24, 0.08, -0.03, 0.01, -0.002],
-                                 LENS_ROWS["fisheye"])):
-        cam = pycolmap.Camera.create_from_model_name(1, model, 100.0, 64, 48)
-        cam.params = params
-        row = [0.08, -0.03, 0.01, -0.002, 0, 0, 1] if model == "OPENCV_FISHEYE" else [-0.2, 0.05, 0, 0, 0.002,
-                                                                                        -0.001, 0]
-        ours = distort(torch.tensor(xy), torch.tensor(row, dtype=torch.float64)).numpy() * [100, 110] + [32, 24]
-        assert np.abs(cam.img_from_cam(np.c_[xy, np.ones(len(xy))]) - ours).max() < 1e-9, (model, lens)
+    from boostnerf_cli.scenes.colmap import PARAMETERS, camera_row
+
+    assert set(MODEL_PARAMS) == set(PARAMETERS)
+    cam = pycolmap.Camera.create_from_model_name(1, model, 100.0, 64, 48)
+    cam.params = MODEL_PARAMS[model]
+    written = pycolmap.Reconstruction()
+    written.add_camera_with_trivial_rig(cam)
+    written.write_binary(str(tmp_path))
+    row = torch.tensor(camera_row(read_model(tmp_path).cameras[1], "test"), dtype=torch.float64)
+    assert (len(row) > 4) == ("PINHOLE" not in model)  # a lens is read wherever the model has one
+    xy = np.random.default_rng(0).uniform([-0.35, -0.25], [0.35, 0.25], (200, 2))  # OpenCV axes, z = 1
+    points = torch.tensor(np.c_[xy[:, 0], -xy[:, 1], -np.ones(len(xy))], dtype=torch.float32)  # OpenGL axes
+    uv, _ = project_points(points, torch.eye(4), row)
+    assert np.abs(uv.double().numpy() - cam.img_from_cam(np.c_[xy, np.ones(len(xy))])).max() < 2e-3, model
+    _, d = image_rays(torch.eye(4), row.float(), 48, 64)
+    grid = np.stack(np.meshgrid(np.arange(64) + 0.5, np.arange(48) + 0.5), -1).reshape(-1, 2)
+    ours = d.double().numpy()
+    ours = np.c_[ours[:, 0] / -ours[:, 2], -ours[:, 1] / -ours[:, 2]]
+    assert np.abs(ours - cam.cam_from_img(grid)).max() < 1e-4, model
 
 
 def test_rays_through_a_lens_project_back_to_their_pixels():
