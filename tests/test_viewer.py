@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import assert_clean_failure, cli_in_process, run_cli
+from conftest import assert_clean_failure, cli_in_process, run_cli, unavailable
 
 from boostnerf_cli.images import to_uint8
 from boostnerf_cli.lineage import Survey
@@ -263,9 +263,7 @@ def test_the_page_in_headless_chromium_draws_the_frames_on_its_canvas(served):
 
     binary = chromium_binary()
     if binary is None:
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"no Chromium on this CI machine: {INSTALL}")
-        pytest.skip(f"no Chromium: {INSTALL}")
+        unavailable("Chromium", INSTALL)
     viewer, server = served
     browser = Browser(binary)
     try:
