@@ -117,6 +117,7 @@ def _agrees_with_the_files(survey) -> None:
         assert (survey.finished(name) is None) == (fresh.finished(name) is None), name
 
 
+@pytest.mark.slow
 def test_a_survey_follows_every_stage_that_writes(mixture_ws, tmp_path):
     """One survey, asked before and after each stage writes (pretrain adds an expert, build-moe rebuilds moe/init
     from it, finetune makes top2 again, prune prunes it), answers what the files now say: every write through the
