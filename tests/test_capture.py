@@ -347,10 +347,11 @@ def _lens_error(captured: Path, truth: Path) -> tuple[float, float]:
 
     model = read_model(captured / "sparse" / "0")
     (cap,) = [row(c) for c in model.cameras.values()]
-    (true,) = [row(c) for c in read_model(truth / "sparse" / "0").cameras.values()]
+    (camera,) = read_model(truth / "sparse" / "0").cameras.values()
+    true = row(camera)
     seen = np.concatenate([im.xys[im.point_ids >= 0] for im in model.images.values()])
     radius = np.percentile(np.linalg.norm(seen - true[2:4].numpy(), axis=1), 90)
-    v, u = np.mgrid[0:256, 0:256] + 0.5
+    v, u = np.mgrid[0:camera.height, 0:camera.width] + 0.5
     pixels = torch.tensor(np.stack([u.ravel(), v.ravel()], -1))
     pixels = pixels[(pixels - true[2:4]).norm(dim=1) <= radius]
     rays = undistort((pixels - true[2:4]) / true[:2], true[4:])
