@@ -36,7 +36,7 @@ from boostnerf_cli.fields.registry import CONFIGS
 from boostnerf_cli.recipe import DataRecipe, GeometryRecipe, MoERecipe, PretrainRecipe, TrainRecipe
 from boostnerf_cli.scenes import Scene, load_scene
 from boostnerf_cli.startup import timed
-from boostnerf_cli.workspace import Workspace, read_meta, recorded_path
+from boostnerf_cli.workspace import Workspace, read_meta, recorded_path, writes
 
 _log = logging.getLogger(__name__)
 
@@ -255,8 +255,9 @@ SCENE_KEYS = {"image_size": "image size", "holdout_every": "held-out views (hold
 class Survey:
     """What one command finds in its workspace, each thing read once: every artifact's header (signature, digest),
     its staleness, the manifest, and the scene it records (loaded and checked when first asked for). A command makes
-    one survey at its start and hands it to its stage, which asks it rather than the files; a stage that writes an
-    artifact says so (`wrote`), and what depends on it is worked out again when next asked."""
+    one survey at its start and hands it to its stage, which asks it rather than the files. Any file written or
+    removed through the workspace module since (`workspace.writes`) makes it read the headers, the model list and the
+    manifest again when next asked; the scene is loaded again only when the manifest records another one."""
 
     def __init__(self, ws: Workspace):
         self.ws = ws
@@ -265,6 +266,17 @@ class Survey:
         self._manifest: dict | None = None
         self._models: list[str] | None = None
         self._scene: Scene | None = None
+        self._scene_record: tuple | None = None  # the manifest's record the scene was loaded from
+        self._seen = writes()
+
+    def _fresh(self) -> None:
+        """Forget what was read before the last write through the workspace module (`workspace.writes`)."""
+        if (now := writes()) != self._seen:
+            self._seen = now
+            self._meta.clear()
+            self._stale.clear()
+            self._manifest = None
+            self._models = None
 
     # --- artifacts
     def _path(self, name: str) -> Path:
@@ -272,6 +284,7 @@ class Survey:
 
     def meta(self, name: str) -> dict | None:
         """Model, expert or geometry `name`'s header (`read_meta`); None when its file is not there."""
+        self._fresh()
         if name not in self._meta:
             path = self._path(name)
             self._meta[name] = read_meta(path) if path.exists() else None
@@ -286,18 +299,10 @@ class Survey:
     @property
     def models(self) -> list[str]:
         """Every model's name: experts smallest first, then mixtures (`Workspace.all_model_names`)."""
+        self._fresh()
         if self._models is None:
             self._models = self.ws.all_model_names()
         return self._models
-
-    def wrote(self, name: str | None = None) -> None:
-        """Artifact `name` (None: any) was written or removed by this command: read it again when asked, and every
-        staleness."""
-        if name is None:
-            self._meta.clear()
-        self._meta.pop(name, None)
-        self._stale.clear()
-        self._models = None
 
     def stale(self, name: str) -> tuple[str, str] | None:
         """Why model `name` must be made again, as (what changed, the command that makes it again), or None when it
@@ -305,6 +310,7 @@ class Survey:
         expert, a pruned model's source, an expert's geometry) changed or went since. The first stale link from the
         geometry up is named, since remaking it comes first. A pruned model without its report (a prune stopped
         before its check) is stale too. A model not there is never stale."""
+        self._fresh()
         if name not in self._stale:
             self._stale[name] = self._why_stale(name)
         return self._stale[name]
@@ -360,6 +366,7 @@ class Survey:
     # --- the manifest and the scene
     def manifest(self, required: bool = True) -> dict:
         """The workspace's manifest, refused in one line when there is none (`required`; else {}: a new workspace)."""
+        self._fresh()
         if self._manifest is None:
             found = self.ws.require_manifest() if required else self.ws.manifest()
             if not found:
@@ -413,8 +420,10 @@ class Survey:
     def scene(self) -> Scene:
         """The scene the workspace was trained on, loaded exactly as `pretrain` loaded it, once; refused when its
         images or cameras changed since (`scene_digest` against the manifest's)."""
-        if self._scene is None:
-            path, m = self.scene_path(), self.manifest()
+        m = self.manifest()
+        record = (m.get("data"), m.get("scene_digest"))
+        if self._scene is None or record != self._scene_record:
+            path = self.scene_path()
             spec = SceneSpec.recorded(m["data"])
             scene = load_scene(path, image_size=spec.image_size, holdout_every=spec.holdout_every, format=spec.format,
                                bbox=spec.bbox, cache=self.ws.scene_cache, kind=spec.scene)
@@ -422,7 +431,7 @@ class Survey:
                 raise BoostNerfError(
                     f"the workspace's scene {path} changed since pretrain (its images or cameras differ): restore it, "
                     f"or retrain with `boostnerf pretrain --workspace {self.ws.root} --data {path} --force`")
-            self._scene = scene
+            self._scene, self._scene_record = scene, record
         return self._scene
 
 

@@ -14,7 +14,8 @@ Every file appears only when complete: it is written to a temporary name in the 
 renamed over the target (atomic on POSIX), so a crash never leaves a half-written artifact and never
 destroys the previous version. Every safetensors file carries a `digest` of its tensors; stages
 record the digests of their inputs in the manifest and their outputs, and refuse stale inputs.
-One process writes a workspace at a time (`Workspace.lock`).
+One process writes a workspace at a time (`Workspace.lock`). Every write and removal through this module is
+counted (`writes`): what a command read before the count moved may be out of date (`lineage.Survey` reads again).
 """
 
 from __future__ import annotations
@@ -86,6 +87,26 @@ def stale_temporaries(root: Path) -> list[Path]:
     return sorted(found)
 
 
+_writes = 0  # files written or removed through this module by this process (`writes`)
+
+
+def writes() -> int:
+    """How many files this process has written (`atomic_path`) or removed (`remove`) so far: a reader that cached
+    what it read compares the count to know whether to read again."""
+    return _writes
+
+
+def _wrote() -> None:
+    global _writes
+    _writes += 1
+
+
+def remove(path: Path) -> None:
+    """Remove file `path` (nothing when it is not there), counted as a write (`writes`)."""
+    path.unlink(missing_ok=True)
+    _wrote()
+
+
 @contextmanager
 def atomic_path(target: Path, keep_suffix: bool = False) -> Iterator[Path]:
     """Yield a temporary path next to `target` (ending in `target`'s suffix too with `keep_suffix`, for writers
@@ -107,6 +128,7 @@ def atomic_path(target: Path, keep_suffix: bool = False) -> Iterator[Path]:
         _fsync(tmp_path)
         os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, target)
+        _wrote()
         _fsync_dir(target.parent)
     except OSError as e:
         reason = e.strerror or str(e) or type(e).__name__

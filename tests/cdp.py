@@ -70,8 +70,10 @@ class Browser:
         result = self.call("Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True)
         return result.get("result", {}).get("value")
 
-    def screenshot(self) -> bytes:
-        return base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
+    def screenshot(self, clip: tuple[float, float, float, float] | None = None) -> bytes:
+        """The page as PNG bytes; only its rectangle `clip` (x, y, width, height, in CSS pixels) when given."""
+        area = {} if clip is None else {"clip": dict(zip(("x", "y", "width", "height"), clip), scale=1)}
+        return base64.b64decode(self.call("Page.captureScreenshot", format="png", **area)["data"])
 
     def close(self) -> None:
         try:

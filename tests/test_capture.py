@@ -29,7 +29,7 @@ from boostnerf_cli.render.rays import image_rays, pixel_directions, project_poin
 from boostnerf_cli.scenes import load_scene, make_scene
 from boostnerf_cli.scenes.colmap_model import ModelCamera, read_model, write_model
 from boostnerf_cli.scenes.procedural import LENSES
-from tests.conftest import REMOVE, cli_in_process, make_recipe, run_cli
+from tests.conftest import REMOVE, cli_in_process, make_recipe, need_pycolmap, run_cli
 
 LENSES_TRIED = {
     "opencv": Lens(k1=-0.3, k2=0.1, p1=0.003, p2=-0.002),
@@ -63,7 +63,7 @@ def test_the_analytic_jacobian_is_the_distortions_derivative(lens):
 
 def test_the_camera_models_are_colmaps():
     """Every model of `cameras.MODELS`: COLMAP's id and parameter names in its order (pycolmap's `params_info`)."""
-    pycolmap = pytest.importorskip("pycolmap")
+    pycolmap = need_pycolmap()
     for m in MODELS.values():
         cam = pycolmap.Camera.create_from_model_name(1, m.name, 100.0, 64, 48)
         assert int(cam.model.value) == m.colmap_id, m.name
@@ -86,7 +86,7 @@ COLMAP_CAMERAS = {
 def test_distortion_and_undistortion_are_colmaps(model):
     """Each model boostnerf renders: the pixel COLMAP's own camera gives for a camera-space point (`img_from_cam`),
     and the normalized point it gives for a pixel (`cam_from_img`, its undistortion)."""
-    pycolmap = pytest.importorskip("pycolmap")
+    pycolmap = need_pycolmap()
     cam = pycolmap.Camera.create_from_model_name(1, model, 100.0, 64, 48)
     cam.params = COLMAP_CAMERAS[model]
     ours = Intrinsics.from_colmap(model, COLMAP_CAMERAS[model], "test")
@@ -143,6 +143,33 @@ def test_undistortion_reads_its_residual_every_few_steps_only(monkeypatch):
     lens = LENSES_TRIED["opencv"]
     lens.undistort(torch.rand(100, 2, dtype=torch.float64) - 0.5, iterations=40)
     assert len(reads) <= 40 // CHECK_EVERY
+
+
+@pytest.mark.parametrize("model", COLMAP_CAMERAS)
+def test_every_camera_model_through_the_reader_projects_as_colmap_does(model, tmp_path):
+    """A camera of each model written by pycolmap's own writer, read by the model reader and turned into intrinsics by
+    the loaders' table (`Intrinsics.from_colmap`): points project to the pixels pycolmap's `img_from_cam` gives, and
+    the rays through pixels go where its `cam_from_img` says."""
+    pycolmap = need_pycolmap()
+    cam = pycolmap.Camera.create_from_model_name(1, model, 100.0, 64, 48)
+    cam.params = COLMAP_CAMERAS[model]
+    written = pycolmap.Reconstruction()
+    written.add_camera_with_trivial_rig(cam)
+    written.write_binary(str(tmp_path))
+    read = read_model(tmp_path).cameras[1]
+    k = Intrinsics.from_colmap(read.model, read.params, "test")
+    assert (k.lens is not None) == ("PINHOLE" not in model)  # a lens is read wherever the model has one
+    xy = np.random.default_rng(0).uniform([-0.35, -0.25], [0.35, 0.25], (200, 2))  # OpenCV axes, z = 1
+    points = torch.tensor(np.c_[xy[:, 0], -xy[:, 1], -np.ones(len(xy))], dtype=torch.float32)  # OpenGL axes
+    uv, _ = project_points(points, torch.eye(4), k)
+    assert np.abs(uv.double().numpy() - cam.img_from_cam(np.c_[xy, np.ones(len(xy))])).max() < 2e-3, model
+    _, d = image_rays(torch.eye(4), k, 48, 64)
+    grid = np.stack(np.meshgrid(np.arange(64) + 0.5, np.arange(48) + 0.5), -1).reshape(-1, 2)
+    ours = d.double().numpy()
+    ours = np.c_[ours[:, 0] / -ours[:, 2], -ours[:, 1] / -ours[:, 2]]
+    theirs = cam.cam_from_img(grid)
+    theirs = theirs[:, :2] / theirs[:, 2:] if theirs.shape[1] == 3 else theirs
+    assert np.abs(ours - theirs).max() < 1e-4, model
 
 
 def test_rays_through_a_lens_project_back_to_their_pixels():
@@ -217,9 +244,8 @@ def test_a_forward_facing_colmap_capture_is_sampled_in_ndc(tmp_path):
 
 
 def test_a_point_only_two_photos_see_does_not_set_a_forward_views_near_bound(tmp_path):
-    """A two-view point far in front of the content (as a capture of fern's 504 x 378 photos held: it put the
-    nearest view's near bound at 0.66 of the median, LLFF's own at 0.93) leaves the depth bounds, and so the scale,
-    the poses and the NDC box, as they were: bounds come from the points three or more photos see."""
+    """A two-view point far in front of the content leaves the depth bounds, and so the scale, the poses and the
+    NDC box, as they were: bounds come from the points three or more photos see."""
     folder = make_scene(tmp_path / "f", size=32, n_train=10, n_test=2, layout="colmap", rig="forward")
     clean = load_scene(folder)
     model = read_model(folder / "sparse" / "0")
@@ -292,7 +318,7 @@ def _refused(monkeypatch, capsys, tmp_path, *args, needle: str) -> None:
 
 
 def test_capture_refuses_bad_photos_in_one_line(tmp_path, monkeypatch, capsys):
-    pytest.importorskip("pycolmap")
+    need_pycolmap()
     (tmp_path / "empty").mkdir()
     _refused(monkeypatch, capsys, tmp_path, "--images", str(tmp_path / "empty"), needle="holds no photos")
     _refused(monkeypatch, capsys, tmp_path, "--images", str(_photos(tmp_path / "two", 2)), needle="at least 3")
@@ -314,6 +340,41 @@ def test_capture_without_pycolmap_says_how_to_install(tmp_path, monkeypatch, cap
     monkeypatch.setattr(builtins, "__import__", lambda name, *a, **k: (_ for _ in ()).throw(ImportError(name))
                         if name == "pycolmap" else real(name, *a, **k))
     _refused(monkeypatch, capsys, tmp_path, "--images", str(_photos(tmp_path / "p", 3)), needle='.[capture]"')
+
+
+def test_a_photo_replaced_in_place_is_another_input(tmp_path, monkeypatch):
+    """A photo overwritten under the same name, with the same size in bytes and its old modification time (the
+    folder's own time unchanged), is another input: the images phase a stopped capture finished is done again from
+    the new photo."""
+    need_pycolmap()
+    import os
+
+    from PIL import Image
+
+    from boostnerf_cli.stages import capture
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(3):  # uncompressed: the same size in bytes for any content
+        Image.fromarray(rng.integers(0, 255, (30, 40, 3), dtype=np.uint8)).save(photos / f"p{i}.png", compress_level=0)
+
+    def stop(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(capture, "_extract", stop)  # the images phase finishes, the features are never made
+    work = tmp_path / ".cap.capture" / "images"
+    with pytest.raises(KeyboardInterrupt):
+        capture.run(photos, None, tmp_path / "cap", capture.CaptureOptions(), force=False)
+    assert (work / "p1.png").read_bytes() == (photos / "p1.png").read_bytes()
+    before, folder = (photos / "p1.png").stat(), photos.stat()
+    Image.fromarray(rng.integers(0, 255, (30, 40, 3), dtype=np.uint8)).save(photos / "p1.png", compress_level=0)
+    os.utime(photos / "p1.png", ns=(before.st_atime_ns, before.st_mtime_ns))
+    os.utime(photos, ns=(folder.st_atime_ns, folder.st_mtime_ns))
+    assert (photos / "p1.png").stat().st_size == before.st_size
+    with pytest.raises(KeyboardInterrupt):
+        capture.run(photos, None, tmp_path / "cap", capture.CaptureOptions(), force=False)
+    assert (work / "p1.png").read_bytes() == (photos / "p1.png").read_bytes()
 
 
 def test_too_few_registered_photos_say_how_many_and_what_to_do():
@@ -354,21 +415,85 @@ def test_a_video_gives_evenly_spaced_sharp_frames(tmp_path):
 
 
 # ----------------------------------------------------------------------------- capture: the real thing
+# What a capture of the orbit's photos must recover (docs/data/capture-test-scenes.json holds the figures measured):
+# every camera within these of the rendered ones after a similarity, its focal lengths within FOCAL of the true
+# one, and its lens no farther from the true lens, where the photos have features, than LENS of what the true lens
+# bends (a capture that drops the lens is as far as the whole bend).
+ROTATION_DEG = (0.3, 0.6)  # median, largest
+CENTRE = (0.006, 0.012)  # median, largest; fractions of the cameras' spread
+FOCAL = 0.01
+LENS = 0.5
+
+
+@pytest.fixture(scope="module")
+def orbit(tmp_path_factory) -> Path:
+    """24 photos of 256 px ray-cast through an OPENCV lens on a walk around a textured procedural scene, with the
+    cameras they were rendered with (a COLMAP model)."""
+    return make_scene(tmp_path_factory.mktemp("orbit") / "src", size=256, n_train=24, n_test=0, layout="colmap",
+                      content="textured", rig="orbit", lens="opencv")
+
+
+def _lens_error(captured: Path, truth: Path) -> tuple[float, float]:
+    """Within the radius that holds 90% of the captured model's placed keypoints: the RMS distance in pixels between
+    where the captured camera (focal lengths and lens) and the true camera put the same rays, and the RMS distance
+    the true lens moves a pixel from where a pinhole camera would put it."""
+    (cap,) = [Intrinsics.from_colmap(c.model, c.params, "test") for c in
+              read_model(captured / "sparse" / "0").cameras.values()]
+    model = read_model(captured / "sparse" / "0")
+    (camera,) = read_model(truth / "sparse" / "0").cameras.values()
+    true = Intrinsics.from_colmap(camera.model, camera.params, "test")
+    centre = torch.tensor([true.cx, true.cy], dtype=torch.float64)
+    focal = torch.tensor([true.fx, true.fy], dtype=torch.float64)
+    seen = np.concatenate([im.xys[im.point_ids >= 0] for im in model.images.values()])
+    radius = np.percentile(np.linalg.norm(seen - centre.numpy(), axis=1), 90)
+    v, u = np.mgrid[0:camera.height, 0:camera.width] + 0.5
+    pixels = torch.tensor(np.stack([u.ravel(), v.ravel()], -1))
+    pixels = pixels[(pixels - centre).norm(dim=1) <= radius]
+    there = cap.pixels(true.normalized(pixels))
+    bent = true.pixels((pixels - centre) / focal)
+    return (float((there - pixels).norm(dim=1).pow(2).mean().sqrt()),
+            float((bent - pixels).norm(dim=1).pow(2).mean().sqrt()))
+
+
+def _assert_recovered(captured: Path, truth: Path, names: dict[str, str] | None = None) -> dict:
+    """The captured cameras against the true ones (`ROTATION_DEG`, `CENTRE`, `FOCAL`, `LENS`); `names`: a captured
+    view's name -> the true view's (a video's frames); -> the errors."""
+    from boostnerf_cli.scenes.alignment import pose_errors, scene_poses
+
+    report = json.loads((captured / "capture.json").read_text())
+    assert report["registered"] == report["given"] == 24 and report["mean_reprojection_error"] < 1.0, report
+    estimated = scene_poses(load_scene(captured, holdout_every=0))
+    estimated = {(names or {}).get(k, k): v for k, v in estimated.items()}
+    errors = pose_errors(estimated, scene_poses(load_scene(truth, holdout_every=0)))
+    (cap,) = read_model(captured / "sparse" / "0").cameras.values()
+    (true,) = read_model(truth / "sparse" / "0").cameras.values()
+    errors["focal"] = max(abs(f / true.params[0] - 1) for f in cap.params[:2])
+    errors["lens_px"], errors["bend_px"] = _lens_error(captured, truth)
+    assert errors["cameras"] == 24, errors
+    assert errors["median_rotation_deg"] < ROTATION_DEG[0] and errors["max_rotation_deg"] < ROTATION_DEG[1], errors
+    assert errors["median_centre_error"] < CENTRE[0] and errors["max_centre_error"] < CENTRE[1], errors
+    assert errors["focal"] < FOCAL, errors
+    assert errors["lens_px"] < LENS * errors["bend_px"], errors
+    return errors
+
+
+def _same_model(a: Path, b: Path) -> None:
+    for part in ("cameras.bin", "images.bin", "points3D.bin"):
+        assert (a / "sparse" / "0" / part).read_bytes() == (b / "sparse" / "0" / part).read_bytes(), part
 
 
 @pytest.mark.slow
-def test_capture_recovers_the_cameras_of_rendered_photos(tmp_path, monkeypatch, capsys):
-    """Photos ray-cast from a textured procedural scene (a walk around it) with known cameras: capture places every
-    one, and after a similarity its cameras are the known ones (median rotation error under 0.5 degrees, centre
-    error under 1% of the cameras' spread). A second run reuses every phase; a run stopped in the middle leaves no
-    scene folder, and the next run goes on from the phases it finished; the same photos captured again give the same
-    model, bit for bit. pretrain reads the folder directly."""
-    pytest.importorskip("pycolmap")
-    from boostnerf_cli.scenes.alignment import compare_scenes
+def test_capture_recovers_the_cameras_and_the_lens_of_rendered_photos(orbit, tmp_path, monkeypatch, capsys):
+    """Photos ray-cast through a lens from a textured procedural scene (a walk around it) with known cameras: capture
+    places every one, and after a similarity each camera, its focal lengths and its lens are the known ones (within
+    `ROTATION_DEG`, `CENTRE`, `FOCAL`, `LENS`). A run stopped in the middle leaves no scene folder, and the next run
+    goes on from the phases it finished; a second run over the finished scene answers "already captured", and
+    refuses once a photo is replaced; the same photos captured again give the same model, bit for bit. pretrain reads
+    the folder directly."""
+    need_pycolmap()
     from boostnerf_cli.stages import capture
 
-    src = make_scene(tmp_path / "src", size=256, n_train=24, n_test=0, layout="colmap", content="textured",
-                     rig="orbit")
+    photos = shutil.copytree(orbit / "images", tmp_path / "photos")
     out = tmp_path / "cap"
 
     def stop(*args):
@@ -376,29 +501,83 @@ def test_capture_recovers_the_cameras_of_rendered_photos(tmp_path, monkeypatch, 
 
     monkeypatch.setattr(capture, "_map", stop)
     with pytest.raises(KeyboardInterrupt):
-        capture.run(src / "images", None, out, capture.CaptureOptions(), force=False)
+        capture.run(photos, None, out, capture.CaptureOptions(), force=False)
     monkeypatch.undo()
     assert not out.exists() and (tmp_path / ".cap.capture" / "database.db").is_file()
-    code, err = cli_in_process(monkeypatch, capsys, "capture", "--images", str(src / "images"), "--out", str(out))
+    code, err = cli_in_process(monkeypatch, capsys, "capture", "--images", str(photos), "--out", str(out))
     assert code == 0, err
     assert "features: done before, reused" in err and "matching: done before, reused" in err
-    report = json.loads((out / "capture.json").read_text())
-    assert report["registered"] == report["given"] == 24 and report["mean_reprojection_error"] < 1.0
-    errors = compare_scenes(load_scene(out, holdout_every=0), load_scene(src, holdout_every=0))
-    assert errors["cameras"] == 24
-    assert errors["median_rotation_deg"] < 0.5 and errors["median_centre_error"] < 0.01, errors
-    code, err = cli_in_process(monkeypatch, capsys, "capture", "--images", str(src / "images"), "--out", str(out))
+    _assert_recovered(out, orbit)
+    code, err = cli_in_process(monkeypatch, capsys, "capture", "--images", str(photos), "--out", str(out))
     assert code == 0 and "already captured" in err
+    shutil.copy(orbit / "images" / "image005.png", photos / "image004.png")  # replaced in place, the same size
+    code, err = cli_in_process(monkeypatch, capsys, "capture", "--images", str(photos), "--out", str(out))
+    assert code == 2 and "was captured from other inputs or settings" in err, err
     again = tmp_path / "again"  # the same photos captured afresh: the same cameras, lens and points, bit for bit
-    code, err = cli_in_process(monkeypatch, capsys, "capture", "--images", str(src / "images"), "--out", str(again))
+    code, err = cli_in_process(monkeypatch, capsys, "capture", "--images", str(orbit / "images"), "--out",
+                               str(again))
     assert code == 0, err
-    for part in ("cameras.bin", "images.bin", "points3D.bin"):
-        assert (again / "sparse" / "0" / part).read_bytes() == (out / "sparse" / "0" / part).read_bytes(), part
+    _same_model(again, out)
     proc = run_cli("pretrain", "--data", str(out), "--workspace", str(tmp_path / "ws"), "--recipe",
                    str(make_recipe(tmp_path / "r.yaml", pretrain={"res": [12], "iters": 10,
                                                                    "geometry": {"iters": 20}})), "--device", "cpu")
     assert proc.returncode == 0, proc.stderr
     assert "format: colmap" in proc.stderr and "from the sparse points" in proc.stderr
+
+
+@pytest.mark.slow
+def test_retrieval_matches_neighbours_and_recovers_the_cameras(orbit, tmp_path):
+    """Retrieval on the orbit's photos: the vocabulary learned from their own features, the same at every run, makes
+    most photos' most similar one a neighbour on the walk, and pairs the walk's start with its end, which file order
+    puts 23 apart; matching only those pairs places every camera as exhaustive matching does, and the same
+    photos captured again give the same model, bit for bit."""
+    pycolmap = need_pycolmap()
+    from boostnerf_cli.stages import capture
+
+    options = capture.CaptureOptions(matching="retrieval")
+    out, again = tmp_path / "cap", tmp_path / "again"
+    report = capture.run(orbit / "images", None, out, options, force=False)
+    assert report["matching"] == "retrieval"
+    _assert_recovered(out, orbit)
+    capture.run(orbit / "images", None, again, options, force=False)
+    _same_model(again, out)
+
+    with pycolmap.Database.open(out / "database.db") as db:
+        by_name = {im.name: im.image_id for im in db.read_all_images()}
+        descriptors = [db.read_descriptors(by_name[n]).data for n in sorted(by_name)]
+    vectors = capture._vocabulary_vectors(descriptors, capture.VOCABULARY_WORDS, 0)
+    assert np.array_equal(vectors, capture._vocabulary_vectors(descriptors, capture.VOCABULARY_WORDS, 0))
+    n = len(descriptors)
+    apart = [min(abs(i - j), n - abs(i - j)) for i, j in capture.similar(vectors, 1)]
+    assert sum(a <= 2 for a in apart) >= 2 * n // 3, apart  # most photos' most similar: 1 or 2 steps on the walk
+    chosen = capture.pairs(n, "retrieval", vectors)
+    assert len(chosen) < n * (n - 1) // 2 and (0, n - 1) in chosen  # fewer than every pair; the walk closed
+
+
+@pytest.mark.slow
+def test_a_video_of_the_walk_recovers_its_cameras(orbit, tmp_path):
+    """The orbit's photos as the frames of a video: capture keeps every frame (24 windows of one), matches them
+    sequentially with loop closures by retrieval (the walk's end with its start), places every camera as from the
+    photos, and a second capture of the video gives the same model, bit for bit."""
+    need_pycolmap()
+    import imageio_ffmpeg
+
+    from boostnerf_cli.stages import capture
+
+    video = tmp_path / "walk.mp4"
+    writer = imageio_ffmpeg.write_frames(str(video), (256, 256), fps=4, quality=10, macro_block_size=16)
+    writer.send(None)
+    names = sorted((orbit / "images").iterdir())
+    for photo in names:
+        writer.send(np.ascontiguousarray(iio.imread(photo)[..., :3]))
+    writer.close()
+    options = capture.CaptureOptions(frames=24)
+    report = capture.run(None, video, tmp_path / "cap", options, force=False)
+    assert report["matching"] == "sequential" and len(report["video_seconds"]) == 24
+    frames = {f"frame_{i + 1:04d}": p.stem for i, p in enumerate(names)}
+    _assert_recovered(tmp_path / "cap", orbit, frames)
+    capture.run(None, video, tmp_path / "again", options, force=False)
+    _same_model(tmp_path / "again", tmp_path / "cap")
 
 
 LENS_RECIPE = {"data": {"holdout_every": 8, "image_size": REMOVE},  # the photos' own 48 px
@@ -412,9 +591,9 @@ LENS_RECIPE = {"data": {"holdout_every": 8, "image_size": REMOVE},  # the photos
 def test_a_distorted_capture_trains_to_its_pinhole_twin(tmp_path):
     """The same cameras and scene, photographed through a pinhole and through an OPENCV lens (k1 -0.3, up to 2.4 px
     at the corners of 48 px views): DVGO-24 trained on the distorted photos with the lens read, rendered at the
-    twin's held-out pinhole views, reaches the pinhole-trained expert's PSNR (measured: 24.87 against 24.68 dB: it
-    sees a little more of the scene through the wider lens), while the same photos read as pinhole photos (the lens
-    dropped from transforms.json) fall short (24.12 dB: the geometry it learns is bent)."""
+    twin's held-out pinhole views, reaches the pinhole-trained expert's PSNR, while the same photos read as pinhole
+    photos (the lens dropped from transforms.json) fall short: the geometry it learns is bent (docs/datasets.md,
+    "Lenses", gives the figures)."""
     from boostnerf_cli.metrics.image import psnr
     from boostnerf_cli.models import load_model
     from boostnerf_cli.render.renderer import render_view

@@ -55,8 +55,53 @@ def test_readme_has_exactly_two_setup_commands():
     commands = [b.split("```")[0].strip() for b in blocks]
     assert len(commands) == 2
     assert "torch==2.13.0" in commands[0] and "torch==2.13.0" in commands[1]
-    ci = (Path(__file__).parent.parent / ".ci" / "run").read_text()
-    assert commands[1] in ci
+    assert ci_runs_every_test((Path(__file__).parent.parent / ".ci" / "run").read_text(), commands[1])
+
+
+def ci_runs_every_test(ci: str, command: str) -> bool:
+    """Whether the CI script `ci` ends in exactly the README's test command (nothing appended that leaves tests out:
+    `-m "not slow"`, `-k`, `--deselect`, `-x`) with CI=true set, under which a missing optional part (pycolmap,
+    Chromium) fails its tests instead of skipping them (tests/conftest.py, `unavailable`)."""
+    lines = [ln.split(" #", 1)[0].strip() for ln in ci.splitlines()]
+    lines = [ln for ln in lines if ln and not ln.startswith("#")]
+    return bool(lines) and lines[-1] == command and "export CI=true" in lines
+
+
+@pytest.mark.parametrize("ci", [
+    "export CI=true\npython -m pip install torch==2.13.0 -e \".[test]\" && python -m pytest -m 'not slow'\n",
+    "export CI=true\npython -m pip install torch==2.13.0 -e \".[test]\" && python -m pytest -k 'not chromium'\n",
+    "export CI=true\npython -m pip install torch==2.13.0 -e \".[test]\" && python -m pytest\necho skipped\n",
+    "python -m pip install torch==2.13.0 -e \".[test]\" && python -m pytest\n",  # CI not set: skips, not fails
+], ids=["not-slow", "deselected", "not-last", "ci-unset"])
+def test_a_ci_script_that_leaves_tests_out_is_refused(ci):
+    command = 'python -m pip install torch==2.13.0 -e ".[test]" && python -m pytest'
+    assert ci_runs_every_test(f"export CI=true\n{command}\n", command)
+    assert not ci_runs_every_test(ci, command)
+
+
+def test_a_missing_part_fails_under_ci_and_is_skipped_elsewhere(monkeypatch):
+    from conftest import unavailable
+
+    def outcome() -> BaseException:  # a skip is caught too: one where a failure belongs must fail this test
+        try:
+            unavailable("pycolmap", "pip install pycolmap")
+        except BaseException as e:  # noqa: BLE001 - pytest's outcomes derive from BaseException
+            return e
+        raise AssertionError("unavailable returned")
+
+    monkeypatch.setenv("CI", "true")
+    failed = outcome()
+    assert isinstance(failed, pytest.fail.Exception) and "missing on this CI machine" in str(failed), repr(failed)
+    monkeypatch.delenv("CI")
+    skipped = outcome()
+    assert isinstance(skipped, pytest.skip.Exception) and "pycolmap is not installed" in str(skipped), repr(skipped)
+
+
+def test_pytest_runs_every_test_by_default():
+    """pyproject's addopts select no marker and no name: `python -m pytest` (CI's command) runs the slow tests too."""
+    text = (Path(__file__).parent.parent / "pyproject.toml").read_text()
+    addopts = re.search(r'^addopts = "([^"]*)"', text, flags=re.MULTILINE).group(1).split()
+    assert not {"-m", "-k", "--deselect", "-x", "--exitfirst"} & set(addopts), addopts
 
 
 TESTS = Path(__file__).parent

@@ -84,8 +84,7 @@ def _counting_reads(monkeypatch) -> dict:
 
 def test_finetune_reads_each_header_once(mixture_ws, tmp_path, monkeypatch):
     """A finished top2 asked for again: moe/init's staleness, the routing, the source digest and the finished model's
-    signature come from one survey, each file's header read once (a finetune once read moe/init's up to three
-    times, through three separate staleness checks)."""
+    signature come from one survey, each file's header read once, not once per staleness check."""
     import shutil
 
     from boostnerf_cli.lineage import Survey
@@ -105,26 +104,52 @@ def test_finetune_reads_each_header_once(mixture_ws, tmp_path, monkeypatch):
     assert {"init.safetensors", "top2.safetensors"} <= set(reads), reads
 
 
-def test_a_survey_is_told_what_its_command_wrote(mixture_ws, tmp_path):
-    """Staleness follows what the command itself writes: after `wrote`, the new header is read and what was made
-    from the old one is stale."""
+def _agrees_with_the_files(survey) -> None:
+    """`survey` answers what a survey made now, which reads every file afresh, answers."""
+    from boostnerf_cli.lineage import Survey
+
+    fresh = Survey(survey.ws)
+    assert survey.models == fresh.models
+    assert survey.manifest() == fresh.manifest()
+    for name in ("geometry", *fresh.models):
+        assert survey.digest(name) == fresh.digest(name), name
+        assert survey.stale(name) == fresh.stale(name), name
+        assert (survey.finished(name) is None) == (fresh.finished(name) is None), name
+
+
+@pytest.mark.slow
+def test_a_survey_follows_every_stage_that_writes(mixture_ws, tmp_path):
+    """One survey, asked before and after each stage writes (pretrain adds an expert, build-moe rebuilds moe/init
+    from it, finetune makes top2 again, prune prunes it), answers what the files now say: every write through the
+    workspace makes it read again, with nothing to call by hand."""
     import shutil
 
-    import safetensors.torch as st
-
     from boostnerf_cli.lineage import Survey
-    from boostnerf_cli.workspace import Workspace, read_meta, save_tensors
+    from boostnerf_cli.recipe import recorded_recipe
+    from boostnerf_cli.stages import build_moe, finetune, pretrain, prune
+    from boostnerf_cli.workspace import Workspace
 
     ws = Workspace(shutil.copytree(mixture_ws, tmp_path / "ws"))
+    rec = recorded_recipe(ws.manifest()["recipe"], ws.manifest_path)
+    rec.moe.iters = 5  # as mixture_ws finetuned it
     survey = Survey(ws)
-    assert survey.stale("top2") is None and survey.usable() == survey.models
-    tensors = st.load_file(ws.model_path("init"))
-    meta = read_meta(ws.model_path("init"))
-    save_tensors(ws.model_path("init"), {k: v + 1 if v.is_floating_point() else v for k, v in tensors.items()},
-                 {k: v for k, v in meta.items() if k != "digest"})
-    assert survey.stale("top2") is None  # what it read at the start
-    survey.wrote("init")
+    _agrees_with_the_files(survey)
+    top2 = survey.digest("top2")
+
+    rec.pretrain.res = [8, *rec.pretrain.res]
+    pretrain.run(survey, None, rec, "cpu", False)
+    _agrees_with_the_files(survey)
+    assert "dvgo-8" in survey.models and "dvgo-8" in survey.manifest()["experts"]
+
+    build_moe.build(survey, None, rec.moe, "cpu")
+    _agrees_with_the_files(survey)
     what, command = survey.stale("top2")
     assert "moe/init was rebuilt" in what and "--topk 2 --force" in command
-    with pytest.raises(BoostNerfError, match="top2 is stale"):
-        survey.current(["top2"])
+
+    finetune.run(survey, "top2", 2, rec.moe, "cpu", True)
+    _agrees_with_the_files(survey)
+    assert survey.stale("top2") is None and survey.digest("top2") != top2
+
+    prune.run(survey, "top2", "train", "cpu", 1, False)
+    _agrees_with_the_files(survey)
+    assert survey.finished("top2-pruned") is not None and "top2-pruned" in survey.usable()

@@ -10,7 +10,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 import yaml
-from conftest import cli_in_process, run_cli
+from conftest import cli_in_process, need_pycolmap, run_cli
 
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.scenes import load_scene, make_scene
@@ -126,7 +126,7 @@ def test_the_kind_auto_picks_for_a_walk_round_an_object_trains_best(tmp_path, ri
 def test_a_half_orbit_through_capture_is_placed_and_found_unbounded(tmp_path, monkeypatch, capsys):
     """The half-orbit twin's photos through `capture`: every camera placed where it was (after a similarity), and
     the scene it writes loads as unbounded, its sphere from the sparse points."""
-    pytest.importorskip("pycolmap")
+    need_pycolmap()
     src = make_scene(tmp_path / "src", size=256, n_train=24, n_test=0, layout="nerfstudio", rig="half-orbit",
                      content="textured")
     out = tmp_path / "cap"

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import assert_clean_failure, cli_in_process, run_cli
+from conftest import assert_clean_failure, cli_in_process, run_cli, unavailable
 
 from boostnerf_cli.cameras import Intrinsics
 from boostnerf_cli.errors import BoostNerfError
@@ -261,14 +261,15 @@ SCREENSHOT_ENV = "BOOSTNERF_VIEWER_SCREENSHOT"  # a path: the test writes its fi
 
 
 @pytest.mark.slow
-def test_the_page_in_headless_chromium_shows_a_frame_and_switching_model_changes_it(served, tmp_path):
+def test_the_page_in_headless_chromium_draws_the_frames_on_its_canvas(served):
+    """The 3D canvas, cut from the page beside the control panel, shows the viewer's frame: picking depth in the page
+    changes the canvas over much of its area; picking another model draws that model. The same canvas hidden (blank)
+    fails that check, though the whole page, its panel, would pass it."""
     from cdp import INSTALL, Browser, chromium_binary
 
     binary = chromium_binary()
     if binary is None:
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"no Chromium on this CI machine: {INSTALL}")
-        pytest.skip(f"no Chromium: {INSTALL}")
+        unavailable("Chromium", INSTALL)
     viewer, page = served
     browser = Browser(binary)
     try:
@@ -276,24 +277,55 @@ def test_the_page_in_headless_chromium_shows_a_frame_and_switching_model_changes
         first = wait_for(lambda: shown_full(page, "top2"), "the first full frame")
         browser.js("document.querySelectorAll('.mantine-Notification-root button').forEach(b => b.click())")
         time.sleep(1.0)  # the frame reaches the page; the browser's notice (software WebGL) is closed
-        before = browser.screenshot()
         if os.environ.get(SCREENSHOT_ENV):
-            Path(os.environ[SCREENSHOT_ENV]).write_bytes(before)
+            Path(os.environ[SCREENSHOT_ENV]).write_bytes(browser.screenshot())
+        colour = browser.screenshot(canvas_area(browser))
+        pick(browser, "show", "depth")
+        wait_for(lambda: viewer.look.mode == "depth" and shown_full(page, "top2"), "a depth frame")
+        time.sleep(1.0)
+        depth, depth_page = browser.screenshot(canvas_area(browser)), browser.screenshot()
         pick(browser, "model", "dvgo-12")
         wait_for(lambda: shown_full(page, "dvgo-12"), "a frame of the model picked in the page")
-        time.sleep(1.0)
-        after = browser.screenshot()
         press(browser, "go to view N")  # train view 0
         wait_for(lambda: "PSNR" in page.controls.truth.content, "the dataset view's PSNR")
         time.sleep(2.0)  # the page reports the camera it was snapped to: it stays on the dataset view
         assert [v.pinned for v in viewer.clients.values()] == [("train", 0)] and page.controls.truth_image.visible
+        browser.js("document.querySelectorAll('canvas').forEach(c => c.style.visibility = 'hidden')")  # draws nothing
+        time.sleep(0.5)
+        blank, whole = browser.screenshot(canvas_area(browser)), browser.screenshot()
     finally:
         browser.close()
+    assert first
+    assert_frames_differ(colour, depth)
+    with pytest.raises(AssertionError, match="blank"):
+        assert_frames_differ(blank, depth)
+    assert_frames_differ(whole, depth_page, what="the whole page")  # its control panel is not blank
+
+
+def canvas_area(browser) -> tuple[float, float, float, float]:
+    """The page's 3D canvas (its largest) left of the control panel that lies over it (x, y, width, height): where
+    the frames are drawn."""
+    return tuple(browser.js("""(() => {
+        const canvas = Array.from(document.querySelectorAll('canvas'))
+            .reduce((a, b) => (b.width * b.height > a.width * a.height ? b : a)).getBoundingClientRect();
+        let panel = Array.from(document.querySelectorAll('label')).find(l => l.textContent === 'model');
+        while (panel.parentElement && panel.parentElement.getBoundingClientRect().width < 0.6 * canvas.width) {
+            panel = panel.parentElement;
+        }
+        const left = Math.min(canvas.right, panel.getBoundingClientRect().left);
+        return [canvas.x, canvas.y, left - canvas.x, canvas.height];
+    })()"""))
+
+
+def assert_frames_differ(first: bytes, second: bytes, what: str = "the canvas") -> None:
+    """Two screenshots of two frames: the first is not blank (one colour), and they differ over a tenth of it."""
     import imageio.v3 as iio
 
-    a, b = iio.imread(before)[..., :3].astype(int), iio.imread(after)[..., :3].astype(int)
-    assert a.std() > 10 and first  # not blank
-    assert np.abs(a - b).max() > 50 and (np.abs(a - b).sum(-1) > 30).sum() > 100  # the render changed
+    a, b = iio.imread(first)[..., :3].astype(int), iio.imread(second)[..., :3].astype(int)
+    assert a.shape == b.shape and a.shape[0] > 100 and a.shape[1] > 100, (a.shape, b.shape)
+    assert a.std() > 10, f"{what} is blank (std {a.std():.1f})"
+    changed = (np.abs(a - b).sum(-1) > 30).mean()
+    assert changed > 0.1, f"{what} did not change: {100 * changed:.1f}% of its pixels"
 
 
 def shown_full(page, label: str) -> bool:

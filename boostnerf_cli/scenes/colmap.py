@@ -47,10 +47,9 @@ from boostnerf_cli.scenes.scene import Scene, SparsePoints, Split
 
 FORWARD_DEGREES = 30.0  # every camera's axis within this of the mean axis: a forward-facing capture (NDC)
 # a forward-facing view's depth bounds come from the points this many images or more see: the few points two images
-# triangulate hold its outliers, and with a thousand points the 0.1th percentile is the nearest one. On fern's capture
-# (504 x 378, 1,844 points, 6% seen twice) a two-view point put the nearest view's near bound at 0.66 of the median
-# near bound; LLFF's own (from the 4032 x 3024 photos) put it at 0.93, and the points seen three or more times at
-# 0.93. Too near a bound scales the world up: the cameras spread 1.38x wider in the NDC, its box 10% wider.
+# triangulate hold its outliers, and with a thousand points the 0.1th percentile is the nearest one. Too near a bound
+# scales the world up: the cameras spread wider in the NDC, and its box too (docs/datasets.md, "Forward-facing
+# captures")
 BOUND_TRACK = 3
 def model_folder(folder: Path) -> Path | None:
     """The COLMAP model of a scene folder: `sparse/0`, else the first other `sparse/<n>`, else `sparse` itself."""

@@ -69,7 +69,6 @@ def build(survey: Survey, names: list[str] | None, rec: MoERecipe, device: str) 
     if found is not None:
         _say_rebuilt(survey, found, wanted)
     save_mixture(ws.model_path("init"), mix, {"name": "init", "signature": spec.signature()})
-    survey.wrote("init")
     report = {
         "name": "init",
         "experts": cfg.expert_names,

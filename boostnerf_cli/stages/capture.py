@@ -17,12 +17,16 @@ Retrieval needs no downloaded vocabulary: a visual vocabulary of `VOCABULARY_WOR
 capture's own SIFT descriptors (k-means), each image becomes a tf-idf histogram of its words, and the most similar
 histograms give the pairs. COLMAP's vocabulary-tree matching would need a vocabulary file to be downloaded.
 
+The inputs are known by their content (`fingerprint`: each file's name and size, and a digest of their bytes): a
+finished capture of the same inputs and settings is kept, and a photo replaced under the same name is another input.
+
 Everything is written into a hidden work folder beside the output (`.NAME.capture`) and renamed to the output only when
 every phase is done: a capture stopped half way leaves nothing that `pretrain` would take for a scene.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import shutil
 import time
@@ -142,9 +146,6 @@ def video_frames(path: Path, count: int, out: Path) -> dict[str, float]:
     import imageio_ffmpeg
     from skimage.measure import blur_effect
 
-    if not path.is_file():
-        raise BoostNerfError(f"--video {path} is not a file: give the video's path")
-
     def frames(params=None):
         try:
             gen = imageio_ffmpeg.read_frames(str(path), output_params=params)
@@ -259,9 +260,9 @@ def _extract(pycolmap, work: Path, names: list[str], options: CaptureOptions) ->
     db.unlink(missing_ok=True)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = options.feature_size
-    # one image at a time: the database numbers images as their features are written, and with two threads that
-    # order (so the mapper's first pair, so every pose) changed from run to run; fern's photos captured twice were
-    # 0.16 deg apart
+    # one image at a time: the database numbers images as their features are written, and with more threads that
+    # order (so the mapper's first pair, so every pose) follows the threads' timing (docs/capture.md, "The same
+    # photos, the same scene")
     extraction.num_threads = 1
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = options.camera_model
@@ -294,7 +295,7 @@ def _match(pycolmap, work: Path, names: list[str], kind: str, seed: int) -> int:
     chunk = 200
     pairing = pycolmap.ImportedPairingOptions()
     verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.random_seed = seed  # unseeded (-1), each pair's RANSAC drew other samples at every run
+    verification.ransac.random_seed = seed  # COLMAP's default (-1) draws each pair's RANSAC samples anew every run
     for start in range(0, len(todo), chunk):
         listing = work / "pairs.txt"
         listing.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in todo[start:start + chunk]))
@@ -308,9 +309,8 @@ def _match(pycolmap, work: Path, names: list[str], kind: str, seed: int) -> int:
 
 def _adjust_all(pycolmap, model) -> None:
     """One bundle adjustment of every camera, point and lens coefficient of `model`, in the steps
-    pycolmap.bundle_adjustment takes (on fern, with the same threads, the same numbers to the last bit) but without
-    its controller, which turns COLMAP's log back on (minloglevel 0) and prints its heading and timer among the
-    bars."""
+    pycolmap.bundle_adjustment takes (so, on the same threads, to the same numbers) but without its controller,
+    which turns COLMAP's log back on (minloglevel 0) and prints its heading and timer among the bars."""
     pycolmap.ObservationManager(model).filter_observations_with_negative_depth()
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in model.reg_image_ids():
@@ -319,7 +319,7 @@ def _adjust_all(pycolmap, model) -> None:
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_extra_params = True
     options.print_summary = False
-    options.ceres.solver_options.num_threads = 1  # with two, sums in another order: 1e-15 apart from run to run
+    options.ceres.solver_options.num_threads = 1  # with more, sums in an order that varies: other last bits
     pycolmap.create_default_bundle_adjuster(options, config, model).solve()
     model.update_point_3d_errors()
 
@@ -328,11 +328,11 @@ def _map(pycolmap, work: Path, given: int, seed: int) -> dict:
     """Incremental mapping; the largest model written to work/sparse/0; -> its facts."""
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
-    options.num_threads = 1  # with two, the mapper's draws came from worker threads whose random state the matching
-    # left behind: the same database mapped after matching placed fern's cameras differently from run to run
+    options.num_threads = 1  # with more, the mapper draws from worker threads whose random state depends on what
+    # ran on them before (the matching): the same database would place the cameras otherwise
     # the lens's coefficients are held (at 0) while the cameras are placed, and refined in one bundle adjustment at
-    # the end: refined from the first pair on, OPENCV's four overfit two views (k1 = 2.7 on a procedural capture of
-    # 24 photos) and no third photo registered; held, all 24 did
+    # the end: refined from the first pair on, a lens of four coefficients can fit two views' noise so far that no
+    # third photo registers (docs/capture.md, "Why the lens is held during mapping")
     options.ba_refine_extra_params = False
     bar = _bar("mapping", given)
     registered = [0]
@@ -398,12 +398,28 @@ def _downscale(work: Path, names: list[str]) -> list[str]:
 # ----------------------------------------------------------------------------- the command
 
 
+def fingerprint(files: list[Path]) -> dict:
+    """What a capture is made from, by content: each file's name and size, and one digest of their bytes in that
+    order. A photo replaced under the same name, even of the same size and with its old modification time, gives
+    another digest."""
+    digest = hashlib.blake2b(digest_size=16)
+    for f in files:
+        digest.update(f"{f.name}|{f.stat().st_size}|".encode())
+        with open(f, "rb") as stream:
+            while block := stream.read(1 << 20):
+                digest.update(block)
+    return {"files": [[f.name, f.stat().st_size] for f in files], "digest": digest.hexdigest()}
+
+
 def _inputs(images: Path | None, video: Path | None) -> dict:
+    """The command's inputs as its report records them: where they are and their content (`fingerprint`)."""
     if (images is None) == (video is None):
         raise BoostNerfError("give either --images DIR (photos) or --video FILE, one of the two")
-    source = images if images is not None else video
+    if video is not None and not video.is_file():
+        raise BoostNerfError(f"--video {video} is not a file: give the video's path")
+    files = photo_files(images) if images is not None else [video]
     return {"images": str(images.resolve()) if images else None, "video": str(video.resolve()) if video else None,
-            "modified": source.stat().st_mtime_ns if source.exists() else None}
+            **fingerprint(files)}
 
 
 def _work_folder(out: Path) -> Path:

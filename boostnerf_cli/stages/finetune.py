@@ -24,7 +24,7 @@ from boostnerf_cli.scenes import Scene
 from boostnerf_cli.stages.common import train_and_report
 from boostnerf_cli.tasks import FieldTask, MixtureTask, train_rays
 from boostnerf_cli.train import Schedule, TrainCheckpoint
-from boostnerf_cli.workspace import Workspace, read_json, write_json
+from boostnerf_cli.workspace import Workspace, read_json, remove, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
@@ -147,7 +147,7 @@ def run(survey: Survey, name: str, topk: int | None, rec: MoERecipe, device: str
     def write() -> None:
         save_mixture(ws.model_path(name), mix, {"name": name, "from": "init", "signature": sig})
         write_json(ws.moe_dir / f"{name}.json", report)
-        ws.checkpoint_path(name).unlink(missing_ok=True)
+        remove(ws.checkpoint_path(name))
         ws.update_manifest(moe={name: {"from": "init", "iterations": rec.iters}})
 
     dist.on_main(write)
@@ -179,7 +179,7 @@ def _baseline(ws: Workspace, scene: Scene, mix: Mixture, rec: MoERecipe, device:
         save_expert(ws.model_path("baseline"), model, task.skip,
                     {**meta, "name": "baseline", "from": largest, "signature": sig})
         write_json(ws.moe_dir / "baseline.json", report)
-        ws.checkpoint_path("baseline").unlink(missing_ok=True)
+        remove(ws.checkpoint_path("baseline"))
         ws.update_manifest(moe={"baseline": {"from": largest, "iterations": rec.iters}})
 
     dist.on_main(write)

@@ -64,7 +64,7 @@ from boostnerf_cli.stages.common import slow_notice, train_and_report
 from boostnerf_cli.startup import CLOCK
 from boostnerf_cli.tasks import FieldTask, train_rays
 from boostnerf_cli.train import Schedule, TrainCheckpoint, train
-from boostnerf_cli.workspace import Workspace, read_json, write_json
+from boostnerf_cli.workspace import Workspace, read_json, remove, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 warn = logging.getLogger(__name__).warning
@@ -167,9 +167,8 @@ def ensure_geometry(site: Site, rec: GeometryRecipe, seed: int, checkpoint_every
                                                "seconds": seconds, "occupied_fraction": occ.fraction(),
                                                "coverage": rounds[-1], "rounds": rounds,
                                                "signature": geometry_spec(site, rec, seed).signature()})
-    site.survey.wrote("geometry")  # the experts on the old one are now stale
     for name in ("geometry", "geometry-refine"):
-        ws.checkpoint_path(name).unlink(missing_ok=True)
+        remove(ws.checkpoint_path(name))
     log(f"geometry: occupied {100 * occ.fraction():.1f}% of cells, box {box_text(box)} "
         f"({seconds:.1f}s)")
     CLOCK.begin()  # the first expert's start-up starts when the geometry is done
@@ -302,8 +301,7 @@ def pretrain_expert(site: Site, rec: PretrainRecipe, res: int, geometry: Geometr
     save_expert(ws.expert_path(name), model, task.skip, {"name": name, "step": settings.step, "scene": site.tag,
                                                          "signature": signature})
     write_json(ws.expert_report_path(name), report)
-    site.survey.wrote(name)
-    ckpt.unlink(missing_ok=True)
+    remove(ckpt)
     CLOCK.begin()  # the next expert's start-up starts when this one is written
     return report
 
@@ -482,5 +480,4 @@ def _forget_or_refuse(survey: Survey, force: bool, message: str) -> None:
         raise BoostNerfError(message)
     for folder in (survey.ws.experts_dir, survey.ws.checkpoints_dir):
         for p in list(folder.glob("*")) if folder.exists() else []:
-            p.unlink()
-    survey.wrote()
+            remove(p)

@@ -27,7 +27,7 @@ from boostnerf_cli.lineage import Survey, decide
 from boostnerf_cli.metrics import mse_to_psnr
 from boostnerf_cli.models import LoadedModel, load_model, n_views, render_split, save_pruned
 from boostnerf_cli.scenes import Scene, Split
-from boostnerf_cli.workspace import Workspace, read_json, write_json
+from boostnerf_cli.workspace import Workspace, read_json, remove, write_json
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
@@ -142,7 +142,7 @@ def run(survey: Survey, name: str, split_name: str, device: str, views: int | No
         test_before = _psnr(_renders(before, scene, test, device, len(test)), test) if test is not None else None
         test_after = _psnr(_renders(after, scene, test, device, len(test)), test) if test is not None else None
     except BaseException:
-        out_path.unlink(missing_ok=True)
+        remove(out_path)
         raise
     report = {
         "name": out_name,

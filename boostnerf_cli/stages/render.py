@@ -43,6 +43,7 @@ from boostnerf_cli.viewpoint.camera import dataset_camera
 from boostnerf_cli.viewpoint.frame import picture
 from boostnerf_cli.viewpoint.maps import expert_share, gate_probability, grey, routing_colours
 from boostnerf_cli.viewpoint.saved import read_view
+from boostnerf_cli.workspace import remove
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
@@ -246,7 +247,7 @@ def render_experts_and_gate(model: LoadedModel, scene: Scene, split: Split, fold
     for i in range(n_views(split, views)):
         stem = split.stems[i]
         for old in (*folder.glob(f"{stem}_expert[0-9]*-*.png"), *folder.glob(f"{stem}_gate[0-9]*-*.png")):
-            old.unlink()  # an earlier mixture's experts (build-moe --experts changed them): not beside this one's
+            remove(old)  # an earlier mixture's experts (build-moe --experts changed them): not beside this one's
 
         def packer(key):
             return packers.setdefault(key, packer_for(device))  # one per picture kind, reused from view to view
