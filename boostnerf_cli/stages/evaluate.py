@@ -151,21 +151,20 @@ def how_to_read(finetuned: dict) -> str:
             f"expert rows are the pretrained experts before those steps.")
 
 
-# docs/results.md's answer to why a Top-1 mixture stays below its baseline on CPU-sized scenes
+# docs/results.md's answer to why a Top-1 mixture stays below its baseline on lego at 100 px
 TOP1_WHY = "docs/results.md#why-does-top-1-stay-below-its-baseline-at-100-px"
+TOP1_POINTER = f"Why Top-1 stays below its baseline on lego at 100 px: {TOP1_WHY}."
 
 
 def top1_note(models: list[dict]) -> str:
-    """A line for each Top-1 mixture of the table below the baseline: by how much, at what cost, and why."""
+    """A line for each Top-1 mixture of the table below the baseline: by how much and at what cost, as this table
+    shows them, and where the docs say why on lego (a claim about one scene, so only pointed at)."""
     base = next((r for r in models if r["name"] == "baseline"), None)
     below = [r for r in models if base and r.get("routing", {}).get("topk") == 1 and r["psnr"] < base["psnr"]]
     lines = []
     for r in below:
         cost = (f", at {r['gflops_per_image'] / base['gflops_per_image']:.2f}x its GFLOPs"
                 if r.get("gflops_per_image") is not None and base.get("gflops_per_image") else "")
-        lines.append(
-            f"`{r['name']}` is {base['psnr'] - r['psnr']:.2f} dB below `baseline`{cost}: it renders each sample with "
-            "one expert, most often a smaller one, and where the largest expert renders every part of the scene "
-            "best (on lego at 100 px no spatial partition of single models beats the best of them), routing to a "
-            f"smaller one saves cost and loses quality ({TOP1_WHY}).")
+        lines.append(f"`{r['name']}` is {base['psnr'] - r['psnr']:.2f} dB below `baseline`{cost}: it renders each "
+                     f"sample with one expert. {TOP1_POINTER}")
     return "\n\n".join(lines)
