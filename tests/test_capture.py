@@ -328,6 +328,14 @@ def test_capture_refuses_bad_photos_in_one_line(tmp_path, monkeypatch, capsys):
     broken = _photos(tmp_path / "broken", 3)
     (broken / "p01.png").write_bytes(b"not a png")
     _refused(monkeypatch, capsys, tmp_path, "--images", str(broken), needle="cannot read photo")
+    cut = tmp_path / "cut"  # a JPEG cut short, as an interrupted copy leaves it: its header reads, its pixels do not
+    cut.mkdir()
+    for i, photo in enumerate(np.random.default_rng(1).integers(0, 255, (3, 60, 80, 3), dtype=np.uint8)):
+        iio.imwrite(cut / f"p{i:02d}.jpg", photo, quality=90)
+    whole = (cut / "p01.jpg").read_bytes()
+    (cut / "p01.jpg").write_bytes(whole[: len(whole) * 6 // 10])
+    _refused(monkeypatch, capsys, tmp_path, "--images", str(cut), needle="cannot read photo")
+    _refused(monkeypatch, capsys, tmp_path, "--images", str(cut), needle="p01.jpg")
     (tmp_path / "clip.mp4").write_bytes(b"\x00" * 64)
     _refused(monkeypatch, capsys, tmp_path, "--video", str(tmp_path / "clip.mp4"), needle="cannot read the video")
     _refused(monkeypatch, capsys, tmp_path, needle="give either --images DIR (photos) or --video FILE")

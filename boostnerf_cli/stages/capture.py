@@ -110,7 +110,8 @@ def photo_files(folder: Path) -> list[Path]:
 
 
 def check_photos(files: list[Path]) -> tuple[int, int]:
-    """Every photo readable and of one size -> (width, height); one line for the first that is not."""
+    """Every photo readable to its last pixel and of one size -> (width, height); one line for the first that is
+    not (checked before features, matching and mapping, not found at the downscale after them)."""
     from PIL import Image
 
     size = None
@@ -118,7 +119,8 @@ def check_photos(files: list[Path]) -> tuple[int, int]:
         try:
             with Image.open(f) as im:
                 im.verify()
-            with Image.open(f) as im:
+            with Image.open(f) as im:  # decoded whole: a file cut short passes verify() and fails only when read
+                im.load()
                 this = im.size
         except Exception as err:  # PIL raises many types for a damaged file
             raise BoostNerfError(f"cannot read photo {f} ({one_line(err)}): remove or replace it") from None
