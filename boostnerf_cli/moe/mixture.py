@@ -242,7 +242,7 @@ class Mixture(nn.Module):
         return self._skip
 
     # --- routing --------------------------------------------------------------------------------
-    def route(self, xyz: Tensor, need_probs: bool = True) -> tuple[Tensor | None, Tensor, Tensor]:
+    def route(self, xyz: Tensor, need_probs: bool = True, static: bool = False) -> tuple[Tensor | None, Tensor, Tensor]:
         """-> probabilities (N, M), weights (N, k), expert indices (N, k).
 
         Rendering (no autograd, `need_probs` False) with renormalised weights skips the probabilities:
@@ -250,9 +250,9 @@ class Mixture(nn.Module):
         the choice is the top-k of the logits; the probabilities are then returned as None.
         """
         with part("routing"):
-            return self._route(xyz, need_probs)
+            return self._route(xyz, need_probs, static)
 
-    def _route(self, xyz: Tensor, need_probs: bool) -> tuple[Tensor | None, Tensor, Tensor]:
+    def _route(self, xyz: Tensor, need_probs: bool, static: bool) -> tuple[Tensor | None, Tensor, Tensor]:
         flops.add("routing", 4 * self.m * xyz.shape[0])
         if self.gate.cfg.gate_type == "uniform":  # the ensemble: every expert, equal weights
             probs = self.gate.probs(xyz)
@@ -261,20 +261,21 @@ class Mixture(nn.Module):
         if not need_probs and self.cfg.renormalize and not torch.is_grad_enabled():
             cells = self.cells()
             if self.cfg.topk == 1 and cells is not None and cells.top1 is not None:
-                return None, xyz.new_ones(xyz.shape[0], 1), self._top1_by_cell(xyz, cells.top1)[:, None]
+                return None, xyz.new_ones(xyz.shape[0], 1), self._top1_by_cell(xyz, cells.top1, static)[:, None]
             chosen, idx = top_k(self.gate.logits(xyz).float(), self.cfg.topk, renormalize=False)
             return None, (torch.ones_like(chosen) if self.cfg.topk == 1 else softmax(chosen)), idx
         probs = self.gate.probs(xyz)
         vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
         return probs, vals, idx
 
-    def _top1_by_cell(self, xyz: Tensor, top1: Tensor) -> Tensor:
+    def _top1_by_cell(self, xyz: Tensor, top1: Tensor, static: bool) -> Tensor:
         """(N,) each sample's expert: its cell's (moe/cells.py), the baked gate's blend where the cell's vertices
-        disagree (on a GPU blended for every sample and chosen per sample, so that nothing waits for the device)."""
+        disagree (for a static packing blended for every sample and chosen per sample, so that nothing waits for the
+        device)."""
         gate = self.gate
         expert = top1[C.cell_index(xyz, gate.bbox, gate.shape)].long()
         mixed = expert < 0
-        if xyz.device.type != "cpu":
+        if static:
             return torch.where(mixed, gate.logits(xyz).float().argmax(-1), expert)
         rows = mixed.nonzero().squeeze(-1)
         if len(rows):
@@ -439,7 +440,7 @@ class RoutedMixture:
         return self
 
     def density(self, xyz: Tensor, live: Tensor | None = None) -> Tensor:
-        probs, vals, idx = self.mixture.route(xyz, need_probs=self.stats is not None)
+        probs, vals, idx = self.mixture.route(xyz, need_probs=self.stats is not None, static=self.packer.static)
         if self.stats is not None:
             self.stats.record(probs, idx, live)
         self._last = (xyz, vals, idx)

@@ -14,7 +14,7 @@ than an untimed one, and only its shares are meaningful (scripts/render_profile.
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from typing import Iterator
 
 import torch
@@ -52,20 +52,10 @@ class _Part:
             _STACK[-1][1] = now
 
 
-class _Nothing:
-    __slots__ = ()
-
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, *exc) -> None:
-        return None
+_NOTHING = nullcontext()  # what a compiled step traces through (the compiler knows nullcontext, not a class of ours)
 
 
-_NOTHING = _Nothing()
-
-
-def part(name: str) -> _Part | _Nothing:
+def part(name: str) -> _Part | nullcontext:
     """Time what runs inside as `name` (exclusive of the parts nested in it), when a timer is open."""
     return _Part(name) if _OPEN and not torch.compiler.is_compiling() else _NOTHING
 
