@@ -279,11 +279,10 @@ def test_the_page_in_headless_chromium_draws_the_frames_on_its_canvas(served):
         time.sleep(1.0)  # the frame reaches the page; the browser's notice (software WebGL) is closed
         if os.environ.get(SCREENSHOT_ENV):
             Path(os.environ[SCREENSHOT_ENV]).write_bytes(browser.screenshot())
-        colour = browser.screenshot(canvas_area(browser))
+        colour = drawn_canvas(browser)
         pick(browser, "show", "depth")
         wait_for(lambda: viewer.look.mode == "depth" and shown_full(page, "top2"), "a depth frame")
-        time.sleep(1.0)
-        depth, depth_page = browser.screenshot(canvas_area(browser)), browser.screenshot()
+        depth, depth_page = drawn_canvas(browser, unlike=colour), browser.screenshot()
         pick(browser, "model", "dvgo-12")
         wait_for(lambda: shown_full(page, "dvgo-12"), "a frame of the model picked in the page")
         press(browser, "go to view N")  # train view 0
@@ -317,13 +316,35 @@ def canvas_area(browser) -> tuple[float, float, float, float]:
     })()"""))
 
 
+def drawn_canvas(browser, unlike: bytes | None = None, seconds: float = 30.0) -> bytes:
+    """A screenshot of the canvas once it shows a frame (not blank; unlike `unlike`'s, when given): a loaded machine
+    draws a frame the page has received a while later. After `seconds` the last screenshot, for the checks to judge."""
+    deadline = time.monotonic() + seconds
+    while True:
+        shot = browser.screenshot(canvas_area(browser))
+        try:
+            assert_frames_differ(shot, unlike) if unlike is not None else assert_not_blank(shot)
+            return shot
+        except AssertionError:
+            if time.monotonic() > deadline:
+                return shot
+            time.sleep(0.5)
+
+
+def assert_not_blank(shot: bytes, what: str = "the canvas") -> None:
+    import imageio.v3 as iio
+
+    a = iio.imread(shot)[..., :3].astype(int)
+    assert a.std() > 10, f"{what} is blank (std {a.std():.1f})"
+
+
 def assert_frames_differ(first: bytes, second: bytes, what: str = "the canvas") -> None:
     """Two screenshots of two frames: the first is not blank (one colour), and they differ over a tenth of it."""
     import imageio.v3 as iio
 
     a, b = iio.imread(first)[..., :3].astype(int), iio.imread(second)[..., :3].astype(int)
     assert a.shape == b.shape and a.shape[0] > 100 and a.shape[1] > 100, (a.shape, b.shape)
-    assert a.std() > 10, f"{what} is blank (std {a.std():.1f})"
+    assert_not_blank(first, what)
     changed = (np.abs(a - b).sum(-1) > 30).mean()
     assert changed > 0.1, f"{what} did not change: {100 * changed:.1f}% of its pixels"
 
