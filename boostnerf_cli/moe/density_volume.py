@@ -28,10 +28,13 @@ class DensityVolume(nn.Module):
         self.shift = math.log(1.0 / (1.0 - 1e-2) - 1.0)
         self.register_buffer("table", torch.zeros(math.prod(self.shape), 1))
 
+    def inside(self, xyz: Tensor) -> Tensor:
+        """(N, 3) -> (N,) bool: in the box, faces included (outside it V_D is empty)."""
+        return ((xyz >= self.bbox[0]) & (xyz <= self.bbox[1])).all(dim=-1)
+
     def density(self, xyz: Tensor) -> Tensor:
         idx, w = G.corners(xyz, self.bbox, self.shape)
-        inside = ((xyz >= self.bbox[0]) & (xyz <= self.bbox[1])).all(dim=-1)
-        return F.softplus(G.lookup(self.table, idx, w)[:, 0] + self.shift) / self.unit * inside
+        return F.softplus(G.lookup(self.table, idx, w)[:, 0] + self.shift) / self.unit * self.inside(xyz)
 
     @torch.no_grad()
     def init_from(self, density) -> None:

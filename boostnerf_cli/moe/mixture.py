@@ -282,13 +282,14 @@ class Mixture(nn.Module):
             expert[rows] = top_k(gate.logits(xyz[rows]).float(), 1, renormalize=False)[1][:, 0]
         return expert
 
-    def cells(self) -> RenderCells | None:
-        """The per-cell decisions `for_rendering` made, while they still hold (the same baked gate and V_D's table
-        unchanged) and nothing trains (no gradient)."""
+    def _cells_hold(self) -> bool:
+        """The per-cell decisions were made for this baked gate and V_D's table as it is."""
         c = self._cells
-        if c is None or torch.is_grad_enabled() or c.gate is not self.gate or c.vd_version != self.vd.table._version:
-            return None
-        return c
+        return c is not None and c.gate is self.gate and c.vd_version == self.vd.table._version
+
+    def cells(self) -> RenderCells | None:
+        """The per-cell decisions `for_rendering` made, while they still hold and nothing trains (no gradient)."""
+        return self._cells if self._cells_hold() and not torch.is_grad_enabled() else None
 
     def _mix(self, xyz: Tensor, dirs: Tensor | None, vals: Tensor, idx: Tensor, packer: Packer = DYNAMIC,
              live: Tensor | None = None) -> Tensor:
@@ -321,7 +322,7 @@ class Mixture(nn.Module):
         """Ready to render a trained mixture: the gate baked when `cfg.bake_res` > 0 (unless exact_gate)."""
         if self.cfg.bake_res > 0 and not exact_gate:
             self.gate = self.gate.baked(self.cfg.bake_res)
-        if self._cells is None or self._cells.gate is not self.gate or self._cells.vd_version != self.vd.table._version:
+        if not self._cells_hold():
             self._cells = self._render_cells()
         return self
 
@@ -398,8 +399,7 @@ class MixtureSkip:
             vd = mix.vd
             with part("V_D"):
                 state = packer.where_kept(lambda p: torch.where(
-                    ((p >= vd.bbox[0]) & (p <= vd.bbox[1])).all(-1), cells.vd[C.cell_index(p, vd.bbox, vd.shape)],
-                    C.FAIL), flat, keep, C.FAIL)
+                    vd.inside(p), cells.vd[C.cell_index(p, vd.bbox, vd.shape)], C.FAIL), flat, keep, C.FAIL)
             certain, keep = state == C.PASS, state == C.MIXED
         inside = packer.pack("vd", keep)
         with part("V_D"):
