@@ -15,6 +15,10 @@ between the OpenGL and OpenCV conventions, the field of view, scaling, and the l
   `Intrinsics.of` reads a row back, and only this module knows the row's layout past fx, fy, cx, cy.
 - `GL_TO_CV`: poses are OpenGL camera-to-world matrices (the camera looks down -z, +y up; scenes/scene.py); COLMAP,
   OpenCV and a browser viewer's cameras look down +z with +y down. `flip_axes` turns one into the other (either way).
+- `DataFrame`: the similarity between the frame of the data as the user gave it (a capture's COLMAP world, a
+  transforms.json's own) and the scene's world, where boostnerf renders (the identity but for a forward-facing
+  capture, which is rescaled and recentred on its average camera: `scene.extra["world_from_data"]`). Camera paths
+  and exports cross it, so what goes out lines up with the user's files.
 
 Pixel (u, v) has its centre at (u + 0.5, v + 0.5); v grows downwards; normalized image coordinates are OpenCV's
 (x right, y down, z = 1).
@@ -44,6 +48,66 @@ def flip_axes(pose):
     if isinstance(pose, Tensor):
         return pose @ torch.as_tensor(GL_TO_CV, dtype=pose.dtype, device=pose.device)
     return np.asarray(pose) @ GL_TO_CV
+
+
+@dataclass(frozen=True)
+class DataFrame:
+    """`world_from_data`: the 4x4 similarity (a uniform scale, a rotation, a shift) from the data's own frame to the
+    scene's world. Poses are OpenGL camera-to-world matrices in both frames, with orthonormal rotations."""
+
+    world_from_data: np.ndarray
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.world_from_data, dtype=np.float64)
+        if t.shape != (4, 4) or not np.isfinite(t).all() or not np.allclose(t[3], [0, 0, 0, 1]):
+            raise BoostNerfError(f"world_from_data must be a finite 4x4 similarity, got {t.tolist()}")
+        object.__setattr__(self, "world_from_data", t)
+
+    @classmethod
+    def of(cls, extra: dict) -> "DataFrame":
+        """The frame a scene records in its `extra` (the identity when it records none)."""
+        return cls(np.asarray(extra.get("world_from_data", np.eye(4)), dtype=np.float64))
+
+    @property
+    def scale(self) -> float:
+        """World units per data unit."""
+        return float(abs(np.linalg.det(self.world_from_data[:3, :3])) ** (1 / 3))
+
+    @property
+    def identity(self) -> bool:
+        return bool(np.allclose(self.world_from_data, np.eye(4), rtol=0, atol=1e-12))
+
+    @staticmethod
+    def _apply(t: np.ndarray, values, poses: bool):
+        """`t` (4, 4) applied to points (..., 3) or, with `poses`, to camera-to-world poses (..., 4, 4), whose rotation
+        stays orthonormal (divided by the scale); numpy or torch in, the same type and dtype out."""
+        if isinstance(values, Tensor):
+            out = DataFrame._apply(t, values.detach().cpu().double().numpy(), poses)
+            return torch.from_numpy(out).to(values.device, values.dtype)
+        x = np.asarray(values, dtype=np.float64)
+        r, shift = t[:3, :3], t[:3, 3]
+        if not poses:
+            return x @ r.T + shift
+        out = x.copy()
+        out[..., :3, :3] = r @ x[..., :3, :3] / abs(np.linalg.det(r)) ** (1 / 3)
+        out[..., :3, 3] = x[..., :3, 3] @ r.T + shift
+        return out
+
+    def points_to_world(self, xyz):
+        """Points (..., 3) of the data's frame -> the scene's world (numpy or torch, in the input's dtype)."""
+        return self._apply(self.world_from_data, xyz, False)
+
+    def points_to_data(self, xyz):
+        """Points (..., 3) of the scene's world -> the data's frame."""
+        return self._apply(np.linalg.inv(self.world_from_data), xyz, False)
+
+    def poses_to_world(self, poses):
+        """Camera-to-world poses (..., 4, 4) of the data's frame -> the scene's world."""
+        return self._apply(self.world_from_data, poses, True)
+
+    def poses_to_data(self, poses):
+        """Camera-to-world poses (..., 4, 4) of the scene's world -> the data's frame."""
+        return self._apply(np.linalg.inv(self.world_from_data), poses, True)
 
 
 # ----------------------------------------------------------------------------- the lens

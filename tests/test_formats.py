@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from boostnerf_cli.cameras import WITH_LENS
+from boostnerf_cli.cameras import WITH_LENS, DataFrame
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.rays import NDC, image_rays, project_points
 from boostnerf_cli.scenes import LAYOUTS, detect_format, load_scene, make_scene
@@ -44,19 +44,6 @@ def _all_views(scene, order=None):
             torch.cat([s.intrinsics for s in splits]))
 
 
-def _to_data(scene, poses):
-    """Scene poses (N, 4, 4) -> the dataset's world (undo LLFF rescaling + recentring)."""
-    if "world_from_data" not in scene.extra:
-        return poses
-    t = torch.tensor(scene.extra["world_from_data"], dtype=torch.float64)
-    s = float(torch.linalg.det(t[:3, :3])) ** (1 / 3)
-    inv = torch.linalg.inv(t)
-    out = poses.clone()
-    out[:, :3, :3] = inv[:3, :3] @ poses[:, :3, :3] * s
-    out[:, :3, 3] = poses[:, :3, 3] @ inv[:3, :3].T + inv[:3, 3]
-    return out
-
-
 @pytest.mark.parametrize("layout", [lay for lay in LAYOUTS if lay != "blender"])
 def test_every_format_loads_the_same_cameras_and_images(forward, layout):
     ref = load_scene(forward["blender"], holdout_every=0)
@@ -68,7 +55,7 @@ def test_every_format_loads_the_same_cameras_and_images(forward, layout):
     atol = 2.0 / 255 if layout in COMPOSITED else 1e-6
     torch.testing.assert_close(images, ref_images, atol=atol, rtol=0)
     torch.testing.assert_close(k, ref_k, atol=1e-4, rtol=1e-6)
-    torch.testing.assert_close(_to_data(scene, poses), ref_poses, atol=1e-5, rtol=0)
+    torch.testing.assert_close(DataFrame.of(scene.extra).poses_to_data(poses), ref_poses, atol=1e-5, rtol=0)
 
 
 def _known_pixel(layout):
@@ -90,9 +77,7 @@ def test_known_point_projects_to_the_expected_pixel(tmp_path, layout):
     scene = load_scene(folder, holdout_every=0, format=layout)
     point, (u, v) = _known_pixel(layout)
     p = torch.tensor(point, dtype=torch.float64)
-    if "world_from_data" in scene.extra:
-        t = torch.tensor(scene.extra["world_from_data"], dtype=torch.float64)
-        p = t[:3, :3] @ p + t[:3, 3]
+    p = DataFrame.of(scene.extra).points_to_world(p)
     pose, k = scene.splits["train"].poses[0], scene.splits["train"].intrinsics[0]
     uv, depth = project_points(p[None].float(), pose, k)
     torch.testing.assert_close(uv[0], torch.tensor([u, v]), atol=2e-3, rtol=0)
@@ -599,3 +584,25 @@ def test_a_folder_named_like_an_image_in_llff_images_is_not_an_image(forward, tm
     (folder / "images" / "zzz.png").mkdir()
     scene = load_scene(folder, holdout_every=0)
     assert len(scene.splits["train"]) == N_TRAIN + N_TEST
+
+
+def test_data_frame_round_trips_points_and_poses_and_keeps_rotations_orthonormal():
+    rng = np.random.default_rng(0)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    t = np.eye(4)
+    t[:3, :3], t[:3, 3] = 2.5 * q, [1.0, -2.0, 0.5]
+    frame = DataFrame(t)
+    assert frame.scale == pytest.approx(2.5) and not frame.identity and DataFrame.of({}).identity
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, :3, :3] = [np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(3)]
+    poses[:, :3, 3] = rng.normal(size=(3, 3))
+    world = frame.poses_to_world(torch.tensor(poses, dtype=torch.float32))
+    assert world.dtype == torch.float32
+    np.testing.assert_allclose(world[:, :3, :3].double() @ world[:, :3, :3].double().mT, np.tile(np.eye(3), (3, 1, 1)),
+                               atol=1e-6)
+    np.testing.assert_allclose(world[:, :3, 3], poses[:, :3, 3] @ t[:3, :3].T + t[:3, 3], atol=1e-5)
+    np.testing.assert_allclose(frame.poses_to_data(world).numpy(), poses, atol=1e-5)
+    xyz = rng.normal(size=(10, 3))
+    np.testing.assert_allclose(frame.points_to_data(frame.points_to_world(xyz)), xyz, atol=1e-12)
+    with pytest.raises(BoostNerfError, match="similarity"):
+        DataFrame(np.full((4, 4), np.nan))
