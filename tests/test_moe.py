@@ -452,3 +452,43 @@ def test_a_cell_is_decided_only_where_all_its_vertices_agree_with_a_margin():
     r = C.threshold_raw(1e-3, 0.05, 0.1, -4.0)
     sigma = torch.nn.functional.softplus(torch.tensor(r, dtype=torch.float64) - 4.0) / 0.1
     assert float(-torch.expm1(-sigma * 0.05)) == pytest.approx(1e-3, rel=1e-9)
+
+
+@pytest.mark.parametrize("seed,occupied", [(0, True), (1, True), (2, True), (0, False)])
+def test_both_skips_looked_up_per_fine_cell_keep_exactly_the_samples_testing_each_keeps(seed, occupied):
+    """The occupancy grid and V_D's test decided together per fine cell (`cells.skip_states`) keep the same samples
+    as testing each in turn, on lattices that do not line up, with points on the box's faces, just past them and
+    outside; and most points are decided by their fine cell."""
+    from boostnerf_cli.moe import cells as C
+    from boostnerf_cli.render.occupancy import OccupancyGrid
+
+    g = torch.Generator().manual_seed(seed)
+    mix = toy_mixture(k=1, seed=seed)
+    with torch.no_grad():  # V_D: a lumpy ball and a slab reaching three of the box's faces, empty elsewhere
+        pts = G.lattice_points(mix.vd.bbox, mix.vd.shape)
+        lump = 0.55 + 0.1 * torch.rand(pts.shape[0], generator=g)
+        dense = (pts.norm(dim=-1) < lump) | (pts[:, 0] > 0.3)
+        mix.vd.table.copy_(torch.where(dense, 4.0, -9.0)[:, None])
+    occ = torch.rand(7, 5, 6, generator=g) < 0.8  # cells of another size than V_D's
+    box = TOY_BOX * (0.85 if seed == 1 else 1.0)  # a grid over a smaller box than V_D's: past it, empty
+    mix.occupancy = OccupancyGrid(occ, box) if occupied else None
+    mix.for_rendering()
+    lo, hi = TOY_BOX
+    xyz = lo + (hi - lo) * torch.rand(40000, 3, generator=g) * 1.2 - 0.1 * (hi - lo)
+    face = lo + (hi - lo) * torch.rand(3000, 3, generator=g)
+    for a in range(3):  # on each face, and a float32 step past and short of it
+        for end in (lo, hi):
+            for nudge in (0.0, 1.0, -1.0):
+                p = face.clone()
+                p[:, a] = torch.nextafter(end[a], end[a] + nudge) if nudge else end[a]
+                xyz = torch.cat([xyz, p])
+    valid = torch.ones(xyz.shape[0], 1, dtype=torch.bool)
+    with torch.no_grad():
+        cells = mix.cells()
+        fused = mix.skip.filter(xyz[:, None], valid, 0.05, 0.0)
+        decided = cells.skip(xyz)
+        cells.skip = None
+        each = mix.skip.filter(xyz[:, None], valid, 0.05, 0.0)
+    assert torch.equal(fused, each)
+    assert 0 < int(fused.sum()) < xyz.shape[0]
+    assert float((decided != C.MIXED).float().mean()) > 0.5

@@ -12,6 +12,13 @@ A trilinear value inside a lattice cell is a convex combination of the cell's 8 
   everywhere in the cell. A renormalised Top-1 mixture routes with weight 1, so the choice is all it needs. `top1_cells`
   gives each cell its expert, or -1 where the vertices disagree (the cell is blended as before).
 
+- **Both skips at once.** A sample is kept when its occupancy cell is occupied and it passes V_D. `skip_states` makes
+  one table (`SkipCells`) over a lattice that splits each of V_D's cells into f^3 (f at least 2, and at least twice
+  as fine as the occupancy grid's cells): a fine cell in occupied cells only whose V_D values (trilinear, so extreme
+  at its corners) all pass is PASS; one in empty cells only, or whose V_D values all fail, is FAIL; any other MIXED.
+  Rendering looks each sample up once; only the MIXED ones, near V_D's surface or an occupancy edge, are tested by
+  the occupancy grid and V_D as before.
+
 A vertex counts only with a margin (`MARGIN` of the values' scale) past the decision, so that float32 rounding in the
 blend can never decide otherwise than the cell does: rendering through the cells gives the same image, bit for bit, as
 blending every sample (tests/test_moe.py).
@@ -22,6 +29,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 FAIL, PASS, MIXED = 0, 1, 2
@@ -84,3 +92,114 @@ def top1_cells(logits: Tensor, shape: tuple[int, int, int]) -> Tensor:
         else:
             agree = agree & clear & (best == expert)
     return torch.where(agree, expert, -1).reshape(-1).to(torch.int8)
+
+
+# a fine cell is compared with every coarse cell it touches grown by this much of the box (float32 rounding of a
+# sample's cell coordinates is ~1e-7 of it), so that a sample never lands in a coarse cell its fine cell did not see
+REACH = 1e-5
+
+
+def _touched(fine: int, lo: float, hi: float, coarse_lo: float, coarse_hi: float, coarse: int) -> tuple[Tensor, Tensor]:
+    """Along one axis, fine cells i (of `fine` over [lo, hi]) -> the first and last coarse cells (of `coarse` over
+    [coarse_lo, coarse_hi]) that the fine cell, grown by REACH of the box, touches (clamped into [0, coarse - 1])."""
+    edges = torch.linspace(lo, hi, fine + 1, dtype=torch.float64)
+    grow = REACH * (hi - lo)
+    size = (coarse_hi - coarse_lo) / coarse
+    first = ((edges[:-1] - grow - coarse_lo) / size).floor().clamp(0, coarse - 1).long()
+    last = ((edges[1:] + grow - coarse_lo) / size).floor().clamp(0, coarse - 1).long()
+    return first, last
+
+
+def _all_over(values: Tensor, ranges: list[tuple[Tensor, Tensor]]) -> Tensor:
+    """values (A, B, C) bool on a coarse lattice -> (a, b, c) bool: for each fine cell, whether the values of every
+    coarse cell in its ranges (one (first, last) pair of (n,) per axis) are all True."""
+    out = values
+    for axis, (first, last) in enumerate(ranges):
+        span = int((last - first).max()) + 1 if len(first) else 1
+        acc = None
+        for off in range(span):
+            idx = torch.minimum(first + off, last)  # past the range: its last cell again
+            taken = out.index_select(axis, idx)
+            acc = taken if acc is None else acc & taken
+        out = acc
+    return out
+
+
+class SkipCells:
+    """Per fine cell of a box, PASS / FAIL / MIXED for the occupancy grid and V_D together (`skip_states`). Looked up
+    as the occupancy grid is: cells [x, y, z] of `shape` over `bbox`, a point outside the box is FAIL."""
+
+    def __init__(self, state: Tensor, bbox: Tensor):
+        self.state = state
+        self.bbox = bbox.float()
+        self._padded = F.pad(state, (1, 1, 1, 1, 1, 1), value=FAIL).reshape(-1)
+        p = [n + 2 for n in state.shape]
+        self._strides = torch.tensor([p[1] * p[2], p[2], 1], dtype=torch.float32, device=state.device)
+        self._res = torch.tensor(state.shape, dtype=torch.float32, device=state.device)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.state.shape)  # type: ignore[return-value]
+
+    def __call__(self, xyz: Tensor) -> Tensor:
+        """(N, 3) -> (N,) uint8 each point's state."""
+        lo, hi, res = self.bbox[0], self.bbox[1], self._res
+        u = (xyz.float() - lo).div_(hi - lo).mul_(res)
+        u = torch.where(u == res, res - 0.5, u).floor_()  # a point on the max face: the last cell (as the grid's)
+        cell = torch.minimum(u.clamp_min_(-1.0), res).add_(1.0)
+        return self._padded[(cell @ self._strides).long()]
+
+
+@torch.no_grad()
+def skip_states(raw: Tensor, vd_shape: tuple[int, int, int], vd_bbox: Tensor, threshold_raw: float, occupancy=None,
+                fineness: int = 2) -> SkipCells:
+    """V_D's vertex values `raw` (X*Y*Z, 1) over `vd_bbox`, its threshold r* (`threshold_raw`) and an occupancy grid
+    (render/occupancy.py, or None) -> one table over V_D's box whose cells split each of V_D's into f^3, f the
+    smallest that makes them at most 1 / `fineness` of an occupancy cell and of V_D's along every axis. V_D is
+    trilinear inside each of its cells, so over a fine cell its extremes lie at the fine cell's 8 corners; a fine cell
+    passes V_D when all 8 lie above r* (with `MARGIN` and a slack for a sample rounded into its neighbour), fails when
+    all lie below. The occupancy grid's cells are boolean: a fine cell is occupied (empty) when every cell it touches
+    (grown by `REACH`) is. A fine cell on the box's faces never passes (a sample just past a face is outside V_D)."""
+    cells = [n - 1 for n in vd_shape]
+    lo, hi = [float(v) for v in vd_bbox[0]], [float(v) for v in vd_bbox[1]]
+    f = fineness
+    if occupancy is not None:
+        for a in range(3):
+            vd_cell = (hi[a] - lo[a]) / cells[a]
+            occ_cell = float(occupancy.bbox[1, a] - occupancy.bbox[0, a]) / occupancy.shape[a]
+            f = max(f, math.ceil(fineness * vd_cell / occ_cell))
+    fine = [c * f for c in cells]
+    table = raw.reshape(1, 1, *vd_shape).double().cpu()
+    values = F.interpolate(table, size=tuple(n + 1 for n in fine), mode="trilinear", align_corners=True)[0, 0]
+    lo_v = hi_v = None
+    for corner in _corner_views(values.reshape(-1, 1), tuple(n + 1 for n in fine)):
+        lo_v = corner if lo_v is None else torch.minimum(lo_v, corner)
+        hi_v = corner if hi_v is None else torch.maximum(hi_v, corner)
+    lo_v, hi_v = lo_v[..., 0], hi_v[..., 0]
+    coarse_lo = coarse_hi = None  # each fine cell's V_D cell's extremes: the slack
+    for corner in _corner_views(raw.double().cpu(), tuple(vd_shape)):
+        coarse_lo = corner if coarse_lo is None else torch.minimum(coarse_lo, corner)
+        coarse_hi = corner if coarse_hi is None else torch.maximum(coarse_hi, corner)
+    spread = (coarse_hi - coarse_lo)[..., 0]
+    spread = spread.repeat_interleave(f, 0).repeat_interleave(f, 1).repeat_interleave(f, 2)
+    margin = MARGIN * max(1.0, abs(threshold_raw)) + 1e-3 * spread
+    sure_pass = lo_v > threshold_raw + margin
+    sure_fail = hi_v < threshold_raw - margin
+    face = torch.zeros(fine, dtype=torch.bool)
+    face[0], face[-1], face[:, 0], face[:, -1], face[:, :, 0], face[:, :, -1] = (True,) * 6
+    sure_pass &= ~face
+    if occupancy is not None:
+        occ = occupancy.occupied.bool().cpu()
+        olo, ohi = [float(v) for v in occupancy.bbox[0]], [float(v) for v in occupancy.bbox[1]]
+        ranges = [_touched(fine[a], lo[a], hi[a], olo[a], ohi[a], occupancy.shape[a]) for a in range(3)]
+        inside = []  # a fine cell reaching past the grid's box (grown as above) touches space the grid calls empty
+        for a in range(3):
+            edges, grow = torch.linspace(lo[a], hi[a], fine[a] + 1, dtype=torch.float64), REACH * (hi[a] - lo[a])
+            inside.append((edges[:-1] - grow >= olo[a]) & (edges[1:] + grow <= ohi[a]))
+        within = inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
+        sure_pass &= _all_over(occ, ranges) & within
+        sure_fail |= _all_over(~occ, ranges)
+    state = torch.full(tuple(fine), MIXED, dtype=torch.uint8)
+    state[sure_pass] = PASS
+    state[sure_fail] = FAIL
+    return SkipCells(state.to(raw.device), vd_bbox.to(raw.device))

@@ -199,6 +199,7 @@ class RenderCells:
     vd_version: int
     vd: Tensor | None
     top1: Tensor | None
+    skip: C.SkipCells | None = None  # the occupancy grid and V_D's test together, per fine cell (None: no V_D cells)
 
 
 class Mixture(nn.Module):
@@ -329,12 +330,13 @@ class Mixture(nn.Module):
     @torch.no_grad()
     def _render_cells(self) -> RenderCells:
         cfg, vd, gate = self.cfg, self.vd, self.gate
-        vd_cells = None
+        vd_cells = skip = None
         if cfg.vd_source == "smallest":
-            vd_cells = C.vd_states(vd.table, vd.shape, C.threshold_raw(cfg.density_threshold, cfg.step, vd.unit,
-                                                                         vd.shift))
+            r = C.threshold_raw(cfg.density_threshold, cfg.step, vd.unit, vd.shift)
+            vd_cells = C.vd_states(vd.table, vd.shape, r)
+            skip = C.skip_states(vd.table, vd.shape, vd.bbox, r, self.occupancy)
         top1 = C.top1_cells(gate.logit_table, gate.shape) if gate.cfg.gate_type == "baked" else None
-        return RenderCells(gate, vd.table._version, vd_cells, top1)
+        return RenderCells(gate, vd.table._version, vd_cells, top1, skip)
 
     def batch_view(self, packer: Packer = DYNAMIC) -> "RoutedMixture":
         """A per-batch view for the renderer: the gate runs once per sample (see RoutedMixture)."""
@@ -390,17 +392,22 @@ class MixtureSkip:
         mix = self.mixture
         flat = xyz.reshape(-1, 3)
         keep = valid.reshape(-1)
-        if mix.occupancy is not None:
-            keep = packer.keep_where(mix.occupancy, flat, keep)
         visible = mix.cfg.vd_filter == "visible" and threshold > 0
         cells = None if visible else mix.cells()
         certain = None
+        if cells is not None and cells.skip is not None:  # both skips decided per fine cell: tested only where mixed
+            with part("V_D"):
+                state = packer.where_kept(cells.skip, flat, keep, C.FAIL)
+            certain, keep = state == C.PASS, state == C.MIXED
+        if mix.occupancy is not None:
+            keep = packer.keep_where(mix.occupancy, flat, keep)
         if cells is not None and cells.vd is not None:  # V_D decided per cell: blended only where its surface crosses
             vd = mix.vd
             with part("V_D"):
                 state = packer.where_kept(lambda p: torch.where(
                     vd.inside(p), cells.vd[C.cell_index(p, vd.bbox, vd.shape)], C.FAIL), flat, keep, C.FAIL)
-            certain, keep = state == C.PASS, state == C.MIXED
+            certain = state == C.PASS if certain is None else certain | (state == C.PASS)
+            keep = state == C.MIXED
         inside = packer.pack("vd", keep)
         with part("V_D"):
             sigma = mix.vd_density(flat[inside.rows])
