@@ -478,6 +478,36 @@ def count_params_cmd(
     show(table)
 
 
+@app.command("export")
+def export_cmd(
+    kind: Annotated[str, typer.Argument(help="pointcloud, mesh or routing (mixtures).")],
+    workspace: WorkspaceOpt,
+    model: Annotated[str, typer.Option("--model", help="The model to export (e.g. dvgo-160, top2).")],
+    out: Annotated[Path, typer.Option("--out", help="File to write: .ply (mesh: or .obj).")],
+    points: Annotated[int, typer.Option("--points", min=1, help="pointcloud: points at most, drawn from every kept "
+                                        "pixel of the training views.")] = 100_000,
+    min_opacity: Annotated[float, typer.Option("--min-opacity", help="pointcloud: a pixel's accumulated opacity "
+                                               "from which it is a point.")] = 0.5,
+    views: Annotated[Optional[int], typer.Option("--views", min=1, help="pointcloud: only the first N training "
+                                                 "views.")] = None,
+    resolution: Annotated[int, typer.Option("--resolution", min=8, max=1024, help="mesh: density samples along the "
+                                            "longest side of the region meshed.")] = 128,
+    threshold: Annotated[float, typer.Option("--threshold", help="mesh: the surface where the opacity over one "
+                                             "render step crosses this.")] = 0.2,
+    device: DeviceOpt = "auto",
+) -> None:
+    """A model as a point cloud, a mesh or its routing, in the frame of the data as given (PLY or OBJ)."""
+    from boostnerf_cli.stages import export as stage
+    from boostnerf_cli.stages.common import resolve_device
+
+    options = stage.ExportOptions(points, min_opacity, views, resolution, threshold)
+    stage.check_request(kind, out, options)  # before the workspace is read: plyfile missing, a wrong suffix
+    ws, lock = _reader(workspace)
+    with lock:
+        stage.run(_survey(ws), kind, model, out, options, resolve_device(device))
+    print(out)  # stdout: the file written, for a script (the prose is on stderr)
+
+
 @app.command()
 def prune(
     workspace: WorkspaceOpt,

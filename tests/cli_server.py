@@ -35,6 +35,7 @@ def serve(path: str) -> None:
         build_moe,
         count_params,
         evaluate,
+        export,
         finetune,
         pretrain,
         prune,

@@ -39,6 +39,13 @@ class NDC:
         x, y, z = xyz.unbind(-1)
         return torch.stack([-self.sx * x / z, -self.sy * y / z, 1 + 2 * self.near / z], dim=-1)
 
+    def world(self, ndc: Tensor) -> Tensor:
+        """NDC points (..., 3) with z < 1 -> the world points `points` maps there (its inverse): depth -p_z =
+        2 near / (1 - z), then x and y scaled back by it. z = 1 is infinitely far."""
+        a, b, c = ndc.unbind(-1)
+        z = -2 * self.near / (1 - c)
+        return torch.stack([-a * z / self.sx, -b * z / self.sy, z], dim=-1)
+
     def rays(self, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
         """World rays (R, 3), (R, 3) -> NDC rays: origins on the NDC near plane z = -1, unit directions.
 
