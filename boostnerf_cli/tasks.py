@@ -195,6 +195,7 @@ class MixtureTask:
 
     def __post_init__(self) -> None:
         self.packer, self.loss = step_setup(self.loss, self.tcfg, self.mix.bbox.device, self.packer)
+        self.mix.prepare_skips()  # V_D and the grid stay as they are while the mixture trains: decided per cell once
 
     def before_step(self, step: int) -> bool:
         """Nothing changes the mixture's parameters between steps."""

@@ -396,6 +396,7 @@ def _rendered(mix, image_camera, settings, use_cells: bool, monkeypatch):
     with monkeypatch.context() as m:
         if not use_cells:
             m.setattr(type(mix), "cells", lambda self: None)
+            m.setattr(type(mix), "skips", lambda self: None)
         return render_image(mix, image_camera, settings, mix.skip)
 
 
@@ -413,9 +414,9 @@ def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
         mix.vd.table.copy_(torch.where(pts.norm(dim=-1, keepdim=True) < 0.6, 3.0, -8.0))
     mix.for_rendering()
     with torch.no_grad():
-        cells = mix.cells()
-    assert cells is not None and cells.vd is not None and cells.top1 is not None
-    states = torch.bincount(cells.vd.long(), minlength=3)
+        cells, tables = mix.cells(), mix.skips()
+    assert cells is not None and tables is not None and cells.top1 is not None
+    states = torch.bincount(tables.vd.long(), minlength=3)
     assert states[C.PASS] > 0 and states[C.FAIL] > 0 and states[C.MIXED] > 0, states
     assert (cells.top1 >= 0).float().mean() > 0.5  # most cells of the baked gate have one clear expert
     pose = torch.eye(4)
@@ -427,9 +428,13 @@ def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
     assert fast["n_samples"] == slow["n_samples"] > 0 and fast["n_color"] == slow["n_color"]
     for key in ("rgb", "depth", "acc"):
         assert torch.equal(fast[key], slow[key]), key
-    # the shortcut is for rendering: a mixture that trains (gradients on) blends every sample
+    # Top-1's shortcut is for rendering: a mixture that trains (gradients on) routes every sample by its gate; V_D and
+    # the grid do not train, so their decisions hold, until V_D's table changes
     with torch.enable_grad():
-        assert mix.cells() is None
+        assert mix.cells() is None and mix.skips() is tables
+    with torch.no_grad():
+        mix.vd.table.add_(0.0)
+    assert mix.skips() is None
 
 
 def test_a_cell_is_decided_only_where_all_its_vertices_agree_with_a_margin():
@@ -484,10 +489,10 @@ def test_both_skips_looked_up_per_fine_cell_keep_exactly_the_samples_testing_eac
                 xyz = torch.cat([xyz, p])
     valid = torch.ones(xyz.shape[0], 1, dtype=torch.bool)
     with torch.no_grad():
-        cells = mix.cells()
+        tables = mix.skips()
         fused = mix.skip.filter(xyz[:, None], valid, 0.05, 0.0)
-        decided = cells.skip(xyz)
-        cells.skip = None
+        decided = tables.skip(xyz)
+        tables.skip = C.SkipCells(torch.full_like(tables.skip.state, C.MIXED), tables.skip.bbox)  # every cell mixed
         each = mix.skip.filter(xyz[:, None], valid, 0.05, 0.0)
     assert torch.equal(fused, each)
     assert 0 < int(fused.sum()) < xyz.shape[0]

@@ -32,6 +32,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from boostnerf_cli.device import constant
+
 FAIL, PASS, MIXED = 0, 1, 2
 MARGIN = 1e-4  # of max(1, |value|): far past float32's rounding of an 8-term blend (~1e-6 of it)
 
@@ -39,7 +41,7 @@ MARGIN = 1e-4  # of max(1, |value|): far past float32's rounding of an 8-term bl
 def cell_index(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> Tensor:
     """(N, 3) -> (N,) the index of the lattice cell whose 8 vertices `grid.corners` blends for each point (the same
     clamping), in C order over the (X-1, Y-1, Z-1) cells."""
-    res = torch.tensor(shape, device=xyz.device, dtype=xyz.dtype)
+    res = constant(tuple(shape), xyz.device, xyz.dtype)  # made once per device: no copy to it per call
     p = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * (res - 1)
     p0 = torch.minimum(torch.minimum(p.clamp_min(0), res - 1).floor(), res - 2).long()
     return (p0[:, 0] * (shape[1] - 1) + p0[:, 1]) * (shape[2] - 1) + p0[:, 2]

@@ -191,15 +191,23 @@ class RoutingStats:
 
 @dataclass
 class RenderCells:
-    """What a mixture ready to render decides per lattice cell (moe/cells.py): V_D's test per cell of V_D's lattice
-    (None when V_D is the largest expert's own density), Top-1's expert per cell of the baked gate's lattice (None
-    unless it routes by a baked gate with weight 1); made for `gate` and V_D's table at `vd_version`."""
+    """Top-1's expert per cell of the baked gate's lattice (moe/cells.py; None unless the mixture routes by a baked
+    gate), made for `gate`."""
 
     gate: Gate
-    vd_version: int
-    vd: Tensor | None
     top1: Tensor | None
-    skip: C.SkipCells | None = None  # the occupancy grid and V_D's test together, per fine cell (None: no V_D cells)
+
+
+@dataclass
+class SkipTables:
+    """What V_D and the occupancy grid decide per cell (moe/cells.py): V_D's test per cell of its lattice, and both
+    skips together per fine cell; made for V_D's table at `vd_version` and the grid `occupancy`. Neither changes while a
+    mixture finetunes with V_D from the smallest expert, so training reads them as rendering does."""
+
+    vd_version: int
+    occupancy: OccupancyGrid | None
+    vd: Tensor
+    skip: C.SkipCells
 
 
 class Mixture(nn.Module):
@@ -219,6 +227,7 @@ class Mixture(nn.Module):
         self.register_buffer("penalty", penalty_weights(len(experts), cfg.penalty))
         self._skip = MixtureSkip(self)
         self._cells: RenderCells | None = None
+        self._skips: SkipTables | None = None
 
     @property
     def m(self) -> int:
@@ -284,13 +293,31 @@ class Mixture(nn.Module):
         return expert
 
     def _cells_hold(self) -> bool:
-        """The per-cell decisions were made for this baked gate and V_D's table as it is."""
+        """The per-cell decisions were made for this baked gate."""
         c = self._cells
-        return c is not None and c.gate is self.gate and c.vd_version == self.vd.table._version
+        return c is not None and c.gate is self.gate
 
     def cells(self) -> RenderCells | None:
         """The per-cell decisions `for_rendering` made, while they still hold and nothing trains (no gradient)."""
         return self._cells if self._cells_hold() and not torch.is_grad_enabled() else None
+
+    def skips(self) -> SkipTables | None:
+        """V_D's and the occupancy grid's per-cell decisions (`prepare_skips`), while they hold: V_D from the smallest
+        expert, its table and the grid as they were made for."""
+        t = self._skips
+        if t is None or self.cfg.vd_source != "smallest" or t.occupancy is not self.occupancy:
+            return None
+        return t if t.vd_version == self.vd.table._version else None
+
+    @torch.no_grad()
+    def prepare_skips(self) -> None:
+        """Decide V_D's test, and both skips together, per cell (moe/cells.py) for V_D and the grid as they are."""
+        if self.cfg.vd_source != "smallest" or self.skips() is not None:
+            return
+        vd, cfg = self.vd, self.cfg
+        r = C.threshold_raw(cfg.density_threshold, cfg.step, vd.unit, vd.shift)
+        self._skips = SkipTables(vd.table._version, self.occupancy, C.vd_states(vd.table, vd.shape, r),
+                                 C.skip_states(vd.table, vd.shape, vd.bbox, r, self.occupancy))
 
     def _mix(self, xyz: Tensor, dirs: Tensor | None, vals: Tensor, idx: Tensor, packer: Packer = DYNAMIC,
              live: Tensor | None = None) -> Tensor:
@@ -324,19 +351,11 @@ class Mixture(nn.Module):
         if self.cfg.bake_res > 0 and not exact_gate:
             self.gate = self.gate.baked(self.cfg.bake_res)
         if not self._cells_hold():
-            self._cells = self._render_cells()
+            gate = self.gate
+            top1 = C.top1_cells(gate.logit_table, gate.shape) if gate.cfg.gate_type == "baked" else None
+            self._cells = RenderCells(gate, top1)
+        self.prepare_skips()
         return self
-
-    @torch.no_grad()
-    def _render_cells(self) -> RenderCells:
-        cfg, vd, gate = self.cfg, self.vd, self.gate
-        vd_cells = skip = None
-        if cfg.vd_source == "smallest":
-            r = C.threshold_raw(cfg.density_threshold, cfg.step, vd.unit, vd.shift)
-            vd_cells = C.vd_states(vd.table, vd.shape, r)
-            skip = C.skip_states(vd.table, vd.shape, vd.bbox, r, self.occupancy)
-        top1 = C.top1_cells(gate.logit_table, gate.shape) if gate.cfg.gate_type == "baked" else None
-        return RenderCells(gate, vd.table._version, vd_cells, top1, skip)
 
     def batch_view(self, packer: Packer = DYNAMIC) -> "RoutedMixture":
         """A per-batch view for the renderer: the gate runs once per sample (see RoutedMixture)."""
@@ -393,19 +412,19 @@ class MixtureSkip:
         flat = xyz.reshape(-1, 3)
         keep = valid.reshape(-1)
         visible = mix.cfg.vd_filter == "visible" and threshold > 0
-        cells = None if visible else mix.cells()
+        tables = None if visible else mix.skips()
         certain = None
-        if cells is not None and cells.skip is not None:  # both skips decided per fine cell: tested only where mixed
+        if tables is not None:  # both skips decided per fine cell: tested only where mixed
             with part("V_D"):
-                state = packer.where_kept(cells.skip, flat, keep, C.FAIL)
+                state = packer.where_kept(tables.skip, flat, keep, C.FAIL)
             certain, keep = state == C.PASS, state == C.MIXED
         if mix.occupancy is not None:
             keep = packer.keep_where(mix.occupancy, flat, keep)
-        if cells is not None and cells.vd is not None:  # V_D decided per cell: blended only where its surface crosses
+        if tables is not None:  # V_D decided per cell: blended only where its surface crosses
             vd = mix.vd
             with part("V_D"):
                 state = packer.where_kept(lambda p: torch.where(
-                    vd.inside(p), cells.vd[C.cell_index(p, vd.bbox, vd.shape)], C.FAIL), flat, keep, C.FAIL)
+                    vd.inside(p), tables.vd[C.cell_index(p, vd.bbox, vd.shape)], C.FAIL), flat, keep, C.FAIL)
             certain = state == C.PASS if certain is None else certain | (state == C.PASS)
             keep = state == C.MIXED
         inside = packer.pack("vd", keep)
