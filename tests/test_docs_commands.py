@@ -10,8 +10,9 @@ script per document (`set -euo pipefail`), in an empty folder that has the repos
 imports torch once and forks per command) with tiny settings, so the documented
 long runs (lego, 20k iterations, 800 px) finish in seconds; the command lines themselves are
 unchanged. The shim replaces the values of:
-  --data (the tiny generated scene, unless an earlier command made that folder), --recipe (a tiny recipe; the
-  recipe named must exist),
+  --data and chain's DATA (the tiny generated scene, unless an earlier command made that folder; chain's - is kept),
+  --recipe (a tiny recipe; the recipe named must exist: a file, or for chain also a name in recipes/; chain is given
+  the tiny recipe when it names none, and keeps a name that is no recipe, which it refuses itself),
   --iters, --res, --image-size, --gate-res, --frames, --size, --train-views, --test-views,
   --device (cpu; added when missing).
 `make-scene --content textured` (photos for `boostnerf capture`) keeps its size and views: structure from motion
@@ -51,7 +52,7 @@ DOCS_CHANGES = {
 
 TINY_VALUES = {"--iters": "4", "--res": "8,12", "--image-size": "16", "--gate-res": "4", "--frames": "3",
                "--size": "16", "--train-views": "6", "--test-views": "2", "--device": "cpu"}
-NEEDS_DEVICE = {"pretrain", "build-moe", "finetune", "render", "eval", "count-params"}
+NEEDS_DEVICE = {"pretrain", "build-moe", "finetune", "render", "eval", "count-params", "chain"}
 
 SHIM = r'''#!{python}
 """`boostnerf` for the docs test: this checkout's CLI with tiny settings (see tests/test_docs_commands.py)."""
@@ -62,6 +63,9 @@ TINY = {tiny!r}
 args = sys.argv[1:]
 if args[:1] == ["make-scene"] and "textured" in args:  # photos to capture: as the docs give them
     TINY = {{k: v for k, v in TINY.items() if k not in ("--size", "--train-views", "--test-views")}}
+chain = args[:1] == ["chain"]
+if chain and len(args) > 1 and args[1] != "-" and not args[1].startswith("--") and not Path(args[1]).exists():
+    args = ["chain", os.environ["DOCS_SCENE"], *args[2:]]  # DATA, as --data
 out, i = [], 0
 while i < len(args):
     a = args[i]
@@ -70,7 +74,12 @@ while i < len(args):
         if not eq:
             i += 1
             val = args[i] if i < len(args) else ""
-        if key == "--recipe" and not Path(val).exists():
+        named = key == "--recipe" and (Path(val).exists() or (chain and Path("recipes", val + ".yaml").exists()))
+        if key == "--recipe" and not named and chain:  # no recipe: chain's own refusal is what is tested
+            out += [key, val]
+            i += 1
+            continue
+        if key == "--recipe" and not named:
             sys.exit(f"docs test: the recipe {{val!r}} named in the docs does not exist")
         if key == "--data":  # a scene an earlier command made is used; a dataset the docs name is replaced
             val = val if Path(val).exists() else os.environ["DOCS_SCENE"]
@@ -80,6 +89,8 @@ while i < len(args):
     else:
         out.append(a)
     i += 1
+if chain and "--recipe" not in out and "--help" not in out:  # the recipe chain would pick is sized for a dataset
+    out += ["--recipe", os.environ["DOCS_RECIPE"]]
 if args and args[0] in {needs_device!r} and "--device" not in out and "--help" not in out:
     out += ["--device", "cpu"]
 with open(os.environ["DOCS_LOG"], "a") as log:
