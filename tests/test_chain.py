@@ -1,5 +1,5 @@
 """`boostnerf chain`: every stage in one process (pretrain to the video), its rerun, the recipe it picks for a scene,
-and the inputs it refuses before it writes anything."""
+and the inputs it refuses before it writes anything; recipes/chain.sh and quickstart.sh, its thin callers."""
 
 from __future__ import annotations
 
@@ -7,6 +7,8 @@ import json
 import os
 import re
 import signal
+import stat
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -181,3 +183,52 @@ def test_a_bad_model_recipe_or_option_is_refused_before_any_stage(monkeypatch, c
     assert "pretrain.iters" in refused(monkeypatch, capsys, tmp_path, "-", "--set", "pretrain.iters=0")
     monkeypatch.setenv("WORLD_SIZE", "2")  # under torchrun: one process runs the chain
     assert "run this command as one process" in refused(monkeypatch, capsys, tmp_path, "-")
+
+
+# --- the scripts, thin callers --------------------------------------------------------------------------------------
+def fake_boostnerf(tmp_path: Path) -> dict[str, str]:
+    """A `boostnerf` on PATH that logs its arguments, one call a line, to tmp_path/calls -> the environment."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    fake = bin_dir / "boostnerf"
+    fake.write_text(f'#!/usr/bin/env bash\nprintf "%s|" "$@" >> {tmp_path / "calls"}\necho >> {tmp_path / "calls"}\n')
+    fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
+    env = {k: v for k, v in os.environ.items() if k not in ("DEVICE", "MODELS", "TOP1_WEIGHT", "SEED")}
+    return {**env, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
+
+
+def calls(tmp_path: Path) -> list[list[str]]:
+    return [line.rstrip("|").split("|") for line in (tmp_path / "calls").read_text().splitlines()]
+
+
+def test_chain_sh_passes_its_arguments_and_environment_to_boostnerf_chain(tmp_path):
+    env = {**fake_boostnerf(tmp_path), "DEVICE": "cpu", "MODELS": "baseline top2", "TOP1_WEIGHT": "raw"}
+    subprocess.run(["bash", str(ROOT / "recipes" / "chain.sh"), "llff-dvgo-cpu", "data/fern", "ws", "--format", "llff",
+                    "--iters", "300", "--no-skip", "--holdout-every=4", "--res", "32,48", "--device", "cuda"],
+                   env=env, check=True, cwd=tmp_path)
+    assert calls(tmp_path) == [[
+        "chain", "data/fern", "--workspace", "ws", "--recipe", str(ROOT / "recipes" / "llff-dvgo-cpu.yaml"),
+        "--device", "cpu", "--models", "baseline top2", "--top1-weight", "raw", "--format", "llff",
+        "--set", "pretrain.iters=300", "--set", "pretrain.skip=false", "--set", "data.holdout_every=4",
+        "--res", "32,48", "--device", "cuda"]]
+    defaults = tmp_path / "defaults"  # no environment: chain.sh's defaults
+    defaults.mkdir()
+    subprocess.run(["bash", str(ROOT / "recipes" / "chain.sh"), "mine.yaml", "-", "ws"], env=fake_boostnerf(defaults),
+                   check=True, cwd=tmp_path)
+    assert calls(defaults) == [[
+        "chain", "-", "--workspace", "ws", "--recipe", "mine.yaml", "--device", "auto", "--models",
+        "baseline top1 top2 ens", "--top1-weight", "renormalized"]]
+    usage = subprocess.run(["bash", str(ROOT / "recipes" / "chain.sh")], capture_output=True, text=True)
+    assert usage.returncode == 2 and "Usage: bash recipes/chain.sh RECIPE DATA WS" in usage.stderr
+
+
+def test_quickstart_sh_is_chain_then_the_per_expert_pictures(tmp_path):
+    env = {**fake_boostnerf(tmp_path), "SEED": "1", "DEVICE": "cpu"}
+    subprocess.run(["bash", str(ROOT / "recipes" / "quickstart.sh"), "ws-demo"], env=env, check=True, cwd=tmp_path,
+                   capture_output=True)
+    made = calls(tmp_path)
+    assert [c[0] for c in made] == ["make-scene", "chain", "render"]
+    assert made[1] == ["chain", "ws-demo/scene", "--workspace", "ws-demo", "--recipe",
+                       str(ROOT / "recipes" / "demo-dvgo-cpu.yaml"), "--seed", "1", "--device", "cpu",
+                       "--video-model", "top2"]
+    assert "--per-expert" in made[2] and "top2" in made[2]

@@ -195,43 +195,62 @@ def _run_chain(cwd: Path, env: dict, *args: str) -> tuple[subprocess.CompletedPr
     return proc, log.read_text() if log.exists() else ""
 
 
+STAGES = ["[1/10] pretrain", "[2/10] build-moe", "[3/10] finetune baseline", "[4/10] finetune top1",
+          "[5/10] finetune top2", "[6/10] finetune ens", "[7/10] eval", "[8/10] count-params",
+          "[9/10] render --compare", "[10/10] render --path"]
+
+
+def stage_lines(stderr: str) -> list[str]:
+    return [line for line in stderr.splitlines() if re.fullmatch(r"\[\d+/\d+\] .+", line)]
+
+
 @pytest.mark.slow
 def test_chain_skips_finished_models_redoes_the_reports_and_stops_at_the_first_failure(docs_env):
+    """recipes/chain.sh, the thin caller of `boostnerf chain`: its arguments and environment reach the command, a
+    rerun trains nothing again, a failing stage stops the chain naming it, and a typo is refused before any stage."""
     base, env = docs_env
     cwd = base / "chain"
     cwd.mkdir()
     (cwd / "recipes").symlink_to(ROOT / "recipes")
     env = {**env, "TOP1_WEIGHT": "raw"}  # Top-1 weighted by the gate's probability, as the official code does
-    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", "-", "ws")
+    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", "-", "ws", "--iters", "6", "--frames", "3")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert [line.split()[1] for line in ran.splitlines() if line.startswith("boostnerf")] == [
-        "pretrain", "build-moe", "finetune", "finetune", "finetune", "finetune", "eval", "count-params"]
-    finetunes = [line for line in ran.splitlines() if line.startswith("boostnerf finetune")]
-    assert [("--no-renormalize" in line) for line in finetunes] == [False, True, False, False], finetunes
+    assert [line.split()[1] for line in ran.splitlines() if line.startswith("boostnerf")] == ["chain"]
+    assert "--top1-weight raw" in ran and "--models baseline top1 top2 ens" in ran, ran
+    assert "--set pretrain.iters=6" in ran, ran  # pretrain's --iters, as the recipe key it sets
+    assert stage_lines(proc.stderr) == STAGES
+    ws = cwd / "ws"
+    finetuned = {m: json.loads((ws / "moe" / f"{m}.json").read_text()) for m in ("top1", "top2", "ens")}
+    assert [finetuned[m]["renormalize"] for m in ("top1", "top2")] == [False, True], finetuned
+    assert json.loads((ws / "experts" / "dvgo-8.json").read_text())["iterations"] == 6
     # a report of one model over one view, then a rerun: nothing is trained again (build-moe keeps moe/init, made
     # with the same settings, so every mixture is current), and the reports cover every model and view again (the chain
     # kept any report newer than the models, this one too)
-    ws = cwd / "ws"
     init, first = (ws / "moe" / "init.safetensors").read_bytes(), json.loads((ws / "reports" / "eval.json").read_text())
     subprocess.run(["boostnerf", "eval", "-w", str(ws), "--model", "top2", "--views", "1", "--report", "--no-costs",
                     "--device", "cpu"], cwd=cwd, env={**env, "DOCS_LOG": str(cwd / "eval.log")}, check=True,
                    capture_output=True)
-    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", "-", "ws")
+    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", "-", "ws", "--iters", "6", "--frames", "3")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stderr.count("already finetuned, skipping") == 4 and "already trained, skipping" in proc.stderr
+    assert "pictures in" in proc.stderr and "kept" in proc.stderr  # the pictures are newer than the models
     assert (ws / "moe" / "init.safetensors").read_bytes() == init
     report = json.loads((ws / "reports" / "eval.json").read_text())
     assert [m["name"] for m in report["models"]] == [m["name"] for m in first["models"]]
     assert len(first["models"]) == 2 + 4 and report["views"] == first["views"] > 1
-    # a stage that fails stops the chain there, naming it
-    (cwd / "not-a-scene").mkdir()  # exists, so the shim keeps it; pretrain cannot read it
-    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", str(cwd / "not-a-scene"), "ws-bad")
-    assert proc.returncode != 0 and "chain: stage failed: boostnerf pretrain" in proc.stderr
-    assert "build-moe" not in ran
+    # a stage that fails stops the chain there, naming it, and leaves no workspace
+    bad = cwd / "not-a-scene"
+    bad.mkdir()  # exists, so the shim keeps it; a Blender layout pretrain cannot read
+    (bad / "transforms_train.json").write_text("{not json")
+    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", str(bad), "ws-bad")
+    assert proc.returncode == 2 and "error: chain stopped at stage 1/10, pretrain: cannot parse" in proc.stderr
+    assert stage_lines(proc.stderr) == STAGES[:1] and not (cwd / "ws-bad").exists()
     proc, _ = _run_chain(cwd, env, "no-such-recipe", "-", "ws-bad")
-    assert proc.returncode == 2 and "recipe" in proc.stderr and "blender-dvgo-cpu" in proc.stderr
-    # a typo in MODELS is refused before any stage (after pretrain, build-moe and the baseline)
+    assert proc.returncode == 2 and "recipe no-such-recipe not found" in proc.stderr
+    assert "blender-dvgo-cpu" in proc.stderr
+    # a typo in MODELS or TOP1_WEIGHT is refused before any stage (after pretrain, build-moe and the baseline)
     proc, ran = _run_chain(cwd, {**env, "MODELS": "baseline ensemble"}, "demo-dvgo-cpu", "-", "ws-typo")
-    assert proc.returncode == 2 and "unknown model ensemble in MODELS" in proc.stderr and not ran, ran
+    assert proc.returncode == 2 and "unknown model 'ensemble'" in proc.stderr and not stage_lines(proc.stderr)
     proc, ran = _run_chain(cwd, {**env, "TOP1_WEIGHT": "probability"}, "demo-dvgo-cpu", "-", "ws-typo")
-    assert proc.returncode == 2 and "unknown TOP1_WEIGHT probability" in proc.stderr and not ran, ran
+    assert proc.returncode == 2 and "--top1-weight probability" in proc.stderr and not stage_lines(proc.stderr)
+    assert not (cwd / "ws-typo").exists()
