@@ -440,7 +440,6 @@ def eval_cmd(
     from boostnerf_cli.models import Skips, Viewing
     from boostnerf_cli.stages import evaluate as stage
     from boostnerf_cli.stages.common import resolve_device
-    from boostnerf_cli.workspace import number
 
     viewing = Viewing(split, views, Skips.from_flags(no_skip, skip_off), exact_gate)
     ws, lock = _writer(workspace) if report else _reader(workspace)
@@ -448,12 +447,19 @@ def eval_cmd(
         result = stage.run(_survey(ws), model, viewing, resolve_device(device), report, costs=not no_costs)
     if report:
         log(f"wrote {ws.reports_dir / 'eval.json'} and eval.md")
+    show(_eval_table(result))
+
+
+def _eval_table(result: dict) -> Table:
+    """eval's table of `result` (its `models` rows), as `eval` and `chain` print it."""
+    from boostnerf_cli.workspace import number
+
     table = Table("model", "PSNR", "SSIM", "LPIPS", "||w||_0", "GFLOPs/image", "s/image", "params")
     for r in result["models"]:
         table.add_row(r["name"], number(r["psnr"], ".3f"), number(r["ssim"], ".4f"), number(r["lpips"], ".4f"),
                       f"{r['w0']:,}" if "w0" in r else "-", f"{r['gflops_per_image']:.3f}" if "w0" in r else "-",
                       f"{r['seconds_per_image']:.3f}", f"{r['params']:,}")
-    show(table)
+    return table
 
 
 @app.command("count-params")
@@ -506,6 +512,82 @@ def export_cmd(
     with lock:
         stage.run(_survey(ws), kind, model, out, options, resolve_device(device))
     print(out)  # stdout: the file written, for a script (the prose is on stderr)
+
+
+@app.command()
+def chain(
+    data: Annotated[str, typer.Argument(metavar="DATA", help=(
+        "Scene folder (any layout pretrain reads), or - for the embedded procedural scene (made in WS/scene)."))],
+    workspace: WorkspaceOpt,
+    recipe: Annotated[Optional[str], typer.Option("--recipe", help=(
+        "Recipe file, or the name of one in recipes/ (blender-dvgo-cpu); default: the workspace's, else the CPU "
+        "recipe of the scene's layout (said in one line)."))] = None,
+    models: Annotated[str, typer.Option("--models", help=(
+        "Finetuned models, comma-separated, made in this order: baseline, topK (top1, top2, ...), ens."))] = (
+        "baseline,top1,top2,ens"),
+    top1_weight: Annotated[str, typer.Option("--top1-weight", help=(
+        "renormalized (Top-1's weight is 1) or raw (the gate's probability, as the official code weighs Top-1: "
+        "finetune --topk 1 --no-renormalize); the other models are unchanged."))] = "renormalized",
+    data_format: FormatOpt = None,
+    image_size: ImageSizeOpt = None,
+    res: ResOpt = None,
+    seed: Annotated[Optional[int], typer.Option("--seed", help=(
+        "The experts' seed (pretrain.seed; also the procedural scene's)."))] = None,
+    sets: SetOpt = None,
+    frames: Annotated[int, typer.Option("--frames", min=1, help="The video's frames.")] = 48,
+    video_model: Annotated[Optional[str], typer.Option("--video-model", help=(
+        "The video's model, one of --models (default: the one with the highest held-out PSNR)."))] = None,
+    device: DeviceOpt = "auto",
+) -> None:
+    """Every stage in one run: pretrain, build-moe, finetune the --models, eval --report, count-params, render
+    --compare, and a video of the best model (an orbit; a spiral for a forward-facing scene). Rerun to go on."""
+    from boostnerf_cli.images import ffmpeg_available
+    from boostnerf_cli.recipe import load_recipe, parse_setting, recorded_recipe
+    from boostnerf_cli.stages import chain as stage
+    from boostnerf_cli.stages.common import resolve_device
+    from boostnerf_cli.workspace import Workspace
+
+    _one_process()
+    names = stage.parse_models(models)  # before any stage: a typo found after an hour of pretraining costs the hour
+    if top1_weight not in ("renormalized", "raw"):
+        raise BoostNerfError(f"--top1-weight {top1_weight}: use renormalized or raw")
+    if video_model is not None and video_model not in names:
+        raise BoostNerfError(f"--video-model {video_model}: give one of the models the chain makes "
+                             f"({', '.join(names)})")
+    dev = resolve_device(device)
+    if not ffmpeg_available():
+        raise BoostNerfError("the chain ends with an MP4 video, and its writer imageio-ffmpeg (a boostnerf dependency) "
+                             "is not installed or has no ffmpeg binary: pip install imageio-ffmpeg")
+    scene = None if data == stage.PROCEDURAL else Path(data)
+    if scene is not None:
+        stage.check_data(scene)
+    ws = Workspace(workspace)
+    recorded = recorded_recipe(ws.manifest().get("recipe"), ws.manifest_path) if ws.manifest_path.is_file() else None
+    why = None
+    if recipe is not None:
+        rec = load_recipe(stage.find_recipe(recipe))
+    elif recorded is not None:
+        rec, why = recorded, f"recipe {recorded.name}: the one {ws.manifest_path} records (--recipe: another)"
+    else:
+        pick = stage.pick_recipe(scene, dev, data_format)
+        rec, why = load_recipe(pick.path), pick.why
+    changes = dict(parse_setting(text) for text in sets or [])
+    changes.update((key, value) for key, value in {"data.format": data_format, "data.image_size": image_size,
+                                                   "pretrain.res": res, "pretrain.seed": seed}.items()
+                   if value is not None)
+    rec = rec.override(changes)
+    if scene is not None and rec.data.format == "auto":
+        stage.layout_of(scene)  # a folder of no layout: one line, before the workspace is made
+    if why:
+        log(why)
+    plan = stage.Plan(scene, rec, names, top1_weight == "raw", video_model, frames)
+    ws, lock = _writer(workspace, must_exist=False)
+    with lock:
+        outcome = stage.run(ws, plan, dev)
+    show(_eval_table(outcome.eval))
+    pictures = outcome.pictures[0].parent if outcome.pictures else ws.renders_dir("compare", "test")
+    log(f"chain: done in {outcome.seconds:.0f} s: {ws.reports_dir / 'eval.md'}, {ws.reports_dir / 'count-params.json'}"
+        f", {pictures}/, {outcome.video[0]}")
 
 
 @app.command()

@@ -98,7 +98,8 @@ def test_on_the_quickstart_scene_top2_beats_its_same_steps_baseline_and_top1_cos
     trained alone for the same finetuning steps), Top-1's GFLOPs per image below the baseline's."""
     quickstart = (RECIPES / "quickstart.sh").read_text()
     assert 'make-scene "$WS/scene" --size 48 --content detail --seed "$SEED"' in quickstart
-    assert 'chain.sh" demo-dvgo-cpu "$WS/scene" "$WS" --seed "$SEED"' in quickstart
+    assert ('boostnerf chain "$WS/scene" --workspace "$WS" --recipe "$HERE/demo-dvgo-cpu.yaml" --seed "$SEED"'
+            in quickstart)
     scene, ws, recipe = tmp_path / "scene", str(tmp_path / "ws"), str(RECIPES / "demo-dvgo-cpu.yaml")
     def cli(*args):  # an hour a stage: on a loaded machine one takes over the default 10 minutes
         return run_cli(*args, "--device", "cpu", check=True, timeout=3600)

@@ -10,8 +10,9 @@ script per document (`set -euo pipefail`), in an empty folder that has the repos
 imports torch once and forks per command) with tiny settings, so the documented
 long runs (lego, 20k iterations, 800 px) finish in seconds; the command lines themselves are
 unchanged. The shim replaces the values of:
-  --data (the tiny generated scene, unless an earlier command made that folder), --recipe (a tiny recipe; the
-  recipe named must exist),
+  --data and chain's DATA (the tiny generated scene, unless an earlier command made that folder; chain's - is kept),
+  --recipe (a tiny recipe; the recipe named must exist: a file, or for chain also a name in recipes/; chain is given
+  the tiny recipe when it names none, and keeps a name that is no recipe, which it refuses itself),
   --iters, --res, --image-size, --gate-res, --frames, --size, --train-views, --test-views,
   --device (cpu; added when missing).
 `make-scene --content textured` (photos for `boostnerf capture`) keeps its size and views: structure from motion
@@ -51,7 +52,7 @@ DOCS_CHANGES = {
 
 TINY_VALUES = {"--iters": "4", "--res": "8,12", "--image-size": "16", "--gate-res": "4", "--frames": "3",
                "--size": "16", "--train-views": "6", "--test-views": "2", "--device": "cpu"}
-NEEDS_DEVICE = {"pretrain", "build-moe", "finetune", "render", "eval", "count-params"}
+NEEDS_DEVICE = {"pretrain", "build-moe", "finetune", "render", "eval", "count-params", "chain"}
 
 SHIM = r'''#!{python}
 """`boostnerf` for the docs test: this checkout's CLI with tiny settings (see tests/test_docs_commands.py)."""
@@ -62,6 +63,9 @@ TINY = {tiny!r}
 args = sys.argv[1:]
 if args[:1] == ["make-scene"] and "textured" in args:  # photos to capture: as the docs give them
     TINY = {{k: v for k, v in TINY.items() if k not in ("--size", "--train-views", "--test-views")}}
+chain = args[:1] == ["chain"]
+if chain and len(args) > 1 and args[1] != "-" and not args[1].startswith("--") and not Path(args[1]).exists():
+    args = ["chain", os.environ["DOCS_SCENE"], *args[2:]]  # DATA, as --data
 out, i = [], 0
 while i < len(args):
     a = args[i]
@@ -70,7 +74,12 @@ while i < len(args):
         if not eq:
             i += 1
             val = args[i] if i < len(args) else ""
-        if key == "--recipe" and not Path(val).exists():
+        named = key == "--recipe" and (Path(val).exists() or (chain and Path("recipes", val + ".yaml").exists()))
+        if key == "--recipe" and not named and chain:  # no recipe: chain's own refusal is what is tested
+            out += [key, val]
+            i += 1
+            continue
+        if key == "--recipe" and not named:
             sys.exit(f"docs test: the recipe {{val!r}} named in the docs does not exist")
         if key == "--data":  # a scene an earlier command made is used; a dataset the docs name is replaced
             val = val if Path(val).exists() else os.environ["DOCS_SCENE"]
@@ -80,6 +89,8 @@ while i < len(args):
     else:
         out.append(a)
     i += 1
+if chain and "--recipe" not in out and "--help" not in out:  # the recipe chain would pick is sized for a dataset
+    out += ["--recipe", os.environ["DOCS_RECIPE"]]
 if args and args[0] in {needs_device!r} and "--device" not in out and "--help" not in out:
     out += ["--device", "cpu"]
 with open(os.environ["DOCS_LOG"], "a") as log:
@@ -184,43 +195,62 @@ def _run_chain(cwd: Path, env: dict, *args: str) -> tuple[subprocess.CompletedPr
     return proc, log.read_text() if log.exists() else ""
 
 
+STAGES = ["[1/10] pretrain", "[2/10] build-moe", "[3/10] finetune baseline", "[4/10] finetune top1",
+          "[5/10] finetune top2", "[6/10] finetune ens", "[7/10] eval", "[8/10] count-params",
+          "[9/10] render --compare", "[10/10] render --path"]
+
+
+def stage_lines(stderr: str) -> list[str]:
+    return [line for line in stderr.splitlines() if re.fullmatch(r"\[\d+/\d+\] .+", line)]
+
+
 @pytest.mark.slow
 def test_chain_skips_finished_models_redoes_the_reports_and_stops_at_the_first_failure(docs_env):
+    """recipes/chain.sh, the thin caller of `boostnerf chain`: its arguments and environment reach the command, a
+    rerun trains nothing again, a failing stage stops the chain naming it, and a typo is refused before any stage."""
     base, env = docs_env
     cwd = base / "chain"
     cwd.mkdir()
     (cwd / "recipes").symlink_to(ROOT / "recipes")
     env = {**env, "TOP1_WEIGHT": "raw"}  # Top-1 weighted by the gate's probability, as the official code does
-    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", "-", "ws")
+    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", "-", "ws", "--iters", "6", "--frames", "3")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert [line.split()[1] for line in ran.splitlines() if line.startswith("boostnerf")] == [
-        "pretrain", "build-moe", "finetune", "finetune", "finetune", "finetune", "eval", "count-params"]
-    finetunes = [line for line in ran.splitlines() if line.startswith("boostnerf finetune")]
-    assert [("--no-renormalize" in line) for line in finetunes] == [False, True, False, False], finetunes
+    assert [line.split()[1] for line in ran.splitlines() if line.startswith("boostnerf")] == ["chain"]
+    assert "--top1-weight raw" in ran and "--models baseline top1 top2 ens" in ran, ran
+    assert "--set pretrain.iters=6" in ran, ran  # pretrain's --iters, as the recipe key it sets
+    assert stage_lines(proc.stderr) == STAGES
+    ws = cwd / "ws"
+    finetuned = {m: json.loads((ws / "moe" / f"{m}.json").read_text()) for m in ("top1", "top2", "ens")}
+    assert [finetuned[m]["renormalize"] for m in ("top1", "top2")] == [False, True], finetuned
+    assert json.loads((ws / "experts" / "dvgo-8.json").read_text())["iterations"] == 6
     # a report of one model over one view, then a rerun: nothing is trained again (build-moe keeps moe/init, made
     # with the same settings, so every mixture is current), and the reports cover every model and view again (the chain
     # kept any report newer than the models, this one too)
-    ws = cwd / "ws"
     init, first = (ws / "moe" / "init.safetensors").read_bytes(), json.loads((ws / "reports" / "eval.json").read_text())
     subprocess.run(["boostnerf", "eval", "-w", str(ws), "--model", "top2", "--views", "1", "--report", "--no-costs",
                     "--device", "cpu"], cwd=cwd, env={**env, "DOCS_LOG": str(cwd / "eval.log")}, check=True,
                    capture_output=True)
-    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", "-", "ws")
+    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", "-", "ws", "--iters", "6", "--frames", "3")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stderr.count("already finetuned, skipping") == 4 and "already trained, skipping" in proc.stderr
+    assert "pictures in" in proc.stderr and "kept" in proc.stderr  # the pictures are newer than the models
     assert (ws / "moe" / "init.safetensors").read_bytes() == init
     report = json.loads((ws / "reports" / "eval.json").read_text())
     assert [m["name"] for m in report["models"]] == [m["name"] for m in first["models"]]
     assert len(first["models"]) == 2 + 4 and report["views"] == first["views"] > 1
-    # a stage that fails stops the chain there, naming it
-    (cwd / "not-a-scene").mkdir()  # exists, so the shim keeps it; pretrain cannot read it
-    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", str(cwd / "not-a-scene"), "ws-bad")
-    assert proc.returncode != 0 and "chain: stage failed: boostnerf pretrain" in proc.stderr
-    assert "build-moe" not in ran
+    # a stage that fails stops the chain there, naming it, and leaves no workspace
+    bad = cwd / "not-a-scene"
+    bad.mkdir()  # exists, so the shim keeps it; a Blender layout pretrain cannot read
+    (bad / "transforms_train.json").write_text("{not json")
+    proc, ran = _run_chain(cwd, env, "demo-dvgo-cpu", str(bad), "ws-bad")
+    assert proc.returncode == 2 and "error: chain stopped at stage 1/10, pretrain: cannot parse" in proc.stderr
+    assert stage_lines(proc.stderr) == STAGES[:1] and not (cwd / "ws-bad").exists()
     proc, _ = _run_chain(cwd, env, "no-such-recipe", "-", "ws-bad")
-    assert proc.returncode == 2 and "recipe" in proc.stderr and "blender-dvgo-cpu" in proc.stderr
-    # a typo in MODELS is refused before any stage (after pretrain, build-moe and the baseline)
+    assert proc.returncode == 2 and "recipe no-such-recipe not found" in proc.stderr
+    assert "blender-dvgo-cpu" in proc.stderr
+    # a typo in MODELS or TOP1_WEIGHT is refused before any stage (after pretrain, build-moe and the baseline)
     proc, ran = _run_chain(cwd, {**env, "MODELS": "baseline ensemble"}, "demo-dvgo-cpu", "-", "ws-typo")
-    assert proc.returncode == 2 and "unknown model ensemble in MODELS" in proc.stderr and not ran, ran
+    assert proc.returncode == 2 and "unknown model 'ensemble'" in proc.stderr and not stage_lines(proc.stderr)
     proc, ran = _run_chain(cwd, {**env, "TOP1_WEIGHT": "probability"}, "demo-dvgo-cpu", "-", "ws-typo")
-    assert proc.returncode == 2 and "unknown TOP1_WEIGHT probability" in proc.stderr and not ran, ran
+    assert proc.returncode == 2 and "--top1-weight probability" in proc.stderr and not stage_lines(proc.stderr)
+    assert not (cwd / "ws-typo").exists()
