@@ -1,0 +1,253 @@
+"""Camera paths (viewpoint/camera_path.py, `render --camera-path`, the viewer's camera path panel): keyframe
+operations, the path sampled through the keyframes, the nerfstudio-layout file written and read back, every bad file
+refused in one line, and paths written from a dataset's own pose files (as another tool writes them) rendering what
+`render` renders of those views, on a 360-degree scene and a forward-facing one."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import no_temp_files
+
+from boostnerf_cli.cameras import DataFrame
+from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.render.paths import look_at
+from boostnerf_cli.viewpoint.camera_path import (
+    CameraPath,
+    Keyframe,
+    path_cameras,
+    path_json,
+    read_camera_path,
+    write_camera_path,
+)
+
+
+def keyframes(n: int = 5, seed: int = 0) -> list[Keyframe]:
+    """`n` cameras scattered around the origin, looking at it, with fields of view 40, 45, ... degrees."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        position = torch.tensor(rng.normal(size=3) * 2 + [0.0, 0.0, 4.0])
+        up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+        pose = look_at(position, torch.zeros(3, dtype=torch.float64), up)
+        out.append(Keyframe(pose.numpy(), 40.0 + 5 * i))
+    return out
+
+
+def angle(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle in radians between two rotations (3, 3)."""
+    return math.acos(min(1.0, max(-1.0, (np.trace(a.T @ b) - 1) / 2)))
+
+
+# ----------------------------------------------------------------------------- the path
+
+
+@pytest.mark.parametrize("cycle", [False, True])
+@pytest.mark.parametrize("smoothness", [0.0, 0.5, 1.0])
+def test_the_path_passes_each_keyframe_at_its_time(smoothness, cycle):
+    path = CameraPath(keyframes(), seconds=4.0, fps=10, smoothness=smoothness, cycle=cycle)
+    times = path.key_times()
+    assert times[1] == pytest.approx(4.0 / (5 if cycle else 4))
+    for k, t in zip(path.keyframes, times):
+        f = path.at(float(t))
+        assert np.allclose(f.pose, k.pose, atol=1e-9) and f.fov == pytest.approx(k.fov)
+    frames = path.frames()
+    assert len(frames) == 40
+    assert np.allclose(frames[0].pose, path.keyframes[0].pose, atol=1e-9)
+    if not cycle:  # the last frame is the last keyframe; a loop's last frame is one short of the first again
+        assert np.allclose(frames[-1].pose, path.keyframes[-1].pose, atol=1e-9)
+    for f in frames:  # every pose is rigid
+        assert np.allclose(f.pose[:3, :3].T @ f.pose[:3, :3], np.eye(3), atol=1e-9)
+        assert np.allclose(f.pose[3], [0, 0, 0, 1])
+
+
+def test_a_smooth_path_has_no_corners_and_a_straight_one_runs_on_segments_and_arcs():
+    smooth = CameraPath(keyframes(), seconds=4.0, smoothness=1.0)
+    h = 1e-5
+    for t in smooth.key_times()[1:-1]:  # the velocity just before and just after an inner keyframe: the same
+        before = (smooth.at(t).pose - smooth.at(t - h).pose) / h
+        after = (smooth.at(t + h).pose - smooth.at(t).pose) / h
+        scale = np.abs(after).max()
+        assert np.abs(before - after).max() < 1e-3 * scale, (t, before - after)
+    # the straight path (smoothness 0): positions on the segment between two keyframes, rotations on the great arc
+    straight = CameraPath(keyframes(), seconds=4.0, smoothness=0.0)
+    times = straight.key_times()
+    for a in range(4):
+        pa, pb = straight.keyframes[a].pose, straight.keyframes[a + 1].pose
+        for u in (0.25, 0.5, 0.8):
+            f = straight.at(times[a] + u * (times[a + 1] - times[a]))
+            p = f.pose[:3, 3] - pa[:3, 3]
+            seg = pb[:3, 3] - pa[:3, 3]
+            assert np.linalg.norm(np.cross(p, seg)) < 1e-9 * np.linalg.norm(seg) ** 2 and 0 < p @ seg < seg @ seg
+            r = f.pose[:3, :3]
+            assert angle(pa[:3, :3], r) + angle(r, pb[:3, :3]) == pytest.approx(angle(pa[:3, :3], pb[:3, :3]), abs=1e-7)
+            assert min(straight.keyframes[a].fov, straight.keyframes[a + 1].fov) <= f.fov <= max(
+                straight.keyframes[a].fov, straight.keyframes[a + 1].fov)
+    # the smooth path leaves the segments: it is not the straight one
+    assert not np.allclose(smooth.at(0.5).pose, straight.at(0.5).pose, atol=1e-3)
+    # two keyframes, smooth: a straight line at constant speed and a constant turn rate
+    two = CameraPath(keyframes(2), seconds=1.0, smoothness=1.0)
+    pos = np.array([two.at(t).pose[:3, 3] for t in np.linspace(0, 1, 11)])
+    assert np.allclose(np.diff(pos, axis=0), (pos[-1] - pos[0]) / 10, atol=1e-9)
+    turns = [angle(two.at(t).pose[:3, :3], two.at(t + 0.1).pose[:3, :3]) for t in np.linspace(0, 0.9, 10)]
+    assert np.allclose(turns, turns[0], atol=1e-7)
+
+
+def test_keyframe_operations():
+    k = keyframes(3)
+    path = CameraPath()
+    assert path.add(k[0]) == 0 and path.add(k[2]) == 1 and path.add(k[1], at=1) == 1
+    assert [kf.fov for kf in path.keyframes] == [40.0, 45.0, 50.0]
+    assert path.move(0, 1) == 1 and [kf.fov for kf in path.keyframes] == [45.0, 40.0, 50.0]
+    assert path.move(1, -5) == 0 and [kf.fov for kf in path.keyframes] == [40.0, 45.0, 50.0]  # clipped at the start
+    assert path.move(2, 1) == 2  # already last
+    path.set_fov(1, 30.0)
+    assert path.keyframes[1].fov == 30.0 and np.array_equal(path.keyframes[1].pose, k[1].pose)
+    path.delete(0)
+    assert [kf.fov for kf in path.keyframes] == [30.0, 50.0]
+    with pytest.raises(BoostNerfError, match="there is no keyframe 2: the path has keyframes 0 to 1"):
+        path.delete(2)
+    with pytest.raises(BoostNerfError, match="keyframe 0's fov is 180"):
+        path.set_fov(0, 180)
+    with pytest.raises(BoostNerfError, match="the smoothness is 2"):
+        path.configure(4.0, 24, 2, False, 32, 32)
+    path.configure(2.0, 12, 0.5, True, 40, 30)
+    settings = (path.seconds, path.fps, path.smoothness, path.cycle, path.width, path.height)
+    assert settings == (2.0, 12, 0.5, True, 40, 30)
+    assert "2 keyframes (0: 30.0 deg at 0.00 s, 1: 50.0 deg at 1.00 s); 24 frames of 40x30 px" in path.summary()
+
+
+# ----------------------------------------------------------------------------- the file
+
+FRAME = DataFrame(np.array([[0.0, -2.0, 0.0, 1.0], [2.0, 0.0, 0.0, -3.0], [0.0, 0.0, 2.0, 0.5], [0, 0, 0, 1]]))
+
+
+def test_a_path_written_reads_back_in_nerfstudio_layout_in_the_data_frame(tmp_path):
+    path = CameraPath(keyframes(4), seconds=2.0, fps=5, smoothness=0.7, cycle=True, width=48, height=32)
+    file = write_camera_path(tmp_path / "paths" / "p.json", path, FRAME)
+    assert no_temp_files(tmp_path)
+    data = json.loads(file.read_text())
+    assert data["camera_type"] == "perspective" and (data["render_width"], data["render_height"]) == (48, 32)
+    assert (data["fps"], data["seconds"], data["is_cycle"]) == (5, 2.0, True)
+    assert data["smoothness_value"] == pytest.approx(0.3)  # nerfstudio's tension: 1 - smoothness
+    assert len(data["camera_path"]) == 10 and len(data["keyframes"]) == 4
+    first = data["camera_path"][0]
+    assert len(first["camera_to_world"]) == 16 and first["aspect"] == 1.5 and first["fov"] == 40.0
+    # row by row, in the data's frame: the translation is entries 3, 7, 11
+    data_pose = FRAME.poses_to_data(path.keyframes[0].pose)
+    assert np.allclose(np.reshape(first["camera_to_world"], (4, 4)), data_pose)
+    assert np.allclose(np.array(first["camera_to_world"])[[3, 7, 11]], data_pose[:3, 3])
+    assert not np.allclose(data_pose, path.keyframes[0].pose)
+    read = read_camera_path(file, FRAME)
+    assert (read.path.seconds, read.path.fps, read.path.cycle, read.path.width, read.path.height) == (2.0, 5, True, 48,
+                                                                                                       32)
+    assert read.path.smoothness == pytest.approx(0.7)
+    for a, b in zip(read.path.keyframes, path.keyframes):
+        assert np.allclose(a.pose, b.pose, atol=1e-9) and a.fov == b.fov
+    assert len(read.frames) == 10
+    for a, b in zip(read.frames, path.frames()):
+        assert np.allclose(a.pose, b.pose, atol=1e-9) and a.fov == pytest.approx(b.fov)
+    cameras = path_cameras(read.frames, 32, 48)
+    assert cameras[0].width == 48 and cameras[0].height == 32
+    assert float(cameras[0].intrinsics[1]) == pytest.approx(16 / math.tan(math.radians(20)), rel=1e-6)
+
+
+def test_a_file_with_keyframes_only_is_sampled_and_a_uniform_scale_is_divided_out(tmp_path):
+    path = CameraPath(keyframes(3), seconds=1.0, fps=8, width=32, height=32)
+    data = path_json(path, FRAME)
+    del data["camera_path"]
+    scaled = np.reshape(data["keyframes"][1]["matrix"], (4, 4)).copy()
+    scaled[:3, :3] *= 2.5  # a scaled camera object (Blender's matrix_world)
+    data["keyframes"][1]["matrix"] = scaled.ravel().tolist()
+    file = tmp_path / "k.json"
+    file.write_text(json.dumps(data))
+    read = read_camera_path(file, FRAME)
+    assert len(read.frames) == 8 and np.allclose(read.path.keyframes[1].pose, path.keyframes[1].pose, atol=1e-9)
+    for a, b in zip(read.frames, path.frames()):
+        assert np.allclose(a.pose, b.pose, atol=1e-9)
+
+
+def nerfstudio_file() -> dict:
+    """A file as nerfstudio's viewer writes one, in the identity frame."""
+    path = CameraPath(keyframes(3), seconds=1.0, fps=4, width=32, height=24)
+    return path_json(path, DataFrame(np.eye(4)))
+
+
+def broken(change) -> dict:
+    data = nerfstudio_file()
+    change(data)
+    return data
+
+
+def entry(data, i, key, value):
+    data["camera_path"][i][key] = value
+
+
+def nan_matrix(data):
+    data["camera_path"][2]["camera_to_world"][5] = float("nan")
+
+
+def sheared(data):
+    m = np.reshape(data["keyframes"][1]["matrix"], (4, 4)).copy()
+    m[:3, 0] *= 1.2  # one axis stretched
+    data["keyframes"][1]["matrix"] = m.ravel().tolist()
+
+
+def mirrored(data):
+    m = np.reshape(data["camera_path"][0]["camera_to_world"], (4, 4)).copy()
+    m[:3, 0] *= -1
+    data["camera_path"][0]["camera_to_world"] = m.ravel().tolist()
+
+
+BAD = [
+    ("empty", lambda d: d.update(camera_path=[], keyframes=[]), 'no "camera_path" frames and no "keyframes"'),
+    ("nan", nan_matrix, "camera_path[2].camera_to_world has a NaN or infinite value"),
+    ("infinite", lambda d: entry(d, 1, "camera_to_world", [math.inf] * 16), "camera_path[1].camera_to_world has a NaN"),
+    ("bottom row", lambda d: entry(d, 3, "camera_to_world", [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 1, 1]),
+     "camera_path[3].camera_to_world's bottom row is 0 0 1 1, not 0 0 0 1"),
+    ("shear", sheared, "keyframes[1].matrix is not a rigid camera pose"),
+    ("reflection", mirrored, "camera_path[0].camera_to_world is not a rigid camera pose: its rotation is not "
+                             "orthonormal (a reflection"),
+    ("12 numbers", lambda d: entry(d, 1, "camera_to_world", [1, 0, 0, 0] * 3), "camera_path[1].camera_to_world must "
+                                                                                "be 16 numbers"),
+    ("fisheye", lambda d: d.update(camera_type="fisheye"),
+     '"camera_type" is \'fisheye\': boostnerf renders perspective'),
+    ("equirectangular", lambda d: d.update(camera_type="equirectangular"), "'equirectangular'"),
+    ("version", lambda d: d.update(version="2"), "\"version\" '2'"),
+    ("no height", lambda d: d.pop("render_height"), 'it has no "render_height"'),
+    ("no width", lambda d: d.pop("render_width"), 'it has no "render_width"'),
+    ("fractional width", lambda d: d.update(render_width=32.5), '"render_width" is 32.5'),
+    ("fov", lambda d: entry(d, 2, "fov", 0), "camera_path[2].fov is 0"),
+    ("no fov", lambda d: d["camera_path"][1].pop("fov"),
+     'camera_path[1] needs "camera_to_world" (16 numbers) and "fov"'),
+    ("aspect", lambda d: entry(d, 0, "aspect", 1.0), "camera_path[0].aspect is 1, not render_width / render_height"),
+    ("crop", lambda d: d.update(crop={"crop_center": [0, 0, 0]}), 'it has a "crop"'),
+]
+
+
+@pytest.mark.parametrize("change,message", [b[1:] for b in BAD], ids=[b[0] for b in BAD])
+def test_a_bad_camera_path_file_is_one_line_naming_the_entry(tmp_path, change, message):
+    file = tmp_path / "bad.json"
+    file.write_text(json.dumps(broken(change)))
+    with pytest.raises(BoostNerfError) as e:
+        read_camera_path(file, DataFrame(np.eye(4)))
+    line = str(e.value)
+    assert "\n" not in line and line.startswith(f"camera path {file}: ") and message in line, line
+
+
+def test_the_file_nerfstudio_writes_reads(tmp_path):
+    """Its extra keys (default_fov, default_transition_sec, render_time, override_*) and a null crop are accepted;
+    a fov given as an integer, frames given as 4 rows of 4."""
+    data = nerfstudio_file()
+    data.update(crop=None, default_time=0.0)
+    data["camera_path"][0]["render_time"] = 0.5
+    data["camera_path"][1]["fov"] = 50
+    data["camera_path"][2]["camera_to_world"] = np.reshape(data["camera_path"][2]["camera_to_world"], (4, 4)).tolist()
+    file = tmp_path / "ns.json"
+    file.write_text(json.dumps(data))
+    read = read_camera_path(file, DataFrame(np.eye(4)))
+    assert len(read.frames) == 4 and read.frames[1].fov == 50.0
