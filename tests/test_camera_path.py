@@ -7,15 +7,25 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
+import sys
+from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 import pytest
 import torch
-from conftest import no_temp_files
+from conftest import assert_clean_failure, cli_in_process, make_recipe, no_temp_files, run_cli
 
 from boostnerf_cli.cameras import DataFrame
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.lineage import Survey
+from boostnerf_cli.models import ALL_SKIPS, load_model
 from boostnerf_cli.render.paths import look_at
+from boostnerf_cli.render.renderer import render_view
+from boostnerf_cli.scenes import make_scene
+from boostnerf_cli.stages import render as render_stage
+from boostnerf_cli.viewpoint.camera import dataset_camera
 from boostnerf_cli.viewpoint.camera_path import (
     CameraPath,
     Keyframe,
@@ -24,6 +34,8 @@ from boostnerf_cli.viewpoint.camera_path import (
     read_camera_path,
     write_camera_path,
 )
+from boostnerf_cli.viewpoint.frame import Look, picture
+from boostnerf_cli.workspace import Workspace
 
 
 def keyframes(n: int = 5, seed: int = 0) -> list[Keyframe]:
@@ -251,3 +263,159 @@ def test_the_file_nerfstudio_writes_reads(tmp_path):
     file.write_text(json.dumps(data))
     read = read_camera_path(file, DataFrame(np.eye(4)))
     assert len(read.frames) == 4 and read.frames[1].fov == 50.0
+
+
+# ----------------------------------------------------------------------------- rendering
+
+
+def views_file(poses: list[np.ndarray], fov: float, height: int, width: int, target: Path) -> Path:
+    """A camera-path file of `poses` (data frame, OpenGL), as another tool writes one: frames only."""
+    frames = [{"camera_to_world": np.asarray(p, dtype=float).ravel().tolist(), "fov": fov, "aspect": width / height}
+              for p in poses]
+    target.write_text(json.dumps({"camera_type": "perspective", "render_height": height, "render_width": width,
+                                  "seconds": float(len(poses)), "camera_path": frames}))
+    return target
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)) / 255.0**2
+    return -10 * math.log10(max(mse, 1e-12))
+
+
+def check_path_renders_the_views(ws_root: Path, model_name: str, file: Path,
+                                 views: dict[str, list[int]]) -> list[np.ndarray]:
+    """The file's frames, rendered in this process, are `render_view`'s pictures of the views they pass:
+    `views[split][i]` is the frame that shows view i of the split -> the frames."""
+    ws = Workspace(ws_root)
+    scene = Survey(ws).scene()
+    read = read_camera_path(file, DataFrame.of(scene.extra))
+    for split_name, frames in views.items():  # the file's poses, taken to the scene's world, are the views' own
+        split = scene.split(split_name)
+        for i, k in enumerate(frames):
+            assert np.allclose(read.frames[k].pose, split.poses[i].double().numpy(), atol=2e-5), (split_name, i)
+    model = load_model(ws, model_name, "cpu")
+    cameras = path_cameras(read.frames, read.path.height, read.path.width)
+    shots = render_stage.film(model, scene, cameras, "cpu", ALL_SKIPS, "test")
+    settings = model.render_setup(scene, ALL_SKIPS)
+    for split_name, frames in views.items():
+        for i, k in enumerate(frames):
+            rgb = render_view(model.field, scene.split(split_name), i, *settings, "cpu")["rgb"].numpy()
+            assert psnr(shots.rgb[k], (rgb * 255 + 0.5).clip(0, 255).astype(np.uint8)) > 40, (split_name, i)
+    return shots.rgb
+
+
+def check_videos(proc, folder: Path, stem: str, n: int, kinds: tuple[str, ...]) -> list[np.ndarray]:
+    """The command wrote `stem.mp4` and `stem_<kind>.mp4` of `n` frames each -> the colour video's frames."""
+    written = [Path(p) for p in proc.stdout.split()]
+    expected = [folder / f"{stem}{'_' + k if k else ''}.mp4" for k in ("", *kinds)]
+    assert written == expected, proc.stdout
+    videos = {p: iio.imread(p) for p in expected}
+    assert all(v.shape[0] == n for v in videos.values()), {p.name: v.shape for p, v in videos.items()}
+    assert no_temp_files(folder)
+    return list(videos[expected[0]])
+
+
+def test_a_path_through_the_test_views_renders_what_render_renders(trained_ws, tmp_path):
+    """The tiny Blender scene's test views, written from transforms_test.json as another tool would: the frames are
+    `render`'s pictures of those views; the command writes colour and depth MP4s of 3 frames (no routing: an
+    expert), whose frames match the PNGs `render` writes."""
+    ws = Workspace(trained_ws)
+    scene_dir = ws.root / ws.manifest()["data"]["path"]
+    meta = json.loads((scene_dir / "transforms_test.json").read_text())
+    poses = [np.array(f["transform_matrix"]) for f in meta["frames"]]
+    file = views_file(poses, math.degrees(meta["camera_angle_x"]), 32, 32, tmp_path / "test-views.json")  # square
+    frames = check_path_renders_the_views(trained_ws, "dvgo-16", file, {"test": [0, 1, 2]})
+    proc = run_cli("render", "-w", str(trained_ws), "--model", "dvgo-16", "--camera-path", str(file), "--video",
+                   str(tmp_path / "out" / "test-views.mp4"), "--device", "cpu", check=True)
+    video = check_videos(proc, tmp_path / "out", "test-views", 3, ("depth",))
+    for k in range(3):
+        assert psnr(video[k], frames[k]) > 35  # H.264's loss
+
+
+@pytest.fixture(scope="module")
+def forward_ws(tmp_path_factory) -> tuple[Path, Path]:
+    """A trained forward-facing (LLFF layout) workspace: 24 px, 10 + 2 views, one 30-step expert -> (ws, scene)."""
+    root = tmp_path_factory.mktemp("forward")
+    scene = make_scene(root / "llff", size=24, n_train=10, n_test=2, layout="llff")
+    run_cli("pretrain", "--data", str(scene), "--recipe", str(make_recipe(root / "tiny.yaml")), "--workspace",
+            str(root / "ws"), "--res", "12", "--image-size", "24", "--device", "cpu", check=True)
+    return root / "ws", scene
+
+
+@pytest.mark.slow  # trains a model of its own
+def test_a_path_through_a_forward_facing_captures_own_poses_renders_its_views(forward_ws, tmp_path):
+    """poses_bounds.npy's cameras (LLFF axes turned to OpenGL, the file's world: not the scene's rescaled and
+    recentred one) render the views `render` renders, and the command writes the videos under WS/renders/MODEL."""
+    ws_root, scene_dir = forward_ws
+    scene = Survey(Workspace(ws_root)).scene()
+    assert not DataFrame.of(scene.extra).identity  # the data's frame is not the scene's world
+    rows = np.load(scene_dir / "poses_bounds.npy")
+    poses, fovs = [], set()
+    for row in rows:
+        m = row[:15].reshape(3, 5)
+        down, right, back, centre = m[:, 0], m[:, 1], m[:, 2], m[:, 3]
+        pose = np.eye(4)
+        pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, -down, back, centre
+        poses.append(pose)
+        fovs.add(round(math.degrees(2 * math.atan(m[0, 4] / (2 * m[2, 4]))), 9))
+    assert len(fovs) == 1 and int(rows[0, 4]) == 24
+    file = views_file(poses, fovs.pop(), 24, 24, tmp_path / "all-views.json")
+    names = sorted(p.stem for p in (scene_dir / "images").iterdir())  # the views' names: the images' stems
+    frames = check_path_renders_the_views(ws_root, "dvgo-12", file, {
+        name: [names.index(n) for n in scene.split(name).names] for name in ("train", "test")})
+    proc = run_cli("render", "-w", str(ws_root), "--model", "dvgo-12", "--camera-path", str(file), "--device", "cpu",
+                   check=True)
+    video = check_videos(proc, ws_root / "renders" / "dvgo-12", "all-views", len(rows), ("depth",))
+    for k in range(len(rows)):
+        assert psnr(video[k], frames[k]) > 35  # H.264's loss
+
+
+def test_a_mixtures_path_has_a_routing_video_of_the_maps_the_viewer_shows(mixture_ws, tmp_path):
+    ws = Workspace(mixture_ws)
+    scene = Survey(ws).scene()
+    test = scene.split("test")
+    fov = math.degrees(2 * math.atan(test.height / (2 * float(test.intrinsics[0, 1]))))
+    file = views_file([p.double().numpy() for p in test.poses], fov, test.height, test.width, tmp_path / "mix.json")
+    proc = run_cli("render", "-w", str(mixture_ws), "--model", "top2", "--camera-path", str(file), "--video",
+                   str(tmp_path / "out" / "mix.mp4"), "--device", "cpu", check=True)
+    check_videos(proc, tmp_path / "out", "mix", 3, ("depth", "routing"))
+    video = iio.imread(tmp_path / "out" / "mix_routing.mp4")
+    model = load_model(ws, "top2", "cpu")
+    read = read_camera_path(file, DataFrame.of(scene.extra))
+    shots = render_stage.film(model, scene, path_cameras(read.frames, 32, 32), "cpu", ALL_SKIPS, "test", routing=True)
+    for i in range(3):
+        expected = picture(model, scene, dataset_camera(test, i), Look("routing"), "cpu")[0]
+        assert psnr(shots.routing[i], expected) > 40, i
+        assert psnr(video[i], expected) > 20, i  # H.264 halves the colours' resolution: 32 px of sharp colour edges
+    colours = {tuple(c) for frame in shots.routing for c in frame.reshape(-1, 3)}
+    assert len(colours) > 2  # blended: the gate gives both experts weight somewhere
+
+
+# ----------------------------------------------------------------------------- the command refuses
+
+
+def test_a_bad_file_is_refused_before_anything_is_read_or_written(trained_ws, tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(broken(nan_matrix)))
+    before = sorted(p.relative_to(trained_ws) for p in trained_ws.rglob("*"))
+    proc = run_cli("render", "-w", str(trained_ws), "--model", "dvgo-12", "--camera-path", str(bad), "--device", "cpu")
+    assert_clean_failure(proc, f"camera path {bad}: camera_path[2].camera_to_world has a NaN or infinite value")
+    proc = run_cli("render", "-w", str(trained_ws), "--camera-path", str(bad), "--device", "cpu")
+    assert_clean_failure(proc, "--camera-path renders one model: add --model NAME")
+    proc = run_cli("render", "-w", str(trained_ws), "--model", "dvgo-12", "--camera-path", str(bad), "--path", "orbit")
+    assert_clean_failure(proc, "are separate outputs")
+    assert sorted(p.relative_to(trained_ws) for p in trained_ws.rglob("*")) == before
+
+
+def test_an_mp4_without_ffmpeg_is_refused_before_a_frame_is_rendered(trained_ws, tmp_path, monkeypatch, capsys):
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    file = tmp_path / "p.json"
+    file.write_text(json.dumps(nerfstudio_file()))
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)
+    rendered = []
+    monkeypatch.setattr(render_stage, "render_image", lambda *a, **k: rendered.append(1))
+    code, err = cli_in_process(monkeypatch, capsys, "render", "-w", str(ws), "--model", "dvgo-12", "--camera-path",
+                               str(file), "--device", "cpu")
+    assert code == 2 and "cannot write p.mp4" in err and not rendered
+    assert not (ws / "renders").exists()
