@@ -5,6 +5,7 @@ refused in one line, and paths written from a dataset's own pose files (as anoth
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import shutil
@@ -419,3 +420,108 @@ def test_an_mp4_without_ffmpeg_is_refused_before_a_frame_is_rendered(trained_ws,
                                str(file), "--device", "cpu")
     assert code == 2 and "cannot write p.mp4" in err and not rendered
     assert not (ws / "renders").exists()
+
+
+# ----------------------------------------------------------------------------- the viewer
+
+
+def test_the_viewer_adds_keyframes_from_a_page_and_saves_and_loads_the_path(mixture_ws, tmp_path):
+    from boostnerf_cli.stages import view
+    from boostnerf_cli.viewpoint.camera import camera_for_view, opencv_pose
+
+    shutil.copytree(mixture_ws, tmp_path / "ws")
+    ws = Workspace(tmp_path / "ws")
+    viewer = view.Viewer(ws, Survey(ws).scene(), view.Models(ws, "cpu"))
+    with pytest.raises(BoostNerfError, match="this page has reported no camera yet"):
+        viewer.add_keyframe(1)
+    train = viewer.scene.split("train")
+    for i in (0, 3, 6):
+        pose = opencv_pose(train.poses[i])
+        viewer.moved(1, camera_for_view(pose[:3, :3], pose[:3, 3], math.radians(45), 1.5, 24), now=float(i))
+        assert viewer.add_keyframe(1) == len(viewer.path.keyframes) - 1
+    assert [k.fov for k in viewer.path.keyframes] == pytest.approx([45.0] * 3, abs=1e-4)
+    assert np.allclose(viewer.path.keyframes[1].pose, train.poses[3].double().numpy(), atol=1e-5)
+    assert (viewer.path.width, viewer.path.height) == (train.width, train.height)  # the training views' size
+    viewer.path.move(2, -1)
+    viewer.path.configure(1.0, 6, 1.0, False, 32, 32)
+    file = viewer.save_path("walk")
+    assert file == ws.root / "camera_paths" / "walk.json" and viewer.saved_paths() == ["walk"]
+    with pytest.raises(BoostNerfError, match="is no camera path name"):
+        viewer.save_path("../elsewhere")
+    saved = viewer.path
+    viewer.path = CameraPath()
+    loaded = viewer.load_path("walk")
+    assert loaded is viewer.path and len(loaded.keyframes) == 3
+    for a, b in zip(loaded.keyframes, saved.keyframes):
+        assert np.allclose(a.pose, b.pose, atol=1e-9)
+    frames_only = json.loads(file.read_text())
+    frames_only["keyframes"] = []
+    (ws.root / "camera_paths" / "frames.json").write_text(json.dumps(frames_only))
+    with pytest.raises(BoostNerfError, match="has frames but no keyframes to edit"):
+        viewer.load_path("frames")
+    # the file renders: one frame per entry (6 fps over 1 s)
+    proc = run_cli("render", "-w", str(ws.root), "--model", "dvgo-12", "--camera-path", str(file), "--device", "cpu",
+                   check=True)
+    check_videos(proc, ws.root / "renders" / "dvgo-12", "walk", 6, ("depth",))
+
+
+class Page:
+    """What the preview drives of a browser's page: its camera, each change sent in one message (`atomic`)."""
+
+    def __init__(self) -> None:
+        self.camera = type("Camera", (), {})()
+        self.shown: list = []
+
+    @contextlib.contextmanager
+    def atomic(self):
+        yield
+        self.shown.append((np.array(self.camera.position), self.camera.fov))
+
+
+def test_the_page_has_the_camera_path_panel_and_draws_the_path(mixture_ws, tmp_path):
+    import threading
+
+    from boostnerf_cli.stages import view
+    from boostnerf_cli.viewpoint.camera import camera_for_view, opencv_pose
+
+    shutil.copytree(mixture_ws, tmp_path / "ws")
+    ws = Workspace(tmp_path / "ws")
+    viewer = view.Viewer(ws, Survey(ws).scene(), view.Models(ws, "cpu"))
+    page = view.start_server(viewer, "127.0.0.1", 0)
+    try:
+        panel = page.path_panel
+        train = viewer.scene.split("train")
+
+        class Event:  # what viser passes a button's callback
+            client, client_id = None, 7
+
+        for i in (0, 4):
+            pose = opencv_pose(train.poses[i])
+            viewer.moved(7, camera_for_view(pose[:3, :3], pose[:3, 3], 0.8, 1.0, 24), now=float(i))
+            panel.edit(Event(), lambda: panel.select(viewer.add_keyframe(7)))
+        assert len(viewer.path.keyframes) == 2 and int(panel.index.value) == 1
+        assert page.server.scene.get_handle_by_name("/camera_path/keyframe1") is not None
+        assert page.server.scene.get_handle_by_name("/camera_path/line") is not None
+        panel.fov.value = 30.0  # a widget set calls its callback: keyframe N's field of view
+        assert viewer.path.keyframes[1].fov == 30.0 and "1: 30.0 deg" in panel.listing.content
+        panel.seconds.value = 2.0
+        panel.smoothness.value = 0.0
+        assert (viewer.path.seconds, viewer.path.smoothness) == (2.0, 0.0)
+        panel.edit(Event(), lambda: viewer.path.delete(5))  # refused: the path is unchanged
+        assert len(viewer.path.keyframes) == 2
+        panel.name.value = "two"
+        panel.edit(Event(), lambda: viewer.save_path(panel.name.value))
+        assert list(panel.saved.options) == ["two"]
+        panel.fps.value, panel.seconds.value = 10.0, 0.5  # the preview: 5 frames, a tenth of a second apart
+        client = Page()
+        panel.play(client)
+        for _ in range(100):
+            if panel.playing is None:
+                break
+            threading.Event().wait(0.1)
+        frames = viewer.path.frames()
+        assert len(client.shown) == len(frames) == 5
+        for (position, fov), f in zip(client.shown, frames):
+            assert np.allclose(position, f.pose[:3, 3]) and fov == pytest.approx(math.radians(f.fov))
+    finally:
+        page.server.stop()
