@@ -525,3 +525,31 @@ def test_the_page_has_the_camera_path_panel_and_draws_the_path(mixture_ws, tmp_p
             assert np.allclose(position, f.pose[:3, 3]) and fov == pytest.approx(math.radians(f.fov))
     finally:
         page.server.stop()
+
+
+def test_a_path_through_a_colmap_models_own_poses_is_its_views_in_the_scenes_world(tmp_path):
+    """A forward-facing COLMAP capture (rescaled and recentred inside boostnerf): a path written from images.bin's
+    world-to-camera OpenCV poses (turned to camera-to-world OpenGL, the model's world kept) reads back as the
+    scene's own cameras."""
+    from boostnerf_cli.scenes import load_scene
+    from boostnerf_cli.scenes.colmap_model import read_model
+
+    folder = make_scene(tmp_path / "colmap", size=16, n_train=8, n_test=0, layout="colmap", rig="forward")
+    scene = load_scene(folder)
+    frame = DataFrame.of(scene.extra)
+    assert scene.extra.get("forward_facing") and not frame.identity
+    images = sorted(read_model(folder / "sparse" / "0").images.values(), key=lambda im: im.name)
+    poses = []
+    for im in images:
+        w, x, y, z = im.qvec
+        r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])  # world to camera
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = r.T, -r.T @ np.asarray(im.tvec)
+        poses.append(pose @ np.diag([1.0, -1.0, -1.0, 1.0]))  # OpenCV's camera axes to OpenGL's
+    read = read_camera_path(views_file(poses, 40.0, 16, 16, tmp_path / "p.json"), frame)
+    names = [Path(im.name).stem for im in images]
+    for split in scene.splits.values():
+        for i, name in enumerate(split.names):
+            assert np.allclose(read.frames[names.index(name)].pose, split.poses[i].double().numpy(), atol=2e-5)
