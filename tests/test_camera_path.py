@@ -128,6 +128,8 @@ def test_keyframe_operations():
         path.set_fov(0, 180)
     with pytest.raises(BoostNerfError, match="the smoothness is 2"):
         path.configure(4.0, 24, 2, False, 32, 32)
+    with pytest.raises(BoostNerfError, match="are 2,400,000 frames: at most 100,000"):
+        path.configure(1e5, 24, 1.0, False, 32, 32)
     path.configure(2.0, 12, 0.5, True, 40, 30)
     settings = (path.seconds, path.fps, path.smoothness, path.cycle, path.width, path.height)
     assert settings == (2.0, 12, 0.5, True, 40, 30)
@@ -239,6 +241,10 @@ BAD = [
      'camera_path[1] needs "camera_to_world" (16 numbers) and "fov"'),
     ("aspect", lambda d: entry(d, 0, "aspect", 1.0), "camera_path[0].aspect is 1, not render_width / render_height"),
     ("crop", lambda d: d.update(crop={"crop_center": [0, 0, 0]}), 'it has a "crop"'),
+    ("too many frames", lambda d: d.update(seconds=1e6), "1e+06 seconds at 4 frames per second are 4,000,000 frames: "
+                                                          "at most 100,000"),
+    ("smoothness", lambda d: d.update(smoothness_value=1.5), '"smoothness_value" is 1.5'),
+    ("not a list", lambda d: d.update(camera_path={"0": {}}), '"camera_path" must be a list of objects'),
 ]
 
 

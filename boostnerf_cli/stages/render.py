@@ -158,14 +158,14 @@ def run_camera_path(survey: Survey, names: list[str] | None, file: Path, video: 
 
 @dataclass
 class Film:
-    """A video's frames: colour (uint8), each frame's expected depth and opacity, and with a mixture the routing
-    colours (uint8; empty otherwise)."""
+    """A video's frames: colour (uint8), each frame's expected depth and where it is opaque (opacity >= 0.5, what the
+    depth video draws), and with a mixture the routing colours (uint8; empty otherwise)."""
 
     model: LoadedModel
     scene: Scene
     rgb: list[np.ndarray]
     depth: list[np.ndarray]
-    acc: list[np.ndarray]
+    opaque: list[np.ndarray]
     routing: list[np.ndarray]
 
 
@@ -180,7 +180,7 @@ def film(model: LoadedModel, scene: Scene, cameras: list[Camera], device: str, s
         r = render_image(model.field, camera, settings, skip, device=device, packer=packer)
         shots.rgb.append(to_uint8(r["rgb"]))
         shots.depth.append((r["depth"] / r["acc"].clamp_min(1e-6)).numpy())  # expected depth of the surface hit
-        shots.acc.append(r["acc"].numpy())
+        shots.opaque.append(r["acc"].numpy() >= 0.5)
         if routing:
             shots.routing.append(picture(model, scene, camera, Look("routing"), device, packers, skips)[0])
         if (i + 1) % 10 == 0 or i + 1 == len(cameras):
@@ -192,9 +192,10 @@ def write_film(shots: Film, target: Path, fmt: str, fps: float, what: str) -> li
     """Write `shots` as `target` (colour), `<target>_depth` (near bright, far dark, between the 1st and 99th
     percentile of every frame's opaque pixels) and, with routing colours, `<target>_routing` -> the files."""
     scene, model = shots.scene, shots.model
-    seen = np.concatenate([d[a >= 0.5] for d, a in zip(shots.depth, shots.acc)])
+    seen = np.concatenate([d[o] for d, o in zip(shots.depth, shots.opaque)])
     lo, hi = (np.percentile(seen, [1, 99]) if seen.size else (scene.near, scene.far))
-    depth_frames = [colorize_depth(d, a, float(lo), float(max(hi, lo + 1e-6))) for d, a in zip(shots.depth, shots.acc)]
+    depth_frames = [colorize_depth(d, o.astype(np.float32), float(lo), float(max(hi, lo + 1e-6)))
+                    for d, o in zip(shots.depth, shots.opaque)]
     written = [(target, shots.rgb), (target.with_name(f"{target.stem}_depth{target.suffix}"), depth_frames)]
     if shots.routing:
         written.append((target.with_name(f"{target.stem}_routing{target.suffix}"), shots.routing))

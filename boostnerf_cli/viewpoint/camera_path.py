@@ -47,6 +47,7 @@ CAMERA_TYPES = ("perspective",)  # nerfstudio's "fisheye" and "equirectangular" 
 RIGID = 1e-3  # the largest |R^T R / s^2 - I| of a pose's rotation R (s: its uniform scale)
 ASPECT = 0.01  # a frame's aspect may differ from render_width / render_height by this fraction (rounding)
 MAX_SIDE = 16384  # render_width and render_height at most
+MAX_FRAMES = 100_000  # frames a path sampled from its keyframes has at most (fps x seconds)
 DEFAULT_SECONDS = 4.0  # a new path's duration
 NAME = re.compile(r"^[\w][\w.-]*$")  # a camera path's file name (before .json): letters, digits, _ . -
 
@@ -172,8 +173,9 @@ class CameraPath:
 
     def configure(self, seconds: float, fps: float, smoothness: float, cycle: bool, width: int, height: int) -> None:
         """Set how the path runs (module docstring) and its frames' size; one line for a value out of range."""
-        self.seconds = number(seconds, "the duration (seconds)")
-        self.fps = number(fps, "the frames per second", 0.0, 1000.0)
+        seconds, fps = number(seconds, "the duration (seconds)"), number(fps, "the frames per second", 0.0, 1000.0)
+        check_frames(seconds, fps)
+        self.seconds, self.fps = seconds, fps
         if not 0.0 <= float(smoothness) <= 1.0:
             raise BoostNerfError(f"the smoothness is {smoothness!r}: from 0 (straight) to 1 (smooth)")
         self.smoothness, self.cycle = float(smoothness), bool(cycle)
@@ -266,6 +268,13 @@ class CameraPath:
         while len(controls) > 1:
             controls = [slerp(p, r, u) for p, r in zip(controls, controls[1:])]
         return controls[0]
+
+
+def check_frames(seconds: float, fps: float) -> None:
+    """One line when `seconds` at `fps` are more than `MAX_FRAMES` frames."""
+    if round(fps * seconds) > MAX_FRAMES:
+        raise BoostNerfError(f"{seconds:g} seconds at {fps:g} frames per second are {round(fps * seconds):,} frames: "
+                             f"at most {MAX_FRAMES:,}; shorten the path or lower the frames per second")
 
 
 def check_fov(fov: float, what: str) -> float:
@@ -429,6 +438,8 @@ def read_camera_path(file: Path, frame: DataFrame) -> PathFile:
         if not frames and not path.keyframes:
             raise BoostNerfError('it has no "camera_path" frames and no "keyframes": save a path from `boostnerf '
                                  "view`'s camera path panel (or nerfstudio's viewer)")
+        if path.keyframes:
+            check_frames(path.seconds, path.fps)  # the frames sampled from the keyframes (here or in the viewer)
     except BoostNerfError as e:  # what is wrong with one value: said with the file's name
         raise BoostNerfError(f"camera path {file}: {e}") from None
     return PathFile(path, frames or path.frames())
