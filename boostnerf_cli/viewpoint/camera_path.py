@@ -19,8 +19,9 @@ renders a file's frames (`read_camera_path`, `path_cameras`).
   ("perspective", the only one boostnerf renders); "keyframes" ({"matrix", "fov", "aspect"} each), "fps", "seconds",
   "is_cycle", "smoothness_value" (nerfstudio's spline tension: 0 smooth, 1 straight; 1 - `CameraPath.smoothness`),
   "default_fov", "default_transition_sec". A file with keyframes and no "camera_path" frames is sampled from its
-  keyframes. nerfstudio's "render_time" (a dynamic scene's time) is ignored; a "crop", another camera type or any
-  "version" is refused (nerfstudio writes none).
+  keyframes. Every frame is rendered at render_width x render_height with square pixels (as ns-render does), so an
+  "aspect" other than render_width / render_height is refused, as are a "crop", another camera type and any
+  "version" (nerfstudio writes none); nerfstudio's "render_time" (a dynamic scene's time) is ignored.
 - Frames: the poses in a file are in the frame of the data as the user gave it (a capture's COLMAP world, a
   transforms.json's own), not the scene's world where boostnerf renders: `cameras.DataFrame` crosses between the two
   (the identity but for forward-facing captures), so a path through a capture's own camera poses, written by any tool,
