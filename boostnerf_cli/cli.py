@@ -390,9 +390,12 @@ def render(
     frames: Annotated[int, typer.Option("--frames", min=1, help="--path: number of frames.")] = 60,
     fps: Annotated[int, typer.Option("--fps", min=1, help="--path: frames per second.")] = 24,
     video: Annotated[Optional[Path], typer.Option(
-        "--video", help="--path: output .mp4 or .gif (default WS/renders/MODEL/PATH.mp4).")] = None,
+        "--video", help="--path, --camera-path: .mp4 or .gif (default WS/renders/MODEL/NAME.mp4).")] = None,
     camera: Annotated[Optional[Path], typer.Option(
         "--camera", help="Instead: a view `boostnerf view` saved (JSON), at its full size.")] = None,
+    camera_path: Annotated[Optional[Path], typer.Option(
+        "--camera-path", help="Instead: a video along a camera-path JSON (nerfstudio's layout, `boostnerf view` saves "
+        "one); needs one --model.")] = None,
     exact_gate: ExactGateOpt = False,
     device: DeviceOpt = "auto",
 ) -> None:
@@ -401,16 +404,20 @@ def render(
     from boostnerf_cli.stages import render as stage
     from boostnerf_cli.stages.common import resolve_device
 
-    if sum((path is not None, compare, per_expert, camera is not None)) > 1:
-        raise BoostNerfError("--path, --compare, --per-expert and --camera are separate outputs: use one per command")
-    if path is None and video is not None:
-        raise BoostNerfError("--video needs --path orbit or --path spiral")
+    if sum((path is not None, compare, per_expert, camera is not None, camera_path is not None)) > 1:
+        raise BoostNerfError("--path, --compare, --per-expert, --camera and --camera-path are separate outputs: use "
+                             "one per command")
+    if path is None and camera_path is None and video is not None:
+        raise BoostNerfError("--video needs --path orbit, --path spiral or --camera-path FILE")
     viewing = Viewing(split, views, Skips.from_flags(no_skip, skip_off), exact_gate)
     ws, lock = _writer(workspace)
     with lock:
         if path is not None:
             video_path = stage.VideoPath(path, frames, fps, video)
             written = stage.run_video(_survey(ws), model, video_path, resolve_device(device), viewing.skips)
+        elif camera_path is not None:
+            written = stage.run_camera_path(_survey(ws), model, camera_path, video, resolve_device(device),
+                                            viewing.skips)
         elif camera is not None:
             written = stage.run_camera(_survey(ws), model, camera, resolve_device(device), viewing.skips)
         elif compare:

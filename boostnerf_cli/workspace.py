@@ -55,7 +55,7 @@ _TEMP_FILE = re.compile(r"\.(.+)\.[a-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?")
 # The folders a workspace's writers write in (bench adds rows/ and variants/, each variant a workspace), the files
 # they write in its root, and the embedded scene's folder while make_scene generates it (pretrain or bench without
 # --data).
-WRITTEN_FOLDERS = ("experts", "moe", "reports", "checkpoints", "renders", "rows", "variants")
+WRITTEN_FOLDERS = ("experts", "moe", "reports", "checkpoints", "renders", "camera_paths", "rows", "variants")
 ROOT_FILES = ("manifest.json", "bench-config.json")
 SCENE_TMP = ".scene.tmp"
 
@@ -587,6 +587,11 @@ class Workspace:
         """WS/renders/MODEL/SPLIT (or WS/renders/MODEL): where `render` writes a model's pictures."""
         folder = self.root / "renders" / model
         return folder / split if split is not None else folder
+
+    @property
+    def camera_paths_dir(self) -> Path:
+        """WS/camera_paths: the camera paths `view` saves (nerfstudio's layout) and `render --camera-path` renders."""
+        return self.root / "camera_paths"
 
     # manifest
     def manifest(self) -> dict:

@@ -9,7 +9,9 @@ Files (all under WS/renders/, see docs/stages.md):
 - `render --per-expert` (mixtures): `<model>/<split>/<view>_expert<i>-<name>.png`,
   `<view>_gate<i>-<name>.png` and the montage `<view>_experts.png` (the maps: `viewpoint/maps.py`, which the viewer
   shares);
-- `render --camera VIEW.json`: `<model>/views/VIEW.png`, a view `boostnerf view` saved, rendered again.
+- `render --camera VIEW.json`: `<model>/views/VIEW.png`, a view `boostnerf view` saved, rendered again;
+- `render --camera-path FILE.json` (nerfstudio's camera-path layout: `viewpoint/camera_path.py`): `<model>/FILE.mp4`
+  (or `--video`), `FILE_depth.mp4` and for a mixture `FILE_routing.mp4`, one frame per entry of the file.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from boostnerf_cli.cameras import DataFrame
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.images import (
     colorbar,
@@ -40,7 +43,8 @@ from boostnerf_cli.render.paths import camera_path
 from boostnerf_cli.render.renderer import Camera, render_image
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.viewpoint.camera import dataset_camera
-from boostnerf_cli.viewpoint.frame import picture
+from boostnerf_cli.viewpoint.camera_path import path_cameras, read_camera_path
+from boostnerf_cli.viewpoint.frame import Look, picture
 from boostnerf_cli.viewpoint.maps import expert_share, gate_probability, grey, routing_colours
 from boostnerf_cli.viewpoint.saved import read_view
 from boostnerf_cli.workspace import remove
@@ -111,14 +115,19 @@ class VideoPath:
     file: Path | None = None
 
 
+def one_model(survey: Survey, names: list[str] | None, option: str) -> str:
+    """The one model a video renders; one line when `names` holds none or several."""
+    if not names or len(names) != 1:
+        fix = f"keep one of {', '.join(names)}" if names else "add --model NAME"
+        raise BoostNerfError(f"{option} renders one model: {fix} (models: {', '.join(survey.usable()) or 'none yet'})")
+    return survey.current(names)[0]
+
+
 def run_video(survey: Survey, names: list[str] | None, path: VideoPath, device: str, skips: Skips) -> list[Path]:
     """Render one model along a camera path derived from the training cameras -> colour and depth videos."""
     kind, n_frames, video, fps = path.kind, path.frames, path.file, path.fps
-    if not names or len(names) != 1:
-        fix = f"keep one of {', '.join(names)}" if names else "add --model NAME"
-        raise BoostNerfError(f"--path renders one model: {fix} (models: {', '.join(survey.usable()) or 'none yet'})")
+    name = one_model(survey, names, "--path")
     ws, scene = survey.ws, survey.scene()
-    name = survey.current(names)[0]
     model = load_model(ws, name, device)
     target, fmt = video_target(video or ws.renders_dir(model.name) / f"{kind}.mp4")  # refused before rendering
     train = scene.split("train")
@@ -128,27 +137,75 @@ def run_video(survey: Survey, names: list[str] | None, path: VideoPath, device: 
     if kind == "orbit" and facing > 0.9:
         log("note: the training cameras all look one way (a forward-facing capture?): --path spiral suits it better")
     poses = camera_path(kind, train.poses, model.bbox.cpu(), scene.near, scene.far, n_frames, scene.ndc)
+    cameras = [Camera(pose, train.intrinsics[0], train.height, train.width) for pose in poses]
+    return write_film(film(model, scene, cameras, device, skips, kind), target, fmt, fps, f"{kind} path")
+
+
+def run_camera_path(survey: Survey, names: list[str] | None, file: Path, video: Path | None, device: str,
+                    skips: Skips) -> list[Path]:
+    """Render one model along a camera-path file (nerfstudio's layout: `viewpoint.camera_path`), each frame at the
+    file's size and field of view -> colour and depth videos, and for a mixture its routing colours (the map of
+    `render --per-expert` and the viewer) as a third."""
+    name = one_model(survey, names, "--camera-path")
+    ws, scene = survey.ws, survey.scene()
+    read = read_camera_path(file, DataFrame.of(scene.extra))  # refused before anything is loaded or rendered
+    model = load_model(ws, name, device)
+    target, fmt = video_target(video or ws.renders_dir(model.name) / f"{Path(file).stem}.mp4")
+    cameras = path_cameras(read.frames, read.path.height, read.path.width)
+    shots = film(model, scene, cameras, device, skips, "camera path", routing=model.kind == "mixture")
+    return write_film(shots, target, fmt, read.path.fps, f"camera path {file}")
+
+
+@dataclass
+class Film:
+    """A video's frames: colour (uint8), each frame's expected depth and where it is opaque (opacity >= 0.5, what the
+    depth video draws), and with a mixture the routing colours (uint8; empty otherwise)."""
+
+    model: LoadedModel
+    scene: Scene
+    rgb: list[np.ndarray]
+    depth: list[np.ndarray]
+    opaque: list[np.ndarray]
+    routing: list[np.ndarray]
+
+
+def film(model: LoadedModel, scene: Scene, cameras: list[Camera], device: str, skips: Skips, what: str,
+         routing: bool = False) -> Film:
+    """Render `cameras` with `model` -> a `Film` (with `routing`, each frame's routing colours too)."""
     settings, skip = model.render_setup(scene, skips)
     packer = packer_for(device)  # one for the path: each frame reuses the budgets the ones before it sized
-    rgb, depth, acc = [], [], []
-    for i, pose in enumerate(poses):
-        r = render_image(model.field, Camera(pose, train.intrinsics[0], train.height, train.width), settings, skip,
-                         device=device, packer=packer)
-        rgb.append(to_uint8(r["rgb"]))
-        depth.append((r["depth"] / r["acc"].clamp_min(1e-6)).numpy())  # expected depth of the surface hit
-        acc.append(r["acc"].numpy())
-        if (i + 1) % 10 == 0 or i + 1 == len(poses):
-            log(f"{model.name}: {kind} frame {i + 1}/{len(poses)}")
-    seen = np.concatenate([d[a >= 0.5] for d, a in zip(depth, acc)])
+    packers: dict[str, Packer] = {}  # the routing map's, one per gate
+    shots = Film(model, scene, [], [], [], [])
+    for i, camera in enumerate(cameras):
+        r = render_image(model.field, camera, settings, skip, device=device, packer=packer)
+        shots.rgb.append(to_uint8(r["rgb"]))
+        shots.depth.append((r["depth"] / r["acc"].clamp_min(1e-6)).numpy())  # expected depth of the surface hit
+        shots.opaque.append(r["acc"].numpy() >= 0.5)
+        if routing:
+            shots.routing.append(picture(model, scene, camera, Look("routing"), device, packers, skips)[0])
+        if (i + 1) % 10 == 0 or i + 1 == len(cameras):
+            log(f"{model.name}: {what} frame {i + 1}/{len(cameras)}")
+    return shots
+
+
+def write_film(shots: Film, target: Path, fmt: str, fps: float, what: str) -> list[Path]:
+    """Write `shots` as `target` (colour), `<target>_depth` (near bright, far dark, between the 1st and 99th
+    percentile of every frame's opaque pixels) and, with routing colours, `<target>_routing` -> the files."""
+    scene, model = shots.scene, shots.model
+    seen = np.concatenate([d[o] for d, o in zip(shots.depth, shots.opaque)])
     lo, hi = (np.percentile(seen, [1, 99]) if seen.size else (scene.near, scene.far))
-    depth_frames = [colorize_depth(d, a, float(lo), float(max(hi, lo + 1e-6))) for d, a in zip(depth, acc)]
-    depth_target = target.with_name(f"{target.stem}_depth{target.suffix}")
-    write_video(target, rgb, fps, fmt)
-    write_video(depth_target, depth_frames, fps, fmt)
-    log(f"{model.name}: wrote {fmt.upper()} {target} and {depth_target} ({len(poses)} frames, {fps} fps, "
-        f"{kind} path; depth: near bright, far dark, {lo:.3g} .. {hi:.3g} "
-        f"{'NDC' if scene.ndc is not None else 'world'} units)")
-    return [target, depth_target]
+    depth_frames = [colorize_depth(d, o.astype(np.float32), float(lo), float(max(hi, lo + 1e-6)))
+                    for d, o in zip(shots.depth, shots.opaque)]
+    written = [(target, shots.rgb), (target.with_name(f"{target.stem}_depth{target.suffix}"), depth_frames)]
+    if shots.routing:
+        written.append((target.with_name(f"{target.stem}_routing{target.suffix}"), shots.routing))
+    for file, frames in written:
+        write_video(file, frames, fps, fmt)
+    log(f"{model.name}: wrote {fmt.upper()} {', '.join(str(f) for f, _ in written)} ({len(shots.rgb)} frames, "
+        f"{fps:g} fps, {what}; depth: near bright, far dark, {lo:.3g} .. {hi:.3g} "
+        f"{'NDC' if scene.ndc is not None else 'world'} units" + ("; routing: blue = smallest expert, then cyan, "
+                                                                  "green, orange, red" if shots.routing else "") + ")")
+    return [f for f, _ in written]
 
 
 # --- side-by-side comparison ------------------------------------------------------------------------

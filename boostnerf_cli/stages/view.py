@@ -5,7 +5,9 @@ density volume's kept cells coloured by the expert the gate picks there; it rend
 with the chosen model and map (`viewpoint.frame.MODES`): a low resolution while the camera moves, the full one once it
 stops. "go to view" snaps the camera to a dataset view and shows its ground truth and PSNR; "save" writes the last
 full frame and its camera (WS/renders/views/view-N.png and .json), which `render --camera FILE` renders again.
-`--follow` shows the newest model or training checkpoint and reloads it whenever training writes it.
+`--follow` shows the newest model or training checkpoint and reloads it whenever training writes it. The "camera
+path" panel (`PathPanel`) draws a path through keyframes taken from the view, plays it, and saves it as
+WS/camera_paths/NAME.json (nerfstudio's layout), which `render --camera-path` renders.
 
 What the pages are shown, and when, is `viewpoint.viewer.Viewer` (no browser needed); this module is the page that
 shows it: `Controls` (the panel's widgets, by name), `Nodes` (the scene nodes it draws, each held once), `Page`
@@ -117,6 +119,7 @@ class Page:
         self.viewer, self.server = viewer, server
         self.nodes = Nodes()
         self.controls = self.add_controls()
+        self.path_panel = PathPanel(self)
         self.draw_cameras()
         self.draw_model_parts()
         server.on_client_connect(self.connect)
@@ -277,6 +280,161 @@ class Page:
             self.present(client, job.camera, shot, job.full)
         self.viewer.drawn(job, shot)
         return True
+
+
+class PathPanel:
+    """The camera path panel: keyframes from the page's view, reordered, deleted, each with its field of view; the
+    path's duration, frames per second, smoothness, loop and frame size; a preview that plays it on the page; save to
+    and load from WS/camera_paths (`Viewer.save_path`, `Viewer.load_path`). The path and its logic are the viewer's
+    `path` (`viewpoint.camera_path.CameraPath`); the scene shows its keyframes (red frustums) and the path (a red
+    line)."""
+
+    def __init__(self, page: Page) -> None:
+        self.page, self.viewer = page, page.viewer
+        self.lock = threading.RLock()  # the path, between callbacks (a value set here calls its callback at once)
+        self.playing: threading.Event | None = None
+        self.nodes: list = []
+        gui, path = page.server.gui, page.viewer.path
+        with gui.add_folder("camera path", expand_by_default=False):
+            self.listing = gui.add_markdown(path.summary())
+            self.add = gui.add_button("add keyframe (this view)")
+            self.index = gui.add_number("keyframe N", 0, min=0, step=1)
+            self.up, self.down = gui.add_button("move N earlier"), gui.add_button("move N later")
+            self.delete = gui.add_button("delete N")
+            self.fov = gui.add_number("N's field of view (deg)", 50.0, min=1.0, max=179.0, step=0.5)
+            self.seconds = gui.add_number("duration (s)", path.seconds, min=0.1, step=0.1)
+            self.fps = gui.add_number("frames per second", path.fps, min=1.0, max=120.0, step=1.0)
+            self.smoothness = gui.add_slider("smoothness", 0.0, 1.0, 0.05, path.smoothness)
+            self.cycle = gui.add_checkbox("loop", path.cycle)
+            self.size = gui.add_vector2("frame size (w, h)", (path.width, path.height), min=(16, 16), step=1)
+            self.preview = gui.add_button("preview (play on this page)")
+            self.name = gui.add_text("name", "path")
+            self.save = gui.add_button("save to WS/camera_paths")
+            self.saved = gui.add_dropdown("saved paths", self.viewer.saved_paths() or [NONE])
+            self.load = gui.add_button("load the saved path")
+        self.connect()
+
+    def connect(self) -> None:
+        """Each widget's callback: an edit of the path (`edit`), after which the panel and the scene show it anew."""
+        viewer = self.viewer
+        self.add.on_click(lambda e: self.edit(e, lambda: self.select(viewer.add_keyframe(e.client_id))))
+        self.up.on_click(lambda e: self.edit(e, lambda: self.select(viewer.path.move(self.selected(), -1))))
+        self.down.on_click(lambda e: self.edit(e, lambda: self.select(viewer.path.move(self.selected(), 1))))
+        self.delete.on_click(lambda e: self.edit(e, lambda: viewer.path.delete(self.selected())))
+        self.fov.on_update(lambda e: self.edit(e, self.set_fov))
+        self.index.on_update(lambda e: self.edit(e, lambda: None))
+        for widget in (self.seconds, self.fps, self.smoothness, self.cycle, self.size):
+            widget.on_update(lambda e: self.edit(e, self.configure))
+        self.preview.on_click(lambda e: self.play(e.client))
+        self.save.on_click(lambda e: self.edit(e, lambda: self.say(e.client, "saved", viewer.save_path(
+            self.name.value))))
+        self.load.on_click(lambda e: self.edit(e, self.load_chosen))
+
+    def selected(self) -> int:
+        return self.viewer.path.check(int(self.index.value))
+
+    def select(self, i: int) -> None:
+        self.index.value = i
+
+    def set_fov(self) -> None:
+        if self.viewer.path.keyframes:
+            self.viewer.path.set_fov(self.selected(), float(self.fov.value))
+
+    def configure(self) -> None:
+        width, height = self.size.value
+        self.viewer.path.configure(self.seconds.value, self.fps.value, self.smoothness.value, self.cycle.value, width,
+                                   height)
+
+    def load_chosen(self) -> None:
+        """Load the path chosen in the dropdown; its settings fill the panel (each widget set writes them back)."""
+        if self.saved.value == NONE:
+            raise BoostNerfError("WS/camera_paths holds no camera path yet: save one first")
+        path = self.viewer.load_path(self.saved.value)
+        self.name.value = self.saved.value
+        self.seconds.value, self.fps.value, self.smoothness.value = path.seconds, path.fps, path.smoothness
+        self.cycle.value, self.size.value = path.cycle, (path.width, path.height)
+        self.select(0)
+
+    def say(self, client, title: str, what) -> None:
+        if client is not None:
+            client.add_notification(title, str(what), auto_close_seconds=6.0)
+
+    def edit(self, event, change) -> None:
+        """Apply `change` to the path (a refusal is one line on the page), then show the path anew."""
+        with self.lock:
+            try:
+                change()
+            except BoostNerfError as e:
+                self.say(getattr(event, "client", None), "camera path", e)
+            self.show()
+
+    def show(self) -> None:
+        """The panel's listing, N's field of view, the saved paths offered, and the keyframes and line drawn."""
+        path = self.viewer.path
+        self.listing.content = path.summary()
+        i = int(self.index.value)
+        if 0 <= i < len(path.keyframes):
+            self.fov.value = round(path.keyframes[i].fov, 2)
+        names = self.viewer.saved_paths() or [NONE]
+        if list(self.saved.options) != names:
+            self.saved.options = names
+        self.draw()
+
+    def draw(self) -> None:
+        import viser.transforms as vtf
+
+        scene, path = self.page.server.scene, self.viewer.path
+        for node in self.nodes:
+            node.remove()
+        self.nodes = []
+        for i, k in enumerate(path.keyframes):
+            pose = opencv_pose(torch.from_numpy(k.pose))
+            self.nodes.append(scene.add_camera_frustum(
+                f"/camera_path/keyframe{i}", fov=float(np.radians(k.fov)), aspect=path.width / path.height,
+                scale=0.12 * self.viewer.extent(), color=(220, 30, 40), wxyz=vtf.SO3.from_matrix(pose[:3, :3]).wxyz,
+                position=pose[:3, 3]))
+        if len(path.keyframes) > 1:
+            points = np.stack([path.at(float(t)).pose[:3, 3] for t in np.linspace(0.0, path.seconds, 100)])
+            self.nodes.append(scene.add_line_segments("/camera_path/line", np.stack([points[:-1], points[1:]], 1),
+                                                      (220, 30, 40), thickness=2.0, thickness_units="screen"))
+
+    def play(self, client) -> None:
+        """Play the path's frames on `client`'s page at its frames per second (pressing again stops it)."""
+        if self.playing is not None:
+            self.playing.set()
+            return
+        if not self.viewer.path.keyframes:
+            self.say(client, "camera path", "no keyframes yet: add one from this view")
+            return
+        stop = self.playing = threading.Event()
+        frames, fps = self.viewer.path.frames(), self.viewer.path.fps
+
+        def run() -> None:
+            try:
+                for f in frames:
+                    if stop.is_set():
+                        break
+                    show_camera(client, f.pose, float(np.radians(f.fov)))
+                    stop.wait(1.0 / fps)
+            finally:
+                self.playing = None
+
+        threading.Thread(target=run, daemon=True).start()
+
+
+NONE = "(none)"  # the saved paths offered when there are none
+
+
+def show_camera(client, pose: np.ndarray, fov: float) -> None:
+    """Move `client`'s camera to `pose` (OpenGL camera-to-world, the scene's world) with vertical field of view `fov`
+    (radians), in one message."""
+    import viser.transforms as vtf
+
+    cv = opencv_pose(torch.from_numpy(np.asarray(pose, dtype=np.float64)))
+    with client.atomic():
+        client.camera.wxyz = vtf.SO3.from_matrix(cv[:3, :3]).wxyz
+        client.camera.position = tuple(cv[:3, 3])
+        client.camera.fov = fov
 
 
 def start_server(viewer: Viewer, host: str, port: int) -> Page:

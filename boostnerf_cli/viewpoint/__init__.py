@@ -9,6 +9,9 @@
   `boostnerf_cli.cameras`);
 - `saved.py`: a saved view, a PNG and its camera as JSON (`save_view`, `read_view`) that `render --camera FILE`
   renders again;
+- `camera_path.py`: camera paths through keyframes (`CameraPath`), sampled smooth, written and read in nerfstudio's
+  camera-path layout (`write_camera_path`, `read_camera_path`) that `render --camera-path FILE` renders and the
+  viewer's camera path panel draws;
 - `geometry.py`: the scene the viewer draws: the dataset's cameras (`frustums`), the box (`box_edges`), the density
   volume's kept cells coloured by the expert the gate picks there (`routed_cells`).
 

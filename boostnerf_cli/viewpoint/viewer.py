@@ -10,7 +10,8 @@ a test drives this module as a page would, with no browser.
   `ClientView.pinned`: the camera it reports while it moves there is not a move.
 - `Viewer`: the shown model and `Look`, the layers drawn (`LAYERS`), the pages; `Viewer.next_job` says which page to
   draw next (the one that has waited longest: a page whose camera keeps moving does not starve the others),
-  `Viewer.draw` renders, `Viewer.drawn` records it.
+  `Viewer.draw` renders, `Viewer.drawn` records it; and the camera path the pages draw (the viewer's path, a
+  `viewpoint.camera_path.CameraPath`: `Viewer.add_keyframe`, `Viewer.save_path`, `Viewer.load_path`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from boostnerf_cli.cameras import DataFrame
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.registry import count_params
 from boostnerf_cli.metrics.image import psnr
@@ -34,6 +36,14 @@ from boostnerf_cli.render.renderer import Camera
 from boostnerf_cli.scenes import Scene
 from boostnerf_cli.tasks import load_field_state
 from boostnerf_cli.viewpoint.camera import dataset_camera, scaled
+from boostnerf_cli.viewpoint.camera_path import (
+    CameraPath,
+    Keyframe,
+    camera_path_file,
+    read_camera_path,
+    saved_paths,
+    write_camera_path,
+)
 from boostnerf_cli.viewpoint.frame import MIXTURE_MODES, Frame, Look, frame
 from boostnerf_cli.viewpoint.geometry import box_edges, routed_cells
 from boostnerf_cli.viewpoint.saved import save_view
@@ -252,6 +262,8 @@ class Viewer:
         self.layers = dict.fromkeys(LAYERS, True)  # the scene layers drawn
         self.frames = 0  # frames rendered
         self.labels = models.labels()  # the models on offer, as last looked at
+        self.path = CameraPath(width=train.width, height=train.height)  # the camera path drawn (its frames' size: the
+        # training views')
         if model is not None and model not in self.labels:
             raise BoostNerfError(f"no model named {model!r} in {ws.root} (models: "
                                  f"{', '.join(self.labels) or 'none yet'})")
@@ -408,6 +420,40 @@ class Viewer:
         log(f"saved {path} and {path.with_suffix('.json').name}: `boostnerf render --workspace {self.ws.root} "
             f"--camera {path.with_suffix('.json')}` renders it again")
         return path
+
+    # --- the camera path ----------------------------------------------------------------------------------------------
+    def add_keyframe(self, client: int, at: int | None = None) -> int:
+        """Page `client`'s camera as a keyframe of the path, before keyframe `at` (default: last) -> its index."""
+        with self.clients_lock:
+            view = self.clients.get(client)
+            camera = view.camera if view is not None else None
+        if camera is None:
+            raise BoostNerfError("this page has reported no camera yet: move the view a little, then add the keyframe")
+        return self.path.add(Keyframe.of_camera(camera), at)
+
+    def save_path(self, name: str) -> Path:
+        """Write the camera path as WS/camera_paths/NAME.json (nerfstudio's layout, in the data's frame) -> the file."""
+        file = camera_path_file(self.ws.camera_paths_dir, name)
+        write_camera_path(file, self.path, DataFrame.of(self.scene.extra))
+        log(f"saved {file} ({len(self.path.keyframes)} keyframes, {len(self.path.frame_times())} frames): `boostnerf "
+            f"render --workspace {self.ws.root} --model {(self.label or 'NAME').removesuffix(TRAINING)} "
+            f"--camera-path {file}` renders it")
+        return file
+
+    def load_path(self, name: str) -> CameraPath:
+        """Make WS/camera_paths/NAME.json (any tool's, nerfstudio's layout) the camera path drawn -> it; one line for
+        a file that has frames but no keyframes to edit."""
+        file = camera_path_file(self.ws.camera_paths_dir, name)
+        read = read_camera_path(file, DataFrame.of(self.scene.extra))
+        if not read.path.keyframes:
+            raise BoostNerfError(f"camera path {file} has frames but no keyframes to edit: `boostnerf render "
+                                 "--camera-path` renders it as it is")
+        self.path = read.path
+        return read.path
+
+    def saved_paths(self) -> list[str]:
+        """The names of the camera paths in WS/camera_paths."""
+        return saved_paths(self.ws.camera_paths_dir)
 
     # --- the scene around the frame ----------------------------------------------------------------------------------
     def extent(self) -> float:
