@@ -264,23 +264,27 @@ SCREENSHOT_ENV = "BOOSTNERF_VIEWER_SCREENSHOT"  # a path: the test writes its fi
 
 @pytest.mark.slow
 def test_the_page_in_headless_chromium_draws_the_frames_on_its_canvas(served):
-    """The 3D canvas, cut from the page beside the control panel, shows the viewer's frame: picking depth in the page
-    changes the canvas over much of its area; picking another model draws that model. The same canvas hidden (blank)
-    fails that check, though the whole page, its panel, would pass it."""
+    """The 3D canvas, cut from the page beside the control panel, shows the viewer's frame: the first is the render of
+    the training view the page opens at (the subject, not the first camera's frustum in front of it); picking depth
+    in the page changes the canvas over much of its area; picking another model draws that model. The same canvas
+    hidden (blank) fails that check, though the whole page, its panel, would pass it."""
     from cdp import INSTALL, Browser, chromium_binary
+
+    from boostnerf_cli.viewpoint.camera import scaled
 
     binary = chromium_binary()
     if binary is None:
         unavailable("Chromium", INSTALL)
     viewer, page = served
+    train = viewer.scene.split("train")
+    reference = viewer.draw(scaled(dataset_camera(train, first_view(train.poses)), 128)).image
     browser = Browser(binary)
     try:
         browser.open(f"http://127.0.0.1:{page.server.get_port()}/")
         first = wait_for(lambda: shown_full(page, "top2"), "the first full frame")
         browser.js("document.querySelectorAll('.mantine-Notification-root button').forEach(b => b.click())")
         time.sleep(1.0)  # the frame reaches the page; the browser's notice (software WebGL) is closed
-        if os.environ.get(SCREENSHOT_ENV):
-            Path(os.environ[SCREENSHOT_ENV]).write_bytes(browser.screenshot())
+        far, overlay = shows_view(browser, reference)
         colour = drawn_canvas(browser)
         pick(browser, "show", "depth")
         wait_for(lambda: viewer.look.mode == "depth" and shown_full(page, "top2"), "a depth frame")
@@ -297,6 +301,7 @@ def test_the_page_in_headless_chromium_draws_the_frames_on_its_canvas(served):
     finally:
         browser.close()
     assert first
+    assert reference[32:96, 32:96].std() > 10 and far < SHOWS_VIEW and overlay < 0.05, (far, overlay)
     assert_frames_differ(colour, depth)
     with pytest.raises(AssertionError, match="blank"):
         assert_frames_differ(blank, depth)
@@ -715,12 +720,9 @@ def test_the_first_view_in_chromium_is_a_training_views_render_unobstructed(unbo
     binary = chromium_binary()
     if binary is None:
         unavailable("Chromium", INSTALL)
-    ws = Workspace(unbounded_mixture(tmp_path, unbounded_scene, iters=300, train={"batch_rays": 1024},
+    ws = Workspace(unbounded_mixture(tmp_path, unbounded_scene, iters=150, train={"batch_rays": 1024},
                                      dvgo={"hidden": 32}))
     viewer = view.Viewer(ws, Survey(ws).scene(), view.Models(ws, "cpu"))
-    contraction = viewer.scene.contraction
-    points = viewer.model_parts()[1].points
-    assert len(points) and np.linalg.norm(points - np.array(contraction.centre), axis=-1).max() <= contraction.radius
     train = viewer.scene.split("train")
     k = first_view(train.poses)
     n = (k + len(train) // 2) % len(train)  # across the ring
@@ -735,6 +737,8 @@ def test_the_first_view_in_chromium_is_a_training_views_render_unobstructed(unbo
         wait_for(lambda: shown_full(page, "top2"), "the first full frame")
         browser.js("document.querySelectorAll('.mantine-Notification-root button').forEach(b => b.click())")
         first = shows_view(browser, reference[k])
+        if os.environ.get(SCREENSHOT_ENV):
+            Path(os.environ[SCREENSHOT_ENV]).write_bytes(browser.screenshot())
         reported = next(iter(viewer.clients.values())).camera
         page.controls.view.value = n
         press(browser, "go to view N")
@@ -753,3 +757,5 @@ def test_the_first_view_in_chromium_is_a_training_views_render_unobstructed(unbo
         middle = reference[i][32:96, 32:96].astype(float)
         assert middle.std() > 10  # the view's middle shows something to match
         assert far < SHOWS_VIEW and overlay < 0.05, (i, far, overlay)
+    contraction, points = viewer.scene.contraction, viewer.model_parts()[1].points
+    assert len(points) and np.linalg.norm(points - np.array(contraction.centre), axis=-1).max() <= contraction.radius
