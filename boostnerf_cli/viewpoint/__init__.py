@@ -9,8 +9,9 @@
   `boostnerf_cli.cameras`);
 - `saved.py`: a saved view, a PNG and its camera as JSON (`save_view`, `read_view`) that `render --camera FILE`
   renders again;
-- `geometry.py`: the scene the viewer draws: the dataset's cameras (`frustums`), the box (`box_edges`), the density
-  volume's kept cells coloured by the expert the gate picks there (`routed_cells`).
+- `geometry.py`: the scene the viewer draws: the dataset's cameras (`frustums`, `frustum_size`, `hidden_frustums`),
+  the box (`box_edges`, `world_box`), the density volume's kept cells coloured by the expert the gate picks there
+  (`routed_cells`, in the world: `in_world`); and where it stands first (`subject`, `first_view`, `eye_at`).
 
 A frame's PSNR is `metrics.image.psnr`'s.
 """
