@@ -23,8 +23,7 @@ import math
 import socket
 import threading
 import time
-from dataclasses import dataclass
-from dataclasses import field as dataclass_field
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -36,7 +35,7 @@ from boostnerf_cli.render.paths import scene_up
 from boostnerf_cli.render.renderer import Camera
 from boostnerf_cli.viewpoint.camera import camera_for_view
 from boostnerf_cli.viewpoint.frame import MODES, Frame, Look
-from boostnerf_cli.viewpoint.geometry import Eye, frustums
+from boostnerf_cli.viewpoint.geometry import frustums
 from boostnerf_cli.viewpoint.viewer import LAYERS, Job, Models, Viewer
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
@@ -105,8 +104,8 @@ class Nodes:
     cameras: Any = None
     box: Any = None
     cells: Any = None
-    frustums: list = dataclass_field(default_factory=list)  # the frustums under `cameras`, in `frustums`' order
-    hidden: set = dataclass_field(default_factory=set)  # those not drawn (`Viewer.hidden_frustums`)
+    frustums: list = field(default_factory=list)  # the frustums under `cameras`, in `frustums`' order
+    hidden: set = field(default_factory=set)  # those not drawn (`Viewer.hidden_frustums`)
 
     def replace(self, name: str, handle) -> None:
         old = getattr(self, name)
@@ -307,7 +306,7 @@ def start_server(viewer: Viewer, host: str, port: int) -> Page:
         server = viser.ViserServer(host=host, port=free_port(host, port), verbose=False)
     server.scene.set_up_direction(_vector(scene_up(viewer.scene.split("train").poses).numpy()))
     server.gui.main_panel.dock_right()  # the panel beside the 3D view, not over it: the first view shows it all
-    eye: Eye = viewer.first_eye()  # a training camera's view of the subject, its field of view
+    eye = viewer.first_eye()  # a training camera's view of the subject, its field of view
     camera = server.initial_camera
     camera.position, camera.look_at, camera.up, camera.fov = (_vector(eye.position), _vector(eye.look_at),
                                                               _vector(eye.up), eye.fov)
