@@ -1,8 +1,8 @@
 """Several browser pages on one `boostnerf view` at once, as users would have them: headless Chromium pages
 (tests/cdp.py) on the viewer of a workspace.
 
-1. Layers: two pages; the second unticks "routed cells", then "box": each page's screenshot must change (the nodes are
-   the viewer's, one each, hidden for every page).
+1. Layers: two pages; the second ticks "routed cells" (off at first), then unticks "box": each page's screenshot
+   must change (the nodes are the viewer's, one each, shown or hidden for every page).
 2. Clients: N pages, each moving its camera along its own orbit of the box for 2 s and holding it 1 s, over and over
    (the camera is set from the server, as a drag would set it; the page reports it back as a drag does), one of them
    slowed (`--slow`: its CPU throttled 20 times by CDP). Per page: the frames it was shown (low resolution and full),
@@ -78,7 +78,7 @@ def settle(page, seconds: float = 2.0) -> None:
 
 
 def layers(page, browsers) -> dict:
-    """The second page unticks routed cells, then box: how many pixels of each page's screenshot changed."""
+    """The second page ticks routed cells, then unticks box: how many pixels of each page's screenshot changed."""
     settle(page)
     out = {}
     for label in ("routed cells", "box"):

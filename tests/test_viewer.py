@@ -25,6 +25,7 @@ from boostnerf_cli.render.renderer import render_view
 from boostnerf_cli.stages import view
 from boostnerf_cli.viewpoint.camera import camera_for_view, dataset_camera, fov_of, opencv_pose
 from boostnerf_cli.viewpoint.frame import Look
+from boostnerf_cli.viewpoint.geometry import CELL_SHARE, box_edges, first_view, frustum_size, hidden_frustums, world_box
 from boostnerf_cli.viewpoint.saved import read_view
 from boostnerf_cli.viewpoint.viewer import PREVIEW, SNAP, STILL, Phase
 from boostnerf_cli.workspace import Workspace
@@ -58,8 +59,9 @@ def test_the_page_draws_every_camera_the_box_and_the_routed_cells(served):
     names = [f"/cameras/{s}/{k:04d}" for k, s in enumerate(["train"] * len(scene.split("train")) + ["test"] * 3)]
     assert len(names) == n and all(server.scene.get_handle_by_name(name) is not None for name in names)
     assert server.scene.get_handle_by_name("/box") is not None
-    points, colours = viewer.model_parts()[1]
+    points, colours, width = viewer.model_parts()[1]
     assert server.scene.get_handle_by_name("/cells") is not None and len(points) > 0
+    assert width == pytest.approx(CELL_SHARE * viewer.model.field.vd.unit)
     lo, hi = viewer.model.bbox.numpy()
     assert ((points >= lo - 1e-6) & (points <= hi + 1e-6)).all()
     assert len({tuple(c) for c in colours}) == 2  # the gate picks both experts somewhere
@@ -262,23 +264,27 @@ SCREENSHOT_ENV = "BOOSTNERF_VIEWER_SCREENSHOT"  # a path: the test writes its fi
 
 @pytest.mark.slow
 def test_the_page_in_headless_chromium_draws_the_frames_on_its_canvas(served):
-    """The 3D canvas, cut from the page beside the control panel, shows the viewer's frame: picking depth in the page
-    changes the canvas over much of its area; picking another model draws that model. The same canvas hidden (blank)
-    fails that check, though the whole page, its panel, would pass it."""
+    """The 3D canvas, cut from the page beside the control panel, shows the viewer's frame: the first is the render of
+    the training view the page opens at (the subject, not the first camera's frustum in front of it); picking depth
+    in the page changes the canvas over much of its area; picking another model draws that model. The same canvas
+    hidden (blank) fails that check, though the whole page, its panel, would pass it."""
     from cdp import INSTALL, Browser, chromium_binary
+
+    from boostnerf_cli.viewpoint.camera import scaled
 
     binary = chromium_binary()
     if binary is None:
         unavailable("Chromium", INSTALL)
     viewer, page = served
+    train = viewer.scene.split("train")
+    reference = viewer.draw(scaled(dataset_camera(train, first_view(train.poses)), 128)).image
     browser = Browser(binary)
     try:
         browser.open(f"http://127.0.0.1:{page.server.get_port()}/")
         first = wait_for(lambda: shown_full(page, "top2"), "the first full frame")
         browser.js("document.querySelectorAll('.mantine-Notification-root button').forEach(b => b.click())")
         time.sleep(1.0)  # the frame reaches the page; the browser's notice (software WebGL) is closed
-        if os.environ.get(SCREENSHOT_ENV):
-            Path(os.environ[SCREENSHOT_ENV]).write_bytes(browser.screenshot())
+        far, overlay = shows_view(browser, reference)
         colour = drawn_canvas(browser)
         pick(browser, "show", "depth")
         wait_for(lambda: viewer.look.mode == "depth" and shown_full(page, "top2"), "a depth frame")
@@ -295,6 +301,7 @@ def test_the_page_in_headless_chromium_draws_the_frames_on_its_canvas(served):
     finally:
         browser.close()
     assert first
+    assert reference[32:96, 32:96].std() > 10 and far < SHOWS_VIEW and overlay < 0.05, (far, overlay)
     assert_frames_differ(colour, depth)
     with pytest.raises(AssertionError, match="blank"):
         assert_frames_differ(blank, depth)
@@ -474,7 +481,9 @@ def test_layers_and_their_nodes_are_held_once_by_the_page(served):
     held once (`Nodes`), drawn as the viewer's `layers` say; the old node is removed, not left beside the new one."""
     viewer, page = served
     cells = page.nodes.cells
-    assert cells is not None and cells.visible
+    assert cells is not None and not cells.visible  # off until ticked: the kept cells fill the subject
+    page.set_layer("cells", True)
+    assert viewer.layers["cells"] is True and cells.visible
     page.set_layer("cells", False)
     assert viewer.layers["cells"] is False and not cells.visible and page.nodes.box.visible
     page.set_layer("box", False)
@@ -504,3 +513,249 @@ def test_a_checkpoint_is_read_through_the_task_code(mixture_ws, tmp_path):
     for k, v in finished.field.state_dict().items():
         assert torch.equal(read.field.state_dict()[k], v)
     assert load_field_state(read.field, state) is None
+
+
+# --- the first view, the frustums' and the cells' sizes ---------------------------------------------------------------
+def test_the_first_view_is_a_training_camera_looking_at_its_subject(served):
+    """The page opens at the training camera `first_view` picks, with its field of view and up, looking down its
+    axis at the subject (the sphere rig's cameras all look at it); go to view N stands at that view likewise."""
+    viewer, page = served
+    train = viewer.scene.split("train")
+    k = first_view(train.poses)
+    camera = dataset_camera(train, k)
+    pose = camera.pose.double().numpy()
+    start = page.server.initial_camera
+    assert np.allclose(start.position, pose[:3, 3], atol=1e-6) and start.fov == pytest.approx(fov_of(camera))
+    assert np.allclose(start.up, pose[:3, 1], atol=1e-6)
+    axis = (start.look_at - start.position) / np.linalg.norm(start.look_at - start.position)
+    assert axis @ -pose[:3, 2] > 1 - 1e-9
+    assert np.linalg.norm(start.look_at - viewer.subject) < 1e-3 * np.linalg.norm(start.position - viewer.subject)
+    assert np.linalg.norm(viewer.subject) < 0.05  # the procedural cameras look at the world's origin
+    test = dataset_camera(viewer.scene.split("test"), 1)
+    eye = viewer.eye("test", 1)
+    assert np.allclose(eye.position, test.pose[:3, 3].double().numpy()) and eye.fov == pytest.approx(fov_of(test))
+
+
+def test_the_first_view_is_the_camera_nearest_the_cameras_mean_direction():
+    """A walk part way round: its middle view; cameras all round at one height (no mean direction to speak of): the
+    first of them."""
+    from boostnerf_cli.render.paths import look_at
+
+    def arc(degrees):
+        return torch.stack([look_at(torch.tensor([4 * np.sin(a), -4 * np.cos(a), 1.0], dtype=torch.float64),
+                                    torch.zeros(3, dtype=torch.float64), torch.tensor([0.0, 0, 1], dtype=torch.float64))
+                            for a in np.radians(degrees)])
+
+    assert first_view(arc([-70, -40, -20, 0, 25, 45, 60])) == 3
+    assert first_view(arc(np.arange(0, 360, 30))) == 0
+
+
+def frustum_cover(poses: np.ndarray, fov: float, size: float) -> np.ndarray:
+    """For each camera (OpenGL poses (N, 4, 4), square images, vertical field of view `fov`): the share of its image
+    the other cameras' frustums `size` deep cover (each its projected bounding box; those `hidden_frustums` hides
+    are not drawn), over the whole image and over its central half -> (N, 2)."""
+    t, n = np.tan(fov / 2), 200
+    corners = [np.zeros(3)] + [np.array([sx * t, sy * t, -1.0]) * size for sx in (-1, 1) for sy in (-1, 1)]
+    out = []
+    for pose in poses:
+        hidden = hidden_frustums(poses[:, :3, 3], [pose[:3, 3]], size)
+        to_camera = np.linalg.inv(pose)
+        cover = np.zeros((n, n), bool)
+        for j in set(range(len(poses))) - hidden:
+            points = np.array([poses[j, :3, :3] @ c + poses[j, :3, 3] for c in corners])
+            local = points @ to_camera[:3, :3].T + to_camera[:3, 3]
+            if (local[:, 2] >= 0).any():
+                continue  # behind the camera, or beside it: not in its view
+            xy = local[:, :2] / (-local[:, 2:] * t)
+            lo = np.clip(((xy.min(0) + 1) / 2 * n).astype(int), 0, n)
+            hi = np.clip(np.ceil((xy.max(0) + 1) / 2 * n).astype(int), 0, n)
+            cover[lo[1]:hi[1], lo[0]:hi[0]] = True
+        out.append((cover.mean(), cover[n // 4:3 * n // 4, n // 4:3 * n // 4].mean()))
+    return np.array(out)
+
+
+def test_frustums_are_sized_by_the_cameras_spacing_and_leave_every_view_clear():
+    """The frustums' depth follows the scene's scale (ten times larger: ten times deeper), and from every view of the
+    procedural sphere and ring rigs (24 training and 8 held-out cameras) the frustums drawn cover (their bounding
+    boxes) under 8% of the image and 12% of its middle; four times as deep, they would cover a fifth of it."""
+    from boostnerf_cli.render.paths import focus_point
+    from boostnerf_cli.scenes.procedural import CAMERA_ANGLE_X, RING_ANGLE_X, camera_poses, ring_poses
+
+    for poses_of, fov in ((camera_poses, CAMERA_ANGLE_X), (ring_poses, RING_ANGLE_X)):
+        train, test = poses_of(24, 8)
+        poses = np.concatenate([train, test]).astype(np.float64)
+        target = focus_point(torch.as_tensor(train, dtype=torch.float64)).numpy()
+        size = frustum_size(poses[:, :3, 3], target)
+        assert frustum_size(10 * poses[:, :3, 3], 10 * target) == pytest.approx(10 * size)
+        assert frustum_size(poses[:, :3, 3] + 100.0, target + 100.0) == pytest.approx(size)
+        cover = frustum_cover(poses, fov, size)
+        assert cover[:, 0].max() < 0.08 and cover[:, 1].max() < 0.12, (poses_of.__name__, cover.max(0))
+        assert frustum_cover(poses, fov, 4 * size)[:, 0].max() > 0.2
+
+
+def test_the_frustum_at_a_pages_camera_is_not_drawn(served):
+    """A page standing at a dataset camera (its first view, go to view N) does not see that camera's frustum in
+    front of it (its own image would fill the view); the page moved on, the frustum is drawn again."""
+    viewer, page = served
+    train = viewer.scene.split("train")
+    k = first_view(train.poses)
+    pose = opencv_pose(train.poses[k])
+    viewer.moved(7, camera_for_view(pose[:3, :3], pose[:3, 3], 0.8, 1.0, viewer.size))
+    page.hide_frustums()
+    assert k in page.nodes.hidden and not page.nodes.frustums[k].visible
+    assert len(page.nodes.hidden) < len(page.nodes.frustums) // 2 and all(
+        f.visible for i, f in enumerate(page.nodes.frustums) if i not in page.nodes.hidden)
+    far = viewer.subject + 10 * (pose[:3, 3] - viewer.subject)
+    viewer.moved(7, camera_for_view(pose[:3, :3], far, 0.8, 1.0, viewer.size), now=time.monotonic() + 1)
+    page.hide_frustums()
+    assert page.nodes.hidden == set() and page.nodes.frustums[k].visible
+
+
+def test_an_unbounded_volumes_cells_are_drawn_in_the_world_at_their_size():
+    """A density volume over an unbounded scene's contracted box (every cell kept, the gate picking by side): the
+    cells drawn are those of the sphere kept linear, where a contracted point is the world point (the shell's hold
+    the rest of the world squashed: not drawn), each `CELL_SHARE` of its cell's side wide; scaled by 10, the scene's
+    cells are drawn 10 times wider. A bounded scene's box draws all its cells."""
+    from types import SimpleNamespace
+
+    from boostnerf_cli.moe.density_volume import DensityVolume
+    from boostnerf_cli.render.contraction import Contraction
+    from boostnerf_cli.viewpoint.geometry import routed_cells
+
+    def drawn(contraction: Contraction, bounded: bool = False):
+        box = contraction.box()
+        vd = DensityVolume(box, 12)
+        mix = SimpleNamespace(vd=vd, m=2, skip=lambda p: torch.ones(len(p), dtype=torch.bool),
+                              gate=SimpleNamespace(logits=lambda p: torch.stack([p[:, 0], -p[:, 0]], -1)))
+        return vd, routed_cells(mix, None if bounded else contraction)
+
+    contraction = Contraction((0.5, -1.0, 2.0), 1.5, 1500.0)
+    vd, (points, colours, width) = drawn(contraction)
+    centre = np.array(contraction.centre)
+    distance = np.linalg.norm(points - centre, axis=-1)
+    assert distance.max() <= contraction.radius + 1e-5 and len(points) > 0.03 * vd.table.shape[0]
+    world = contraction.uncontract(torch.from_numpy(points).double()).numpy()
+    assert np.allclose(world, points, atol=1e-5)  # where they are in the world
+    side = float(vd.bbox[1, 0] - vd.bbox[0, 0]) / (vd.shape[0] - 1)
+    assert width == pytest.approx(CELL_SHARE * side, rel=1e-4) and len(points) < vd.table.shape[0] / 4
+    assert len({tuple(c) for c in colours}) == 2
+    bigger = Contraction(tuple(10 * centre), 10 * contraction.radius, 10 * contraction.far)
+    assert drawn(bigger)[1].width == pytest.approx(10 * width, rel=1e-4)
+    assert len(drawn(contraction, bounded=True)[1].points) == vd.table.shape[0]
+    edges = box_edges(world_box(vd.bbox, contraction))
+    assert np.allclose(edges.min((0, 1)), centre - 1.5) and np.allclose(edges.max((0, 1)), centre + 1.5)
+
+
+@pytest.fixture(scope="module")
+def unbounded_scene(tmp_path_factory):
+    from boostnerf_cli.scenes import make_scene
+
+    return make_scene(tmp_path_factory.mktemp("unbounded") / "scene", size=32, n_train=12, n_test=2, seed=0,
+                      layout="nerfstudio", rig="unbounded")
+
+
+def unbounded_mixture(folder: Path, scene: Path, **pretrain) -> Path:
+    """A workspace on the unbounded capture (contracted): two tiny experts (`pretrain` changes the tiny recipe's
+    pretrain section) and top2, 5 steps."""
+    from conftest import make_recipe
+
+    recipe = make_recipe(folder / "unbounded.yaml", data={"scene": "unbounded"}, pretrain=pretrain)
+    ws = str(folder / "ws")
+    run_cli("pretrain", "--data", str(scene), "--recipe", str(recipe), "--workspace", ws, "--device", "cpu",
+            check=True)
+    run_cli("build-moe", "--workspace", ws, "--device", "cpu", check=True)
+    run_cli("finetune", "--workspace", ws, "--topk", "2", "--iters", "5", "--device", "cpu", check=True)
+    return folder / "ws"
+
+
+# the colours the page draws over the render: train and held-out frustums, the box, the cells (`maps.PALETTE`)
+OVERLAY = np.array([(40, 90, 230), (230, 120, 30), (250, 160, 40), (40, 90, 255), (0, 200, 220), (60, 200, 60),
+                    (255, 160, 0), (230, 30, 30)])
+SHOWS_VIEW = 12.0  # mean absolute difference (0-255, 16x16 averages) under which the canvas shows a view's render
+
+
+def shows_view(browser, reference: np.ndarray, seconds: float = 30.0) -> tuple[float, float]:
+    """How far the middle of the page's canvas (a square half its height a side, about its centre) is from the same
+    part of `reference`, the model's render of the view the page should show (a camera of the page's vertical field
+    of view: its square middle is the canvas's), once the canvas shows it (a loaded machine draws a frame a while
+    after it arrives; after `seconds` the last look) -> (mean absolute difference (0-255) of the two averaged down
+    to 16x16, the share of the square's pixels in the colours drawn over the render: frustums, box, cells)."""
+    import imageio.v3 as iio
+    import torch.nn.functional as F
+
+    def small(image: np.ndarray) -> np.ndarray:
+        t = torch.from_numpy(np.ascontiguousarray(image[..., :3])).double().permute(2, 0, 1)[None]
+        return F.interpolate(t, size=(16, 16), mode="area")[0].numpy()
+
+    h = reference.shape[0]
+    want = small(reference[h // 4:h - h // 4, reference.shape[1] // 2 - h // 4:reference.shape[1] // 2 + h // 4])
+    deadline = time.monotonic() + seconds
+    while True:
+        x, y, width, height = browser.js("""(() => {
+            const r = Array.from(document.querySelectorAll('canvas'))
+                .reduce((a, b) => (b.width * b.height > a.width * a.height ? b : a)).getBoundingClientRect();
+            return [r.x, r.y, r.width, r.height];
+        })()""")
+        side = height / 2
+        shot = iio.imread(browser.screenshot((x + width / 2 - side / 2, y + height / 4, side, side)))[..., :3]
+        far = np.abs(small(shot) - want).mean()
+        overlay = (np.abs(shot[:, :, None, :].astype(int) - OVERLAY[None, None]).max(-1) <= 30).any(-1).mean()
+        if far < SHOWS_VIEW or time.monotonic() > deadline:
+            print(f"canvas against the view's render: {far:.1f} apart, {100 * overlay:.1f}% overlay colours")
+            return float(far), float(overlay)
+        time.sleep(0.5)
+
+
+@pytest.mark.slow
+def test_the_first_view_in_chromium_is_a_training_views_render_unobstructed(unbounded_scene, tmp_path):
+    """On the unbounded capture (contracted; a mixture trained briefly), the first frame the browser shows is the
+    render of the training view `first_view` picks: the page reports that camera and its field of view, and the
+    middle of its canvas is the model's own render of the view, not the frustums, box or cells drawn over it (the
+    first view stood behind the first camera, with a field of view of its own, the cells as large squares all over
+    it). Go to view N shows view N's render the same way. The mixture's cells drawn are in the sphere kept linear."""
+    from cdp import INSTALL, Browser, chromium_binary
+
+    from boostnerf_cli.viewpoint.camera import scaled
+
+    binary = chromium_binary()
+    if binary is None:
+        unavailable("Chromium", INSTALL)
+    ws = Workspace(unbounded_mixture(tmp_path, unbounded_scene, iters=150, train={"batch_rays": 1024},
+                                     dvgo={"hidden": 32}))
+    viewer = view.Viewer(ws, Survey(ws).scene(), view.Models(ws, "cpu"))
+    train = viewer.scene.split("train")
+    k = first_view(train.poses)
+    n = (k + len(train) // 2) % len(train)  # across the ring
+    reference = {i: viewer.draw(scaled(dataset_camera(train, i), 128)).image for i in (k, n)}
+    page = view.start_server(viewer, "127.0.0.1", 0)
+    stop = threading.Event()
+    loop = threading.Thread(target=view.serve, args=(page, stop), daemon=True)
+    loop.start()
+    browser = Browser(binary)
+    try:
+        browser.open(f"http://127.0.0.1:{page.server.get_port()}/")
+        wait_for(lambda: shown_full(page, "top2"), "the first full frame")
+        browser.js("document.querySelectorAll('.mantine-Notification-root button').forEach(b => b.click())")
+        first = shows_view(browser, reference[k])
+        if os.environ.get(SCREENSHOT_ENV):
+            Path(os.environ[SCREENSHOT_ENV]).write_bytes(browser.screenshot())
+        reported = next(iter(viewer.clients.values())).camera
+        page.controls.view.value = n
+        press(browser, "go to view N")
+        wait_for(lambda: f"train view {n}**" in page.controls.truth.content, "the dataset view's PSNR")
+        time.sleep(2.0)  # the page moves to the view
+        then = shows_view(browser, reference[n])
+    finally:
+        browser.close()
+        stop.set()
+        loop.join(timeout=30)
+        page.server.stop()
+    camera = dataset_camera(train, k)
+    assert torch.allclose(reported.pose, camera.pose, atol=1e-3), (reported.pose, camera.pose)
+    assert fov_of(reported) == pytest.approx(fov_of(camera), rel=1e-3)
+    for i, (far, overlay) in ((k, first), (n, then)):
+        middle = reference[i][32:96, 32:96].astype(float)
+        assert middle.std() > 10  # the view's middle shows something to match
+        assert far < SHOWS_VIEW and overlay < 0.05, (i, far, overlay)
+    contraction, points = viewer.scene.contraction, viewer.model_parts()[1].points
+    assert len(points) and np.linalg.norm(points - np.array(contraction.centre), axis=-1).max() <= contraction.radius

@@ -1,7 +1,8 @@
 """`boostnerf view`: a local web page (viser) that shows a workspace's scene and renders its models live.
 
-The page shows the scene's cameras (train and held-out, as frustums with their images), the models' box, and the
-density volume's kept cells coloured by the expert the gate picks there; it renders what the browser's camera sees
+The page shows the scene's cameras (train and held-out, as frustums with their images, sized to their spacing), the
+models' box, and the density volume's kept cells coloured by the expert the gate picks there (off until ticked); its
+first view is a training camera's (`Viewer.first_eye`); it renders what the browser's camera sees
 with the chosen model and map (`viewpoint.frame.MODES`): a low resolution while the camera moves, the full one once it
 stops. "go to view" snaps the camera to a dataset view and shows its ground truth and PSNR; "save" writes the last
 full frame and its camera (WS/renders/views/view-N.png and .json), which `render --camera FILE` renders again.
@@ -20,10 +21,11 @@ import contextlib
 import errno
 import io
 import logging
+import math
 import socket
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -33,7 +35,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.lineage import Survey
 from boostnerf_cli.render.paths import scene_up
 from boostnerf_cli.render.renderer import Camera
-from boostnerf_cli.viewpoint.camera import camera_for_view, fov_of, opencv_pose
+from boostnerf_cli.viewpoint.camera import camera_for_view
 from boostnerf_cli.viewpoint.frame import MODES, Frame, Look
 from boostnerf_cli.viewpoint.geometry import frustums
 from boostnerf_cli.viewpoint.viewer import LAYERS, Job, Models, Viewer
@@ -104,6 +106,8 @@ class Nodes:
     cameras: Any = None
     box: Any = None
     cells: Any = None
+    frustums: list = field(default_factory=list)  # the frustums under `cameras`, in `frustums`' order
+    hidden: set = field(default_factory=set)  # those not drawn (`Viewer.hidden_frustums`)
 
     def replace(self, name: str, handle) -> None:
         old = getattr(self, name)
@@ -118,12 +122,13 @@ class Page:
     def __init__(self, viewer: Viewer, server) -> None:
         self.viewer, self.server = viewer, server
         self.nodes = Nodes()
+        self.hiding = threading.Lock()  # the pages' camera reports come on several threads
         self.controls = self.add_controls()
         self.path_panel = PathPanel(self)
         self.draw_cameras()
         self.draw_model_parts()
         server.on_client_connect(self.connect)
-        server.on_client_disconnect(lambda client: viewer.disconnect(client.client_id))
+        server.on_client_disconnect(self.disconnect)
 
     # --- the panel ---------------------------------------------------------------------------------------------------
     def add_controls(self) -> Controls:
@@ -176,17 +181,28 @@ class Page:
 
     # --- the scene ---------------------------------------------------------------------------------------------------
     def draw_cameras(self) -> None:
-        """The dataset's cameras as frustums with their images (train blue, held-out orange), under /cameras."""
+        """The dataset's cameras as frustums with their images (train blue, held-out orange), under /cameras, as
+        deep as `Viewer.frustum_size` says (a fraction of the cameras' spacing)."""
         import viser.transforms as vtf
 
         scene, viewer = self.server.scene, self.viewer
         self.nodes.replace("cameras", scene.add_frame("/cameras", show_axes=False, visible=viewer.layers["cameras"]))
-        size = viewer.extent()
-        for k, f in enumerate(frustums(viewer.scene)):
-            scene.add_camera_frustum(
-                f"/cameras/{f.split}/{k:04d}", fov=f.fov, aspect=f.aspect, scale=0.1 * size, image=f.thumbnail,
-                color=(40, 90, 230) if f.split == "train" else (230, 120, 30),
-                wxyz=vtf.SO3.from_matrix(f.pose[:3, :3]).wxyz, position=f.pose[:3, 3])
+        self.nodes.frustums = [scene.add_camera_frustum(
+            f"/cameras/{f.split}/{k:04d}", fov=f.fov, aspect=f.aspect, scale=viser_frustum_scale(
+                viewer.frustum_size, f.fov, f.aspect), image=f.thumbnail,
+            color=(40, 90, 230) if f.split == "train" else (230, 120, 30),
+            wxyz=vtf.SO3.from_matrix(f.pose[:3, :3]).wxyz, position=f.pose[:3, 3])
+            for k, f in enumerate(frustums(viewer.scene))]
+        self.nodes.hidden = set()
+
+    def hide_frustums(self) -> None:
+        """Draw every frustum but those at or beside a page's camera (`Viewer.hidden_frustums`: the camera a page
+        stands at would fill its view with its own image)."""
+        with self.hiding:
+            hidden = self.viewer.hidden_frustums()
+            for k in hidden ^ self.nodes.hidden:
+                self.nodes.frustums[k].visible = k not in hidden
+            self.nodes.hidden = hidden
 
     def draw_model_parts(self) -> None:
         """The box, and the density volume's kept cells coloured by the gate's pick (when the workspace has a
@@ -199,9 +215,10 @@ class Page:
         if cells is None:
             self.nodes.replace("cells", None)
             return
-        points, colours = cells
-        self.nodes.replace("cells", scene.add_point_cloud("/cells", points, colours, point_size=0.006 * viewer.extent(),
-                                                          visible=viewer.layers["cells"]))
+        # viser draws a point 2 * point_size wide (its shader: point_size / tan(fov / 2) * height / depth pixels)
+        self.nodes.replace("cells", scene.add_point_cloud(
+            "/cells", cells.points, cells.colours, point_size=cells.width / 2, precision="float32",
+            visible=viewer.layers["cells"]))
 
     def set_layer(self, name: str, on: bool) -> None:
         """Show or hide scene layer `name` on every page."""
@@ -221,6 +238,11 @@ class Page:
             if viewer.moved(client.client_id, camera_of(handle, viewer.size)) and c.truth_image.visible:
                 c.truth_image.visible = False
                 c.truth.content = ""
+            self.hide_frustums()
+
+    def disconnect(self, client) -> None:
+        self.viewer.disconnect(client.client_id)
+        self.hide_frustums()
 
     def go_to(self, client) -> None:
         """Snap `client`'s camera to the chosen dataset view; show its render at the view's size, its ground truth
@@ -232,13 +254,11 @@ class Page:
         except BoostNerfError as e:
             client.add_notification("go to view", str(e), auto_close_seconds=5.0)
             return
-        pose = opencv_pose(snap.camera.pose)
-        scene = self.viewer.scene
+        eye = self.viewer.eye(split, i)
         with client.atomic():
-            client.camera.position = tuple(pose[:3, 3])
-            client.camera.look_at = tuple(pose[:3, 3] + pose[:3, 2] * float(scene.near + scene.far) / 4)
-            client.camera.up_direction = tuple(-pose[:3, 1])
-            client.camera.fov = fov_of(snap.camera)
+            client.camera.position, client.camera.look_at = _vector(eye.position), _vector(eye.look_at)
+            client.camera.up_direction, client.camera.fov = _vector(eye.up), eye.fov
+        self.hide_frustums()
         c.truth_image.image = (snap.truth * 255 + 0.5).clip(0, 255).astype(np.uint8)
         c.truth_image.visible = True
         c.truth.content = f"**{split} view {i}**: " + (f"PSNR {snap.psnr:.2f} dB" if snap.psnr is not None else
@@ -442,15 +462,23 @@ def start_server(viewer: Viewer, host: str, port: int) -> Page:
     viser = import_viser()
     with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: `run` says the address in one line
         server = viser.ViserServer(host=host, port=free_port(host, port), verbose=False)
-    up = scene_up(viewer.scene.split("train").poses).numpy()
-    server.scene.set_up_direction(tuple(float(v) for v in up))
-    first = opencv_pose(viewer.scene.split("train").poses[0])[:3, 3]
-    box = viewer.scene.bbox if viewer.model is None else viewer.model.bbox
-    centre = box.mean(0).double().cpu().numpy()
-    server.initial_camera.position = tuple(float(v) for v in centre + 1.2 * (first - centre))  # behind the first camera
-    server.initial_camera.look_at = tuple(float(v) for v in centre)
-    server.initial_camera.up = tuple(float(v) for v in up)
+    server.scene.set_up_direction(_vector(scene_up(viewer.scene.split("train").poses).numpy()))
+    server.gui.main_panel.dock_right()  # the panel beside the 3D view, not over it: the first view shows it all
+    eye = viewer.first_eye()  # a training camera's view of the subject, its field of view
+    camera = server.initial_camera
+    camera.position, camera.look_at, camera.up, camera.fov = (_vector(eye.position), _vector(eye.look_at),
+                                                              _vector(eye.up), eye.fov)
     return Page(viewer, server)
+
+
+def _vector(v) -> tuple[float, ...]:
+    return tuple(float(x) for x in v)
+
+
+def viser_frustum_scale(depth: float, fov: float, aspect: float) -> float:
+    """viser's `scale` of a camera frustum `depth` deep (apex to image): viser sizes a frustum by its volume, its
+    depth scale / cbrt(tan(fov / 2)^2 * aspect / 3)."""
+    return depth * (math.tan(fov / 2) ** 2 * aspect / 3) ** (1 / 3)
 
 
 def camera_of(handle, size: int) -> Camera:

@@ -12,8 +12,9 @@
 - `camera_path.py`: camera paths through keyframes (`CameraPath`), sampled smooth, written and read in nerfstudio's
   camera-path layout (`write_camera_path`, `read_camera_path`) that `render --camera-path FILE` renders and the
   viewer's camera path panel draws;
-- `geometry.py`: the scene the viewer draws: the dataset's cameras (`frustums`), the box (`box_edges`), the density
-  volume's kept cells coloured by the expert the gate picks there (`routed_cells`).
+- `geometry.py`: the scene the viewer draws: the dataset's cameras (`frustums`, `frustum_size`, `hidden_frustums`),
+  the box (`box_edges`, `world_box`), the density volume's kept cells coloured by the expert the gate picks there
+  (`routed_cells`, in the world: `in_world`); and where it stands first (`subject`, `first_view`, `eye_at`).
 
 A frame's PSNR is `metrics.image.psnr`'s.
 """

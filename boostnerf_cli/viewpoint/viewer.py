@@ -45,7 +45,19 @@ from boostnerf_cli.viewpoint.camera_path import (
     write_camera_path,
 )
 from boostnerf_cli.viewpoint.frame import MIXTURE_MODES, Frame, Look, frame
-from boostnerf_cli.viewpoint.geometry import box_edges, routed_cells
+from boostnerf_cli.viewpoint.geometry import (
+    Cells,
+    Eye,
+    box_edges,
+    camera_positions,
+    eye_at,
+    first_view,
+    frustum_size,
+    hidden_frustums,
+    routed_cells,
+    subject,
+    world_box,
+)
 from boostnerf_cli.viewpoint.saved import save_view
 from boostnerf_cli.workspace import Workspace
 
@@ -54,6 +66,7 @@ SNAP = 1.0  # seconds a page takes to move to a dataset view it was snapped to (
 PREVIEW = 4  # a moving camera's frame is this many times smaller a side (16 pixels high at least)
 TRAINING = " (training)"  # the label of a model read from its training checkpoint
 LAYERS = ("cameras", "box", "cells")  # what the scene shows besides the frame: dataset cameras, box, routed cells
+HIDDEN_FIRST = ("cells",)  # layers off until ticked: a scene's kept cells fill its subject, in front of the render
 
 log = logging.getLogger(__name__).info  # said on stderr by the command (cli.py), as a stage's messages
 
@@ -259,7 +272,10 @@ class Viewer:
         self.model: LoadedModel | None = None
         self.clients: dict[int, ClientView] = {}
         self.following = models.follow  # show the newest model (the page's "follow training" box)
-        self.layers = dict.fromkeys(LAYERS, True)  # the scene layers drawn
+        self.layers = {name: name not in HIDDEN_FIRST for name in LAYERS}  # the scene layers drawn
+        self.subject = subject(scene)  # the point the training cameras look at
+        self.cameras = camera_positions(scene)  # the frustums' apexes
+        self.frustum_size = frustum_size(self.cameras, self.subject)
         self.frames = 0  # frames rendered
         self.labels = models.labels()  # the models on offer, as last looked at
         self.path = CameraPath(width=train.width, height=train.height)  # the camera path drawn (its frames' size: the
@@ -456,22 +472,33 @@ class Viewer:
         return saved_paths(self.ws.camera_paths_dir)
 
     # --- the scene around the frame ----------------------------------------------------------------------------------
-    def extent(self) -> float:
-        """The diagonal of the box the page draws (the model's, else the scene's)."""
-        box = self.model.bbox if self.model is not None else self.scene.bbox
-        return float((box[1] - box[0]).norm().cpu())
+    def first_eye(self) -> Eye:
+        """Where a page's camera stands first: at the training camera `first_view` picks, with its field of view,
+        looking at the subject."""
+        train = self.scene.split("train")
+        return eye_at(dataset_camera(train, first_view(train.poses)), self.subject)
 
-    def model_parts(self) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
-        """The box's edges (the model's, else the scene's), and the routed cells (points, colours) of the shown
-        mixture, else of the workspace's top2 or top1; None without one."""
+    def eye(self, split: str, i: int) -> Eye:
+        """The page's camera at dataset view `i` of `split` (go to view N)."""
+        return eye_at(dataset_camera(self.scene.split(split), i), self.subject)
+
+    def hidden_frustums(self) -> set[int]:
+        """The frustums (in `geometry.frustums`' order) not drawn: those at or beside a page's camera."""
+        with self.clients_lock:
+            eyes = [v.camera.pose[:3, 3].double().numpy() for v in self.clients.values() if v.camera is not None]
+        return hidden_frustums(self.cameras, eyes, self.frustum_size)
+
+    def model_parts(self) -> tuple[np.ndarray, Cells | None]:
+        """The box's edges (the model's, else the scene's; in the world: `geometry.world_box`), and the routed
+        cells of the shown mixture, else of the workspace's top2 or top1; None without one."""
         mixture = self.model if self.model is not None and self.model.kind == "mixture" else None
         for label in ("top2", "top1"):
             if mixture is None and label in self.labels:
                 mixture = self.models.get(label)
         box = self.model.bbox if self.model is not None else self.scene.bbox
         routed = mixture is not None and mixture.field.gate.cfg.gate_type != "uniform"  # the ensemble routes nowhere
-        cells = routed_cells(mixture.field) if routed else None
-        return box_edges(box.cpu()), cells
+        cells = routed_cells(mixture.field, self.scene.contraction) if routed else None
+        return box_edges(world_box(box.cpu(), self.scene.contraction)), cells
 
     def set_layer(self, name: str, on: bool) -> None:
         """Draw scene layer `name` (`LAYERS`) or not."""
