@@ -19,7 +19,7 @@ from boostnerf_cli.lineage import Survey
 from boostnerf_cli.models import LoadedModel, load_expert, load_mixture
 from boostnerf_cli.render.rays import NDC, image_rays
 from boostnerf_cli.scenes.colmap_model import read_model
-from boostnerf_cli.scenes.procedural import _rot_z, intersect
+from boostnerf_cli.scenes.procedural import intersect, rot_z
 from boostnerf_cli.stages.export import INSTALL, cell_centres, pixel_normals, routable
 from boostnerf_cli.viewpoint.maps import palette
 from boostnerf_cli.workspace import Workspace
@@ -57,7 +57,7 @@ def surface_distance(objects: list[dict], p: np.ndarray) -> np.ndarray:
             rho = (p[:, :2] - c[:2]).norm(dim=-1)
             found.append(torch.sqrt((p[:, 2] - c[2]) ** 2 + (rho - o["radius"]).clamp_min(0) ** 2))
         elif o["kind"] == "box":
-            q = ((p - c) @ _rot_z(o["angle"])).abs() - torch.tensor(o["half"], dtype=torch.float64)
+            q = ((p - c) @ rot_z(o["angle"])).abs() - torch.tensor(o["half"], dtype=torch.float64)
             found.append((q.clamp_min(0).norm(dim=-1) + q.max(dim=-1).values.clamp_max(0)).abs())
         else:
             raise AssertionError(f"no distance for a {o['kind']}")

@@ -204,7 +204,7 @@ def room() -> list[dict]:
     ]
 
 
-def _rot_z(angle: float) -> Tensor:
+def rot_z(angle: float) -> Tensor:
     c, s = math.cos(angle), math.sin(angle)
     return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
@@ -247,7 +247,7 @@ def intersect(obj: dict, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         hit = (t > 0) & ((p[:, :2] - c[:2]).norm(dim=-1) <= obj["radius"])
         normal = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand_as(p)
         return torch.where(hit, t, inf), normal, p
-    rot = _rot_z(obj["angle"])  # box: local = rot^T (world - centre)
+    rot = rot_z(obj["angle"])  # box: local = rot^T (world - centre)
     half = torch.tensor(obj["half"], dtype=torch.float64)
     ol, dl = (o - c) @ rot, d @ rot
     t, _, hit = intersect_box(ol, dl, torch.stack([-half, half]), 0.0, math.inf)

@@ -35,7 +35,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.lineage import Survey
 from boostnerf_cli.render.paths import scene_up
 from boostnerf_cli.render.renderer import Camera
-from boostnerf_cli.viewpoint.camera import camera_for_view
+from boostnerf_cli.viewpoint.camera import camera_for_view, opencv_pose
 from boostnerf_cli.viewpoint.frame import MODES, Frame, Look
 from boostnerf_cli.viewpoint.geometry import frustums
 from boostnerf_cli.viewpoint.viewer import LAYERS, Job, Models, Viewer
@@ -411,7 +411,8 @@ class PathPanel:
             pose = opencv_pose(torch.from_numpy(k.pose))
             self.nodes.append(scene.add_camera_frustum(
                 f"/camera_path/keyframe{i}", fov=float(np.radians(k.fov)), aspect=path.width / path.height,
-                scale=0.12 * self.viewer.extent(), color=(220, 30, 40), wxyz=vtf.SO3.from_matrix(pose[:3, :3]).wxyz,
+                scale=viser_frustum_scale(self.viewer.frustum_size, float(np.radians(k.fov)), path.width / path.height),
+                color=(220, 30, 40), wxyz=vtf.SO3.from_matrix(pose[:3, :3]).wxyz,
                 position=pose[:3, 3]))
         if len(path.keyframes) > 1:
             points = np.stack([path.at(float(t)).pose[:3, 3] for t in np.linspace(0.0, path.seconds, 100)])
