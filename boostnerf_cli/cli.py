@@ -428,6 +428,30 @@ def render(
         print(p)
 
 
+@app.command("camera-path")
+def camera_path_cmd(
+    workspace: WorkspaceOpt,
+    views: Annotated[str, typer.Option(
+        "--views", help="The dataset views the path passes, in order, e.g. 0,4,8 (indices into --split).")],
+    split: Annotated[str, typer.Option("--split", help="The split whose views are the keyframes.")] = "train",
+    seconds: Annotated[float, typer.Option("--seconds", help="The path's duration.")] = 4.0,
+    fps: Annotated[float, typer.Option("--fps", help="Frames per second.")] = 24.0,
+    smoothness: Annotated[float, typer.Option(
+        "--smoothness", help="0: straight from keyframe to keyframe; 1: smooth (Catmull-Rom).")] = 1.0,
+    loop: Annotated[bool, typer.Option("--loop", help="Close the path: the last keyframe leads back to the first.")]
+    = False,
+    out: Annotated[Optional[Path], typer.Option(
+        "--out", help="The camera-path JSON (default WS/camera_paths/views.json).")] = None,
+) -> None:
+    """A camera path through the dataset's own views (nerfstudio's layout), for `render --camera-path` and `view`."""
+    from boostnerf_cli.stages import render as stage
+
+    keys = _int_list(views, "--views")
+    ws, lock = _writer(workspace)
+    with lock:
+        print(stage.run_path_through_views(_survey(ws), split, keys, seconds, fps, smoothness, loop, out))
+
+
 @app.command("eval")
 def eval_cmd(
     workspace: WorkspaceOpt,

@@ -11,7 +11,7 @@ cd "$(dirname "$0")/.."
   echo '```'
   COLUMNS=100 boostnerf --help 2>&1 | sed 's/[[:space:]]*$//'
   echo '```'; echo
-  for c in make-scene pretrain build-moe finetune render eval count-params export chain prune bench view capture; do
+  for c in make-scene pretrain build-moe finetune render camera-path eval count-params export chain prune bench view capture; do
     echo "## \`boostnerf $c\`"; echo; echo '```'
     COLUMNS=100 boostnerf "$c" --help 2>&1 | sed 's/[[:space:]]*$//'
     echo '```'; echo

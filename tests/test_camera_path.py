@@ -69,7 +69,10 @@ def test_the_path_passes_each_keyframe_at_its_time(smoothness, cycle):
         f = path.at(float(t))
         assert np.allclose(f.pose, k.pose, atol=1e-9) and f.fov == pytest.approx(k.fov)
     frames = path.frames()
-    assert len(frames) == 40
+    assert len(frames) == (40 if cycle else 41)  # a frame every 0.1 s: an open path has both ends
+    if not cycle:  # every keyframe's time is a multiple of 0.1 s: each keyframe is a frame
+        for k, t in zip(path.keyframes, times):
+            assert np.allclose(frames[round(t * 10)].pose, k.pose, atol=1e-9)
     assert np.allclose(frames[0].pose, path.keyframes[0].pose, atol=1e-9)
     if not cycle:  # the last frame is the last keyframe; a loop's last frame is one short of the first again
         assert np.allclose(frames[-1].pose, path.keyframes[-1].pose, atol=1e-9)
@@ -181,7 +184,7 @@ def test_a_file_with_keyframes_only_is_sampled_and_a_uniform_scale_is_divided_ou
     file = tmp_path / "k.json"
     file.write_text(json.dumps(data))
     read = read_camera_path(file, FRAME)
-    assert len(read.frames) == 8 and np.allclose(read.path.keyframes[1].pose, path.keyframes[1].pose, atol=1e-9)
+    assert len(read.frames) == 9 and np.allclose(read.path.keyframes[1].pose, path.keyframes[1].pose, atol=1e-9)
     for a, b in zip(read.frames, path.frames()):
         assert np.allclose(a.pose, b.pose, atol=1e-9)
 
@@ -269,7 +272,7 @@ def test_the_file_nerfstudio_writes_reads(tmp_path):
     file = tmp_path / "ns.json"
     file.write_text(json.dumps(data))
     read = read_camera_path(file, DataFrame(np.eye(4)))
-    assert len(read.frames) == 4 and read.frames[1].fov == 50.0
+    assert len(read.frames) == 5 and read.frames[1].fov == 50.0  # 1 s at 4 fps, both ends
 
 
 # ----------------------------------------------------------------------------- rendering
@@ -465,10 +468,10 @@ def test_the_viewer_adds_keyframes_from_a_page_and_saves_and_loads_the_path(mixt
     (ws.root / "camera_paths" / "frames.json").write_text(json.dumps(frames_only))
     with pytest.raises(BoostNerfError, match="has frames but no keyframes to edit"):
         viewer.load_path("frames")
-    # the file renders: one frame per entry (6 fps over 1 s)
+    # the file renders: one frame per entry (6 fps over 1 s, both ends)
     proc = run_cli("render", "-w", str(ws.root), "--model", "dvgo-12", "--camera-path", str(file), "--device", "cpu",
                    check=True)
-    check_videos(proc, ws.root / "renders" / "dvgo-12", "walk", 6, ("depth",))
+    check_videos(proc, ws.root / "renders" / "dvgo-12", "walk", 7, ("depth",))
 
 
 class Page:
@@ -518,7 +521,7 @@ def test_the_page_has_the_camera_path_panel_and_draws_the_path(mixture_ws, tmp_p
         panel.name.value = "two"
         panel.edit(Event(), lambda: viewer.save_path(panel.name.value))
         assert list(panel.saved.options) == ["two"]
-        panel.fps.value, panel.seconds.value = 10.0, 0.5  # the preview: 5 frames, a tenth of a second apart
+        panel.fps.value, panel.seconds.value = 10.0, 0.5  # the preview: 6 frames, a tenth of a second apart
         client = Page()
         panel.play(client)
         for _ in range(100):
@@ -526,7 +529,7 @@ def test_the_page_has_the_camera_path_panel_and_draws_the_path(mixture_ws, tmp_p
                 break
             threading.Event().wait(0.1)
         frames = viewer.path.frames()
-        assert len(client.shown) == len(frames) == 5
+        assert len(client.shown) == len(frames) == 6
         for (position, fov), f in zip(client.shown, frames):
             assert np.allclose(position, f.pose[:3, 3]) and fov == pytest.approx(math.radians(f.fov))
     finally:
@@ -559,3 +562,26 @@ def test_a_path_through_a_colmap_models_own_poses_is_its_views_in_the_scenes_wor
     for split in scene.splits.values():
         for i, name in enumerate(split.names):
             assert np.allclose(read.frames[names.index(name)].pose, split.poses[i].double().numpy(), atol=2e-5)
+
+
+def test_camera_path_through_the_datasets_views_passes_them_and_renders_them(trained_ws, tmp_path):
+    """`boostnerf camera-path --views` writes a path whose keyframes are those views, in order, frames of the split's
+    size; its frames at the keyframes' times are those views, so `render --camera-path` draws them; a view the split
+    does not have is one line, and nothing is written."""
+    out = tmp_path / "through.json"
+    proc = run_cli("camera-path", "-w", str(trained_ws), "--views", "2,0,1", "--split", "test", "--seconds", "2",
+                   "--fps", "3", "--smoothness", "0.5", "--out", str(out), check=True)
+    assert proc.stdout.split() == [str(out)]
+    scene = Survey(Workspace(trained_ws)).scene()
+    test = scene.split("test")
+    read = read_camera_path(out, DataFrame.of(scene.extra))
+    assert (read.path.width, read.path.height, read.path.fps, read.path.smoothness) == (test.width, test.height, 3,
+                                                                                          0.5)
+    for k, i in zip(read.path.keyframes, (2, 0, 1)):
+        assert np.allclose(k.pose, test.poses[i].double().numpy(), atol=1e-5)
+    assert len(read.frames) == 7  # 2 s at 3 fps, both ends
+    for frame, i in ((0, 2), (3, 0), (6, 1)):
+        assert np.allclose(read.frames[frame].pose, test.poses[i].double().numpy(), atol=1e-5)
+    bad = run_cli("camera-path", "-w", str(trained_ws), "--views", "0,99", "--out", str(tmp_path / "bad.json"))
+    assert bad.returncode == 2 and bad.stderr.strip().splitlines()[-1].startswith("error: there is no view 99")
+    assert "Traceback" not in bad.stderr and not (tmp_path / "bad.json").exists()

@@ -43,7 +43,7 @@ from boostnerf_cli.render.paths import camera_path
 from boostnerf_cli.render.renderer import Camera, render_image
 from boostnerf_cli.scenes import Scene, Split
 from boostnerf_cli.viewpoint.camera import dataset_camera
-from boostnerf_cli.viewpoint.camera_path import path_cameras, read_camera_path
+from boostnerf_cli.viewpoint.camera_path import path_cameras, read_camera_path, through_views, write_camera_path
 from boostnerf_cli.viewpoint.frame import Look, picture
 from boostnerf_cli.viewpoint.maps import expert_share, gate_probability, grey, routing_colours
 from boostnerf_cli.viewpoint.saved import read_view
@@ -154,6 +154,23 @@ def run_camera_path(survey: Survey, names: list[str] | None, file: Path, video: 
     cameras = path_cameras(read.frames, read.path.height, read.path.width)
     shots = film(model, scene, cameras, device, skips, "camera path", routing=model.kind == "mixture")
     return write_film(shots, target, fmt, read.path.fps, f"camera path {file}")
+
+
+def run_path_through_views(survey: Survey, split: str, views: list[int], seconds: float, fps: float,
+                           smoothness: float, cycle: bool, out: Path | None) -> Path:
+    """Write a camera path with a keyframe at each of `views` of `split` (the dataset's own viewpoints, in that
+    order), sampled as `view`'s panel samples it, to `out` (default WS/camera_paths/views.json) -> the file."""
+    scene = survey.scene()
+    data = scene.split(split)
+    path = through_views(data.poses, data.intrinsics, data.height, data.width, views, data.names)
+    path.configure(seconds, fps, smoothness, cycle, data.width, data.height)
+    file = Path(out) if out is not None else survey.ws.camera_paths_dir / "views.json"
+    if file.suffix != ".json":
+        raise BoostNerfError(f"--out {file}: a camera path is a .json file")
+    file.parent.mkdir(parents=True, exist_ok=True)
+    write_camera_path(file, path, DataFrame.of(scene.extra))
+    log(f"camera path: {path.summary()}")
+    return file
 
 
 @dataclass

@@ -206,12 +206,12 @@ class CameraPath:
         return np.arange(len(self.keyframes)) * (self.seconds / max(1, self.segments))
 
     def frame_times(self) -> np.ndarray:
-        """The times of a video's frames: round(fps x seconds) of them (1 at least), from 0 to `seconds` (a cycle
-        stops one frame short of its end, where it starts again)."""
+        """The times of a video's frames, one every 1 / fps seconds (the step rounded so that `seconds` holds a whole
+        number of them, n = round(fps x seconds), 1 at least): n + 1 frames from 0 to `seconds`, both ends, or with
+        `cycle` n, stopping one short of the end, where the path starts again. A keyframe whose time is a multiple of
+        the step is a frame."""
         count = max(1, round(self.fps * self.seconds))
-        if self.cycle or count == 1:
-            return np.arange(count) * (self.seconds / count)
-        return np.linspace(0.0, self.seconds, count)
+        return np.arange(count if self.cycle else count + 1) * (self.seconds / count)
 
     def at(self, t: float) -> PathFrame:
         """The pose and field of view at time `t` (seconds, clipped to the path's)."""
@@ -291,6 +291,21 @@ def path_cameras(frames: list[PathFrame], height: int, width: int) -> list[Camer
     return [Camera(torch.tensor(f.pose, dtype=torch.float32),
                    torch.tensor(Intrinsics.from_fov(math.radians(f.fov), height, width).row(), dtype=torch.float32),
                    height, width) for f in frames]
+
+
+def through_views(poses: torch.Tensor, intrinsics: torch.Tensor, height: int, width: int, views: list[int],
+                  names: tuple[str, ...] = ()) -> CameraPath:
+    """A path with a keyframe at each of `views` of a split (its `poses`, `intrinsics`, image size), in that order: the
+    user's own photos' viewpoints, each with its field of view; frames of the split's size."""
+    if not views:
+        raise BoostNerfError("a camera path through views needs at least one view: give --views, e.g. 0,4,8")
+    path = CameraPath(width=width, height=height)
+    for i in views:
+        if not 0 <= i < len(poses):
+            raise BoostNerfError(f"there is no view {i}: the split has views 0 to {len(poses) - 1}")
+        cam = Camera(poses[i], intrinsics[i], height, width)
+        path.add(Keyframe.of_camera(cam))
+    return path
 
 
 # --- the file ---------------------------------------------------------------------------------------------------------
