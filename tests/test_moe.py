@@ -144,6 +144,30 @@ def test_the_per_sample_reference_is_not_the_code_it_checks():
 
 
 @pytest.mark.parametrize("static", [False, True], ids=["dynamic", "static"])
+def test_rendering_top1_with_unit_weights_skips_the_scaling_and_gives_the_same_bits(static, monkeypatch):
+    """Rendering's renormalised Top-1 weighs every sample 1 exactly: the mixture tells the dispatch so (`Routes.unit`),
+    which then adds each expert's output unscaled, bit for bit what scaling by the ones gives."""
+    mix = toy_mixture(m=3, k=1)
+    xyz, d = _points(300)
+    packer = Budgets(quantum=16) if static else DYNAMIC
+    with torch.no_grad():
+        _, vals, idx = mix.route(xyz, need_probs=False)
+        assert torch.equal(vals, torch.ones_like(vals))
+        outs = [dispatch(Routes(vals, idx, 3, unit), lambda e, r: mix.experts[e].color(xyz[r], d[r]), 3, xyz, packer)
+                for unit in (True, False)]
+    assert torch.equal(outs[0], outs[1])
+    import boostnerf_cli.moe.mixture as mixture_module
+
+    units = []
+    monkeypatch.setattr(mixture_module, "dispatch", lambda routes, *a, **kw: units.append(routes.unit) or dispatch(
+        routes, *a, **kw))
+    with torch.no_grad():
+        mix.color(xyz, d)  # rendering: the unscaled sum
+    mix.color(xyz, d)  # training (gradients on): scaled by the straight-through weight
+    assert units == [True, False]
+
+
+@pytest.mark.parametrize("static", [False, True], ids=["dynamic", "static"])
 @pytest.mark.parametrize("k", [1, 2, 3])
 def test_sparse_dispatch_matches_dense_reference_in_values_and_gradients(k, static):
     """Each expert on its own samples gives the dense reference's values and gradients, with the samples listed

@@ -323,7 +323,8 @@ class Mixture(nn.Module):
              live: Tensor | None = None) -> Tensor:
         """Run each expert on its routed samples only: density (dirs None) -> (N,), colour -> (N, 3); `packer` and
         `live` (the real samples of a static packing) as `router.dispatch` takes them."""
-        experts, routes = self.experts, Routes(vals, idx, self.m)
+        unit = idx.shape[1] == 1 and self.cfg.renormalize and not vals.requires_grad and not torch.is_grad_enabled()
+        experts, routes = self.experts, Routes(vals, idx, self.m, unit)
         if dirs is None and self.cfg.mix == "alpha":
             step = self.cfg.step
             out = dispatch(routes, lambda e, r: _alpha_and_trans(experts[e].density(xyz[r]), step), 2, xyz, packer,

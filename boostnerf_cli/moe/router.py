@@ -134,11 +134,13 @@ def aux_denominator(n, k: int, norm: str):
 
 
 class Routes(NamedTuple):
-    """Where each of N samples goes: weights (N, k) and indices (N, k) of its k experts out of m (`top_k`'s choice)."""
+    """Where each of N samples goes: weights (N, k) and indices (N, k) of its k experts out of m (`top_k`'s choice);
+    `unit`: every weight is exactly 1 with no gradient (rendering's renormalised Top-1), so outputs are not scaled."""
 
     vals: Tensor
     idx: Tensor
     m: int
+    unit: bool = False
 
 
 def dispatch(
@@ -158,18 +160,21 @@ def dispatch(
     expert sees only the samples routed to it, and the outputs are weighted and added back. `like`: a tensor of the
     output's dtype and device. -> out (N, out_dim).
     """
-    vals, idx, m = routes
-    n = idx.shape[0]
+    vals, idx, m, unit = routes
+    n, k = idx.shape
+    one = idx[:, 0] if k == 1 else None  # one expert a sample: its index is the choice, its weight the only one
     with part("dispatch"):
         out = like.new_zeros(n, out_dim)
         for e in range(m):
-            hit = idx == e
-            chosen = hit.any(-1) if live is None else hit.any(-1) & live
-            rows = packer.pack(f"{name}{e}", chosen)
+            hit = (one == e) if one is not None else idx == e
+            chosen = hit if one is not None else hit.any(-1)
+            rows = packer.pack(f"{name}{e}", chosen if live is None else chosen & live)
             if not packer.static and len(rows) == 0:
                 continue
-            w = torch.where(hit, vals, vals.new_zeros(())).sum(-1)[rows.rows]
             with part(f"expert {e}"):
                 y = run(e, rows.rows).reshape(len(rows), out_dim)
-            out = rows.add(out, y * w[:, None])
+            if not unit:
+                w = vals[:, 0] if one is not None else torch.where(hit, vals, vals.new_zeros(())).sum(-1)
+                y = y * w[rows.rows][:, None]
+            out = rows.add(out, y)
     return out
