@@ -617,6 +617,7 @@ def chain(
         outcome = stage.run(ws, plan, dev)
     show(_eval_table(outcome.eval))
     pictures = outcome.pictures[0].parent if outcome.pictures else ws.renders_dir("compare", "test")
+    log("chain: seconds by stage: " + ", ".join(f"{name} {s:.0f}" for name, s in outcome.stages.items()))
     log(f"chain: done in {outcome.seconds:.0f} s: {ws.reports_dir / 'eval.md'}, {ws.reports_dir / 'count-params.json'}"
         f", {pictures}/, {outcome.video[0]}")
 

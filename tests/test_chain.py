@@ -53,6 +53,8 @@ def test_chain_makes_every_artifact_resumes_after_an_interrupt_and_reruns_when_f
 
     proc = run_cli(*args, check=True)
     assert len(stage_lines(proc.stderr)) == 10 and stage_lines(proc.stderr)[-1] == "[10/10] render --path"
+    timed = re.search(r"chain: seconds by stage: (.+)", proc.stderr).group(1).split(", ")  # every stage, in order
+    assert [t.rsplit(" ", 1)[0] for t in timed] == [line.split("] ")[1] for line in stage_lines(proc.stderr)]
     assert "already trained, skipping" in proc.stderr
     assert "baseline: already finetuned" in proc.stderr and "top1: already finetuned" in proc.stderr
     assert "top2: already finetuned" not in proc.stderr and "ens: already finetuned" not in proc.stderr

@@ -230,6 +230,7 @@ class Outcome:
     pictures: list[Path]
     video: list[Path]
     seconds: float
+    stages: dict[str, float]  # each stage's seconds, in order
 
 
 class Stages:
@@ -237,13 +238,17 @@ class Stages:
 
     def __init__(self, names: list[str]):
         self.names = names
+        self.seconds: dict[str, float] = {}
 
     def run(self, name: str, work: Callable[[], object]):
         i = self.names.index(name) + 1
         label = f"stage {i}/{len(self.names)}, {name}"
         log(f"[{i}/{len(self.names)}] {name}")
+        t = time.perf_counter()
         try:
-            return work()
+            out = work()
+            self.seconds[name] = time.perf_counter() - t
+            return out
         except BoostNerfError as e:
             wrapped = BoostNerfError(f"chain stopped at {label}: {e}")
             wrapped.exit_code = e.exit_code
@@ -277,7 +282,7 @@ def run(ws: Workspace, plan: Plan, device: str) -> Outcome:
     log(f"wrote {ws.reports_dir / 'count-params.json'}")
     pictures = stages.run("render --compare", lambda: _compare(Survey(ws), device))
     video = stages.run("render --path", lambda: _video(Survey(ws), plan, result, device))
-    return Outcome(result, counts, pictures, video, time.perf_counter() - t0)
+    return Outcome(result, counts, pictures, video, time.perf_counter() - t0, stages.seconds)
 
 
 def _compare(survey: Survey, device: str) -> list[Path]:
