@@ -14,7 +14,7 @@ unchanged. The shim replaces the values of:
   --recipe (a tiny recipe; the recipe named must exist: a file, or for chain also a name in recipes/; chain is given
   the tiny recipe when it names none, and keeps a name that is no recipe, which it refuses itself),
   --iters, --res, --image-size, --gate-res, --frames, --size, --train-views, --test-views,
-  --device (cpu; added when missing).
+  --device (cpu; added when missing); `export mesh` gets --threshold 0.005 (a model of a few steps is faint).
 `make-scene --content textured` (photos for `boostnerf capture`) keeps its size and views: structure from motion
 finds too few features in tiny photos to place their cameras.
 A command that exits non-zero fails the test with the document and the command named.
@@ -91,6 +91,8 @@ while i < len(args):
     i += 1
 if chain and "--recipe" not in out and "--help" not in out:  # the recipe chain would pick is sized for a dataset
     out += ["--recipe", os.environ["DOCS_RECIPE"]]
+if args[:2] == ["export", "mesh"] and "--threshold" not in out:  # a model of a few steps is faint: a lower level
+    out += ["--threshold", "0.005"]
 if args and args[0] in {needs_device!r} and "--device" not in out and "--help" not in out:
     out += ["--device", "cpu"]
 with open(os.environ["DOCS_LOG"], "a") as log:
