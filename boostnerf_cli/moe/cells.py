@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from boostnerf_cli.device import constant
+from boostnerf_cli.render.occupancy import OccupancyGrid
 
 FAIL, PASS, MIXED = 0, 1, 2
 MARGIN = 1e-4  # of max(1, |value|): far past float32's rounding of an 8-term blend (~1e-6 of it)
@@ -54,13 +55,19 @@ def _corner_views(table: Tensor, shape: tuple[int, int, int]) -> list[Tensor]:
             for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
 
 
+def _extremes(table: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
+    """table (X*Y*Z, 1) vertex values -> the smallest and largest of each cell's 8 vertices, (X-1, Y-1, Z-1) each."""
+    lo = hi = None
+    for corner in _corner_views(table, shape):
+        lo = corner if lo is None else torch.minimum(lo, corner)
+        hi = corner if hi is None else torch.maximum(hi, corner)
+    return lo[..., 0], hi[..., 0]
+
+
 @torch.no_grad()
 def vd_states(raw: Tensor, shape: tuple[int, int, int], threshold_raw: float) -> Tensor:
     """raw (X*Y*Z, 1) V_D's vertex values, `threshold_raw` r* -> (cells,) uint8 PASS / FAIL / MIXED."""
-    lo = hi = None
-    for corner in _corner_views(raw, shape):
-        lo = corner if lo is None else torch.minimum(lo, corner)
-        hi = corner if hi is None else torch.maximum(hi, corner)
+    lo, hi = _extremes(raw, shape)
     lo, hi = lo.reshape(-1).double(), hi.reshape(-1).double()
     margin = MARGIN * max(1.0, abs(threshold_raw))
     state = torch.full(lo.shape, MIXED, dtype=torch.uint8, device=raw.device)
@@ -101,15 +108,18 @@ def top1_cells(logits: Tensor, shape: tuple[int, int, int]) -> Tensor:
 REACH = 1e-5
 
 
-def _touched(fine: int, lo: float, hi: float, coarse_lo: float, coarse_hi: float, coarse: int) -> tuple[Tensor, Tensor]:
-    """Along one axis, fine cells i (of `fine` over [lo, hi]) -> the first and last coarse cells (of `coarse` over
-    [coarse_lo, coarse_hi]) that the fine cell, grown by REACH of the box, touches (clamped into [0, coarse - 1])."""
+def _touched(fine: int, lo: float, hi: float, coarse_lo: float, coarse_hi: float,
+             coarse: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Along one axis, fine cells i (of `fine` over [lo, hi]), each grown by REACH of the box -> the first and last
+    coarse cells (of `coarse` over [coarse_lo, coarse_hi]) it touches (clamped into [0, coarse - 1]), and whether it
+    lies inside [coarse_lo, coarse_hi] (past it, the coarse lattice calls space empty)."""
     edges = torch.linspace(lo, hi, fine + 1, dtype=torch.float64)
     grow = REACH * (hi - lo)
+    start, end = edges[:-1] - grow, edges[1:] + grow
     size = (coarse_hi - coarse_lo) / coarse
-    first = ((edges[:-1] - grow - coarse_lo) / size).floor().clamp(0, coarse - 1).long()
-    last = ((edges[1:] + grow - coarse_lo) / size).floor().clamp(0, coarse - 1).long()
-    return first, last
+    first = ((start - coarse_lo) / size).floor().clamp(0, coarse - 1).long()
+    last = ((end - coarse_lo) / size).floor().clamp(0, coarse - 1).long()
+    return first, last, (start >= coarse_lo) & (end <= coarse_hi)
 
 
 def _all_over(values: Tensor, ranges: list[tuple[Tensor, Tensor]]) -> Tensor:
@@ -129,27 +139,25 @@ def _all_over(values: Tensor, ranges: list[tuple[Tensor, Tensor]]) -> Tensor:
 
 class SkipCells:
     """Per fine cell of a box, PASS / FAIL / MIXED for the occupancy grid and V_D together (`skip_states`). Looked up
-    as the occupancy grid is: cells [x, y, z] of `shape` over `bbox`, a point outside the box is FAIL."""
+    as the occupancy grid is (its cells [x, y, z] of `shape` over `bbox`, its padded rows), a point outside the box
+    FAIL."""
 
     def __init__(self, state: Tensor, bbox: Tensor):
         self.state = state
-        self.bbox = bbox.float()
+        self._cells = OccupancyGrid(state != FAIL, bbox)  # the same cells: its lookup's rows
         self._padded = F.pad(state, (1, 1, 1, 1, 1, 1), value=FAIL).reshape(-1)
-        p = [n + 2 for n in state.shape]
-        self._strides = torch.tensor([p[1] * p[2], p[2], 1], dtype=torch.float32, device=state.device)
-        self._res = torch.tensor(state.shape, dtype=torch.float32, device=state.device)
 
     @property
     def shape(self) -> tuple[int, int, int]:
         return tuple(self.state.shape)  # type: ignore[return-value]
 
+    @property
+    def bbox(self) -> Tensor:
+        return self._cells.bbox
+
     def __call__(self, xyz: Tensor) -> Tensor:
         """(N, 3) -> (N,) uint8 each point's state."""
-        lo, hi, res = self.bbox[0], self.bbox[1], self._res
-        u = (xyz.float() - lo).div_(hi - lo).mul_(res)
-        u = torch.where(u == res, res - 0.5, u).floor_()  # a point on the max face: the last cell (as the grid's)
-        cell = torch.minimum(u.clamp_min_(-1.0), res).add_(1.0)
-        return self._padded[(cell @ self._strides).long()]
+        return self._padded[self._cells.padded_rows(xyz)]
 
 
 @torch.no_grad()
@@ -173,17 +181,9 @@ def skip_states(raw: Tensor, vd_shape: tuple[int, int, int], vd_bbox: Tensor, th
     fine = [c * f for c in cells]
     table = raw.reshape(1, 1, *vd_shape).double().cpu()
     values = F.interpolate(table, size=tuple(n + 1 for n in fine), mode="trilinear", align_corners=True)[0, 0]
-    lo_v = hi_v = None
-    for corner in _corner_views(values.reshape(-1, 1), tuple(n + 1 for n in fine)):
-        lo_v = corner if lo_v is None else torch.minimum(lo_v, corner)
-        hi_v = corner if hi_v is None else torch.maximum(hi_v, corner)
-    lo_v, hi_v = lo_v[..., 0], hi_v[..., 0]
-    coarse_lo = coarse_hi = None  # each fine cell's V_D cell's extremes: the slack
-    for corner in _corner_views(raw.double().cpu(), tuple(vd_shape)):
-        coarse_lo = corner if coarse_lo is None else torch.minimum(coarse_lo, corner)
-        coarse_hi = corner if coarse_hi is None else torch.maximum(coarse_hi, corner)
-    spread = (coarse_hi - coarse_lo)[..., 0]
-    spread = spread.repeat_interleave(f, 0).repeat_interleave(f, 1).repeat_interleave(f, 2)
+    lo_v, hi_v = _extremes(values.reshape(-1, 1), tuple(n + 1 for n in fine))
+    coarse_lo, coarse_hi = _extremes(raw.double().cpu(), tuple(vd_shape))  # each fine cell's V_D cell's: the slack
+    spread = (coarse_hi - coarse_lo).repeat_interleave(f, 0).repeat_interleave(f, 1).repeat_interleave(f, 2)
     margin = MARGIN * max(1.0, abs(threshold_raw)) + 1e-3 * spread
     sure_pass = lo_v > threshold_raw + margin
     sure_fail = hi_v < threshold_raw - margin
@@ -193,11 +193,9 @@ def skip_states(raw: Tensor, vd_shape: tuple[int, int, int], vd_bbox: Tensor, th
     if occupancy is not None:
         occ = occupancy.occupied.bool().cpu()
         olo, ohi = [float(v) for v in occupancy.bbox[0]], [float(v) for v in occupancy.bbox[1]]
-        ranges = [_touched(fine[a], lo[a], hi[a], olo[a], ohi[a], occupancy.shape[a]) for a in range(3)]
-        inside = []  # a fine cell reaching past the grid's box (grown as above) touches space the grid calls empty
-        for a in range(3):
-            edges, grow = torch.linspace(lo[a], hi[a], fine[a] + 1, dtype=torch.float64), REACH * (hi[a] - lo[a])
-            inside.append((edges[:-1] - grow >= olo[a]) & (edges[1:] + grow <= ohi[a]))
+        touched = [_touched(fine[a], lo[a], hi[a], olo[a], ohi[a], occupancy.shape[a]) for a in range(3)]
+        ranges = [(first, last) for first, last, _ in touched]
+        inside = [t[2] for t in touched]
         within = inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
         sure_pass &= _all_over(occ, ranges) & within
         sure_fail |= _all_over(~occ, ranges)

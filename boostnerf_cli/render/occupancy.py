@@ -55,8 +55,14 @@ class OccupancyGrid:
         """
         if xyz.shape[0] == 0:
             return torch.zeros(0, dtype=torch.bool, device=xyz.device)
+        return self._padded[self.padded_rows(xyz)]
+
+    def padded_rows(self, xyz: Tensor) -> Tensor:
+        """(N, 3) points -> (N,) their rows in the grid padded by one cell on every side and flattened (`__call__`'s
+        lookup): a point outside the box lands in the padding. A table of another kind over the same cells, padded
+        alike, is looked up with these rows too (moe/cells.py `SkipCells`)."""
         cell = torch.minimum(self._cells(xyz).clamp_min_(-1.0), self._res).add_(1.0)
-        return self._padded[(cell @ self._strides).long()]
+        return (cell @ self._strides).long()
 
     def _cells(self, xyz: Tensor) -> Tensor:
         """(..., 3) points -> their cell coordinates (floored, float; outside the box below 0 or at least res)."""

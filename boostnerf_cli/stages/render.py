@@ -162,7 +162,7 @@ def run_path_through_views(survey: Survey, split: str, views: list[int], seconds
     order), sampled as `view`'s panel samples it, to `out` (default WS/camera_paths/views.json) -> the file."""
     scene = survey.scene()
     data = scene.split(split)
-    path = through_views(data.poses, data.intrinsics, data.height, data.width, views, data.names)
+    path = through_views(data.poses, data.intrinsics, data.height, data.width, views)
     path.configure(seconds, fps, smoothness, cycle, data.width, data.height)
     file = Path(out) if out is not None else survey.ws.camera_paths_dir / "views.json"
     if file.suffix != ".json":

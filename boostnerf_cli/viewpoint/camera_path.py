@@ -293,8 +293,8 @@ def path_cameras(frames: list[PathFrame], height: int, width: int) -> list[Camer
                    height, width) for f in frames]
 
 
-def through_views(poses: torch.Tensor, intrinsics: torch.Tensor, height: int, width: int, views: list[int],
-                  names: tuple[str, ...] = ()) -> CameraPath:
+def through_views(poses: torch.Tensor, intrinsics: torch.Tensor, height: int, width: int,
+                  views: list[int]) -> CameraPath:
     """A path with a keyframe at each of `views` of a split (its `poses`, `intrinsics`, image size), in that order: the
     user's own photos' viewpoints, each with its field of view; frames of the split's size."""
     if not views:
