@@ -20,7 +20,7 @@ from boostnerf_cli.models import LoadedModel, load_expert, load_mixture
 from boostnerf_cli.render.rays import NDC, image_rays
 from boostnerf_cli.scenes.colmap_model import read_model
 from boostnerf_cli.scenes.procedural import intersect, rot_z
-from boostnerf_cli.stages.export import INSTALL, cell_centres, pixel_normals, routable
+from boostnerf_cli.stages.export import INSTALL, pixel_normals, routable
 from boostnerf_cli.viewpoint.maps import palette
 from boostnerf_cli.workspace import Workspace
 
@@ -198,7 +198,9 @@ def kept_cells(ws: Path, name: str) -> tuple[torch.Tensor, int]:
     T, in an occupied cell), in the mixture's own space, and its number of experts."""
     mix, _ = load_mixture(Workspace(ws).model_path(name))
     vd = mix.vd
-    centres = cell_centres(vd.bbox, vd.shape)
+    axes = [torch.linspace(float(vd.bbox[0, a]), float(vd.bbox[1, a]), vd.shape[a]) for a in range(3)]
+    mids = [(ax[:-1] + ax[1:]) / 2 for ax in axes]  # halfway between neighbouring vertices
+    centres = torch.stack(torch.meshgrid(*mids, indexing="ij"), dim=-1).reshape(-1, 3)
     with torch.no_grad():
         keep = -torch.expm1(-vd.density(centres) * mix.cfg.step) > mix.cfg.density_threshold
     if mix.occupancy is not None:

@@ -44,6 +44,7 @@ from boostnerf_cli.fields.grid import lattice_points
 from boostnerf_cli.lineage import Survey
 from boostnerf_cli.models import ALL_SKIPS, LoadedModel, load_model, n_views
 from boostnerf_cli.render.contraction import SHELL
+from boostnerf_cli.render.occupancy import cell_points
 from boostnerf_cli.render.packing import packer_for
 from boostnerf_cli.render.rays import image_rays
 from boostnerf_cli.render.renderer import Camera, render_image
@@ -335,18 +336,11 @@ def routable(model: LoadedModel) -> None:
                              "one): export routing of a top-k mixture (top1, top2, ...)")
 
 
-def cell_centres(bbox: Tensor, shape: tuple[int, int, int]) -> Tensor:
-    """The centres (cells, 3) of the cells between a lattice's vertices, in `moe.cells.cell_index`'s order."""
-    cells = [n - 1 for n in shape]
-    axes = [bbox[0, a] + (torch.arange(cells[a], dtype=bbox.dtype, device=bbox.device) + 0.5)
-            * (bbox[1, a] - bbox[0, a]) / cells[a] for a in range(3)]
-    return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
-
-
 def routing(model: LoadedModel, scene: Scene, out: Path, device: str) -> dict:
     mix = model.field
     vd = mix.vd
-    centres = cell_centres(vd.bbox, vd.shape)
+    # the centres of the cells between V_D's vertices, in `moe.cells.cell_index`'s order
+    centres = cell_points(vd.bbox, tuple(n - 1 for n in vd.shape), torch.full((3,), 0.5, device=vd.bbox.device))
     kept = centres[_queried(mix.skip, centres)]
     if scene.contraction is not None:  # the box's corners past the contracted ball: no sample ever lies there
         c = scene.contraction
