@@ -314,3 +314,27 @@ def test_gate_grid_auto_follows_the_family():
     assert resolve_gate_grid("auto", ["ngp"] * 3) == "hash"
     assert resolve_gate_grid("auto", ["ngp", "dvgo"]) == "dense"
     assert resolve_gate_grid("hash", ["dvgo"]) == "hash"
+
+
+@pytest.mark.parametrize("family", ["dvgo", "tensorf", "ngp"])
+def test_rendering_evaluates_a_field_in_cache_sized_blocks_to_the_same_values(family, monkeypatch):
+    """Without gradients on the CPU an expert runs over blocks of `BLOCK_ROWS` samples (fields/base.py `blockwise`):
+    the density and colour of one pass over every sample, to float32 rounding (a matrix product over fewer rows may
+    sum in another order)."""
+    from boostnerf_cli.fields import base
+
+    expert = build_expert(family, SMALL[family], BOX)
+    with torch.no_grad():
+        for p in expert.parameters():
+            p.normal_(0, 0.5)
+    g = torch.Generator().manual_seed(0)
+    xyz = BOX[0] + torch.rand(5000, 3, generator=g) * (BOX[1] - BOX[0])
+    dirs = F.normalize(torch.randn(5000, 3, generator=g), dim=-1)
+    monkeypatch.setattr(base, "BLOCK_ROWS", 1 << 30)
+    with torch.no_grad():
+        whole = expert.density(xyz), expert.color(xyz, dirs)
+    monkeypatch.setattr(base, "BLOCK_ROWS", 1000)
+    with torch.no_grad():
+        blocks = expert.density(xyz), expert.color(xyz, dirs)
+    for a, b in zip(whole, blocks):
+        assert a.shape[0] == 5000 and torch.allclose(a, b, rtol=1e-5, atol=1e-6)

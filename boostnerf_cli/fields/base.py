@@ -14,12 +14,41 @@ from the pads of a static packing (render/packing.py), which must not count. The
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict
-from typing import Protocol, runtime_checkable
+from typing import Callable, Protocol, TypeVar, runtime_checkable
 
 import torch
 from torch import Tensor, nn
+
+# Rows per block when a field is evaluated without gradients on the CPU (`blockwise`): a block's widest activations
+# (8192 rows of a 128-wide hidden layer: 4 MB) stay near the core's cache instead of streaming through memory layer
+# after layer. A DVGO expert's colour over 100k samples, one thread: 148 -> 80 ms (128 wide), 93 -> 47 ms (64 wide);
+# 4096 rows give the same.
+BLOCK_ROWS = 8192
+
+F_ = TypeVar("F_", bound=Callable)
+
+
+def blockwise(method: F_) -> F_:
+    """A method of (N, ...) row-aligned tensors -> a tensor, or a tuple of them, of N rows each: run block by block
+    of `BLOCK_ROWS` rows when nothing needs its gradient on the CPU (rendering), the values concatenated (the same to
+    float32 rounding: a matrix product over fewer rows may sum in another order). With gradients, on a GPU, or while
+    compiling it runs once over all rows."""
+
+    @functools.wraps(method)
+    def run(self, *args: Tensor):
+        n = args[0].shape[0]
+        if n <= BLOCK_ROWS or torch.is_grad_enabled() or args[0].device.type != "cpu" or \
+                torch.compiler.is_compiling():
+            return method(self, *args)
+        blocks = [method(self, *(a[i : i + BLOCK_ROWS] for a in args)) for i in range(0, n, BLOCK_ROWS)]
+        if isinstance(blocks[0], tuple):  # several outputs: each concatenated
+            return tuple(torch.cat(parts) for parts in zip(*blocks))
+        return torch.cat(blocks)
+
+    return run  # type: ignore[return-value]
 
 
 @runtime_checkable

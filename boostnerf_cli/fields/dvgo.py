@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from boostnerf_cli.fields import grid as G
-from boostnerf_cli.fields.base import ExpertModule
+from boostnerf_cli.fields.base import ExpertModule, blockwise
 from boostnerf_cli.fields.mlp import MLP
 from boostnerf_cli.limits import (
     GRID_RES,
@@ -109,10 +109,12 @@ class DVGOExpert(ExpertModule):
             return torch.sigmoid(feat)
         return torch.sigmoid(self.rgbnet(torch.cat([feat, direction_encoding(dirs, self.cfg.view_pe)], -1)))
 
+    @blockwise
     def density(self, xyz: Tensor) -> Tensor:
         idx, w = G.corners(xyz, self.bbox, self.shape)
         return self._sigma(xyz, idx, w)
 
+    @blockwise
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
         idx, w = G.corners(xyz, self.bbox, self.shape)
         return self._rgb(idx, w, dirs)

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields.base import ExpertModule
+from boostnerf_cli.fields.base import ExpertModule, blockwise
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.hashgrid import MAX_COORD, HashEncoding
 from boostnerf_cli.fields.mlp import MLP
@@ -89,6 +89,7 @@ class NGPExpert(ExpertModule):
         return self.cfg.grid_res
 
     # --- the Field contract -------------------------------------------------------------------
+    @blockwise
     def _hidden(self, xyz: Tensor) -> Tensor:
         return self.sigma_net(self.encoding(xyz))
 
@@ -98,6 +99,7 @@ class NGPExpert(ExpertModule):
     def _sigma(self, xyz: Tensor, raw: Tensor) -> Tensor:
         return F.softplus(raw + self.shift) / self.unit * self.inside(xyz)
 
+    @blockwise
     def _rgb(self, geo: Tensor, dirs: Tensor) -> Tensor:
         return torch.sigmoid(self.rgbnet(torch.cat([geo, direction_encoding(dirs, self.cfg.view_pe)], -1)))
 

@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from boostnerf_cli.fields import grid as G
-from boostnerf_cli.fields.base import ExpertModule
+from boostnerf_cli.fields.base import ExpertModule, blockwise
 from boostnerf_cli.fields.dvgo import color_mlp, direction_encoding
 from boostnerf_cli.fields.vm import VMGrid
 from boostnerf_cli.fields.warmstart import fit_density
@@ -87,9 +87,11 @@ class TensoRFExpert(ExpertModule):
     def raw_density(self, xyz: Tensor) -> Tensor:
         return self.density_vm(xyz, self.bbox).sum(-1)
 
+    @blockwise
     def density(self, xyz: Tensor) -> Tensor:
         return F.softplus(self.raw_density(xyz) + self.shift) / self.unit * self.inside(xyz)
 
+    @blockwise
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
         feat = self.basis(self.app_vm(xyz, self.bbox))
         h = torch.cat([direction_encoding(feat, self.cfg.feat_pe), direction_encoding(dirs, self.cfg.view_pe)], -1)
