@@ -433,6 +433,7 @@ def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
 
     mix = toy_mixture(k=k, seed=3)
     mix.cfg.bake_res = 16
+    mix.cfg.route_cells = False  # the exact routing (each sample's blend where a cell's vertices disagree)
     with torch.no_grad():  # V_D with a surface: dense inside a ball, empty outside
         pts = G.lattice_points(mix.vd.bbox, mix.vd.shape)
         mix.vd.table.copy_(torch.where(pts.norm(dim=-1, keepdim=True) < 0.6, 3.0, -8.0))
@@ -459,6 +460,43 @@ def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
     with torch.no_grad():
         mix.vd.table.add_(0.0)
     assert mix.skips() is None
+
+
+@pytest.mark.parametrize("k,renormalize", [(1, True), (2, True), (2, False)])
+def test_routing_by_cells_gives_each_sample_the_choice_at_its_cells_centre(k, renormalize):
+    """`moe.route_cells` (the default): rendering routes a sample by its baked-gate cell, the experts and weights the
+    baked gate gives at the cell's centre; rendering with it stays close to routing every sample by its blend."""
+    from boostnerf_cli.moe import cells as C
+    from boostnerf_cli.render.renderer import Camera, RenderSettings, render_image
+
+    mix = toy_mixture(k=k, renormalize=renormalize, seed=5)
+    mix.cfg.bake_res = 16
+    mix.for_rendering()
+    gate = mix.gate
+    xyz = TOY_BOX[0] + torch.rand(4000, 3, generator=torch.Generator().manual_seed(0)) * (TOY_BOX[1] - TOY_BOX[0])
+    with torch.no_grad():
+        assert mix.cells().routes is not None
+        _, vals, idx = mix.route(xyz, need_probs=False)
+        cell = C.cell_index(xyz, gate.bbox, gate.shape)
+        n = [s - 1 for s in gate.shape]
+        ijk = torch.stack([cell // (n[1] * n[2]), cell // n[2] % n[1], cell % n[2]], -1)
+        size = (gate.bbox[1] - gate.bbox[0]) / torch.tensor(n)
+        centres = gate.bbox[0] + (ijk + 0.5) * size
+        want_vals, want_idx = top_k(gate.probs(centres), k, renormalize)
+    assert torch.equal(idx, want_idx)
+    assert torch.allclose(vals, want_vals, atol=1e-6)
+    assert (idx != top_k(gate.probs(xyz), k, renormalize)[1]).any()  # not each sample's own choice everywhere
+    pose = torch.eye(4)
+    pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
+    camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
+    settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
+    by_cell = render_image(mix, camera, settings, mix.skip)["rgb"]
+    mix.configure(route_cells=False)
+    mix.for_rendering()
+    with torch.no_grad():
+        assert mix.cells().routes is None
+    blended = render_image(mix, camera, settings, mix.skip)["rgb"]
+    assert 0 < (by_cell - blended).abs().mean() < 0.01
 
 
 def test_a_cell_is_decided_only_where_all_its_vertices_agree_with_a_margin():

@@ -30,6 +30,7 @@ from torch import Tensor, nn
 
 from boostnerf_cli import flops
 from boostnerf_cli.errors import BoostNerfError
+from boostnerf_cli.fields.base import blockwise
 from boostnerf_cli.limits import MAX_GRID_RES, OneOf, Range, at_least, limit
 from boostnerf_cli.moe import cells as C
 from boostnerf_cli.moe.density_volume import DensityVolume
@@ -38,6 +39,7 @@ from boostnerf_cli.moe.router import (
     AUX_NORMS,
     AUX_SAMPLES,
     PENALTY_RULE,
+    ExpertRows,
     Routes,
     aux_loss,
     check_penalty,
@@ -89,6 +91,9 @@ class Routing:
     mix: str = limit("density", OneOf(MIX_MODES))
     # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
     bake_res: int = limit(128, Range(0, MAX_GRID_RES))
+    # rendering routes each sample by its cell of the baked lattice: the top-k and
+    # weights of the gate at the cell's centre (false: blend the cell's 8 vertices)
+    route_cells: bool = True
 
 
 def routing_of(source: Routing) -> dict:
@@ -191,11 +196,14 @@ class RoutingStats:
 
 @dataclass
 class RenderCells:
-    """Top-1's expert per cell of the baked gate's lattice (moe/cells.py; None unless the mixture routes by a baked
-    gate), made for `gate`."""
+    """What the baked gate decides per cell of its lattice (moe/cells.py), made for `gate` and the mixture's `choice`
+    (topk, renormalize, route_cells): Top-1's expert where the cell's 8 vertices agree (`top1`), and with
+    `route_cells` each cell's k experts and weights at its centre (`routes`); None where they do not apply."""
 
     gate: Gate
+    choice: tuple[int, bool, bool]
     top1: Tensor | None
+    routes: tuple[Tensor, Tensor] | None = None
 
 
 @dataclass
@@ -268,15 +276,32 @@ class Mixture(nn.Module):
             probs = self.gate.probs(xyz)
             idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
             return probs, probs, idx
-        if not need_probs and self.cfg.renormalize and not torch.is_grad_enabled():
-            cells = self.cells()
-            if self.cfg.topk == 1 and cells is not None and cells.top1 is not None:
-                return None, xyz.new_ones(xyz.shape[0], 1), self._top1_by_cell(xyz, cells.top1, static)[:, None]
-            chosen, idx = top_k(self.gate.logits(xyz).float(), self.cfg.topk, renormalize=False)
-            return None, (torch.ones_like(chosen) if self.cfg.topk == 1 else softmax(chosen)), idx
+        if not need_probs and not torch.is_grad_enabled():
+            if static:
+                return None, *self._choose(xyz, static=True)
+            return None, *self._choose_blockwise(xyz)
         probs = self.gate.probs(xyz)
         vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
         return probs, vals, idx
+
+    def _choose(self, xyz: Tensor, static: bool = False) -> tuple[Tensor, Tensor]:
+        """Rendering's choice (see `route`): weights (N, k), experts (N, k); by the sample's cell where the mixture
+        routes by cells (`route_cells`)."""
+        cells, gate, k = self.cells(), self.gate, self.cfg.topk
+        if cells is not None and cells.routes is not None:
+            ids, weights = cells.routes
+            cell = C.cell_index(xyz, gate.bbox, gate.shape)
+            return weights[cell], ids[cell].long()
+        if not self.cfg.renormalize:
+            return top_k(gate.probs(xyz), k, renormalize=False)
+        if k == 1 and cells is not None and cells.top1 is not None:
+            return xyz.new_ones(xyz.shape[0], 1), self._top1_by_cell(xyz, cells.top1, static)[:, None]
+        chosen, idx = top_k(gate.logits(xyz).float(), k, renormalize=False)
+        return (torch.ones_like(chosen) if k == 1 else softmax(chosen)), idx
+
+    @blockwise
+    def _choose_blockwise(self, xyz: Tensor) -> tuple[Tensor, Tensor]:
+        return self._choose(xyz)
 
     def _top1_by_cell(self, xyz: Tensor, top1: Tensor, static: bool) -> Tensor:
         """(N,) each sample's expert: its cell's (moe/cells.py), the baked gate's blend where the cell's vertices
@@ -293,9 +318,10 @@ class Mixture(nn.Module):
         return expert
 
     def _cells_hold(self) -> bool:
-        """The per-cell decisions were made for this baked gate."""
+        """The per-cell decisions were made for this baked gate and the mixture's k, weighting and routing."""
         c = self._cells
-        return c is not None and c.gate is self.gate
+        cfg = self.cfg
+        return c is not None and c.gate is self.gate and c.choice == (cfg.topk, cfg.renormalize, cfg.route_cells)
 
     def cells(self) -> RenderCells | None:
         """The per-cell decisions `for_rendering` made, while they still hold and nothing trains (no gradient)."""
@@ -319,19 +345,24 @@ class Mixture(nn.Module):
         self._skips = SkipTables(vd.table._version, self.occupancy, C.vd_states(vd.table, vd.shape, r),
                                  C.skip_states(vd.table, vd.shape, vd.bbox, r, self.occupancy))
 
-    def _mix(self, xyz: Tensor, dirs: Tensor | None, vals: Tensor, idx: Tensor, packer: Packer = DYNAMIC,
-             live: Tensor | None = None) -> Tensor:
-        """Run each expert on its routed samples only: density (dirs None) -> (N,), colour -> (N, 3); `packer` and
-        `live` (the real samples of a static packing) as `router.dispatch` takes them."""
+    def routes(self, vals: Tensor, idx: Tensor) -> Routes:
+        """`route`'s choices as the dispatch takes them: `unit` for rendering's renormalised Top-1 (weight 1)."""
         unit = idx.shape[1] == 1 and self.cfg.renormalize and not vals.requires_grad and not torch.is_grad_enabled()
-        experts, routes = self.experts, Routes(vals, idx, self.m, unit)
+        return Routes(vals, idx, self.m, unit)
+
+    def _mix(self, xyz: Tensor, dirs: Tensor | None, vals: Tensor, idx: Tensor, packer: Packer = DYNAMIC,
+             live: Tensor | None = None, listed: ExpertRows | None = None) -> Tensor:
+        """Run each expert on its routed samples only: density (dirs None) -> (N,), colour -> (N, 3); `packer`,
+        `live` (the real samples of a static packing) and `listed` as `router.dispatch` takes them."""
+        experts, routes = self.experts, self.routes(vals, idx)
         if dirs is None and self.cfg.mix == "alpha":
             step = self.cfg.step
             out = dispatch(routes, lambda e, r: _alpha_and_trans(experts[e].density(xyz[r]), step), 2, xyz, packer,
-                           live, "density")
+                           live, "density", listed)
             return alpha_mix_density(out[:, 0], out[:, 1], vals.sum(-1), step)
         if dirs is None:
-            out = dispatch(routes, lambda e, r: experts[e].density(xyz[r])[:, None], 1, xyz, packer, live, "density")
+            out = dispatch(routes, lambda e, r: experts[e].density(xyz[r])[:, None], 1, xyz, packer, live, "density",
+                           listed)
             return out[:, 0]
         return dispatch(routes, lambda e, r: experts[e].color(xyz[r], dirs[r]), 3, xyz, packer, live, "color")
 
@@ -352,9 +383,12 @@ class Mixture(nn.Module):
         if self.cfg.bake_res > 0 and not exact_gate:
             self.gate = self.gate.baked(self.cfg.bake_res)
         if not self._cells_hold():
-            gate = self.gate
-            top1 = C.top1_cells(gate.logit_table, gate.shape) if gate.cfg.gate_type == "baked" else None
-            self._cells = RenderCells(gate, top1)
+            gate, cfg = self.gate, self.cfg
+            baked = gate.cfg.gate_type == "baked"
+            top1 = C.top1_cells(gate.logit_table, gate.shape) if baked else None
+            routes = C.route_cells(gate.logit_table, gate.shape, cfg.topk, cfg.renormalize) if (
+                baked and cfg.route_cells) else None
+            self._cells = RenderCells(gate, (cfg.topk, cfg.renormalize, cfg.route_cells), top1, routes)
         self.prepare_skips()
         return self
 
@@ -414,6 +448,8 @@ class MixtureSkip:
         keep = valid.reshape(-1)
         visible = mix.cfg.vd_filter == "visible" and threshold > 0
         tables = None if visible else mix.skips()
+        if tables is not None and not packer.static:
+            return self._by_tables(tables, flat, keep).reshape(valid.shape)
         certain = None
         if tables is not None:  # both skips decided per fine cell: tested only where mixed
             with part("V_D"):
@@ -442,6 +478,31 @@ class MixtureSkip:
         weights, _, _ = render_weights(density, torch.full_like(density, step))
         return keep & (weights > threshold)
 
+    def _by_tables(self, tables: SkipTables, flat: Tensor, keep: Tensor) -> Tensor:
+        """`filter` through the per-cell tables on the dynamic packing: the same samples kept, with every test on the
+        list of the samples still undecided (one pass over all of them, to list those in the box)."""
+        mix = self.mixture
+        vd, occupancy = mix.vd, mix.occupancy
+        rows = keep.nonzero().squeeze(-1)
+        pts = flat[rows]
+        with part("V_D"):
+            state = tables.skip(pts)
+        passed = state == C.PASS
+        left = (state == C.MIXED).nonzero().squeeze(-1)  # near V_D's surface or an occupancy edge
+        if len(left) and occupancy is not None:
+            left = left[occupancy(pts[left])]
+        if len(left):
+            p = pts[left]
+            with part("V_D"):
+                cell = torch.where(vd.inside(p), tables.vd[C.cell_index(p, vd.bbox, vd.shape)], C.FAIL)
+            passed[left[cell == C.PASS]] = True
+            left = left[cell == C.MIXED]  # V_D's surface crosses its cell: blended
+        if len(left):
+            with part("V_D"):
+                sigma = mix.vd_density(pts[left])
+            passed[left[-torch.expm1(-sigma * mix.cfg.step) > mix.cfg.density_threshold]] = True
+        return torch.zeros_like(keep).index_put_((rows[passed],), torch.ones((), dtype=torch.bool, device=keep.device))
+
     def __call__(self, xyz: Tensor) -> Tensor:
         """(N, 3) -> (N,) bool: in an occupied cell, with V_D opacity over one step above T."""
         return self.filter(xyz[:, None], torch.ones(xyz.shape[0], 1, dtype=torch.bool, device=xyz.device), 1.0,
@@ -461,23 +522,34 @@ class RoutedMixture:
     def __init__(self, mixture: Mixture, stats: RoutingStats | None, packer: Packer):
         self.mixture, self.stats, self.packer = mixture, stats, packer
         self._last: tuple[Tensor, Tensor, Tensor] | None = None
+        self._listed: ExpertRows | None = None
 
     def batch_view(self, packer: Packer) -> "RoutedMixture":
         self.packer = packer
         return self
 
     def density(self, xyz: Tensor, live: Tensor | None = None) -> Tensor:
-        probs, vals, idx = self.mixture.route(xyz, need_probs=self.stats is not None, static=self.packer.static)
+        mix = self.mixture
+        probs, vals, idx = mix.route(xyz, need_probs=self.stats is not None, static=self.packer.static)
         if self.stats is not None:
             self.stats.record(probs, idx, live)
         self._last = (xyz, vals, idx)
-        return self.mixture._mix(xyz, None, vals, idx, self.packer, live)
+        # rendering (dynamic packing, no gradient): each expert's samples listed once, for both passes
+        listed = not self.packer.static and live is None and not torch.is_grad_enabled()
+        self._listed = ExpertRows.of(mix.routes(vals, idx)) if listed else None
+        return mix._mix(xyz, None, vals, idx, self.packer, live, self._listed)
 
     def color_rows(self, rows: Tensor, dirs: Tensor, live: Tensor | None = None) -> Tensor:
         """Colour of the samples `rows` of the last `density` call, seen from `dirs` (len(rows), 3)."""
         if self._last is None:
             raise RuntimeError("color_rows needs a density pass first")
         xyz, vals, idx = self._last
+        if self._listed is not None and live is None:  # each expert's share of `rows`, from its density-pass list
+            slots = torch.full((xyz.shape[0],), -1, dtype=torch.long, device=xyz.device)
+            slots[rows] = torch.arange(len(rows), device=xyz.device)
+            experts = self.mixture.experts
+            return self._listed.run(lambda e, r, at: experts[e].color(xyz[r], dirs[at]), xyz.new_zeros(len(rows), 3),
+                                    slots)
         return self.mixture._mix(xyz[rows], dirs, vals[rows], idx[rows], self.packer, live)
 
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:

@@ -143,6 +143,50 @@ class Routes(NamedTuple):
     unit: bool = False
 
 
+class ExpertRows(NamedTuple):
+    """The samples routed to each expert, listed once per density pass (rendering's dynamic path): for expert e,
+    `rows[e]` (n_e,) the indices of its samples in order, `weights[e]` (n_e,) their routing weights (None: `unit`)."""
+
+    rows: list[Tensor]
+    weights: list[Tensor | None]
+
+    @staticmethod
+    def of(routes: Routes) -> "ExpertRows":
+        """Each expert's samples and weights, from one pass over the N x k choices per expert (no per-sample blend of
+        the k weights: a choice's weight is read where it was made)."""
+        vals, idx, m, unit = routes
+        k = idx.shape[1]
+        flat = idx.reshape(-1)
+        rows, weights = [], []
+        for e in range(m):
+            pos = (flat == e).nonzero().squeeze(-1)
+            rows.append(pos if k == 1 else torch.div(pos, k, rounding_mode="floor"))
+            weights.append(None if unit else vals.reshape(-1)[pos])
+        return ExpertRows(rows, weights)
+
+    def run(self, run: Callable[[int, Tensor, Tensor], Tensor], out: Tensor, slots: Tensor | None = None) -> Tensor:
+        """out (n, C) += each expert's weighted outputs: `run(e, rows, dest)` -> (len(rows), C) on its samples `rows`,
+        whose outputs land at `out[dest]`. `slots` (N,) long, -1 where a sample is left out: only the others run, and
+        sample `row` lands at `out[slots[row]]` (a colour pass over some of the density pass's samples); without it at
+        `out[row]`. The same sums, in the same order, as `dispatch`."""
+        with part("dispatch"):
+            for e, (rows, w) in enumerate(zip(self.rows, self.weights)):
+                dest = rows
+                if slots is not None:
+                    at = slots[rows]
+                    kept = (at >= 0).nonzero().squeeze(-1)
+                    rows, dest = rows[kept], at[kept]
+                    w = None if w is None else w[kept]
+                if len(rows) == 0:
+                    continue
+                with part(f"expert {e}"):
+                    y = run(e, rows, dest)
+                if w is not None:
+                    y = y * w[:, None]
+                out.index_add_(0, dest, y)
+        return out
+
+
 def dispatch(
     routes: Routes,
     run: Callable[[int, Tensor], Tensor],
@@ -151,6 +195,7 @@ def dispatch(
     packer: Packer = DYNAMIC,
     live: Tensor | None = None,
     name: str = "expert",
+    listed: ExpertRows | None = None,
 ) -> Tensor:
     """Sparse mixture: out[s] = sum_j vals[s, j] * run(idx[s, j], rows)[s], each expert run once.
 
@@ -158,10 +203,14 @@ def dispatch(
     routed to expert e (by any of their k choices; of the `live` ones, when given) are packed by `packer`
     (render/packing.py: dynamic, exactly them, in order; static, a fixed budget per expert and pass `name`), so every
     expert sees only the samples routed to it, and the outputs are weighted and added back. `like`: a tensor of the
-    output's dtype and device. -> out (N, out_dim).
+    output's dtype and device. `listed`: the routes' `ExpertRows`, when the caller made them already. Rendering (the
+    dynamic packing, no gradient) lists each expert's samples once (`ExpertRows`). -> out (N, out_dim).
     """
     vals, idx, m, unit = routes
     n, k = idx.shape
+    if listed is not None or (not packer.static and live is None and not torch.is_grad_enabled()):
+        listed = ExpertRows.of(routes) if listed is None else listed
+        return listed.run(lambda e, r, _: run(e, r).reshape(len(r), out_dim), like.new_zeros(n, out_dim))
     one = idx[:, 0] if k == 1 else None  # one expert a sample: its index is the choice, its weight the only one
     with part("dispatch"):
         out = like.new_zeros(n, out_dim)
