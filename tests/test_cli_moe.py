@@ -392,6 +392,30 @@ def test_measure_costs_script_reports_every_measurement(moe_ws):
     assert mix["overhead_seconds"] == pytest.approx(mix["gate_topk_aux_seconds"] + mix["dispatch_gather_seconds"])
 
 
+def test_the_seconds_scripts_time_each_model_side_by_side(moe_ws, tmp_path):
+    """scripts/render_profile.py (seconds per image and per part) and scripts/train_step_bench.py (seconds per
+    finetuning step) run on a workspace and report every model asked for, the first the reference; their timings are
+    for docs/performance.md, so only their presence and consistency are checked here."""
+    from pathlib import Path
+
+    scripts = Path(__file__).parent.parent / "scripts"
+    out = tmp_path / "render.json"
+    proc = run_script(scripts / "render_profile.py", "-w", str(moe_ws), "--model", "baseline", "--model", "top1",
+                      "--views", "1", "--repeats", "1", "--json", str(out), timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["model"] for r in rows] == ["baseline", "top1"] and rows[0]["seconds_ratio"] == 1.0
+    assert all(r["seconds"] > 0 and r["gflops"] > 0 for r in rows)
+    assert {"routing", "dispatch", "expert 0"} <= set(rows[1]["ms"]) and "routing" not in rows[0]["ms"]
+    out = tmp_path / "steps.json"
+    proc = run_script(scripts / "train_step_bench.py", "-w", str(moe_ws), "--model", "baseline", "--model", "top1",
+                      "--steps", "1", "--rounds", "2", "--warmup", "1", "--json", str(out), timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["model"] for r in rows] == ["baseline", "top1"] and rows[0]["vs"] == 1.0
+    assert all(r["seconds_per_step"] > 0 and r["cpu_seconds_per_step"] > 0 and r["samples_per_ray"] > 0 for r in rows)
+
+
 def _without_top1(moe_ws, folder):
     """A copy of the built workspace at folder/ws with no top1 model in it."""
     ws = folder / "ws"

@@ -534,8 +534,8 @@ class RoutedMixture:
         if self.stats is not None:
             self.stats.record(probs, idx, live)
         self._last = (xyz, vals, idx)
-        # rendering (dynamic packing, no gradient): each expert's samples listed once, for both passes
-        listed = not self.packer.static and live is None and not torch.is_grad_enabled()
+        # the dynamic packing: each expert's samples listed once, for both passes
+        listed = not self.packer.static and live is None
         self._listed = ExpertRows.of(mix.routes(vals, idx)) if listed else None
         return mix._mix(xyz, None, vals, idx, self.packer, live, self._listed)
 

@@ -144,7 +144,7 @@ class Routes(NamedTuple):
 
 
 class ExpertRows(NamedTuple):
-    """The samples routed to each expert, listed once per density pass (rendering's dynamic path): for expert e,
+    """The samples routed to each expert, listed once per density pass (the dynamic packing's path): for expert e,
     `rows[e]` (n_e,) the indices of its samples in order, `weights[e]` (n_e,) their routing weights (None: `unit`)."""
 
     rows: list[Tensor]
@@ -203,12 +203,12 @@ def dispatch(
     routed to expert e (by any of their k choices; of the `live` ones, when given) are packed by `packer`
     (render/packing.py: dynamic, exactly them, in order; static, a fixed budget per expert and pass `name`), so every
     expert sees only the samples routed to it, and the outputs are weighted and added back. `like`: a tensor of the
-    output's dtype and device. `listed`: the routes' `ExpertRows`, when the caller made them already. Rendering (the
-    dynamic packing, no gradient) lists each expert's samples once (`ExpertRows`). -> out (N, out_dim).
+    output's dtype and device. `listed`: the routes' `ExpertRows`, when the caller made them already. The dynamic
+    packing lists each expert's samples once (`ExpertRows`). -> out (N, out_dim).
     """
     vals, idx, m, unit = routes
     n, k = idx.shape
-    if listed is not None or (not packer.static and live is None and not torch.is_grad_enabled()):
+    if listed is not None or (not packer.static and live is None):
         listed = ExpertRows.of(routes) if listed is None else listed
         return listed.run(lambda e, r, _: run(e, r).reshape(len(r), out_dim), like.new_zeros(n, out_dim))
     one = idx[:, 0] if k == 1 else None  # one expert a sample: its index is the choice, its weight the only one
