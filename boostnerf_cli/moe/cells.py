@@ -46,8 +46,12 @@ def cell_index(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> Tensor
     clamping), in C order over the (X-1, Y-1, Z-1) cells."""
     res = constant(tuple(shape), xyz.device, xyz.dtype)  # made once per device: no copy to it per call
     p = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * (res - 1)
-    p0 = torch.minimum(torch.minimum(p.clamp_min(0), res - 1).floor(), res - 2).long()
-    return (p0[:, 0] * (shape[1] - 1) + p0[:, 1]) * (shape[2] - 1) + p0[:, 2]
+    # floor, then into [0, res - 2]: what clamping into [0, res - 1], flooring and capping at res - 2 gives
+    cell = torch.clamp(p.floor_(), min=constant((0.0, 0.0, 0.0), xyz.device, xyz.dtype), max=res - 2)
+    # the flat index as one product with the strides, exact in float32 below 2^24 cells (in float64 above)
+    exact = torch.float32 if math.prod(n - 1 for n in shape) < 1 << 24 else torch.float64
+    strides = constant(((shape[1] - 1) * (shape[2] - 1), shape[2] - 1, 1), xyz.device, exact)
+    return (cell.to(exact) @ strides).long()
 
 
 def _corner_views(table: Tensor, shape: tuple[int, int, int]) -> list[Tensor]:

@@ -261,7 +261,8 @@ class Mixture(nn.Module):
 
     # --- routing --------------------------------------------------------------------------------
     def route(self, xyz: Tensor, need_probs: bool = True, static: bool = False) -> tuple[Tensor | None, Tensor, Tensor]:
-        """-> probabilities (N, M), weights (N, k), expert indices (N, k).
+        """-> probabilities (N, M), weights (N, k), expert indices (N, k) (int64; uint8 where rendering routes by cells:
+        compare them, never index with them).
 
         Rendering (no autograd, `need_probs` False) with renormalised weights skips the probabilities:
         the renormalised top-k weights are the softmax of the k chosen logits alone (1 for k = 1), and
@@ -291,7 +292,7 @@ class Mixture(nn.Module):
         if cells is not None and cells.routes is not None:
             ids, weights = cells.routes
             cell = C.cell_index(xyz, gate.bbox, gate.shape)
-            return weights[cell], ids[cell].long()
+            return weights[cell], ids[cell]  # uint8 experts: what the dispatch compares
         if not self.cfg.renormalize:
             return top_k(gate.probs(xyz), k, renormalize=False)
         if k == 1 and cells is not None and cells.top1 is not None:

@@ -157,11 +157,12 @@ class ExpertRows(NamedTuple):
         vals, idx, m, unit = routes
         k = idx.shape[1]
         flat = idx.reshape(-1)
-        rows, weights = [], []
-        for e in range(m):
-            pos = (flat == e).nonzero().squeeze(-1)
-            rows.append(pos if k == 1 else torch.div(pos, k, rounding_mode="floor"))
-            weights.append(None if unit else vals.reshape(-1)[pos])
+        if m <= 256:  # a stable sort of bytes: 3x faster than M comparisons and lists on the CPU (int64: 6x slower)
+            flat = flat.to(torch.uint8)
+        order = torch.argsort(flat, stable=True)  # each expert's choices together, in sample order
+        counts = torch.bincount(flat, minlength=m).tolist()
+        rows = list((order if k == 1 else torch.div(order, k, rounding_mode="floor")).split(counts))
+        weights = [None] * m if unit else list(vals.reshape(-1)[order].split(counts))
         return ExpertRows(rows, weights)
 
     def run(self, run: Callable[[int, Tensor, Tensor], Tensor], out: Tensor, slots: Tensor | None = None) -> Tensor:
