@@ -499,6 +499,35 @@ def test_routing_by_cells_gives_each_sample_the_choice_at_its_cells_centre(k, re
     assert 0 < (by_cell - blended).abs().mean() < 0.01
 
 
+def test_top2_colour_leaves_out_an_expert_below_the_min_weight_and_moves_no_pixel_more(monkeypatch):
+    """`moe.color_min_weight` w: rendering a renormalised Top-2, the colour pass leaves out a choice weighing less than
+    w (its share goes to the other): fewer expert colours, and no pixel moves by more than w."""
+    from boostnerf_cli.render.renderer import Camera, RenderSettings, render_image
+
+    mix = toy_mixture(k=2, seed=4)
+    mix.cfg.bake_res = 16
+    mix.for_rendering()
+    with torch.no_grad():
+        mix.gate.logit_table.mul_(12.0)  # a sharp gate: many second choices weigh little
+    mix._cells = None
+    mix.for_rendering()
+    pose = torch.eye(4)
+    pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
+    camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
+    settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
+    coloured = []
+    for e in mix.experts:
+        monkeypatch.setattr(e, "color", lambda xyz, d, f=e.color: coloured.append(len(xyz)) or f(xyz, d))
+    images = {}
+    for w in (0.0, 0.05):
+        mix.configure(color_min_weight=w)
+        coloured.clear()
+        images[w] = (render_image(mix, camera, settings, mix.skip)["rgb"], sum(coloured))
+    (exact, n_exact), (approx, n_approx) = images[0.0], images[0.05]
+    assert n_approx < 0.9 * n_exact
+    assert 0 < (approx - exact).abs().max() <= 0.05
+
+
 def test_a_cell_is_decided_only_where_all_its_vertices_agree_with_a_margin():
     from boostnerf_cli.moe import cells as C
 

@@ -94,6 +94,9 @@ class Routing:
     # rendering routes each sample by its cell of the baked lattice: the top-k and
     # weights of the gate at the cell's centre (false: blend the cell's 8 vertices)
     route_cells: bool = True
+    # rendering a renormalised Top-2: the colour pass leaves out an expert whose weight
+    # is below this and gives its share to the other (a pixel moves by at most this; 0: never)
+    color_min_weight: float = limit(0.01, Range(0, 0.5, hi_open=True))
 
 
 def routing_of(source: Routing) -> dict:
@@ -346,6 +349,12 @@ class Mixture(nn.Module):
         self._skips = SkipTables(vd.table._version, self.occupancy, C.vd_states(vd.table, vd.shape, r),
                                  C.skip_states(vd.table, vd.shape, vd.bbox, r, self.occupancy))
 
+    def color_min_weight(self) -> float:
+        """The weight below which rendering's colour pass leaves an expert out (`MixtureConfig.color_min_weight`): for
+        a renormalised Top-2 without gradients, whose two weights sum to 1, so the other takes the share; else 0."""
+        cfg = self.cfg
+        return cfg.color_min_weight if cfg.topk == 2 and cfg.renormalize and not torch.is_grad_enabled() else 0.0
+
     def routes(self, vals: Tensor, idx: Tensor) -> Routes:
         """`route`'s choices as the dispatch takes them: `unit` for rendering's renormalised Top-1 (weight 1)."""
         unit = idx.shape[1] == 1 and self.cfg.renormalize and not vals.requires_grad and not torch.is_grad_enabled()
@@ -550,7 +559,7 @@ class RoutedMixture:
             slots[rows] = torch.arange(len(rows), device=xyz.device)
             experts = self.mixture.experts
             return self._listed.run(lambda e, r, at: experts[e].color(xyz[r], dirs[at]), xyz.new_zeros(len(rows), 3),
-                                    slots)
+                                    slots, self.mixture.color_min_weight())
         return self.mixture._mix(xyz[rows], dirs, vals[rows], idx[rows], self.packer, live)
 
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:

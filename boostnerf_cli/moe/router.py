@@ -165,19 +165,26 @@ class ExpertRows(NamedTuple):
         weights = [None] * m if unit else list(vals.reshape(-1)[order].split(counts))
         return ExpertRows(rows, weights)
 
-    def run(self, run: Callable[[int, Tensor, Tensor], Tensor], out: Tensor, slots: Tensor | None = None) -> Tensor:
+    def run(self, run: Callable[[int, Tensor, Tensor], Tensor], out: Tensor, slots: Tensor | None = None,
+            min_weight: float = 0.0) -> Tensor:
         """out (n, C) += each expert's weighted outputs: `run(e, rows, dest)` -> (len(rows), C) on its samples `rows`,
         whose outputs land at `out[dest]`. `slots` (N,) long, -1 where a sample is left out: only the others run, and
         sample `row` lands at `out[slots[row]]` (a colour pass over some of the density pass's samples); without it at
-        `out[row]`. The same sums, in the same order, as `dispatch`."""
+        `out[row]`. The same sums, in the same order, as `dispatch`. `min_weight` > 0 (with `slots`, two weights per
+        sample that sum to 1): a choice weighing less is left out and the other one weighs 1."""
         with part("dispatch"):
             for e, (rows, w) in enumerate(zip(self.rows, self.weights)):
                 dest = rows
                 if slots is not None:
                     at = slots[rows]
-                    kept = (at >= 0).nonzero().squeeze(-1)
+                    keep = at >= 0
+                    if min_weight > 0 and w is not None:  # two weights summing to 1: the minor one dropped
+                        keep &= w >= min_weight
+                    kept = keep.nonzero().squeeze(-1)
                     rows, dest = rows[kept], at[kept]
                     w = None if w is None else w[kept]
+                    if min_weight > 0 and w is not None:  # and the major one takes its share
+                        w = torch.where(w > 1 - min_weight, 1.0, w)
                 if len(rows) == 0:
                     continue
                 with part(f"expert {e}"):
