@@ -233,3 +233,39 @@ def test_the_cpu_renderer_samples_and_tests_only_what_its_rays_reach(static):
     assert s == (slots if static else inside) and slots > 1.5 * inside
     assert tested == [2 * s] if static else tested == [2 * inside]
     assert bundle.acc[0] > 0.99 and bundle.acc[1] == 0.0
+
+
+@pytest.mark.parametrize("kind", ["expert", "mixture", "unbounded"])
+def test_packed_compositing_renders_what_padded_compositing_does(kind):
+    """Rendering on the CPU composites over the kept samples only (`render_rays_packed`): the colour, depth and
+    opacity of padded compositing over every slot (`render_rays`), to float32 rounding, and the same sample counts,
+    for an expert with its occupancy grid, a Top-2 mixture with its filter, and a contracted (unbounded) scene."""
+    from helpers import TOY_BOX, toy_experts, toy_mixture
+
+    from boostnerf_cli.render.contraction import Contraction
+    from boostnerf_cli.render.renderer import RenderSettings, render_rays, render_rays_packed
+
+    g = torch.Generator().manual_seed(0)
+    origins = torch.tensor([0.0, 0.0, 2.5]) + 0.3 * torch.randn(300, 3, generator=g)
+    dirs = F.normalize(torch.tensor([0.0, 0.0, -1.0]) + 0.4 * torch.randn(300, 3, generator=g), dim=-1)
+    if kind == "mixture":
+        field = toy_mixture(k=2, seed=1).for_rendering()
+        skip = field.skip
+        settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
+    else:
+        field = toy_experts(1, seed=2)[0]
+        with torch.no_grad():
+            field.density_table.normal_(0.0, 3.0)
+        skip = OccupancyGrid.from_density(field.density, TOY_BOX, (8, 8, 8), 0.05, 1e-3)
+        settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
+        if kind == "unbounded":
+            c = Contraction((0.0, 0.0, 0.0), 0.5, 50.0)
+            settings = RenderSettings(step=0.05, near=0.01, far=c.far, bbox=c.box(), contraction=c)
+            skip = None
+    with torch.no_grad():
+        padded = render_rays(field, origins, dirs, settings, skip)
+        packed = render_rays_packed(field, origins, dirs, settings, skip)
+    assert int(packed.n_samples) == int(padded.n_samples) > 0 and int(packed.n_color) == int(padded.n_color) > 0
+    for a, b in ((packed.color, padded.color), (packed.depth, padded.depth), (packed.acc, padded.acc)):
+        assert torch.allclose(a, b, atol=2e-5, rtol=1e-5), float((a - b).abs().max())
+    assert float(padded.acc.max()) > 0.2  # rays that meet something

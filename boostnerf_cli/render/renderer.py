@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from boostnerf_cli import flops
+from boostnerf_cli.device import constant
 from boostnerf_cli.fields.base import Field
 from boostnerf_cli.render.contraction import Contraction
 from boostnerf_cli.render.packing import DYNAMIC, Packer, packer_for
@@ -176,6 +177,65 @@ def render_rays(
     return RayBundle(color, depth, acc, dens.count(), cflat.count(), extras)
 
 
+def render_rays_packed(
+    field: Field,
+    origins: Tensor,
+    dirs: Tensor,
+    settings: RenderSettings,
+    skip: Callable[[Tensor], Tensor] | None = None,
+) -> RayBundle:
+    """`render_rays` for rendering on the CPU (no gradient, the dynamic packing), composited over the kept samples
+    only: the same colour, depth and opacity (to float32 rounding), without per-sample extras.
+
+    Padded compositing works on every slot of the (R, S) samples (S the longest ray's), most of them skipped; here
+    each ray's transmittance is an exclusive sum over its kept samples alone (a running sum over the list in float64,
+    less its value at the ray's first sample), and colour, depth and opacity are sums over them per ray. The skipped
+    slots add exactly nothing in the padded sums either."""
+    with part("sampling"):
+        t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter=False, fit=True)
+    r, s = t.shape
+    view = field.batch_view(DYNAMIC) if hasattr(field, "batch_view") else None
+    thr = settings.color_threshold
+    with part("skipping"):
+        keep = kept_samples(skip, xyz, valid, step, thr, DYNAMIC)
+        rows = keep.reshape(-1).nonzero().squeeze(-1)  # in ray order, each ray's samples in order along it
+    color = origins.new_zeros(r, 3)
+    depth, acc = origins.new_zeros(r), origins.new_zeros(r)
+    n_color = 0
+    if len(rows):
+        pts = xyz.reshape(-1, 3)[rows]
+        with part("field density"):
+            sigma = view.density(pts, None) if view is not None else field.density(pts)
+        with part("compositing"):
+            ray = torch.div(rows, s, rounding_mode="floor")
+            delta = Contraction.deltas(xyz).reshape(-1)[rows] if settings.contraction is not None else step
+            tau = sigma.to(origins.dtype) * delta
+            run = torch.cumsum(tau.double(), 0)
+            first = torch.ones_like(ray, dtype=torch.bool)
+            first[1:] = ray[1:] != ray[:-1]
+            start = (run - tau)[first]  # the running sum before each ray's first kept sample
+            before = run - tau - start[torch.cumsum(first, 0) - 1]
+            weights = torch.exp(-before).to(tau.dtype) * -torch.expm1(-tau)
+            tk = t.reshape(-1)[rows]
+            acc.index_add_(0, ray, weights)
+            depth.index_add_(0, ray, weights * tk)
+            col = (weights > thr).nonzero().squeeze(-1) if thr > 0 else torch.arange(len(rows))
+            n_color = len(col)
+        flops.add("composite", flops.COMPOSITE_FLOPS * len(rows) + 6 * n_color)
+        if n_color:
+            with part("field color"):
+                if view is not None:
+                    colors = view.color_rows(col, dirs[ray[col]], None)
+                else:
+                    colors = field.color(pts[col], dirs[ray[col]])
+            with part("compositing"):
+                color.index_add_(0, ray[col], weights[col, None] * colors.to(origins.dtype))
+    with part("compositing"):
+        bg = constant(tuple(settings.background), color.device, color.dtype)
+        color = color + (1.0 - acc)[:, None] * bg
+    return RayBundle(color, depth, acc, len(rows), n_color, {})
+
+
 class Camera(NamedTuple):
     """One posed pinhole camera: pose (4, 4) camera-to-world, intrinsics (4,) fx, fy, cx, cy in pixels, and the
     image's size in pixels."""
@@ -210,8 +270,9 @@ def render_image(
         parts = []
         n_samples = n_color = 0
         for i in range(0, origins.shape[0], settings.chunk):
-            b = render_rays(field, origins[i : i + settings.chunk], dirs[i : i + settings.chunk], settings, skip,
-                            packer=packer)
+            o, d = origins[i : i + settings.chunk], dirs[i : i + settings.chunk]
+            b = render_rays(field, o, d, settings, skip, packer=packer) if packer.static else render_rays_packed(
+                field, o, d, settings, skip)
             parts.append((b.color, b.depth, b.acc))
             n_samples += b.n_samples
             n_color += b.n_color
