@@ -488,13 +488,28 @@ class MixtureSkip:
         weights, _, _ = render_weights(density, torch.full_like(density, step))
         return keep & (weights > threshold)
 
+    @torch.no_grad()
+    def filter_rows(self, xyz: Tensor, valid: Tensor, step: float, threshold: float) -> Tensor:
+        """`filter` on the dynamic packing, as the sorted rows of the kept samples among the flattened (R, S)."""
+        mix = self.mixture
+        tables = None if mix.cfg.vd_filter == "visible" and threshold > 0 else mix.skips()
+        if tables is None:
+            return self.filter(xyz, valid, step, threshold).reshape(-1).nonzero().squeeze(-1)
+        rows = valid.reshape(-1).nonzero().squeeze(-1)
+        return rows[self._passed(tables, xyz.reshape(-1, 3)[rows])]
+
     def _by_tables(self, tables: SkipTables, flat: Tensor, keep: Tensor) -> Tensor:
         """`filter` through the per-cell tables on the dynamic packing: the same samples kept, with every test on the
         list of the samples still undecided (one pass over all of them, to list those in the box)."""
+        rows = keep.nonzero().squeeze(-1)
+        passed = self._passed(tables, flat[rows])
+        return torch.zeros_like(keep).index_put_((rows[passed],), torch.ones((), dtype=torch.bool, device=keep.device))
+
+    def _passed(self, tables: SkipTables, pts: Tensor) -> Tensor:
+        """(N,) bool: which of the points `pts` (inside the box) pass the occupancy grid and V_D, looked up in the
+        per-cell tables and tested only where undecided."""
         mix = self.mixture
         vd, occupancy = mix.vd, mix.occupancy
-        rows = keep.nonzero().squeeze(-1)
-        pts = flat[rows]
         with part("V_D"):
             state = tables.skip(pts)
         passed = state == C.PASS
@@ -511,7 +526,7 @@ class MixtureSkip:
             with part("V_D"):
                 sigma = mix.vd_density(pts[left])
             passed[left[-torch.expm1(-sigma * mix.cfg.step) > mix.cfg.density_threshold]] = True
-        return torch.zeros_like(keep).index_put_((rows[passed],), torch.ones((), dtype=torch.bool, device=keep.device))
+        return passed
 
     def __call__(self, xyz: Tensor) -> Tensor:
         """(N, 3) -> (N,) bool: in an occupied cell, with V_D opacity over one step above T."""

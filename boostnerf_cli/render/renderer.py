@@ -119,6 +119,18 @@ def kept_samples(skip, xyz: Tensor, valid: Tensor, step: float, threshold: float
     return packer.keep_where(skip, xyz.reshape(-1, 3), valid.reshape(-1)).reshape(valid.shape)
 
 
+def kept_rows(skip, xyz: Tensor, valid: Tensor, step: float, threshold: float) -> Tensor:
+    """`kept_samples` on the dynamic packing, as the sorted list of the kept samples' rows of the flattened (R, S)
+    samples: a filter with `filter_rows` lists them itself (a mixture's V_D), a filter of points tests the samples
+    inside the box."""
+    if skip is not None and hasattr(skip, "filter_rows"):
+        return skip.filter_rows(xyz, valid, step, threshold)
+    if skip is None or hasattr(skip, "filter"):
+        return kept_samples(skip, xyz, valid, step, threshold, DYNAMIC).reshape(-1).nonzero().squeeze(-1)
+    rows = valid.reshape(-1).nonzero().squeeze(-1)
+    return rows[skip(xyz.reshape(-1, 3)[rows])]
+
+
 def render_rays(
     field: Field,
     origins: Tensor,
@@ -197,8 +209,7 @@ def render_rays_packed(
     view = field.batch_view(DYNAMIC) if hasattr(field, "batch_view") else None
     thr = settings.color_threshold
     with part("skipping"):
-        keep = kept_samples(skip, xyz, valid, step, thr, DYNAMIC)
-        rows = keep.reshape(-1).nonzero().squeeze(-1)  # in ray order, each ray's samples in order along it
+        rows = kept_rows(skip, xyz, valid, step, thr)  # in ray order, each ray's samples in order along it
     color = origins.new_zeros(r, 3)
     depth, acc = origins.new_zeros(r), origins.new_zeros(r)
     n_color = 0
