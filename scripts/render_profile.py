@@ -7,7 +7,8 @@
 For each model (default: the workspace's baseline, top1 and top2, those that exist), after one warm-up image (not
 counted: it sizes the packing budgets, compiles and fills caches), renders the first `--views` test views
 `--repeats` times, the models interleaved round by round so that a busy machine slows each alike, and reports per
-image: the median wall time (`seconds`), its ratio to the first model's, GFLOPs and their ratio, the throughput
+image: the median wall time (`seconds`), its ratio to the first model's, the same for the process's CPU time
+(`cpu_seconds`: what another busy process disturbs less), GFLOPs and their ratio, the throughput
 (GFLOPs / seconds), and the milliseconds of each part of the render (boostnerf_cli/render/timing.py, measured in
 one more, timed pass): rays, sampling, skipping (the occupancy grid and packing; `V_D` the density volume),
 routing (the gate's lookup and top-k), dispatch (listing each expert's samples and adding its outputs back), each
@@ -80,16 +81,18 @@ def main(argv: list[str] | None = None) -> int:
         models[name] = (model, settings, skip, packer, time.perf_counter() - t)
     views = min(args.views, len(split))
     seconds: dict[str, list[float]] = {name: [] for name in models}
+    cpu: dict[str, list[float]] = {name: [] for name in models}
     for _ in range(args.repeats):
         for name, (model, settings, skip, packer, _) in models.items():
             for i in range(views):
                 if device == "cuda":
                     torch.cuda.synchronize()
-                t = time.perf_counter()
+                t, c = time.perf_counter(), time.process_time()
                 render_view(model.field, split, i, settings, skip, device, packer)
                 if device == "cuda":
                     torch.cuda.synchronize()
                 seconds[name].append(time.perf_counter() - t)
+                cpu[name].append(time.process_time() - c)
     rows = []
     for name, (model, settings, skip, packer, setup) in models.items():
         with flops.count_flops() as counted:
@@ -99,22 +102,25 @@ def main(argv: list[str] | None = None) -> int:
                 render_view(model.field, split, i, settings, skip, device, packer)
         sec = statistics.median(seconds[name])
         gflops = counted.total / 1e9
-        rows.append({"model": name, "seconds": sec, "gflops": gflops, "gflop_per_s": gflops / sec,
+        rows.append({"model": name, "seconds": sec, "cpu_seconds": statistics.median(cpu[name]), "gflops": gflops,
+                     "gflop_per_s": gflops / sec,
                      "setup_seconds": setup, "ms": {k: 1000 * v / views for k, v in parts.items()}})
     ref = rows[0]
     for r in rows:
         r["seconds_ratio"], r["gflops_ratio"] = r["seconds"] / ref["seconds"], r["gflops"] / ref["gflops"]
+        r["cpu_ratio"] = r["cpu_seconds"] / ref["cpu_seconds"]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=ROOT).stdout.strip()
     print(f"{ws.root}: {split.width}x{split.height} px, {views} views x {args.repeats}, on {device}, "
           f"{torch.get_num_threads()} threads, commit {commit}, load average {load[0]:.2f} at start, "
           f"{os.getloadavg()[0]:.2f} at end ({time.perf_counter() - t0:.0f} s)")
     extra = sorted({k for r in rows for k in r["ms"]} - set(PARTS))
-    columns = ["model", "s / image", "vs " + ref["model"], "GFLOPs", "vs " + ref["model"], "GFLOP/s",
+    columns = ["model", "s / image", "vs " + ref["model"], "CPU s / image", "vs " + ref["model"], "GFLOPs",
+               "vs " + ref["model"], "GFLOP/s",
                *[f"{p} ms" for p in PARTS if any(p in r["ms"] for r in rows)], *[f"{p} ms" for p in extra]]
-    keys = [c[:-3] for c in columns[6:]]
-    table = [[r["model"], f"{r['seconds']:.4f}", f"{r['seconds_ratio']:.2f}x", f"{r['gflops']:.3f}",
-              f"{r['gflops_ratio']:.2f}x", f"{r['gflop_per_s']:.1f}",
+    keys = [c[:-3] for c in columns[8:]]
+    table = [[r["model"], f"{r['seconds']:.4f}", f"{r['seconds_ratio']:.2f}x", f"{r['cpu_seconds']:.4f}",
+              f"{r['cpu_ratio']:.2f}x", f"{r['gflops']:.3f}", f"{r['gflops_ratio']:.2f}x", f"{r['gflop_per_s']:.1f}",
               *[f"{r['ms'][k]:.1f}" if k in r["ms"] else "-" for k in keys]] for r in rows]
     print("| " + " | ".join(columns) + " |\n|" + "---|" * len(columns))
     for row in table:

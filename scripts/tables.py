@@ -35,7 +35,9 @@ docs/data/NAME.json is one of:
 - a cost table {"costs": {"model": name, "rows": [{"label": str, "report": FILE or [FILEs]}, ...]},
   "first_column": header, "notes": [[cell, ...], ...]}: one row per report, the model's PSNR against the baseline's,
   then its GFLOPs per image, training minutes (the reports' "train s" extra; "-" where a report has none) and render
-  seconds per image, each as "baseline -> model (ratio)"; then the notes rows printed as written;
+  seconds per image, each as "baseline -> model (ratio)"; a row's "seconds": FILE (the `--json` of
+  scripts/render_profile.py, the models timed side by side) gives its render seconds instead of the report's; then
+  the notes rows printed as written;
 
 - a generic table {"columns": [header, ...], "rows": [[cell, ...], ...]} for a table that is neither a
   model nor a bench table (a transcribed comparison, a list of targets): every cell is a string printed
@@ -110,7 +112,7 @@ def reports_of(spec: dict) -> list[str]:
     """Every docs/data file that a table spec reads."""
     parts = (spec.get("groups", []) + spec.get("sizes", []) + spec.get("summary", {}).get("rows", [])
              + spec.get("costs", {}).get("rows", []))
-    return [f for g in parts for f in _files(g)]
+    return [f for g in parts for f in _files(g)] + [g["seconds"] for g in parts if "seconds" in g]
 
 
 def _read(files: list[str]) -> dict:
@@ -228,16 +230,19 @@ def cost_table(spec: dict) -> str:
     rows = []
     for line in spec["costs"]["rows"]:
         by_name = _read(_files(line))
-        base, m = by_name[line.get("baseline", "baseline")], by_name[name]
+        n = line.get("baseline", "baseline")
+        base, m = by_name[n], by_name[name]
 
         def minutes(model):
             s = model.get("extra", {}).get("train s")
             return None if s is None else float(s) / 60
 
+        seconds = {n: base.get("seconds_per_image"), name: m.get("seconds_per_image")} if "seconds" not in line else {
+            r["model"]: r["seconds"] for r in json.loads((DATA / line["seconds"]).read_text())["rows"]}
         rows.append([line["label"], f"{m['psnr'] - base['psnr']:+.2f} dB",
                      _pair(base["gflops_per_image"], m["gflops_per_image"], 2 if base["gflops_per_image"] < 20 else 1),
                      _pair(minutes(base), minutes(m), 1),
-                     _pair(base.get("seconds_per_image"), m.get("seconds_per_image"), 3)])
+                     _pair(seconds.get(n), seconds.get(name), 3)])
     for note in spec.get("notes", []):
         if len(note) != len(columns) or not all(isinstance(c, str) for c in note):
             raise ValueError(f"cost note {note!r}: want {len(columns)} string cells")
