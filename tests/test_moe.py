@@ -433,7 +433,6 @@ def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
 
     mix = toy_mixture(k=k, seed=3)
     mix.cfg.bake_res = 16
-    mix.cfg.route_cells = False  # the exact routing (each sample's blend where a cell's vertices disagree)
     with torch.no_grad():  # V_D with a surface: dense inside a ball, empty outside
         pts = G.lattice_points(mix.vd.bbox, mix.vd.shape)
         mix.vd.table.copy_(torch.where(pts.norm(dim=-1, keepdim=True) < 0.6, 3.0, -8.0))
@@ -462,46 +461,9 @@ def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
     assert mix.skips() is None
 
 
-@pytest.mark.parametrize("k,renormalize", [(1, True), (2, True), (2, False)])
-def test_routing_by_cells_gives_each_sample_the_choice_at_its_cells_centre(k, renormalize):
-    """`moe.route_cells` (the default): rendering routes a sample by its baked-gate cell, the experts and weights the
-    baked gate gives at the cell's centre; rendering with it stays close to routing every sample by its blend."""
-    from boostnerf_cli.moe import cells as C
-    from boostnerf_cli.render.renderer import Camera, RenderSettings, render_image
-
-    mix = toy_mixture(k=k, renormalize=renormalize, seed=5)
-    mix.cfg.bake_res = 16
-    mix.for_rendering()
-    gate = mix.gate
-    xyz = TOY_BOX[0] + torch.rand(4000, 3, generator=torch.Generator().manual_seed(0)) * (TOY_BOX[1] - TOY_BOX[0])
-    with torch.no_grad():
-        assert mix.cells().routes is not None
-        _, vals, idx = mix.route(xyz, need_probs=False)
-        cell = C.cell_index(xyz, gate.bbox, gate.shape)
-        n = [s - 1 for s in gate.shape]
-        ijk = torch.stack([cell // (n[1] * n[2]), cell // n[2] % n[1], cell % n[2]], -1)
-        size = (gate.bbox[1] - gate.bbox[0]) / torch.tensor(n)
-        centres = gate.bbox[0] + (ijk + 0.5) * size
-        want_vals, want_idx = top_k(gate.probs(centres), k, renormalize)
-    assert torch.equal(idx, want_idx)
-    assert torch.allclose(vals, want_vals, atol=1e-6)
-    assert (idx != top_k(gate.probs(xyz), k, renormalize)[1]).any()  # not each sample's own choice everywhere
-    pose = torch.eye(4)
-    pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
-    camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
-    settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
-    by_cell = render_image(mix, camera, settings, mix.skip)["rgb"]
-    mix.configure(route_cells=False)
-    mix.for_rendering()
-    with torch.no_grad():
-        assert mix.cells().routes is None
-    blended = render_image(mix, camera, settings, mix.skip)["rgb"]
-    assert 0 < (by_cell - blended).abs().mean() < 0.01
-
-
-def test_top2_colour_leaves_out_an_expert_below_the_min_weight_and_moves_no_pixel_more(monkeypatch):
-    """`moe.color_min_weight` w: rendering a renormalised Top-2, the colour pass leaves out a choice weighing less than
-    w (its share goes to the other): fewer expert colours, and no pixel moves by more than w."""
+def test_top2_leaves_out_a_choice_below_the_render_min_weight_and_moves_pixels_little(monkeypatch):
+    """`moe.render_min_weight` w: rendering a renormalised Top-2 leaves out, in both passes, a choice weighing less
+    than w (its share goes to the other): fewer expert densities and colours, images within a few w."""
     from boostnerf_cli.render.renderer import Camera, RenderSettings, render_image
 
     mix = toy_mixture(k=2, seed=4)
@@ -509,23 +471,26 @@ def test_top2_colour_leaves_out_an_expert_below_the_min_weight_and_moves_no_pixe
     mix.for_rendering()
     with torch.no_grad():
         mix.gate.logit_table.mul_(12.0)  # a sharp gate: many second choices weigh little
-    mix._cells = None
-    mix.for_rendering()
     pose = torch.eye(4)
     pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
     camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
     settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
-    coloured = []
+    calls = {"density": [], "color": []}
     for e in mix.experts:
-        monkeypatch.setattr(e, "color", lambda xyz, d, f=e.color: coloured.append(len(xyz)) or f(xyz, d))
-    images = {}
+        monkeypatch.setattr(e, "density", lambda xyz, f=e.density: calls["density"].append(len(xyz)) or f(xyz))
+        monkeypatch.setattr(e, "color", lambda xyz, d, f=e.color: calls["color"].append(len(xyz)) or f(xyz, d))
+    images, counts = {}, {}
     for w in (0.0, 0.05):
-        mix.configure(color_min_weight=w)
-        coloured.clear()
-        images[w] = (render_image(mix, camera, settings, mix.skip)["rgb"], sum(coloured))
-    (exact, n_exact), (approx, n_approx) = images[0.0], images[0.05]
-    assert n_approx < 0.9 * n_exact
-    assert 0 < (approx - exact).abs().max() <= 0.05
+        mix.configure(render_min_weight=w)
+        for v in calls.values():
+            v.clear()
+        images[w] = render_image(mix, camera, settings, mix.skip)["rgb"]
+        counts[w] = {k: sum(v) for k, v in calls.items()}
+    assert counts[0.05]["density"] < 0.9 * counts[0.0]["density"]
+    assert counts[0.05]["color"] < 0.9 * counts[0.0]["color"]
+    assert 0 < (images[0.05] - images[0.0]).abs().max() <= 0.1
+    mix.configure(topk=1)  # one weight a sample: nothing to leave out
+    assert mix.render_min_weight() == 0.0
 
 
 def test_a_cell_is_decided_only_where_all_its_vertices_agree_with_a_margin():

@@ -106,7 +106,7 @@ BAD: dict[str, st.SearchStrategy] = {
     "moe.lam": NEGATIVE,
     "moe.penalty": BAD_PENALTY,
     "moe.bake_res": GRID_OUTSIDE(0),
-    "moe.color_min_weight": st.one_of(NEGATIVE, st.floats(0.5, 1e6)),
+    "moe.render_min_weight": st.one_of(NEGATIVE, st.floats(0.5, 1e6)),
     "moe.iters": INT_BELOW(1),
     "moe.lr_gate": NOT_POSITIVE,
     "moe.lr_gate_mlp": NOT_POSITIVE,
@@ -132,7 +132,7 @@ GOOD: dict[str, st.SearchStrategy] = {
     "moe.topk": st.integers(1, 16),
     "moe.lam": st.floats(0.0, 10.0),
     "moe.bake_res": st.integers(0, 256),
-    "moe.color_min_weight": st.floats(0.0, 0.4999),
+    "moe.render_min_weight": st.floats(0.0, 0.4999),
     "moe.gate_type": st.sampled_from(["grid", "linear", "switch"]),
 }
 

@@ -34,8 +34,6 @@ from torch import Tensor
 
 from boostnerf_cli.device import constant
 from boostnerf_cli.fields.base import blockwise
-from boostnerf_cli.moe.gate import softmax
-from boostnerf_cli.moe.router import top_k
 from boostnerf_cli.render.occupancy import OccupancyGrid
 
 FAIL, PASS, MIXED = 0, 1, 2
@@ -108,20 +106,6 @@ def top1_cells(logits: Tensor, shape: tuple[int, int, int]) -> Tensor:
         else:
             agree = agree & clear & (best == expert)
     return torch.where(agree, expert, -1).reshape(-1).to(torch.int8)
-
-
-@torch.no_grad()
-def route_cells(logits: Tensor, shape: tuple[int, int, int], k: int, renormalize: bool) -> tuple[Tensor, Tensor]:
-    """logits (X*Y*Z, M) the baked gate's vertex logits -> per cell (cells,) of its lattice, the k experts (cells, k)
-    uint8 and their weights (cells, k) float32 of the gate at the cell's centre (its 8 vertices' mean logits; top-k
-    renormalised or not as the mixture weighs). An approximation, unlike `top1_cells`: a sample takes its cell's
-    choice and weights wherever in the cell it lies (docs/performance.md measures what it costs)."""
-    centre = None
-    for corner in _corner_views(logits.float(), shape):
-        centre = corner.clone() if centre is None else centre.add_(corner)
-    probs = softmax(centre.reshape(-1, logits.shape[-1]).mul_(0.125))
-    weights, idx = top_k(probs, k, renormalize)
-    return idx.to(torch.uint8), weights.contiguous()
 
 
 # a fine cell is compared with every coarse cell it touches grown by this much of the box (float32 rounding of a

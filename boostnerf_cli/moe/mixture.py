@@ -91,12 +91,9 @@ class Routing:
     mix: str = limit("density", OneOf(MIX_MODES))
     # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
     bake_res: int = limit(128, Range(0, MAX_GRID_RES))
-    # rendering routes each sample by its cell of the baked lattice: the top-k and
-    # weights of the gate at the cell's centre (false: blend the cell's 8 vertices)
-    route_cells: bool = True
-    # rendering a renormalised Top-2: the colour pass leaves out an expert whose weight
-    # is below this and gives its share to the other (a pixel moves by at most this; 0: never)
-    color_min_weight: float = limit(0.01, Range(0, 0.5, hi_open=True))
+    # rendering a renormalised Top-2 leaves out a choice weighing less than this
+    # and gives its share to the other one, in both passes (0: never)
+    render_min_weight: float = limit(0.01, Range(0, 0.5, hi_open=True))
 
 
 def routing_of(source: Routing) -> dict:
@@ -199,14 +196,11 @@ class RoutingStats:
 
 @dataclass
 class RenderCells:
-    """What the baked gate decides per cell of its lattice (moe/cells.py), made for `gate` and the mixture's `choice`
-    (topk, renormalize, route_cells): Top-1's expert where the cell's 8 vertices agree (`top1`), and with
-    `route_cells` each cell's k experts and weights at its centre (`routes`); None where they do not apply."""
+    """Top-1's expert per cell of the baked gate's lattice where the cell's 8 vertices agree (moe/cells.py; None unless
+    the mixture routes by a baked gate), made for `gate`."""
 
     gate: Gate
-    choice: tuple[int, bool, bool]
     top1: Tensor | None
-    routes: tuple[Tensor, Tensor] | None = None
 
 
 @dataclass
@@ -264,8 +258,7 @@ class Mixture(nn.Module):
 
     # --- routing --------------------------------------------------------------------------------
     def route(self, xyz: Tensor, need_probs: bool = True, static: bool = False) -> tuple[Tensor | None, Tensor, Tensor]:
-        """-> probabilities (N, M), weights (N, k), expert indices (N, k) (int64; uint8 where rendering routes by cells:
-        compare them, never index with them).
+        """-> probabilities (N, M), weights (N, k), expert indices (N, k).
 
         Rendering (no autograd, `need_probs` False) with renormalised weights skips the probabilities:
         the renormalised top-k weights are the softmax of the k chosen logits alone (1 for k = 1), and
@@ -289,13 +282,8 @@ class Mixture(nn.Module):
         return probs, vals, idx
 
     def _choose(self, xyz: Tensor, static: bool = False) -> tuple[Tensor, Tensor]:
-        """Rendering's choice (see `route`): weights (N, k), experts (N, k); by the sample's cell where the mixture
-        routes by cells (`route_cells`)."""
+        """Rendering's choice (see `route`): weights (N, k), experts (N, k)."""
         cells, gate, k = self.cells(), self.gate, self.cfg.topk
-        if cells is not None and cells.routes is not None:
-            ids, weights = cells.routes
-            cell = C.cell_index(xyz, gate.bbox, gate.shape)
-            return weights[cell], ids[cell]  # uint8 experts: what the dispatch compares
         if not self.cfg.renormalize:
             return top_k(gate.probs(xyz), k, renormalize=False)
         if k == 1 and cells is not None and cells.top1 is not None:
@@ -322,10 +310,9 @@ class Mixture(nn.Module):
         return expert
 
     def _cells_hold(self) -> bool:
-        """The per-cell decisions were made for this baked gate and the mixture's k, weighting and routing."""
+        """The per-cell decisions were made for this baked gate."""
         c = self._cells
-        cfg = self.cfg
-        return c is not None and c.gate is self.gate and c.choice == (cfg.topk, cfg.renormalize, cfg.route_cells)
+        return c is not None and c.gate is self.gate
 
     def cells(self) -> RenderCells | None:
         """The per-cell decisions `for_rendering` made, while they still hold and nothing trains (no gradient)."""
@@ -349,11 +336,11 @@ class Mixture(nn.Module):
         self._skips = SkipTables(vd.table._version, self.occupancy, C.vd_states(vd.table, vd.shape, r),
                                  C.skip_states(vd.table, vd.shape, vd.bbox, r, self.occupancy))
 
-    def color_min_weight(self) -> float:
-        """The weight below which rendering's colour pass leaves an expert out (`MixtureConfig.color_min_weight`): for
-        a renormalised Top-2 without gradients, whose two weights sum to 1, so the other takes the share; else 0."""
+    def render_min_weight(self) -> float:
+        """The weight below which rendering leaves a choice out (`MixtureConfig.render_min_weight`): for a renormalised
+        Top-2 without gradients, whose two weights sum to 1, so that the other one takes the share; else 0."""
         cfg = self.cfg
-        return cfg.color_min_weight if cfg.topk == 2 and cfg.renormalize and not torch.is_grad_enabled() else 0.0
+        return cfg.render_min_weight if cfg.topk == 2 and cfg.renormalize and not torch.is_grad_enabled() else 0.0
 
     def routes(self, vals: Tensor, idx: Tensor) -> Routes:
         """`route`'s choices as the dispatch takes them: `unit` for rendering's renormalised Top-1 (weight 1)."""
@@ -393,12 +380,9 @@ class Mixture(nn.Module):
         if self.cfg.bake_res > 0 and not exact_gate:
             self.gate = self.gate.baked(self.cfg.bake_res)
         if not self._cells_hold():
-            gate, cfg = self.gate, self.cfg
-            baked = gate.cfg.gate_type == "baked"
-            top1 = C.top1_cells(gate.logit_table, gate.shape) if baked else None
-            routes = C.route_cells(gate.logit_table, gate.shape, cfg.topk, cfg.renormalize) if (
-                baked and cfg.route_cells) else None
-            self._cells = RenderCells(gate, (cfg.topk, cfg.renormalize, cfg.route_cells), top1, routes)
+            gate = self.gate
+            top1 = C.top1_cells(gate.logit_table, gate.shape) if gate.cfg.gate_type == "baked" else None
+            self._cells = RenderCells(gate, top1)
         self.prepare_skips()
         return self
 
@@ -561,7 +545,7 @@ class RoutedMixture:
         self._last = (xyz, vals, idx)
         # the dynamic packing: each expert's samples listed once, for both passes
         listed = not self.packer.static and live is None
-        self._listed = ExpertRows.of(mix.routes(vals, idx)) if listed else None
+        self._listed = ExpertRows.of(mix.routes(vals, idx), mix.render_min_weight()) if listed else None
         return mix._mix(xyz, None, vals, idx, self.packer, live, self._listed)
 
     def color_rows(self, rows: Tensor, dirs: Tensor, live: Tensor | None = None) -> Tensor:
@@ -574,7 +558,7 @@ class RoutedMixture:
             slots[rows] = torch.arange(len(rows), device=xyz.device)
             experts = self.mixture.experts
             return self._listed.run(lambda e, r, at: experts[e].color(xyz[r], dirs[at]), xyz.new_zeros(len(rows), 3),
-                                    slots, self.mixture.color_min_weight())
+                                    slots)
         return self.mixture._mix(xyz[rows], dirs, vals[rows], idx[rows], self.packer, live)
 
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:

@@ -151,40 +151,39 @@ class ExpertRows(NamedTuple):
     weights: list[Tensor | None]
 
     @staticmethod
-    def of(routes: Routes) -> "ExpertRows":
-        """Each expert's samples and weights, from one pass over the N x k choices per expert (no per-sample blend of
-        the k weights: a choice's weight is read where it was made)."""
+    def of(routes: Routes, min_weight: float = 0.0) -> "ExpertRows":
+        """Each expert's samples and weights, from one sort of the N x k choices by expert (no per-sample blend of the
+        k weights: a choice's weight is read where it was made). `min_weight` > 0, for two weights per sample that sum
+        to 1: a choice weighing less is left out and the other one weighs 1 (`MixtureConfig.render_min_weight`)."""
         vals, idx, m, unit = routes
         k = idx.shape[1]
-        flat = idx.reshape(-1)
+        flat, w = idx.reshape(-1), vals.reshape(-1)
+        pos = None  # which choices are listed: all, or those that weigh at least min_weight
+        if min_weight > 0 and not unit:
+            pos = (w >= min_weight).nonzero().squeeze(-1)
+            flat, w = flat[pos], torch.where(w > 1 - min_weight, 1.0, w)[pos]
         if m <= 256:  # a stable sort of bytes: 3x faster than M comparisons and lists on the CPU (int64: 6x slower)
             flat = flat.to(torch.uint8)
         order = torch.argsort(flat, stable=True)  # each expert's choices together, in sample order
         counts = torch.bincount(flat, minlength=m).tolist()
-        rows = list((order if k == 1 else torch.div(order, k, rounding_mode="floor")).split(counts))
-        weights = [None] * m if unit else list(vals.reshape(-1)[order].split(counts))
+        choice = order if pos is None else pos[order]
+        rows = list((choice if k == 1 else torch.div(choice, k, rounding_mode="floor")).split(counts))
+        weights = [None] * m if unit else list(w[order].split(counts))
         return ExpertRows(rows, weights)
 
-    def run(self, run: Callable[[int, Tensor, Tensor], Tensor], out: Tensor, slots: Tensor | None = None,
-            min_weight: float = 0.0) -> Tensor:
+    def run(self, run: Callable[[int, Tensor, Tensor], Tensor], out: Tensor, slots: Tensor | None = None) -> Tensor:
         """out (n, C) += each expert's weighted outputs: `run(e, rows, dest)` -> (len(rows), C) on its samples `rows`,
         whose outputs land at `out[dest]`. `slots` (N,) long, -1 where a sample is left out: only the others run, and
         sample `row` lands at `out[slots[row]]` (a colour pass over some of the density pass's samples); without it at
-        `out[row]`. The same sums, in the same order, as `dispatch`. `min_weight` > 0 (with `slots`, two weights per
-        sample that sum to 1): a choice weighing less is left out and the other one weighs 1."""
+        `out[row]`. The same sums, in the same order, as `dispatch`."""
         with part("dispatch"):
             for e, (rows, w) in enumerate(zip(self.rows, self.weights)):
                 dest = rows
                 if slots is not None:
                     at = slots[rows]
-                    keep = at >= 0
-                    if min_weight > 0 and w is not None:  # two weights summing to 1: the minor one dropped
-                        keep &= w >= min_weight
-                    kept = keep.nonzero().squeeze(-1)
+                    kept = (at >= 0).nonzero().squeeze(-1)
                     rows, dest = rows[kept], at[kept]
                     w = None if w is None else w[kept]
-                    if min_weight > 0 and w is not None:  # and the major one takes its share
-                        w = torch.where(w > 1 - min_weight, 1.0, w)
                 if len(rows) == 0:
                     continue
                 with part(f"expert {e}"):
