@@ -48,7 +48,7 @@ def cell_index(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> Tensor
     # floor, then into [0, res - 2]: what clamping into [0, res - 1], flooring and capping at res - 2 gives
     cell = torch.clamp(p.floor_(), min=constant((0.0, 0.0, 0.0), xyz.device, xyz.dtype), max=res - 2)
     # the flat index as one product with the strides, exact in float32 below 2^24 cells (in float64 above)
-    exact = torch.float32 if math.prod(n - 1 for n in shape) < 1 << 24 else torch.float64
+    exact = torch.float32 if (shape[0] - 1) * (shape[1] - 1) * (shape[2] - 1) < 1 << 24 else torch.float64
     strides = constant(((shape[1] - 1) * (shape[2] - 1), shape[2] - 1, 1), xyz.device, exact)
     return (cell.to(exact) @ strides).long()
 
