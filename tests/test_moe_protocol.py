@@ -320,12 +320,15 @@ def test_the_options_are_saved_and_old_files_load_with_the_paper_defaults(tmp_pa
               "gate_layers": "layers", "gate_grid": "grid"}  # a file written before the gate took the recipe's names
     meta["gate"]["config"] = {former.get(k, k): v for k, v in meta["gate"]["config"].items()}
     meta["mixture"]["threshold"] = meta["mixture"].pop("density_threshold")
+    meta["mixture"]["color_min_weight"] = meta["mixture"].pop("render_min_weight")  # its former name
+    meta["mixture"]["route_cells"] = True  # a rendering switch some files record, since removed
     meta.pop("digest", None), meta.pop("format_version", None)
     save_tensors(tmp_path / "old.safetensors", tensors, meta)
     old, _ = load_mixture(tmp_path / "old.safetensors")
     assert (old.cfg.mix, old.cfg.aux_norm, old.cfg.aux_samples, old.gate.cfg.gate_init) == (
         "density", "batch", "all", "random")
     assert (old.cfg.density_threshold, old.gate.cfg) == (loaded.cfg.density_threshold, loaded.gate.cfg)
+    assert old.cfg.render_min_weight == loaded.cfg.render_min_weight
     with torch.no_grad():
         assert not torch.allclose(old.density(xyz), loaded.density(xyz))
 

@@ -116,10 +116,13 @@ class MixtureConfig(Routing):
 
     @staticmethod
     def saved(config: dict) -> "MixtureConfig":
-        """The config a mixture file records (its `threshold`, in files written before it was `density_threshold`)."""
+        """The config a mixture file records (its `threshold`, in files written before it was `density_threshold`; its
+        `color_min_weight`, before it was `render_min_weight`; `route_cells`, a rendering switch since removed)."""
         config = dict(config)
-        if "threshold" in config:
-            config["density_threshold"] = config.pop("threshold")
+        for old, new in (("threshold", "density_threshold"), ("color_min_weight", "render_min_weight")):
+            if old in config:
+                config[new] = config.pop(old)
+        config.pop("route_cells", None)
         return MixtureConfig(**config)
 
 
