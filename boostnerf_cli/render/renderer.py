@@ -230,7 +230,7 @@ def render_rays_packed(
             tk = t.reshape(-1)[rows]
             acc.index_add_(0, ray, weights)
             depth.index_add_(0, ray, weights * tk)
-            col = (weights > thr).nonzero().squeeze(-1) if thr > 0 else torch.arange(len(rows))
+            col = (weights > thr).nonzero().squeeze(-1) if thr > 0 else torch.arange(len(rows), device=rows.device)
             n_color = len(col)
         flops.add("composite", flops.COMPOSITE_FLOPS * len(rows) + 6 * n_color)
         if n_color:
