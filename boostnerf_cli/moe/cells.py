@@ -33,7 +33,6 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from boostnerf_cli.device import constant
-from boostnerf_cli.fields.base import blockwise
 from boostnerf_cli.render.occupancy import OccupancyGrid
 
 FAIL, PASS, MIXED = 0, 1, 2
@@ -160,7 +159,6 @@ class SkipCells:
     def bbox(self) -> Tensor:
         return self._cells.bbox
 
-    @blockwise
     def __call__(self, xyz: Tensor) -> Tensor:
         """(N, 3) -> (N,) uint8 each point's state."""
         return self._padded[self._cells.padded_rows(xyz)]

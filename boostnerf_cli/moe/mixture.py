@@ -30,7 +30,6 @@ from torch import Tensor, nn
 
 from boostnerf_cli import flops
 from boostnerf_cli.errors import BoostNerfError
-from boostnerf_cli.fields.base import blockwise
 from boostnerf_cli.limits import MAX_GRID_RES, OneOf, Range, at_least, limit
 from boostnerf_cli.moe import cells as C
 from boostnerf_cli.moe.density_volume import DensityVolume
@@ -277,9 +276,7 @@ class Mixture(nn.Module):
             idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
             return probs, probs, idx
         if not need_probs and not torch.is_grad_enabled():
-            if static:
-                return None, *self._choose(xyz, static=True)
-            return None, *self._choose_blockwise(xyz)
+            return None, *self._choose(xyz, static)
         probs = self.gate.probs(xyz)
         vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
         return probs, vals, idx
@@ -293,10 +290,6 @@ class Mixture(nn.Module):
             return xyz.new_ones(xyz.shape[0], 1), self._top1_by_cell(xyz, cells.top1, static)[:, None]
         chosen, idx = top_k(gate.logits(xyz).float(), k, renormalize=False)
         return (torch.ones_like(chosen) if k == 1 else softmax(chosen)), idx
-
-    @blockwise
-    def _choose_blockwise(self, xyz: Tensor) -> tuple[Tensor, Tensor]:
-        return self._choose(xyz)
 
     def _top1_by_cell(self, xyz: Tensor, top1: Tensor, static: bool) -> Tensor:
         """(N,) each sample's expert: its cell's (moe/cells.py), the baked gate's blend where the cell's vertices
@@ -444,9 +437,11 @@ class MixtureSkip:
         flat = xyz.reshape(-1, 3)
         keep = valid.reshape(-1)
         visible = mix.cfg.vd_filter == "visible" and threshold > 0
-        tables = None if visible else mix.skips()
+        tables = self._tables(threshold)
         if tables is not None and not packer.static:
-            return self._by_tables(tables, flat, keep).reshape(valid.shape)
+            rows = self._rows_by_tables(tables, xyz, valid)
+            one = torch.ones((), dtype=torch.bool, device=keep.device)
+            return torch.zeros_like(keep).index_put_((rows,), one).reshape(valid.shape)
         certain = None
         if tables is not None:  # both skips decided per fine cell: tested only where mixed
             with part("V_D"):
@@ -478,19 +473,21 @@ class MixtureSkip:
     @torch.no_grad()
     def filter_rows(self, xyz: Tensor, valid: Tensor, step: float, threshold: float) -> Tensor:
         """`filter` on the dynamic packing, as the sorted rows of the kept samples among the flattened (R, S)."""
-        mix = self.mixture
-        tables = None if mix.cfg.vd_filter == "visible" and threshold > 0 else mix.skips()
+        tables = self._tables(threshold)
         if tables is None:
             return self.filter(xyz, valid, step, threshold).reshape(-1).nonzero().squeeze(-1)
+        return self._rows_by_tables(tables, xyz, valid)
+
+    def _tables(self, threshold: float) -> SkipTables | None:
+        """The per-cell tables `filter` decides by: none with the visible filter (it needs V_D along every ray)."""
+        mix = self.mixture
+        return None if mix.cfg.vd_filter == "visible" and threshold > 0 else mix.skips()
+
+    def _rows_by_tables(self, tables: SkipTables, xyz: Tensor, valid: Tensor) -> Tensor:
+        """The sorted rows of the samples inside the box that pass, through the per-cell tables (the dynamic packing),
+        every test on the list of the samples still undecided."""
         rows = valid.reshape(-1).nonzero().squeeze(-1)
         return rows[self._passed(tables, xyz.reshape(-1, 3)[rows])]
-
-    def _by_tables(self, tables: SkipTables, flat: Tensor, keep: Tensor) -> Tensor:
-        """`filter` through the per-cell tables on the dynamic packing: the same samples kept, with every test on the
-        list of the samples still undecided (one pass over all of them, to list those in the box)."""
-        rows = keep.nonzero().squeeze(-1)
-        passed = self._passed(tables, flat[rows])
-        return torch.zeros_like(keep).index_put_((rows[passed],), torch.ones((), dtype=torch.bool, device=keep.device))
 
     def _passed(self, tables: SkipTables, pts: Tensor) -> Tensor:
         """(N,) bool: which of the points `pts` (inside the box) pass the occupancy grid and V_D, looked up in the

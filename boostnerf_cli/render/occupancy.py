@@ -14,8 +14,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from boostnerf_cli.fields.base import blockwise
-
 
 def cell_points(bbox: Tensor, shape: tuple[int, int, int], offset: Tensor) -> Tensor:
     """One point per cell at `offset` (3,) in [0, 1) of the cell: (X*Y*Z, 3) in [x, y, z] cell order."""
@@ -45,7 +43,6 @@ class OccupancyGrid:
     def to(self, device: torch.device | str) -> "OccupancyGrid":
         return OccupancyGrid(self.occupied.to(device), self.bbox.to(device))
 
-    @blockwise
     def __call__(self, xyz: Tensor) -> Tensor:
         """(N, 3) -> (N,) bool: inside the box (faces included) and in an occupied cell.
 
