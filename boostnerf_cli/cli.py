@@ -607,6 +607,7 @@ def chain(
                                                    "pretrain.res": res, "pretrain.seed": seed}.items()
                    if value is not None)
     rec = rec.override(changes)
+    stage.check_models(names, rec)
     if scene is not None and rec.data.format == "auto":
         stage.layout_of(scene)  # a folder of no layout: one line, before the workspace is made
     if why:

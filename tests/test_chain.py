@@ -178,6 +178,8 @@ def test_a_folder_chain_cannot_read_is_one_line_and_no_workspace(monkeypatch, ca
 def test_a_bad_model_recipe_or_option_is_refused_before_any_stage(monkeypatch, capsys, tmp_path, scene):
     line = refused(monkeypatch, capsys, tmp_path, str(scene), "--models", "baseline,ensemble")
     assert "unknown model 'ensemble'" in line
+    line = refused(monkeypatch, capsys, tmp_path, "-", "--models", "baseline,top4")  # the demo recipe: 3 experts
+    assert "top4" in line and "3 experts" in line and "dvgo-16, dvgo-24, dvgo-32" in line
     line = refused(monkeypatch, capsys, tmp_path, str(scene), "--recipe", "blender-dvgo-gpu")
     assert "recipe blender-dvgo-gpu not found" in line and all(p.stem in line for p in RECIPES)
     assert "--top1-weight" in refused(monkeypatch, capsys, tmp_path, "-", "--top1-weight", "probability")

@@ -178,6 +178,17 @@ def parse_models(text: str) -> list[str]:
     return list(dict.fromkeys(names))
 
 
+def check_models(names: list[str], rec: Recipe) -> None:
+    """Every topK of `names` has at most as many experts as the recipe pretrains: one line before any stage."""
+    from boostnerf_cli.moe.router import check_topk
+    from boostnerf_cli.stages.pretrain import expert_name
+
+    experts = [expert_name(rec.pretrain.model, r) for r in dict.fromkeys(rec.pretrain.res)]
+    for name in names:
+        if (k := finetune_args(name)) is not None:
+            check_topk(k, experts, f"--models {name}'s K")
+
+
 def finetune_args(name: str) -> int | None:
     """The top-k of finetuned model `name` (None for baseline and ens)."""
     return int(name[3:]) if name.startswith("top") else None
