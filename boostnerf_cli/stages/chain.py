@@ -281,18 +281,18 @@ def run(ws: Workspace, plan: Plan, device: str) -> Outcome:
     names = (["pretrain", "build-moe"] + [f"finetune {m}" for m in plan.models]
              + ["eval", "count-params", "render --compare", "render --path"])
     stages = Stages(names)
-    stages.run("pretrain", lambda: pretrain.run(Survey(ws), plan.data, rec, device, False))
-    stages.run("build-moe", lambda: build_moe.build(Survey(ws), None, rec.moe, device))
+    survey = Survey(ws)  # one for the whole chain: it reads again what a stage writes, and loads the scene once
+    stages.run("pretrain", lambda: pretrain.run(survey, plan.data, rec, device, False))
+    stages.run("build-moe", lambda: build_moe.build(survey, None, rec.moe, device))
     for m in plan.models:
         moe = top1.moe if m == "top1" else rec.moe
-        stages.run(f"finetune {m}", lambda m=m, moe=moe: finetune.run(Survey(ws), m, finetune_args(m), moe, device,
-                                                                      False))
-    result = stages.run("eval", lambda: evaluate.run(Survey(ws), None, Viewing("test"), device, True, costs=True))
+        stages.run(f"finetune {m}", lambda m=m, moe=moe: finetune.run(survey, m, finetune_args(m), moe, device, False))
+    result = stages.run("eval", lambda: evaluate.run(survey, None, Viewing("test"), device, True, costs=True))
     log(f"wrote {ws.reports_dir / 'eval.json'} and eval.md")
-    counts = stages.run("count-params", lambda: count_params.run(Survey(ws), None, "test", device, None))
+    counts = stages.run("count-params", lambda: count_params.run(survey, None, "test", device, None))
     log(f"wrote {ws.reports_dir / 'count-params.json'}")
-    pictures = stages.run("render --compare", lambda: _compare(Survey(ws), device))
-    video = stages.run("render --path", lambda: _video(Survey(ws), plan, result, device))
+    pictures = stages.run("render --compare", lambda: _compare(survey, device))
+    video = stages.run("render --path", lambda: _video(survey, plan, result, device))
     return Outcome(result, counts, pictures, video, time.perf_counter() - t0, stages.seconds)
 
 
