@@ -41,6 +41,7 @@ from torch import Tensor
 from boostnerf_cli.cameras import DataFrame
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.fields.grid import lattice_points
+from boostnerf_cli.images import to_uint8
 from boostnerf_cli.lineage import Survey
 from boostnerf_cli.models import ALL_SKIPS, LoadedModel, load_model, n_views
 from boostnerf_cli.render.contraction import SHELL
@@ -364,10 +365,6 @@ def routing(model: LoadedModel, scene: Scene, out: Path, device: str) -> dict:
 
 
 # --- files -----------------------------------------------------------------------------------------------------------
-def _bytes(rgb: np.ndarray) -> np.ndarray:
-    return np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)
-
-
 def write_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray, normals: np.ndarray | None = None,
               faces: np.ndarray | None = None, extra: dict[str, np.ndarray] | None = None) -> None:
     """A binary PLY: vertices x y z (float64: a capture's frame may sit far from its origin), nx ny nz (float32) when
@@ -385,7 +382,7 @@ def write_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray, normals: np.ndarray 
     if normals is not None:
         for a, k in enumerate(("nx", "ny", "nz")):
             vertex[k] = normals[:, a]
-    for k, v in zip(("red", "green", "blue"), _bytes(rgb).T):
+    for k, v in zip(("red", "green", "blue"), to_uint8(rgb).T):
         vertex[k] = v
     for k, v in (extra or {}).items():
         vertex[k] = v

@@ -167,7 +167,6 @@ def run_path_through_views(survey: Survey, split: str, views: list[int], seconds
     file = Path(out) if out is not None else survey.ws.camera_paths_dir / "views.json"
     if file.suffix != ".json":
         raise BoostNerfError(f"--out {file}: a camera path is a .json file")
-    file.parent.mkdir(parents=True, exist_ok=True)
     write_camera_path(file, path, DataFrame.of(scene.extra))
     log(f"camera path: {path.summary()}")
     return file
