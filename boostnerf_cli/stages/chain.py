@@ -26,8 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-import torch
-
 from boostnerf_cli.errors import BoostNerfError, out_of_memory
 from boostnerf_cli.lineage import Survey
 from boostnerf_cli.recipe import Recipe
@@ -197,10 +195,9 @@ def finetune_args(name: str) -> int | None:
 def video_kind(scene: Scene) -> str:
     """The camera path for the scene's video: spiral for a forward-facing capture (rays in NDC, or training cameras
     that all look one way), else orbit; the rule `render --path`'s notes give."""
-    if scene.ndc is not None:
-        return "spiral"
-    facing = float(torch.linalg.norm(scene.split("train").poses[:, :3, 2].mean(0)))
-    return "spiral" if facing > 0.9 else "orbit"
+    from boostnerf_cli.stages.render import FORWARD, facing
+
+    return "spiral" if scene.ndc is not None or facing(scene.split("train").poses) > FORWARD else "orbit"
 
 
 def best_model(result: dict, made: list[str]) -> str:

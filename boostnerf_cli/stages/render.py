@@ -123,6 +123,14 @@ def one_model(survey: Survey, names: list[str] | None, option: str) -> str:
     return survey.current(names)[0]
 
 
+FORWARD = 0.9  # `facing` above it: the cameras all look one way, a forward-facing capture (a spiral suits it)
+
+
+def facing(poses: torch.Tensor) -> float:
+    """How much cameras (N, 4, 4) look one way: the length of their mean viewing axis (1: all the same way)."""
+    return float(torch.linalg.norm(poses[:, :3, 2].mean(0)))
+
+
 def run_video(survey: Survey, names: list[str] | None, path: VideoPath, device: str, skips: Skips) -> list[Path]:
     """Render one model along a camera path derived from the training cameras -> colour and depth videos."""
     kind, n_frames, video, fps = path.kind, path.frames, path.file, path.fps
@@ -131,10 +139,10 @@ def run_video(survey: Survey, names: list[str] | None, path: VideoPath, device: 
     model = load_model(ws, name, device)
     target, fmt = video_target(video or ws.renders_dir(model.name) / f"{kind}.mp4")  # refused before rendering
     train = scene.split("train")
-    facing = float(torch.linalg.norm(train.poses[:, :3, 2].mean(0)))  # 1: all cameras look the same way
-    if kind == "spiral" and facing < 0.5:
+    look = facing(train.poses)
+    if kind == "spiral" and look < 0.5:
         log("note: the training cameras look in many directions (a 360-degree capture?): --path orbit suits it better")
-    if kind == "orbit" and facing > 0.9:
+    if kind == "orbit" and look > FORWARD:
         log("note: the training cameras all look one way (a forward-facing capture?): --path spiral suits it better")
     poses = camera_path(kind, train.poses, model.bbox.cpu(), scene.near, scene.far, n_frames, scene.ndc)
     cameras = [Camera(pose, train.intrinsics[0], train.height, train.width) for pose in poses]
