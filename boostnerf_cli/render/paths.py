@@ -151,6 +151,6 @@ def camera_path(kind: str, poses: Tensor, bbox: Tensor, near: float, far: float,
     if kind == "spiral":
         if ndc is not None:
             z = min(float(bbox[:, 2].double().mean()), 0.9)  # NDC z -> 1 means infinitely far
-            return spiral_path(poses, bbox, ndc.near, math.inf, n_frames, focus=2.0 * ndc.near / (1.0 - z))
+            return spiral_path(poses, bbox, ndc.near, math.inf, n_frames, focus=ndc.depth(z))
         return spiral_path(poses, bbox, near, far, n_frames)
     raise BoostNerfError(f"unknown camera path {kind!r}: use {' or '.join(PATHS)}")

@@ -39,11 +39,19 @@ class NDC:
         x, y, z = xyz.unbind(-1)
         return torch.stack([-self.sx * x / z, -self.sy * y / z, 1 + 2 * self.near / z], dim=-1)
 
+    def depth(self, z):
+        """The world depth -p_z that NDC z (< 1; a number or a tensor) comes from: 2 near / (1 - z)."""
+        return 2 * self.near / (1 - z)
+
+    def z(self, depth):
+        """The NDC z of world depth `depth` (>= near): 1 - 2 near / depth (`depth`'s inverse)."""
+        return 1 - 2 * self.near / depth
+
     def world(self, ndc: Tensor) -> Tensor:
         """NDC points (..., 3) with z < 1 -> the world points `points` maps there (its inverse): depth -p_z =
-        2 near / (1 - z), then x and y scaled back by it. z = 1 is infinitely far."""
+        `depth(z)`, then x and y scaled back by it. z = 1 is infinitely far."""
         a, b, c = ndc.unbind(-1)
-        z = -2 * self.near / (1 - c)
+        z = -self.depth(c)
         return torch.stack([-a * z / self.sx, -b * z / self.sy, z], dim=-1)
 
     def rays(self, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:

@@ -237,8 +237,8 @@ def mesh_region(model: LoadedModel, scene: Scene) -> tuple[Tensor, str]:
         return torch.stack([c - r, c + r]), f"the box around the sphere kept linear (radius {r:.3g})"
     if scene.ndc is not None:
         bounds = scene.extra.get("bounds")
-        far = float(np.max(bounds)) if bounds else 2 * scene.ndc.near / (1 - NDC_FAR)
-        box[1, 2] = min(float(box[1, 2]), 1 - 2 * scene.ndc.near / far)
+        far = float(np.max(bounds)) if bounds else scene.ndc.depth(NDC_FAR)
+        box[1, 2] = min(float(box[1, 2]), scene.ndc.z(far))
         return box, f"the NDC box up to depth {far:.3g} (the capture's farthest bound)"
     if not bool((box[1] > box[0]).all()):
         raise BoostNerfError(f"{model.name}'s box does not overlap the scene box: nothing to mesh")

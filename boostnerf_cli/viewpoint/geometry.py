@@ -135,7 +135,7 @@ def subject(scene: Scene) -> np.ndarray:
     position, forward = mean[:3, 3], -mean[:3, 2]
     centre = scene.bbox.double().mean(0).numpy()
     if scene.ndc is not None:
-        depth = 2 * scene.ndc.near / (1 - min(float(centre[2]), 0.9))
+        depth = scene.ndc.depth(min(float(centre[2]), 0.9))  # z -> 1 is infinitely far
     else:
         depth = float((centre - position) @ forward)
         depth = depth if depth > 0 else float(np.linalg.norm(centre - position)) or 1.0
