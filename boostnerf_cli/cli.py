@@ -293,7 +293,7 @@ def _recipe(workspace: Path, recipe: Optional[Path], sets: Optional[list[str]], 
     """The recipe given, else the one recorded by pretrain in the workspace, else defaults (every stage's), with the
     `--set KEY=VALUE` settings, then the command's options `{recipe key: value}` (None: not given) applied, and
     checked again."""
-    from boostnerf_cli.recipe import Recipe, load_recipe, parse_setting, recorded_recipe
+    from boostnerf_cli.recipe import Recipe, load_recipe, recorded_recipe
     from boostnerf_cli.workspace import Workspace
 
     if recipe is not None:
@@ -302,6 +302,14 @@ def _recipe(workspace: Path, recipe: Optional[Path], sets: Optional[list[str]], 
         ws = Workspace(workspace)
         rec, source = recorded_recipe(ws.manifest().get("recipe"), ws.manifest_path), f"{ws.manifest_path}"
         rec, source = (rec, source) if rec is not None else (Recipe(), "the defaults")
+    return _changed(rec, source, sets, options)
+
+
+def _changed(rec, source: str, sets: Optional[list[str]], options: dict[str, Any]):
+    """Recipe `rec` (read from `source`) with the `--set KEY=VALUE` settings, then the command's options
+    `{recipe key: value}` (None: not given) applied, and checked again."""
+    from boostnerf_cli.recipe import parse_setting
+
     changes = dict(parse_setting(text) for text in sets or [])
     changes.update((key, value) for key, value in options.items() if value is not None)
     logging.getLogger(__name__).debug(f"recipe {rec.name} (from {source})"
@@ -573,7 +581,7 @@ def chain(
     """Every stage in one run: pretrain, build-moe, finetune the --models, eval --report, count-params, render
     --compare, and a video of the best model (an orbit; a spiral for a forward-facing scene). Rerun to go on."""
     from boostnerf_cli.images import ffmpeg_available
-    from boostnerf_cli.recipe import load_recipe, parse_setting, recorded_recipe
+    from boostnerf_cli.recipe import load_recipe, recorded_recipe
     from boostnerf_cli.stages import chain as stage
     from boostnerf_cli.stages.common import resolve_device
     from boostnerf_cli.workspace import Workspace
@@ -596,17 +604,16 @@ def chain(
     recorded = recorded_recipe(ws.manifest().get("recipe"), ws.manifest_path) if ws.manifest_path.is_file() else None
     why = None
     if recipe is not None:
-        rec = load_recipe(stage.find_recipe(recipe))
+        source = stage.find_recipe(recipe)
+        rec = load_recipe(source)
     elif recorded is not None:
-        rec, why = recorded, f"recipe {recorded.name}: the one {ws.manifest_path} records (--recipe: another)"
+        rec, source = recorded, ws.manifest_path
+        why = f"recipe {recorded.name}: the one {ws.manifest_path} records (--recipe: another)"
     else:
         pick = stage.pick_recipe(scene, dev, data_format)
-        rec, why = load_recipe(pick.path), pick.why
-    changes = dict(parse_setting(text) for text in sets or [])
-    changes.update((key, value) for key, value in {"data.format": data_format, "data.image_size": image_size,
-                                                   "pretrain.res": res, "pretrain.seed": seed}.items()
-                   if value is not None)
-    rec = rec.override(changes)
+        rec, source, why = load_recipe(pick.path), pick.path, pick.why
+    rec = _changed(rec, str(source), sets, {"data.format": data_format, "data.image_size": image_size,
+                                            "pretrain.res": res, "pretrain.seed": seed})
     stage.check_models(names, rec)
     if scene is not None and rec.data.format == "auto":
         stage.layout_of(scene)  # a folder of no layout: one line, before the workspace is made
