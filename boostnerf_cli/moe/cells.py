@@ -161,7 +161,7 @@ class SkipCells:
 
     def __call__(self, xyz: Tensor) -> Tensor:
         """(N, 3) -> (N,) uint8 each point's state."""
-        return self._padded[self._cells.padded_rows(xyz)]
+        return self._padded.index_select(0, self._cells.padded_rows(xyz))
 
 
 @torch.no_grad()

@@ -296,13 +296,13 @@ class Mixture(nn.Module):
         disagree (for a static packing blended for every sample and chosen per sample, so that nothing waits for the
         device)."""
         gate = self.gate
-        expert = top1[C.cell_index(xyz, gate.bbox, gate.shape)].long()
+        expert = top1.index_select(0, C.cell_index(xyz, gate.bbox, gate.shape)).long()
         mixed = expert < 0
         if static:
             return torch.where(mixed, gate.logits(xyz).float().argmax(-1), expert)
         rows = mixed.nonzero().squeeze(-1)
         if len(rows):
-            expert[rows] = top_k(gate.logits(xyz[rows]).float(), 1, renormalize=False)[1][:, 0]
+            expert.index_copy_(0, rows, gate.logits(xyz.index_select(0, rows)).float().argmax(-1))
         return expert
 
     def _cells_hold(self) -> bool:
@@ -350,14 +350,16 @@ class Mixture(nn.Module):
         experts, routes = self.experts, self.routes(vals, idx)
         if dirs is None and self.cfg.mix == "alpha":
             step = self.cfg.step
-            out = dispatch(routes, lambda e, r: _alpha_and_trans(experts[e].density(xyz[r]), step), 2, xyz, packer,
+            out = dispatch(routes, lambda e, r: _alpha_and_trans(experts[e].density(xyz.index_select(0, r)), step), 2,
+                           xyz, packer,
                            live, "density", listed)
             return alpha_mix_density(out[:, 0], out[:, 1], vals.sum(-1), step)
         if dirs is None:
-            out = dispatch(routes, lambda e, r: experts[e].density(xyz[r])[:, None], 1, xyz, packer, live, "density",
-                           listed)
+            out = dispatch(routes, lambda e, r: experts[e].density(xyz.index_select(0, r))[:, None], 1, xyz, packer,
+                           live, "density", listed)
             return out[:, 0]
-        return dispatch(routes, lambda e, r: experts[e].color(xyz[r], dirs[r]), 3, xyz, packer, live, "color")
+        return dispatch(routes, lambda e, r: experts[e].color(xyz.index_select(0, r), dirs.index_select(0, r)), 3, xyz,
+                        packer, live, "color")
 
     # --- the Field contract ---------------------------------------------------------------------
     def density(self, xyz: Tensor) -> Tensor:
@@ -487,7 +489,8 @@ class MixtureSkip:
         """The sorted rows of the samples inside the box that pass, through the per-cell tables (the dynamic packing),
         every test on the list of the samples still undecided."""
         rows = valid.reshape(-1).nonzero().squeeze(-1)
-        return rows[self._passed(tables, xyz.reshape(-1, 3)[rows])]
+        passed = self._passed(tables, xyz.reshape(-1, 3).index_select(0, rows))
+        return rows.index_select(0, passed.nonzero().squeeze(-1))
 
     def _passed(self, tables: SkipTables, pts: Tensor) -> Tensor:
         """(N,) bool: which of the points `pts` (inside the box) pass the occupancy grid and V_D, looked up in the
@@ -555,10 +558,10 @@ class RoutedMixture:
         xyz, vals, idx = self._last
         if self._listed is not None and live is None:  # each expert's share of `rows`, from its density-pass list
             slots = torch.full((xyz.shape[0],), -1, dtype=torch.long, device=xyz.device)
-            slots[rows] = torch.arange(len(rows), device=xyz.device)
+            slots.index_copy_(0, rows, torch.arange(len(rows), device=xyz.device))
             experts = self.mixture.experts
-            return self._listed.run(lambda e, r, at: experts[e].color(xyz[r], dirs[at]), xyz.new_zeros(len(rows), 3),
-                                    slots)
+            return self._listed.run(lambda e, r, at: experts[e].color(xyz.index_select(0, r), dirs.index_select(0, at)),
+                                    xyz.new_zeros(len(rows), 3), slots)
         return self.mixture._mix(xyz[rows], dirs, vals[rows], idx[rows], self.packer, live)
 
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:

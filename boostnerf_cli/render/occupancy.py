@@ -55,7 +55,7 @@ class OccupancyGrid:
         """
         if xyz.shape[0] == 0:
             return torch.zeros(0, dtype=torch.bool, device=xyz.device)
-        return self._padded[self.padded_rows(xyz)]
+        return self._padded.index_select(0, self.padded_rows(xyz))
 
     def padded_rows(self, xyz: Tensor) -> Tensor:
         """(N, 3) points -> (N,) their rows in the grid padded by one cell on every side and flattened (`__call__`'s

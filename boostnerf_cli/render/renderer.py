@@ -128,7 +128,7 @@ def kept_rows(skip, xyz: Tensor, valid: Tensor, step: float, threshold: float) -
     if skip is None or hasattr(skip, "filter"):
         return kept_samples(skip, xyz, valid, step, threshold, DYNAMIC).reshape(-1).nonzero().squeeze(-1)
     rows = valid.reshape(-1).nonzero().squeeze(-1)
-    return rows[skip(xyz.reshape(-1, 3)[rows])]
+    return rows.index_select(0, skip(xyz.reshape(-1, 3).index_select(0, rows)).nonzero().squeeze(-1))
 
 
 def render_rays(
@@ -214,20 +214,21 @@ def render_rays_packed(
     depth, acc = origins.new_zeros(r), origins.new_zeros(r)
     n_color = 0
     if len(rows):
-        pts = xyz.reshape(-1, 3)[rows]
+        pts = xyz.reshape(-1, 3).index_select(0, rows)
         with part("field density"):
             sigma = view.density(pts, None) if view is not None else field.density(pts)
         with part("compositing"):
             ray = torch.div(rows, s, rounding_mode="floor")
-            delta = Contraction.deltas(xyz).reshape(-1)[rows] if settings.contraction is not None else step
+            delta = Contraction.deltas(xyz).reshape(-1).index_select(0, rows) if settings.contraction is not None \
+                else step
             tau = sigma.to(origins.dtype) * delta
             run = torch.cumsum(tau.double(), 0)
             first = torch.ones_like(ray, dtype=torch.bool)
             first[1:] = ray[1:] != ray[:-1]
             start = (run - tau)[first]  # the running sum before each ray's first kept sample
-            before = run - tau - start[torch.cumsum(first, 0) - 1]
+            before = run - tau - start.index_select(0, torch.cumsum(first, 0) - 1)
             weights = torch.exp(-before).to(tau.dtype) * -torch.expm1(-tau)
-            tk = t.reshape(-1)[rows]
+            tk = t.reshape(-1).index_select(0, rows)
             acc.index_add_(0, ray, weights)
             depth.index_add_(0, ray, weights * tk)
             col = (weights > thr).nonzero().squeeze(-1) if thr > 0 else torch.arange(len(rows), device=rows.device)
@@ -235,12 +236,13 @@ def render_rays_packed(
         flops.add("composite", flops.COMPOSITE_FLOPS * len(rows) + 6 * n_color)
         if n_color:
             with part("field color"):
+                ray_col = ray.index_select(0, col)
                 if view is not None:
-                    colors = view.color_rows(col, dirs[ray[col]], None)
+                    colors = view.color_rows(col, dirs.index_select(0, ray_col), None)
                 else:
-                    colors = field.color(pts[col], dirs[ray[col]])
+                    colors = field.color(pts.index_select(0, col), dirs.index_select(0, ray_col))
             with part("compositing"):
-                color.index_add_(0, ray[col], weights[col, None] * colors.to(origins.dtype))
+                color.index_add_(0, ray_col, weights.index_select(0, col)[:, None] * colors.to(origins.dtype))
     with part("compositing"):
         bg = constant(tuple(settings.background), color.device, color.dtype)
         color = color + (1.0 - acc)[:, None] * bg
