@@ -269,3 +269,36 @@ def test_packed_compositing_renders_what_padded_compositing_does(kind):
     for a, b in ((packed.color, padded.color), (packed.depth, padded.depth), (packed.acc, padded.acc)):
         assert torch.allclose(a, b, atol=2e-5, rtol=1e-5), float((a - b).abs().max())
     assert float(padded.acc.max()) > 0.2  # rays that meet something
+
+
+@pytest.mark.parametrize("case", ["outside", "inside", "near", "ndc"])
+def test_samples_made_as_lists_are_the_valid_slots_of_the_grid_bit_for_bit(case):
+    """`sample_list` (what rendering on the CPU samples a bounded scene with) gives exactly the samples inside the box
+    that `sample_rays` marks valid: the same rays, distances and points to the last bit, in the same order, for rays
+    that miss the box, graze it, start inside it or are cut by the near plane, and for one camera's shared origin."""
+    from helpers import TOY_BOX
+
+    from boostnerf_cli.render.renderer import RenderSettings, sample_list, sample_rays
+
+    g = torch.Generator().manual_seed(5)
+    n = 400
+    if case == "inside":  # origins inside the box: every ray leaves through a face
+        origins = 0.5 * torch.randn(n, 3, generator=g).clamp(-1, 1)
+    elif case == "ndc":  # rays as NDC makes them: from the near plane z = -1, unnormalised, towards +z
+        origins = torch.cat([2 * torch.rand(n, 2, generator=g) - 1, -torch.ones(n, 1)], -1)
+    else:  # one camera: a shared origin, expanded as image_rays makes it
+        origins = torch.tensor([0.3, -0.2, 2.5]).expand(n, 3)
+    dirs = F.normalize(torch.tensor([0.0, 0.0, -1.0]) + 0.6 * torch.randn(n, 3, generator=g), dim=-1)
+    dirs[:4] = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])  # axis-parallel
+    near = 2.2 if case == "near" else 0.1
+    settings = RenderSettings(step=0.037, near=near, far=6.0, bbox=TOY_BOX)
+    if case == "ndc":
+        dirs = torch.cat([0.3 * torch.randn(n, 2, generator=g), 2 * torch.ones(n, 1)], -1)
+        box = torch.tensor([[-1.5, -1.5, -1.0], [1.5, 1.5, 1.0]])
+        settings = RenderSettings(step=0.004, near=0.0, far=1.0, bbox=box)
+    t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter=False, fit=True)
+    ray, tl, xl, step_l = sample_list(origins, dirs, settings)
+    rows = valid.reshape(-1).nonzero().squeeze(-1)
+    assert step_l == step and len(rows) > 1000 and (~valid).any()
+    assert torch.equal(ray, rows // t.shape[1])
+    assert torch.equal(tl, t.reshape(-1)[rows]) and torch.equal(xl, xyz.reshape(-1, 3)[rows])

@@ -485,33 +485,54 @@ class MixtureSkip:
         mix = self.mixture
         return None if mix.cfg.vd_filter == "visible" and threshold > 0 else mix.skips()
 
-    def _rows_by_tables(self, tables: SkipTables, xyz: Tensor, valid: Tensor) -> Tensor:
-        """The sorted rows of the samples inside the box that pass, through the per-cell tables (the dynamic packing),
-        every test on the list of the samples still undecided."""
-        rows = valid.reshape(-1).nonzero().squeeze(-1)
-        passed = self._passed(tables, xyz.reshape(-1, 3).index_select(0, rows))
-        return rows.index_select(0, passed.nonzero().squeeze(-1))
+    def lists(self, threshold: float) -> bool:
+        """Whether `filter_list` can filter samples listed without their rays (it has per-cell tables)."""
+        return self._tables(threshold) is not None
 
-    def _passed(self, tables: SkipTables, pts: Tensor) -> Tensor:
-        """(N,) bool: which of the points `pts` (inside the box) pass the occupancy grid and V_D, looked up in the
-        per-cell tables and tested only where undecided."""
-        mix = self.mixture
-        vd, occupancy = mix.vd, mix.occupancy
+    @torch.no_grad()
+    def filter_list(self, pts: Tensor, threshold: float) -> Tensor:
+        """Of the samples `pts` (K, 3) inside the box, the indices of those that pass (see `lists`)."""
+        tables = self._tables(threshold)
+        if tables is None:
+            raise ValueError("this mixture's filter needs the samples along their rays: call filter")
+        return self._kept(tables, pts)
+
+    def _rows_by_tables(self, tables: SkipTables, xyz: Tensor, valid: Tensor) -> Tensor:
+        """The sorted rows of the samples inside the box that pass, through the per-cell tables (dynamic packing)."""
+        rows = valid.reshape(-1).nonzero().squeeze(-1)
+        return rows.index_select(0, self._kept(tables, xyz.reshape(-1, 3).index_select(0, rows)))
+
+    def _kept(self, tables: SkipTables, pts: Tensor) -> Tensor:
+        """The indices of the points `pts` (K, 3, inside the box) that pass: one lookup per point in the fine cells,
+        every further test on the list of the points still undecided."""
         with part("V_D"):
             state = tables.skip(pts)
-        passed = state == C.PASS
-        left = (state == C.MIXED).nonzero().squeeze(-1)  # near V_D's surface or an occupancy edge
-        if len(left) and occupancy is not None:
-            left = left[occupancy(pts[left])]
+        live = state.nonzero().squeeze(-1)  # PASS or MIXED (FAIL is 0)
+        left = (state.index_select(0, live) == C.MIXED).nonzero().squeeze(-1)  # near V_D's surface or an edge
         if len(left):
-            p = pts[left]
+            keep = torch.ones(len(live), dtype=torch.bool, device=live.device)
+            failed = ~self._passed(tables, pts.index_select(0, live.index_select(0, left)))
+            live = live.index_select(0, keep.index_fill_(0, left[failed], False).nonzero().squeeze(-1))
+        return live
+
+    def _passed(self, tables: SkipTables, pts: Tensor) -> Tensor:
+        """(N,) bool: which of the points `pts`, undecided by the fine cells, pass the occupancy grid and V_D: V_D
+        looked up per cell of its own lattice, blended only where its surface crosses the cell."""
+        mix = self.mixture
+        vd, occupancy = mix.vd, mix.occupancy
+        passed = torch.zeros(len(pts), dtype=torch.bool, device=pts.device)
+        left = torch.arange(len(pts), device=pts.device)
+        if occupancy is not None:
+            left = occupancy(pts).nonzero().squeeze(-1)
+        if len(left):
+            p = pts.index_select(0, left)
             with part("V_D"):
-                cell = torch.where(vd.inside(p), tables.vd[C.cell_index(p, vd.bbox, vd.shape)], C.FAIL)
+                cell = torch.where(vd.inside(p), tables.vd.index_select(0, C.cell_index(p, vd.bbox, vd.shape)), C.FAIL)
             passed[left[cell == C.PASS]] = True
             left = left[cell == C.MIXED]  # V_D's surface crosses its cell: blended
         if len(left):
             with part("V_D"):
-                sigma = mix.vd_density(pts[left])
+                sigma = mix.vd_density(pts.index_select(0, left))
             passed[left[-torch.expm1(-sigma * mix.cfg.step) > mix.cfg.density_threshold]] = True
         return passed
 

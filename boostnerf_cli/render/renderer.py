@@ -109,6 +109,35 @@ def sample_rays(
     return t, valid, xyz, step
 
 
+def sample_list(origins: Tensor, dirs: Tensor, settings: RenderSettings) -> tuple[Tensor, Tensor, Tensor, float]:
+    """The samples `sample_rays(..., jitter=False, fit=True)` marks valid in a bounded scene, made as lists instead of
+    an (R, S) grid most of whose slots lie outside the box: ray (K,) each sample's ray, t (K,), xyz (K, 3), in ray
+    order and along each ray; the same values, bit for bit (the same operations on the same numbers), and the step.
+
+    A ray's valid slots are a prefix (t grows with the slot), so each ray's count is worked out from its chord and
+    checked against `t < t_exit` at its last slot and the one after, where float rounding may differ by one."""
+    n, step = settings.sampling
+    bbox = settings.bbox.to(origins.device)
+    t0, t1, hit = intersect_box(origins, dirs, bbox, settings.near, settings.far)
+    half = torch.full((), 0.5, dtype=origins.dtype, device=origins.device)
+    span = torch.where(hit, t1 - t0, torch.zeros_like(t0))
+    count = torch.ceil(span / step - 0.5).clamp_(0, n)
+    for _ in range(2):  # the estimate within one of the count: step down while the last slot is past the exit ...
+        last = t0 + ((count - 1) + half) * step
+        count = torch.where((count > 0) & ~(hit & (last < t1)), count - 1, count)
+    for _ in range(2):  # ... and up while the next slot is still inside
+        after = t0 + (count + half) * step
+        count = torch.where((count < n) & hit & (after < t1), count + 1, count)
+    count = count.long()
+    ray = torch.repeat_interleave(torch.arange(len(t0), device=origins.device), count)
+    start = torch.cumsum(count, 0) - count
+    j = (torch.arange(len(ray), device=origins.device) - start.index_select(0, ray)).to(origins.dtype)
+    t = t0.index_select(0, ray) + (j + half) * step
+    # (rays of one camera share one origin: an expanded tensor, which index_select gathers 5x slower)
+    xyz = origins.contiguous().index_select(0, ray) + t[:, None] * dirs.contiguous().index_select(0, ray)
+    return ray, t, xyz, step
+
+
 def kept_samples(skip, xyz: Tensor, valid: Tensor, step: float, threshold: float, packer: Packer) -> Tensor:
     """(R, S) the samples inside the box that `skip` keeps: a filter of points (an occupancy grid: called on every
     sample), or one with `filter` (a mixture's V_D, which packs its own work and may filter along the rays)."""
@@ -189,6 +218,24 @@ def render_rays(
     return RayBundle(color, depth, acc, dens.count(), cflat.count(), extras)
 
 
+def kept_of_list(skip, pts: Tensor, threshold: float) -> Tensor | None:
+    """Of the samples `pts` (K, 3) inside the box, the indices of those `skip` keeps (all: None); a filter that needs
+    the samples along their rays (`filter` without `filter_list`, or one that declines) is not asked here."""
+    if skip is None:
+        return None
+    if hasattr(skip, "filter_list"):
+        return skip.filter_list(pts, threshold)
+    return skip(pts).nonzero().squeeze(-1)
+
+
+def _listable(skip, settings: RenderSettings) -> bool:
+    """Whether `render_rays_packed` can sample as lists (`sample_list`) and skip on them (`kept_of_list`)."""
+    if settings.contraction is not None:
+        return False
+    return skip is None or not hasattr(skip, "filter") or (hasattr(skip, "lists") and skip.lists(
+        settings.color_threshold))
+
+
 def render_rays_packed(
     field: Field,
     origins: Tensor,
@@ -202,25 +249,37 @@ def render_rays_packed(
     Padded compositing works on every slot of the (R, S) samples (S the longest ray's), most of them skipped; here
     each ray's transmittance is an exclusive sum over its kept samples alone (a running sum over the list in float64,
     less its value at the ray's first sample), and colour, depth and opacity are sums over them per ray. The skipped
-    slots add exactly nothing in the padded sums either."""
-    with part("sampling"):
-        t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter=False, fit=True)
-    r, s = t.shape
-    view = field.batch_view(DYNAMIC) if hasattr(field, "batch_view") else None
+    slots add exactly nothing in the padded sums either. In a bounded scene, with a filter of points, the samples
+    themselves are made as lists of those inside the box (`sample_list`), never as the (R, S) grid."""
+    r = origins.shape[0]
     thr = settings.color_threshold
-    with part("skipping"):
-        rows = kept_rows(skip, xyz, valid, step, thr)  # in ray order, each ray's samples in order along it
+    view = field.batch_view(DYNAMIC) if hasattr(field, "batch_view") else None
+    delta: Tensor | float
+    if _listable(skip, settings):
+        with part("sampling"):
+            ray, tk, pts, step = sample_list(origins, dirs, settings)
+        with part("skipping"):
+            kept = kept_of_list(skip, pts, thr)
+            if kept is not None:
+                ray, tk, pts = ray.index_select(0, kept), tk.index_select(0, kept), pts.index_select(0, kept)
+        delta = step
+    else:
+        with part("sampling"):
+            t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter=False, fit=True)
+        with part("skipping"):
+            rows = kept_rows(skip, xyz, valid, step, thr)  # in ray order, each ray's samples in order along it
+            pts = xyz.reshape(-1, 3).index_select(0, rows)
+            ray = torch.div(rows, t.shape[1], rounding_mode="floor")
+            tk = t.reshape(-1).index_select(0, rows)
+            delta = Contraction.deltas(xyz).reshape(-1).index_select(0, rows) if settings.contraction is not None \
+                else step
     color = origins.new_zeros(r, 3)
     depth, acc = origins.new_zeros(r), origins.new_zeros(r)
     n_color = 0
-    if len(rows):
-        pts = xyz.reshape(-1, 3).index_select(0, rows)
+    if len(pts):
         with part("field density"):
             sigma = view.density(pts, None) if view is not None else field.density(pts)
         with part("compositing"):
-            ray = torch.div(rows, s, rounding_mode="floor")
-            delta = Contraction.deltas(xyz).reshape(-1).index_select(0, rows) if settings.contraction is not None \
-                else step
             tau = sigma.to(origins.dtype) * delta
             run = torch.cumsum(tau.double(), 0)
             first = torch.ones_like(ray, dtype=torch.bool)
@@ -228,12 +287,11 @@ def render_rays_packed(
             start = (run - tau)[first]  # the running sum before each ray's first kept sample
             before = run - tau - start.index_select(0, torch.cumsum(first, 0) - 1)
             weights = torch.exp(-before).to(tau.dtype) * -torch.expm1(-tau)
-            tk = t.reshape(-1).index_select(0, rows)
             acc.index_add_(0, ray, weights)
             depth.index_add_(0, ray, weights * tk)
-            col = (weights > thr).nonzero().squeeze(-1) if thr > 0 else torch.arange(len(rows), device=rows.device)
+            col = (weights > thr).nonzero().squeeze(-1) if thr > 0 else torch.arange(len(pts), device=pts.device)
             n_color = len(col)
-        flops.add("composite", flops.COMPOSITE_FLOPS * len(rows) + 6 * n_color)
+        flops.add("composite", flops.COMPOSITE_FLOPS * len(pts) + 6 * n_color)
         if n_color:
             with part("field color"):
                 ray_col = ray.index_select(0, col)
@@ -246,7 +304,7 @@ def render_rays_packed(
     with part("compositing"):
         bg = constant(tuple(settings.background), color.device, color.dtype)
         color = color + (1.0 - acc)[:, None] * bg
-    return RayBundle(color, depth, acc, len(rows), n_color, {})
+    return RayBundle(color, depth, acc, len(pts), n_color, {})
 
 
 class Camera(NamedTuple):
