@@ -302,3 +302,26 @@ def test_samples_made_as_lists_are_the_valid_slots_of_the_grid_bit_for_bit(case)
     assert step_l == step and len(rows) > 1000 and (~valid).any()
     assert torch.equal(ray, rows // t.shape[1])
     assert torch.equal(tl, t.reshape(-1)[rows]) and torch.equal(xl, xyz.reshape(-1, 3)[rows])
+
+
+def test_a_one_channel_blend_without_gradient_matches_the_corner_lookup():
+    """`grid.blend` (a one-channel table without gradients: rendering's densities, V_D) gives what blending the 8
+    listed corners gives, to float32 rounding, inside the box, on its faces and vertices and clamped outside it; with a
+    gradient, or several channels, it is the corner lookup itself, bit for bit."""
+    from boostnerf_cli.fields import grid as G
+
+    g = torch.Generator().manual_seed(3)
+    shape, bbox = (7, 5, 9), torch.tensor([[-1.0, -0.5, 0.0], [2.0, 0.5, 1.5]])
+    table = torch.randn(7 * 5 * 9, 1, generator=g) * 4
+    inner = bbox[0] + torch.rand(500, 3, generator=g) * (bbox[1] - bbox[0])
+    outer = bbox[0] - 0.5 + torch.rand(200, 3, generator=g) * (bbox[1] - bbox[0] + 1.0)  # many outside the box
+    vertices = G.lattice_points(bbox, shape)
+    xyz = torch.cat([inner, outer, vertices, bbox])
+    want = G.lookup(table, *G.corners(xyz, bbox, shape))
+    got = G.blend(table, xyz, bbox, shape)
+    assert got.shape == want.shape and torch.allclose(got, want, atol=1e-5, rtol=1e-5), float((got - want).abs().max())
+    assert torch.allclose(G.blend(table, vertices, bbox, shape), table, atol=1e-5)  # exact at the vertices
+    three = torch.randn(7 * 5 * 9, 3, generator=g)
+    assert torch.equal(G.blend(three, xyz, bbox, shape), G.lookup(three, *G.corners(xyz, bbox, shape)))
+    trained = table.clone().requires_grad_()
+    assert torch.equal(G.blend(trained, xyz, bbox, shape).detach(), want)

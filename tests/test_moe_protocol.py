@@ -385,10 +385,10 @@ def test_vd_source_largest_reads_the_largest_experts_density_as_it_trains():
     assert torch.equal(mix.vd_density(xyz), mix.vd.density(xyz))
     mix.configure(vd_source="largest")
     largest = mix.experts[-1]
-    assert torch.equal(mix.vd_density(xyz), largest.density(xyz))
-    with torch.no_grad():
+    with torch.no_grad():  # V_D reads the expert's density as rendering does (no gradient)
+        assert torch.equal(mix.vd_density(xyz), largest.density(xyz))
         largest.density_table.add_(-4.0)  # as if the largest expert had trained its density down
-    sigma = largest.density(xyz).detach()
+        sigma = largest.density(xyz)
     expected = torch.tensor([1.0 - math.exp(-float(v) * STEP) > mix.cfg.density_threshold for v in sigma])
     now = mix.skip(xyz)
     assert torch.equal(now, expected) and torch.equal(mix.vd_density(xyz), sigma)

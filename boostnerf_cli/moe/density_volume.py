@@ -33,8 +33,8 @@ class DensityVolume(nn.Module):
         return ((xyz >= self.bbox[0]) & (xyz <= self.bbox[1])).all(dim=-1)
 
     def density(self, xyz: Tensor) -> Tensor:
-        idx, w = G.corners(xyz, self.bbox, self.shape)
-        return F.softplus(G.lookup(self.table, idx, w)[:, 0] + self.shift) / self.unit * self.inside(xyz)
+        return F.softplus(G.blend(self.table, xyz, self.bbox, self.shape)[:, 0] + self.shift) / self.unit * \
+            self.inside(xyz)
 
     @torch.no_grad()
     def init_from(self, density) -> None:
