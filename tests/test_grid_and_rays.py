@@ -325,3 +325,31 @@ def test_a_one_channel_blend_without_gradient_matches_the_corner_lookup():
     assert torch.equal(G.blend(three, xyz, bbox, shape), G.lookup(three, *G.corners(xyz, bbox, shape)))
     trained = table.clone().requires_grad_()
     assert torch.equal(G.blend(trained, xyz, bbox, shape).detach(), want)
+
+
+def test_the_lookup_for_points_inside_the_box_agrees_with_the_general_one():
+    """`OccupancyGrid.within` (and `SkipCells.within`), the renderer's lookup for its samples inside the box, gives
+    `__call__`'s answer for every point inside the box, its faces and corners included (a point on the max face in the
+    last cell), and counts a point just past a face in the cell at that face, where `__call__` calls it empty."""
+    from boostnerf_cli.moe.cells import MIXED, SkipCells
+
+    g = torch.Generator().manual_seed(2)
+    bbox = torch.tensor([[-0.7, -1.2, -0.5], [0.6, 1.1, 1.0]])
+    grid = OccupancyGrid(torch.rand(5, 9, 4, generator=g) > 0.4, bbox)
+    inside = bbox[0] + torch.rand(3000, 3, generator=g) * (bbox[1] - bbox[0])
+    corners = torch.stack(torch.meshgrid(*bbox.T, indexing="ij"), -1).reshape(-1, 3)  # the box's 8 corners
+    faces = inside.clone()
+    faces[:, 0] = torch.where(torch.rand(3000, generator=g) < 0.5, bbox[0, 0], bbox[1, 0])
+    xyz = torch.cat([inside, corners, faces])
+    assert torch.equal(grid.within(xyz), grid(xyz)) and grid(xyz).any() and not grid(xyz).all()
+    past = torch.tensor([[float(bbox[1, 0]) + 1e-6, 0.0, 0.2]])  # just past the max x face: rounding's kind of miss
+    one = torch.zeros(5, 9, 4, dtype=torch.bool)
+    one[4, 4, 1] = True  # the face cell it lies against: x the last, y (0 + 1.2) / 2.3 * 9, z (0.2 + 0.5) / 1.5 * 4
+    grid = OccupancyGrid(one, bbox)
+    assert grid(torch.tensor([[0.59, 0.0, 0.2]]))[0]  # that cell, from inside
+    assert not grid(past)[0] and grid.within(past)[0]
+    state = torch.randint(0, 3, (5, 9, 4), generator=g, dtype=torch.uint8)
+    state[0], state[-1], state[:, 0], state[:, -1], state[:, :, 0], state[:, :, -1] = (MIXED,) * 6
+    cells = SkipCells(state, bbox)
+    assert torch.equal(cells.within(xyz), cells(xyz))
+    assert cells.within(past)[0] == MIXED and cells(past)[0] == 0  # the face cell: tested, never passed unseen

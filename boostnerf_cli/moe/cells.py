@@ -163,6 +163,11 @@ class SkipCells:
         """(N, 3) -> (N,) uint8 each point's state."""
         return self._padded.index_select(0, self._cells.padded_rows(xyz))
 
+    def within(self, xyz: Tensor) -> Tensor:
+        """`__call__` for points inside the box (`OccupancyGrid.within`: one rounded just past a face counts in the cell
+        at that face, which never passes: it is tested as a MIXED one)."""
+        return self._padded.index_select(0, self._cells.padded_rows_within(xyz))
+
 
 @torch.no_grad()
 def skip_states(raw: Tensor, vd_shape: tuple[int, int, int], vd_bbox: Tensor, threshold_raw: float, occupancy=None,

@@ -495,18 +495,18 @@ class MixtureSkip:
         tables = self._tables(threshold)
         if tables is None:
             raise ValueError("this mixture's filter needs the samples along their rays: call filter")
-        return self._kept(tables, pts)
+        return self._kept(tables, pts, inside=True)
 
     def _rows_by_tables(self, tables: SkipTables, xyz: Tensor, valid: Tensor) -> Tensor:
         """The sorted rows of the samples inside the box that pass, through the per-cell tables (dynamic packing)."""
         rows = valid.reshape(-1).nonzero().squeeze(-1)
         return rows.index_select(0, self._kept(tables, xyz.reshape(-1, 3).index_select(0, rows)))
 
-    def _kept(self, tables: SkipTables, pts: Tensor) -> Tensor:
-        """The indices of the points `pts` (K, 3, inside the box) that pass: one lookup per point in the fine cells,
-        every further test on the list of the points still undecided."""
+    def _kept(self, tables: SkipTables, pts: Tensor, inside: bool = False) -> Tensor:
+        """The indices of the points `pts` (K, 3, inside the box) that pass: one lookup per point in the fine cells
+        (`inside`: by `SkipCells.within`), every further test on the list of the points still undecided."""
         with part("V_D"):
-            state = tables.skip(pts)
+            state = tables.skip.within(pts) if inside else tables.skip(pts)
         live = state.nonzero().squeeze(-1)  # PASS or MIXED (FAIL is 0)
         left = (state.index_select(0, live) == C.MIXED).nonzero().squeeze(-1)  # near V_D's surface or an edge
         if len(left):

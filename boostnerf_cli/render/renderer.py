@@ -225,7 +225,7 @@ def kept_of_list(skip, pts: Tensor, threshold: float) -> Tensor | None:
         return None
     if hasattr(skip, "filter_list"):
         return skip.filter_list(pts, threshold)
-    return skip(pts).nonzero().squeeze(-1)
+    return (skip.within(pts) if hasattr(skip, "within") else skip(pts)).nonzero().squeeze(-1)
 
 
 def _listable(skip, settings: RenderSettings) -> bool:
