@@ -133,8 +133,9 @@ def sample_list(origins: Tensor, dirs: Tensor, settings: RenderSettings) -> tupl
     start = torch.cumsum(count, 0) - count
     j = (torch.arange(len(ray), device=origins.device) - start.index_select(0, ray)).to(origins.dtype)
     t = t0.index_select(0, ray) + (j + half) * step
-    # (rays of one camera share one origin: an expanded tensor, which index_select gathers 5x slower)
-    xyz = origins.contiguous().index_select(0, ray) + t[:, None] * dirs.contiguous().index_select(0, ray)
+    # the rays of one pinhole camera share one origin (an expanded tensor): added as it is, not gathered per sample
+    start = origins[:1] if origins.stride(0) == 0 else origins.contiguous().index_select(0, ray)
+    xyz = start + t[:, None] * dirs.contiguous().index_select(0, ray)
     return ray, t, xyz, step
 
 
