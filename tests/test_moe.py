@@ -493,6 +493,39 @@ def test_top2_leaves_out_a_choice_below_the_render_min_weight_and_moves_pixels_l
     assert mix.render_min_weight() == 0.0
 
 
+def test_top2_routes_a_cell_where_one_expert_leads_by_the_left_out_weight_without_the_gate(monkeypatch):
+    """A renormalised Top-2 that leaves out choices under w (`moe.render_min_weight`) sends every sample of a cell where
+    one expert's logit leads the others by ln((1 - w) / w) at all 8 vertices to that expert alone, without blending the
+    gate there: the image blending every sample gives, to float32 rounding, from fewer blended samples."""
+    from boostnerf_cli.render.renderer import Camera, RenderSettings, render_image
+
+    mix = toy_mixture(k=2, seed=4)
+    mix.cfg.bake_res = 16
+    mix.for_rendering()
+    with torch.no_grad():
+        mix.gate.logit_table.mul_(12.0)  # a sharp gate: one expert leads by far in many cells
+    mix._cells = None
+    mix.for_rendering()  # the per-cell decisions, made again for the sharpened gate
+    with torch.no_grad():
+        cells = mix.cells()
+    assert cells is not None and cells.solo is not None and (cells.solo >= 0).any() and (cells.solo < 0).any()
+    pose = torch.eye(4)
+    pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
+    camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
+    settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
+    blended = []
+    logits = type(mix.gate).logits
+    monkeypatch.setattr(type(mix.gate), "logits", lambda self, xyz: blended.append(len(xyz)) or logits(self, xyz))
+    fast = render_image(mix, camera, settings, mix.skip)
+    by_cell = sum(blended)
+    blended.clear()
+    mix._cells.solo = None  # every sample blended
+    slow = render_image(mix, camera, settings, mix.skip)
+    assert fast["n_samples"] == slow["n_samples"] > 0 and by_cell < 0.8 * sum(blended)
+    for key in ("rgb", "depth", "acc"):
+        assert torch.allclose(fast[key], slow[key], atol=1e-6), key
+
+
 def test_a_cell_is_decided_only_where_all_its_vertices_agree_with_a_margin():
     from boostnerf_cli.moe import cells as C
 

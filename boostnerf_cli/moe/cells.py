@@ -11,6 +11,10 @@ A trilinear value inside a lattice cell is a convex combination of the cell's 8 
   order that holds at every vertex: where one expert's logit is the largest at all 8 vertices, it is the largest
   everywhere in the cell. A renormalised Top-1 mixture routes with weight 1, so the choice is all it needs. `top1_cells`
   gives each cell its expert, or -1 where the vertices disagree (the cell is blended as before).
+- **Top-2's lone choice.** Rendering a renormalised Top-2 leaves out a second choice that weighs less than w
+  (`moe.render_min_weight`): its weight is sigmoid(l2 - l1), under w where the first expert's logit leads every other
+  by more than ln((1 - w) / w). Where it leads by that at all 8 vertices (`top1_cells` with that lead), it does so
+  everywhere in the cell, and every sample there goes to that expert alone, with weight 1, as the blend would send it.
 
 - **Both skips at once.** A sample is kept when its occupancy cell is occupied and it passes V_D. `skip_states` makes
   one table (`SkipCells`) over a lattice that splits each of V_D's cells into f^3 (f at least 2, and at least twice
@@ -88,11 +92,12 @@ def threshold_raw(threshold: float, step: float, unit: float, shift: float) -> f
 
 
 @torch.no_grad()
-def top1_cells(logits: Tensor, shape: tuple[int, int, int]) -> Tensor:
+def top1_cells(logits: Tensor, shape: tuple[int, int, int], lead: float = 0.0) -> Tensor:
     """logits (X*Y*Z, M) the baked gate's vertex logits -> (cells,) int8: the expert whose logit is the largest,
-    with the margin, at all 8 vertices of the cell, or -1."""
+    by more than `lead` and the margin, at all 8 vertices of the cell, or -1. The lead holds everywhere in the cell
+    then, for each other expert's logit (a convex combination keeps it)."""
     table = logits
-    margin = MARGIN * max(1.0, float(table.abs().max())) if table.numel() else 0.0
+    margin = lead + MARGIN * max(1.0, float(table.abs().max())) if table.numel() else 0.0
     expert = None
     agree = None
     for corner in _corner_views(table, shape):

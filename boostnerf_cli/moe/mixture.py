@@ -23,6 +23,7 @@ threshold: samples hidden behind V_D's surfaces reach neither the gate nor the e
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -203,6 +204,10 @@ class RenderCells:
 
     gate: Gate
     top1: Tensor | None
+    # a renormalised Top-2's lone expert per cell (`top1_cells` with the lead of ln((1 - w) / w)), made for
+    # render_min_weight `solo_weight`; None for other mixtures
+    solo: Tensor | None = None
+    solo_weight: float = 0.0
 
 
 @dataclass
@@ -259,37 +264,59 @@ class Mixture(nn.Module):
         return self._skip
 
     # --- routing --------------------------------------------------------------------------------
-    def route(self, xyz: Tensor, need_probs: bool = True, static: bool = False) -> tuple[Tensor | None, Tensor, Tensor]:
+    def route(self, xyz: Tensor, need_probs: bool = True, static: bool = False,
+              light_left_out: bool = False) -> tuple[Tensor | None, Tensor, Tensor]:
         """-> probabilities (N, M), weights (N, k), expert indices (N, k).
 
         Rendering (no autograd, `need_probs` False) with renormalised weights skips the probabilities:
         the renormalised top-k weights are the softmax of the k chosen logits alone (1 for k = 1), and
         the choice is the top-k of the logits; the probabilities are then returned as None.
+        `light_left_out`: the caller leaves out choices under `render_min_weight` (`ExpertRows.of`), so a sample in a
+        cell where one expert leads by that much gets weights (1, 0) without blending the gate (moe/cells.py).
         """
         with part("routing"):
-            return self._route(xyz, need_probs, static)
+            return self._route(xyz, need_probs, static, light_left_out)
 
-    def _route(self, xyz: Tensor, need_probs: bool, static: bool) -> tuple[Tensor | None, Tensor, Tensor]:
+    def _route(self, xyz: Tensor, need_probs: bool, static: bool,
+               light_left_out: bool = False) -> tuple[Tensor | None, Tensor, Tensor]:
         flops.add("routing", 4 * self.m * xyz.shape[0])
         if self.gate.cfg.gate_type == "uniform":  # the ensemble: every expert, equal weights
             probs = self.gate.probs(xyz)
             idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
             return probs, probs, idx
         if not need_probs and not torch.is_grad_enabled():
-            return None, *self._choose(xyz, static)
+            return None, *self._choose(xyz, static, light_left_out)
         probs = self.gate.probs(xyz)
         vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
         return probs, vals, idx
 
-    def _choose(self, xyz: Tensor, static: bool = False) -> tuple[Tensor, Tensor]:
+    def _choose(self, xyz: Tensor, static: bool = False, light_left_out: bool = False) -> tuple[Tensor, Tensor]:
         """Rendering's choice (see `route`): weights (N, k), experts (N, k)."""
         cells, gate, k = self.cells(), self.gate, self.cfg.topk
         if not self.cfg.renormalize:
             return top_k(gate.probs(xyz), k, renormalize=False)
         if k == 1 and cells is not None and cells.top1 is not None:
             return xyz.new_ones(xyz.shape[0], 1), self._top1_by_cell(xyz, cells.top1, static)[:, None]
+        if (light_left_out and not static and cells is not None and cells.solo is not None
+                and cells.solo_weight == self.render_min_weight() > 0):
+            return self._top2_by_cell(xyz, cells.solo)
         chosen, idx = top_k(gate.logits(xyz).float(), k, renormalize=False)
         return (torch.ones_like(chosen) if k == 1 else softmax(chosen)), idx
+
+    def _top2_by_cell(self, xyz: Tensor, solo: Tensor) -> tuple[Tensor, Tensor]:
+        """A renormalised Top-2's weights (N, 2) and experts (N, 2) where light choices are left out: (1, 0) to the
+        cell's lone expert (moe/cells.py), the gate's blend where the cell has none."""
+        gate = self.gate
+        expert = solo.index_select(0, C.cell_index(xyz, gate.bbox, gate.shape)).long()
+        idx = torch.stack([expert, expert], -1)
+        vals = torch.zeros(xyz.shape[0], 2, dtype=torch.float32, device=xyz.device)
+        vals[:, 0] = 1.0
+        rows = (expert < 0).nonzero().squeeze(-1)
+        if len(rows):
+            chosen, i2 = top_k(gate.logits(xyz.index_select(0, rows)).float(), 2, renormalize=False)
+            vals.index_copy_(0, rows, softmax(chosen))
+            idx.index_copy_(0, rows, i2)
+        return vals, idx
 
     def _top1_by_cell(self, xyz: Tensor, top1: Tensor, static: bool) -> Tensor:
         """(N,) each sample's expert: its cell's (moe/cells.py), the baked gate's blend where the cell's vertices
@@ -379,8 +406,12 @@ class Mixture(nn.Module):
             self.gate = self.gate.baked(self.cfg.bake_res)
         if not self._cells_hold():
             gate = self.gate
-            top1 = C.top1_cells(gate.logit_table, gate.shape) if gate.cfg.gate_type == "baked" else None
-            self._cells = RenderCells(gate, top1)
+            baked = gate.cfg.gate_type == "baked"
+            top1 = C.top1_cells(gate.logit_table, gate.shape) if baked else None
+            solo, w = None, self.cfg.render_min_weight
+            if baked and self.cfg.topk == 2 and self.cfg.renormalize and 0 < w < 0.5:
+                solo = C.top1_cells(gate.logit_table, gate.shape, lead=math.log((1 - w) / w))
+            self._cells = RenderCells(gate, top1, solo, w)
         self.prepare_skips()
         return self
 
@@ -563,12 +594,13 @@ class RoutedMixture:
 
     def density(self, xyz: Tensor, live: Tensor | None = None) -> Tensor:
         mix = self.mixture
-        probs, vals, idx = mix.route(xyz, need_probs=self.stats is not None, static=self.packer.static)
+        # the dynamic packing: each expert's samples listed once, for both passes, light choices left out
+        listed = not self.packer.static and live is None
+        probs, vals, idx = mix.route(xyz, need_probs=self.stats is not None, static=self.packer.static,
+                                     light_left_out=listed)
         if self.stats is not None:
             self.stats.record(probs, idx, live)
         self._last = (xyz, vals, idx)
-        # the dynamic packing: each expert's samples listed once, for both passes
-        listed = not self.packer.static and live is None
         self._listed = ExpertRows.of(mix.routes(vals, idx), mix.render_min_weight()) if listed else None
         return mix._mix(xyz, None, vals, idx, self.packer, live, self._listed)
 
