@@ -496,13 +496,15 @@ def test_top2_leaves_out_a_choice_below_the_render_min_weight_and_moves_pixels_l
 def test_top2_routes_a_cell_where_one_expert_leads_by_the_left_out_weight_without_the_gate(monkeypatch):
     """A renormalised Top-2 that leaves out choices under w (`moe.render_min_weight`) sends every sample of a cell where
     one expert's logit leads the others by ln((1 - w) / w) at all 8 vertices to that expert alone, without blending the
-    gate there: the image blending every sample gives, to float32 rounding, from fewer blended samples."""
+    gate there: the image blending every sample gives, to float32 rounding, from fewer blended samples. A gate with
+    few such cells where samples are kept routes as before (`cells.LONE_SHARE`)."""
     from boostnerf_cli.render.renderer import Camera, RenderSettings, render_image
 
     mix = toy_mixture(k=2, seed=4)
     mix.cfg.bake_res = 16
     mix.for_rendering()
     with torch.no_grad():
+        assert mix.cells().solo is None  # no cell with a lone expert where samples are kept: no lookup to pay for
         mix.gate.logit_table.mul_(12.0)  # a sharp gate: one expert leads by far in many cells
     mix._cells = None
     mix.for_rendering()  # the per-cell decisions, made again for the sharpened gate

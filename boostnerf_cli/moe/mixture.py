@@ -411,6 +411,10 @@ class Mixture(nn.Module):
             solo, w = None, self.cfg.render_min_weight
             if baked and self.cfg.topk == 2 and self.cfg.renormalize and 0 < w < 0.5:
                 solo = C.top1_cells(gate.logit_table, gate.shape, lead=math.log((1 - w) / w))
+                skips = self.skips()
+                kept = skips.skip if skips is not None else self.occupancy
+                if C.lone_share(solo, gate.bbox, gate.shape, kept) < C.LONE_SHARE:
+                    solo = None  # too few: the lookup would cost more than it saves
             self._cells = RenderCells(gate, top1, solo, w)
         self.prepare_skips()
         return self
