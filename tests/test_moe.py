@@ -496,21 +496,34 @@ def test_top2_leaves_out_a_choice_below_the_render_min_weight_and_moves_pixels_l
 def test_top2_routes_a_cell_where_one_expert_leads_by_the_left_out_weight_without_the_gate(monkeypatch):
     """A renormalised Top-2 that leaves out choices under w (`moe.render_min_weight`) sends every sample of a cell where
     one expert's logit leads the others by ln((1 - w) / w) at all 8 vertices to that expert alone, without blending the
-    gate there: the image blending every sample gives, to float32 rounding, from fewer blended samples. A gate with
-    few such cells where samples are kept routes as before (`cells.LONE_SHARE`)."""
+    gate there: the image blending every sample gives, to float32 rounding, from fewer blended samples. Whether such
+    cells are worth a lookup is judged on V_D's passing cells (`cells.lone_share` against `cells.LONE_SHARE`), from
+    the first `for_rendering`; a gate with few of them routes as before."""
+    from boostnerf_cli.moe import cells as C
     from boostnerf_cli.render.renderer import Camera, RenderSettings, render_image
 
+    plain = toy_mixture(k=2, seed=4)
+    plain.cfg.bake_res = 16
+    with torch.no_grad():
+        assert plain.for_rendering().cells().solo is None  # no cell with a lone expert where samples are kept
     mix = toy_mixture(k=2, seed=4)
     mix.cfg.bake_res = 16
+    with torch.no_grad():  # a sharp gate: one expert leads by far in many cells
+        mix.gate.mlp[-1].weight.mul_(12.0)
+        mix.gate.mlp[-1].bias.mul_(12.0)
+    judged, share = [], C.lone_share
+    monkeypatch.setattr(C, "lone_share", lambda *a, **k: judged.append((a[3], share(*a, **k))) or judged[-1][1])
     mix.for_rendering()
     with torch.no_grad():
-        assert mix.cells().solo is None  # no cell with a lone expert where samples are kept: no lookup to pay for
-        mix.gate.logit_table.mul_(12.0)  # a sharp gate: one expert leads by far in many cells
-    mix._cells = None
-    mix.for_rendering()  # the per-cell decisions, made again for the sharpened gate
-    with torch.no_grad():
         cells = mix.cells()
+    assert len(judged) == 1 and isinstance(judged[0][0], C.SkipCells) and judged[0][1] >= C.LONE_SHARE
     assert cells is not None and cells.solo is not None and (cells.solo >= 0).any() and (cells.solo < 0).any()
+    monkeypatch.setattr(C, "LONE_SHARE", judged[0][1] + 0.01)  # a share just under the bar: no lookup
+    mix.configure(render_min_weight=0.01)  # the decisions made again for the routing
+    with torch.no_grad():
+        assert mix.cells().solo is None
+    monkeypatch.setattr(C, "LONE_SHARE", 1 / 3)
+    mix.configure(render_min_weight=0.01)
     pose = torch.eye(4)
     pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
     camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
@@ -526,6 +539,25 @@ def test_top2_routes_a_cell_where_one_expert_leads_by_the_left_out_weight_withou
     assert fast["n_samples"] == slow["n_samples"] > 0 and by_cell < 0.8 * sum(blended)
     for key in ("rgb", "depth", "acc"):
         assert torch.allclose(fast[key], slow[key], atol=1e-6), key
+
+
+def test_the_lone_share_is_the_share_of_passing_cells_whose_gate_cell_has_a_lone_expert():
+    from boostnerf_cli.moe import cells as C
+
+    box = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    state = torch.zeros(8, 8, 8, dtype=torch.uint8)
+    state[:4] = C.PASS  # the passing cells: x < 1/2
+    state[4:6] = C.MIXED  # not counted
+    kept = C.SkipCells(state, box)
+    shape = (3, 3, 3)  # 2 x 2 x 2 gate cells, split at 1/2 on every axis
+    lone = torch.full((8,), -1, dtype=torch.int8)
+    lone[0] = 1  # gate cell (0, 0, 0): a quarter of the passing space
+    assert C.lone_share(lone, box, shape, kept) == pytest.approx(0.25)
+    lone[1] = 0  # and (0, 0, 1): half of it; the cells with x >= 1/2 never count
+    lone[4:] = 2
+    assert C.lone_share(lone, box, shape, kept) == pytest.approx(0.5)
+    assert C.lone_share(lone, box, shape, kept, n=7) == pytest.approx(0.5, abs=0.2)  # at most n centres
+    assert C.lone_share(lone, box, shape, None) == pytest.approx(6 / 8)  # no kept space known: all cells
 
 
 def test_a_cell_is_decided_only_where_all_its_vertices_agree_with_a_margin():

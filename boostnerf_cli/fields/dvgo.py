@@ -99,8 +99,8 @@ class DVGOExpert(ExpertModule):
         return self.cfg.res
 
     # --- the Field contract -------------------------------------------------------------------
-    def _sigma(self, xyz: Tensor, idx: Tensor, w: Tensor) -> Tensor:
-        raw = G.lookup(self.density_table, idx, w)[:, 0]
+    def _sigma(self, xyz: Tensor, raw: Tensor) -> Tensor:
+        """(N,) the density of the points `xyz` from their blended raw values `raw` (none outside the box)."""
         return F.softplus(raw + self.shift) / self.unit * self.inside(xyz)
 
     def _rgb(self, idx: Tensor, w: Tensor, dirs: Tensor) -> Tensor:
@@ -111,8 +111,7 @@ class DVGOExpert(ExpertModule):
 
     @blockwise
     def density(self, xyz: Tensor) -> Tensor:
-        raw = G.blend(self.density_table, xyz, self.bbox, self.shape)[:, 0]
-        return F.softplus(raw + self.shift) / self.unit * self.inside(xyz)
+        return self._sigma(xyz, G.blend(self.density_table, xyz, self.bbox, self.shape)[:, 0])
 
     @blockwise
     def color(self, xyz: Tensor, dirs: Tensor) -> Tensor:
@@ -121,7 +120,7 @@ class DVGOExpert(ExpertModule):
 
     def query(self, xyz: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
         idx, w = G.corners(xyz, self.bbox, self.shape)
-        return self._sigma(xyz, idx, w), self._rgb(idx, w, dirs)
+        return self._sigma(xyz, G.lookup(self.density_table, idx, w)[:, 0]), self._rgb(idx, w, dirs)
 
     def regularization(self) -> None:
         return None

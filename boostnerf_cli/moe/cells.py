@@ -25,7 +25,8 @@ A trilinear value inside a lattice cell is a convex combination of the cell's 8 
 
 A vertex counts only with a margin (`MARGIN` of the values' scale) past the decision, so that float32 rounding in the
 blend can never decide otherwise than the cell does: rendering through the cells gives the same image, bit for bit, as
-blending every sample (tests/test_moe.py).
+blending every sample (tests/test_moe.py); through Top-2's lone choice, to float32 rounding (the alpha mix's weight
+sum is exactly 1 there, a blend's 1 to rounding).
 """
 
 from __future__ import annotations
@@ -113,7 +114,8 @@ def top1_cells(logits: Tensor, shape: tuple[int, int, int], lead: float = 0.0) -
 
 
 # `lone_share`: below this share of the kept space in cells with a lone expert, Top-2's per-cell lookup costs more than
-# the blends it saves (lego, one thread: 8 ms an image with none; 2 ms saved with 41%, 58 ms of fern's 183 with 42%)
+# the blends it saves (one thread: 8 ms an image more on lego at M = 5, where none has one; 2 ms an image less on lego
+# at M = 3 with 41% of the kept samples in such cells; fern's routing 183 -> 118 ms with 42%)
 LONE_SHARE = 1 / 3
 
 
@@ -129,7 +131,7 @@ def lone_share(lone: Tensor, bbox: Tensor, shape: tuple[int, int, int], kept, n:
     cells = where.reshape(-1).nonzero().squeeze(-1)
     if not len(cells):
         return 0.0
-    cells = cells[:: max(1, len(cells) // n)]
+    cells = cells[:: -(-len(cells) // n)]  # every ceil(len / n)-th: at most n
     dims = torch.tensor(where.shape, device=cells.device)
     ijk = torch.stack([cells // (dims[1] * dims[2]), cells // dims[2] % dims[1], cells % dims[2]], -1)
     box = kept.bbox.to(cells.device)
@@ -195,7 +197,7 @@ class SkipCells:
 
     def within(self, xyz: Tensor) -> Tensor:
         """`__call__` for points inside the box (`OccupancyGrid.within`: one rounded just past a face counts in the cell
-        at that face, which never passes: it is tested as a MIXED one)."""
+        at that face, which never passes: FAIL, or MIXED and then tested as every MIXED sample is)."""
         return self._padded.index_select(0, self._cells.padded_rows_within(xyz))
 
 

@@ -328,14 +328,30 @@ class Mixture(nn.Module):
         if static:
             return torch.where(mixed, gate.logits(xyz).float().argmax(-1), expert)
         rows = mixed.nonzero().squeeze(-1)
-        if len(rows):
-            expert.index_copy_(0, rows, gate.logits(xyz.index_select(0, rows)).float().argmax(-1))
+        if len(rows):  # max's first largest: argmax's choice, 1.6x faster on the CPU
+            expert.index_copy_(0, rows, gate.logits(xyz.index_select(0, rows)).float().max(-1).indices)
         return expert
 
     def _cells_hold(self) -> bool:
-        """The per-cell decisions were made for this baked gate."""
+        """The per-cell decisions were made for this baked gate (`configure` makes them again for a new routing)."""
         c = self._cells
         return c is not None and c.gate is self.gate
+
+    def _make_cells(self) -> RenderCells:
+        """The per-cell decisions for the gate as it is (moe/cells.py): Top-1's expert per cell, and a renormalised
+        Top-2's lone expert per cell where enough of the kept space has one (V_D's and the grid's tables made first)."""
+        self.prepare_skips()
+        gate = self.gate
+        baked = gate.cfg.gate_type == "baked"
+        top1 = C.top1_cells(gate.logit_table, gate.shape) if baked else None
+        solo, w = None, self.cfg.render_min_weight
+        if baked and self.cfg.topk == 2 and self.cfg.renormalize and 0 < w < 0.5:
+            solo = C.top1_cells(gate.logit_table, gate.shape, lead=math.log((1 - w) / w))
+            skips = self.skips()
+            kept = skips.skip if skips is not None else self.occupancy
+            if C.lone_share(solo, gate.bbox, gate.shape, kept) < C.LONE_SHARE:
+                solo = None  # too few: the lookup would cost more than it saves
+        return RenderCells(gate, top1, solo, w)
 
     def cells(self) -> RenderCells | None:
         """The per-cell decisions `for_rendering` made, while they still hold and nothing trains (no gradient)."""
@@ -405,17 +421,7 @@ class Mixture(nn.Module):
         if self.cfg.bake_res > 0 and not exact_gate:
             self.gate = self.gate.baked(self.cfg.bake_res)
         if not self._cells_hold():
-            gate = self.gate
-            baked = gate.cfg.gate_type == "baked"
-            top1 = C.top1_cells(gate.logit_table, gate.shape) if baked else None
-            solo, w = None, self.cfg.render_min_weight
-            if baked and self.cfg.topk == 2 and self.cfg.renormalize and 0 < w < 0.5:
-                solo = C.top1_cells(gate.logit_table, gate.shape, lead=math.log((1 - w) / w))
-                skips = self.skips()
-                kept = skips.skip if skips is not None else self.occupancy
-                if C.lone_share(solo, gate.bbox, gate.shape, kept) < C.LONE_SHARE:
-                    solo = None  # too few: the lookup would cost more than it saves
-            self._cells = RenderCells(gate, top1, solo, w)
+            self._cells = self._make_cells()
         self.prepare_skips()
         return self
 
@@ -437,6 +443,8 @@ class Mixture(nn.Module):
         check_config(cfg, self.m)
         self.cfg = cfg
         self.penalty = penalty_weights(self.m, cfg.penalty, device=self.penalty.device)
+        if self._cells_hold():  # ready to render: the per-cell decisions made again for the new routing
+            self._cells = self._make_cells()
 
     def make_ensemble(self) -> None:
         """Every expert with equal weights (the paper's Ens): a uniform gate and k = M."""

@@ -149,16 +149,26 @@ def kept_samples(skip, xyz: Tensor, valid: Tensor, step: float, threshold: float
     return packer.keep_where(skip, xyz.reshape(-1, 3), valid.reshape(-1)).reshape(valid.shape)
 
 
-def kept_rows(skip, xyz: Tensor, valid: Tensor, step: float, threshold: float) -> Tensor:
+def passing(skip, pts: Tensor, box: Tensor) -> Tensor:
+    """(K,) bool: which of the samples `pts`, inside the render box `box`, a filter of points keeps: by its lookup for
+    points inside its own box (`OccupancyGrid.within`) where its box holds `box`, else by its general one."""
+    if hasattr(skip, "within"):
+        own = skip.bbox.to(box.device)
+        if bool((own[0] <= box[0]).all() and (own[1] >= box[1]).all()):
+            return skip.within(pts)
+    return skip(pts)
+
+
+def kept_rows(skip, xyz: Tensor, valid: Tensor, step: float, threshold: float, box: Tensor) -> Tensor:
     """`kept_samples` on the dynamic packing, as the sorted list of the kept samples' rows of the flattened (R, S)
     samples: a filter with `filter_rows` lists them itself (a mixture's V_D), a filter of points tests the samples
-    inside the box."""
+    inside the box `box` (`passing`)."""
     if skip is not None and hasattr(skip, "filter_rows"):
         return skip.filter_rows(xyz, valid, step, threshold)
     if skip is None or hasattr(skip, "filter"):
         return kept_samples(skip, xyz, valid, step, threshold, DYNAMIC).reshape(-1).nonzero().squeeze(-1)
     rows = valid.reshape(-1).nonzero().squeeze(-1)
-    return rows.index_select(0, skip(xyz.reshape(-1, 3).index_select(0, rows)).nonzero().squeeze(-1))
+    return rows.index_select(0, passing(skip, xyz.reshape(-1, 3).index_select(0, rows), box).nonzero().squeeze(-1))
 
 
 def render_rays(
@@ -219,14 +229,14 @@ def render_rays(
     return RayBundle(color, depth, acc, dens.count(), cflat.count(), extras)
 
 
-def kept_of_list(skip, pts: Tensor, threshold: float) -> Tensor | None:
-    """Of the samples `pts` (K, 3) inside the box, the indices of those `skip` keeps (all: None); a filter that needs
-    the samples along their rays (`filter` without `filter_list`, or one that declines) is not asked here."""
+def kept_of_list(skip, pts: Tensor, threshold: float, box: Tensor) -> Tensor | None:
+    """Of the samples `pts` (K, 3) inside the box `box`, the indices of those `skip` keeps (all: None); a filter that
+    needs the samples along their rays (`filter` without `filter_list`) is not asked here."""
     if skip is None:
         return None
     if hasattr(skip, "filter_list"):
         return skip.filter_list(pts, threshold)
-    return (skip.within(pts) if hasattr(skip, "within") else skip(pts)).nonzero().squeeze(-1)
+    return passing(skip, pts, box).nonzero().squeeze(-1)
 
 
 def _listable(skip, settings: RenderSettings) -> bool:
@@ -260,7 +270,7 @@ def render_rays_packed(
         with part("sampling"):
             ray, tk, pts, step = sample_list(origins, dirs, settings)
         with part("skipping"):
-            kept = kept_of_list(skip, pts, thr)
+            kept = kept_of_list(skip, pts, thr, settings.bbox.to(pts.device))
             if kept is not None:
                 ray, tk, pts = ray.index_select(0, kept), tk.index_select(0, kept), pts.index_select(0, kept)
         delta = step
@@ -268,7 +278,7 @@ def render_rays_packed(
         with part("sampling"):
             t, valid, xyz, step = sample_rays(origins, dirs, settings, jitter=False, fit=True)
         with part("skipping"):
-            rows = kept_rows(skip, xyz, valid, step, thr)  # in ray order, each ray's samples in order along it
+            rows = kept_rows(skip, xyz, valid, step, thr, settings.bbox.to(xyz.device))  # in ray order, along each ray
             pts = xyz.reshape(-1, 3).index_select(0, rows)
             ray = torch.div(rows, t.shape[1], rounding_mode="floor")
             tk = t.reshape(-1).index_select(0, rows)
