@@ -303,11 +303,16 @@ class Mixture(nn.Module):
         chosen, idx = top_k(gate.logits(xyz).float(), k, renormalize=False)
         return (torch.ones_like(chosen) if k == 1 else softmax(chosen)), idx
 
+    def _cell_expert(self, xyz: Tensor, table: Tensor) -> Tensor:
+        """(N,) int64: the expert a per-cell table of the baked gate's lattice (moe/cells.py) gives each sample's cell,
+        -1 where it leaves the sample to the blend."""
+        return table.index_select(0, C.cell_index(xyz, self.gate.bbox, self.gate.shape)).long()
+
     def _top2_by_cell(self, xyz: Tensor, solo: Tensor) -> tuple[Tensor, Tensor]:
         """A renormalised Top-2's weights (N, 2) and experts (N, 2) where light choices are left out: (1, 0) to the
         cell's lone expert (moe/cells.py), the gate's blend where the cell has none."""
         gate = self.gate
-        expert = solo.index_select(0, C.cell_index(xyz, gate.bbox, gate.shape)).long()
+        expert = self._cell_expert(xyz, solo)
         idx = torch.stack([expert, expert], -1)
         vals = torch.zeros(xyz.shape[0], 2, dtype=torch.float32, device=xyz.device)
         vals[:, 0] = 1.0
@@ -323,7 +328,7 @@ class Mixture(nn.Module):
         disagree (for a static packing blended for every sample and chosen per sample, so that nothing waits for the
         device)."""
         gate = self.gate
-        expert = top1.index_select(0, C.cell_index(xyz, gate.bbox, gate.shape)).long()
+        expert = self._cell_expert(xyz, top1)
         mixed = expert < 0
         if static:
             return torch.where(mixed, gate.logits(xyz).float().argmax(-1), expert)
@@ -394,8 +399,7 @@ class Mixture(nn.Module):
         if dirs is None and self.cfg.mix == "alpha":
             step = self.cfg.step
             out = dispatch(routes, lambda e, r: _alpha_and_trans(experts[e].density(xyz.index_select(0, r)), step), 2,
-                           xyz, packer,
-                           live, "density", listed)
+                           xyz, packer, live, "density", listed)
             return alpha_mix_density(out[:, 0], out[:, 1], vals.sum(-1), step)
         if dirs is None:
             out = dispatch(routes, lambda e, r: experts[e].density(xyz.index_select(0, r))[:, None], 1, xyz, packer,

@@ -134,8 +134,8 @@ def sample_list(origins: Tensor, dirs: Tensor, settings: RenderSettings) -> tupl
     j = (torch.arange(len(ray), device=origins.device) - start.index_select(0, ray)).to(origins.dtype)
     t = t0.index_select(0, ray) + (j + half) * step
     # the rays of one pinhole camera share one origin (an expanded tensor): added as it is, not gathered per sample
-    start = origins[:1] if origins.stride(0) == 0 else origins.contiguous().index_select(0, ray)
-    xyz = start + t[:, None] * dirs.contiguous().index_select(0, ray)
+    origin = origins[:1] if origins.stride(0) == 0 else origins.contiguous().index_select(0, ray)
+    xyz = origin + t[:, None] * dirs.contiguous().index_select(0, ray)
     return ray, t, xyz, step
 
 
