@@ -152,6 +152,22 @@ def test_alpha_mixing_mixes_the_experts_opacities():
             assert 1.0 - math.exp(-float(sigma[s]) * STEP) == pytest.approx(ref, rel=1e-10, abs=1e-14)
 
 
+def test_a_renormalised_top1_renders_its_experts_own_density_under_alpha_mixing():
+    """Weight 1 on one expert: the alpha mix's opacity is that expert's, so rendering takes its density as it is, not
+    through an opacity and back (which rounds), and leaves the rest of the mix out."""
+    mix = _mixture(m=3, k=1, mix="alpha", scale=3.0).float()
+    g = torch.Generator().manual_seed(4)
+    xyz = torch.rand(500, 3, generator=g) * 1.8 - 0.9
+    with torch.no_grad():
+        sigma = mix.density(xyz)
+        _, _, idx = mix.route(xyz, need_probs=False)
+        own = torch.zeros(len(xyz))
+        for e, expert in enumerate(mix.experts):  # each expert on the samples routed to it, as the mixture runs it
+            rows = (idx[:, 0] == e).nonzero().squeeze(-1)
+            own[rows] = expert.density(xyz[rows])
+    assert idx.unique().numel() > 1 and torch.equal(sigma, own)
+
+
 def test_alpha_mixing_renders_the_hand_composited_colour():
     mix = _mixture(m=3, k=2, mix="alpha", scale=3.0)
     origins, dirs = _rays(24)

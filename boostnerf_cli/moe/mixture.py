@@ -396,12 +396,12 @@ class Mixture(nn.Module):
         """Run each expert on its routed samples only: density (dirs None) -> (N,), colour -> (N, 3); `packer`,
         `live` (the real samples of a static packing) and `listed` as `router.dispatch` takes them."""
         experts, routes = self.experts, self.routes(vals, idx)
-        if dirs is None and self.cfg.mix == "alpha":
+        if dirs is None and self.cfg.mix == "alpha" and not routes.unit:
             step = self.cfg.step
             out = dispatch(routes, lambda e, r: _alpha_and_trans(experts[e].density(xyz.index_select(0, r)), step), 2,
                            xyz, packer, live, "density", listed)
             return alpha_mix_density(out[:, 0], out[:, 1], vals.sum(-1), step)
-        if dirs is None:
+        if dirs is None:  # mix density; or Top-1 at weight 1, whose alpha mix is its expert's opacity: its density
             out = dispatch(routes, lambda e, r: experts[e].density(xyz.index_select(0, r))[:, None], 1, xyz, packer,
                            live, "density", listed)
             return out[:, 0]
