@@ -439,10 +439,11 @@ def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
     mix.for_rendering()
     with torch.no_grad():
         cells, tables = mix.cells(), mix.skips()
-    assert cells is not None and tables is not None and cells.top1 is not None
+    assert cells is not None and tables is not None and (cells.top1 is not None) == (k == 1)
     states = torch.bincount(tables.vd.long(), minlength=3)
     assert states[C.PASS] > 0 and states[C.FAIL] > 0 and states[C.MIXED] > 0, states
-    assert (cells.top1 >= 0).float().mean() > 0.5  # most cells of the baked gate have one clear expert
+    if k == 1:  # most cells (the baked gate's, halved) have one clear expert
+        assert (cells.top1 >= 0).float().mean() > 0.5 and cells.shape == C.halved(mix.gate.shape)
     pose = torch.eye(4)
     pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
     camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
@@ -580,6 +581,31 @@ def test_a_cell_is_decided_only_where_all_its_vertices_agree_with_a_margin():
     r = C.threshold_raw(1e-3, 0.05, 0.1, -4.0)
     sigma = torch.nn.functional.softplus(torch.tensor(r, dtype=torch.float64) - 4.0) / 0.1
     assert float(-torch.expm1(-sigma * 0.05)) == pytest.approx(1e-3, rel=1e-9)
+
+
+def test_halved_gate_cells_decide_more_samples_and_each_as_the_blend_does(monkeypatch):
+    """`cells.route_cells` decides Top-1's expert on the gate's cells halved along every axis: every sample in a decided
+    half-cell is the gate blend's choice there, more samples are decided than by whole cells, slabs of any size give
+    the same table, and a lattice whose halves would be too many keeps the gate's own cells."""
+    from boostnerf_cli.moe import cells as C
+
+    g = torch.Generator().manual_seed(5)
+    shape, m = (6, 7, 5), 3
+    box = torch.tensor([[-1.0, -0.5, -1.2], [1.0, 0.9, 0.4]])
+    logits = torch.randn(math.prod(shape), m, generator=g) * 3
+    table, fine = C.route_cells(logits, shape)
+    assert fine == C.halved(shape) == (11, 13, 9) and table.shape == (10 * 12 * 8,)
+    monkeypatch.setattr(C, "SLAB_VALUES", 1)  # one of the gate's x-cells a slab
+    assert torch.equal(C.route_cells(logits, shape)[0], table)
+    pts = box[0] + torch.rand(20000, 3, generator=g) * (box[1] - box[0])
+    blended = G.lookup(logits, *G.corners(pts, box, shape)).max(-1).indices
+    halves = table.index_select(0, C.cell_index(pts, box, fine)).long()
+    wholes = C.top1_cells(logits, shape).index_select(0, C.cell_index(pts, box, shape)).long()
+    decided = halves >= 0
+    assert torch.equal(halves[decided], blended[decided])
+    assert decided.float().mean() > (wholes >= 0).float().mean() + 0.1
+    monkeypatch.setattr(C, "MAX_ROUTE_CELLS", 10 * 12 * 8 - 1)
+    assert C.route_cells(logits, shape)[1] == shape
 
 
 @pytest.mark.parametrize("seed,occupied", [(0, True), (1, True), (2, True), (0, False)])

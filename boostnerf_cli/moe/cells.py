@@ -10,10 +10,13 @@ A trilinear value inside a lattice cell is a convex combination of the cell's 8 
 - **Top-1's choice.** The baked gate's logits are blended the same way, and a convex combination keeps a strict
   order that holds at every vertex: where one expert's logit is the largest at all 8 vertices, it is the largest
   everywhere in the cell. A renormalised Top-1 mixture routes with weight 1, so the choice is all it needs. `top1_cells`
-  gives each cell its expert, or -1 where the vertices disagree (the cell is blended as before).
+  gives each cell its expert, or -1 where the vertices disagree (the cell is blended as before). Rendering decides on
+  the gate's cells halved along every axis (`route_cells`): a half-cell lies inside one cell, where the logits are
+  trilinear, so the test holds on it alike, and more samples lie in a half-cell with one clear expert (lego's Top-1:
+  60% of the kept samples, against 29% by whole cells; its routing 24 -> 17 ms an image).
 - **Top-2's lone choice.** Rendering a renormalised Top-2 leaves out a second choice that weighs less than w
   (`moe.render_min_weight`): its weight is sigmoid(l2 - l1), under w where the first expert's logit leads every other
-  by more than ln((1 - w) / w). Where it leads by that at all 8 vertices (`top1_cells` with that lead), it does so
+  by more than ln((1 - w) / w). Where it leads by that at all 8 vertices (`route_cells` with that lead), it does so
   everywhere in the cell, and every sample there goes to that expert alone, with weight 1, as the blend would send it.
 
 - **Both skips at once.** A sample is kept when its occupancy cell is occupied and it passes V_D. `skip_states` makes
@@ -57,11 +60,15 @@ def cell_index(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> Tensor
     return (cell.to(exact) @ strides).long()
 
 
+def _vertex_views(v: Tensor) -> list[Tensor]:
+    """The 8 vertices of every cell: 8 views (X-1, Y-1, Z-1, ...) of values (X, Y, Z, ...) per vertex."""
+    X, Y, Z = v.shape[:3]
+    return [v[dx : X - 1 + dx, dy : Y - 1 + dy, dz : Z - 1 + dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
+
+
 def _corner_views(table: Tensor, shape: tuple[int, int, int]) -> list[Tensor]:
     """The 8 vertices of every cell: 8 views (X-1, Y-1, Z-1, C) of the table (X*Y*Z, C)."""
-    v = table.reshape(*shape, table.shape[-1])
-    return [v[dx : shape[0] - 1 + dx, dy : shape[1] - 1 + dy, dz : shape[2] - 1 + dz]
-            for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
+    return _vertex_views(table.reshape(*shape, table.shape[-1]))
 
 
 def _extremes(table: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
@@ -92,25 +99,77 @@ def threshold_raw(threshold: float, step: float, unit: float, shift: float) -> f
     return (y if y > 20 else math.log(math.expm1(y))) - shift
 
 
+def _leaders(table: Tensor, margin: float) -> tuple[Tensor, Tensor]:
+    """table (M, ...) channels first -> each vertex's largest expert (...,) int8 (the first of equals, as `max` and
+    `topk` choose) and whether it leads every other by more than `margin`."""
+    first = table[0].clone()
+    best = torch.zeros(first.shape, dtype=torch.int8, device=table.device)
+    second = torch.full_like(first, -math.inf)
+    for j in range(1, table.shape[0]):
+        x = table[j]
+        second = torch.maximum(second, torch.minimum(x, first))
+        best.masked_fill_(x > first, j)
+        first = torch.maximum(first, x)
+    return best, first - second > margin
+
+
+def _agreeing(best: Tensor, clear: Tensor) -> Tensor:
+    """best, clear (X, Y, Z) per vertex -> (X-1, Y-1, Z-1) int8: the expert all 8 vertices of a cell name clearly,
+    or -1."""
+    bests, clears = _vertex_views(best), _vertex_views(clear)
+    expert, agree = bests[0], clears[0].clone()
+    for b, c in zip(bests[1:], clears[1:]):
+        agree &= c & (b == expert)
+    return torch.where(agree, expert, -1).to(torch.int8)
+
+
+def _margin(table: Tensor, lead: float) -> float:
+    """How far a logit must lead: `lead`, and `MARGIN` of the table's scale."""
+    return lead + MARGIN * max(1.0, float(table.abs().max())) if table.numel() else 0.0
+
+
 @torch.no_grad()
 def top1_cells(logits: Tensor, shape: tuple[int, int, int], lead: float = 0.0) -> Tensor:
     """logits (X*Y*Z, M) the baked gate's vertex logits -> (cells,) int8: the expert whose logit is the largest,
     by more than `lead` and the margin, at all 8 vertices of the cell, or -1. The lead holds everywhere in the cell
     then, for each other expert's logit (a convex combination keeps it)."""
-    table = logits
-    margin = lead + MARGIN * max(1.0, float(table.abs().max())) if table.numel() else 0.0
-    expert = None
-    agree = None
-    for corner in _corner_views(table, shape):
-        top2 = corner.topk(min(2, corner.shape[-1]), dim=-1)
-        best = top2.indices[..., 0]
-        clear = (top2.values[..., 0] - top2.values[..., -1] > margin) if corner.shape[-1] > 1 else torch.ones_like(
-            best, dtype=torch.bool)
-        if expert is None:
-            expert, agree = best, clear
-        else:
-            agree = agree & clear & (best == expert)
-    return torch.where(agree, expert, -1).reshape(-1).to(torch.int8)
+    best, clear = _leaders(logits.T.reshape(logits.shape[-1], *shape), _margin(logits, lead))
+    return _agreeing(best, clear).reshape(-1)
+
+
+# `route_cells` halves the gate's cells along every axis while the halves number at most this many (an int8 each), and
+# works out at most about SLAB_VALUES logits at a time
+MAX_ROUTE_CELLS = 1 << 25
+SLAB_VALUES = 1 << 22
+
+
+def halved(shape: tuple[int, int, int]) -> tuple[int, int, int]:
+    """The lattice whose cells halve those of a lattice of `shape` (vertices) along every axis."""
+    return tuple(2 * n - 1 for n in shape)  # type: ignore[return-value]
+
+
+@torch.no_grad()
+def route_cells(logits: Tensor, shape: tuple[int, int, int], lead: float = 0.0) -> tuple[Tensor, tuple[int, int, int]]:
+    """`top1_cells` on the gate's cells halved along every axis (while they number at most `MAX_ROUTE_CELLS`), so
+    that more samples lie in a cell with one clear expert: -> (cells,) int8, and the lattice's shape (vertices).
+
+    A half-cell lies inside one of the gate's cells, where every logit is trilinear, hence on the half-cell too: its
+    differences are extreme at the half-cell's 8 corners, so the test of `top1_cells` holds there as on a whole cell.
+    The corners' logits are the gate's blend there: a vertex's own, the mean of 2, 4 or 8 (to float32 rounding,
+    far under the margin). Made in slabs along x, a few million values at a time."""
+    fine = halved(shape)
+    if math.prod(n - 1 for n in fine) > MAX_ROUTE_CELLS:
+        return top1_cells(logits, shape, lead), shape
+    margin = _margin(logits, lead)
+    m = logits.shape[-1]
+    grid = logits.T.reshape(1, m, *shape)  # channels first, as `interpolate` takes it
+    slab = max(1, SLAB_VALUES // max(1, 4 * shape[1] * shape[2] * m))  # the gate's x-cells a slab covers
+    out = []
+    for a in range(0, shape[0] - 1, slab):
+        v = grid[:, :, a : min(shape[0], a + slab + 1)]
+        size = tuple(2 * n - 1 for n in v.shape[2:])  # each midpoint the mean of its 2, 4 or 8 vertices
+        out.append(_agreeing(*_leaders(F.interpolate(v, size=size, mode="trilinear", align_corners=True)[0], margin)))
+    return torch.cat(out).reshape(-1), fine
 
 
 # `lone_share`: below this share of the kept space in cells with a lone expert, Top-2's per-cell lookup costs more than

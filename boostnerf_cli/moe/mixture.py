@@ -199,12 +199,14 @@ class RoutingStats:
 
 @dataclass
 class RenderCells:
-    """Top-1's expert per cell of the baked gate's lattice where the cell's 8 vertices agree (moe/cells.py; None unless
-    the mixture routes by a baked gate), made for `gate`."""
+    """Top-1's expert per cell where the cell's 8 vertices agree (moe/cells.py, `route_cells`: the baked gate's cells
+    halved along every axis; None unless the mixture routes by a baked gate), made for `gate`, on a lattice of `shape`
+    (vertices) over the gate's box."""
 
     gate: Gate
     top1: Tensor | None
-    # a renormalised Top-2's lone expert per cell (`top1_cells` with the lead of ln((1 - w) / w)), made for
+    shape: tuple[int, int, int] = (2, 2, 2)
+    # a renormalised Top-2's lone expert per cell (`route_cells` with the lead of ln((1 - w) / w)), made for
     # render_min_weight `solo_weight`; None for other mixtures
     solo: Tensor | None = None
     solo_weight: float = 0.0
@@ -296,23 +298,23 @@ class Mixture(nn.Module):
         if not self.cfg.renormalize:
             return top_k(gate.probs(xyz), k, renormalize=False)
         if k == 1 and cells is not None and cells.top1 is not None:
-            return xyz.new_ones(xyz.shape[0], 1), self._top1_by_cell(xyz, cells.top1, static)[:, None]
+            return xyz.new_ones(xyz.shape[0], 1), self._top1_by_cell(xyz, cells, static)[:, None]
         if (light_left_out and not static and cells is not None and cells.solo is not None
                 and cells.solo_weight == self.render_min_weight() > 0):
-            return self._top2_by_cell(xyz, cells.solo)
+            return self._top2_by_cell(xyz, cells)
         chosen, idx = top_k(gate.logits(xyz).float(), k, renormalize=False)
         return (torch.ones_like(chosen) if k == 1 else softmax(chosen)), idx
 
-    def _cell_expert(self, xyz: Tensor, table: Tensor) -> Tensor:
-        """(N,) int64: the expert a per-cell table of the baked gate's lattice (moe/cells.py) gives each sample's cell,
-        -1 where it leaves the sample to the blend."""
-        return table.index_select(0, C.cell_index(xyz, self.gate.bbox, self.gate.shape)).long()
+    def _cell_expert(self, xyz: Tensor, cells: RenderCells, table: Tensor) -> Tensor:
+        """(N,) int64: the expert a per-cell table of `cells` (moe/cells.py) gives each sample's cell, -1 where it
+        leaves the sample to the blend."""
+        return table.index_select(0, C.cell_index(xyz, self.gate.bbox, cells.shape)).long()
 
-    def _top2_by_cell(self, xyz: Tensor, solo: Tensor) -> tuple[Tensor, Tensor]:
+    def _top2_by_cell(self, xyz: Tensor, cells: RenderCells) -> tuple[Tensor, Tensor]:
         """A renormalised Top-2's weights (N, 2) and experts (N, 2) where light choices are left out: (1, 0) to the
         cell's lone expert (moe/cells.py), the gate's blend where the cell has none."""
         gate = self.gate
-        expert = self._cell_expert(xyz, solo)
+        expert = self._cell_expert(xyz, cells, cells.solo)
         idx = torch.stack([expert, expert], -1)
         vals = torch.zeros(xyz.shape[0], 2, dtype=torch.float32, device=xyz.device)
         vals[:, 0] = 1.0
@@ -323,12 +325,12 @@ class Mixture(nn.Module):
             idx.index_copy_(0, rows, i2)
         return vals, idx
 
-    def _top1_by_cell(self, xyz: Tensor, top1: Tensor, static: bool) -> Tensor:
+    def _top1_by_cell(self, xyz: Tensor, cells: RenderCells, static: bool) -> Tensor:
         """(N,) each sample's expert: its cell's (moe/cells.py), the baked gate's blend where the cell's vertices
         disagree (for a static packing blended for every sample and chosen per sample, so that nothing waits for the
         device)."""
         gate = self.gate
-        expert = self._cell_expert(xyz, top1)
+        expert = self._cell_expert(xyz, cells, cells.top1)
         mixed = expert < 0
         if static:
             return torch.where(mixed, gate.logits(xyz).float().argmax(-1), expert)
@@ -348,15 +350,18 @@ class Mixture(nn.Module):
         self.prepare_skips()
         gate = self.gate
         baked = gate.cfg.gate_type == "baked"
-        top1 = C.top1_cells(gate.logit_table, gate.shape) if baked else None
-        solo, w = None, self.cfg.render_min_weight
-        if baked and self.cfg.topk == 2 and self.cfg.renormalize and 0 < w < 0.5:
-            solo = C.top1_cells(gate.logit_table, gate.shape, lead=math.log((1 - w) / w))
+        if not baked:
+            return RenderCells(gate, None)
+        k, w = self.cfg.topk, self.cfg.render_min_weight
+        top1, shape = C.route_cells(gate.logit_table, gate.shape) if k == 1 else (None, gate.shape)
+        solo = None
+        if k == 2 and self.cfg.renormalize and 0 < w < 0.5:
+            solo, shape = C.route_cells(gate.logit_table, gate.shape, lead=math.log((1 - w) / w))
             skips = self.skips()
             kept = skips.skip if skips is not None else self.occupancy
-            if C.lone_share(solo, gate.bbox, gate.shape, kept) < C.LONE_SHARE:
+            if C.lone_share(solo, gate.bbox, shape, kept) < C.LONE_SHARE:
                 solo = None  # too few: the lookup would cost more than it saves
-        return RenderCells(gate, top1, solo, w)
+        return RenderCells(gate, top1, shape, solo, w)
 
     def cells(self) -> RenderCells | None:
         """The per-cell decisions `for_rendering` made, while they still hold and nothing trains (no gradient)."""
