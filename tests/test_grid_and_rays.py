@@ -339,6 +339,31 @@ def test_a_one_channel_blend_without_gradient_matches_the_corner_lookup():
     assert torch.equal(G.blend(trained, xyz, bbox, shape).detach(), want)
 
 
+@pytest.mark.parametrize("n", [1, 1023, 1024, 2049, 5003])
+def test_a_blend_shared_among_threads_is_the_one_threads_bit_for_bit(n):
+    """On the CPU `grid.blend` hands grid_sample one part of the points per thread (grid_sample shares out its batch,
+    not its points), padded to equal parts: the same values, to the bit, as on one thread, however many points."""
+    from boostnerf_cli.fields import grid as G
+
+    g = torch.Generator().manual_seed(4)
+    shape, bbox = (9, 6, 8), torch.tensor([[-1.0, -0.5, 0.0], [2.0, 0.5, 1.5]])
+    table = torch.randn(9 * 6 * 8, 1, generator=g)
+    xyz = bbox[0] - 0.2 + torch.rand(n, 3, generator=g) * (bbox[1] - bbox[0] + 0.4)
+    threads = torch.get_num_threads()
+    batches, grid_sample = [], F.grid_sample
+    try:
+        torch.set_num_threads(1)
+        one = G.blend(table, xyz, bbox, shape)
+        torch.set_num_threads(3)
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr(G.F, "grid_sample", lambda v, q, **k: batches.append(q.shape[0]) or grid_sample(v, q, **k))
+            three = G.blend(table, xyz, bbox, shape)
+    finally:
+        torch.set_num_threads(threads)
+    assert batches == [min(3, max(1, n // 1024))]
+    assert three.shape == (n, 1) and torch.equal(three, one)
+
+
 def test_the_lookup_for_points_inside_the_box_agrees_with_the_general_one():
     """`OccupancyGrid.within` (and `SkipCells.within`), the renderer's lookup for its samples inside the box, gives
     `__call__`'s answer for every point inside the box, its faces and corners included (a point on the max face in the
