@@ -109,8 +109,7 @@ class DVGOExpert(ExpertModule):
             return torch.sigmoid(feat)
         return torch.sigmoid(self.rgbnet(torch.cat([feat, direction_encoding(dirs, self.cfg.view_pe)], -1)))
 
-    @blockwise
-    def density(self, xyz: Tensor) -> Tensor:
+    def density(self, xyz: Tensor) -> Tensor:  # a blend and a few per-point steps: all rows at once (no MLP to block)
         return self._sigma(xyz, G.blend(self.density_table, xyz, self.bbox, self.shape)[:, 0])
 
     @blockwise
