@@ -364,6 +364,24 @@ def test_a_blend_shared_among_threads_is_the_one_threads_bit_for_bit(n):
     assert three.shape == (n, 1) and torch.equal(three, one)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_coordinates_axis_by_axis_are_the_broadcast_arithmetic_bit_for_bit(dtype):
+    """`grid.axis_coords` and `grid.inside_box` (which the lookups use: a third of the time on the CPU) give what the
+    same arithmetic over (..., 3) points against (3,) rows gives, to the bit, on faces and outside too."""
+    from boostnerf_cli.fields import grid as G
+
+    g = torch.Generator().manual_seed(6)
+    bbox = torch.tensor([[-1.3, -0.2, 0.7], [0.9, 2.1, 1.1]], dtype=dtype)
+    xyz = bbox[0] - 0.5 + torch.rand(4, 300, 3, generator=g, dtype=dtype) * (bbox[1] - bbox[0] + 1.0)
+    xyz[0, :, 1] = bbox[1, 1]  # on a face
+    scale = torch.tensor([7.0, 11.0, 5.0], dtype=dtype)
+    for s in (scale, 2.0):
+        want = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * s
+        got = torch.stack(G.axis_coords(xyz, bbox, s), -1)
+        assert torch.equal(got, want)
+    assert torch.equal(G.inside_box(xyz, bbox), ((xyz >= bbox[0]) & (xyz <= bbox[1])).all(-1))
+
+
 def test_the_lookup_for_points_inside_the_box_agrees_with_the_general_one():
     """`OccupancyGrid.within` (and `SkipCells.within`), the renderer's lookup for its samples inside the box, gives
     `__call__`'s answer for every point inside the box, its faces and corners included (a point on the max face in the

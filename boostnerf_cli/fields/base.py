@@ -22,6 +22,8 @@ from typing import Callable, Protocol, TypeVar, runtime_checkable
 import torch
 from torch import Tensor, nn
 
+from boostnerf_cli.fields import grid as G
+
 # Rows per block when a field is evaluated without gradients on the CPU (`blockwise`): a block's widest activations
 # (8192 rows of a 128-wide hidden layer: 4 MB) stay near the core's cache instead of streaming through memory layer
 # after layer. A DVGO expert's colour over 100k samples, one thread: 148 -> 80 ms (128 wide), 93 -> 47 ms (64 wide);
@@ -135,7 +137,7 @@ class ExpertModule(nn.Module):
 
     def inside(self, xyz: Tensor) -> Tensor:
         """(N, 3) -> (N,) bool: in the box, faces included."""
-        return ((xyz >= self.bbox[0]) & (xyz <= self.bbox[1])).all(dim=-1)
+        return G.inside_box(xyz, self.bbox)
 
     def config_dict(self) -> dict:
         return {"family": self.family, "config": asdict(self.cfg), "unit": self.unit, "shape": list(self.shape)}

@@ -39,20 +39,38 @@ def lattice_shape(bbox: Tensor, n_voxels: int) -> tuple[int, int, int]:
     return tuple(int(v) for v in sides)  # type: ignore[return-value]
 
 
+def axis_coords(xyz: Tensor, bbox: Tensor, scale) -> list[Tensor]:
+    """The points (..., 3) in the box's frame, axis by axis: (xyz[..., a] - lo_a) / (hi_a - lo_a) * scale_a, three (...)
+    tensors (`scale` a number or one per axis). The same arithmetic, to the bit, as on the (N, 3) points at once
+    against (3,) rows, in a third of the time on the CPU, where an operation broadcast along a last axis of 3 runs
+    element by element and one over a column with a number runs vectorised (622k points: 5.8 -> 2 ms)."""
+    lo, size = bbox[0], bbox[1] - bbox[0]
+    return [(xyz[..., a] - lo[a]) / size[a] * (scale[a] if isinstance(scale, Tensor) else scale) for a in range(3)]
+
+
+def inside_box(xyz: Tensor, bbox: Tensor) -> Tensor:
+    """(..., 3) -> (...) bool: in the box, faces included (axis by axis, as `axis_coords`)."""
+    inside = (xyz[..., 0] >= bbox[0, 0]) & (xyz[..., 0] <= bbox[1, 0])
+    for a in (1, 2):
+        inside &= (xyz[..., a] >= bbox[0, a]) & (xyz[..., a] <= bbox[1, a])
+    return inside
+
+
 def corners(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
     """Trilinear support of points: (N, 3) -> row indices (N, 8) int64, weights (N, 8)."""
     flops.add("interp", flops.CORNER_FLOPS * xyz.shape[0])
     res = constant(tuple(shape), xyz.device, xyz.dtype)
-    p = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * (res - 1)
-    p = torch.minimum(p.clamp_min(0), res - 1)
-    p0 = torch.minimum(p.floor(), res - 2)
-    f = p - p0
-    i0 = p0.long()
     sy, sz = shape[1] * shape[2], shape[2]
-    base = i0[:, 0] * sy + i0[:, 1] * sz + i0[:, 2]
+    base, f = None, []
+    for a, (p, stride) in enumerate(zip(axis_coords(xyz, bbox, res - 1), (sy, sz, 1))):
+        p = torch.minimum(p.clamp_min_(0), res[a] - 1)
+        p0 = torch.minimum(p.floor(), res[a] - 2)
+        f.append(p - p0)
+        i0 = p0.long()
+        base = i0 * stride if base is None else base.add_(i0 * stride if stride > 1 else i0)
     # corner k = dx*4 + dy*2 + dz; weights built from contiguous (N,) vectors (fast on CPU)
     offs = constant((0, 1, sz, sz + 1, sy, sy + 1, sy + sz, sy + sz + 1), xyz.device, torch.long)
-    fx, fy, fz = f.unbind(-1)
+    fx, fy, fz = f
     gx, gy, gz = 1 - fx, 1 - fy, 1 - fz
     xy = (gx * gy, gx * fy, fx * gy, fx * fy)
     w = torch.stack([c for pair in xy for c in (pair * gz, pair * fz)], dim=1)
@@ -120,7 +138,7 @@ def blend(table: Tensor, xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int])
     flops.add("interp", (flops.CORNER_FLOPS + 16) * n)  # as corners and lookup count it
     # grid_sample's volume is (B, C, D, H, W) with D, H, W the lattice's x, y, z, its points (x, y, z) as (W, H, D)
     # in [-1, 1]; align_corners: vertex 0 at -1, the last at 1; border: a point outside the box clamped to it
-    q = ((xyz - bbox[0]) / (bbox[1] - bbox[0]) * 2 - 1).flip(-1).to(table.dtype)
+    q = torch.stack([c - 1 for c in reversed(axis_coords(xyz, bbox, 2))], -1).to(table.dtype)
     parts = min(torch.get_num_threads(), max(1, n // 1024)) if xyz.device.type == "cpu" else 1
     if n % parts:  # padded to equal parts (the pads' values are dropped)
         q = torch.cat([q, q.new_zeros(parts - n % parts, 3)])

@@ -41,6 +41,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from boostnerf_cli.device import constant
+from boostnerf_cli.fields.grid import axis_coords
 from boostnerf_cli.render.occupancy import OccupancyGrid
 
 FAIL, PASS, MIXED = 0, 1, 2
@@ -51,13 +52,15 @@ def cell_index(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> Tensor
     """(N, 3) -> (N,) the index of the lattice cell whose 8 vertices `grid.corners` blends for each point (the same
     clamping), in C order over the (X-1, Y-1, Z-1) cells."""
     res = constant(tuple(shape), xyz.device, xyz.dtype)  # made once per device: no copy to it per call
-    p = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * (res - 1)
-    # floor, then into [0, res - 2]: what clamping into [0, res - 1], flooring and capping at res - 2 gives
-    cell = torch.clamp(p.floor_(), min=constant((0.0, 0.0, 0.0), xyz.device, xyz.dtype), max=res - 2)
-    # the flat index as one product with the strides, exact in float32 below 2^24 cells (in float64 above)
+    # floor, then into [0, res - 2]: what clamping into [0, res - 1], flooring and capping at res - 2 gives; the flat
+    # index summed axis by axis, exact in float32 below 2^24 cells (in float64 above)
     exact = torch.float32 if (shape[0] - 1) * (shape[1] - 1) * (shape[2] - 1) < 1 << 24 else torch.float64
-    strides = constant(((shape[1] - 1) * (shape[2] - 1), shape[2] - 1, 1), xyz.device, exact)
-    return (cell.to(exact) @ strides).long()
+    index = None
+    for a, (p, stride) in enumerate(zip(axis_coords(xyz, bbox, res - 1), ((shape[1] - 1) * (shape[2] - 1),
+                                                                          shape[2] - 1, 1))):
+        cell = torch.minimum(p.floor_().clamp_min_(0), res[a] - 2).to(exact)
+        index = cell.mul_(stride) if index is None else index.add_(cell if stride == 1 else cell.mul_(stride))
+    return index.long()
 
 
 def _vertex_views(v: Tensor) -> list[Tensor]:

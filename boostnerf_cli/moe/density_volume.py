@@ -30,7 +30,7 @@ class DensityVolume(nn.Module):
 
     def inside(self, xyz: Tensor) -> Tensor:
         """(N, 3) -> (N,) bool: in the box, faces included (outside it V_D is empty)."""
-        return ((xyz >= self.bbox[0]) & (xyz <= self.bbox[1])).all(dim=-1)
+        return G.inside_box(xyz, self.bbox)
 
     def density(self, xyz: Tensor) -> Tensor:
         return F.softplus(G.blend(self.table, xyz, self.bbox, self.shape)[:, 0] + self.shift) / self.unit * \

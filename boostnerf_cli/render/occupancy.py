@@ -14,6 +14,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from boostnerf_cli.fields.grid import axis_coords
+
 
 def cell_points(bbox: Tensor, shape: tuple[int, int, int], offset: Tensor) -> Tensor:
     """One point per cell at `offset` (3,) in [0, 1) of the cell: (X*Y*Z, 3) in [x, y, z] cell order."""
@@ -35,7 +37,6 @@ class OccupancyGrid:
         p = [n + 2 for n in self.shape]
         self._strides = torch.tensor([p[1] * p[2], p[2], 1], dtype=torch.float32, device=self.occupied.device)
         self._res = torch.tensor(self.shape, dtype=torch.float32, device=self.occupied.device)
-        self._zero = torch.zeros(3, dtype=torch.float32, device=self.occupied.device)
         self._pad_row = float(p[1] * p[2] + p[2] + 1)  # the padded row of cell (0, 0, 0): the strides summed
 
     @property
@@ -70,32 +71,40 @@ class OccupancyGrid:
 
     def padded_rows_within(self, xyz: Tensor) -> Tensor:
         """`padded_rows` for points inside the box (see `within`)."""
-        lo, hi, res = self.bbox[0], self.bbox[1], self._res
-        u = (xyz.float() - lo).div_(hi - lo).mul_(res)  # `_cells`' arithmetic
-        cell = torch.clamp(u.floor_(), min=self._zero, max=res - 1)  # u = res (the max face) into the last cell
-        return torch.mv(cell, self._strides).add_(self._pad_row).long()  # + 1 on every axis: into the padded grid
+        res = self._res
+        rows = None
+        for a, u in enumerate(axis_coords(xyz.float(), self.bbox, res)):  # `_cells`' arithmetic
+            cell = torch.minimum(u.floor_().clamp_min_(0), res[a] - 1)  # u = res (the max face) into the last cell
+            rows = cell.mul_(self._strides[a]) if rows is None else rows.add_(cell.mul_(self._strides[a]))
+        return rows.add_(self._pad_row).long()  # + 1 on every axis: into the padded grid
 
     def padded_rows(self, xyz: Tensor) -> Tensor:
         """(N, 3) points -> (N,) their rows in the grid padded by one cell on every side and flattened (`__call__`'s
         lookup): a point outside the box lands in the padding. A table of another kind over the same cells, padded
-        alike, is looked up with these rows too (moe/cells.py `SkipCells`)."""
-        cell = torch.minimum(self._cells(xyz).clamp_min_(-1.0), self._res).add_(1.0)
-        return (cell @ self._strides).long()
+        alike, is looked up with these rows too (moe/cells.py `SkipCells`). The row is summed in float32, exact
+        below 2^24 cells."""
+        rows = None
+        for a, u in enumerate(self._cells(xyz)):
+            cell = torch.minimum(u.clamp_min_(-1.0), self._res[a]).add_(1.0).mul_(self._strides[a])
+            rows = cell if rows is None else rows.add_(cell)
+        return rows.long()
 
-    def _cells(self, xyz: Tensor) -> Tensor:
-        """(..., 3) points -> their cell coordinates (floored, float; outside the box below 0 or at least res)."""
-        lo, hi, res = self.bbox[0], self.bbox[1], self._res
-        u = (xyz.float() - lo).div_(hi - lo).mul_(res)  # the same arithmetic, so the same cells, as a box test
-        u = torch.where(u == res, res - 0.5, u)  # a point on the max face belongs to the last cell
-        return u.floor_()
+    def _cells(self, xyz: Tensor) -> list[Tensor]:
+        """(N, 3) points -> their cell coordinates per axis (floored, float; outside the box below 0 or at least
+        res)."""
+        res = self._res
+        out = []
+        for a, u in enumerate(axis_coords(xyz.float(), self.bbox, res)):  # the same cells as a box test
+            out.append(torch.where(u == res[a], res[a] - 0.5, u).floor_())  # the max face: in the last cell
+        return out
 
     def cell_index(self, xyz: Tensor) -> Tensor:
-        """(..., 3) points -> the flat [x, y, z] index of the cell each lies in (the cell `__call__` looks
+        """(N, 3) points -> the flat [x, y, z] index of the cell each lies in (the cell `__call__` looks
         up), -1 outside the box."""
-        u = self._cells(xyz)
-        inside = ((u >= 0) & (u < self._res)).all(-1)
-        r = self.shape
-        flat = ((u[..., 0] * r[1] + u[..., 1]) * r[2] + u[..., 2]).long()
+        ux, uy, uz = self._cells(xyz)
+        res, r = self._res, self.shape
+        inside = (ux >= 0) & (ux < res[0]) & (uy >= 0) & (uy < res[1]) & (uz >= 0) & (uz < res[2])
+        flat = ((ux * r[1] + uy) * r[2] + uz).long()
         return torch.where(inside, flat, torch.full_like(flat, -1))
 
     def cell_centers(self) -> Tensor:
