@@ -365,21 +365,38 @@ def test_a_blend_shared_among_threads_is_the_one_threads_bit_for_bit(n):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_coordinates_axis_by_axis_are_the_broadcast_arithmetic_bit_for_bit(dtype):
-    """`grid.axis_coords` and `grid.inside_box` (which the lookups use: a third of the time on the CPU) give what the
-    same arithmetic over (..., 3) points against (3,) rows gives, to the bit, on faces and outside too."""
+def test_coordinates_axis_by_axis_are_the_broadcast_arithmetic_bit_for_bit(dtype, monkeypatch):
+    """Point arithmetic goes axis by axis on the CPU (`grid.by_axis`: a third of the time there) and over (N, 3) at
+    once on a GPU: the corners and weights, the blend, the box test, the gate cells' index and the occupancy grid's
+    rows and cells come out the same, to the bit, either way, on faces, vertices and outside too."""
     from boostnerf_cli.fields import grid as G
+    from boostnerf_cli.moe import cells as C
+    from boostnerf_cli.render.occupancy import OccupancyGrid
 
     g = torch.Generator().manual_seed(6)
     bbox = torch.tensor([[-1.3, -0.2, 0.7], [0.9, 2.1, 1.1]], dtype=dtype)
-    xyz = bbox[0] - 0.5 + torch.rand(4, 300, 3, generator=g, dtype=dtype) * (bbox[1] - bbox[0] + 1.0)
-    xyz[0, :, 1] = bbox[1, 1]  # on a face
+    shape = (7, 11, 5)
+    xyz = bbox[0] - 0.5 + torch.rand(1200, 3, generator=g, dtype=dtype) * (bbox[1] - bbox[0] + 1.0)
+    xyz[:100, 1] = bbox[1, 1]  # on a face
+    xyz = torch.cat([xyz, G.lattice_points(bbox, shape)])
+    inside = ((xyz >= bbox[0]) & (xyz <= bbox[1])).all(-1)
+    table = torch.randn(7 * 11 * 5, 1, generator=g, dtype=dtype)
+    grid = OccupancyGrid(torch.rand(6, 4, 9, generator=g) > 0.5, bbox)
     scale = torch.tensor([7.0, 11.0, 5.0], dtype=dtype)
-    for s in (scale, 2.0):
-        want = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * s
-        got = torch.stack(G.axis_coords(xyz, bbox, s), -1)
-        assert torch.equal(got, want)
-    assert torch.equal(G.inside_box(xyz, bbox), ((xyz >= bbox[0]) & (xyz <= bbox[1])).all(-1))
+
+    def all_of():
+        return [*G.axis_coords(xyz, bbox, scale), *G.axis_coords(xyz, bbox, 2.0), G.inside_box(xyz, bbox),
+                *G.corners(xyz, bbox, shape), G.blend(table, xyz, bbox, shape), C.cell_index(xyz, bbox, shape),
+                grid.padded_rows(xyz), grid.padded_rows_within(xyz[inside]), grid.cell_index(xyz[None]), grid(xyz)]
+
+    assert G.by_axis(xyz)  # the CPU's way
+    by_axis = all_of()
+    monkeypatch.setattr(G, "by_axis", lambda t: False)  # a GPU's way, on the CPU
+    at_once = all_of()
+    for a, b in zip(by_axis, at_once, strict=True):
+        assert a.shape == b.shape and torch.equal(a, b)
+    assert torch.equal(torch.stack(by_axis[:3], -1), (xyz - bbox[0]) / (bbox[1] - bbox[0]) * scale)
+    assert torch.equal(by_axis[6], inside)
 
 
 def test_the_lookup_for_points_inside_the_box_agrees_with_the_general_one():

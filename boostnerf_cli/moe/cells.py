@@ -41,7 +41,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from boostnerf_cli.device import constant
-from boostnerf_cli.fields.grid import axis_coords
+from boostnerf_cli.fields import grid as G
 from boostnerf_cli.render.occupancy import OccupancyGrid
 
 FAIL, PASS, MIXED = 0, 1, 2
@@ -53,11 +53,15 @@ def cell_index(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> Tensor
     clamping), in C order over the (X-1, Y-1, Z-1) cells."""
     res = constant(tuple(shape), xyz.device, xyz.dtype)  # made once per device: no copy to it per call
     # floor, then into [0, res - 2]: what clamping into [0, res - 1], flooring and capping at res - 2 gives; the flat
-    # index summed axis by axis, exact in float32 below 2^24 cells (in float64 above)
+    # index a sum over the axes, exact in float32 below 2^24 cells (in float64 above)
     exact = torch.float32 if (shape[0] - 1) * (shape[1] - 1) * (shape[2] - 1) < 1 << 24 else torch.float64
+    strides = ((shape[1] - 1) * (shape[2] - 1), shape[2] - 1, 1)
+    if not G.by_axis(xyz):  # the same operations over all three axes at once
+        p = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * (res - 1)
+        cell = torch.minimum(p.floor_().clamp_min_(0), res - 2)
+        return (cell.to(exact) @ constant(strides, xyz.device, exact)).long()
     index = None
-    for a, (p, stride) in enumerate(zip(axis_coords(xyz, bbox, res - 1), ((shape[1] - 1) * (shape[2] - 1),
-                                                                          shape[2] - 1, 1))):
+    for a, (p, stride) in enumerate(zip(G.axis_coords(xyz, bbox, res - 1), strides)):
         cell = torch.minimum(p.floor_().clamp_min_(0), res[a] - 2).to(exact)
         index = cell.mul_(stride) if index is None else index.add_(cell if stride == 1 else cell.mul_(stride))
     return index.long()

@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from boostnerf_cli.fields.grid import axis_coords
+from boostnerf_cli.fields import grid as G
 
 
 def cell_points(bbox: Tensor, shape: tuple[int, int, int], offset: Tensor) -> Tensor:
@@ -72,8 +72,12 @@ class OccupancyGrid:
     def padded_rows_within(self, xyz: Tensor) -> Tensor:
         """`padded_rows` for points inside the box (see `within`)."""
         res = self._res
+        if not G.by_axis(xyz):  # the same operations over all three axes at once
+            u = (xyz.float() - self.bbox[0]).div_(self.bbox[1] - self.bbox[0]).mul_(res)
+            cell = torch.minimum(u.floor_().clamp_min_(0), res - 1)
+            return torch.mv(cell, self._strides).add_(self._pad_row).long()
         rows = None
-        for a, u in enumerate(axis_coords(xyz.float(), self.bbox, res)):  # `_cells`' arithmetic
+        for a, u in enumerate(G.axis_coords(xyz.float(), self.bbox, res)):  # `_cells`' arithmetic
             cell = torch.minimum(u.floor_().clamp_min_(0), res[a] - 1)  # u = res (the max face) into the last cell
             rows = cell.mul_(self._strides[a]) if rows is None else rows.add_(cell.mul_(self._strides[a]))
         return rows.add_(self._pad_row).long()  # + 1 on every axis: into the padded grid
@@ -81,25 +85,28 @@ class OccupancyGrid:
     def padded_rows(self, xyz: Tensor) -> Tensor:
         """(N, 3) points -> (N,) their rows in the grid padded by one cell on every side and flattened (`__call__`'s
         lookup): a point outside the box lands in the padding. A table of another kind over the same cells, padded
-        alike, is looked up with these rows too (moe/cells.py `SkipCells`). The row is summed in float32, exact
+        alike, is looked up with these rows too (moe/cells.py `SkipCells`). The row is a sum in float32, exact
         below 2^24 cells."""
+        res = self._res
+        if not G.by_axis(xyz):  # the same operations over all three axes at once
+            u = (xyz.float() - self.bbox[0]).div_(self.bbox[1] - self.bbox[0]).mul_(res)
+            cell = torch.where(u == res, res - 0.5, u).floor_()
+            return (torch.minimum(cell.clamp_min_(-1.0), res).add_(1.0) @ self._strides).long()
         rows = None
         for a, u in enumerate(self._cells(xyz)):
-            cell = torch.minimum(u.clamp_min_(-1.0), self._res[a]).add_(1.0).mul_(self._strides[a])
+            cell = torch.minimum(u.clamp_min_(-1.0), res[a]).add_(1.0).mul_(self._strides[a])
             rows = cell if rows is None else rows.add_(cell)
         return rows.long()
 
     def _cells(self, xyz: Tensor) -> list[Tensor]:
-        """(N, 3) points -> their cell coordinates per axis (floored, float; outside the box below 0 or at least
+        """(..., 3) points -> their cell coordinates per axis (floored, float; outside the box below 0 or at least
         res)."""
         res = self._res
-        out = []
-        for a, u in enumerate(axis_coords(xyz.float(), self.bbox, res)):  # the same cells as a box test
-            out.append(torch.where(u == res[a], res[a] - 0.5, u).floor_())  # the max face: in the last cell
-        return out
+        return [torch.where(u == res[a], res[a] - 0.5, u).floor_()  # a point on the max face: in the last cell
+                for a, u in enumerate(G.axis_coords(xyz.float(), self.bbox, res))]  # the same cells as a box test
 
     def cell_index(self, xyz: Tensor) -> Tensor:
-        """(N, 3) points -> the flat [x, y, z] index of the cell each lies in (the cell `__call__` looks
+        """(..., 3) points -> the flat [x, y, z] index of the cell each lies in (the cell `__call__` looks
         up), -1 outside the box."""
         ux, uy, uz = self._cells(xyz)
         res, r = self._res, self.shape
