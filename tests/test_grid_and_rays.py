@@ -156,6 +156,30 @@ def test_occupancy_lookup_matches_a_per_point_reference_on_faces_edges_and_outsi
     assert grid(torch.zeros(0, 3)).shape == (0,)
 
 
+@pytest.mark.parametrize("at_once", [False, True])
+def test_a_grid_of_more_than_2_to_the_24_cells_looks_up_the_right_cell(at_once, monkeypatch):
+    """A grid whose padded rows pass 2^24 (a paper-sized mixture's skip table: 255^3 and up) numbers them in float64:
+    float32 sums of its strides round to a neighbouring row. Checked against the exact row, by both lookups, axis by
+    axis and over (N, 3) at once, with the occupancy read per point."""
+    from boostnerf_cli.fields import grid as G
+
+    if at_once:
+        monkeypatch.setattr(G, "by_axis", lambda t: False)
+    g = torch.Generator().manual_seed(9)
+    shape = (300, 260, 230)  # 302 * 262 * 232 padded rows: 18.4M > 2^24
+    occ = torch.rand(shape, generator=g) > 0.5
+    box = torch.tensor([[-1.0, -0.5, 0.0], [2.0, 1.5, 1.0]])
+    grid = OccupancyGrid(occ, box)
+    pts = box[0] + torch.rand(100000, 3, generator=g) * (box[1] - box[0])
+    cell = ((pts - box[0]) / (box[1] - box[0]) * torch.tensor(shape)).floor().long()
+    cell = torch.minimum(cell, torch.tensor(shape) - 1)
+    padded = [n + 2 for n in shape]
+    want = (cell[:, 0] + 1) * padded[1] * padded[2] + (cell[:, 1] + 1) * padded[2] + cell[:, 2] + 1
+    assert torch.equal(grid.padded_rows(pts), want) and torch.equal(grid.padded_rows_within(pts), want)
+    occupied = occ[cell[:, 0], cell[:, 1], cell[:, 2]]
+    assert torch.equal(grid(pts), occupied) and torch.equal(grid.within(pts), occupied)
+
+
 def test_occupancy_grid_lookup_and_bbox():
     occ = torch.zeros(4, 4, 4, dtype=torch.bool)
     occ[1, 2, 3] = True

@@ -35,7 +35,10 @@ class OccupancyGrid:
         # the grid padded by one empty cell on every side, flattened, and the strides of its rows.
         self._padded = F.pad(self.occupied, (1, 1, 1, 1, 1, 1)).reshape(-1)
         p = [n + 2 for n in self.shape]
-        self._strides = torch.tensor([p[1] * p[2], p[2], 1], dtype=torch.float32, device=self.occupied.device)
+        # rows are numbered in floating point, exactly: in float32 below 2^24 padded cells, in float64 above (a
+        # paper-sized mixture's skip table), where float32 sums of the strides round to a neighbouring row
+        self._exact = torch.float32 if math.prod(p) <= 1 << 24 else torch.float64
+        self._strides = torch.tensor([p[1] * p[2], p[2], 1], dtype=self._exact, device=self.occupied.device)
         self._res = torch.tensor(self.shape, dtype=torch.float32, device=self.occupied.device)
         self._pad_row = float(p[1] * p[2] + p[2] + 1)  # the padded row of cell (0, 0, 0): the strides summed
 
@@ -52,9 +55,9 @@ class OccupancyGrid:
         A point's cell coordinates u = (xyz - lo) / cell size are floored and clamped to [-1, res], and
         looked up in the grid padded by one empty cell: a point outside the box lands in the padding,
         so no separate inside test runs (a point on the max face, u = res exactly, is moved into the
-        last cell: the box includes its faces). The padded row index is one matrix-vector product, exact in
-        float32 below 2^24 cells. 1.5-2x faster on CPU than per-axis box tests and an `all` over the 3
-        coordinates (docs/benchmarks.md).
+        last cell: the box includes its faces). The padded row index is the cell coordinates' sum with the strides
+        (`_exact`). 1.5-2x faster on CPU than per-axis box tests and an `all` over the 3 coordinates
+        (docs/benchmarks.md).
         """
         if xyz.shape[0] == 0:
             return torch.zeros(0, dtype=torch.bool, device=xyz.device)
@@ -72,29 +75,29 @@ class OccupancyGrid:
     def padded_rows_within(self, xyz: Tensor) -> Tensor:
         """`padded_rows` for points inside the box (see `within`)."""
         res = self._res
+        exact = self._exact
         if not G.by_axis(xyz):  # the same operations over all three axes at once
             u = (xyz.float() - self.bbox[0]).div_(self.bbox[1] - self.bbox[0]).mul_(res)
             cell = torch.minimum(u.floor_().clamp_min_(0), res - 1)
-            return torch.mv(cell, self._strides).add_(self._pad_row).long()
+            return torch.mv(cell.to(exact), self._strides).add_(self._pad_row).long()
         rows = None
         for a, u in enumerate(G.axis_coords(xyz.float(), self.bbox, res)):  # `_cells`' arithmetic
-            cell = torch.minimum(u.floor_().clamp_min_(0), res[a] - 1)  # u = res (the max face) into the last cell
+            cell = torch.minimum(u.floor_().clamp_min_(0), res[a] - 1).to(exact)  # the max face: in the last cell
             rows = cell.mul_(self._strides[a]) if rows is None else rows.add_(cell.mul_(self._strides[a]))
         return rows.add_(self._pad_row).long()  # + 1 on every axis: into the padded grid
 
     def padded_rows(self, xyz: Tensor) -> Tensor:
         """(N, 3) points -> (N,) their rows in the grid padded by one cell on every side and flattened (`__call__`'s
         lookup): a point outside the box lands in the padding. A table of another kind over the same cells, padded
-        alike, is looked up with these rows too (moe/cells.py `SkipCells`). The row is a sum in float32, exact
-        below 2^24 cells."""
-        res = self._res
+        alike, is looked up with these rows too (moe/cells.py `SkipCells`)."""
+        res, exact = self._res, self._exact
         if not G.by_axis(xyz):  # the same operations over all three axes at once
             u = (xyz.float() - self.bbox[0]).div_(self.bbox[1] - self.bbox[0]).mul_(res)
             cell = torch.where(u == res, res - 0.5, u).floor_()
-            return (torch.minimum(cell.clamp_min_(-1.0), res).add_(1.0) @ self._strides).long()
+            return (torch.minimum(cell.clamp_min_(-1.0), res).add_(1.0).to(exact) @ self._strides).long()
         rows = None
         for a, u in enumerate(self._cells(xyz)):
-            cell = torch.minimum(u.clamp_min_(-1.0), res[a]).add_(1.0).mul_(self._strides[a])
+            cell = torch.minimum(u.clamp_min_(-1.0), res[a]).add_(1.0).to(exact).mul_(self._strides[a])
             rows = cell if rows is None else rows.add_(cell)
         return rows.long()
 
@@ -111,7 +114,7 @@ class OccupancyGrid:
         ux, uy, uz = self._cells(xyz)
         res, r = self._res, self.shape
         inside = (ux >= 0) & (ux < res[0]) & (uy >= 0) & (uy < res[1]) & (uz >= 0) & (uz < res[2])
-        flat = ((ux * r[1] + uy) * r[2] + uz).long()
+        flat = (ux.long() * r[1] + uy.long()) * r[2] + uz.long()  # in integers: exact however many cells
         return torch.where(inside, flat, torch.full_like(flat, -1))
 
     def cell_centers(self) -> Tensor:
