@@ -388,23 +388,25 @@ def test_a_blend_shared_among_threads_is_the_one_threads_bit_for_bit(n):
     assert three.shape == (n, 1) and torch.equal(three, one)
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_coordinates_axis_by_axis_are_the_broadcast_arithmetic_bit_for_bit(dtype, monkeypatch):
+@pytest.mark.parametrize("dtype,box_dtype", [(torch.float32, torch.float32), (torch.float64, torch.float64),
+                                             (torch.float32, torch.float64), (torch.float16, torch.float32)])
+def test_coordinates_axis_by_axis_are_the_broadcast_arithmetic_bit_for_bit(dtype, box_dtype, monkeypatch):
     """Point arithmetic goes axis by axis on the CPU (`grid.by_axis`: a third of the time there) and over (N, 3) at
     once on a GPU: the corners and weights, the blend, the box test, the gate cells' index and the occupancy grid's
-    rows and cells come out the same, to the bit, either way, on faces, vertices and outside too."""
+    rows and cells come out the same, to the bit, either way, on faces, vertices and outside too, and in the same
+    precision where the box's is wider than the points'."""
     from boostnerf_cli.fields import grid as G
     from boostnerf_cli.moe import cells as C
     from boostnerf_cli.render.occupancy import OccupancyGrid
 
     g = torch.Generator().manual_seed(6)
-    bbox = torch.tensor([[-1.3, -0.2, 0.7], [0.9, 2.1, 1.1]], dtype=dtype)
+    bbox = torch.tensor([[-1.3, -0.2, 0.7], [0.9, 2.1, 1.1]], dtype=box_dtype)
     shape = (7, 11, 5)
-    xyz = bbox[0] - 0.5 + torch.rand(1200, 3, generator=g, dtype=dtype) * (bbox[1] - bbox[0] + 1.0)
-    xyz[:100, 1] = bbox[1, 1]  # on a face
-    xyz = torch.cat([xyz, G.lattice_points(bbox, shape)])
+    xyz = bbox[0] - 0.5 + torch.rand(1200, 3, generator=g, dtype=box_dtype) * (bbox[1] - bbox[0] + 1.0)
+    xyz[:100, 1] = bbox[1, 1] + torch.linspace(-1e-3, 1e-3, 100, dtype=box_dtype)  # on and about a face
+    xyz = torch.cat([xyz, G.lattice_points(bbox, shape)]).to(dtype)
     inside = ((xyz >= bbox[0]) & (xyz <= bbox[1])).all(-1)
-    table = torch.randn(7 * 11 * 5, 1, generator=g, dtype=dtype)
+    table = torch.randn(7 * 11 * 5, 1, generator=g, dtype=box_dtype)
     grid = OccupancyGrid(torch.rand(6, 4, 9, generator=g) > 0.5, bbox)
     scale = torch.tensor([7.0, 11.0, 5.0], dtype=dtype)
 
@@ -418,7 +420,7 @@ def test_coordinates_axis_by_axis_are_the_broadcast_arithmetic_bit_for_bit(dtype
     monkeypatch.setattr(G, "by_axis", lambda t: False)  # a GPU's way, on the CPU
     at_once = all_of()
     for a, b in zip(by_axis, at_once, strict=True):
-        assert a.shape == b.shape and torch.equal(a, b)
+        assert a.shape == b.shape and a.dtype == b.dtype and torch.equal(a, b)
     assert torch.equal(torch.stack(by_axis[:3], -1), (xyz - bbox[0]) / (bbox[1] - bbox[0]) * scale)
     assert torch.equal(by_axis[6], inside)
 

@@ -54,6 +54,7 @@ def axis_coords(xyz: Tensor, bbox: Tensor, scale) -> list[Tensor]:
     lo, size = bbox[0], bbox[1] - bbox[0]
     if not by_axis(xyz):
         return list(((xyz - lo) / size * scale).unbind(-1))
+    xyz = xyz.to(torch.promote_types(xyz.dtype, bbox.dtype))  # as against a (3,) row: a one-number box would not
     return [(xyz[..., a] - lo[a]) / size[a] * (scale[a] if isinstance(scale, Tensor) else scale) for a in range(3)]
 
 
@@ -61,6 +62,7 @@ def inside_box(xyz: Tensor, bbox: Tensor) -> Tensor:
     """(..., 3) -> (...) bool: in the box, faces included (axis by axis where `by_axis`)."""
     if not by_axis(xyz):
         return ((xyz >= bbox[0]) & (xyz <= bbox[1])).all(dim=-1)
+    xyz = xyz.to(torch.promote_types(xyz.dtype, bbox.dtype))  # compared as against a (3,) row
     inside = (xyz[..., 0] >= bbox[0, 0]) & (xyz[..., 0] <= bbox[1, 0])
     for a in (1, 2):
         inside &= (xyz[..., a] >= bbox[0, a]) & (xyz[..., a] <= bbox[1, a])

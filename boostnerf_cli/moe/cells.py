@@ -107,8 +107,8 @@ def threshold_raw(threshold: float, step: float, unit: float, shift: float) -> f
 
 
 def _leaders(table: Tensor, margin: float) -> tuple[Tensor, Tensor]:
-    """table (M, ...) channels first -> each vertex's largest expert (...,) int8 (the first of equals, as `max` and
-    `topk` choose) and whether it leads every other by more than `margin`."""
+    """table (M, ...) channels first -> each vertex's largest expert (...,) int8 (the first of equals) and whether it
+    leads every other by more than `margin` (never, among equals)."""
     first = table[0].clone()
     best = torch.zeros(first.shape, dtype=torch.int8, device=table.device)
     second = torch.full_like(first, -math.inf)

@@ -199,13 +199,13 @@ class RoutingStats:
 
 @dataclass
 class RenderCells:
-    """Top-1's expert per cell where the cell's 8 vertices agree (moe/cells.py, `route_cells`: the baked gate's cells
-    halved along every axis; None unless the mixture routes by a baked gate), made for `gate`, on a lattice of `shape`
-    (vertices) over the gate's box."""
+    """A renormalised Top-1's expert per cell where the cell's 8 vertices agree (moe/cells.py, `route_cells`; None for
+    other mixtures and without a baked gate), made for `gate`, on a lattice of `shape` (vertices) over the gate's box:
+    the gate's cells halved along every axis, or its own where the halves would be too many."""
 
     gate: Gate
     top1: Tensor | None
-    shape: tuple[int, int, int] = (2, 2, 2)
+    shape: tuple[int, int, int] | None = None
     # a renormalised Top-2's lone expert per cell (`route_cells` with the lead of ln((1 - w) / w)), made for
     # render_min_weight `solo_weight`; None for other mixtures
     solo: Tensor | None = None
@@ -352,10 +352,10 @@ class Mixture(nn.Module):
         baked = gate.cfg.gate_type == "baked"
         if not baked:
             return RenderCells(gate, None)
-        k, w = self.cfg.topk, self.cfg.render_min_weight
-        top1, shape = C.route_cells(gate.logit_table, gate.shape) if k == 1 else (None, gate.shape)
+        k, w, renormalize = self.cfg.topk, self.cfg.render_min_weight, self.cfg.renormalize
+        top1, shape = C.route_cells(gate.logit_table, gate.shape) if k == 1 and renormalize else (None, gate.shape)
         solo = None
-        if k == 2 and self.cfg.renormalize and 0 < w < 0.5:
+        if k == 2 and renormalize and 0 < w < 0.5:
             solo, shape = C.route_cells(gate.logit_table, gate.shape, lead=math.log((1 - w) / w))
             skips = self.skips()
             kept = skips.skip if skips is not None else self.occupancy
