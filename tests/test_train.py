@@ -1,5 +1,6 @@
 """The training loop: resume from a checkpoint equals an uninterrupted run; the NaN guard."""
 
+import logging
 import sys
 
 import pytest
@@ -144,11 +145,13 @@ def test_skipped_steps_are_counted_warned_and_in_the_stage_report(tmp_path, tiny
                                                                    capsys):
     import json
 
+    from boostnerf_cli.cli import say_messages
     from boostnerf_cli.lineage import Survey
     from boostnerf_cli.recipe import load_recipe
     from boostnerf_cli.stages import pretrain as stage
     from boostnerf_cli.workspace import Workspace
 
+    say_messages()  # the stage's messages on stderr, as the CLI says them, whatever ran before
     rec = load_recipe(tiny_recipe)
     rec.pretrain.res, rec.pretrain.iters, rec.pretrain.geometry.iters = [12], 12, 10
     real = FieldTask.loss
@@ -372,13 +375,15 @@ def test_the_ray_table_is_every_view_s_box_hitting_rays_in_order(tiny_scene, tmp
             assert torch.equal(table.alpha, split.alpha.reshape(-1)[hit])
 
 
-def test_the_progress_bar_is_drawn_on_stderr_with_its_step_at_80_columns(monkeypatch):
+def test_the_progress_bar_is_drawn_on_stderr_with_its_step_at_80_columns(monkeypatch, caplog):
     """On a terminal the bar went to stdout (a `> results.txt` caught it, the terminal showed
-    nothing), and at 80 columns the logged values took the whole line: no bar, step or time were left."""
+    nothing), and at 80 columns the logged values took the whole line: no bar, step or time were left.
+    The bar is drawn where a run's messages are said (INFO, as the CLI sets it), whatever ran before."""
     import io
 
     from boostnerf_cli.train import Progress
 
+    caplog.set_level(logging.INFO, logger="boostnerf_cli.train")
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
     progress = Progress("top1", 2000, 0, 10)
     try:
