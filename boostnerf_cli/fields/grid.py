@@ -107,10 +107,18 @@ class _Lookup(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad: Tensor):  # type: ignore[override]
-        # Channels-first scatter-add: one pass per channel plane keeps the random writes in cache
-        # (measured 3-4x faster than a channels-last index_add for 3-12 channels on CPU).
         idx, w = ctx.saved_tensors
         channels = grad.shape[1]
+        if channels > 4 and ctx.rows >= idx.numel() and grad.device.type == "cpu":
+            # A grid of many channels and more rows than the batch has corners (DVGO's feature grids): the products
+            # added row by row straight into the table's (rows, C) layout, with no transposed copy of the grid
+            # after (80^3 rows x 12 channels, 19.5k points: 21-39 -> 12-18 ms, one thread; 73^3 rows, 8k points:
+            # 8.2 -> 4.4 ms). The same products, each row's in the same order: the same sums.
+            src = (w[:, :, None] * grad[:, None, :]).reshape(-1, channels)
+            grad_table = torch.zeros(ctx.rows, channels, dtype=grad.dtype, device=grad.device)
+            return grad_table.index_add_(0, idx.reshape(-1), src), None, None
+        # Channels-first scatter-add: one pass per channel plane keeps the random writes in cache
+        # (measured 3-4x faster than a channels-last index_add for 3-12 channels on CPU, for small grids).
         # (C, N, K) written in that order: with the weights as the first operand the product's layout is
         # (C, N, K) and the reshape is free (grad first made it (N, C, K) plus a copy: 0.46 against 1.7 ms
         # for 13k points x 8 corners x 8 channels, one thread). `grad.T.contiguous()` is free when the
