@@ -360,7 +360,7 @@ class Mixture(nn.Module):
             skips = self.skips()
             kept = skips.skip if skips is not None else self.occupancy
             # halving a cell keeps every lone expert it had: a gate whose whole cells give under half the share the
-            # lookup needs is not halved (0.6 s for a 128^3 bake, on one thread)
+            # lookup needs is not halved (0.6-1.6 s for a 128^3 bake of 3-5 experts, on one thread)
             whole = C.top1_cells(gate.logit_table, gate.shape, lead)
             if C.lone_share(whole, gate.bbox, gate.shape, kept) >= C.LONE_SHARE / 2:
                 solo, shape = C.route_cells(gate.logit_table, gate.shape, lead)
