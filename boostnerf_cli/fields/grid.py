@@ -47,13 +47,18 @@ def by_axis(xyz: Tensor) -> bool:
     return xyz.device.type == "cpu"
 
 
+def box_frame(xyz: Tensor, bbox: Tensor, scale) -> Tensor:
+    """The points (..., 3) in the box's frame, over all three axes at once: (xyz - lo) / (hi - lo) * scale (`scale` a
+    number or one per axis). `axis_coords` works it out axis by axis where `by_axis`."""
+    return (xyz - bbox[0]) / (bbox[1] - bbox[0]) * scale
+
+
 def axis_coords(xyz: Tensor, bbox: Tensor, scale) -> list[Tensor]:
-    """The points (..., 3) in the box's frame: (xyz[..., a] - lo_a) / (hi_a - lo_a) * scale_a, three (...) tensors
-    (`scale` a number or one per axis), worked out axis by axis where `by_axis`, else over (..., 3) at once; the same
-    values, to the bit, either way."""
-    lo, size = bbox[0], bbox[1] - bbox[0]
+    """`box_frame` as three (...) tensors, one per axis, worked out axis by axis where `by_axis`, else over (..., 3) at
+    once; the same values, to the bit, either way."""
     if not by_axis(xyz):
-        return list(((xyz - lo) / size * scale).unbind(-1))
+        return list(box_frame(xyz, bbox, scale).unbind(-1))
+    lo, size = bbox[0], bbox[1] - bbox[0]
     xyz = xyz.to(torch.promote_types(xyz.dtype, bbox.dtype))  # as against a (3,) row: a one-number box would not
     return [(xyz[..., a] - lo[a]) / size[a] * (scale[a] if isinstance(scale, Tensor) else scale) for a in range(3)]
 
@@ -84,8 +89,7 @@ def corners(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> tuple[Ten
             base = i0 * stride if base is None else base.add_(i0 * stride if stride > 1 else i0)
         fx, fy, fz = f
     else:  # the same operations over all three axes at once
-        p = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * (res - 1)
-        p = torch.minimum(p.clamp_min(0), res - 1)
+        p = torch.minimum(box_frame(xyz, bbox, res - 1).clamp_min_(0), res - 1)
         p0 = torch.minimum(p.floor(), res - 2)
         i0 = p0.long()
         base = i0[:, 0] * sy + i0[:, 1] * sz + i0[:, 2]

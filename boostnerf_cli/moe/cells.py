@@ -57,8 +57,7 @@ def cell_index(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> Tensor
     exact = torch.float32 if (shape[0] - 1) * (shape[1] - 1) * (shape[2] - 1) < 1 << 24 else torch.float64
     strides = ((shape[1] - 1) * (shape[2] - 1), shape[2] - 1, 1)
     if not G.by_axis(xyz):  # the same operations over all three axes at once
-        p = (xyz - bbox[0]) / (bbox[1] - bbox[0]) * (res - 1)
-        cell = torch.minimum(p.floor_().clamp_min_(0), res - 2)
+        cell = torch.minimum(G.box_frame(xyz, bbox, res - 1).floor_().clamp_min_(0), res - 2)
         return (cell.to(exact) @ constant(strides, xyz.device, exact)).long()
     index = None
     for a, (p, stride) in enumerate(zip(G.axis_coords(xyz, bbox, res - 1), strides)):

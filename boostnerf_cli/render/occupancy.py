@@ -77,8 +77,7 @@ class OccupancyGrid:
         res = self._res
         exact = self._exact
         if not G.by_axis(xyz):  # the same operations over all three axes at once
-            u = (xyz.float() - self.bbox[0]).div_(self.bbox[1] - self.bbox[0]).mul_(res)
-            cell = torch.minimum(u.floor_().clamp_min_(0), res - 1)
+            cell = torch.minimum(G.box_frame(xyz.float(), self.bbox, res).floor_().clamp_min_(0), res - 1)
             return torch.mv(cell.to(exact), self._strides).add_(self._pad_row).long()
         rows = None
         for a, u in enumerate(G.axis_coords(xyz.float(), self.bbox, res)):  # `_cells`' arithmetic
@@ -92,7 +91,7 @@ class OccupancyGrid:
         alike, is looked up with these rows too (moe/cells.py `SkipCells`)."""
         res, exact = self._res, self._exact
         if not G.by_axis(xyz):  # the same operations over all three axes at once
-            u = (xyz.float() - self.bbox[0]).div_(self.bbox[1] - self.bbox[0]).mul_(res)
+            u = G.box_frame(xyz.float(), self.bbox, res)
             cell = torch.where(u == res, res - 0.5, u).floor_()
             return (torch.minimum(cell.clamp_min_(-1.0), res).add_(1.0).to(exact) @ self._strides).long()
         rows = None
