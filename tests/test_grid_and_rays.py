@@ -465,3 +465,26 @@ def test_the_renderer_tests_samples_outside_a_grid_smaller_than_its_box_as_empty
     assert passing(small, pts, box).tolist() == [True, False, False] == small(pts).tolist()
     assert small.within(pts).tolist() == [True, True, True]  # what `within` would have said
     assert passing(small, pts[:1], small.bbox).tolist() == [True]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
+def test_direction_encoding_on_the_cpu_is_the_broadcast_product_bit_for_bit(dtype, monkeypatch):
+    """The encoding of directions and features multiplies them by each power of two on its own on the CPU (a product
+    broadcast along the short last axis runs element by element there) and as one broadcast product on a GPU: the
+    same numbers to the bit, signed zeros and infinities included, for 3 channels and for many."""
+    from boostnerf_cli.fields import grid as G
+    from boostnerf_cli.fields.dvgo import direction_encoding
+
+    g = torch.Generator().manual_seed(9)
+    for channels in (3, 27):
+        x = (3 * torch.randn(500, channels, generator=g)).to(dtype)
+        x[::7] = -0.0
+        x[3, 0], x[4, 1] = float("inf"), float("-inf")
+        assert G.by_axis(x)  # the CPU's way
+        cpu = direction_encoding(x, 4)
+        with monkeypatch.context() as m:
+            m.setattr(G, "by_axis", lambda t: False)  # a GPU's way, on the CPU
+            gpu = direction_encoding(x, 4)
+        assert cpu.shape == (500, 9 * channels) and cpu.dtype == dtype
+        assert torch.equal(cpu.nan_to_num(5.0), gpu.nan_to_num(5.0))
+        assert torch.equal(torch.signbit(cpu), torch.signbit(gpu))

@@ -22,6 +22,7 @@ from torch import Tensor
 
 from boostnerf_cli import flops
 from boostnerf_cli.device import constant
+from boostnerf_cli.fields import grid as G
 from boostnerf_cli.fields.base import Field
 from boostnerf_cli.render.contraction import Contraction
 from boostnerf_cli.render.packing import DYNAMIC, Packer, packer_for
@@ -135,7 +136,12 @@ def sample_list(origins: Tensor, dirs: Tensor, settings: RenderSettings) -> tupl
     t = t0.index_select(0, ray) + (j + half) * step
     # the rays of one pinhole camera share one origin (an expanded tensor): added as it is, not gathered per sample
     origin = origins[:1] if origins.stride(0) == 0 else origins.contiguous().index_select(0, ray)
-    xyz = origin + t[:, None] * dirs.contiguous().index_select(0, ray)
+    direction = dirs.contiguous().index_select(0, ray)
+    if not G.by_axis(direction) or not t.dtype == origin.dtype == direction.dtype:
+        return ray, t, origin + t[:, None] * direction, step
+    xyz = torch.empty_like(direction)  # axis by axis: products broadcast along the short last axis are slow here
+    for a in range(3):
+        torch.mul(t, direction[:, a], out=xyz[:, a]).add_(origin[:, a])
     return ray, t, xyz, step
 
 
