@@ -651,3 +651,43 @@ def test_both_skips_looked_up_per_fine_cell_keep_exactly_the_samples_testing_eac
     assert torch.equal(fused, each)
     assert 0 < int(fused.sum()) < xyz.shape[0]
     assert float((decided != C.MIXED).float().mean()) > 0.5
+
+
+@pytest.mark.parametrize("mix_mode", ["density", "alpha"])
+def test_the_ensemble_runs_every_expert_on_the_samples_themselves_with_the_same_bits(mix_mode, monkeypatch):
+    """The ensemble sends every sample to every expert: rendering runs each expert on the samples as they are, no
+    sort, no gathered copy, outputs added in order (`Routes.every`), and gives, to the bit, what listing each
+    expert's samples through the sort gives: the density pass, a colour pass over some of its samples, and the
+    training view with its gradients."""
+    import boostnerf_cli.moe.mixture as mixture_module
+
+    mix = toy_mixture(m=3, k=2)
+    mix.configure(mix=mix_mode)
+    mix.make_ensemble()
+    xyz, d = _points(500, seed=7)
+    rows = torch.arange(0, 500, 3)
+    seen = []
+    real = mixture_module.Mixture.routes
+
+    def both(listed: bool):
+        def routes(self, vals, idx):
+            r = real(self, vals, idx)
+            seen.append(r.every)
+            return r if listed else r._replace(every=False)
+
+        monkeypatch.setattr(mixture_module.Mixture, "routes", routes)
+        with torch.no_grad():
+            view = mix.batch_view()
+            out = [view.density(xyz), view.color_rows(rows, d[rows]), mix.density(xyz), mix.color(xyz, d)]
+        trained = mix.with_stats(RoutingStats())
+        s = trained.density(xyz)
+        grads = torch.autograd.grad(s.square().sum(), [p for p in mix.parameters() if p.requires_grad],
+                                    allow_unused=True)
+        return out, [s.detach(), *[g for g in grads if g is not None]]
+
+    (every, every_grads), (listed, listed_grads) = both(True), both(False)
+    assert seen and all(seen)  # the mixture marks every ensemble's routes
+    assert len(every_grads) >= 4  # the density and its gradients in every expert's density grid
+    for a, b in zip(every + every_grads, listed + listed_grads, strict=True):
+        assert torch.equal(a, b)
+    assert float(every[1].abs().sum()) > 0 and len(every[1]) == len(rows)

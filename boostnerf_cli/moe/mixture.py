@@ -47,6 +47,7 @@ from boostnerf_cli.moe.router import (
     dispatch,
     expert_counts,
     penalty_weights,
+    take,
     top_k,
 )
 from boostnerf_cli.render.occupancy import OccupancyGrid
@@ -397,9 +398,10 @@ class Mixture(nn.Module):
         return cfg.render_min_weight if cfg.topk == 2 and cfg.renormalize and not torch.is_grad_enabled() else 0.0
 
     def routes(self, vals: Tensor, idx: Tensor) -> Routes:
-        """`route`'s choices as the dispatch takes them: `unit` for rendering's renormalised Top-1 (weight 1)."""
+        """`route`'s choices as the dispatch takes them: `unit` for rendering's renormalised Top-1 (weight 1), `every`
+        for the ensemble (every expert on every sample)."""
         unit = idx.shape[1] == 1 and self.cfg.renormalize and not vals.requires_grad and not torch.is_grad_enabled()
-        return Routes(vals, idx, self.m, unit)
+        return Routes(vals, idx, self.m, unit, every=self.gate.cfg.gate_type == "uniform" and idx.shape[1] == self.m)
 
     def _mix(self, xyz: Tensor, dirs: Tensor | None, vals: Tensor, idx: Tensor, packer: Packer = DYNAMIC,
              live: Tensor | None = None, listed: ExpertRows | None = None) -> Tensor:
@@ -408,14 +410,14 @@ class Mixture(nn.Module):
         experts, routes = self.experts, self.routes(vals, idx)
         if dirs is None and self.cfg.mix == "alpha" and not routes.unit:
             step = self.cfg.step
-            out = dispatch(routes, lambda e, r: _alpha_and_trans(experts[e].density(xyz.index_select(0, r)), step), 2,
+            out = dispatch(routes, lambda e, r: _alpha_and_trans(experts[e].density(take(xyz, r)), step), 2,
                            xyz, packer, live, "density", listed)
             return alpha_mix_density(out[:, 0], out[:, 1], vals.sum(-1), step)
         if dirs is None:  # mix density; or Top-1 at weight 1, whose alpha mix is its expert's opacity: its density
-            out = dispatch(routes, lambda e, r: experts[e].density(xyz.index_select(0, r))[:, None], 1, xyz, packer,
+            out = dispatch(routes, lambda e, r: experts[e].density(take(xyz, r))[:, None], 1, xyz, packer,
                            live, "density", listed)
             return out[:, 0]
-        return dispatch(routes, lambda e, r: experts[e].color(xyz.index_select(0, r), dirs.index_select(0, r)), 3, xyz,
+        return dispatch(routes, lambda e, r: experts[e].color(take(xyz, r), take(dirs, r)), 3, xyz,
                         packer, live, "color")
 
     # --- the Field contract ---------------------------------------------------------------------

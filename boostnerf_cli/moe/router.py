@@ -135,19 +135,27 @@ def aux_denominator(n, k: int, norm: str):
 
 class Routes(NamedTuple):
     """Where each of N samples goes: weights (N, k) and indices (N, k) of its k experts out of m (`top_k`'s choice);
-    `unit`: every weight is exactly 1 with no gradient (rendering's renormalised Top-1), so outputs are not scaled."""
+    `unit`: every weight is exactly 1 with no gradient (rendering's renormalised Top-1), so outputs are not scaled;
+    `every`: idx is every expert for every sample, in order (the ensemble's uniform gate), so nothing is sorted."""
 
     vals: Tensor
     idx: Tensor
     m: int
     unit: bool = False
+    every: bool = False
+
+
+def take(x: Tensor, rows: Tensor | None) -> Tensor:
+    """x's rows `rows` (`ExpertRows`' lists), or x itself for None (every sample, in order)."""
+    return x if rows is None else x.index_select(0, rows)
 
 
 class ExpertRows(NamedTuple):
     """The samples routed to each expert, listed once per density pass (the dynamic packing's path): for expert e,
-    `rows[e]` (n_e,) the indices of its samples in order, `weights[e]` (n_e,) their routing weights (None: `unit`)."""
+    `rows[e]` (n_e,) the indices of its samples in order (None: every sample, `Routes.every`), `weights[e]` (n_e,)
+    their routing weights (None: `unit`)."""
 
-    rows: list[Tensor]
+    rows: list[Tensor | None]
     weights: list[Tensor | None]
 
     @staticmethod
@@ -155,7 +163,9 @@ class ExpertRows(NamedTuple):
         """Each expert's samples and weights, from one sort of the N x k choices by expert (no per-sample blend of the
         k weights: a choice's weight is read where it was made). `min_weight` > 0, for two weights per sample that sum
         to 1: a choice weighing less is left out and the other one weighs 1 (`MixtureConfig.render_min_weight`)."""
-        vals, idx, m, unit = routes
+        vals, idx, m, unit, every = routes
+        if every:  # every sample to every expert: the lists are the samples themselves, their weights a column each
+            return ExpertRows([None] * m, [None] * m if unit else list(vals.unbind(1)))
         k = idx.shape[1]
         flat, w = idx.reshape(-1), vals.reshape(-1)
         pos = None  # which choices are listed: all, or those that weigh at least min_weight
@@ -175,22 +185,33 @@ class ExpertRows(NamedTuple):
         """out (n, C) += each expert's weighted outputs: `run(e, rows, dest)` -> (len(rows), C) on its samples `rows`,
         whose outputs land at `out[dest]`. `slots` (N,) long, -1 where a sample is left out: only the others run, and
         sample `row` lands at `out[slots[row]]` (a colour pass over some of the density pass's samples); without it at
-        `out[row]`. The same sums, in the same order, as `dispatch`."""
+        `out[row]`. A list of None (every sample) passes `run` None for both without slots (all samples, in order),
+        else the samples `slots` keeps. The same sums, in the same order, as `dispatch`."""
         with part("dispatch"):
+            kept_all = None  # every sample's list, with slots: the samples they keep and where they land, made once
             for e, (rows, w) in enumerate(zip(self.rows, self.weights)):
                 dest = rows
-                if slots is not None:
+                if slots is not None and rows is None:
+                    if kept_all is None:
+                        kept = (slots >= 0).nonzero().squeeze(-1)
+                        kept_all = (kept, slots.index_select(0, kept))
+                    rows, dest = kept_all
+                    w = None if w is None else w.index_select(0, rows)
+                elif slots is not None:
                     at = slots.index_select(0, rows)
                     kept = (at >= 0).nonzero().squeeze(-1)
                     rows, dest = rows.index_select(0, kept), at.index_select(0, kept)
                     w = None if w is None else w.index_select(0, kept)
-                if len(rows) == 0:
+                if len(out if rows is None else rows) == 0:
                     continue
                 with part(f"expert {e}"):
                     y = run(e, rows, dest)
                 if w is not None:
                     y = y * w[:, None]
-                out.index_add_(0, dest, y)
+                if dest is None:  # every sample, in order: out[i] += y[i], as the index_add would
+                    out.add_(y)
+                else:
+                    out.index_add_(0, dest, y)
         return out
 
 
@@ -213,11 +234,12 @@ def dispatch(
     output's dtype and device. `listed`: the routes' `ExpertRows`, when the caller made them already. The dynamic
     packing lists each expert's samples once (`ExpertRows`). -> out (N, out_dim).
     """
-    vals, idx, m, unit = routes
+    vals, idx, m, unit, _ = routes
     n, k = idx.shape
     if listed is not None or (not packer.static and live is None):
         listed = ExpertRows.of(routes) if listed is None else listed
-        return listed.run(lambda e, r, _: run(e, r).reshape(len(r), out_dim), like.new_zeros(n, out_dim))
+        return listed.run(lambda e, r, _: run(e, r).reshape(n if r is None else len(r), out_dim),
+                          like.new_zeros(n, out_dim))
     one = idx[:, 0] if k == 1 else None  # one expert a sample: its index is the choice, its weight the only one
     with part("dispatch"):
         out = like.new_zeros(n, out_dim)
