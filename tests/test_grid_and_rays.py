@@ -488,3 +488,46 @@ def test_direction_encoding_on_the_cpu_is_the_broadcast_product_bit_for_bit(dtyp
         assert cpu.shape == (500, 9 * channels) and cpu.dtype == dtype
         assert torch.equal(cpu.nan_to_num(5.0), gpu.nan_to_num(5.0))
         assert torch.equal(torch.signbit(cpu), torch.signbit(gpu))
+
+
+@pytest.mark.parametrize("n_freq", [2, 4])
+def test_direction_encoding_gradients_are_the_broadcast_products_bit_for_bit(n_freq, monkeypatch):
+    """An encoded input that needs a gradient (TensoRF's appearance features in training) gets the gradient of the
+    one broadcast product on the CPU too: summed over the frequencies in its order, not frequency by frequency."""
+    from boostnerf_cli.fields import grid as G
+    from boostnerf_cli.fields.dvgo import direction_encoding
+
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(4000, 3, generator=g)
+    up = torch.randn(4000, 9 * 3 if n_freq == 4 else 15, generator=g)
+
+    def grad():
+        leaf = x.clone().requires_grad_()
+        return torch.autograd.grad((direction_encoding(leaf, n_freq) * up).sum(), leaf)[0]
+
+    cpu = grad()
+    with monkeypatch.context() as m:
+        m.setattr(G, "by_axis", lambda t: False)
+        gpu = grad()
+    assert torch.equal(cpu, gpu)
+
+
+@pytest.mark.filterwarnings("ignore:Converting a tensor with requires_grad")  # sample_rays' fit reads the chords
+def test_samples_made_as_lists_carry_the_gradient_of_their_rays():
+    """`sample_list` on rays that need a gradient makes points that carry it, the gradient `sample_rays`' valid points
+    give."""
+    from helpers import TOY_BOX
+
+    from boostnerf_cli.render.renderer import RenderSettings, sample_list, sample_rays
+
+    g = torch.Generator().manual_seed(2)
+    origins = (torch.tensor([0.3, -0.2, 2.5]) + 0.1 * torch.randn(50, 3, generator=g)).requires_grad_()
+    dirs = F.normalize(torch.tensor([0.0, 0.0, -1.0]) + 0.3 * torch.randn(50, 3, generator=g), dim=-1)
+    settings = RenderSettings(step=0.05, near=0.1, far=6.0, bbox=TOY_BOX)
+    ray, t, xyz, _ = sample_list(origins, dirs, settings)
+    _, valid, ref, _ = sample_rays(origins, dirs, settings, jitter=False, fit=True)
+    assert len(ray) > 100 and xyz.requires_grad and torch.equal(xyz, ref[valid])
+    up = torch.randn(xyz.shape, generator=g)
+    (grad,) = torch.autograd.grad((xyz * up).sum(), origins)
+    (want,) = torch.autograd.grad((ref[valid] * up).sum(), origins)
+    assert torch.allclose(grad, want, rtol=1e-5, atol=1e-5)

@@ -51,8 +51,10 @@ def direction_encoding(dirs: Tensor, n_freq: int) -> Tensor:
     """(N, C) -> (N, C (1 + 2 n_freq)): d, sin(2^k d), cos(2^k d) (directions, C = 3, or features)."""
     if n_freq == 0:
         return dirs
-    if G.by_axis(dirs):  # on the CPU a product broadcast along the short last axis runs element by element: one
-        # product with each number (exact: powers of two), the same values (38k directions: 2.2 -> 1.6 ms, one thread)
+    if G.by_axis(dirs) and not (dirs.requires_grad and torch.is_grad_enabled()):
+        # on the CPU a product broadcast along the short last axis runs element by element: one product with each
+        # number (exact: powers of two), the same values (38k directions: 2.2 -> 1.6 ms, one thread); an input that
+        # needs a gradient (TensoRF's features in training) keeps the one product, whose gradient sums in its order
         x = torch.cat([dirs * float(2 ** k) for k in range(n_freq)], dim=-1)
     else:
         freqs = 2.0 ** torch.arange(n_freq, device=dirs.device, dtype=dirs.dtype)

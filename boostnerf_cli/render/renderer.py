@@ -137,7 +137,8 @@ def sample_list(origins: Tensor, dirs: Tensor, settings: RenderSettings) -> tupl
     # the rays of one pinhole camera share one origin (an expanded tensor): added as it is, not gathered per sample
     origin = origins[:1] if origins.stride(0) == 0 else origins.contiguous().index_select(0, ray)
     direction = dirs.contiguous().index_select(0, ray)
-    if not G.by_axis(direction) or not t.dtype == origin.dtype == direction.dtype:
+    if not G.by_axis(direction) or not t.dtype == origin.dtype == direction.dtype or (torch.is_grad_enabled() and (
+            origin.requires_grad or direction.requires_grad)):  # (products written into place have no gradient)
         return ray, t, origin + t[:, None] * direction, step
     xyz = torch.empty_like(direction)  # axis by axis: products broadcast along the short last axis are slow here
     for a in range(3):
