@@ -691,3 +691,14 @@ def test_the_ensemble_runs_every_expert_on_the_samples_themselves_with_the_same_
     for a, b in zip(every + every_grads, listed + listed_grads, strict=True):
         assert torch.equal(a, b)
     assert float(every[1].abs().sum()) > 0 and len(every[1]) == len(rows)
+
+
+def test_the_ensemble_refuses_half_points_as_every_mixture_does():
+    """Points of another precision than the experts' outputs are refused alike by the ensemble's every-sample path
+    and by a Top-2's lists (an index_add of another dtype), never rounded silently into the output."""
+    for make in (lambda m: m.make_ensemble(), lambda m: None):
+        mix = toy_mixture(m=3, k=2)
+        make(mix)
+        xyz, _ = _points(50, seed=3)
+        with torch.no_grad(), pytest.raises(RuntimeError, match="same scalar type|dtype"):
+            mix.batch_view().density(xyz.half())

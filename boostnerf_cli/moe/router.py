@@ -208,8 +208,10 @@ class ExpertRows(NamedTuple):
                     y = run(e, rows, dest)
                 if w is not None:
                     y = y * w[:, None]
-                if dest is None:  # every sample, in order: out[i] += y[i], as the index_add would
+                if dest is None and y.dtype == out.dtype:  # every sample, in order: out[i] += y[i], as the index_add
                     out.add_(y)
+                elif dest is None:  # another dtype: refused as the index_add refuses it, not rounded into out
+                    out.index_add_(0, torch.arange(len(y), device=y.device), y)
                 else:
                     out.index_add_(0, dest, y)
         return out
