@@ -74,6 +74,19 @@ def inside_box(xyz: Tensor, bbox: Tensor) -> Tensor:
     return inside
 
 
+def flat_cells(xyz: Tensor, bbox: Tensor, scale: Tensor, top: Tensor, strides: Tensor) -> Tensor:
+    """(N, 3) points -> (N,) the flat index of their cells, in the strides' dtype (floating point, exact for whole
+    numbers of its precision): each axis' coordinate in the box's frame times `scale` (3,), floored, clamped into [0,
+    `top`] (3,), times its stride (3,), summed over the axes (axis by axis where `by_axis`)."""
+    if not by_axis(xyz):  # the same operations over all three axes at once
+        return torch.minimum(box_frame(xyz, bbox, scale).floor_().clamp_min_(0), top).to(strides.dtype) @ strides
+    index = None
+    for a, p in enumerate(axis_coords(xyz, bbox, scale)):
+        cell = torch.minimum(p.floor_().clamp_min_(0), top[a]).to(strides.dtype).mul_(strides[a])
+        index = cell if index is None else index.add_(cell)
+    return index
+
+
 def corners(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
     """Trilinear support of points: (N, 3) -> row indices (N, 8) int64, weights (N, 8)."""
     flops.add("interp", flops.CORNER_FLOPS * xyz.shape[0])

@@ -55,15 +55,8 @@ def cell_index(xyz: Tensor, bbox: Tensor, shape: tuple[int, int, int]) -> Tensor
     # floor, then into [0, res - 2]: what clamping into [0, res - 1], flooring and capping at res - 2 gives; the flat
     # index a sum over the axes, exact in float32 below 2^24 cells (in float64 above)
     exact = torch.float32 if (shape[0] - 1) * (shape[1] - 1) * (shape[2] - 1) < 1 << 24 else torch.float64
-    strides = ((shape[1] - 1) * (shape[2] - 1), shape[2] - 1, 1)
-    if not G.by_axis(xyz):  # the same operations over all three axes at once
-        cell = torch.minimum(G.box_frame(xyz, bbox, res - 1).floor_().clamp_min_(0), res - 2)
-        return (cell.to(exact) @ constant(strides, xyz.device, exact)).long()
-    index = None
-    for a, (p, stride) in enumerate(zip(G.axis_coords(xyz, bbox, res - 1), strides)):
-        cell = torch.minimum(p.floor_().clamp_min_(0), res[a] - 2).to(exact)
-        index = cell.mul_(stride) if index is None else index.add_(cell if stride == 1 else cell.mul_(stride))
-    return index.long()
+    strides = constant(((shape[1] - 1) * (shape[2] - 1), shape[2] - 1, 1), xyz.device, exact)
+    return G.flat_cells(xyz, bbox, res - 1, res - 2, strides).long()
 
 
 def _vertex_views(v: Tensor) -> list[Tensor]:

@@ -74,16 +74,9 @@ class OccupancyGrid:
 
     def padded_rows_within(self, xyz: Tensor) -> Tensor:
         """`padded_rows` for points inside the box (see `within`)."""
+        # `_cells`' arithmetic; a cell past the last (the max face) clamped into it; + 1 on every axis: the padded grid
         res = self._res
-        exact = self._exact
-        if not G.by_axis(xyz):  # the same operations over all three axes at once
-            cell = torch.minimum(G.box_frame(xyz.float(), self.bbox, res).floor_().clamp_min_(0), res - 1)
-            return torch.mv(cell.to(exact), self._strides).add_(self._pad_row).long()
-        rows = None
-        for a, u in enumerate(G.axis_coords(xyz.float(), self.bbox, res)):  # `_cells`' arithmetic
-            cell = torch.minimum(u.floor_().clamp_min_(0), res[a] - 1).to(exact)  # the max face: in the last cell
-            rows = cell.mul_(self._strides[a]) if rows is None else rows.add_(cell.mul_(self._strides[a]))
-        return rows.add_(self._pad_row).long()  # + 1 on every axis: into the padded grid
+        return G.flat_cells(xyz.float(), self.bbox, res, res - 1, self._strides).add_(self._pad_row).long()
 
     def padded_rows(self, xyz: Tensor) -> Tensor:
         """(N, 3) points -> (N,) their rows in the grid padded by one cell on every side and flattened (`__call__`'s
