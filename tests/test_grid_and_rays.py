@@ -336,6 +336,55 @@ def test_samples_made_as_lists_are_the_valid_slots_of_the_grid_bit_for_bit(case)
     assert torch.equal(tl, t.reshape(-1)[rows]) and torch.equal(xl, xyz.reshape(-1, 3)[rows])
 
 
+@pytest.mark.parametrize("case", ["camera", "inside", "ndc", "thin"])
+def test_samples_made_in_runs_are_every_sample_the_skip_may_keep_bit_for_bit(case, monkeypatch):
+    """`sample_list` given the cells a skip may keep makes its slots in runs and leaves out the runs that reach no such
+    cell (grown by half a run, `OccupancyGrid.grown`): what it makes is a subsequence of the plain samples, the same
+    rays, distances and points to the bit, that holds every sample the skip keeps, and leaves most of the empty space
+    out; for a sparse grid of scattered cells, a single thin wall one cell thick (runs cross it between their middles),
+    rays from inside the box and NDC's unnormalised directions."""
+    from helpers import TOY_BOX
+
+    from boostnerf_cli.render import renderer as R
+    from boostnerf_cli.render.occupancy import OccupancyGrid
+
+    g = torch.Generator().manual_seed(11)
+    n = 2000
+    box = TOY_BOX
+    if case == "inside":
+        origins = 0.5 * torch.randn(n, 3, generator=g).clamp(-1, 1)
+    elif case == "ndc":
+        origins = torch.cat([2 * torch.rand(n, 2, generator=g) - 1, -torch.ones(n, 1)], -1)
+        box = torch.tensor([[-1.5, -1.5, -1.0], [1.5, 1.5, 1.0]])
+    else:
+        origins = torch.tensor([0.3, -0.2, 2.5]).expand(n, 3)
+    dirs = F.normalize(torch.tensor([0.0, 0.0, -1.0]) + 0.6 * torch.randn(n, 3, generator=g), dim=-1)
+    step = 0.021
+    if case == "ndc":
+        dirs = torch.cat([0.3 * torch.randn(n, 2, generator=g), 2 * torch.ones(n, 1)], -1)
+        step = 0.004
+    settings = R.RenderSettings(step=step, near=0.1, far=6.0, bbox=box)
+    shape = (40, 40, 40)
+    if case == "thin":  # one wall of cells across the rays: a run's middle lies at most half a run from it
+        occupied = torch.zeros(shape, dtype=torch.bool)
+        occupied[:, :, 17] = True
+    else:
+        occupied = torch.rand(shape, generator=g) < 0.0015
+    grid = OccupancyGrid(occupied, box)
+    monkeypatch.setattr(R, "SPARSE", 1.0)  # in runs whatever share of the box the grown cells fill
+    ray, t, xyz, _ = R.sample_list(origins, dirs, settings)
+    ray_r, t_r, xyz_r, _ = R.sample_list(origins, dirs, settings, grid)
+    key = ray * 10**6 + torch.round((t - t.min()) / settings.sampling[1]).long()  # a sample's (ray, slot)
+    key_r = ray_r * 10**6 + torch.round((t_r - t.min()) / settings.sampling[1]).long()
+    at = torch.searchsorted(key, key_r)  # runs keep the plain order: each made sample is found among the plain ones
+    assert torch.equal(key[at], key_r) and bool((at[1:] > at[:-1]).all())
+    assert torch.equal(ray[at], ray_r) and torch.equal(t[at], t_r) and torch.equal(xyz[at], xyz_r)
+    kept = grid.within(xyz).nonzero().squeeze(-1)
+    assert len(kept) > 30  # the rays meet the cells
+    assert bool(torch.isin(key[kept], key_r).all())  # every sample the grid keeps is made
+    assert len(ray_r) < 0.5 * len(ray)  # and most of the empty space is not
+
+
 def test_a_one_channel_blend_without_gradient_matches_the_corner_lookup():
     """`grid.blend` (a one-channel table without gradients: rendering's densities, V_D) gives what blending the 8
     listed corners gives, to float32 rounding, inside the box, on its faces and vertices and clamped outside it; with a

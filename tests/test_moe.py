@@ -426,9 +426,11 @@ def _rendered(mix, image_camera, settings, use_cells: bool, monkeypatch):
 
 @pytest.mark.parametrize("k", [1, 2])
 def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
-    """V_D's test and Top-1's choice looked up per lattice cell (where all 8 vertices agree) give the image that
-    blending every sample gives, to the last bit; most samples are decided by their cell."""
+    """V_D's test and Top-1's choice looked up per lattice cell (where all 8 vertices agree), and the samples made
+    only where the cells may keep them (`renderer.sample_list`'s runs), give the image that blending every sample
+    gives, to the last bit; most samples are decided by their cell."""
     from boostnerf_cli.moe import cells as C
+    from boostnerf_cli.render import renderer as R
     from boostnerf_cli.render.renderer import Camera, RenderSettings
 
     mix = toy_mixture(k=k, seed=3)
@@ -448,7 +450,10 @@ def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
     pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
     camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
     settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
+    runs = []  # with the tables, the samples are made only in runs that reach a cell they may keep
+    monkeypatch.setattr(R, "_runs_kept", lambda *a, _made=R._runs_kept: runs.append(1) or _made(*a))
     fast = _rendered(mix, camera, settings, True, monkeypatch)
+    assert runs
     slow = _rendered(mix, camera, settings, False, monkeypatch)
     assert fast["n_samples"] == slow["n_samples"] > 0 and fast["n_color"] == slow["n_color"]
     for key in ("rgb", "depth", "acc"):

@@ -249,6 +249,11 @@ class SkipCells:
     def bbox(self) -> Tensor:
         return self._cells.bbox
 
+    @property
+    def cells(self) -> OccupancyGrid:
+        """The cells that are not FAIL, as an occupancy grid over the same cells."""
+        return self._cells
+
     def __call__(self, xyz: Tensor) -> Tensor:
         """(N, 3) -> (N,) uint8 each point's state."""
         return self._padded.index_select(0, self._cells.padded_rows(xyz))

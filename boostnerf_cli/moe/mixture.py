@@ -544,6 +544,12 @@ class MixtureSkip:
         mix = self.mixture
         return None if mix.cfg.vd_filter == "visible" and threshold > 0 else mix.skips()
 
+    def keep_cells(self, threshold: float) -> OccupancyGrid | None:
+        """The cells outside which `filter_list` keeps no sample: those its table does not fail (None without tables,
+        see `lists`)."""
+        tables = self._tables(threshold)
+        return tables.skip.cells if tables is not None else None
+
     def lists(self, threshold: float) -> bool:
         """Whether `filter_list` can filter samples listed without their rays (it has per-cell tables)."""
         return self._tables(threshold) is not None

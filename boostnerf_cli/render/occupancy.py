@@ -41,6 +41,8 @@ class OccupancyGrid:
         self._strides = torch.tensor([p[1] * p[2], p[2], 1], dtype=self._exact, device=self.occupied.device)
         self._res = torch.tensor(self.shape, dtype=torch.float32, device=self.occupied.device)
         self._pad_row = float(p[1] * p[2] + p[2] + 1)  # the padded row of cell (0, 0, 0): the strides summed
+        self._grown: dict[tuple[int, int, int], OccupancyGrid] = {}
+        self._fraction: float | None = None
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -117,8 +119,30 @@ class OccupancyGrid:
         """This grid's occupancy at the cell centres of `other`: bool of `other`'s shape."""
         return self(other.cell_centers()).reshape(other.shape)
 
+    def grown(self, reach: float) -> "OccupancyGrid":
+        """This grid with every cell occupied that lies within `reach` (world units, along each axis) of an occupied
+        one, and one cell more: a point looked up in it (`within`, clamped into the box) is in an empty cell only when
+        every point within `reach` of it along each axis is, in this grid, in an empty cell or outside the box. Made
+        once per number of cells it grows by (three one-axis max-pools)."""
+        cell = ((self.bbox[1] - self.bbox[0]) / torch.tensor(self.shape, device=self.bbox.device)).tolist()
+        k = tuple(min(n, math.ceil(reach / c) + 1) for n, c in zip(self.shape, cell))
+        made = self._grown.get(k)
+        if made is None:
+            v = self.occupied[None, None].float()
+            for a in range(3):
+                size = [1, 1, 1]
+                size[a] = 2 * k[a] + 1
+                pad = [0, 0, 0]
+                pad[a] = k[a]
+                v = F.max_pool3d(v, kernel_size=tuple(size), stride=1, padding=tuple(pad))
+            made = self._grown[k] = OccupancyGrid(v[0, 0] > 0, self.bbox)
+        return made
+
     def fraction(self) -> float:
-        return float(self.occupied.float().mean())
+        """The share of the cells that are occupied (worked out once: a grid is never changed in place)."""
+        if self._fraction is None:
+            self._fraction = float(self.occupied.float().mean())
+        return self._fraction
 
     def occupied_bbox(self, margin_cells: int = 1) -> Tensor:
         """Tight box (2, 3) around the occupied cells, grown by `margin_cells`, clipped to the box."""

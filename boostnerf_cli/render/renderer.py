@@ -25,6 +25,7 @@ from boostnerf_cli.device import constant
 from boostnerf_cli.fields import grid as G
 from boostnerf_cli.fields.base import Field
 from boostnerf_cli.render.contraction import Contraction
+from boostnerf_cli.render.occupancy import OccupancyGrid
 from boostnerf_cli.render.packing import DYNAMIC, Packer, packer_for
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.render.timing import part
@@ -110,13 +111,27 @@ def sample_rays(
     return t, valid, xyz, step
 
 
-def sample_list(origins: Tensor, dirs: Tensor, settings: RenderSettings) -> tuple[Tensor, Tensor, Tensor, float]:
+# `sample_list` tests a ray's slots in runs of this many, by the run's middle, against the cells a skip may keep, where
+# those cells, grown by half a run, are at most this share of the box (one thread: lego's baseline at 100 px, 64% of
+# its box, renders 6.6% faster; the quickstart's, 98%, 4% slower, fern's, 96%, 3% slower)
+SPAN = 8
+SPARSE = 0.75
+
+
+def sample_list(origins: Tensor, dirs: Tensor, settings: RenderSettings,
+                keep: OccupancyGrid | None = None) -> tuple[Tensor, Tensor, Tensor, float]:
     """The samples `sample_rays(..., jitter=False, fit=True)` marks valid in a bounded scene, made as lists instead of
     an (R, S) grid most of whose slots lie outside the box: ray (K,) each sample's ray, t (K,), xyz (K, 3), in ray
     order and along each ray; the same values, bit for bit (the same operations on the same numbers), and the step.
 
     A ray's valid slots are a prefix (t grows with the slot), so each ray's count is worked out from its chord and
-    checked against `t < t_exit` at its last slot and the one after, where float rounding may differ by one."""
+    checked against `t < t_exit` at its last slot and the one after, where float rounding may differ by one.
+
+    `keep`: the cells outside which the skip keeps no sample (an occupancy grid; `keep_cells`). Where they, grown by
+    half a run's length (`OccupancyGrid.grown`), fill at most `SPARSE` of the box, a ray's slots are taken in runs of
+    `SPAN`, and a run is made only where its middle lies in the grown cells: every sample of a run left out lies in
+    an empty cell of `keep`, which the skip would drop. The samples made are those the skip may keep, the same values
+    as without `keep`: lego's baseline at 100 px makes 386k of its 622k samples, Top-1 316k."""
     n, step = settings.sampling
     bbox = settings.bbox.to(origins.device)
     t0, t1, hit = intersect_box(origins, dirs, bbox, settings.near, settings.far)
@@ -130,9 +145,15 @@ def sample_list(origins: Tensor, dirs: Tensor, settings: RenderSettings) -> tupl
         after = t0 + (count + half) * step
         count = torch.where((count < n) & hit & (after < t1), count + 1, count)
     count = count.long()
-    ray = torch.repeat_interleave(torch.arange(len(t0), device=origins.device), count)
-    start = torch.cumsum(count, 0) - count
-    j = (torch.arange(len(ray), device=origins.device) - start.index_select(0, ray)).to(origins.dtype)
+    if keep is not None and len(t0):
+        # a run's samples lie within (SPAN - 1) / 2 steps of its middle, along each axis at most that far
+        keep = keep.grown((SPAN - 1) / 2 * step * float(dirs.norm(dim=-1).max()))
+    if keep is None or not len(t0) or keep.fraction() > SPARSE:
+        ray = torch.repeat_interleave(torch.arange(len(t0), device=origins.device), count)
+        start = torch.cumsum(count, 0) - count
+        j = (torch.arange(len(ray), device=origins.device) - start.index_select(0, ray)).to(origins.dtype)
+    else:
+        ray, j = _runs_kept(origins, dirs, t0, count, step, keep)
     t = t0.index_select(0, ray) + (j + half) * step
     # the rays of one pinhole camera share one origin (an expanded tensor): added as it is, not gathered per sample
     origin = origins[:1] if origins.stride(0) == 0 else origins.contiguous().index_select(0, ray)
@@ -144,6 +165,25 @@ def sample_list(origins: Tensor, dirs: Tensor, settings: RenderSettings) -> tupl
     for a in range(3):
         torch.mul(t, direction[:, a], out=xyz[:, a]).add_(origin[:, a])
     return ray, t, xyz, step
+
+
+def _runs_kept(origins: Tensor, dirs: Tensor, t0: Tensor, count: Tensor, step: float,
+               grown: OccupancyGrid) -> tuple[Tensor, Tensor]:
+    """`sample_list`'s slots in runs of `SPAN` whose middle lies in the cells `grown` (a skip's, grown by half a run):
+    -> each slot's ray and its index along the ray (as a float), in ray order and along each ray."""
+    device = origins.device
+    runs = (count + (SPAN - 1)) // SPAN
+    run_ray = torch.repeat_interleave(torch.arange(len(t0), device=device), runs)
+    first = (torch.arange(len(run_ray), device=device) - (torch.cumsum(runs, 0) - runs).index_select(0, run_ray)) * SPAN
+    size = torch.minimum(count.index_select(0, run_ray) - first, torch.full((), SPAN, device=device))
+    middle = t0.index_select(0, run_ray) + (first.to(t0.dtype) + size.to(t0.dtype) * 0.5) * step
+    origin = origins[:1] if origins.stride(0) == 0 else origins.index_select(0, run_ray)
+    pts = origin + middle[:, None] * dirs.index_select(0, run_ray)
+    kept = grown.within(pts).nonzero().squeeze(-1)
+    run_ray, first, size = run_ray.index_select(0, kept), first.index_select(0, kept), size.index_select(0, kept)
+    ray = torch.repeat_interleave(run_ray, size)
+    start = torch.repeat_interleave(torch.cumsum(size, 0) - size - first, size)  # each slot's run's start, less first
+    return ray, (torch.arange(len(ray), device=device) - start).to(origins.dtype)
 
 
 def kept_samples(skip, xyz: Tensor, valid: Tensor, step: float, threshold: float, packer: Packer) -> Tensor:
@@ -246,6 +286,16 @@ def kept_of_list(skip, pts: Tensor, threshold: float, box: Tensor) -> Tensor | N
     return passing(skip, pts, box).nonzero().squeeze(-1)
 
 
+def keep_cells(skip, threshold: float) -> OccupancyGrid | None:
+    """The cells outside which `skip` keeps no sample of a list (`kept_of_list`; `sample_list` makes no other): an
+    occupancy grid's occupied cells, a mixture's cells its table does not fail (`MixtureSkip.keep_cells`); None where
+    the skip has no such grid."""
+    if isinstance(skip, OccupancyGrid):
+        return skip
+    cells = getattr(skip, "keep_cells", None)
+    return cells(threshold) if cells is not None else None
+
+
 def _listable(skip, settings: RenderSettings) -> bool:
     """Whether `render_rays_packed` can sample as lists (`sample_list`) and skip on them (`kept_of_list`)."""
     if settings.contraction is not None:
@@ -268,14 +318,15 @@ def render_rays_packed(
     each ray's transmittance is an exclusive sum over its kept samples alone (a running sum over the list in float64,
     less its value at the ray's first sample), and colour, depth and opacity are sums over them per ray. The skipped
     slots add exactly nothing in the padded sums either. In a bounded scene, with a filter of points, the samples
-    themselves are made as lists of those inside the box (`sample_list`), never as the (R, S) grid."""
+    themselves are made as lists of those inside the box (`sample_list`), never as the (R, S) grid, and only in runs
+    that reach a cell the filter may keep (`keep_cells`)."""
     r = origins.shape[0]
     thr = settings.color_threshold
     view = field.batch_view(DYNAMIC) if hasattr(field, "batch_view") else None
     delta: Tensor | float
     if _listable(skip, settings):
         with part("sampling"):
-            ray, tk, pts, step = sample_list(origins, dirs, settings)
+            ray, tk, pts, step = sample_list(origins, dirs, settings, keep_cells(skip, thr))
         with part("skipping"):
             kept = kept_of_list(skip, pts, thr, settings.bbox.to(pts.device))
             if kept is not None:
