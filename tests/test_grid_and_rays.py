@@ -336,13 +336,14 @@ def test_samples_made_as_lists_are_the_valid_slots_of_the_grid_bit_for_bit(case)
     assert torch.equal(tl, t.reshape(-1)[rows]) and torch.equal(xl, xyz.reshape(-1, 3)[rows])
 
 
-@pytest.mark.parametrize("case", ["camera", "inside", "ndc", "thin"])
+@pytest.mark.parametrize("case", ["camera", "inside", "ndc", "thin", "small", "empty"])
 def test_samples_made_in_runs_are_every_sample_the_skip_may_keep_bit_for_bit(case, monkeypatch):
     """`sample_list` given the cells a skip may keep makes its slots in runs and leaves out the runs that reach no such
     cell (grown by half a run, `OccupancyGrid.grown`): what it makes is a subsequence of the plain samples, the same
     rays, distances and points to the bit, that holds every sample the skip keeps, and leaves most of the empty space
     out; for a sparse grid of scattered cells, a single thin wall one cell thick (runs cross it between their middles),
-    rays from inside the box and NDC's unnormalised directions."""
+    rays from inside the box, NDC's unnormalised directions, a grid over a smaller box than the render box (a run's
+    middle outside it is looked up clamped into it) and a grid with no occupied cell (no sample at all)."""
     from helpers import TOY_BOX
 
     from boostnerf_cli.render import renderer as R
@@ -365,12 +366,17 @@ def test_samples_made_in_runs_are_every_sample_the_skip_may_keep_bit_for_bit(cas
         step = 0.004
     settings = R.RenderSettings(step=step, near=0.1, far=6.0, bbox=box)
     shape = (40, 40, 40)
+    grid_box = box
     if case == "thin":  # one wall of cells across the rays: a run's middle lies at most half a run from it
         occupied = torch.zeros(shape, dtype=torch.bool)
         occupied[:, :, 17] = True
+    elif case == "small":  # the grid covers the middle of the render box; its cells at the faces are occupied
+        grid_box = 0.4 * box
+        occupied = torch.rand(shape, generator=g) < 0.002
+        occupied[0], occupied[-1], occupied[:, :, 0] = True, True, True
     else:
-        occupied = torch.rand(shape, generator=g) < 0.0015
-    grid = OccupancyGrid(occupied, box)
+        occupied = torch.rand(shape, generator=g) < (0.0 if case == "empty" else 0.0015)
+    grid = OccupancyGrid(occupied, grid_box)
     monkeypatch.setattr(R, "SPARSE", 1.0)  # in runs whatever share of the box the grown cells fill
     ray, t, xyz, _ = R.sample_list(origins, dirs, settings)
     ray_r, t_r, xyz_r, _ = R.sample_list(origins, dirs, settings, grid)
@@ -379,10 +385,15 @@ def test_samples_made_in_runs_are_every_sample_the_skip_may_keep_bit_for_bit(cas
     at = torch.searchsorted(key, key_r)  # runs keep the plain order: each made sample is found among the plain ones
     assert torch.equal(key[at], key_r) and bool((at[1:] > at[:-1]).all())
     assert torch.equal(ray[at], ray_r) and torch.equal(t[at], t_r) and torch.equal(xyz[at], xyz_r)
-    kept = grid.within(xyz).nonzero().squeeze(-1)
+    if case == "empty":
+        assert len(ray_r) == len(t_r) == len(xyz_r) == 0 and len(ray) > 1000
+        return
+    kept = grid(xyz).nonzero().squeeze(-1)  # outside the grid's box: not kept
     assert len(kept) > 30  # the rays meet the cells
     assert bool(torch.isin(key[kept], key_r).all())  # every sample the grid keeps is made
-    assert len(ray_r) < 0.5 * len(ray)  # and most of the empty space is not
+    # and most of the empty space is not (but around a smaller grid whose faces are occupied: a run's middle outside it
+    # counts in the cell at the face)
+    assert len(ray_r) < (1.0 if case == "small" else 0.5) * len(ray)
 
 
 def test_a_one_channel_blend_without_gradient_matches_the_corner_lookup():
