@@ -336,6 +336,24 @@ def test_samples_made_as_lists_are_the_valid_slots_of_the_grid_bit_for_bit(case)
     assert torch.equal(tl, t.reshape(-1)[rows]) and torch.equal(xl, xyz.reshape(-1, 3)[rows])
 
 
+def test_a_grown_grid_sets_every_cell_within_its_reach_of_an_occupied_one():
+    """`OccupancyGrid.grown(reach)` sets exactly the cells within ceil(reach / cell) + 1 cells of an occupied one along
+    every axis (a box window: a max-pool over it), for reaches shorter and longer than the grid, on uneven cells."""
+    g = torch.Generator().manual_seed(2)
+    box = torch.tensor([[-1.0, -0.5, 0.0], [1.0, 0.5, 3.0]])
+    shape = (13, 7, 30)
+    occupied = torch.rand(shape, generator=g) < 0.01
+    grid = OccupancyGrid(occupied, box)
+    cell = (box[1] - box[0]) / torch.tensor(shape)
+    for reach in (0.0, 0.05, 0.3, 1.1, 5.0):
+        k = [min(n, math.ceil(reach / float(c)) + 1) for n, c in zip(shape, cell)]
+        want = F.max_pool3d(occupied[None, None].float(), tuple(2 * a + 1 for a in k), 1, tuple(k))[0, 0] > 0
+        grown = grid.grown(reach)
+        assert torch.equal(grown.occupied, want), reach
+        assert grid.grown(reach) is grown and torch.equal(grown.bbox, grid.bbox)
+    assert not grid.grown(0.3).occupied.all() and grid.grown(5.0).occupied.all()
+
+
 @pytest.mark.parametrize("case", ["camera", "inside", "ndc", "thin", "small", "empty"])
 def test_samples_made_in_runs_are_every_sample_the_skip_may_keep_bit_for_bit(case, monkeypatch):
     """`sample_list` given the cells a skip may keep makes its slots in runs and leaves out the runs that reach no such
@@ -347,7 +365,6 @@ def test_samples_made_in_runs_are_every_sample_the_skip_may_keep_bit_for_bit(cas
     from helpers import TOY_BOX
 
     from boostnerf_cli.render import renderer as R
-    from boostnerf_cli.render.occupancy import OccupancyGrid
 
     g = torch.Generator().manual_seed(11)
     n = 2000
