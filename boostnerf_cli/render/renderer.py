@@ -145,15 +145,16 @@ def sample_list(origins: Tensor, dirs: Tensor, settings: RenderSettings,
         after = t0 + (count + half) * step
         count = torch.where((count < n) & hit & (after < t1), count + 1, count)
     count = count.long()
-    if keep is not None and len(t0):
+    grown = None
+    if keep is not None and len(t0) and keep.fraction() <= SPARSE:  # growing them only fills more of the box
         # a run's samples lie within (SPAN - 1) / 2 steps of its middle, along each axis at most that far
-        keep = keep.grown((SPAN - 1) / 2 * step * float(dirs.norm(dim=-1).max()))
-    if keep is None or not len(t0) or keep.fraction() > SPARSE:
+        grown = keep.grown((SPAN - 1) / 2 * step * float(dirs.norm(dim=-1).max()))
+    if grown is None or grown.fraction() > SPARSE:
         ray = torch.repeat_interleave(torch.arange(len(t0), device=origins.device), count)
         start = torch.cumsum(count, 0) - count
         j = (torch.arange(len(ray), device=origins.device) - start.index_select(0, ray)).to(origins.dtype)
     else:
-        ray, j = _runs_kept(origins, dirs, t0, count, step, keep)
+        ray, j = _runs_kept(origins, dirs, t0, count, step, grown)
     t = t0.index_select(0, ray) + (j + half) * step
     # the rays of one pinhole camera share one origin (an expanded tensor): added as it is, not gathered per sample
     origin = origins[:1] if origins.stride(0) == 0 else origins.contiguous().index_select(0, ray)
@@ -175,7 +176,7 @@ def _runs_kept(origins: Tensor, dirs: Tensor, t0: Tensor, count: Tensor, step: f
     runs = (count + (SPAN - 1)) // SPAN
     run_ray = torch.repeat_interleave(torch.arange(len(t0), device=device), runs)
     first = (torch.arange(len(run_ray), device=device) - (torch.cumsum(runs, 0) - runs).index_select(0, run_ray)) * SPAN
-    size = torch.minimum(count.index_select(0, run_ray) - first, torch.full((), SPAN, device=device))
+    size = (count.index_select(0, run_ray) - first).clamp_max_(SPAN)
     middle = t0.index_select(0, run_ray) + (first.to(t0.dtype) + size.to(t0.dtype) * 0.5) * step
     origin = origins[:1] if origins.stride(0) == 0 else origins.index_select(0, run_ray)
     pts = origin + middle[:, None] * dirs.index_select(0, run_ray)
