@@ -414,21 +414,24 @@ def test_lambda_moves_the_load_to_the_cheap_experts_in_inverse_proportion_to_the
 # ----------------------------------------------------------------------------- decisions per cell (moe/cells.py)
 
 
-def _rendered(mix, image_camera, settings, use_cells: bool, monkeypatch):
+def _rendered(mix, image_camera, settings, use_cells: bool, monkeypatch, route_by_cells: bool = False):
+    """The image through the per-cell tables, or (`use_cells` False) testing V_D and the grid on every sample and
+    blending the gate on every sample (but with `route_by_cells`: Top-1 routed by its cells as rendering does)."""
     from boostnerf_cli.render.renderer import render_image
 
     with monkeypatch.context() as m:
         if not use_cells:
-            m.setattr(type(mix), "cells", lambda self: None)
+            if not route_by_cells:
+                m.setattr(type(mix), "cells", lambda self: None)
             m.setattr(type(mix), "skips", lambda self: None)
         return render_image(mix, image_camera, settings, mix.skip)
 
 
 @pytest.mark.parametrize("k", [1, 2])
 def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
-    """V_D's test and Top-1's choice looked up per lattice cell (where all 8 vertices agree), and the samples made
-    only where the cells may keep them (`renderer.sample_list`'s runs), give the image that blending every sample
-    gives, to the last bit; most samples are decided by their cell."""
+    """V_D's test looked up per lattice cell (where all 8 vertices agree), and the samples made only where the cells
+    may keep them (`renderer.sample_list`'s runs), give the image that testing every sample gives, to the last bit
+    (Top-1 routed by its cells both ways: `test_top1_routes_by_its_cells_without_blending_the_gate`)."""
     from boostnerf_cli.moe import cells as C
     from boostnerf_cli.render import renderer as R
     from boostnerf_cli.render.renderer import Camera, RenderSettings
@@ -454,7 +457,7 @@ def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
     monkeypatch.setattr(R, "_runs_kept", lambda *a, _made=R._runs_kept: runs.append(1) or _made(*a))
     fast = _rendered(mix, camera, settings, True, monkeypatch)
     assert runs
-    slow = _rendered(mix, camera, settings, False, monkeypatch)
+    slow = _rendered(mix, camera, settings, False, monkeypatch, route_by_cells=True)
     assert fast["n_samples"] == slow["n_samples"] > 0 and fast["n_color"] == slow["n_color"]
     for key in ("rgb", "depth", "acc"):
         assert torch.equal(fast[key], slow[key]), key
@@ -465,6 +468,44 @@ def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
     with torch.no_grad():
         mix.vd.table.add_(0.0)
     assert mix.skips() is None
+
+
+def test_top1_routes_by_its_cells_without_blending_the_gate(monkeypatch):
+    """Rendering a renormalised Top-1 through a baked gate routes every sample by its half-cell (`cells.route_cells`
+    with `at_centre`): the gate is never blended per sample, a sample in a cell its vertices decide goes where the
+    blend sends it, and the image differs from blending every sample only where a cell straddles the gate's border
+    between two experts, and little there."""
+    from boostnerf_cli.moe import cells as C
+    from boostnerf_cli.render.renderer import Camera, RenderSettings
+
+    mix = toy_mixture(k=1, seed=3)
+    mix.cfg.bake_res = 16
+    mix.for_rendering()
+    with torch.no_grad():
+        cells = mix.cells()
+    assert cells is not None and cells.top1 is not None and bool((cells.top1 >= 0).all())
+    decided = C.route_cells(mix.gate.logit_table, mix.gate.shape)[0]
+    assert (decided < 0).any() and torch.equal(cells.top1[decided >= 0], decided[decided >= 0])
+    g = torch.Generator().manual_seed(1)
+    box = mix.gate.bbox
+    pts = box[0] + torch.rand(20000, 3, generator=g) * (box[1] - box[0])
+    with torch.no_grad():
+        _, _, chosen = mix.route(pts, need_probs=False)
+        blended = mix.gate.logits(pts).max(-1).indices
+    clear = decided.index_select(0, C.cell_index(pts, box, cells.shape)) >= 0
+    assert torch.equal(chosen[:, 0][clear], blended[clear]) and 0.5 < clear.float().mean() < 1
+    pose = torch.eye(4)
+    pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
+    camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
+    settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
+    logits, calls = type(mix.gate).logits, []
+    monkeypatch.setattr(type(mix.gate), "logits", lambda self, xyz: calls.append(len(xyz)) or logits(self, xyz))
+    fast = _rendered(mix, camera, settings, True, monkeypatch)
+    assert not calls  # no sample blended the gate
+    slow = _rendered(mix, camera, settings, False, monkeypatch)
+    assert sum(calls) == slow["n_samples"] > 0
+    diff = (fast["rgb"] - slow["rgb"]).abs()
+    assert 0 < diff.max() and diff.mean() < 0.01, (diff.max(), diff.mean())
 
 
 def test_top2_leaves_out_a_choice_below_the_render_min_weight_and_moves_pixels_little(monkeypatch):
@@ -614,8 +655,21 @@ def test_halved_gate_cells_decide_more_samples_and_each_as_the_blend_does(monkey
     decided = halves >= 0
     assert torch.equal(halves[decided], blended[decided])
     assert decided.float().mean() > (wholes >= 0).float().mean() + 0.1
+    # at_centre: a half-cell its vertices leave undecided takes the expert the blend gives at its centre
+    filled = C.route_cells(logits, shape, at_centre=True)[0]
+    assert torch.equal(filled[table >= 0], table[table >= 0]) and bool((filled >= 0).all()) and (table < 0).any()
+    cell = torch.arange(table.numel())[table < 0]
+    dims = torch.tensor([n - 1 for n in fine])
+    ijk = torch.stack([cell // (dims[1] * dims[2]), cell // dims[2] % dims[1], cell % dims[2]], -1)
+    centres = box[0] + (ijk + 0.5) / dims * (box[1] - box[0])
+    at_centres = G.lookup(logits, *G.corners(centres, box, shape))
+    assert torch.equal(filled[cell].long(), at_centres.max(-1).indices)
+    monkeypatch.setattr(C, "SLAB_VALUES", 1)
+    assert torch.equal(C.route_cells(logits, shape, at_centre=True)[0], filled)
     monkeypatch.setattr(C, "MAX_ROUTE_CELLS", 10 * 12 * 8 - 1)
     assert C.route_cells(logits, shape)[1] == shape
+    whole = C.top1_cells(logits, shape, at_centre=True)  # the gate's own cells: the same rule
+    assert torch.equal(C.route_cells(logits, shape, at_centre=True)[0], whole) and bool((whole >= 0).all())
 
 
 @pytest.mark.parametrize("seed,occupied", [(0, True), (1, True), (2, True), (0, False)])

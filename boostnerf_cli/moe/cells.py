@@ -1,5 +1,5 @@
 """What a trained mixture's lattices decide per cell, so that rendering looks a sample's cell up instead of blending
-its eight vertices (exact, not an approximation).
+its eight vertices (exact, but for Top-1's cells that no expert holds whole; below).
 
 A trilinear value inside a lattice cell is a convex combination of the cell's 8 vertex values (`grid.corners`). So:
 
@@ -10,10 +10,14 @@ A trilinear value inside a lattice cell is a convex combination of the cell's 8 
 - **Top-1's choice.** The baked gate's logits are blended the same way, and a convex combination keeps a strict
   order that holds at every vertex: where one expert's logit is the largest at all 8 vertices, it is the largest
   everywhere in the cell. A renormalised Top-1 mixture routes with weight 1, so the choice is all it needs. `top1_cells`
-  gives each cell its expert, or -1 where the vertices disagree (the cell is blended as before). Rendering decides on
-  the gate's cells halved along every axis (`route_cells`): a half-cell lies inside one cell, where the logits are
-  trilinear, so the test holds on it alike, and more samples lie in a half-cell with one clear expert (lego's Top-1:
-  60% of the kept samples, against 29% by whole cells; its routing 24 -> 17 ms an image).
+  gives each cell its expert, or -1 where the vertices disagree. Rendering decides on the gate's cells halved along
+  every axis (`route_cells`): a half-cell lies inside one cell, where the logits are trilinear, so the test holds on it
+  alike, and more samples lie in a half-cell with one clear expert (lego's Top-1: 60% of the kept samples, against 29%
+  by whole cells). A half-cell whose vertices disagree (the gate's border between two experts crosses it: the other
+  40% of lego's samples) goes whole to the expert leading at its centre (`at_centre`), so that no sample blends the
+  gate: the one approximation here, of a gate that is itself baked onto a lattice (lego M = 3's Top-1: its routing
+  14 -> 2 ms an image, held-out PSNR -0.010 dB; the baking itself -0.013 dB; docs/performance.md). `eval --exact-gate`
+  routes every sample by the gate itself.
 - **Top-2's lone choice.** Rendering a renormalised Top-2 leaves out a second choice that weighs less than w
   (`moe.render_min_weight`): its weight is sigmoid(l2 - l1), under w where the first expert's logit leads every other
   by more than ln((1 - w) / w). Where it leads by that at all 8 vertices (`route_cells` with that lead), it does so
@@ -27,9 +31,10 @@ A trilinear value inside a lattice cell is a convex combination of the cell's 8 
   the occupancy grid and V_D as before.
 
 A vertex counts only with a margin (`MARGIN` of the values' scale) past the decision, so that float32 rounding in the
-blend can never decide otherwise than the cell does: rendering through the cells gives the same image, bit for bit, as
-blending every sample (tests/test_moe.py); through Top-2's lone choice, to float32 rounding (the alpha mix's weight
-sum is exactly 1 there, a blend's 1 to rounding).
+blend can never decide otherwise than the cell does: rendering through V_D's and the grid's cells gives the same image,
+bit for bit, as testing every sample (tests/test_moe.py); a sample in a Top-1 cell its vertices decide goes where the
+blend would send it; through Top-2's lone choice, the same image to float32 rounding (the alpha mix's weight sum is
+exactly 1 there, a blend's 1 to rounding).
 """
 
 from __future__ import annotations
@@ -127,13 +132,26 @@ def _margin(table: Tensor, lead: float) -> float:
     return lead + MARGIN * max(1.0, float(table.abs().max())) if table.numel() else 0.0
 
 
+def _decided(values: Tensor, margin: float, at_centre: bool) -> Tensor:
+    """values (M, X, Y, Z) per vertex -> (X-1, Y-1, Z-1) int8: `_agreeing`'s expert per cell; with `at_centre`, a
+    cell whose vertices disagree takes the expert leading at its centre (where a trilinear value is the mean of the
+    cell's 8 vertices; the first of equals), so that no cell is left to the blend."""
+    agreed = _agreeing(*_leaders(values, margin))
+    if not at_centre:
+        return agreed
+    centre = None
+    for corner in _vertex_views(values.movedim(0, -1)):
+        centre = corner.clone() if centre is None else centre.add_(corner)
+    return torch.where(agreed >= 0, agreed, centre.argmax(-1).to(torch.int8))
+
+
 @torch.no_grad()
-def top1_cells(logits: Tensor, shape: tuple[int, int, int], lead: float = 0.0) -> Tensor:
+def top1_cells(logits: Tensor, shape: tuple[int, int, int], lead: float = 0.0, at_centre: bool = False) -> Tensor:
     """logits (X*Y*Z, M) the baked gate's vertex logits -> (cells,) int8: the expert whose logit is the largest,
-    by more than `lead` and the margin, at all 8 vertices of the cell, or -1. The lead holds everywhere in the cell
-    then, for each other expert's logit (a convex combination keeps it)."""
-    best, clear = _leaders(logits.T.reshape(logits.shape[-1], *shape), _margin(logits, lead))
-    return _agreeing(best, clear).reshape(-1)
+    by more than `lead` and the margin, at all 8 vertices of the cell, or -1 (`at_centre`: the expert leading at the
+    cell's centre). The lead holds everywhere in the cell then, for each other expert's logit (a convex combination
+    keeps it)."""
+    return _decided(logits.T.reshape(logits.shape[-1], *shape), _margin(logits, lead), at_centre).reshape(-1)
 
 
 # `route_cells` halves the gate's cells along every axis while the halves number at most this many (an int8 each), and
@@ -148,7 +166,8 @@ def halved(shape: tuple[int, int, int]) -> tuple[int, int, int]:
 
 
 @torch.no_grad()
-def route_cells(logits: Tensor, shape: tuple[int, int, int], lead: float = 0.0) -> tuple[Tensor, tuple[int, int, int]]:
+def route_cells(logits: Tensor, shape: tuple[int, int, int], lead: float = 0.0,
+                at_centre: bool = False) -> tuple[Tensor, tuple[int, int, int]]:
     """`top1_cells` on the gate's cells halved along every axis (while they number at most `MAX_ROUTE_CELLS`), so
     that more samples lie in a cell with one clear expert: -> (cells,) int8, and the lattice's shape (vertices).
 
@@ -158,7 +177,7 @@ def route_cells(logits: Tensor, shape: tuple[int, int, int], lead: float = 0.0) 
     far under the margin). Made in slabs along x, a few million values at a time."""
     fine = halved(shape)
     if math.prod(n - 1 for n in fine) > MAX_ROUTE_CELLS:
-        return top1_cells(logits, shape, lead), shape
+        return top1_cells(logits, shape, lead, at_centre), shape
     margin = _margin(logits, lead)
     m = logits.shape[-1]
     grid = logits.T.reshape(1, m, *shape)  # channels first, as `interpolate` takes it
@@ -167,7 +186,7 @@ def route_cells(logits: Tensor, shape: tuple[int, int, int], lead: float = 0.0) 
     for a in range(0, shape[0] - 1, slab):
         v = grid[:, :, a : min(shape[0], a + slab + 1)]
         size = tuple(2 * n - 1 for n in v.shape[2:])  # each midpoint the mean of its 2, 4 or 8 vertices
-        out.append(_agreeing(*_leaders(F.interpolate(v, size=size, mode="trilinear", align_corners=True)[0], margin)))
+        out.append(_decided(F.interpolate(v, size=size, mode="trilinear", align_corners=True)[0], margin, at_centre))
     return torch.cat(out).reshape(-1), fine
 
 

@@ -200,9 +200,10 @@ class RoutingStats:
 
 @dataclass
 class RenderCells:
-    """A renormalised Top-1's expert per cell where the cell's 8 vertices agree (moe/cells.py, `route_cells`; None for
-    other mixtures and without a baked gate), made for `gate`, on a lattice of `shape` (vertices) over the gate's box:
-    the gate's cells halved along every axis, or its own where the halves would be too many."""
+    """A renormalised Top-1's expert per cell: the one all 8 vertices of the cell name, else the one leading at its
+    centre (moe/cells.py, `route_cells`; None for other mixtures and without a baked gate), made for `gate`, on a
+    lattice of `shape` (vertices) over the gate's box: the gate's cells halved along every axis, or its own where the
+    halves would be too many."""
 
     gate: Gate
     top1: Tensor | None
@@ -299,7 +300,7 @@ class Mixture(nn.Module):
         if not self.cfg.renormalize:
             return top_k(gate.probs(xyz), k, renormalize=False)
         if k == 1 and cells is not None and cells.top1 is not None:
-            return xyz.new_ones(xyz.shape[0], 1), self._top1_by_cell(xyz, cells, static)[:, None]
+            return xyz.new_ones(xyz.shape[0], 1), self._cell_expert(xyz, cells, cells.top1)[:, None]
         if (light_left_out and not static and cells is not None and cells.solo is not None
                 and cells.solo_weight == self.render_min_weight() > 0):
             return self._top2_by_cell(xyz, cells)
@@ -326,20 +327,6 @@ class Mixture(nn.Module):
             idx.index_copy_(0, rows, i2)
         return vals, idx
 
-    def _top1_by_cell(self, xyz: Tensor, cells: RenderCells, static: bool) -> Tensor:
-        """(N,) each sample's expert: its cell's (moe/cells.py), the baked gate's blend where the cell's vertices
-        disagree (for a static packing blended for every sample and chosen per sample, so that nothing waits for the
-        device)."""
-        gate = self.gate
-        expert = self._cell_expert(xyz, cells, cells.top1)
-        mixed = expert < 0
-        if static:
-            return torch.where(mixed, gate.logits(xyz).float().argmax(-1), expert)
-        rows = mixed.nonzero().squeeze(-1)
-        if len(rows):  # max's first largest: argmax's choice, 1.6x faster on the CPU
-            expert.index_copy_(0, rows, gate.logits(xyz.index_select(0, rows)).float().max(-1).indices)
-        return expert
-
     def _cells_hold(self) -> bool:
         """The per-cell decisions were made for this baked gate (`configure` makes them again for a new routing)."""
         c = self._cells
@@ -354,7 +341,8 @@ class Mixture(nn.Module):
         if not baked:
             return RenderCells(gate, None)
         k, w, renormalize = self.cfg.topk, self.cfg.render_min_weight, self.cfg.renormalize
-        top1, shape = C.route_cells(gate.logit_table, gate.shape) if k == 1 and renormalize else (None, gate.shape)
+        top1, shape = C.route_cells(gate.logit_table, gate.shape, at_centre=True) if k == 1 and renormalize \
+            else (None, gate.shape)
         solo = None
         if k == 2 and renormalize and 0 < w < 0.5:
             lead = math.log((1 - w) / w)
