@@ -559,14 +559,11 @@ class MixtureSkip:
         """The indices of the points `pts` (K, 3, inside the box) that pass: one lookup per point in the fine cells
         (`inside`: by `SkipCells.within`), every further test on the list of the points still undecided."""
         with part("V_D"):
-            state = tables.skip.within(pts) if inside else tables.skip(pts)
-        live = state.nonzero().squeeze(-1)  # PASS or MIXED (FAIL is 0)
-        left = (state.index_select(0, live) == C.MIXED).nonzero().squeeze(-1)  # near V_D's surface or an edge
+            state = tables.skip.within(pts) if inside else tables.skip(pts)  # a new tensor: marked in place below
+        left = (state == C.MIXED).nonzero().squeeze(-1)  # near V_D's surface or an edge
         if len(left):
-            keep = torch.ones(len(live), dtype=torch.bool, device=live.device)
-            failed = ~self._passed(tables, pts.index_select(0, live.index_select(0, left)))
-            live = live.index_select(0, keep.index_fill_(0, left[failed], False).nonzero().squeeze(-1))
-        return live
+            state.index_fill_(0, left[~self._passed(tables, pts.index_select(0, left))], C.FAIL)
+        return state.nonzero().squeeze(-1)  # PASS, or MIXED and passed (FAIL is 0)
 
     def _passed(self, tables: SkipTables, pts: Tensor) -> Tensor:
         """(N,) bool: which of the points `pts`, undecided by the fine cells, pass the occupancy grid and V_D: V_D
