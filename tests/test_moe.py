@@ -494,6 +494,9 @@ def test_top1_routes_by_its_cells_without_blending_the_gate(monkeypatch):
         blended = mix.gate.logits(pts).max(-1).indices
     clear = decided.index_select(0, C.cell_index(pts, box, cells.shape)) >= 0
     assert torch.equal(chosen[:, 0][clear], blended[clear]) and 0.5 < clear.float().mean() < 1
+    with torch.enable_grad():  # with gradients too (`prune` follows what rendering reads): the same choice, weight 1
+        probs, vals, idx = mix.route(pts)
+    assert torch.equal(idx, chosen) and torch.equal(vals, torch.ones_like(vals)) and probs.shape == (len(pts), 3)
     pose = torch.eye(4)
     pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
     camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)

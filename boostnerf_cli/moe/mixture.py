@@ -291,6 +291,13 @@ class Mixture(nn.Module):
         if not need_probs and not torch.is_grad_enabled():
             return None, *self._choose(xyz, static, light_left_out)
         probs = self.gate.probs(xyz)
+        cells = self._cells if self._cells_hold() else None
+        if cells is not None and cells.top1 is not None:
+            # a baked Top-1 chooses by its cells as rendering does, gradients or not (`prune` follows the rows that
+            # rendering reads); its weight the straight-through 1 of `top_k`
+            idx = self._cell_expert(xyz, cells, cells.top1)[:, None]
+            chosen = probs.gather(1, idx)
+            return probs, chosen - chosen.detach() + 1.0, idx
         vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
         return probs, vals, idx
 
