@@ -543,76 +543,57 @@ def test_top2_leaves_out_a_choice_below_the_render_min_weight_and_moves_pixels_l
     assert mix.render_min_weight() == 0.0
 
 
-def test_top2_routes_a_cell_where_one_expert_leads_by_the_left_out_weight_without_the_gate(monkeypatch):
-    """A renormalised Top-2 that leaves out choices under w (`moe.render_min_weight`) sends every sample of a cell where
-    one expert's logit leads the others by ln((1 - w) / w) at all 8 vertices to that expert alone, without blending the
-    gate there: the image blending every sample gives, to float32 rounding, from fewer blended samples. Whether such
-    cells are worth a lookup is judged on V_D's passing cells (`cells.lone_share` against `cells.LONE_SHARE`), from
-    the first `for_rendering`; a gate with few of them routes as before."""
+def test_top2_takes_its_pair_and_weights_at_each_half_cells_centre_without_blending_the_gate(monkeypatch):
+    """Rendering a renormalised Top-2 through a baked gate looks each sample's two experts and weights up in its
+    half-cell (`cells.pair_cells`): the gate's top two at the cell's centre and their softmax, to 1/510; the gate is
+    never blended per sample, and the image stays close to blending every sample. With gradients (`prune`) the same
+    pair, weighted by the gate's own probabilities."""
     from boostnerf_cli.moe import cells as C
-    from boostnerf_cli.render.renderer import Camera, RenderSettings, render_image
+    from boostnerf_cli.moe.gate import softmax
+    from boostnerf_cli.render.renderer import Camera, RenderSettings
 
-    plain = toy_mixture(k=2, seed=4)
-    plain.cfg.bake_res = 16
-    halved, route_cells = [], C.route_cells
-    monkeypatch.setattr(C, "route_cells", lambda *a, **k: halved.append(1) or route_cells(*a, **k))
-    with torch.no_grad():
-        assert plain.for_rendering().cells().solo is None  # no cell with a lone expert where samples are kept
-    assert not halved  # nor worth halving the gate's cells to look for them
     mix = toy_mixture(k=2, seed=4)
     mix.cfg.bake_res = 16
-    with torch.no_grad():  # a sharp gate: one expert leads by far in many cells
-        mix.gate.mlp[-1].weight.mul_(12.0)
-        mix.gate.mlp[-1].bias.mul_(12.0)
-    judged, share = [], C.lone_share
-    monkeypatch.setattr(C, "lone_share", lambda *a, **k: judged.append((a[3], share(*a, **k))) or judged[-1][1])
     mix.for_rendering()
+    g = torch.Generator().manual_seed(2)
+    with torch.no_grad():  # a baked gate whose top two change across the box
+        mix.gate.logit_table.copy_(torch.randn(mix.gate.logit_table.shape, generator=g) * 3)
+    mix.configure()  # its cells made again
     with torch.no_grad():
         cells = mix.cells()
-    assert len(halved) == 1 and len(judged) == 2  # whole cells, then halved ones: the share on the halved decides
-    assert all(isinstance(kept, C.SkipCells) for kept, _ in judged) and judged[1][1] >= judged[0][1]
-    assert judged[1][1] >= C.LONE_SHARE
-    assert cells is not None and cells.solo is not None and (cells.solo >= 0).any() and (cells.solo < 0).any()
-    monkeypatch.setattr(C, "LONE_SHARE", judged[1][1] + 0.01)  # a share just under the bar: no lookup
-    mix.configure(render_min_weight=0.01)  # the decisions made again for the routing
+    assert cells is not None and cells.top1 is None and cells.top2 is not None
+    assert cells.shape == C.halved(mix.gate.shape)
+    box = mix.gate.bbox
+    pts = box[0] + torch.rand(5000, 3, generator=g) * (box[1] - box[0])
+    cell = C.cell_index(pts, box, cells.shape)
+    dims = torch.tensor([n - 1 for n in cells.shape])
+    ijk = torch.stack([cell // (dims[1] * dims[2]), cell // dims[2] % dims[1], cell % dims[2]], -1)
     with torch.no_grad():
-        assert mix.cells().solo is None
-    monkeypatch.setattr(C, "LONE_SHARE", 1 / 3)
-    mix.configure(render_min_weight=0.01)
+        _, vals, idx = mix.route(pts, need_probs=False)
+        top, expected = mix.gate.logits(box[0] + (ijk + 0.5) / dims * (box[1] - box[0])).topk(2, dim=-1)
+        blended = mix.gate.logits(pts).topk(2, dim=-1).indices
+    assert torch.equal(idx, expected)
+    assert torch.allclose(vals, softmax(top), atol=1 / 1020 + 1e-6) and torch.allclose(vals.sum(-1), torch.ones(5000))
+    assert 0.5 < (idx == blended).all(-1).float().mean() < 1  # the blend's pair where the cell's centre has it
+    with torch.enable_grad():
+        probs, graded, same = mix.route(pts)
+    assert torch.equal(same, idx)
+    assert torch.allclose(graded, probs.gather(1, idx) / probs.gather(1, idx).sum(-1, keepdim=True))
+    monkeypatch.setattr(C, "SLAB_VALUES", 1)  # slabs of one gate cell: the same cells
+    again, _ = C.pair_cells(mix.gate.logit_table, mix.gate.shape)
+    assert torch.equal(again.pair, cells.top2.pair) and torch.equal(again.weight, cells.top2.weight)
     pose = torch.eye(4)
     pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
     camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
     settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
-    blended = []
-    logits = type(mix.gate).logits
-    monkeypatch.setattr(type(mix.gate), "logits", lambda self, xyz: blended.append(len(xyz)) or logits(self, xyz))
-    fast = render_image(mix, camera, settings, mix.skip)
-    by_cell = sum(blended)
-    blended.clear()
-    mix._cells.solo = None  # every sample blended
-    slow = render_image(mix, camera, settings, mix.skip)
-    assert fast["n_samples"] == slow["n_samples"] > 0 and by_cell < 0.8 * sum(blended)
-    for key in ("rgb", "depth", "acc"):
-        assert torch.allclose(fast[key], slow[key], atol=1e-6), key
-
-
-def test_the_lone_share_is_the_share_of_passing_cells_whose_gate_cell_has_a_lone_expert():
-    from boostnerf_cli.moe import cells as C
-
-    box = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
-    state = torch.zeros(8, 8, 8, dtype=torch.uint8)
-    state[:4] = C.PASS  # the passing cells: x < 1/2
-    state[4:6] = C.MIXED  # not counted
-    kept = C.SkipCells(state, box)
-    shape = (3, 3, 3)  # 2 x 2 x 2 gate cells, split at 1/2 on every axis
-    lone = torch.full((8,), -1, dtype=torch.int8)
-    lone[0] = 1  # gate cell (0, 0, 0): a quarter of the passing space
-    assert C.lone_share(lone, box, shape, kept) == pytest.approx(0.25)
-    lone[1] = 0  # and (0, 0, 1): half of it; the cells with x >= 1/2 never count
-    lone[4:] = 2
-    assert C.lone_share(lone, box, shape, kept) == pytest.approx(0.5)
-    assert C.lone_share(lone, box, shape, kept, n=7) == pytest.approx(0.5, abs=0.2)  # at most n centres
-    assert C.lone_share(lone, box, shape, None) == pytest.approx(6 / 8)  # no kept space known: all cells
+    logits, calls = type(mix.gate).logits, []
+    monkeypatch.setattr(type(mix.gate), "logits", lambda self, xyz: calls.append(len(xyz)) or logits(self, xyz))
+    fast = _rendered(mix, camera, settings, True, monkeypatch)
+    assert not calls  # no sample blended the gate
+    slow = _rendered(mix, camera, settings, False, monkeypatch)
+    assert sum(calls) == slow["n_samples"] > 0
+    diff = (fast["rgb"] - slow["rgb"]).abs()
+    assert 0 < diff.max() and diff.mean() < 0.01, (diff.max(), diff.mean())
 
 
 def test_a_cell_is_decided_only_where_all_its_vertices_agree_with_a_margin():

@@ -1,5 +1,6 @@
 """What a trained mixture's lattices decide per cell, so that rendering looks a sample's cell up instead of blending
-its eight vertices (exact, but for Top-1's cells that no expert holds whole; below).
+its eight vertices: exact for V_D, the occupancy grid and a Top-1 cell whose vertices agree; taken at the cell's centre
+for the gate's other cells (below).
 
 A trilinear value inside a lattice cell is a convex combination of the cell's 8 vertex values (`grid.corners`). So:
 
@@ -15,13 +16,13 @@ A trilinear value inside a lattice cell is a convex combination of the cell's 8 
   alike, and more samples lie in a half-cell with one clear expert (lego's Top-1: 60% of the kept samples, against 29%
   by whole cells). A half-cell whose vertices disagree (the gate's border between two experts crosses it: the other
   40% of lego's samples) goes whole to the expert leading at its centre (`at_centre`), so that no sample blends the
-  gate: the one approximation here, of a gate that is itself baked onto a lattice (lego M = 3's Top-1: its routing
-  14 -> 2 ms an image, held-out PSNR -0.010 dB; the baking itself -0.013 dB; docs/performance.md). `eval --exact-gate`
-  routes every sample by the gate itself.
-- **Top-2's lone choice.** Rendering a renormalised Top-2 leaves out a second choice that weighs less than w
-  (`moe.render_min_weight`): its weight is sigmoid(l2 - l1), under w where the first expert's logit leads every other
-  by more than ln((1 - w) / w). Where it leads by that at all 8 vertices (`route_cells` with that lead), it does so
-  everywhere in the cell, and every sample there goes to that expert alone, with weight 1, as the blend would send it.
+  gate (lego M = 3's Top-1: its routing 14 -> 3 ms an image, held-out PSNR -0.010 dB; M = 5 -0.030 dB).
+- **Top-2's choice.** A renormalised Top-2's two experts and weights vary inside a cell, so rendering takes them at
+  each half-cell's centre (`pair_cells`): one lookup a sample instead of blending the gate, its top two and their
+  softmax (lego M = 3's Top-2: 9% faster, held-out PSNR -0.017 dB; M = 5 -0.002 dB).
+
+Both are approximations of a gate that is itself baked onto a lattice (`moe.bake_res`; lego M = 3's Top-1 -0.013 dB
+against the gate's own MLP). `eval --exact-gate` routes every sample by the gate itself.
 
 - **Both skips at once.** A sample is kept when its occupancy cell is occupied and it passes V_D. `skip_states` makes
   one table (`SkipCells`) over a lattice that splits each of V_D's cells into f^3 (f at least 2, and at least twice
@@ -32,9 +33,8 @@ A trilinear value inside a lattice cell is a convex combination of the cell's 8 
 
 A vertex counts only with a margin (`MARGIN` of the values' scale) past the decision, so that float32 rounding in the
 blend can never decide otherwise than the cell does: rendering through V_D's and the grid's cells gives the same image,
-bit for bit, as testing every sample (tests/test_moe.py); a sample in a Top-1 cell its vertices decide goes where the
-blend would send it; through Top-2's lone choice, the same image to float32 rounding (the alpha mix's weight sum is
-exactly 1 there, a blend's 1 to rounding).
+bit for bit, as testing every sample (tests/test_moe.py), and a sample in a Top-1 cell its vertices decide goes where
+the blend would send it.
 """
 
 from __future__ import annotations
@@ -127,35 +127,40 @@ def _agreeing(best: Tensor, clear: Tensor) -> Tensor:
     return torch.where(agree, expert, -1).to(torch.int8)
 
 
-def _margin(table: Tensor, lead: float) -> float:
-    """How far a logit must lead: `lead`, and `MARGIN` of the table's scale."""
-    return lead + MARGIN * max(1.0, float(table.abs().max())) if table.numel() else 0.0
+def _centres(values: Tensor) -> Tensor:
+    """values (M, X, Y, Z) per vertex -> (X-1, Y-1, Z-1, M): each cell's values at its centre, where a trilinear value
+    is the mean of the cell's 8 vertices."""
+    total = None
+    for corner in _vertex_views(values.movedim(0, -1)):
+        total = corner.clone() if total is None else total.add_(corner)
+    return total.mul_(0.125)
 
 
 def _decided(values: Tensor, margin: float, at_centre: bool) -> Tensor:
     """values (M, X, Y, Z) per vertex -> (X-1, Y-1, Z-1) int8: `_agreeing`'s expert per cell; with `at_centre`, a
-    cell whose vertices disagree takes the expert leading at its centre (where a trilinear value is the mean of the
-    cell's 8 vertices; the first of equals), so that no cell is left to the blend."""
+    cell whose vertices disagree takes the expert leading at its centre (the first of equals), so that no cell is left
+    to the blend."""
     agreed = _agreeing(*_leaders(values, margin))
     if not at_centre:
         return agreed
-    centre = None
-    for corner in _vertex_views(values.movedim(0, -1)):
-        centre = corner.clone() if centre is None else centre.add_(corner)
-    return torch.where(agreed >= 0, agreed, centre.argmax(-1).to(torch.int8))
+    return torch.where(agreed >= 0, agreed, _centres(values).argmax(-1).to(torch.int8))
+
+
+def _margin(table: Tensor) -> float:
+    """How far a logit must lead: `MARGIN` of the table's scale."""
+    return MARGIN * max(1.0, float(table.abs().max())) if table.numel() else 0.0
 
 
 @torch.no_grad()
-def top1_cells(logits: Tensor, shape: tuple[int, int, int], lead: float = 0.0, at_centre: bool = False) -> Tensor:
-    """logits (X*Y*Z, M) the baked gate's vertex logits -> (cells,) int8: the expert whose logit is the largest,
-    by more than `lead` and the margin, at all 8 vertices of the cell, or -1 (`at_centre`: the expert leading at the
-    cell's centre). The lead holds everywhere in the cell then, for each other expert's logit (a convex combination
-    keeps it)."""
-    return _decided(logits.T.reshape(logits.shape[-1], *shape), _margin(logits, lead), at_centre).reshape(-1)
+def top1_cells(logits: Tensor, shape: tuple[int, int, int], at_centre: bool = False) -> Tensor:
+    """logits (X*Y*Z, M) the baked gate's vertex logits -> (cells,) int8: the expert whose logit is the largest, by
+    more than the margin, at all 8 vertices of the cell, or -1 (`at_centre`: the expert leading at the cell's centre).
+    It is then the largest everywhere in the cell (a convex combination keeps each difference's sign)."""
+    return _decided(logits.T.reshape(logits.shape[-1], *shape), _margin(logits), at_centre).reshape(-1)
 
 
-# `route_cells` halves the gate's cells along every axis while the halves number at most this many (an int8 each), and
-# works out at most about SLAB_VALUES logits at a time
+# `route_cells` and `pair_cells` halve the gate's cells along every axis while the halves number at most this many,
+# and work out at most about SLAB_VALUES logits at a time
 MAX_ROUTE_CELLS = 1 << 25
 SLAB_VALUES = 1 << 22
 
@@ -165,55 +170,81 @@ def halved(shape: tuple[int, int, int]) -> tuple[int, int, int]:
     return tuple(2 * n - 1 for n in shape)  # type: ignore[return-value]
 
 
-@torch.no_grad()
-def route_cells(logits: Tensor, shape: tuple[int, int, int], lead: float = 0.0,
-                at_centre: bool = False) -> tuple[Tensor, tuple[int, int, int]]:
-    """`top1_cells` on the gate's cells halved along every axis (while they number at most `MAX_ROUTE_CELLS`), so
-    that more samples lie in a cell with one clear expert: -> (cells,) int8, and the lattice's shape (vertices).
-
-    A half-cell lies inside one of the gate's cells, where every logit is trilinear, hence on the half-cell too: its
-    differences are extreme at the half-cell's 8 corners, so the test of `top1_cells` holds there as on a whole cell.
-    The corners' logits are the gate's blend there: a vertex's own, the mean of 2, 4 or 8 (to float32 rounding,
-    far under the margin). Made in slabs along x, a few million values at a time."""
+def _route_lattice(logits: Tensor, shape: tuple[int, int, int]):
+    """The lattice rendering decides on, and its vertex logits slab by slab: -> (its shape, an iterator of (M, X', Y',
+    Z') channels-first values over slabs of whole cells along x, in order). The gate's cells halved along every axis
+    while they number at most `MAX_ROUTE_CELLS` (a midpoint's logits the mean of its 2, 4 or 8 vertices: the gate's
+    blend there, to float32 rounding), else the gate's own lattice in one piece."""
+    m = logits.shape[-1]
+    grid = logits.T.reshape(m, *shape)  # channels first, as `interpolate` takes it
     fine = halved(shape)
     if math.prod(n - 1 for n in fine) > MAX_ROUTE_CELLS:
-        return top1_cells(logits, shape, lead, at_centre), shape
-    margin = _margin(logits, lead)
-    m = logits.shape[-1]
-    grid = logits.T.reshape(1, m, *shape)  # channels first, as `interpolate` takes it
+        return shape, iter([grid])
     slab = max(1, SLAB_VALUES // max(1, 4 * shape[1] * shape[2] * m))  # the gate's x-cells a slab covers
-    out = []
-    for a in range(0, shape[0] - 1, slab):
-        v = grid[:, :, a : min(shape[0], a + slab + 1)]
-        size = tuple(2 * n - 1 for n in v.shape[2:])  # each midpoint the mean of its 2, 4 or 8 vertices
-        out.append(_decided(F.interpolate(v, size=size, mode="trilinear", align_corners=True)[0], margin, at_centre))
-    return torch.cat(out).reshape(-1), fine
 
+    def slabs():
+        for a in range(0, shape[0] - 1, slab):
+            v = grid[None, :, a : min(shape[0], a + slab + 1)]
+            yield F.interpolate(v, size=tuple(2 * n - 1 for n in v.shape[2:]), mode="trilinear", align_corners=True)[0]
 
-# `lone_share`: below this share of the kept space in cells with a lone expert, Top-2's per-cell lookup costs more than
-# the blends it saves (one thread: 8 ms an image more on lego at M = 5, where none has one; 2 ms an image less on lego
-# at M = 3 with 41% of the kept samples in such cells; fern's routing 183 -> 118 ms with 42%)
-LONE_SHARE = 1 / 3
+    return fine, slabs()
 
 
 @torch.no_grad()
-def lone_share(lone: Tensor, bbox: Tensor, shape: tuple[int, int, int], kept, n: int = 1 << 16) -> float:
-    """The share of the space where samples are kept that lies in cells with a lone expert: `lone` (cells,) per cell
-    of a lattice of `shape` over `bbox`, -1 where none; `kept` a `SkipCells` (its PASS cells) or an `OccupancyGrid`
-    (its occupied cells): the share of at most `n` of their centres, evenly spread through them, whose cell of the
-    lattice has one (the share of all cells without `kept`)."""
-    if kept is None:
-        return float((lone >= 0).float().mean()) if lone.numel() else 0.0
-    where = (kept.state == PASS) if isinstance(kept, SkipCells) else kept.occupied.bool()
-    cells = where.reshape(-1).nonzero().squeeze(-1)
-    if not len(cells):
-        return 0.0
-    cells = cells[:: -(-len(cells) // n)]  # every ceil(len / n)-th: at most n
-    dims = torch.tensor(where.shape, device=cells.device)
-    ijk = torch.stack([cells // (dims[1] * dims[2]), cells // dims[2] % dims[1], cells % dims[2]], -1)
-    box = kept.bbox.to(cells.device)
-    centres = box[0] + (ijk.float() + 0.5) / dims * (box[1] - box[0])
-    return float((lone.index_select(0, cell_index(centres, bbox.to(cells.device), shape)) >= 0).float().mean())
+def route_cells(logits: Tensor, shape: tuple[int, int, int],
+                at_centre: bool = False) -> tuple[Tensor, tuple[int, int, int]]:
+    """`top1_cells` on the gate's cells halved along every axis (`_route_lattice`), so that more samples lie in a cell
+    with one clear expert: -> (cells,) int8, and the lattice's shape (vertices).
+
+    A half-cell lies inside one of the gate's cells, where every logit is trilinear, hence on the half-cell too: its
+    differences are extreme at the half-cell's 8 corners, so the test of `top1_cells` holds there as on a whole
+    cell."""
+    lattice, slabs = _route_lattice(logits, shape)
+    margin = _margin(logits)
+    return torch.cat([_decided(v, margin, at_centre).reshape(-1) for v in slabs]), lattice
+
+
+# a Top-2 cell's first weight w, in [1/2, 1], is kept as the byte round((w - 1/2) * WEIGHT_STEPS)
+WEIGHT_STEPS = 510
+
+
+class PairCells:
+    """A renormalised Top-2's choice per cell of a lattice (`pair_cells`): its two experts and their weights at the
+    cell's centre. `pair` (cells,) the row of `pairs` (M * M, 2) that names the first and the second expert; `weight`
+    (cells,) uint8, the first's weight w as round((w - 1/2) * WEIGHT_STEPS) (the second's is 1 - w)."""
+
+    def __init__(self, pair: Tensor, weight: Tensor, m: int):
+        self.pair, self.weight = pair, weight
+        e = torch.arange(m, device=pair.device)
+        self.pairs = torch.stack([e.repeat_interleave(m), e.repeat(m)], -1)  # row a * M + b: (a, b)
+        first = torch.arange(256, device=pair.device, dtype=torch.float32) / WEIGHT_STEPS + 0.5
+        self.weights = torch.stack([first, 1 - first], -1)  # row q: both weights
+
+    def __call__(self, cell: Tensor) -> tuple[Tensor, Tensor]:
+        """(N,) cells -> weights (N, 2) float32, experts (N, 2) int64, as `router.top_k` renormalised gives them."""
+        return (self.weights.index_select(0, self.weight.index_select(0, cell).long()),
+                self.pairs.index_select(0, self.pair.index_select(0, cell).long()))
+
+
+@torch.no_grad()
+def pair_cells(logits: Tensor, shape: tuple[int, int, int]) -> tuple[PairCells, tuple[int, int, int]]:
+    """A renormalised Top-2's experts and weights per cell of the gate's halved lattice (`_route_lattice`), taken at
+    the cell's centre: the two largest logits there and the softmax of the two. -> the cells and the lattice's shape.
+
+    Rendering then looks each sample's choice up instead of blending the gate: the weights are constant over a half-cell
+    (1/256 of lego's box along an axis at `moe.bake_res` 128) where the blend's vary smoothly, and the pair changes at
+    cell faces instead of where the blend's third logit overtakes the second; a sample's colour moves by the weight's
+    change times the two experts' difference there (lego M = 3: held-out PSNR -0.017 dB, M = 5 -0.002 dB)."""
+    m = logits.shape[-1]
+    code = torch.uint8 if m * m <= 256 else torch.int32
+    lattice, slabs = _route_lattice(logits, shape)
+    pairs, weights = [], []
+    for v in slabs:
+        top, idx = _centres(v).reshape(-1, m).topk(2, dim=-1)
+        pairs.append((idx[:, 0] * m + idx[:, 1]).to(code))
+        first = torch.sigmoid(top[:, 0] - top[:, 1])  # the softmax of the two, the first's share
+        weights.append(first.sub_(0.5).mul_(WEIGHT_STEPS).round_().clamp_(0, 255).to(torch.uint8))
+    return PairCells(torch.cat(pairs), torch.cat(weights), m), lattice
 
 
 # a fine cell is compared with every coarse cell it touches grown by this much of the box (float32 rounding of a

@@ -23,7 +23,6 @@ threshold: samples hidden behind V_D's surfaces reach neither the gate nor the e
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 
 import torch
@@ -200,18 +199,16 @@ class RoutingStats:
 
 @dataclass
 class RenderCells:
-    """A renormalised Top-1's expert per cell: the one all 8 vertices of the cell name, else the one leading at its
-    centre (moe/cells.py, `route_cells`; None for other mixtures and without a baked gate), made for `gate`, on a
-    lattice of `shape` (vertices) over the gate's box: the gate's cells halved along every axis, or its own where the
-    halves would be too many."""
+    """Rendering's choice per cell of a lattice of `shape` (vertices) over the gate's box (moe/cells.py): the gate's
+    cells halved along every axis, or its own where the halves would be too many; made for the baked `gate`. `top1`: a
+    renormalised Top-1's expert per cell (`route_cells`: the one all 8 vertices of the cell name, else the one leading
+    at its centre); `top2`: a renormalised Top-2's experts and weights at each cell's centre (`pair_cells`); None for
+    other mixtures and without a baked gate."""
 
     gate: Gate
     top1: Tensor | None
     shape: tuple[int, int, int] | None = None
-    # a renormalised Top-2's lone expert per cell (`route_cells` with the lead of ln((1 - w) / w)), made for
-    # render_min_weight `solo_weight`; None for other mixtures
-    solo: Tensor | None = None
-    solo_weight: float = 0.0
+    top2: C.PairCells | None = None
 
 
 @dataclass
@@ -268,71 +265,53 @@ class Mixture(nn.Module):
         return self._skip
 
     # --- routing --------------------------------------------------------------------------------
-    def route(self, xyz: Tensor, need_probs: bool = True, static: bool = False,
-              light_left_out: bool = False) -> tuple[Tensor | None, Tensor, Tensor]:
+    def route(self, xyz: Tensor, need_probs: bool = True, static: bool = False) -> tuple[Tensor | None, Tensor, Tensor]:
         """-> probabilities (N, M), weights (N, k), expert indices (N, k).
 
         Rendering (no autograd, `need_probs` False) with renormalised weights skips the probabilities:
         the renormalised top-k weights are the softmax of the k chosen logits alone (1 for k = 1), and
-        the choice is the top-k of the logits; the probabilities are then returned as None.
-        `light_left_out`: the caller leaves out choices under `render_min_weight` (`ExpertRows.of`), so a sample in a
-        cell where one expert leads by that much gets weights (1, 0) without blending the gate (moe/cells.py).
+        the choice is the top-k of the logits; the probabilities are then returned as None. A baked Top-1 or Top-2
+        chooses by its cells (`RenderCells`), gradients or not.
         """
         with part("routing"):
-            return self._route(xyz, need_probs, static, light_left_out)
+            return self._route(xyz, need_probs, static)
 
-    def _route(self, xyz: Tensor, need_probs: bool, static: bool,
-               light_left_out: bool = False) -> tuple[Tensor | None, Tensor, Tensor]:
+    def _route(self, xyz: Tensor, need_probs: bool, static: bool) -> tuple[Tensor | None, Tensor, Tensor]:
         flops.add("routing", 4 * self.m * xyz.shape[0])
         if self.gate.cfg.gate_type == "uniform":  # the ensemble: every expert, equal weights
             probs = self.gate.probs(xyz)
             idx = torch.arange(self.m, device=xyz.device).expand(xyz.shape[0], self.m)
             return probs, probs, idx
         if not need_probs and not torch.is_grad_enabled():
-            return None, *self._choose(xyz, static, light_left_out)
+            return None, *self._choose(xyz, self.cells())
         probs = self.gate.probs(xyz)
         cells = self._cells if self._cells_hold() else None
-        if cells is not None and cells.top1 is not None:
-            # a baked Top-1 chooses by its cells as rendering does, gradients or not (`prune` follows the rows that
-            # rendering reads); its weight the straight-through 1 of `top_k`
-            idx = self._cell_expert(xyz, cells, cells.top1)[:, None]
+        if cells is not None and (cells.top1 is not None or cells.top2 is not None):
+            # a baked Top-1 or Top-2 chooses by its cells as rendering does, gradients or not (`prune` follows the rows
+            # rendering reads); the weights those of the gate's own probabilities for the choice, as `top_k` gives
+            idx = self._choose(xyz, cells)[1]
             chosen = probs.gather(1, idx)
-            return probs, chosen - chosen.detach() + 1.0, idx
+            if idx.shape[1] == 1:
+                return probs, chosen - chosen.detach() + 1.0, idx
+            return probs, chosen / chosen.sum(-1, keepdim=True).clamp_min(1e-12), idx
         vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
         return probs, vals, idx
 
-    def _choose(self, xyz: Tensor, static: bool = False, light_left_out: bool = False) -> tuple[Tensor, Tensor]:
-        """Rendering's choice (see `route`): weights (N, k), experts (N, k)."""
-        cells, gate, k = self.cells(), self.gate, self.cfg.topk
+    def _choose(self, xyz: Tensor, cells: RenderCells | None) -> tuple[Tensor, Tensor]:
+        """Rendering's choice (see `route`): weights (N, k), experts (N, k); by `cells` where they hold a table."""
+        gate, k = self.gate, self.cfg.topk
         if not self.cfg.renormalize:
             return top_k(gate.probs(xyz), k, renormalize=False)
-        if k == 1 and cells is not None and cells.top1 is not None:
-            return xyz.new_ones(xyz.shape[0], 1), self._cell_expert(xyz, cells, cells.top1)[:, None]
-        if (light_left_out and not static and cells is not None and cells.solo is not None
-                and cells.solo_weight == self.render_min_weight() > 0):
-            return self._top2_by_cell(xyz, cells)
+        if cells is not None and cells.top1 is not None:
+            return xyz.new_ones(xyz.shape[0], 1), self._cell_index(xyz, cells, cells.top1).long()[:, None]
+        if cells is not None and cells.top2 is not None:
+            return cells.top2(C.cell_index(xyz, gate.bbox, cells.shape))
         chosen, idx = top_k(gate.logits(xyz).float(), k, renormalize=False)
         return (torch.ones_like(chosen) if k == 1 else softmax(chosen)), idx
 
-    def _cell_expert(self, xyz: Tensor, cells: RenderCells, table: Tensor) -> Tensor:
-        """(N,) int64: the expert a per-cell table of `cells` (moe/cells.py) gives each sample's cell, -1 where it
-        leaves the sample to the blend."""
-        return table.index_select(0, C.cell_index(xyz, self.gate.bbox, cells.shape)).long()
-
-    def _top2_by_cell(self, xyz: Tensor, cells: RenderCells) -> tuple[Tensor, Tensor]:
-        """A renormalised Top-2's weights (N, 2) and experts (N, 2) where light choices are left out: (1, 0) to the
-        cell's lone expert (moe/cells.py), the gate's blend where the cell has none."""
-        gate = self.gate
-        expert = self._cell_expert(xyz, cells, cells.solo)
-        idx = torch.stack([expert, expert], -1)
-        vals = torch.zeros(xyz.shape[0], 2, dtype=torch.float32, device=xyz.device)
-        vals[:, 0] = 1.0
-        rows = (expert < 0).nonzero().squeeze(-1)
-        if len(rows):
-            chosen, i2 = top_k(gate.logits(xyz.index_select(0, rows)).float(), 2, renormalize=False)
-            vals.index_copy_(0, rows, softmax(chosen))
-            idx.index_copy_(0, rows, i2)
-        return vals, idx
+    def _cell_index(self, xyz: Tensor, cells: RenderCells, table: Tensor) -> Tensor:
+        """(N,) what a per-cell table of `cells` (moe/cells.py) holds for each sample's cell."""
+        return table.index_select(0, C.cell_index(xyz, self.gate.bbox, cells.shape))
 
     def _cells_hold(self) -> bool:
         """The per-cell decisions were made for this baked gate (`configure` makes them again for a new routing)."""
@@ -340,29 +319,18 @@ class Mixture(nn.Module):
         return c is not None and c.gate is self.gate
 
     def _make_cells(self) -> RenderCells:
-        """The per-cell decisions for the gate as it is (moe/cells.py): Top-1's expert per cell, and a renormalised
-        Top-2's lone expert per cell where enough of the kept space has one (V_D's and the grid's tables made first)."""
+        """The per-cell decisions for the gate as it is (moe/cells.py): a renormalised Top-1's expert, or a renormalised
+        Top-2's experts and weights, per cell of the baked gate's halved lattice (V_D's and the grid's tables made
+        first; 0.6-1.6 s for a 128^3 bake of 3-5 experts, on one thread)."""
         self.prepare_skips()
         gate = self.gate
-        baked = gate.cfg.gate_type == "baked"
-        if not baked:
+        if gate.cfg.gate_type != "baked" or not self.cfg.renormalize or self.cfg.topk > 2:
             return RenderCells(gate, None)
-        k, w, renormalize = self.cfg.topk, self.cfg.render_min_weight, self.cfg.renormalize
-        top1, shape = C.route_cells(gate.logit_table, gate.shape, at_centre=True) if k == 1 and renormalize \
-            else (None, gate.shape)
-        solo = None
-        if k == 2 and renormalize and 0 < w < 0.5:
-            lead = math.log((1 - w) / w)
-            skips = self.skips()
-            kept = skips.skip if skips is not None else self.occupancy
-            # halving a cell keeps every lone expert it had: a gate whose whole cells give under half the share the
-            # lookup needs is not halved (0.6-1.6 s for a 128^3 bake of 3-5 experts, on one thread)
-            whole = C.top1_cells(gate.logit_table, gate.shape, lead)
-            if C.lone_share(whole, gate.bbox, gate.shape, kept) >= C.LONE_SHARE / 2:
-                solo, shape = C.route_cells(gate.logit_table, gate.shape, lead)
-                if C.lone_share(solo, gate.bbox, shape, kept) < C.LONE_SHARE:
-                    solo = None  # too few: the lookup would cost more than it saves
-        return RenderCells(gate, top1, shape, solo, w)
+        if self.cfg.topk == 1:
+            top1, shape = C.route_cells(gate.logit_table, gate.shape, at_centre=True)
+            return RenderCells(gate, top1, shape)
+        top2, shape = C.pair_cells(gate.logit_table, gate.shape)
+        return RenderCells(gate, None, shape, top2)
 
     def cells(self) -> RenderCells | None:
         """The per-cell decisions `for_rendering` made, while they still hold and nothing trains (no gradient)."""
@@ -622,8 +590,7 @@ class RoutedMixture:
         mix = self.mixture
         # the dynamic packing: each expert's samples listed once, for both passes, light choices left out
         listed = not self.packer.static and live is None
-        probs, vals, idx = mix.route(xyz, need_probs=self.stats is not None, static=self.packer.static,
-                                     light_left_out=listed)
+        probs, vals, idx = mix.route(xyz, need_probs=self.stats is not None, static=self.packer.static)
         if self.stats is not None:
             self.stats.record(probs, idx, live)
         self._last = (xyz, vals, idx)
