@@ -167,6 +167,31 @@ def test_rendering_top1_with_unit_weights_skips_the_scaling_and_gives_the_same_b
     assert units == [True, False]
 
 
+@pytest.mark.parametrize("k", [1, 2, 3, 4])
+def test_expert_rows_list_each_experts_choices_in_sample_order_and_leave_out_the_light_ones(k):
+    """`ExpertRows.of` lists, per expert, the samples that chose it, in order, with their weights; with a minimum
+    weight (two weights a sample that sum to 1), a choice under it is left out and the other one weighs 1."""
+    from boostnerf_cli.moe.router import ExpertRows
+
+    g = torch.Generator().manual_seed(k)
+    m, n = 5, 400
+    idx = torch.stack([torch.randperm(m, generator=g)[:k] for _ in range(n)])
+    vals = torch.rand(n, k, generator=g)
+    if k == 2:
+        vals[:, 0] = torch.where(torch.rand(n, generator=g) < 0.4, 0.995, vals[:, 0])
+        vals[:, 1] = 1 - vals[:, 0]
+    for w in ([0.0, 0.01] if k == 2 else [0.0]):
+        listed = ExpertRows.of(Routes(vals, idx, m), w)
+        for e in range(m):
+            hit = (idx == e) & (vals >= w)
+            rows = hit.any(-1).nonzero().squeeze(-1)
+            weight = (vals * hit).sum(-1)[rows]
+            if w > 0:
+                weight = torch.where(weight > 1 - w, 1.0, weight)
+            assert torch.equal(listed.rows[e], rows) and torch.equal(listed.weights[e], weight), (k, w, e)
+    assert ExpertRows.of(Routes(vals, idx, m, unit=True)).weights == [None] * m
+
+
 @pytest.mark.parametrize("static", [False, True], ids=["dynamic", "static"])
 @pytest.mark.parametrize("k", [1, 2, 3])
 def test_sparse_dispatch_matches_dense_reference_in_values_and_gradients(k, static):
