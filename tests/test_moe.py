@@ -621,6 +621,19 @@ def test_top2_takes_its_pair_and_weights_at_each_half_cells_centre_without_blend
     assert 0 < diff.max() and diff.mean() < 0.01, (diff.max(), diff.mean())
 
 
+@pytest.mark.parametrize("m", [2, 3, 5, 8])
+def test_the_top_two_of_each_cell_are_a_stable_sorts_first_two(m):
+    """`cells._top_two` (Top-2's pair at a cell's centre): the largest and second largest channel, the first of equals
+    first, as a stable descending sort gives them, with their values."""
+    from boostnerf_cli.moe import cells as C
+
+    values = torch.randint(0, 4, (m, 50, 7), generator=torch.Generator().manual_seed(m)).float()  # many ties
+    first, i1, second, i2 = C._top_two(values)
+    order = torch.sort(-values.movedim(0, -1), dim=-1, stable=True).indices
+    assert torch.equal(i1.long(), order[..., 0]) and torch.equal(i2.long(), order[..., 1])
+    assert torch.equal(first, values.max(0).values) and torch.equal(second, values.gather(0, i2.long()[None])[0])
+
+
 def test_a_cell_is_decided_only_where_all_its_vertices_agree_with_a_margin():
     from boostnerf_cli.moe import cells as C
 

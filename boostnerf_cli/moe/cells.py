@@ -128,12 +128,36 @@ def _agreeing(best: Tensor, clear: Tensor) -> Tensor:
 
 
 def _centres(values: Tensor) -> Tensor:
-    """values (M, X, Y, Z) per vertex -> (X-1, Y-1, Z-1, M): each cell's values at its centre, where a trilinear value
-    is the mean of the cell's 8 vertices."""
+    """values (M, X, Y, Z) per vertex -> (M, X-1, Y-1, Z-1): each cell's values at its centre, where a trilinear value
+    is the mean of the cell's 8 vertices (summed channels first: a plane's rows stay contiguous)."""
     total = None
     for corner in _vertex_views(values.movedim(0, -1)):
+        corner = corner.movedim(-1, 0)
         total = corner.clone() if total is None else total.add_(corner)
     return total.mul_(0.125)
+
+
+def _top_two(values: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """values (M, ...) channels first, M >= 2 -> the largest and the second largest value and their channels (uint8
+    for M <= 256, else int64), each (...): the first of equals first; a pass per channel over contiguous planes."""
+    m = values.shape[0]
+    kind = torch.uint8 if m <= 256 else torch.long
+    first, second = values[0].clone(), values[1].clone()
+    i1 = torch.zeros(first.shape, dtype=kind, device=values.device)
+    i2 = torch.ones_like(i1)
+    swap = second > first
+    first, second = torch.maximum(first, second), torch.minimum(first, second)
+    i1.masked_fill_(swap, 1)
+    i2.masked_fill_(swap, 0)
+    for j in range(2, m):
+        x = values[j]
+        top = x > first
+        i2.masked_fill_(x > second, j)
+        i2 = torch.where(top, i1, i2)  # a new first: the old one is second
+        second = torch.where(top, first, torch.maximum(second, x))
+        i1.masked_fill_(top, j)
+        first = torch.maximum(first, x)
+    return first, i1, second, i2
 
 
 def _decided(values: Tensor, margin: float, at_centre: bool) -> Tensor:
@@ -143,7 +167,7 @@ def _decided(values: Tensor, margin: float, at_centre: bool) -> Tensor:
     agreed = _agreeing(*_leaders(values, margin))
     if not at_centre:
         return agreed
-    return torch.where(agreed >= 0, agreed, _centres(values).argmax(-1).to(torch.int8))
+    return torch.where(agreed >= 0, agreed, _leaders(_centres(values), math.inf)[0])
 
 
 def _margin(table: Tensor) -> float:
@@ -240,9 +264,9 @@ def pair_cells(logits: Tensor, shape: tuple[int, int, int]) -> tuple[PairCells, 
     lattice, slabs = _route_lattice(logits, shape)
     pairs, weights = [], []
     for v in slabs:
-        top, idx = _centres(v).reshape(-1, m).topk(2, dim=-1)
-        pairs.append((idx[:, 0] * m + idx[:, 1]).to(code))
-        first = torch.sigmoid(top[:, 0] - top[:, 1])  # the softmax of the two, the first's share
+        v1, i1, v2, i2 = (t.reshape(-1) for t in _top_two(_centres(v)))
+        pairs.append(i1.to(code).mul_(m).add_(i2.to(code)))  # under M * M: no overflow in `code`
+        first = torch.sigmoid(v1 - v2)  # the softmax of the two, the first's share
         weights.append(first.sub_(0.5).mul_(WEIGHT_STEPS).round_().clamp_(0, 255).to(torch.uint8))
     return PairCells(torch.cat(pairs), torch.cat(weights), m), lattice
 
