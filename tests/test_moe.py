@@ -607,6 +607,12 @@ def test_top2_takes_its_pair_and_weights_at_each_half_cells_centre_without_blend
     monkeypatch.setattr(C, "SLAB_VALUES", 1)  # slabs of one gate cell: the same cells
     again, _ = C.pair_cells(mix.gate.logit_table, mix.gate.shape)
     assert torch.equal(again.pair, cells.top2.pair) and torch.equal(again.weight, cells.top2.weight)
+    monkeypatch.setattr(C, "MAX_ROUTE_CELLS", 1)  # too many halves: the gate's own cells, slab by slab or at once
+    whole, lattice = C.pair_cells(mix.gate.logit_table, mix.gate.shape)
+    monkeypatch.setattr(C, "SLAB_VALUES", 1 << 30)
+    once, _ = C.pair_cells(mix.gate.logit_table, mix.gate.shape)
+    assert lattice == mix.gate.shape and torch.equal(whole.pair, once.pair) and torch.equal(whole.weight, once.weight)
+    monkeypatch.undo()
     pose = torch.eye(4)
     pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
     camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)

@@ -198,20 +198,20 @@ def _route_lattice(logits: Tensor, shape: tuple[int, int, int]):
     """The lattice rendering decides on, and its vertex logits slab by slab: -> (its shape, an iterator of (M, X', Y',
     Z') channels-first values over slabs of whole cells along x, in order). The gate's cells halved along every axis
     while they number at most `MAX_ROUTE_CELLS` (a midpoint's logits the mean of its 2, 4 or 8 vertices: the gate's
-    blend there, to float32 rounding), else the gate's own lattice in one piece."""
+    blend there, to float32 rounding), else the gate's own lattice."""
     m = logits.shape[-1]
     grid = logits.T.reshape(m, *shape)  # channels first, as `interpolate` takes it
     fine = halved(shape)
-    if math.prod(n - 1 for n in fine) > MAX_ROUTE_CELLS:
-        return shape, iter([grid])
-    slab = max(1, SLAB_VALUES // max(1, 4 * shape[1] * shape[2] * m))  # the gate's x-cells a slab covers
+    halve = math.prod(n - 1 for n in fine) <= MAX_ROUTE_CELLS
+    slab = max(1, SLAB_VALUES // max(1, (4 if halve else 1) * shape[1] * shape[2] * m))  # gate x-cells a slab covers
 
     def slabs():
         for a in range(0, shape[0] - 1, slab):
-            v = grid[None, :, a : min(shape[0], a + slab + 1)]
-            yield F.interpolate(v, size=tuple(2 * n - 1 for n in v.shape[2:]), mode="trilinear", align_corners=True)[0]
+            v = grid[:, a : min(shape[0], a + slab + 1)]
+            yield F.interpolate(v[None], size=tuple(2 * n - 1 for n in v.shape[1:]), mode="trilinear",
+                                align_corners=True)[0] if halve else v
 
-    return fine, slabs()
+    return (fine if halve else shape), slabs()
 
 
 @torch.no_grad()
