@@ -452,6 +452,25 @@ def _rendered(mix, image_camera, settings, use_cells: bool, monkeypatch, route_b
         return render_image(mix, image_camera, settings, mix.skip)
 
 
+def _renders_close_without_blending_the_gate(mix, monkeypatch):
+    """Rendering `mix` through its cells blends the gate on no sample, and gives an image close to (not equal to)
+    blending it on every sample."""
+    from boostnerf_cli.render.renderer import Camera, RenderSettings
+
+    pose = torch.eye(4)
+    pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
+    camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
+    settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
+    logits, calls = type(mix.gate).logits, []
+    monkeypatch.setattr(type(mix.gate), "logits", lambda self, xyz: calls.append(len(xyz)) or logits(self, xyz))
+    fast = _rendered(mix, camera, settings, True, monkeypatch)
+    assert not calls  # no sample blended the gate
+    slow = _rendered(mix, camera, settings, False, monkeypatch)
+    assert sum(calls) == slow["n_samples"] > 0
+    diff = (fast["rgb"] - slow["rgb"]).abs()
+    assert 0 < diff.max() and diff.mean() < 0.01, (diff.max(), diff.mean())
+
+
 @pytest.mark.parametrize("k", [1, 2])
 def test_deciding_per_cell_renders_the_same_image_bit_for_bit(k, monkeypatch):
     """V_D's test looked up per lattice cell (where all 8 vertices agree), and the samples made only where the cells
@@ -501,7 +520,6 @@ def test_top1_routes_by_its_cells_without_blending_the_gate(monkeypatch):
     blend sends it, and the image differs from blending every sample only where a cell straddles the gate's border
     between two experts, and little there."""
     from boostnerf_cli.moe import cells as C
-    from boostnerf_cli.render.renderer import Camera, RenderSettings
 
     mix = toy_mixture(k=1, seed=3)
     mix.cfg.bake_res = 16
@@ -522,18 +540,7 @@ def test_top1_routes_by_its_cells_without_blending_the_gate(monkeypatch):
     with torch.enable_grad():  # with gradients too (`prune` follows what rendering reads): the same choice, weight 1
         probs, vals, idx = mix.route(pts)
     assert torch.equal(idx, chosen) and torch.equal(vals, torch.ones_like(vals)) and probs.shape == (len(pts), 3)
-    pose = torch.eye(4)
-    pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
-    camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
-    settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
-    logits, calls = type(mix.gate).logits, []
-    monkeypatch.setattr(type(mix.gate), "logits", lambda self, xyz: calls.append(len(xyz)) or logits(self, xyz))
-    fast = _rendered(mix, camera, settings, True, monkeypatch)
-    assert not calls  # no sample blended the gate
-    slow = _rendered(mix, camera, settings, False, monkeypatch)
-    assert sum(calls) == slow["n_samples"] > 0
-    diff = (fast["rgb"] - slow["rgb"]).abs()
-    assert 0 < diff.max() and diff.mean() < 0.01, (diff.max(), diff.mean())
+    _renders_close_without_blending_the_gate(mix, monkeypatch)
 
 
 def test_top2_leaves_out_a_choice_below_the_render_min_weight_and_moves_pixels_little(monkeypatch):
@@ -575,7 +582,6 @@ def test_top2_takes_its_pair_and_weights_at_each_half_cells_centre_without_blend
     pair, weighted by the gate's own probabilities."""
     from boostnerf_cli.moe import cells as C
     from boostnerf_cli.moe.gate import softmax
-    from boostnerf_cli.render.renderer import Camera, RenderSettings
 
     mix = toy_mixture(k=2, seed=4)
     mix.cfg.bake_res = 16
@@ -613,18 +619,7 @@ def test_top2_takes_its_pair_and_weights_at_each_half_cells_centre_without_blend
     once, _ = C.pair_cells(mix.gate.logit_table, mix.gate.shape)
     assert lattice == mix.gate.shape and torch.equal(whole.pair, once.pair) and torch.equal(whole.weight, once.weight)
     monkeypatch.undo()
-    pose = torch.eye(4)
-    pose[:3, 3] = torch.tensor([0.0, 0.0, 2.5])
-    camera = Camera(pose, torch.tensor([24.0, 24.0, 12.0, 12.0]), 24, 24)
-    settings = RenderSettings(step=0.05, near=0.5, far=5.0, bbox=TOY_BOX)
-    logits, calls = type(mix.gate).logits, []
-    monkeypatch.setattr(type(mix.gate), "logits", lambda self, xyz: calls.append(len(xyz)) or logits(self, xyz))
-    fast = _rendered(mix, camera, settings, True, monkeypatch)
-    assert not calls  # no sample blended the gate
-    slow = _rendered(mix, camera, settings, False, monkeypatch)
-    assert sum(calls) == slow["n_samples"] > 0
-    diff = (fast["rgb"] - slow["rgb"]).abs()
-    assert 0 < diff.max() and diff.mean() < 0.01, (diff.max(), diff.mean())
+    _renders_close_without_blending_the_gate(mix, monkeypatch)
 
 
 @pytest.mark.parametrize("m", [2, 3, 5, 8])
