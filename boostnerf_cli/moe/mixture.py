@@ -265,7 +265,7 @@ class Mixture(nn.Module):
         return self._skip
 
     # --- routing --------------------------------------------------------------------------------
-    def route(self, xyz: Tensor, need_probs: bool = True, static: bool = False) -> tuple[Tensor | None, Tensor, Tensor]:
+    def route(self, xyz: Tensor, need_probs: bool = True) -> tuple[Tensor | None, Tensor, Tensor]:
         """-> probabilities (N, M), weights (N, k), expert indices (N, k).
 
         Rendering (no autograd, `need_probs` False) with renormalised weights skips the probabilities:
@@ -274,9 +274,9 @@ class Mixture(nn.Module):
         chooses by its cells (`RenderCells`), gradients or not.
         """
         with part("routing"):
-            return self._route(xyz, need_probs, static)
+            return self._route(xyz, need_probs)
 
-    def _route(self, xyz: Tensor, need_probs: bool, static: bool) -> tuple[Tensor | None, Tensor, Tensor]:
+    def _route(self, xyz: Tensor, need_probs: bool) -> tuple[Tensor | None, Tensor, Tensor]:
         flops.add("routing", 4 * self.m * xyz.shape[0])
         if self.gate.cfg.gate_type == "uniform":  # the ensemble: every expert, equal weights
             probs = self.gate.probs(xyz)
@@ -321,7 +321,7 @@ class Mixture(nn.Module):
     def _make_cells(self) -> RenderCells:
         """The per-cell decisions for the gate as it is (moe/cells.py): a renormalised Top-1's expert, or a renormalised
         Top-2's experts and weights, per cell of the baked gate's halved lattice (V_D's and the grid's tables made
-        first; 0.6-1.6 s for a 128^3 bake of 3-5 experts, on one thread)."""
+        first; about 1 s for a 128^3 bake of 3-5 experts, on one thread)."""
         self.prepare_skips()
         gate = self.gate
         if gate.cfg.gate_type != "baked" or not self.cfg.renormalize or self.cfg.topk > 2:
@@ -590,7 +590,7 @@ class RoutedMixture:
         mix = self.mixture
         # the dynamic packing: each expert's samples listed once, for both passes, light choices left out
         listed = not self.packer.static and live is None
-        probs, vals, idx = mix.route(xyz, need_probs=self.stats is not None, static=self.packer.static)
+        probs, vals, idx = mix.route(xyz, need_probs=self.stats is not None)
         if self.stats is not None:
             self.stats.record(probs, idx, live)
         self._last = (xyz, vals, idx)
