@@ -89,7 +89,8 @@ class Routing:
     # the routing weights mix density (paper's equation) | alpha:
     # each expert's opacity over one render step (official code)
     mix: str = limit("density", OneOf(MIX_MODES))
-    # rendering samples the trained gate's logits on a bake_res^3 lattice (0: run the gate MLP)
+    # rendering samples the trained gate's logits on a bake_res^3 lattice, and routes
+    # a Top-1 or Top-2 by their half-cells (0: run the gate MLP on every sample)
     bake_res: int = limit(128, Range(0, MAX_GRID_RES))
     # rendering a renormalised Top-2 leaves out a choice weighing less than this
     # and gives its share to the other one, in both passes (0: never)
