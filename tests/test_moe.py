@@ -678,21 +678,26 @@ def test_halved_gate_cells_decide_more_samples_and_each_as_the_blend_does(monkey
     decided = halves >= 0
     assert torch.equal(halves[decided], blended[decided])
     assert decided.float().mean() > (wholes >= 0).float().mean() + 0.1
-    # at_centre: a half-cell its vertices leave undecided takes the expert the blend gives at its centre
-    filled = C.route_cells(logits, shape, at_centre=True)[0]
-    assert torch.equal(filled[table >= 0], table[table >= 0]) and bool((filled >= 0).all()) and (table < 0).any()
-    cell = torch.arange(table.numel())[table < 0]
-    dims = torch.tensor([n - 1 for n in fine])
-    ijk = torch.stack([cell // (dims[1] * dims[2]), cell // dims[2] % dims[1], cell % dims[2]], -1)
-    centres = box[0] + (ijk + 0.5) / dims * (box[1] - box[0])
-    at_centres = G.lookup(logits, *G.corners(centres, box, shape))
-    assert torch.equal(filled[cell].long(), at_centres.max(-1).indices)
+
+    def centres_decided(lattice: tuple[int, int, int], decided: torch.Tensor) -> torch.Tensor:
+        """at_centre: every cell its vertices decide as they do, the others the expert the blend gives at its centre."""
+        filled, got = C.route_cells(logits, shape, at_centre=True)
+        assert got == lattice and bool((filled >= 0).all()) and (decided < 0).any()
+        assert torch.equal(filled[decided >= 0], decided[decided >= 0])
+        cell = torch.arange(decided.numel())[decided < 0]
+        dims = torch.tensor([n - 1 for n in lattice])
+        ijk = torch.stack([cell // (dims[1] * dims[2]), cell // dims[2] % dims[1], cell % dims[2]], -1)
+        centres = box[0] + (ijk + 0.5) / dims * (box[1] - box[0])
+        assert torch.equal(filled[cell].long(), G.lookup(logits, *G.corners(centres, box, shape)).max(-1).indices)
+        return filled
+
+    filled = centres_decided(fine, table)
     monkeypatch.setattr(C, "SLAB_VALUES", 1)
     assert torch.equal(C.route_cells(logits, shape, at_centre=True)[0], filled)
-    monkeypatch.setattr(C, "MAX_ROUTE_CELLS", 10 * 12 * 8 - 1)
-    assert C.route_cells(logits, shape)[1] == shape
-    whole = C.top1_cells(logits, shape, at_centre=True)  # the gate's own cells: the same rule
-    assert torch.equal(C.route_cells(logits, shape, at_centre=True)[0], whole) and bool((whole >= 0).all())
+    monkeypatch.setattr(C, "MAX_ROUTE_CELLS", 10 * 12 * 8 - 1)  # too many halves: the gate's own cells, the same rule
+    decided, lattice = C.route_cells(logits, shape)
+    assert lattice == shape and torch.equal(decided, C.top1_cells(logits, shape))
+    centres_decided(shape, decided)
 
 
 @pytest.mark.parametrize("seed,occupied", [(0, True), (1, True), (2, True), (0, False)])

@@ -176,11 +176,11 @@ def _margin(table: Tensor) -> float:
 
 
 @torch.no_grad()
-def top1_cells(logits: Tensor, shape: tuple[int, int, int], at_centre: bool = False) -> Tensor:
+def top1_cells(logits: Tensor, shape: tuple[int, int, int]) -> Tensor:
     """logits (X*Y*Z, M) the baked gate's vertex logits -> (cells,) int8: the expert whose logit is the largest, by
-    more than the margin, at all 8 vertices of the cell, or -1 (`at_centre`: the expert leading at the cell's centre).
-    It is then the largest everywhere in the cell (a convex combination keeps each difference's sign)."""
-    return _decided(logits.T.reshape(logits.shape[-1], *shape), _margin(logits), at_centre).reshape(-1)
+    more than the margin, at all 8 vertices of the cell, or -1. It is then the largest everywhere in the cell (a convex
+    combination keeps each difference's sign)."""
+    return _decided(logits.T.reshape(logits.shape[-1], *shape), _margin(logits), False).reshape(-1)
 
 
 # `route_cells` and `pair_cells` halve the gate's cells along every axis while the halves number at most this many,

@@ -46,6 +46,7 @@ from boostnerf_cli.moe.router import (
     dispatch,
     expert_counts,
     penalty_weights,
+    renormalized,
     take,
     top_k,
 )
@@ -291,10 +292,7 @@ class Mixture(nn.Module):
             # a baked Top-1 or Top-2 chooses by its cells as rendering does, gradients or not (`prune` follows the rows
             # rendering reads); the weights those of the gate's own probabilities for the choice, as `top_k` gives
             idx = self._choose(xyz, cells)[1]
-            chosen = probs.gather(1, idx)
-            if idx.shape[1] == 1:
-                return probs, chosen - chosen.detach() + 1.0, idx
-            return probs, chosen / chosen.sum(-1, keepdim=True).clamp_min(1e-12), idx
+            return probs, renormalized(probs.gather(1, idx)), idx
         vals, idx = top_k(probs, self.cfg.topk, self.cfg.renormalize)
         return probs, vals, idx
 
@@ -304,15 +302,12 @@ class Mixture(nn.Module):
         if not self.cfg.renormalize:
             return top_k(gate.probs(xyz), k, renormalize=False)
         if cells is not None and cells.top1 is not None:
-            return xyz.new_ones(xyz.shape[0], 1), self._cell_index(xyz, cells, cells.top1).long()[:, None]
+            cell = C.cell_index(xyz, gate.bbox, cells.shape)
+            return xyz.new_ones(xyz.shape[0], 1), cells.top1.index_select(0, cell).long()[:, None]
         if cells is not None and cells.top2 is not None:
             return cells.top2(C.cell_index(xyz, gate.bbox, cells.shape))
         chosen, idx = top_k(gate.logits(xyz).float(), k, renormalize=False)
         return (torch.ones_like(chosen) if k == 1 else softmax(chosen)), idx
-
-    def _cell_index(self, xyz: Tensor, cells: RenderCells, table: Tensor) -> Tensor:
-        """(N,) what a per-cell table of `cells` (moe/cells.py) holds for each sample's cell."""
-        return table.index_select(0, C.cell_index(xyz, self.gate.bbox, cells.shape))
 
     def _cells_hold(self) -> bool:
         """The per-cell decisions were made for this baked gate (`configure` makes them again for a new routing)."""

@@ -81,12 +81,14 @@ def top_k(probs: Tensor, k: int, renormalize: bool) -> tuple[Tensor, Tensor]:
         vals, idx = probs.max(dim=-1, keepdim=True)
     else:
         vals, idx = torch.topk(probs, k, dim=-1)
-    if renormalize:
-        if k == 1:
-            vals = vals - vals.detach() + 1.0
-        else:
-            vals = vals / vals.sum(-1, keepdim=True).clamp_min(1e-12)
-    return vals, idx
+    return (renormalized(vals) if renormalize else vals), idx
+
+
+def renormalized(vals: Tensor) -> Tensor:
+    """The chosen probabilities (N, k) renormalised as `top_k` does: summing to 1; the straight-through 1 for k = 1."""
+    if vals.shape[1] == 1:
+        return vals - vals.detach() + 1.0
+    return vals / vals.sum(-1, keepdim=True).clamp_min(1e-12)
 
 
 def expert_counts(idx: Tensor, m: int, weight: Tensor | None = None) -> Tensor:
