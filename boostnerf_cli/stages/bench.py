@@ -432,7 +432,8 @@ def plot(rows: list[dict], folder: Path) -> list[str]:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        log("matplotlib is not installed (pip install 'boostnerf[plots]'): the table is written, the plots are skipped")
+        log("matplotlib is not installed (pip install -e \".[plots]\" in the clone): the table is written, the plots "
+            "are skipped")
         return []
     written = []
     for key, label, stem in (("gflops_per_image", "GFLOPs per image", "bench-psnr-gflops"),

@@ -56,8 +56,8 @@ from boostnerf_cli.workspace import atomic_path
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
 KINDS = {"pointcloud": (".ply",), "mesh": (".ply", ".obj"), "routing": (".ply",)}  # what each writes, by suffix
-INSTALL = ("boostnerf export writes PLY files with plyfile, an optional extra: pip install 'boostnerf[export]' "
-           "(or: pip install plyfile)")
+INSTALL = ("boostnerf export writes PLY files with plyfile, an optional extra: pip install -e \".[export]\" "
+           "in the clone (or: pip install plyfile)")
 POINTS = 100_000  # pointcloud: points written at most
 MIN_OPACITY = 0.5  # pointcloud: a pixel's accumulated opacity from which it is a point (the depth pictures' cut)
 RESOLUTION = 128  # mesh: lattice vertices along the region's longest side

@@ -42,7 +42,8 @@ from boostnerf_cli.viewpoint.viewer import LAYERS, Job, Models, Viewer
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
-INSTALL = "boostnerf view needs viser, an optional extra: pip install 'boostnerf[viewer]' (or: pip install viser)"
+INSTALL = ("boostnerf view needs viser, an optional extra: pip install -e \".[viewer]\" in the clone "
+           "(or: pip install viser)")
 POLL = 1.0  # seconds between looks at the workspace's model files
 
 
