@@ -588,6 +588,18 @@ class Workspace:
         folder = self.root / "renders" / model
         return folder / split if split is not None else folder
 
+    def own_file(self, path: Path) -> str | None:
+        """What `path` is of the workspace's own files, which only the stages write: "manifest", or the folder of
+        models, reports, checkpoints or cache it lies in; None for any other path (renders/, camera_paths/, outside)."""
+        path = Path(path).resolve()
+        root = self.root.resolve()
+        if path == root / "manifest.json":
+            return "manifest"
+        for folder in ("experts", "moe", "reports", "checkpoints", "cache"):
+            if path.is_relative_to(root / folder):
+                return f"{folder}/ folder"
+        return None
+
     @property
     def camera_paths_dir(self) -> Path:
         """WS/camera_paths: the camera paths `view` saves (nerfstudio's layout) and `render --camera-path` renders."""

@@ -585,3 +585,20 @@ def test_camera_path_through_the_datasets_views_passes_them_and_renders_them(tra
     bad = run_cli("camera-path", "-w", str(trained_ws), "--views", "0,99", "--out", str(tmp_path / "bad.json"))
     assert bad.returncode == 2 and bad.stderr.strip().splitlines()[-1].startswith("error: there is no view 99")
     assert "Traceback" not in bad.stderr and not (tmp_path / "bad.json").exists()
+
+
+def test_camera_path_never_writes_over_the_workspace_s_own_files(trained_ws, tmp_path):
+    """`camera-path --out` naming the manifest or a file among the models, reports, checkpoints or cache is one line,
+    and the file is left as it was (written over, the manifest made the workspace unreadable)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(trained_ws, ws)
+    (ws / "reports").mkdir(exist_ok=True)
+    for own in ("manifest.json", "experts/dvgo-12.json", "reports/eval.json", "moe/top2.json", "cache/x.json"):
+        target = ws / own
+        before = target.read_bytes() if target.exists() else None
+        proc = run_cli("camera-path", "-w", str(ws), "--views", "0,1", "--out", str(target))
+        assert_clean_failure(proc, "is the workspace's own")
+        assert (target.read_bytes() if target.exists() else None) == before, own
+    out = ws / "camera_paths" / "mine.json"
+    run_cli("camera-path", "-w", str(ws), "--views", "0,1", "--out", str(out), check=True)
+    assert out.exists()

@@ -175,6 +175,10 @@ def run_path_through_views(survey: Survey, split: str, views: list[int], seconds
     file = Path(out) if out is not None else survey.ws.camera_paths_dir / "views.json"
     if file.suffix != ".json":
         raise BoostNerfError(f"--out {file}: a camera path is a .json file")
+    own = survey.ws.own_file(file)
+    if own is not None:
+        raise BoostNerfError(f"--out {file} is the workspace's own ({own}), which only its stages write: give another "
+                             f"file, e.g. {survey.ws.camera_paths_dir / file.name}")
     write_camera_path(file, path, DataFrame.of(scene.extra))
     log(f"camera path: {path.summary()}")
     return file
