@@ -3,6 +3,7 @@ views rendered again, following training, bad input, and one test in a real (hea
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -152,6 +153,35 @@ def test_a_broken_view_file_is_one_line(mixture_ws, tmp_path):
     assert_clean_failure(run_cli("render", "-w", str(mixture_ws), "--camera", str(bad)), "is not a saved view")
     bad.write_text("{")
     assert_clean_failure(run_cli("render", "-w", str(mixture_ws), "--camera", str(bad)), str(bad))
+    zero = {"pose": [[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1]], "intrinsics": [44, 44, 16, 16],
+            "height": 32, "width": 32, "model": "top2"}
+    bad.write_text(json.dumps(zero))  # crashed deep in the renderer (a NaN ray) with a traceback
+    assert_clean_failure(run_cli("render", "-w", str(mixture_ws), "--camera", str(bad)), "not a rigid camera pose")
+
+
+GOOD_VIEW = {"pose": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]], "intrinsics": [44, 44, 16, 16],
+             "height": 32, "width": 32, "model": "top2"}
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"pose": [[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1]]}, "not a rigid camera pose"),
+    ({"pose": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]}, "not a rigid camera pose"),
+    ({"pose": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [1, 1, 1, 1]]}, "bottom row"),
+    ({"pose": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3]]}, "16 numbers"),
+    ({"height": True}, "height and width"),
+    ({"width": 100000}, "height and width"),
+    ({"intrinsics": [44, 44, 16, 16, 0, 0, 0, 0, 0, 0, 7]}, "fisheye"),
+])
+def test_a_saved_view_is_checked_as_a_camera_path_s_entry_is(tmp_path, change, message):
+    """A saved view's pose must be rigid (as a camera path's: `camera_path.rigid`), its size whole numbers of pixels up
+    to a camera path's largest, and a lens's fisheye flag 0 or 1: each else one line naming the file."""
+    file = tmp_path / "view.json"
+    file.write_text(json.dumps(GOOD_VIEW))
+    assert read_view(file)[0].height == 32
+    file.write_text(json.dumps({**GOOD_VIEW, **change}))
+    with pytest.raises(BoostNerfError, match=message) as e:
+        read_view(file)
+    assert str(file) in str(e.value) and "\n" not in str(e.value)
 
 
 def test_without_viser_one_line_says_how_to_install_it(mixture_ws, monkeypatch, capsys):
