@@ -706,3 +706,8 @@ def test_a_cached_scene_is_the_decoded_scene_until_its_files_or_settings_change(
     os.utime(image, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # a file changed (its time)
     load_scene(folder, image_size=8, cache=cache)
     assert len(calls) == 2
+    data = bytearray(cache.read_bytes())  # the cache's own bytes changed (a flipped bit): decoded again, not read
+    data[-200:-190] = b"\x7f" * 10
+    cache.write_bytes(bytes(data))
+    again = load_scene(folder, image_size=8, cache=cache)
+    assert len(calls) == 3 and torch.isfinite(again.splits["train"].images).all()

@@ -50,6 +50,21 @@ def test_non_finite_tensors_are_never_written(tmp_path):
     assert meta["k"] == 1 and torch.equal(tensors["a"], torch.ones(3))
 
 
+def test_a_model_file_whose_bytes_changed_is_refused_as_damaged(tmp_path):
+    """A file whose tensors' bytes changed after writing (a flipped bit, a partial overwrite) loads as before only if
+    its digest still matches: else one line, not NaNs in every report (the digest was written but never checked)."""
+    path = tmp_path / "m.safetensors"
+    save_tensors(path, {"a": torch.arange(4096, dtype=torch.float32), "b": torch.ones(3, 2)}, {"kind": "test"})
+    tensors, meta = load_tensors(path)
+    assert torch.equal(tensors["a"], torch.arange(4096, dtype=torch.float32)) and meta["kind"] == "test"
+    data = bytearray(path.read_bytes())
+    data[-4000:-3936] = b"\xff" * 64  # inside the tensors, past the header
+    path.write_bytes(bytes(data))
+    with pytest.raises(BoostNerfError, match=r"is damaged: its tensors are not those written with it") as e:
+        load_tensors(path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
+
+
 def test_second_writer_is_refused_and_the_lock_is_released(tmp_path):
     ws = Workspace(tmp_path / "ws")
     with ws.lock():

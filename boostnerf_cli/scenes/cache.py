@@ -4,7 +4,8 @@ Decoding a capture's PNG or JPEG files and scaling them down is most of a stage'
 800 px: about 2 s on two cores, for every stage that reads the scene). `load_scene(..., cache=PATH)` keeps the loaded
 scene in one safetensors file at PATH (the workspace's `cache/scene.safetensors`), keyed by the loader's settings and
 every file of the scene folder by name, size and modification time: a later stage on the same files and settings
-reads the tensors back instead, and any change to them decodes the files again and rewrites the cache. The cache
+reads the tensors back instead (when their digest, written with them, still matches), and any change to them decodes
+the files again and rewrites the cache. The cache
 holds float32 images (12 bytes a pixel and view, e.g. 192 MB for 100 views at 400 px); deleting it costs only the
 decoding.
 """
@@ -22,7 +23,7 @@ from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.contraction import Contraction
 from boostnerf_cli.render.rays import NDC
 from boostnerf_cli.scenes.scene import Scene, SparsePoints, Split
-from boostnerf_cli.workspace import atomic_path
+from boostnerf_cli.workspace import atomic_path, tensors_digest
 
 KEY = "boostnerf-scene"
 
@@ -50,6 +51,8 @@ def read(path: Path, key: str) -> Scene | None:
         if meta.get("key") != key:
             return None
         tensors = load_file(str(path))
+        if meta.get("digest") != tensors_digest(tensors):  # its bytes changed since it was written: decode again
+            return None
         splits = {name: Split(tensors[f"{name}.images"], tensors[f"{name}.poses"], tensors[f"{name}.intrinsics"],
                               tuple(names), tensors.get(f"{name}.alpha"))
                   for name, names in meta["splits"].items()}
@@ -69,13 +72,13 @@ def read(path: Path, key: str) -> Scene | None:
 
 def write(path: Path, key: str, scene: Scene) -> None:
     """Keep `scene` at `path` for `key` (atomically); a scene whose notes are not plain JSON is not kept."""
+    meta = {"key": key, "name": scene.name, "near": scene.near, "far": scene.far, "background": list(scene.background),
+            "source": scene.source, "format": scene.format, "holdout": scene.holdout, "extra": scene.extra,
+            "ndc": scene.ndc.to_dict() if scene.ndc is not None else None,
+            "contraction": scene.contraction.to_dict() if scene.contraction is not None else None,
+            "splits": {name: list(s.names) for name, s in scene.splits.items()}}
     try:
-        meta = json.dumps({"key": key, "name": scene.name, "near": scene.near, "far": scene.far,
-                           "background": list(scene.background), "source": scene.source, "format": scene.format,
-                           "holdout": scene.holdout, "extra": scene.extra,
-                           "ndc": scene.ndc.to_dict() if scene.ndc is not None else None,
-                           "contraction": scene.contraction.to_dict() if scene.contraction is not None else None,
-                           "splits": {name: list(s.names) for name, s in scene.splits.items()}})
+        json.dumps(meta)
     except (TypeError, ValueError):
         return
     tensors = {"bbox": scene.bbox}
@@ -87,9 +90,10 @@ def write(path: Path, key: str, scene: Scene) -> None:
         tensors.update({"points.xyz": scene.points.xyz, "points.rgb": scene.points.rgb,
                         "points.error": scene.points.error})
         tensors.update({f"points.{name}.visible": rows for name, rows in scene.points.visible.items()})
+    clean = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
-        save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, str(tmp), metadata={KEY: meta})
+        save_file(clean, str(tmp), metadata={KEY: json.dumps({**meta, "digest": tensors_digest(clean)})})
 
 
 def cached(load, folder: Path, settings: dict, path: Path | None) -> Scene:
