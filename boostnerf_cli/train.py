@@ -30,7 +30,7 @@ from boostnerf_cli.recipe import TrainRecipe
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
 from boostnerf_cli.startup import CLOCK
-from boostnerf_cli.workspace import FORMAT_VERSION, MALFORMED, malformed, save_torch
+from boostnerf_cli.workspace import FORMAT_VERSION, MALFORMED, malformed, save_torch, tensors_digest
 
 _log = logging.getLogger(__name__)  # a run's messages and warnings (cli.py says them on stderr)
 
@@ -244,6 +244,17 @@ def grads_finite(params: list[Tensor], device: torch.device | str = "cpu") -> Te
     if not grads:
         return torch.ones((), dtype=torch.bool, device=device)
     return torch.stack([g.sum() for g in grads]).isfinite().all()
+
+
+def _state_tensors(obj, where: str = "") -> dict[str, Tensor]:
+    """Every tensor of a nested state (dicts, lists, tuples), by its path: what a checkpoint's digest is made of."""
+    if isinstance(obj, Tensor):
+        return {where: obj}
+    items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, (list, tuple)) else ()
+    found: dict[str, Tensor] = {}
+    for k, v in items:
+        found.update(_state_tensors(v, f"{where}.{k}" if where else str(k)))
+    return found
 
 
 def _non_finite_entry(obj, where: str = "") -> str | None:
@@ -497,6 +508,10 @@ class TrainCheckpoint:
         if state.get("format_version") != FORMAT_VERSION:
             raise BoostNerfError(f"training checkpoint {self.path} has file format {state.get('format_version')!r}, "
                                  f"and this boostnerf reads format {FORMAT_VERSION!r}: delete it to restart this model")
+        digest = state.pop("digest", None)
+        if digest is not None and tensors_digest(_state_tensors(state)) != digest:
+            raise BoostNerfError(f"training checkpoint {self.path} is damaged: its numbers are not those written with "
+                                 "it (their digest differs); delete it to restart this model")
         return state
 
     def resume(self, task: TrainTask, gen: torch.Generator,
@@ -537,12 +552,13 @@ class TrainCheckpoint:
             raise BoostNerfError(f"training diverged: {bad} holds non-finite values at step {run.step}, so it is not "
                                  f"checkpointed; {kept(self.path)}: lower the learning rates in the recipe or check "
                                  "the data")
-        save_torch(self.path, {
+        state = {
             "task": task_state, "optim": optim_state, "step": run.step, "seconds": run.seconds,
             "skipped": run.skipped, "history": run.history, "gen": gen.get_state(), "rng": torch.get_rng_state(),
             "cuda_rng": cuda_rng_state(device), "signature": self.signature, "trend": run.trend.state(),
             "format_version": FORMAT_VERSION,
-        })
+        }
+        save_torch(self.path, {**state, "digest": tensors_digest(_state_tensors(state))})  # checked by `load`
 
 
 def _check_rays(rays: RayData, sched: Schedule, title: str, parallel: bool) -> None:

@@ -212,6 +212,27 @@ def test_a_state_with_non_finite_values_is_never_checkpointed(tiny_scene, tmp_pa
     assert all(torch.isfinite(v).all() for v in state["task"]["model"].values() if v.is_floating_point())
 
 
+def test_a_checkpoint_whose_numbers_changed_is_refused_as_damaged(tiny_scene, tmp_path):
+    """A training checkpoint whose tensors changed after writing (here the optimiser's moments: a NaN, then a finite
+    value) is one line that says it is damaged and to delete it, not a run that diverges at once and blames the
+    learning rates; the same file untouched resumes."""
+    scene = load_scene(tiny_scene)
+    rays = RayData.from_split(scene.splits["train"], scene.bbox, scene.near, scene.far)
+    ckpt = tmp_path / "run.pt"
+    train(_task(scene, 4), rays, Schedule(iters=4, batch_rays=64, checkpoint_every=2), seed=0, title="a",
+          checkpoint=TrainCheckpoint(ckpt))
+    good = ckpt.read_bytes()
+    for value in (float("nan"), 0.5):
+        state = torch.load(ckpt, weights_only=True)
+        moment = next(s["exp_avg"] for s in state["optim"]["state"].values() if s["exp_avg"].numel() > 1)
+        moment.view(-1)[0] = value
+        torch.save(state, ckpt)
+        with pytest.raises(BoostNerfError, match=r"training checkpoint .*run.pt is damaged.*delete it to restart"):
+            TrainCheckpoint(ckpt).load()
+        ckpt.write_bytes(good)
+    assert TrainCheckpoint(ckpt).load()["step"] == 4
+
+
 def test_a_checkpoint_made_with_other_settings_is_refused(tiny_scene, tmp_path):
     scene = load_scene(tiny_scene)
     rays = RayData.from_split(scene.splits["train"], scene.bbox, scene.near, scene.far)
