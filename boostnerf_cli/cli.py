@@ -216,7 +216,7 @@ RenormalizeOpt = Annotated[Optional[bool], typer.Option(
 @app.command("make-scene")
 def make_scene_cmd(
     out_dir: Annotated[Path, typer.Argument(help="Folder to write the scene to.")],
-    size: Annotated[int, typer.Option(help="Image side in pixels.", min=16)] = 64,
+    size: Annotated[int, typer.Option(help="Image side in pixels.", min=16, max=4096)] = 64,
     n_train: Annotated[int, typer.Option("--train-views", min=1)] = 24,
     n_test: Annotated[int, typer.Option("--test-views", min=0)] = 8,
     seed: Annotated[int, typer.Option()] = 0,
@@ -895,9 +895,11 @@ def main() -> None:
         import textwrap
 
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        err.print(f"error: out of memory ({textwrap.shorten(first, 160, placeholder=' ...')}): lower the recipe's "
-                  "sizes: grid resolutions (pretrain.res, moe.gate_res, moe.vd_res, moe.bake_res), network widths "
-                  "and ranks (hidden, app_dim, app_rank, moe.gate_channels), batch_rays (train, geometry) or a small "
-                  "train.step_ratio, or use a device with more memory; finished files are kept", markup=False)
+        err.print(f"error: out of memory ({textwrap.shorten(first, 160, placeholder=' ...')}): lower the sizes that "
+                  "set it: the images' (data.image_size or --image-size, make-scene's --size, a saved view's or camera "
+                  "path's height and width), the recipe's grid resolutions (pretrain.res, moe.gate_res, moe.vd_res, "
+                  "moe.bake_res), network widths and ranks (hidden, app_dim, app_rank, moe.gate_channels), batch_rays "
+                  "(train, geometry) or a small train.step_ratio; or use a device with more memory; finished files "
+                  "are kept", markup=False)
         sys.exit(3)
     sys.exit(code if isinstance(code, int) else 0)  # --help and --version give 0, as a finished command does

@@ -483,6 +483,15 @@ def test_out_of_memory_is_one_line_naming_the_settings(monkeypatch, capsys, fail
     assert e.value.code == 3
     out = capsys.readouterr().err.strip()
     assert "\n" not in out and out.startswith("error: out of memory") and "moe.gate_res" in out, out
+    assert "data.image_size" in out and "height and width" in out, out  # an image's size, not only the recipe's
+
+
+def test_make_scene_refuses_an_image_side_past_its_largest(tmp_path):
+    """make-scene --size 100000 ran out of memory and blamed the recipe, which make-scene does not take."""
+    from conftest import assert_clean_failure, run_cli
+
+    assert_clean_failure(run_cli("make-scene", str(tmp_path / "s"), "--size", "100000"), "--size")
+    assert not (tmp_path / "s").exists()
 
 
 def test_a_runtime_error_that_is_not_memory_keeps_its_traceback(monkeypatch):
