@@ -7,6 +7,7 @@ written as GIF.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -176,23 +177,32 @@ def video_target(path: Path) -> tuple[Path, str]:
     return path, "mp4"
 
 
-def write_video(path: Path, frames: list[np.ndarray], fps: int, fmt: str) -> None:
-    """Frames (uint8 RGB, same size) -> `path` as MP4 (H.264, yuv420p) or looping GIF, atomically."""
+def write_videos(videos: list[tuple[Path, list[np.ndarray]]], fps: float, fmt: str) -> None:
+    """Videos (path, frames: uint8 RGB of one size) as MP4 or GIF (`encode_video`), as one set: each encoded to a
+    temporary file next to it, and only once every one is, all renamed into place; one that fails leaves none of them
+    written (the previous versions unchanged)."""
+    with contextlib.ExitStack() as stack:
+        temporary = [stack.enter_context(atomic_path(path, keep_suffix=True)) for path, _ in videos]  # ffmpeg: suffix
+        for tmp, (_, frames) in zip(temporary, videos):
+            encode_video(tmp, frames, fps, fmt)
+
+
+def encode_video(path: Path, frames: list[np.ndarray], fps: float, fmt: str) -> None:
+    """Frames (uint8 RGB, same size) -> `path` as MP4 (H.264, yuv420p) or looping GIF (written in place)."""
     if not frames:
         raise BoostNerfError("no frames to write")
-    with atomic_path(path, keep_suffix=True) as tmp:  # ffmpeg chooses the container by the suffix
-        if fmt == "mp4":
-            import imageio.v2 as iio2
+    if fmt == "mp4":
+        import imageio.v2 as iio2
 
-            h, w = frames[0].shape[:2]
-            pad = ((0, h % 2), (0, w % 2), (0, 0))  # yuv420p needs even sides
-            with iio2.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
-                                 macro_block_size=1, quality=8) as writer:
-                for f in frames:
-                    writer.append_data(np.pad(f, pad, mode="edge"))
-        elif fmt == "gif":
-            import imageio.v3 as iio
+        h, w = frames[0].shape[:2]
+        pad = ((0, h % 2), (0, w % 2), (0, 0))  # yuv420p needs even sides
+        with iio2.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
+                             macro_block_size=1, quality=8) as writer:
+            for f in frames:
+                writer.append_data(np.pad(f, pad, mode="edge"))
+    elif fmt == "gif":
+        import imageio.v3 as iio
 
-            iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=round(1000 / fps), loop=0)
-        else:
-            raise BoostNerfError(f"unknown video format {fmt!r}")
+        iio.imwrite(path, np.stack(frames), extension=".gif", duration=round(1000 / fps), loop=0)
+    else:
+        raise BoostNerfError(f"unknown video format {fmt!r}")

@@ -107,6 +107,20 @@ def remove(path: Path) -> None:
     _wrote()
 
 
+def check_writable(paths: list[Path]) -> None:
+    """One line, before any work, when a file of `paths` cannot be written for what is in its way: a folder at its
+    path, or a file where one of its folders goes."""
+    for path in paths:
+        path = Path(path)
+        folder = path.parent
+        while not folder.exists() and folder != folder.parent:
+            folder = folder.parent
+        where = path if path.is_dir() else folder if not folder.is_dir() else None
+        if where is not None:
+            raise BoostNerfError(f"could not write {path}: a {'folder' if where.is_dir() else 'file'} is in the way "
+                                 f"(at {where}): move it and rerun the same command")
+
+
 @contextmanager
 def atomic_path(target: Path, keep_suffix: bool = False) -> Iterator[Path]:
     """Yield a temporary path next to `target` (ending in `target`'s suffix too with `keep_suffix`, for writers

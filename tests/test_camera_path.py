@@ -380,6 +380,49 @@ def test_a_path_through_a_forward_facing_captures_own_poses_renders_its_views(fo
         assert psnr(video[k], frames[k]) > 35  # H.264's loss
 
 
+@pytest.mark.parametrize("blocked", ["y_depth.mp4", "y_routing.mp4", "y.mp4", "file"])
+def test_a_video_set_is_written_whole_or_not_at_all(mixture_ws, tmp_path, monkeypatch, capsys, blocked):
+    """A folder where one of a path's videos goes (or a file where its folder goes) is one line before a frame is
+    rendered, and none of the set is written: the colour video was left beside a refused depth video."""
+    file = tmp_path / "p.json"
+    file.write_text(json.dumps(nerfstudio_file()))
+    out = tmp_path / "vid"
+    if blocked == "file":
+        out.write_text("in the way")
+    else:
+        (out / blocked).mkdir(parents=True)
+    rendered = []
+    monkeypatch.setattr(render_stage, "render_image", lambda *a, **k: rendered.append(1))
+    code, err = cli_in_process(monkeypatch, capsys, "render", "-w", str(mixture_ws), "--model", "top2",
+                               "--camera-path", str(file), "--video", str(out / "y.mp4"), "--device", "cpu")
+    assert code == 2 and "in the way" in err and not rendered, err
+    if blocked != "file":
+        assert sorted(p.name for p in out.iterdir()) == [blocked]
+
+
+def test_a_video_set_whose_encoding_fails_leaves_no_file(trained_ws, tmp_path, monkeypatch):
+    """The depth video's encoding failing after the colour video's leaves neither (nor a temporary file)."""
+    from boostnerf_cli import images
+
+    real = images.encode_video
+    calls = []
+
+    def fail_second(path, frames, fps, fmt):
+        calls.append(path)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+        real(path, frames, fps, fmt)
+
+    monkeypatch.setattr(images, "encode_video", fail_second)
+    model = load_model(Workspace(trained_ws), "dvgo-12", "cpu")
+    scene = Survey(Workspace(trained_ws)).scene()
+    shots = render_stage.film(model, scene, [render_stage.Camera(*c) for c in [
+        (scene.split("test").poses[0], scene.split("test").intrinsics[0], 16, 16)]], "cpu", ALL_SKIPS, "test")
+    with pytest.raises(BoostNerfError, match="No space left"):
+        render_stage.write_film(shots, tmp_path / "v" / "x.gif", "gif", 4, "test")
+    assert len(calls) == 2 and list((tmp_path / "v").iterdir()) == []
+
+
 def test_a_mixtures_path_has_a_routing_video_of_the_maps_the_viewer_shows(mixture_ws, tmp_path):
     ws = Workspace(mixture_ws)
     scene = Survey(ws).scene()

@@ -142,13 +142,13 @@ def test_video_mp4_and_gif(tmp_path, monkeypatch):
     assert images.ffmpeg_available()  # imageio-ffmpeg is a core dependency
     target, fmt = images.video_target(tmp_path / "v.mp4")
     assert (target.name, fmt) == ("v.mp4", "mp4")
-    images.write_video(target, frames, 10, fmt)
+    images.write_videos([(target, frames)], 10, fmt)
     read = list(iio.imiter(target))
     assert len(read) == 5 and read[0].shape[:2] == (16, 22)
     assert abs(float(read[3].mean()) - 60) < 4
     target, fmt = images.video_target(tmp_path / "v.gif")
     assert (target.name, fmt) == ("v.gif", "gif")
-    images.write_video(target, frames, 10, fmt)
+    images.write_videos([(target, frames)], 10, fmt)
     read = iio.imread(target, index=None)
     assert read.shape[:3] == (5, 15, 21) and abs(float(read[3][..., :3].mean()) - 60) < 2
     with pytest.raises(BoostNerfError, match=".mp4 or .gif"):

@@ -34,7 +34,7 @@ from boostnerf_cli.images import (
     to_uint8,
     video_target,
     write_png,
-    write_video,
+    write_videos,
 )
 from boostnerf_cli.lineage import Survey
 from boostnerf_cli.models import LoadedModel, Skips, Viewing, load_model, n_views, render_split
@@ -47,7 +47,7 @@ from boostnerf_cli.viewpoint.camera_path import path_cameras, read_camera_path, 
 from boostnerf_cli.viewpoint.frame import Look, picture
 from boostnerf_cli.viewpoint.maps import expert_share, gate_probability, grey, routing_colours
 from boostnerf_cli.viewpoint.saved import read_view
-from boostnerf_cli.workspace import remove
+from boostnerf_cli.workspace import check_writable, remove
 
 log = logging.getLogger(__name__).info  # the stage's messages, on stderr (cli.py says them)
 
@@ -146,6 +146,7 @@ def run_video(survey: Survey, names: list[str] | None, path: VideoPath, device: 
         log("note: the training cameras all look one way (a forward-facing capture?): --path spiral suits it better")
     poses = camera_path(kind, train.poses, model.bbox.cpu(), scene.near, scene.far, n_frames, scene.ndc)
     cameras = [Camera(pose, train.intrinsics[0], train.height, train.width) for pose in poses]
+    check_writable(film_files(target, routing=False))
     return write_film(film(model, scene, cameras, device, skips, kind), target, fmt, fps, f"{kind} path")
 
 
@@ -160,6 +161,7 @@ def run_camera_path(survey: Survey, names: list[str] | None, file: Path, video: 
     model = load_model(ws, name, device)
     target, fmt = video_target(video or ws.renders_dir(model.name) / f"{Path(file).stem}.mp4")
     cameras = path_cameras(read.frames, read.path.height, read.path.width)
+    check_writable(film_files(target, routing=model.kind == "mixture"))  # before a frame is rendered
     shots = film(model, scene, cameras, device, skips, "camera path", routing=model.kind == "mixture")
     return write_film(shots, target, fmt, read.path.fps, f"camera path {file}")
 
@@ -216,19 +218,23 @@ def film(model: LoadedModel, scene: Scene, cameras: list[Camera], device: str, s
     return shots
 
 
+def film_files(target: Path, routing: bool) -> list[Path]:
+    """The videos of a film at `target`: colour, depth and, with `routing`, the routing colours."""
+    kinds = ("", "_depth", "_routing") if routing else ("", "_depth")
+    return [target.with_name(f"{target.stem}{kind}{target.suffix}") for kind in kinds]
+
+
 def write_film(shots: Film, target: Path, fmt: str, fps: float, what: str) -> list[Path]:
     """Write `shots` as `target` (colour), `<target>_depth` (near bright, far dark, between the 1st and 99th
-    percentile of every frame's opaque pixels) and, with routing colours, `<target>_routing` -> the files."""
+    percentile of every frame's opaque pixels) and, with routing colours, `<target>_routing` (`film_files`), as one
+    set: all of them or none -> the files."""
     scene, model = shots.scene, shots.model
     seen = np.concatenate([d[o] for d, o in zip(shots.depth, shots.opaque)])
     lo, hi = (np.percentile(seen, [1, 99]) if seen.size else (scene.near, scene.far))
     depth_frames = [colorize_depth(d, o.astype(np.float32), float(lo), float(max(hi, lo + 1e-6)))
                     for d, o in zip(shots.depth, shots.opaque)]
-    written = [(target, shots.rgb), (target.with_name(f"{target.stem}_depth{target.suffix}"), depth_frames)]
-    if shots.routing:
-        written.append((target.with_name(f"{target.stem}_routing{target.suffix}"), shots.routing))
-    for file, frames in written:
-        write_video(file, frames, fps, fmt)
+    written = list(zip(film_files(target, bool(shots.routing)), (shots.rgb, depth_frames, shots.routing)))
+    write_videos(written, fps, fmt)
     log(f"{model.name}: wrote {fmt.upper()} {', '.join(str(f) for f, _ in written)} ({len(shots.rgb)} frames, "
         f"{fps:g} fps, {what}; depth: near bright, far dark, {lo:.3g} .. {hi:.3g} "
         f"{'NDC' if scene.ndc is not None else 'world'} units" + ("; routing: blue = smallest expert, then cyan, "
