@@ -174,6 +174,18 @@ def _int_list(text: str, what: str) -> list[int]:
     return values  # each value's range: the recipe's check (pretrain.res), as for a YAML recipe
 
 
+def _name_list(text: Optional[str], what: str) -> Optional[list[str]]:
+    """Comma-separated names -> the list (None for none given); an entry lost ("a,,b", ",") is refused as
+    `_int_list` refuses it, never read as "all"."""
+    if text is None:
+        return None
+    parts = text.replace(" ", "").split(",")
+    if "" in parts[:-1] or not any(parts):
+        raise BoostNerfError(f"{what} has an empty entry (got {text!r}): give comma-separated names, or leave {what} "
+                             "out for all")
+    return [p for p in parts if p]
+
+
 def _res_list(text: Optional[str]) -> Optional[list[int]]:
     return _int_list(text, "--res") if text else None
 
@@ -336,7 +348,7 @@ def build_moe(
 
     rec = _recipe(workspace, recipe, sets, {"moe.gate_res": gate_res, "moe.gate_type": gate_type,
                                             "moe.gate_grid": gate_grid, "moe.density_threshold": threshold})
-    names = [n for n in experts.split(",") if n] if experts else None
+    names = _name_list(experts, "--experts")
     ws, lock = _writer(workspace)
     with lock:
         stage.build(_survey(ws), names, rec.moe, resolve_device(device))
@@ -395,8 +407,9 @@ def render(
         "--compare", help="Instead: ground truth and each model over its error map, side by side.")] = False,
     path: Annotated[Optional[str], typer.Option(
         "--path", help="Instead: a video along an orbit or spiral path; needs one --model.")] = None,
-    frames: Annotated[int, typer.Option("--frames", min=1, help="--path: number of frames.")] = 60,
-    fps: Annotated[int, typer.Option("--fps", min=1, help="--path: frames per second.")] = 24,
+    frames: Annotated[Optional[int], typer.Option("--frames", min=1, help="--path: number of frames (default 60).")]
+    = None,
+    fps: Annotated[Optional[int], typer.Option("--fps", min=1, help="--path: frames per second (default 24).")] = None,
     video: Annotated[Optional[Path], typer.Option(
         "--video", help="--path, --camera-path: .mp4 or .gif (default WS/renders/MODEL/NAME.mp4).")] = None,
     camera: Annotated[Optional[Path], typer.Option(
@@ -417,11 +430,15 @@ def render(
                              "one per command")
     if path is None and camera_path is None and video is not None:
         raise BoostNerfError("--video needs --path orbit, --path spiral or --camera-path FILE")
+    for option, value in (("--frames", frames), ("--fps", fps)):
+        if path is None and value is not None:
+            raise BoostNerfError(f"{option} sets a --path video's: add --path orbit or --path spiral (a camera path's "
+                                 "file sets its own frames and rate)")
     viewing = Viewing(split, views, Skips.from_flags(no_skip, skip_off), exact_gate)
     ws, lock = _writer(workspace)
     with lock:
         if path is not None:
-            video_path = stage.VideoPath(path, frames, fps, video)
+            video_path = stage.VideoPath(path, frames or stage.VideoPath.frames, fps or stage.VideoPath.fps, video)
             written = stage.run_video(_survey(ws), model, video_path, resolve_device(device), viewing.skips)
         elif camera_path is not None:
             written = stage.run_camera_path(_survey(ws), model, camera_path, video, resolve_device(device),
@@ -677,7 +694,7 @@ def bench(
     from boostnerf_cli.stages.common import resolve_device
 
     rec = (stage.folder_recipe(workspace) if recipe is None else None) or load_recipe(recipe)  # a rerun: its own
-    names = [n for n in only.replace(" ", "").split(",") if n] if only else None
+    names = _name_list(only, "--only")
     if list_rows:
         _, rows = stage.catalogue(rec, suite)
         for note in stage.catalogue_notes(rec, suite):

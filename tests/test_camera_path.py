@@ -457,6 +457,9 @@ def test_a_bad_file_is_refused_before_anything_is_read_or_written(trained_ws, tm
     assert_clean_failure(proc, "--camera-path renders one model: add --model NAME")
     proc = run_cli("render", "-w", str(trained_ws), "--model", "dvgo-12", "--camera-path", str(bad), "--path", "orbit")
     assert_clean_failure(proc, "are separate outputs")
+    for option in ("--frames", "--fps"):  # --path's options, silently ignored elsewhere (a camera path sets its own)
+        proc = run_cli("render", "-w", str(trained_ws), "--model", "dvgo-12", "--camera-path", str(bad), option, "10")
+        assert_clean_failure(proc, f"{option} sets a --path video's")
     assert sorted(p.relative_to(trained_ws) for p in trained_ws.rglob("*")) == before
 
 

@@ -459,6 +459,11 @@ def test_an_empty_argument_is_refused_not_taken_for_the_current_folder(tmp_path)
     for res in ("8,,12", ",8"):
         proc = run_cli("pretrain", "-w", "ws", "--res", res, cwd=tmp_path)
         assert_clean_failure(proc, f"--res has an empty entry (got '{res}')")
+    # a list of names likewise: "," was taken for every expert (build-moe) or every row (bench ran the whole suite)
+    for args, needle in ((["build-moe", "-w", "ws", "--experts", ","], "--experts has an empty entry"),
+                         (["build-moe", "-w", "ws", "--experts", "dvgo-8,,dvgo-12"], "--experts has an empty entry"),
+                         (["bench", "-w", "b", "--only", ","], "--only has an empty entry")):
+        assert_clean_failure(run_cli(*args, cwd=tmp_path), needle)
     assert list(tmp_path.iterdir()) == []
 
 
