@@ -210,10 +210,11 @@ def number(value: float | int | None, spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 
-def read_json(path: Path, what: str = "file") -> dict:
-    """A JSON object written by `write_json` (manifest, reports); one clear line for anything else."""
+def read_json(path: Path, what: str = "file", fix: str = "delete it and rerun the stage") -> dict:
+    """A JSON object written by `write_json` (manifest, reports), or by hand (UTF-8, a byte-order mark allowed); one
+    clear line for anything else, ending in `fix` where the contents are wrong (a file the user writes: "fix it")."""
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise BoostNerfError(f"{what} {path} does not exist") from None
     except IsADirectoryError:
@@ -223,10 +224,9 @@ def read_json(path: Path, what: str = "file") -> dict:
                              "fix its permissions") from None
     except (json.JSONDecodeError, UnicodeDecodeError, ValueError, RecursionError) as e:
         reason = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise BoostNerfError(f"{what} {path} is not valid JSON ({reason}); delete it and rerun the stage") from None
+        raise BoostNerfError(f"{what} {path} is not valid JSON ({reason}); {fix}") from None
     if not isinstance(data, dict):
-        raise BoostNerfError(f"{what} {path} holds a JSON {type(data).__name__}, not an object: "
-                             "delete it and rerun the stage")
+        raise BoostNerfError(f"{what} {path} holds a JSON {type(data).__name__}, not an object: {fix}")
     return data
 
 

@@ -246,6 +246,8 @@ BAD = [
     ("crop", lambda d: d.update(crop={"crop_center": [0, 0, 0]}), 'it has a "crop"'),
     ("too many frames", lambda d: d.update(seconds=1e6), "1e+06 seconds at 4 frames per second are 4,000,000 frames: "
                                                           "at most 100,000"),
+    ("too many entries", lambda d: d.update(camera_path=d["camera_path"][:1] * 100_001),
+     '"camera_path" has 100,001 entries: at most 100,000'),
     ("smoothness", lambda d: d.update(smoothness_value=1.5), '"smoothness_value" is 1.5'),
     ("not a list", lambda d: d.update(camera_path={"0": {}}), '"camera_path" must be a list of objects'),
 ]
@@ -378,6 +380,18 @@ def test_a_path_through_a_forward_facing_captures_own_poses_renders_its_views(fo
     video = check_videos(proc, ws_root / "renders" / "dvgo-12", "all-views", len(rows), ("depth",))
     for k in range(len(rows)):
         assert psnr(video[k], frames[k]) > 35  # H.264's loss
+
+
+def test_a_hand_written_camera_path_file_may_start_with_a_bom_and_a_broken_one_is_to_be_fixed(tmp_path):
+    """Editors that save UTF-8 with a byte-order mark: read as any other file. A file that is not UTF-8 JSON is the
+    user's to fix, not "delete it and rerun the stage" (a workspace file's advice)."""
+    file = tmp_path / "p.json"
+    file.write_bytes(b"\xef\xbb\xbf" + json.dumps(nerfstudio_file()).encode())
+    assert len(read_camera_path(file, DataFrame.of({})).frames) == len(nerfstudio_file()["camera_path"])
+    file.write_bytes(b"\xff\xfe{}")
+    with pytest.raises(BoostNerfError, match="is not valid JSON") as e:
+        read_camera_path(file, DataFrame.of({}))
+    assert "rerun the stage" not in str(e.value) and "fix it" in str(e.value)
 
 
 @pytest.mark.parametrize("blocked", ["y_depth.mp4", "y_routing.mp4", "y.mp4", "file"])

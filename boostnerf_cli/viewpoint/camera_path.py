@@ -48,6 +48,7 @@ CAMERA_TYPES = ("perspective",)  # nerfstudio's "fisheye" and "equirectangular" 
 RIGID = 1e-3  # the largest |R^T R / s^2 - I| of a pose's rotation R (s: its uniform scale)
 ASPECT = 0.01  # a frame's aspect may differ from render_width / render_height by this fraction (rounding)
 MAX_SIDE = 16384  # render_width and render_height at most
+HAND_FIX = "fix it (UTF-8 JSON, one object), or save the path again from `boostnerf view`"  # a user's file
 MAX_FRAMES = 100_000  # frames a path sampled from its keyframes has at most (fps x seconds)
 DEFAULT_SECONDS = 4.0  # a new path's duration
 NAME = re.compile(r"^[\w][\w.-]*$")  # a camera path's file name (before .json): letters, digits, _ . -
@@ -386,6 +387,8 @@ def entries(data: dict, key: str) -> list:
         return []
     if not isinstance(value, list) or not all(isinstance(e, dict) for e in value):
         raise BoostNerfError(f'"{key}" must be a list of objects, not {str(value)[:80]}')
+    if len(value) > MAX_FRAMES:  # frames, as a path sampled from keyframes has at most (keyframes: fewer still)
+        raise BoostNerfError(f'"{key}" has {len(value):,} entries: at most {MAX_FRAMES:,}; shorten the path')
     return value
 
 
@@ -444,7 +447,7 @@ def pose_and_fov(entry: dict, key: str, what: str, path: CameraPath, frame: Data
 def read_camera_path(file: Path, frame: DataFrame) -> PathFile:
     """A camera-path file (nerfstudio's layout, written by any tool), its poses taken to the scene's world; one line
     naming the file and the entry for anything boostnerf cannot render as the file means it."""
-    data = read_json(Path(file), "camera path")
+    data = read_json(Path(file), "camera path", HAND_FIX)
     try:
         path = settings(data)
         for i, entry in enumerate(entries(data, "keyframes")):

@@ -38,7 +38,7 @@ def read_view(path: Path) -> tuple[Camera, str, Look]:
     """A view `save_view` wrote -> (camera, model name, look); one line when the file is not one. Its pose must be
     rigid as a camera path's (`camera_path.rigid`; the numbers are kept as written), its size 1 to `MAX_SIDE` pixels a
     side, and a lens's fisheye flag 0 or 1."""
-    data = read_json(path, "view file")
+    data = read_json(path, "view file", "fix it, or save the view again with `boostnerf view`")
     try:
         rigid(data.get("pose"), f"{path} is not a saved view: its pose")
         pose = torch.tensor(data["pose"], dtype=torch.float32)
