@@ -309,12 +309,13 @@ def _photos(folder: Path, n: int, size=(40, 30)) -> Path:
     return folder
 
 
-def _refused(monkeypatch, capsys, tmp_path, *args, needle: str) -> None:
+def _refused(monkeypatch, capsys, tmp_path, *args, needle: str) -> str:
     out = tmp_path / "out"
     code, err = cli_in_process(monkeypatch, capsys, "capture", *args, "--out", str(out))
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert code == 2 and len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], err
     assert not out.exists()  # nothing a later stage would take for a scene
+    return lines[0]
 
 
 def test_capture_refuses_bad_photos_in_one_line(tmp_path, monkeypatch, capsys):
@@ -338,6 +339,9 @@ def test_capture_refuses_bad_photos_in_one_line(tmp_path, monkeypatch, capsys):
     _refused(monkeypatch, capsys, tmp_path, "--images", str(cut), needle="p01.jpg")
     (tmp_path / "clip.mp4").write_bytes(b"\x00" * 64)
     _refused(monkeypatch, capsys, tmp_path, "--video", str(tmp_path / "clip.mp4"), needle="cannot read the video")
+    # ffmpeg's own reason, its last line, not the banner of its version and build it prints first
+    err = _refused(monkeypatch, capsys, tmp_path, "--video", str(tmp_path / "clip.mp4"), needle="Invalid data found")
+    assert "configuration" not in err and "Copyright" not in err
     _refused(monkeypatch, capsys, tmp_path, needle="give either --images DIR (photos) or --video FILE")
 
 

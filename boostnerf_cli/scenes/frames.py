@@ -41,9 +41,14 @@ class Frame:
 
 def one_line(err: Exception) -> str:
     """An exception's message on one line (whitespace collapsed, at most 200 characters), or its type
-    name when the message is empty: for quoting a library's error inside a `BoostNerfError`."""
-    text = " ".join(str(err).split()) or type(err).__name__
-    return text[:200]
+    name when the message is empty: for quoting a library's error inside a `BoostNerfError`. An error that quotes
+    ffmpeg's output (imageio-ffmpeg's, after "=== stderr ==="), whose first lines are its version and build: the last
+    line, where ffmpeg says what went wrong."""
+    text = str(err)
+    if "=== stderr ===" in text:
+        said = [ln for ln in text.split("=== stderr ===", 1)[1].splitlines() if ln.strip()]
+        text = said[-1] if said else text.split("=== stderr ===", 1)[0]
+    return (" ".join(text.split()) or type(err).__name__)[:200]
 
 
 # ----------------------------------------------------------------------------- resampling
