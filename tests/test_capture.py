@@ -345,6 +345,21 @@ def test_capture_refuses_bad_photos_in_one_line(tmp_path, monkeypatch, capsys):
     _refused(monkeypatch, capsys, tmp_path, needle="give either --images DIR (photos) or --video FILE")
 
 
+def test_photos_colmap_cannot_place_are_one_line_without_colmap_s_own_log(tmp_path, capfd):
+    """Noise photos: COLMAP finds no model and logs an error line of its own (glog, on the process's stderr) before
+    boostnerf's one line; only boostnerf's is said."""
+    need_pycolmap()
+    noise = tmp_path / "noise"
+    noise.mkdir()
+    for i, photo in enumerate(np.random.default_rng(0).integers(0, 255, (4, 80, 100, 3), dtype=np.uint8)):
+        iio.imwrite(noise / f"p{i}.png", photo)
+    proc = run_cli("capture", "--images", str(noise), "--out", str(tmp_path / "out"))
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip() and not ln.startswith(("[", "images:"))]
+    assert proc.returncode == 2 and lines == [lines[-1]] and lines[-1].startswith("error: no camera could be placed"), \
+        proc.stderr
+    assert not (tmp_path / "out").exists()
+
+
 def test_capture_without_pycolmap_says_how_to_install(tmp_path, monkeypatch, capsys):
     import builtins
 

@@ -443,7 +443,9 @@ def run(images: Path | None, video: Path | None, out: Path, options: CaptureOpti
         raise BoostNerfError(f"{out} was captured from other inputs or settings: add --force to capture it again, or "
                              "choose a new folder")
     pycolmap = _pycolmap()
-    pycolmap.logging.minloglevel = 2  # COLMAP's own log: warnings and errors only; the bars say the rest
+    # COLMAP's own log: fatal errors only. The bars say how it goes, and what goes wrong is boostnerf's one line (its
+    # "Failed to create any sparse model" came before "no camera could be placed")
+    pycolmap.logging.minloglevel = 3
     work = _work_folder(out)
     if force:
         shutil.rmtree(work, ignore_errors=True)
