@@ -320,6 +320,11 @@ class Survey:
             return None
         signature = self.signature(name) or {}
         artifact, inputs, root = signature.get("artifact"), signature.get("inputs") or {}, self.ws.root
+        scene = self.ws.manifest().get("scene_id")
+        if artifact == "expert" and signature.get("scene") and scene and signature["scene"] != scene:  # copied in
+            model, _, res = name.rpartition("-")
+            return ("it was trained on another scene than this workspace's",
+                    f"`boostnerf pretrain -w {root} --model {model} --res {res} --force`")
         if artifact == "expert" and signature.get("geometry"):
             now = self.digest("geometry")
             return None if now == signature["geometry"] else _remake(artifact, root, name, "geometry", now is None)

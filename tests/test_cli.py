@@ -127,6 +127,23 @@ def test_a_changed_geometry_setting_is_refused_and_its_experts_are_then_stale(tr
     assert "already trained" in run_cli(*args, check=True).stderr  # both experts on the new geometry: current
 
 
+def test_an_expert_copied_from_another_scene_s_workspace_is_said_to_be_of_another_scene(trained_ws, tmp_path,
+                                                                                        tiny_recipe):
+    """An expert file copied in from a workspace of another scene was said to be stale because "the geometry was
+    retrained after it was trained on it", which sends the user looking for a retraining that never happened."""
+    from boostnerf_cli.scenes import make_scene
+
+    other = make_scene(tmp_path / "other-scene", size=32, n_train=12, n_test=3, seed=5)
+    ws = tmp_path / "ws"
+    run_cli("pretrain", "--data", str(other), "--recipe", str(tiny_recipe), "--workspace", str(ws), "--res", "12",
+            "--device", "cpu", check=True)
+    for suffix in (".safetensors", ".json"):
+        shutil.copy(trained_ws / "experts" / f"dvgo-16{suffix}", ws / "experts" / f"dvgo-16{suffix}")
+    proc = run_cli("eval", "-w", str(ws), "--model", "dvgo-16", "--device", "cpu", "--no-costs")
+    assert_clean_failure(proc, "dvgo-16 is stale: it was trained on another scene than this workspace's",
+                         f"`boostnerf pretrain -w {ws} --model dvgo --res 16 --force`")
+
+
 def test_eval_report_schema_and_render_outputs(trained_ws, tmp_path):
     missing = {ALEXNET_ENV: str(tmp_path / "none" / "alexnet-owt-7be5be79.pth"), LPIPS_ENV: str(tmp_path / "alex.pth")}
     run_cli("eval", "--workspace", str(trained_ws), "--split", "test", "--report", "--device", "cpu", check=True,
