@@ -435,12 +435,17 @@ class Workspace:
         held by a live process is refused with one clear line.
 
         A workspace folder this call creates is removed again if the command leaves it empty (it failed
-        before writing anything): the empty folders under it, then it and the parents it made.
+        before writing anything but the decoded scene's cache, which goes too): the empty folders under it, then it
+        and the parents it made.
         """
         made = [p for p in (self.root, *self.root.parents) if not p.exists()]
         try:
             with self._locked():
                 yield
+        except BaseException:
+            if made:  # the command failed in a workspace it made: the scene it decoded is no work to keep
+                remove(self.scene_cache)
+            raise
         finally:
             if made:
                 _remove_empty(self.root, made[-1])

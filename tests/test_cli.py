@@ -410,7 +410,13 @@ def test_a_scene_that_shows_only_its_background_is_one_line_and_writes_nothing(t
     proc = run_cli("pretrain", "--data", str(scene), "--recipe", str(tiny_recipe), "--workspace", str(ws),
                    "--device", "cpu")
     assert_clean_failure(proc, "6 training views", "nothing but the background", "alpha")
-    assert not (ws / "manifest.json").exists() and not (ws / "experts").exists() and no_temp_files(tmp_path)
+    assert not ws.exists() and no_temp_files(tmp_path)  # not even the scene's cache (it was left)
+    # the COLMAP layout too: it crashed writing its model without points
+    colmap = make_scene(tmp_path / "colmap", size=32, n_train=6, n_test=1, content="empty", layout="colmap")
+    proc = run_cli("pretrain", "--data", str(colmap), "--recipe", str(tiny_recipe), "--workspace", str(ws),
+                   "--device", "cpu")
+    assert_clean_failure(proc, "nothing but the background")
+    assert not ws.exists()
 
 
 def test_one_foreground_pixel_in_one_view_is_enough_to_train(tmp_path):

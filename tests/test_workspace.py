@@ -97,6 +97,13 @@ def test_a_refused_command_leaves_no_empty_workspace_behind(tmp_path):
     with ws.lock():
         (ws.root / "manifest.json").write_text("{}")
     assert (ws.root / "manifest.json").exists()  # written: kept
+    # a scene refused after it was read (all background) left the workspace holding only the scene's cache
+    from boostnerf_cli.scenes import make_scene
+
+    empty = make_scene(tmp_path / "empty", size=16, n_train=4, n_test=1, seed=0, content="empty")
+    assert_clean_failure(run_cli("pretrain", "--data", str(empty), "--workspace", str(new)),
+                         "nothing but the background")
+    assert not (tmp_path / "runs").exists()
 
 
 def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):

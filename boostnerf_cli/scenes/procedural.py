@@ -690,7 +690,9 @@ def _colmap_points(objects: list[dict], poses: np.ndarray, k: Tensor, size: int,
                    per_side: int = 12) -> tuple[np.ndarray, np.ndarray, list[list[tuple[int, float, float]]]]:
     """Surface points for a COLMAP model: the first hits of a `per_side`^2 grid of pixel rays of every view, and for
     each the views that see it (in the image, nothing nearer on the way) with where: -> xyz (P, 3), rgb (P, 3) uint8,
-    observations[p] = [(view, u, v), ...]."""
+    observations[p] = [(view, u, v), ...]. A scene without objects has none (an empty model)."""
+    if not objects:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), []
     rows = torch.div(torch.arange(per_side) * size, per_side, rounding_mode="floor") + size // (2 * per_side)
     index = (rows[:, None] * size + rows[None, :]).reshape(-1)
     xyz, rgb = [], []
