@@ -38,6 +38,15 @@ def test_the_orbit_rigs_walk_part_way_round_an_object_in_an_opaque_room(tmp_path
         make_scene(tmp_path / "x", size=8, layout="blender", rig=rig)
 
 
+@pytest.mark.parametrize("rig", ["sphere", "orbit"])
+def test_the_llff_layout_refuses_a_rig_all_around(tmp_path, rig):
+    """LLFF is forward-facing (boostnerf samples it in NDC; docs/datasets.md): a 360-degree rig written in it trained
+    to 10 dB with a warning whose two remedies were then refused."""
+    with pytest.raises(BoostNerfError, match=f"the llff layout is forward-facing: --rig {rig}"):
+        make_scene(tmp_path / "x", size=8, layout="llff", rig=rig)
+    assert not (tmp_path / "x").exists()
+
+
 def _opaque_on_white(folder: Path) -> Path:
     """The nerfstudio scene in `folder` with its RGBA photos flattened onto white (alpha dropped): an object
     photographed on a plain background."""

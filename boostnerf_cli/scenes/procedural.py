@@ -781,6 +781,9 @@ def _checked_arguments(size: int, n_train: int, n_test: int, seed: int, layout: 
     if lens != "pinhole" and layout not in LENS_LAYOUTS:
         raise BoostNerfError(f"the {layout} layout records no lens distortion: use --lens with "
                              f"{' or '.join(LENS_LAYOUTS)}")
+    if layout == "llff" and rig != "forward":
+        raise BoostNerfError(f"the llff layout is forward-facing: --rig {rig} looks all around the scene; use --rig "
+                             "forward, or another --format (blender, nerfstudio, colmap ...) for this rig")
     if rig in OPAQUE_RIGS and layout != "nerfstudio":
         raise BoostNerfError(f"--rig {rig} writes an opaque capture in the nerfstudio layout, not {layout}: "
                              "add --format nerfstudio")
