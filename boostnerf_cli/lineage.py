@@ -328,6 +328,11 @@ class Survey:
         if artifact == "expert" and signature.get("geometry"):
             now = self.digest("geometry")
             return None if now == signature["geometry"] else _remake(artifact, root, name, "geometry", now is None)
+        if artifact == "baseline" and self.meta("init") is not None:  # the largest expert of moe/init's mixture
+            largest = (self.meta("init").get("mixture") or {}).get("expert_names", [None])[-1]
+            if largest is not None and largest not in inputs:
+                return (f"moe/init was rebuilt with {largest} as its largest expert after {name} was finetuned from "
+                        f"{', '.join(inputs)}", f"`boostnerf finetune -w {root} --baseline --force`")
         if artifact == "pruned" and not self.ws.report_path(name).exists():  # written last, after prune's check
             return (f"its prune did not finish (no moe/{name}.json, the check of its renders)",
                     f"`boostnerf prune -w {root} --model {next(iter(inputs))}`")

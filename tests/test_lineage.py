@@ -153,3 +153,21 @@ def test_a_survey_follows_every_stage_that_writes(mixture_ws, tmp_path):
     prune.run(survey, "top2", "train", "cpu", 1, False)
     _agrees_with_the_files(survey)
     assert survey.finished("top2-pruned") is not None and "top2-pruned" in survey.usable()
+
+
+def test_the_baseline_of_a_mixture_rebuilt_without_its_expert_is_stale(mixture_ws, tmp_path):
+    """The baseline is the largest expert of moe/init's mixture, finetuned alone. Rebuilt from smaller experts, moe/init
+    has another largest: the old baseline (dvgo-16's) was still evaluated, every "vs baseline" ratio taken against an
+    expert the mixture no longer holds. It is stale, as the mixtures are, with the command that makes it again."""
+    import shutil
+
+    from conftest import assert_clean_failure, run_cli
+
+    ws = shutil.copytree(mixture_ws, tmp_path / "ws")
+    run_cli("finetune", "-w", str(ws), "--baseline", "--iters", "5", "--device", "cpu", check=True)
+    run_cli("pretrain", "-w", str(ws), "--res", "8", "--device", "cpu", check=True)
+    run_cli("build-moe", "-w", str(ws), "--experts", "dvgo-8,dvgo-12", "--device", "cpu", check=True)
+    proc = run_cli("eval", "-w", str(ws), "--model", "baseline", "--device", "cpu", "--no-costs")
+    assert_clean_failure(proc, "baseline is stale: moe/init was rebuilt with dvgo-12 as its largest expert after "
+                         "baseline was finetuned from dvgo-16", "--baseline --force")
+
