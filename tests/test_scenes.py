@@ -711,3 +711,15 @@ def test_a_cached_scene_is_the_decoded_scene_until_its_files_or_settings_change(
     cache.write_bytes(bytes(data))
     again = load_scene(folder, image_size=8, cache=cache)
     assert len(calls) == 3 and torch.isfinite(again.splits["train"].images).all()
+
+
+@pytest.mark.parametrize("lens, model", [("pinhole", "OPENCV"), ("opencv", "OPENCV"), ("fisheye", "OPENCV_FISHEYE")])
+def test_make_scene_s_readme_says_the_camera_model_its_transforms_hold(tmp_path, lens, model):
+    """README.txt of a nerfstudio scene said "camera_model OPENCV ... zero distortion" whatever the lens."""
+    folder = make_scene(tmp_path / lens, size=16, n_train=2, n_test=1, layout="nerfstudio", rig="half-orbit",
+                        lens=lens)
+    meta = json.loads((folder / "transforms.json").read_text())
+    readme = (folder / "README.txt").read_text()
+    assert meta["camera_model"] == model
+    assert ("zero distortion" in readme) == (lens == "pinhole") and f"camera_model {model}" in readme, readme
+

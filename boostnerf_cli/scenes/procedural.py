@@ -494,7 +494,7 @@ LAYOUT_TEXT = {
             "near and far depth bounds), images/ and images_2/ (2x area-downscaled) RGB 8-bit PNGs on a white "
             "background; the test views at every 8th position (0, 8, ...), so the loader's every-8th hold-out gives "
             "the test split.",
-    "nerfstudio": "nerfstudio layout: transforms.json (camera_model OPENCV, fl_x fl_y cx cy w h, zero distortion, "
+    "nerfstudio": "nerfstudio layout: transforms.json (CAMERA_MODEL, fl_x fl_y cx cy w h, "
                   "OpenGL camera-to-world matrices), images/frame_*.png RGBA 8-bit, the test views at every 8th "
                   "position (0, 8, ...), so the loader's every-8th hold-out gives the test split.",
     "colmap": "COLMAP layout: sparse/0/cameras.bin, images.bin, points3D.bin (COLMAP's binary model: one shared "
@@ -763,6 +763,13 @@ def _write_colmap(out: Path, views: dict, k: Tensor, size: int, lens: str, objec
     write_model(model, out / "sparse" / "0", "bin")
 
 
+def _camera_model_text(lens: str) -> str:
+    """How transforms.json names the camera of `lens` (`_write_nerfstudio`), for README.txt."""
+    if lens == "fisheye":
+        return "camera_model OPENCV_FISHEYE, its k1 k2 k3 k4"
+    return "camera_model OPENCV, " + ("zero distortion" if lens == "pinhole" else "its k1 k2 p1 p2")
+
+
 def _checked_arguments(size: int, n_train: int, n_test: int, seed: int, layout: str, rig: str | None,
                        lens: str) -> str:
     """make-scene's arguments checked, one line for the first wrong one (before anything is written). -> the rig."""
@@ -858,8 +865,8 @@ def make_scene(out_dir: Path, size: int = 64, n_train: int = 24, n_test: int = 8
         text = README.format(seed=seed, ss=SUPERSAMPLE, n_train=n_train, n_test=n_test, size=size,
                              angle=angle,
                              rig_text=RIG_TEXT[rig].format(radius=RADIUS),
-                             layout_text=LAYOUT_TEXT[layout] + (f" Lens: {lens}, {LENSES[lens][0]}."
-                                                                if lens != "pinhole" else ""),
+                             layout_text=LAYOUT_TEXT[layout].replace("CAMERA_MODEL", _camera_model_text(lens))
+                             + (f" Lens: {lens}, {LENSES[lens][0]}." if lens != "pinhole" else ""),
                              content_text=CONTENT_TEXT[content])
         (tmp / "README.txt").write_text(text)
         if out_dir.is_dir():
