@@ -723,3 +723,15 @@ def test_make_scene_s_readme_says_the_camera_model_its_transforms_hold(tmp_path,
     assert meta["camera_model"] == model
     assert ("zero distortion" in readme) == (lens == "pinhole") and f"camera_model {model}" in readme, readme
 
+
+def test_a_forward_facing_colmap_folder_is_not_called_an_llff_capture(tmp_path):
+    """`auto` said "an LLFF capture" of any forward-facing scene, a COLMAP folder's too."""
+    from boostnerf_cli.scenes.kind import auto_kind
+
+    scene = load_scene(make_scene(tmp_path / "c", size=32, n_train=6, n_test=1, layout="colmap", rig="forward"))
+    kind, why = auto_kind(scene, False)
+    assert scene.ndc is not None and kind == "forward"
+    assert "LLFF" not in why and why.startswith("a colmap capture whose cameras face one way"), why
+    llff = load_scene(make_scene(tmp_path / "l", size=16, n_train=3, n_test=1, layout="llff"))
+    assert auto_kind(llff, False)[1].startswith("an LLFF capture")
+

@@ -73,7 +73,8 @@ def marks_background(scene: Scene) -> bool:
 def auto_kind(scene: Scene, bbox_given: bool) -> tuple[str, str]:
     """(kind, why) for `data.scene: auto` (module docstring)."""
     if scene.ndc is not None:
-        return "forward", "an LLFF capture: forward-facing, sampled in normalized device coordinates"
+        what = "an LLFF capture" if scene.format == "llff" else f"a {scene.format} capture whose cameras face one way"
+        return "forward", f"{what}: forward-facing, sampled in normalized device coordinates"
     if scene.format in LAYOUT_BOX:
         return "bounded", f"the {scene.format} layout gives the box or marks the background"
     if bbox_given:
