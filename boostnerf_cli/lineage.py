@@ -355,10 +355,15 @@ class Survey:
         return [n for n in self.models if self.stale(n) is None]
 
     def current(self, names: list[str] | None = None) -> list[str]:
-        """`names` (default: every model of the workspace), refused in one line when one is stale (`stale`): a table
-        or picture of a model made from an expert since retrained would compare it with what it no longer is."""
+        """`names` (default: every model of the workspace), refused in one line when one is not there or is stale
+        (`stale`): a table or picture of a model made from an expert since retrained would compare it with what it no
+        longer is."""
         have = self.models
         names = names or have
+        unknown = [n for n in names if n not in have]
+        if unknown:  # before any model is loaded or rendered, as load_model says it
+            raise BoostNerfError(f"no model named {unknown[0]!r} in {self.ws.root} (models: "
+                                 f"{', '.join(self.ws.all_model_names()) or 'none yet'})")
         stale_ones = {n: self.stale(n) for n in names if self.stale(n) is not None}
         if not stale_ones:
             return names

@@ -144,6 +144,14 @@ def test_an_expert_copied_from_another_scene_s_workspace_is_said_to_be_of_anothe
                          f"`boostnerf pretrain -w {ws} --model dvgo --res 16 --force`")
 
 
+def test_an_unknown_model_among_several_is_refused_before_any_is_rendered(mixture_ws):
+    """eval, render and count-params with `--model top2 --model nosuch` rendered top2 through, then failed."""
+    for command in ("eval", "render", "count-params"):
+        proc = run_cli(command, "-w", str(mixture_ws), "--model", "top2", "--model", "nosuch", "--device", "cpu")
+        assert_clean_failure(proc, "no model named 'nosuch'")
+        assert "top2:" not in proc.stderr, proc.stderr  # nothing said of top2's work: none was done
+
+
 def test_eval_report_schema_and_render_outputs(trained_ws, tmp_path):
     missing = {ALEXNET_ENV: str(tmp_path / "none" / "alexnet-owt-7be5be79.pth"), LPIPS_ENV: str(tmp_path / "alex.pth")}
     run_cli("eval", "--workspace", str(trained_ws), "--split", "test", "--report", "--device", "cpu", check=True,
