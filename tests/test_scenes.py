@@ -735,3 +735,18 @@ def test_a_forward_facing_colmap_folder_is_not_called_an_llff_capture(tmp_path):
     llff = load_scene(make_scene(tmp_path / "l", size=16, n_train=3, n_test=1, layout="llff"))
     assert auto_kind(llff, False)[1].startswith("an LLFF capture")
 
+
+def test_the_sparse_points_box_leaves_every_side_a_tenth_of_its_longest(tmp_path):
+    """A flat subject (a table top: points 2 wide, 0.2 high) got 10% of each axis' own extent: 0.02 below its
+    floor, less than one coarse cell, so pretrain warned that make-scene's own COLMAP scenes reach past their box."""
+    from boostnerf_cli.scenes.bounds import BOX_MARGIN, point_bounds
+
+    g = torch.Generator().manual_seed(0)
+    xyz = torch.rand(400, 3, generator=g, dtype=torch.float64) * torch.tensor([2.0, 2.0, 0.2])
+    poses = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    poses[:, 2, 3] = 5.0  # two cameras above, looking down the -z axis at the points
+    near, far, box, _ = point_bounds(xyz, poses, [torch.arange(400), torch.arange(400)])
+    lo, hi = torch.quantile(xyz, torch.tensor([0.01, 0.99], dtype=torch.float64), dim=0)
+    room = torch.cat([lo - box[0].double(), box[1].double() - hi])
+    assert torch.allclose(room, torch.full_like(room, BOX_MARGIN * float((hi - lo).max())), atol=1e-6), room
+

@@ -212,7 +212,8 @@ POINT_PERCENTILES = (1.0, 99.0)  # the sparse points inside these percentiles (p
 def point_bounds(xyz: Tensor, poses: Tensor, seen: list[Tensor]) -> tuple[float, float, Tensor, str] | None:
     """near, far, box (2, 3) and a line saying where they came from, for a scene with sparse points: the box holds the
     `POINT_PERCENTILES` (per axis) of the points the cameras (`poses`, N) see, `seen[i]` the indices view i sees, grown
-    by `BOX_MARGIN` of its size on every side; near / far from each view's depths of its points (`point_near_far`),
+    by `BOX_MARGIN` of its longest side on every side (a tenth of a thin axis' own extent was less than a coarse cell
+    below a table top); near / far from each view's depths of its points (`point_near_far`),
     near 0.9x the smallest, far 1.1x the largest. None when the views see fewer than `MIN_POINTS` points."""
     used = torch.unique(torch.cat(seen)) if seen else torch.zeros(0, dtype=torch.long)
     per_view = point_near_far(xyz, poses, seen, POINT_PERCENTILES)
@@ -221,9 +222,10 @@ def point_bounds(xyz: Tensor, poses: Tensor, seen: list[Tensor]) -> tuple[float,
         return None
     q = torch.tensor(POINT_PERCENTILES, dtype=torch.float64) / 100
     lo, hi = torch.quantile(xyz[used].double(), q, dim=0)
-    pad = BOX_MARGIN * (hi - lo).clamp_min(1e-6)
+    pad = BOX_MARGIN * float((hi - lo).max().clamp_min(1e-6))  # every side: a flat subject's thin axis too
     box = torch.stack([lo - pad, hi + pad]).float()
     near, far = 0.9 * float(per_view[ok, 0].min()), 1.1 * float(per_view[ok, 1].max())
     text = (f"the sparse points: percentiles {POINT_PERCENTILES[0]:g} to {POINT_PERCENTILES[1]:g} of the "
-            f"{len(used)} points the {len(poses)} training views see, widened by {100 * BOX_MARGIN:.0f}%")
+            f"{len(used)} points the {len(poses)} training views see, widened by {100 * BOX_MARGIN:.0f}% of the "
+            "longest side")
     return near, far, box, text
