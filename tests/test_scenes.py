@@ -750,3 +750,16 @@ def test_the_sparse_points_box_leaves_every_side_a_tenth_of_its_longest(tmp_path
     room = torch.cat([lo - box[0].double(), box[1].double() - hi])
     assert torch.allclose(room, torch.full_like(room, BOX_MARGIN * float((hi - lo).max())), atol=1e-6), room
 
+
+def test_a_forward_facing_scene_s_rays_past_its_box_get_a_remedy_that_applies_to_it(tmp_path):
+    """Rays of an LLFF capture ending past its box were told to set data.bbox or data.scene: unbounded, both
+    refused for an LLFF capture (a 360-degree capture in that layout: NDC holds only what lies in front)."""
+    from boostnerf_cli.scenes.kind import past_the_box_remedy, refusal
+
+    folder = make_scene(tmp_path / "l", size=16, n_train=3, n_test=1, layout="llff")
+    scene = load_scene(folder)
+    remedy = past_the_box_remedy(scene)
+    assert "data.bbox" not in remedy and "data.scene" not in remedy, remedy
+    assert f"boostnerf capture --images {folder / 'images'}" in remedy, remedy
+    assert refusal("unbounded", scene, folder, False)  # what it no longer names is refused indeed
+

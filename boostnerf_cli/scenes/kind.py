@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -102,6 +103,13 @@ def past_the_box_remedy(scene: Scene) -> str:
     unbounded = ("set recipe key data.scene: unbounded, which contracts the world around the cameras "
                  "(docs/datasets.md, \"Scene kinds\")")
     bbox = "give recipe key data.bbox a box that holds the subject (docs/datasets.md, \"The scene box\")"
+    if scene.ndc is not None:  # neither key applies to a forward-facing capture (`refusal`)
+        folder = Path(scene.source)  # its full-size photos, else the largest of those it has (fern: images_8/)
+        found = [f for f in (folder / "images", *sorted(folder.glob("images_*"), key=lambda f: f.name)) if f.is_dir()]
+        images = found[0] if found else folder / "images"
+        return ("a forward-facing capture is sampled in normalized device coordinates, which hold only what lies in "
+                "front of its cameras: if they look all around the subject, make a scene of its photos that can be "
+                f"sampled all around, `boostnerf capture --images {images} --out NEW`, and train on that")
     if opaque_all_round(scene) and not scene.extra.get("bbox"):
         return f"the views show scenery past the box: {unbounded}; if only the subject is cut, {bbox}"
     return f"if that is the subject, {bbox}; if it is scenery (a room, a landscape), {unbounded}"
