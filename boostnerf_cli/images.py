@@ -179,12 +179,17 @@ def video_target(path: Path) -> tuple[Path, str]:
 
 def write_videos(videos: list[tuple[Path, list[np.ndarray]]], fps: float, fmt: str) -> None:
     """Videos (path, frames: uint8 RGB of one size) as MP4 or GIF (`encode_video`), as one set: each encoded to a
-    temporary file next to it, and only once every one is, all renamed into place; one that fails leaves none of them
-    written (the previous versions unchanged)."""
+    temporary file next to it, and only once every one is, all renamed into place; one that fails to encode leaves
+    none of them written (the previous versions unchanged). The callers check the paths first (`check_writable`)."""
     with contextlib.ExitStack() as stack:
         temporary = [stack.enter_context(atomic_path(path, keep_suffix=True)) for path, _ in videos]  # ffmpeg: suffix
-        for tmp, (_, frames) in zip(temporary, videos):
-            encode_video(tmp, frames, fps, fmt)
+        for tmp, (path, frames) in zip(temporary, videos):
+            try:
+                encode_video(tmp, frames, fps, fmt)
+            except OSError as e:  # said of its own file here: left to the stack, the last one entered would name its
+                raise BoostNerfError(f"could not write {path} ({e.strerror or e}); no video of the set was written: "
+                                     "free disk space or fix the folder's permissions and rerun the same command"
+                                     ) from None
 
 
 def encode_video(path: Path, frames: list[np.ndarray], fps: float, fmt: str) -> None:

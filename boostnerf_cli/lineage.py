@@ -320,7 +320,7 @@ class Survey:
             return None
         signature = self.signature(name) or {}
         artifact, inputs, root = signature.get("artifact"), signature.get("inputs") or {}, self.ws.root
-        scene = self.ws.manifest().get("scene_id")
+        scene = self.manifest(required=False).get("scene_id")
         if artifact == "expert" and signature.get("scene") and scene and signature["scene"] != scene:  # copied in
             model, _, res = name.rpartition("-")
             return ("it was trained on another scene than this workspace's",
@@ -329,10 +329,13 @@ class Survey:
             now = self.digest("geometry")
             return None if now == signature["geometry"] else _remake(artifact, root, name, "geometry", now is None)
         if artifact == "baseline" and self.meta("init") is not None:  # the largest expert of moe/init's mixture
-            largest = (self.meta("init").get("mixture") or {}).get("expert_names", [None])[-1]
+            largest = ((self.meta("init").get("mixture") or {}).get("expert_names") or [None])[-1]
             if largest is not None and largest not in inputs:
-                return (f"moe/init was rebuilt with {largest} as its largest expert after {name} was finetuned from "
-                        f"{', '.join(inputs)}", f"`boostnerf finetune -w {root} --baseline --force`")
+                # what it was made from, remade first, is said first (the geometry up)
+                earlier = next((e for e in map(self.stale, (*inputs, largest)) if e is not None), None)
+                return earlier or (f"moe/init was rebuilt with {largest} as its largest expert after {name} was "
+                                   f"finetuned from {', '.join(inputs)}",
+                                   f"`boostnerf finetune -w {root} --baseline --force`")
         if artifact == "pruned" and not self.ws.report_path(name).exists():  # written last, after prune's check
             return (f"its prune did not finish (no moe/{name}.json, the check of its renders)",
                     f"`boostnerf prune -w {root} --model {next(iter(inputs))}`")

@@ -443,8 +443,10 @@ class Workspace:
             with self._locked():
                 yield
         except BaseException:
-            if made:  # the command failed in a workspace it made: the scene it decoded is no work to keep
-                remove(self.scene_cache)
+            if made:  # failed in a workspace it made, having written nothing but the decoded scene: that goes too
+                with suppress(OSError):
+                    if [p for p in self.root.rglob("*") if not p.is_dir()] == [self.scene_cache]:
+                        remove(self.scene_cache)
             raise
         finally:
             if made:
@@ -614,13 +616,13 @@ class Workspace:
 
     def own_file(self, path: Path) -> str | None:
         """What `path` is of the workspace's own files, which only the stages write: "manifest", or the folder of
-        models, reports, checkpoints or cache it lies in; None for any other path (renders/, camera_paths/, outside)."""
+        models, reports, checkpoints, cache or generated scene it lies in (links followed); None for any other path
+        (renders/, camera_paths/, outside)."""
         path = Path(path).resolve()
-        root = self.root.resolve()
-        if path == root / "manifest.json":
+        if path == self.manifest_path.resolve():
             return "manifest"
-        for folder in ("experts", "moe", "reports", "checkpoints", "cache"):
-            if path.is_relative_to(root / folder):
+        for folder in ("experts", "moe", "reports", "checkpoints", "cache", "scene"):  # scene: the one generated here
+            if path.is_relative_to((self.root / folder).resolve()):
                 return f"{folder}/ folder"
         return None
 

@@ -432,9 +432,14 @@ def test_a_video_set_whose_encoding_fails_leaves_no_file(trained_ws, tmp_path, m
     scene = Survey(Workspace(trained_ws)).scene()
     shots = render_stage.film(model, scene, [render_stage.Camera(*c) for c in [
         (scene.split("test").poses[0], scene.split("test").intrinsics[0], 16, 16)]], "cpu", ALL_SKIPS, "test")
-    with pytest.raises(BoostNerfError, match="No space left"):
+    with pytest.raises(BoostNerfError, match="could not write .*x_depth.gif \\(No space left"):
         render_stage.write_film(shots, tmp_path / "v" / "x.gif", "gif", 4, "test")
     assert len(calls) == 2 and list((tmp_path / "v").iterdir()) == []
+    calls.clear()  # of three videos, the second failing is named, not the last one entered
+    frames = shots.rgb
+    with pytest.raises(BoostNerfError, match="could not write .*b.gif \\(No space left"):
+        images.write_videos([(tmp_path / "w" / f"{n}.gif", frames) for n in "abc"], 4, "gif")
+    assert list((tmp_path / "w").iterdir()) == []
 
 
 def test_a_mixtures_path_has_a_routing_video_of_the_maps_the_viewer_shows(mixture_ws, tmp_path):
@@ -659,6 +664,14 @@ def test_camera_path_never_writes_over_the_workspace_s_own_files(trained_ws, tmp
         proc = run_cli("camera-path", "-w", str(ws), "--views", "0,1", "--out", str(target))
         assert_clean_failure(proc, "is the workspace's own")
         assert (target.read_bytes() if target.exists() else None) == before, own
+    elsewhere = tmp_path / "scratch"  # the cache on another disk, through a link: still the workspace's own
+    elsewhere.mkdir()
+    shutil.rmtree(ws / "cache", ignore_errors=True)
+    (ws / "cache").symlink_to(elsewhere, target_is_directory=True)
+    for own in (ws / "cache" / "x.json", ws / "scene" / "transforms_train.json"):  # scene: a generated default one
+        assert_clean_failure(run_cli("camera-path", "-w", str(ws), "--views", "0,1", "--out", str(own)),
+                             "is the workspace's own")
+    assert not (elsewhere / "x.json").exists() and not (ws / "scene").exists()
     out = ws / "camera_paths" / "mine.json"
     run_cli("camera-path", "-w", str(ws), "--views", "0,1", "--out", str(out), check=True)
     assert out.exists()

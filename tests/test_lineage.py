@@ -170,4 +170,12 @@ def test_the_baseline_of_a_mixture_rebuilt_without_its_expert_is_stale(mixture_w
     proc = run_cli("eval", "-w", str(ws), "--model", "baseline", "--device", "cpu", "--no-costs")
     assert_clean_failure(proc, "baseline is stale: moe/init was rebuilt with dvgo-12 as its largest expert after "
                          "baseline was finetuned from dvgo-16", "--baseline --force")
+    # its expert stale too (retrained geometry): that is said first, since it is remade first
+    from boostnerf_cli.lineage import Survey
+    from boostnerf_cli.workspace import Workspace
+
+    survey = Survey(Workspace(ws))
+    survey.stale("dvgo-12")
+    survey._stale["dvgo-12"] = ("the geometry was retrained after dvgo-12 was trained on it", "pretrain it")
+    assert survey._why_stale("baseline") == survey._stale["dvgo-12"]
 

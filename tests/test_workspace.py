@@ -104,6 +104,9 @@ def test_a_refused_command_leaves_no_empty_workspace_behind(tmp_path):
     assert_clean_failure(run_cli("pretrain", "--data", str(empty), "--workspace", str(new)),
                          "nothing but the background")
     assert not (tmp_path / "runs").exists()
+    (tmp_path / "afile").write_text("")  # a workspace that cannot be made: its own line, not the cache's
+    assert_clean_failure(run_cli("pretrain", "--data", str(empty), "--workspace", str(tmp_path / "afile" / "ws")),
+                         "cannot create workspace")
 
 
 def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):

@@ -105,7 +105,8 @@ def past_the_box_remedy(scene: Scene) -> str:
     bbox = "give recipe key data.bbox a box that holds the subject (docs/datasets.md, \"The scene box\")"
     if scene.ndc is not None:  # neither key applies to a forward-facing capture (`refusal`)
         folder = Path(scene.source)  # its full-size photos, else the largest of those it has (fern: images_8/)
-        found = [f for f in (folder / "images", *sorted(folder.glob("images_*"), key=lambda f: f.name)) if f.is_dir()]
+        scaled = sorted((f for f in folder.glob("images_*") if f.name[7:].isdigit()), key=lambda f: int(f.name[7:]))
+        found = [f for f in (folder / "images", *scaled) if f.is_dir()]
         images = found[0] if found else folder / "images"
         return ("a forward-facing capture is sampled in normalized device coordinates, which hold only what lies in "
                 "front of its cameras: if they look all around the subject, make a scene of its photos that can be "
