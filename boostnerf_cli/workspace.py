@@ -55,7 +55,7 @@ _TEMP_FILE = re.compile(r"\.(.+)\.[a-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?")
 # The folders a workspace's writers write in (bench adds rows/ and variants/, each variant a workspace), the files
 # they write in its root, and the embedded scene's folder while make_scene generates it (pretrain or bench without
 # --data).
-WRITTEN_FOLDERS = ("experts", "moe", "reports", "checkpoints", "renders", "camera_paths", "rows", "variants")
+WRITTEN_FOLDERS = ("experts", "moe", "reports", "checkpoints", "cache", "renders", "camera_paths", "rows", "variants")
 ROOT_FILES = ("manifest.json", "bench-config.json")
 SCENE_TMP = ".scene.tmp"
 

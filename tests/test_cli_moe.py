@@ -192,6 +192,12 @@ def test_build_moe_names_an_expert_it_leaves_out_for_want_of_its_report(trained_
     # one expert left: the untrained mixture routes to it (moe.topk = 2 was refused, and build-moe has no --topk)
     assert "note: moe.topk = 2 but the mixture has 1 expert: moe/init routes to 1" in proc.stderr
     assert json.loads((ws / "moe" / "init.json").read_text())["experts"] == ["dvgo-16"]
+    # an expert still in training (pretrain interrupted: its checkpoint, no weights yet) is named too; it was not
+    (ws / "checkpoints").mkdir(exist_ok=True)
+    (ws / "checkpoints" / "dvgo-20.pt").write_bytes(b"a training state")
+    proc = run_cli("build-moe", "--workspace", str(ws), "--device", "cpu", check=True)
+    assert "leaving out dvgo-20: still in training (checkpoints/dvgo-20.pt; rerun pretrain to finish it)" in \
+        proc.stderr, proc.stderr
 
 
 def test_a_file_in_the_way_of_the_checkpoints_folder_is_one_line(moe_ws, tmp_path):

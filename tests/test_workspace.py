@@ -109,6 +109,18 @@ def test_a_refused_command_leaves_no_empty_workspace_behind(tmp_path):
                          "cannot create workspace")
 
 
+def test_a_killed_writer_s_temporary_scene_cache_is_found(tmp_path):
+    """The scene cache is written through atomic_path like any artifact: a writer killed mid-write left
+    `cache/.scene.safetensors.XXXXXXXX.tmp` (12 bytes a pixel and view) through every later command."""
+    from boostnerf_cli.workspace import stale_temporaries
+
+    (tmp_path / "cache").mkdir()
+    left = tmp_path / "cache" / ".scene.safetensors._gt7dqzp.tmp"
+    left.write_bytes(b"partial")
+    (tmp_path / "cache" / "scene.safetensors").write_bytes(b"kept")
+    assert stale_temporaries(tmp_path) == [left]
+
+
 def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     (tmp_path / ".lock").write_text(f"{socket.gethostname()} {int(dead.stdout)}")

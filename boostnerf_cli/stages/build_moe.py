@@ -101,6 +101,11 @@ def _experts(survey: Survey, names: list[str] | None, rec: MoERecipe,
     if unfinished and not names:
         log(f"build-moe: leaving out {', '.join(unfinished)}: weights without a training report (pretrain did not "
             "finish them; rerun pretrain to)")
+    training = sorted(p.stem for p in ws.checkpoints_dir.glob("*.pt") if p.stem.rpartition("-")[0] in FAMILIES
+                      and p.stem.rpartition("-")[2].isdigit() and p.stem not in available + unfinished)
+    if training and not names:  # pretrain interrupted in them: a training state, no weights yet
+        log(f"build-moe: leaving out {', '.join(training)}: still in training "
+            f"({', '.join(f'checkpoints/{n}.pt' for n in training)}; rerun pretrain to finish it)")
     names = names or available
     missing = [n for n in names if n not in available]
     if missing:
