@@ -11,6 +11,7 @@ import logging
 import math
 import sys
 import time
+import zlib
 from collections import deque
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -30,7 +31,7 @@ from boostnerf_cli.recipe import TrainRecipe
 from boostnerf_cli.render.rays import NDC, image_rays, intersect_box
 from boostnerf_cli.scenes.scene import Split
 from boostnerf_cli.startup import CLOCK
-from boostnerf_cli.workspace import FORMAT_VERSION, MALFORMED, malformed, save_torch, tensors_digest
+from boostnerf_cli.workspace import FORMAT_VERSION, MALFORMED, malformed, save_torch
 
 _log = logging.getLogger(__name__)  # a run's messages and warnings (cli.py says them on stderr)
 
@@ -246,8 +247,22 @@ def grads_finite(params: list[Tensor], device: torch.device | str = "cpu") -> Te
     return torch.stack([g.sum() for g in grads]).isfinite().all()
 
 
+def state_checksum(obj) -> int:
+    """CRC-32 of every tensor of a nested state (`_state_tensors`: path, dtype, shape and bytes, in path order): what a
+    checkpoint keeps to tell it was damaged after writing. A CRC, not `tensors_digest`'s hash, for speed: 0.06 s for
+    216 MB against 0.28 s, one thread (a paper-sized mixture's state is several GB, checkpointed every few thousand
+    steps on a GPU)."""
+    crc = 0
+    for name, t in sorted(_state_tensors(obj).items()):
+        t = t.detach().contiguous().cpu()
+        crc = zlib.crc32(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode(), crc)
+        if t.numel():
+            crc = zlib.crc32(t.reshape(-1).view(torch.uint8).numpy(), crc)
+    return crc
+
+
 def _state_tensors(obj, where: str = "") -> dict[str, Tensor]:
-    """Every tensor of a nested state (dicts, lists, tuples), by its path: what a checkpoint's digest is made of."""
+    """Every tensor of a nested state (dicts, lists, tuples), by its path: what a checkpoint's checksum is made of."""
     if isinstance(obj, Tensor):
         return {where: obj}
     items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, (list, tuple)) else ()
@@ -508,10 +523,10 @@ class TrainCheckpoint:
         if state.get("format_version") != FORMAT_VERSION:
             raise BoostNerfError(f"training checkpoint {self.path} has file format {state.get('format_version')!r}, "
                                  f"and this boostnerf reads format {FORMAT_VERSION!r}: delete it to restart this model")
-        digest = state.pop("digest", None)
-        if digest is not None and tensors_digest(_state_tensors(state)) != digest:
+        checksum = state.pop("checksum", None)
+        if checksum is not None and state_checksum(state) != checksum:
             raise BoostNerfError(f"training checkpoint {self.path} is damaged: its numbers are not those written with "
-                                 "it (their digest differs); delete it to restart this model")
+                                 "it (their checksum differs); delete it to restart this model")
         return state
 
     def resume(self, task: TrainTask, gen: torch.Generator,
@@ -558,7 +573,7 @@ class TrainCheckpoint:
             "cuda_rng": cuda_rng_state(device), "signature": self.signature, "trend": run.trend.state(),
             "format_version": FORMAT_VERSION,
         }
-        save_torch(self.path, {**state, "digest": tensors_digest(_state_tensors(state))})  # checked by `load`
+        save_torch(self.path, {**state, "checksum": state_checksum(state)})  # checked by `load`
 
 
 def _check_rays(rays: RayData, sched: Schedule, title: str, parallel: bool) -> None:
