@@ -181,6 +181,26 @@ def test_a_checkpoint_of_an_earlier_file_format_is_refused_in_one_line(setup, tm
 
 
 @pytest.mark.slow
+def test_an_interrupted_pretrain_force_run_does_not_retrain_the_experts_it_finished(setup, tmp_path):
+    """`pretrain --force` interrupted in its second expert, rerun as the interrupt line says (the same command): the
+    first expert, already retrained by this run, was trained a third time. It is kept now, the second resumes, and
+    once the run ends a new --force retrains everything again."""
+    _, _, ref, args = setup
+    ws = tmp_path / "ws"
+    shutil.copytree(ref, ws)
+    forced = [*(a if a != str(ref) else str(ws) for a in args), "--iters", "28", "--force"]
+    run_killed(forced, "write:dvgo-14.pt")  # dvgo-10 retrained (28 steps), killed at dvgo-14's first checkpoint
+    first = (ws / "experts" / "dvgo-10.safetensors").read_bytes()
+    proc = run_cli(*forced, check=True)
+    assert "dvgo-10: already retrained by this --force run, skipping" in proc.stderr, proc.stderr
+    assert (ws / "experts" / "dvgo-10.safetensors").read_bytes() == first
+    assert json.loads((ws / "experts" / "dvgo-14.json").read_text())["iterations"] == 28
+    assert "forced" not in json.loads((ws / "manifest.json").read_text())  # the run is over
+    proc = run_cli(*forced, check=True)  # a new --force run: both retrained
+    assert "already retrained" not in proc.stderr and proc.stderr.count("steps in") == 2, proc.stderr
+    assert_clean(ws)
+
+
 def test_an_interrupted_force_run_resumes_and_force_drops_a_checkpoint_of_other_settings(setup, tmp_path):
     """`finetune --force` (and `pretrain --force`) deleted the model's training checkpoint
     before training, so an interrupted --force run restarted from step 0 on every rerun of the same command, though

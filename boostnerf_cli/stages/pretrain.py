@@ -332,6 +332,8 @@ def run(survey: Survey, data: Path | None, rec: Recipe, device: str, force: bool
     with dist.together():
         for res in assign(todo, dist.world_size())[dist.rank()]:
             report = pretrain_expert(site, rec.pretrain, res, geometry, force)
+            if force and dist.is_main():  # retrained by this --force run: kept if it is interrupted and rerun
+                ws.update_manifest(**{FORCED: [recipe_dict(rec), [*forced_done(ws, rec), report["name"]]]})
             log(f"{report['name']}: {report['iterations']} steps in {report['seconds']:.0f}s, train PSNR "
                 f"{report['train_psnr']:.2f}"
                 + (f", held-out PSNR {report['test_psnr']:.2f}" if "test_psnr" in report else ""))
@@ -339,7 +341,22 @@ def run(survey: Survey, data: Path | None, rec: Recipe, device: str, force: bool
                for res in sorted(rec.pretrain.res)]
     dist.on_main(lambda: ws.update_manifest(experts={r["name"]: {"res": r["res"], "params": r["params"]}
                                                      for r in reports}))
+    if force and dist.is_main() and FORCED in (manifest := ws.manifest()):  # the run is over: a new one retrains all
+        manifest.pop(FORCED)
+        write_json(ws.manifest_path, manifest)
     return reports
+
+
+# The manifest's record of a `pretrain --force` run under way: [its recipe, the experts it has retrained]. Rerun with
+# the same recipe after an interruption (as the interrupt line says), it does not retrain those again; the run's end
+# removes it.
+FORCED = "forced"
+
+
+def forced_done(ws, rec: Recipe) -> list[str]:
+    """The experts an interrupted `pretrain --force` run of recipe `rec` retrained already (`FORCED`), else []."""
+    record = ws.manifest().get(FORCED)
+    return list(record[1]) if isinstance(record, list) and len(record) == 2 and record[0] == recipe_dict(rec) else []
 
 
 def check_foreground(scene: Scene, data: Path) -> None:
@@ -377,22 +394,29 @@ def _prepare(survey: Survey, data: Path | None, rec: Recipe, device: str,
     site = Site(survey, scene, tag, device)
     retrain = _geometry_changed(site, rec.pretrain, force)
     decisions = {}  # every finished expert's, before anything is written (a refusal leaves the manifest as it is)
+    # a --force run of this recipe that was interrupted: the experts it retrained already are kept (FORCED)
+    done = forced_done(ws, rec) if force else []
     for res in sorted(rec.pretrain.res):
         name = expert_name(rec.pretrain.model, res)
         if (found := survey.finished(name)) is not None:
             geometry = (found.signature or {}).get("geometry")  # the geometry stage checks its own settings
             wanted = ExpertSpec.of(rec.pretrain, res, expert_options(rec.pretrain, res), tag, geometry).signature()
-            decisions[res] = decide(found, wanted, force).check()
+            decisions[res] = decide(found, wanted, force and not (
+                name in done and decide(found, wanted).action == SKIP)).check()
+            if force and decisions[res].action == SKIP:
+                log(f"{name}: already retrained by this --force run, skipping")
     if dist.is_main():
         ws.update_manifest(data=spec.record(), scene_id=tag, scene_digest=digest, scene=scene.describe(),
-                           recipe=recipe_dict(rec))
+                           recipe=recipe_dict(rec), **({FORCED: [recipe_dict(rec), done]} if force else {}))
     _describe(scene)
     geometry = ensure_geometry(site, rec.pretrain.geometry, rec.pretrain.seed, rec.pretrain.train.checkpoint_every,
                                retrain)
     todo = []
     for res in sorted(rec.pretrain.res):
-        if decisions.get(res) is not None and decisions[res].action == SKIP:
+        if decisions.get(res) is not None and decisions[res].action == SKIP and not force:
             log(f"{expert_name(rec.pretrain.model, res)}: already trained, skipping (use --force to retrain)")
+        elif decisions.get(res) is not None and decisions[res].action == SKIP:
+            pass  # said above: retrained by this --force run before it was interrupted
         else:
             todo.append(res)  # with --force, a checkpoint of other settings is dropped when training starts
     if retrain:  # the experts this run does not train again were trained on the old geometry
