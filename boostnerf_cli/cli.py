@@ -160,13 +160,18 @@ def _reader(workspace: Path):
     return ws, ws.reading()
 
 
-def _int_list(text: str, what: str) -> list[int]:
+def _entries(text: str, what: str, give: str) -> list[str]:
+    """A comma-separated option's entries; one lost ("8,,12", ",8") is refused, a trailing comma tolerated."""
     parts = text.replace(" ", "").split(",")
-    if "" in parts[:-1]:  # "8,,12" or ",8": a value lost (a trailing comma is tolerated)
-        raise BoostNerfError(f"{what} has an empty entry (got {text!r}): give comma-separated whole numbers, e.g. "
-                             "160,200,256")
+    if "" in parts[:-1]:
+        raise BoostNerfError(f"{what} has an empty entry (got {text!r}): give {give}")
+    return [p for p in parts if p]
+
+
+def _int_list(text: str, what: str) -> list[int]:
+    entries = _entries(text, what, "comma-separated whole numbers, e.g. 160,200,256")
     try:
-        values = [int(v) for v in parts if v]
+        values = [int(v) for v in entries]
     except ValueError:
         raise BoostNerfError(f"{what} must be comma-separated whole numbers, e.g. 160,200,256 (got {text!r})") from None
     if not values:
@@ -175,15 +180,15 @@ def _int_list(text: str, what: str) -> list[int]:
 
 
 def _name_list(text: Optional[str], what: str) -> Optional[list[str]]:
-    """Comma-separated names -> the list (None for none given); an entry lost ("a,,b", ",") is refused as
-    `_int_list` refuses it, never read as "all"."""
+    """Comma-separated names -> the list (None for none given); no name at all ("", ",") is refused as an entry lost
+    is, never read as "all"."""
     if text is None:
         return None
-    parts = text.replace(" ", "").split(",")
-    if "" in parts[:-1] or not any(parts):
-        raise BoostNerfError(f"{what} has an empty entry (got {text!r}): give comma-separated names, or leave {what} "
-                             "out for all")
-    return [p for p in parts if p]
+    give = f"comma-separated names, or leave {what} out for all"
+    names = _entries(text, what, give)
+    if not names:
+        raise BoostNerfError(f"{what} has an empty entry (got {text!r}): give {give}")
+    return names
 
 
 def _res_list(text: Optional[str]) -> Optional[list[int]]:

@@ -274,14 +274,8 @@ def _state_tensors(obj, where: str = "") -> dict[str, Tensor]:
 
 def _non_finite_entry(obj, where: str = "") -> str | None:
     """The first floating-point tensor in a nested state holding NaN or infinity, by its path; None if none."""
-    if isinstance(obj, Tensor):
-        return where if obj.is_floating_point() and not bool(torch.isfinite(obj).all()) else None
-    items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, (list, tuple)) else ()
-    for k, v in items:
-        found = _non_finite_entry(v, f"{where}.{k}" if where else str(k))
-        if found is not None:
-            return found
-    return None
+    return next((path for path, t in _state_tensors(obj, where).items()
+                 if t.is_floating_point() and not bool(torch.isfinite(t).all())), None)
 
 
 def batch_gradients(task: TrainTask, rays: RayData, idx: Tensor, step: int,

@@ -403,8 +403,6 @@ def _prepare(survey: Survey, data: Path | None, rec: Recipe, device: str,
             wanted = ExpertSpec.of(rec.pretrain, res, expert_options(rec.pretrain, res), tag, geometry).signature()
             decisions[res] = decide(found, wanted, force and not (
                 name in done and decide(found, wanted).action == SKIP)).check()
-            if force and decisions[res].action == SKIP:
-                log(f"{name}: already retrained by this --force run, skipping")
     if dist.is_main():
         ws.update_manifest(data=spec.record(), scene_id=tag, scene_digest=digest, scene=scene.describe(),
                            recipe=recipe_dict(rec), **({FORCED: [recipe_dict(rec), done]} if force else {}))
@@ -413,10 +411,10 @@ def _prepare(survey: Survey, data: Path | None, rec: Recipe, device: str,
                                retrain)
     todo = []
     for res in sorted(rec.pretrain.res):
-        if decisions.get(res) is not None and decisions[res].action == SKIP and not force:
-            log(f"{expert_name(rec.pretrain.model, res)}: already trained, skipping (use --force to retrain)")
-        elif decisions.get(res) is not None and decisions[res].action == SKIP:
-            pass  # said above: retrained by this --force run before it was interrupted
+        if decisions.get(res) is not None and decisions[res].action == SKIP:
+            name = expert_name(rec.pretrain.model, res)
+            log(f"{name}: already retrained by this --force run, skipping" if force else
+                f"{name}: already trained, skipping (use --force to retrain)")
         else:
             todo.append(res)  # with --force, a checkpoint of other settings is dropped when training starts
     if retrain:  # the experts this run does not train again were trained on the old geometry
