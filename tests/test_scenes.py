@@ -762,9 +762,10 @@ def test_a_forward_facing_scene_s_rays_past_its_box_get_a_remedy_that_applies_to
     assert "data.bbox" not in remedy and "data.scene" not in remedy, remedy
     assert f"boostnerf capture --images {folder / 'images'}" in remedy, remedy
     assert refusal("unbounded", scene, folder, False)  # what it no longer names is refused indeed
-    shots = tmp_path / "shots"  # the largest photos it has, by their factor (images_16 sorts before images_2)
-    for name in ("images_16", "images_2", "images_masks"):
+    shots = tmp_path / "shots"  # the largest photos it has (images_16 sorts before images_2), as the loader picks
+    for name, side in (("images_16", 4), ("images_2", 32), ("images_masks", 64)):
         (shots / name).mkdir(parents=True)
+        iio.imwrite(shots / name / "p0.png", np.zeros((side, side, 3), np.uint8))
     import dataclasses
 
     assert f"--images {shots / 'images_2'} " in past_the_box_remedy(dataclasses.replace(scene, source=str(shots)))

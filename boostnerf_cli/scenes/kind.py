@@ -26,6 +26,7 @@ from torch import Tensor
 from boostnerf_cli.errors import BoostNerfError
 from boostnerf_cli.render.contraction import contraction_around, sphere_from_cameras, sphere_from_points
 from boostnerf_cli.render.paths import focus_point, scene_up
+from boostnerf_cli.scenes.llff import choose_folder
 from boostnerf_cli.scenes.scene import Scene
 
 KINDS = ("auto", "bounded", "unbounded", "forward")
@@ -104,10 +105,11 @@ def past_the_box_remedy(scene: Scene) -> str:
                  "(docs/datasets.md, \"Scene kinds\")")
     bbox = "give recipe key data.bbox a box that holds the subject (docs/datasets.md, \"The scene box\")"
     if scene.ndc is not None:  # neither key applies to a forward-facing capture (`refusal`)
-        folder = Path(scene.source)  # its full-size photos, else the largest of those it has (fern: images_8/)
-        scaled = sorted((f for f in folder.glob("images_*") if f.name[7:].isdigit()), key=lambda f: int(f.name[7:]))
-        found = [f for f in (folder / "images", *scaled) if f.is_dir()]
-        images = found[0] if found else folder / "images"
+        folder = Path(scene.source)
+        try:  # its largest photos, as the LLFF loader picks them (fern: images_8/)
+            images = choose_folder(folder, None)[0]
+        except (BoostNerfError, OSError):  # a layout without images_<N>/ folders (COLMAP's images/), or none readable
+            images = folder / "images"
         return ("a forward-facing capture is sampled in normalized device coordinates, which hold only what lies in "
                 "front of its cameras: if they look all around the subject, make a scene of its photos that can be "
                 f"sampled all around, `boostnerf capture --images {images} --out NEW`, and train on that")
